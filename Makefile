@@ -1,0 +1,30 @@
+# Two entry points: `make demo` (the main job) and `make test`. Each sets up its own venv.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: demo test venv system-deps clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test,bench]'
+	touch $@
+
+venv: $(VENV)/.installed
+
+# Debian packages used by the interop and link-emulation tests (needs root; skipped otherwise).
+system-deps:
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  command -v coap-client-notls >/dev/null && command -v nft >/dev/null && command -v tc >/dev/null || { \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 >/dev/null; }; \
+	else echo "system-deps: not root or no apt-get; interop/netns tests will skip"; fi
+
+demo: venv
+	$(VENV)/bin/coapkb demo
+
+test: venv system-deps
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

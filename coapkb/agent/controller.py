@@ -1,0 +1,234 @@
+"""Controller (the seed's Fig. 2): runs the workflow for each task, in order.
+
+Per task "pick up X" (seed section III-D): Query_1 (does X exist? if not,
+every robot skips it), Query_2 (where is it), Query_3 (its features, how it
+is picked), Query_4 (which robots can pick it that way, their payload).
+Then the Task Assigner runs on the teammates' planned states, observed
+through ``/robot/state``, and the winner's Task Executor gets the job.
+
+Strategies: "compute-by-all" (every robot queries and computes the same
+assignment, no further message) and "compute-and-communicate" (the team's
+first robot computes and sends the decision to the others).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import asdict, dataclass
+from typing import Awaitable, Callable, Mapping
+
+from ..config import RobotConfig
+from ..results import SelectResult
+from ..transport.base import TransportError
+from ..warehouse import Layout, Position, layout_from_row, travel_distance
+from .query_handler import QueryError, QueryHandler
+from .robot_state import Decision, PlannedState, RobotState
+from .task_assigner import Assignment, TaskFacts, assign, robot_sort_key
+from .task_executor import Job, TaskExecutor
+from .team_view import TeamView
+
+log = logging.getLogger(__name__)
+
+#: The depot, where robots unload: the front end of the first aisle.
+DEPOT = Position(1, 0)
+
+
+@dataclass(frozen=True)
+class Task:
+    seq: int
+    object: str
+
+
+@dataclass(frozen=True)
+class DecisionMessage:
+    """What "compute and communicate" sends: the decision and the winner's plan."""
+
+    decision: Decision
+    after: PlannedState | None = None
+    job: Job | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "decision": asdict(self.decision),
+            "after": asdict(self.after) if self.after else None,
+            "job": asdict(self.job) if self.job else None,
+        }
+
+    @classmethod
+    def from_dict(cls, raw: Mapping) -> "DecisionMessage":
+        job = raw.get("job")
+        return cls(
+            decision=Decision(**raw["decision"]),
+            after=PlannedState(**raw["after"]) if raw.get("after") else None,
+            job=Job(**{**job, "depot": tuple(job["depot"])}) if job else None,
+        )
+
+
+def _first(result: object, name: str) -> list[dict]:
+    if not isinstance(result, SelectResult):
+        raise QueryError(f"{name} did not return solutions")
+    return result.as_dicts()
+
+
+class Controller:
+    def __init__(
+        self,
+        config: RobotConfig,
+        queries: QueryHandler,
+        team: TeamView,
+        executor: TaskExecutor,
+        publish: Callable[[RobotState], None],
+        send_decision: Callable[[DecisionMessage], Awaitable[None]],
+    ) -> None:
+        self.config = config
+        self.queries = queries
+        self.team = team
+        self.executor = executor
+        self._publish = publish
+        self._send_decision = send_decision
+        self._tasks: asyncio.Queue[tuple[Task, float]] = asyncio.Queue()
+        self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
+        self._layout: Layout | None = None
+        self.log: list[Decision] = []
+        self._runner: asyncio.Task | None = None
+
+    @property
+    def robot_id(self) -> str:
+        return self.config.robot_id
+
+    @property
+    def leader(self) -> str:
+        return min(self.config.team, key=robot_sort_key)
+
+    @property
+    def computes(self) -> bool:
+        return self.config.strategy == "compute-by-all" or self.robot_id == self.leader
+
+    def start(self) -> None:
+        self._runner = asyncio.create_task(self._run(), name="controller")
+
+    async def aclose(self) -> None:
+        if self._runner is not None:
+            self._runner.cancel()
+            try:
+                await self._runner
+            except asyncio.CancelledError:
+                pass
+
+    def submit(self, task: Task) -> None:
+        """A new task from the feeder; tasks are handled strictly in order."""
+        self._tasks.put_nowait((task, time.monotonic()))
+
+    def receive_decision(self, message: DecisionMessage) -> None:
+        """The leader's decision ("compute and communicate")."""
+        future = self._decisions.setdefault(message.decision.seq, asyncio.get_running_loop().create_future())
+        if not future.done():
+            future.set_result(message)
+
+    async def _run(self) -> None:
+        while True:
+            task, received = await self._tasks.get()
+            try:
+                message = await self._decide(task)
+            except (QueryError, TransportError) as exc:
+                log.error("task %d (%s): %s", task.seq, task.object, exc)
+                message = DecisionMessage(Decision(task.seq, task.object, error=str(exc)))
+            except Exception as exc:  # keep the robot alive and the team informed
+                log.exception("task %d (%s) failed", task.seq, task.object)
+                message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
+            decision = message.decision
+            decision = Decision(**{**asdict(decision), "coordination_s": round(time.monotonic() - received, 6)})
+            self._apply(DecisionMessage(decision, message.after, message.job))
+
+    def _apply(self, message: DecisionMessage) -> None:
+        decision = message.decision
+        me = self.team.own
+        plan = me.plan
+        if decision.assigned_to == self.robot_id and message.after is not None and message.job is not None:
+            plan = message.after
+            self.executor.submit(message.job)
+        self.log.append(decision)
+        self.team.set_own(me.with_plan(PlannedState(**{**asdict(plan), "seq": decision.seq}), decision))
+        self._publish(self.team.own)
+        log.info(
+            "task %d %s: %s", decision.seq, decision.object,
+            decision.error or ("skipped" if decision.skipped else f"-> {decision.assigned_to}"),
+        )
+
+    async def _decide(self, task: Task) -> DecisionMessage:
+        if not self.computes:
+            return await self._await_decision(task)
+        message = await self._compute(task)
+        if self.config.strategy == "compute-and-communicate":
+            try:
+                await self._send_decision(message)
+            except TransportError as exc:  # the decision stands; the teammate reports its own timeout
+                log.error("%s", exc)
+        return message
+
+    async def _await_decision(self, task: Task) -> DecisionMessage:
+        future = self._decisions.setdefault(task.seq, asyncio.get_running_loop().create_future())
+        try:
+            async with asyncio.timeout(self.config.query_timeout_s * 4):
+                return await future
+        except TimeoutError:
+            raise QueryError(f"no decision from {self.leader} for task {task.seq}") from None
+        finally:
+            self._decisions.pop(task.seq, None)
+
+    async def layout(self) -> Layout:
+        if self._layout is None:
+            rows = _first(await self.queries.run("warehouse-layout", {}), "warehouse-layout")
+            if not rows:
+                raise QueryError("the Location KB has no warehouse layout")
+            self._layout = layout_from_row(rows[0])
+        return self._layout
+
+    async def gather(self, task: Task) -> TaskFacts | None:
+        """The four queries of the seed's workflow; None if the object does not exist."""
+        params = {"name": task.object}
+        if not _first(await self.queries.run("object-exists", params), "Query_1"):
+            return None
+        where = _first(await self.queries.run("object-location", params), "Query_2")
+        features = _first(await self.queries.run("object-features", params), "Query_3")
+        if not where or not features:
+            raise QueryError(f"{task.object} exists but has no location or features in the KB")
+        grip = _local_name(features[0]["grip"])
+        robots = _first(await self.queries.run("robots-for-grip", {"grip": grip}), "Query_4")
+        capable = {str(r["robo_id"]): float(r["payload"]) for r in robots if str(r["robo_id"]) in self.config.team}
+        return TaskFacts(
+            seq=task.seq,
+            object=task.object,
+            aisle=int(where[0]["aisle_no"]),
+            rack=int(where[0]["rack_no"]),
+            bin=int(where[0]["bin_no"]),
+            weight_kg=float(features[0]["weight"]),
+            grip=grip,
+            capable=capable,
+        )
+
+    async def _compute(self, task: Task) -> DecisionMessage:
+        facts = await self.gather(task)
+        if facts is None:
+            return DecisionMessage(Decision(task.seq, task.object, skipped=True))
+        layout = await self.layout()
+        states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
+        result: Assignment = assign(
+            facts, states, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost
+        )
+        decision = Decision(task.seq, task.object, assigned_to=result.assigned_to, costs=result.costs)
+        if result.plan is None:
+            return DecisionMessage(decision)
+        plan = result.plan
+        job = Job(
+            task.seq, task.object, facts.aisle, facts.rack, plan.to_object_m, plan.to_depot_m,
+            (DEPOT.aisle, DEPOT.rack),
+        )
+        return DecisionMessage(decision, plan.after, job)
+
+
+def _local_name(term: object) -> str:
+    text = str(term)
+    return text.rsplit("#", 1)[-1].rsplit("/", 1)[-1]

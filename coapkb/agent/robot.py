@@ -1,0 +1,198 @@
+"""One running robot: its KB, server, client and the workflow modules, wired.
+
+Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
+
+=================  ======  ==================================================
+``/robot/state``   GET     live and planned state, observable (RFC 7641)
+``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON)
+``/tasks``         GET     the decisions taken so far
+``/decisions``     POST    the leader's decision ("compute and communicate")
+``/robot/stats``   GET     traffic counters and query statistics
+=================  ======  ==================================================
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+from dataclasses import asdict, replace
+from typing import Any
+
+import cbor2
+
+from ..client import KBClient
+from ..config import RobotConfig
+from ..kb_resources import KBResources
+from ..knowledge_base import KnowledgeBase
+from ..messages import ContentFormat, Method, Request, Response, Status
+from ..router import Router
+from ..transport import open_client, serve
+from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
+from .controller import Controller, DecisionMessage, Task
+from .query_handler import QueryHandler
+from .robot_state import LiveState, PlannedState, RobotState
+from .task_executor import TaskExecutor
+from .team_view import STATE_PATH, TeamView
+
+OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
+
+
+def _decode_body(request: Request) -> Any:
+    """A CBOR (default) or JSON request body."""
+    if request.content_format == ContentFormat.JSON:
+        return json.loads(request.payload)
+    return cbor2.loads(request.payload)
+
+
+def _encode(value: Any, accept: int | None) -> Response:
+    if accept == ContentFormat.JSON:
+        return Response(Status.CONTENT, json.dumps(value).encode(), ContentFormat.JSON, max_age=0)
+    if accept not in (None, ContentFormat.CBOR):
+        return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
+    return Response(Status.CONTENT, cbor2.dumps(value), ContentFormat.CBOR, max_age=0)
+
+
+class Robot:
+    def __init__(
+        self,
+        config: RobotConfig,
+        kb: KnowledgeBase | None,
+        server: ServerTransport,
+        client: ClientTransport,
+        router: Router,
+        controller: Controller,
+        team: TeamView,
+        executor: TaskExecutor,
+        queries: QueryHandler,
+    ) -> None:
+        self.config = config
+        self.kb = kb
+        self.server = server
+        self.client = client
+        self.router = router
+        self.controller = controller
+        self.team = team
+        self.executor = executor
+        self.queries = queries
+        self._next_seq = 1
+
+    @classmethod
+    async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
+        kb = KnowledgeBase.load(config.kb_files) if config.kb_files else None
+        router = Router()
+        if kb is not None:
+            KBResources(kb).mount(router)
+        client = await open_client(config.transport, retransmission=config.retransmission)
+        start = config.start
+        own = RobotState(
+            robot_id=config.robot_id,
+            plan=PlannedState(start.aisle, start.rack, start.battery_wh, 0.0, start.payload_kg, seq=0),
+            live=LiveState(float(start.aisle), float(start.rack)),
+        )
+        teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
+        team = TeamView(own, teammates, client)
+        queries = QueryHandler(config, kb, KBClient(client, timeout=config.query_timeout_s), wire=query_wire)
+
+        def publish_live(live: LiveState) -> None:
+            team.set_own(replace(team.own, live=live))
+            router.notify(STATE_PATH)
+
+        async def send_decision(message: DecisionMessage) -> None:
+            await broadcast_decision(client, config, message)
+
+        executor = TaskExecutor(config.execution, own.live, publish_live)
+        controller = Controller(
+            config, queries, team, executor, lambda state: router.notify(STATE_PATH), send_decision
+        )
+        try:
+            server = await serve(router, config.bind)
+        except BaseException:
+            await client.aclose()
+            raise
+        robot = cls(config, kb, server, client, router, controller, team, executor, queries)
+        robot._mount()
+        team.start()
+        executor.start()
+        controller.start()
+        return robot
+
+    def _mount(self) -> None:
+        add = self.router.add
+        add(ResourceInfo(STATE_PATH, rt="coapkb.state", ct=(60, 50), obs=True, title="robot state"), self._get_state)
+        add(
+            ResourceInfo("/tasks", rt="coapkb.tasks", ct=(60, 50), title="task feed", methods=("GET", "POST")),
+            self._tasks,
+        )
+        add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("POST",)), self._post_decision)
+        add(ResourceInfo("/robot/stats", rt="coapkb.stats", ct=(60, 50), title="traffic and query stats"),
+            self._get_stats)
+
+    async def aclose(self) -> None:
+        await self.controller.aclose()
+        await self.executor.aclose()
+        await self.team.aclose()
+        await self.server.aclose()
+        await self.client.aclose()
+
+    # ---------------------------------------------------------------- resources
+
+    async def _get_state(self, request: Request) -> Response:
+        return _encode(self.team.own.to_dict(), request.accept)
+
+    async def _tasks(self, request: Request) -> Response:
+        if request.method == Method.GET:
+            return _encode([asdict(d) for d in self.controller.log], request.accept)
+        try:
+            body = _decode_body(request)
+            seq, name = body["seq"], body["object"]
+        except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
+            return Response.error(Status.BAD_REQUEST, 'expected {"seq": int, "object": name} in CBOR or JSON')
+        if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
+            return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
+        if seq != self._next_seq:
+            return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
+        self._next_seq += 1
+        self.controller.submit(Task(seq, name))
+        return Response(Status.CHANGED)
+
+    async def _post_decision(self, request: Request) -> Response:
+        try:
+            message = DecisionMessage.from_dict(cbor2.loads(request.payload))
+        except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError) as exc:
+            return Response.error(Status.BAD_REQUEST, f"not a decision: {exc}")
+        self.controller.receive_decision(message)
+        return Response(Status.CHANGED)
+
+    async def _get_stats(self, request: Request) -> Response:
+        return _encode(self.stats(), request.accept)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "robot_id": self.config.robot_id,
+            "transport": self.config.transport,
+            "strategy": self.config.strategy,
+            "query_wire": self.queries.wire,
+            "retransmission": self.client.describe() if hasattr(self.client, "describe") else None,
+            "server": self.server.counters.as_dict(),
+            "client": self.client.counters.as_dict(),
+            "queries": self.queries.stats.as_dict(),
+            "remote_latencies_s": [round(x, 6) for x in self.queries.stats.remote_latencies],
+            "executed": self.executor.live.done,
+            "idle": self.executor.live.activity == "idle" and self.executor.live.queued == 0,
+        }
+
+
+async def broadcast_decision(client: ClientTransport, config: RobotConfig, message: DecisionMessage) -> None:
+    """Send the leader's decision to every teammate, concurrently."""
+    payload = cbor2.dumps(message.to_dict())
+    request = Request(Method.POST, "/decisions", payload=payload, content_format=ContentFormat.CBOR)
+    peers = [m.endpoint for r, m in config.team.items() if r != config.robot_id]
+    results = await asyncio.gather(
+        *(client.request(p, request, timeout=config.query_timeout_s) for p in peers), return_exceptions=True
+    )
+    failed = [
+        str(p) for p, r in zip(peers, results) if isinstance(r, BaseException) or not r.status.is_success
+    ]
+    if failed:
+        raise TransportError(f"decision for task {message.decision.seq} not delivered to {', '.join(failed)}")

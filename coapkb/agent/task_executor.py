@@ -1,0 +1,91 @@
+"""Task Executor (the seed's Fig. 2): carries out the picks assigned to this robot.
+
+Motion is simulated (the seed left path planning and localisation out of
+scope too): the robot drives its planned route at the configured speed,
+picks, and unloads at the depot when the plan says so.  Time runs
+``time_scale`` times faster than the wall clock.  Progress is published
+through the live part of ``/robot/state``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, replace
+from typing import Callable
+
+from ..config import ExecutionModel
+from .robot_state import LiveState
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Job:
+    seq: int
+    object: str
+    aisle: int
+    rack: int
+    to_object_m: float
+    to_depot_m: float
+    depot: tuple[int, int]
+
+
+class TaskExecutor:
+    def __init__(
+        self,
+        model: ExecutionModel,
+        start: LiveState,
+        publish: Callable[[LiveState], None],
+    ) -> None:
+        self.model = model
+        self.live = start
+        self._publish = publish
+        self._jobs: asyncio.Queue[Job] = asyncio.Queue()
+        self._idle = asyncio.Event()
+        self._idle.set()
+        self._task: asyncio.Task | None = None
+
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name="task-executor")
+
+    async def aclose(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+
+    def submit(self, job: Job) -> None:
+        self._idle.clear()
+        self._jobs.put_nowait(job)
+        self._update(queued=self._jobs.qsize())
+
+    async def wait_idle(self) -> None:
+        await self._idle.wait()
+
+    def _update(self, **changes: object) -> None:
+        self.live = replace(self.live, **changes)
+        self._publish(self.live)
+
+    async def _simulate(self, seconds: float) -> None:
+        # Simulated physical time: nothing to await but the clock itself.
+        await asyncio.sleep(seconds / self.model.time_scale)
+
+    async def _run(self) -> None:
+        while True:
+            job = await self._jobs.get()
+            self._update(activity="travelling", executing=job.object, queued=self._jobs.qsize())
+            await self._simulate(job.to_object_m / self.model.speed_m_s)
+            self._update(activity="picking", aisle=float(job.aisle), rack=float(job.rack))
+            await self._simulate(self.model.pick_s)
+            if job.to_depot_m > 0:
+                self._update(activity="unloading")
+                await self._simulate(job.to_depot_m / self.model.speed_m_s)
+                self._update(aisle=float(job.depot[0]), rack=float(job.depot[1]))
+            idle = self._jobs.empty()
+            self._update(activity="idle" if idle else "travelling", executing=None, done=self.live.done + 1)
+            log.info("done: %s (task %d)", job.object, job.seq)
+            if idle:
+                self._idle.set()

@@ -1,0 +1,412 @@
+"""The ``coapkb`` command line.
+
+Every user mistake ends in one ``coapkb: error: ...`` line and a non-zero
+exit (2 for usage, 1 for a failed operation), never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import csv
+import io
+import json
+import logging
+import signal
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+from urllib.parse import parse_qsl, urlsplit
+
+from . import codec
+from .messages import ContentFormat, Method
+
+
+class UserError(Exception):
+    """A mistake the user can fix; printed as one line."""
+
+
+# --------------------------------------------------------------------------- serve
+
+
+def _add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve knowledge base files as a robot's resources")
+    p.add_argument("--kb", nargs="+", required=True, metavar="FILE", help="RDF files (.owl, .ttl, .nt)")
+    p.add_argument("--bind", default="127.0.0.1:5683", metavar="HOST:PORT")
+    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--backend", choices=("oxigraph", "rdflib"), default="oxigraph")
+    p.add_argument("--row-limit", type=int, default=1000)
+    p.add_argument("--time-budget", type=float, default=2.0, metavar="SECONDS")
+    p.set_defaults(run=_serve)
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    from .kb_resources import KBResources, QueryLimits
+    from .knowledge_base import KBError, KnowledgeBase
+    from .router import Router
+    from .transport import Endpoint, TransportError, serve
+
+    endpoint = _endpoint(args.bind, args.transport)
+    try:
+        limits = QueryLimits(row_limit=args.row_limit, time_budget_s=args.time_budget)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    try:
+        kb = KnowledgeBase.load(args.kb, backend=args.backend)
+    except KBError as exc:
+        raise UserError(str(exc)) from None
+    router = Router()
+    KBResources(kb, limits).mount(router)
+    try:
+        server = await serve(router, endpoint)
+    except TransportError as exc:
+        raise UserError(str(exc)) from None
+    print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}) on {server.endpoint}", flush=True)
+    try:
+        await _until_signalled()
+    finally:
+        await server.aclose()
+    return 0
+
+
+async def _until_signalled() -> None:
+    """Wait for SIGINT or SIGTERM, so a server shuts down cleanly either way."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+
+
+def _endpoint(hostport: str, scheme: str):  # -> Endpoint
+    from .transport import Endpoint
+
+    try:
+        return Endpoint.parse(hostport, default_scheme=scheme)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+# --------------------------------------------------------------------------- agent
+
+
+def _add_agent(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("agent", help="run one robot from its TOML configuration")
+    p.add_argument("--config", required=True, metavar="FILE", help="the robot's TOML file")
+    p.add_argument("--query-wire", choices=("compact", "seed"), default="compact",
+                   help="compact: named queries + CBOR; seed: full SPARQL text + JSON, like the seed paper")
+    p.set_defaults(run=_agent)
+
+
+async def _agent(args: argparse.Namespace) -> int:
+    from .agent.robot import Robot
+    from .config import ConfigError, load_config
+    from .knowledge_base import KBError
+    from .transport import TransportError
+
+    try:
+        config = load_config(args.config)
+        robot = await Robot.start(config, query_wire=args.query_wire)
+    except (ConfigError, KBError, TransportError) as exc:
+        raise UserError(str(exc)) from None
+    print(f"robot {config.robot_id} ready on {robot.server.endpoint}", flush=True)
+    try:
+        await _until_signalled()
+    finally:
+        await robot.aclose()
+    return 0
+
+
+# --------------------------------------------------------------------------- team
+
+#: The seed's example task (Fig. 4), a few more picks, and one object that
+#: does not exist, which every robot must skip.
+DEMO_TASKS = ("Gucci_bag_14", "Nonexistent_widget_1")
+
+
+def _add_team(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("team", help="run a whole team locally: robots as processes, tasks fed in order")
+    p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
+    tasks = p.add_mutually_exclusive_group(required=True)
+    tasks.add_argument("--tasks", type=int, metavar="N", help="draw N objects from the Object KB")
+    tasks.add_argument("--tasks-file", metavar="FILE", help="one object name per line")
+    p.add_argument("--seed", type=int, default=1, help="seed for --tasks")
+    p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
+    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
+    p.add_argument("--retransmission", default="adaptive", metavar="PROFILE",
+                   help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive")
+    p.add_argument("--query-wire", choices=("compact", "seed"), default="compact")
+    p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
+    p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
+    p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
+    p.set_defaults(run=_team)
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="the main job: 3 robots on loopback do the seed's example tasks")
+    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.set_defaults(run=_demo)
+
+
+async def _demo(args: argparse.Namespace) -> int:
+    from .team import draw_tasks, DEFAULT_ONTOLOGIES
+
+    tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7) + list(DEMO_TASKS[1:])
+    print("Demo: a team of 3 robots (Robot1: Location KB, Robot2: Object KB, Robot3: Capability KB)")
+    print("on loopback, each a separate process, over " + args.transport + "; tasks: " + ", ".join(tasks))
+    print("Each robot runs the seed's four queries per task and computes every robot's cost (Wh);")
+    print("the cheapest capable robot gets the task; all robots must agree.\n")
+    team_args = argparse.Namespace(
+        robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
+        strategy="compute-by-all", retransmission="adaptive", query_wire="compact", ontologies=None,
+        time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
+    )
+    return await _team(team_args)
+
+
+async def _team(args: argparse.Namespace) -> int:
+    from .team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file, summarise
+
+    ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
+    try:
+        spec = TeamSpec(
+            robots=args.robots, mode=args.mode, transport=args.transport, strategy=args.strategy,
+            retransmission=args.retransmission, query_wire=args.query_wire, ontologies=ontologies,
+            time_scale=args.time_scale,
+        )
+        if getattr(args, "task_list", None):
+            tasks = list(args.task_list)
+        elif args.tasks_file:
+            tasks = read_tasks_file(args.tasks_file)
+        else:
+            if args.tasks < 1:
+                raise UserError("--tasks must be at least 1")
+            tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
+    except (ValueError, TeamError) as exc:
+        raise UserError(str(exc)) from None
+    if not tasks:
+        raise UserError("no tasks to run")
+
+    def progress(record) -> None:  # record: TaskRecord
+        if args.quiet:
+            return
+        if record.skipped:
+            outcome = "skipped: no such object"
+        elif record.errors:
+            outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
+        else:
+            outcome = f"-> {record.assigned_to or 'nobody can'}"
+        agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
+        print(f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
+              f"({record.coordination_s * 1000:.0f} ms){agreed}", flush=True)
+        if getattr(args, "verbose_costs", False) and record.costs:
+            costs = ", ".join(f"{r}: {'-' if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items())
+            print(f"      costs: {costs}", flush=True)
+
+    try:
+        async with Team.launch(spec) as team:
+            print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
+            record = await team.run(tasks, progress)
+    except TeamError as exc:
+        print(f"coapkb: team run failed: {exc}", file=sys.stderr)
+        return 1
+    print()
+    print(summarise(record))
+    if args.record:
+        Path(args.record).write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        print(f"record written to {args.record}")
+    bad = [t for t in record["tasks"] if not t["agreed"] or t["errors"]]
+    return 1 if bad else 0
+
+
+# --------------------------------------------------------------------------- query
+
+FORMAT_ACCEPT = {"cbor": ContentFormat.CBOR, "json": ContentFormat.JSON}
+
+
+def _add_query(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "query",
+        help="query a robot: SPARQL text, or a named query URI",
+        description="Examples:\n"
+        "  coapkb query coap://127.0.0.1:5683 'SELECT * WHERE { ?s ?p ?o } LIMIT 3'\n"
+        "  coapkb query 'coap://127.0.0.1:5683/kb/q/object-exists?name=Gucci_bag_14'",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("uri", help="robot (coap://HOST:PORT or zmq://HOST:PORT), or a /kb/q/NAME?param=value URI")
+    p.add_argument("sparql", nargs="?", help="query text; @FILE reads a file, - reads stdin")
+    p.add_argument("--accept", choices=tuple(FORMAT_ACCEPT), default="cbor", help="answer format on the wire")
+    p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")
+    p.add_argument("--method", choices=("fetch", "post", "get"), default="fetch")
+    p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
+    p.add_argument(
+        "--retransmission",
+        default="adaptive",
+        metavar="PROFILE",
+        help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive",
+    )
+    p.add_argument("--ack-timeout", type=float, metavar="SECONDS", help="override the profile's ACK_TIMEOUT")
+    p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
+    p.set_defaults(run=_query)
+
+
+def _read_query_text(arg: str | None) -> str | None:
+    if arg is None:
+        return None
+    if arg == "-":
+        return sys.stdin.read()
+    if arg.startswith("@"):
+        try:
+            return Path(arg[1:]).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise UserError(f"cannot read query file {arg[1:]}: {exc.strerror}") from None
+    return arg
+
+
+async def _query(args: argparse.Namespace) -> int:
+    from .client import KBClient, QueryFailed
+    from .transport import Endpoint, TransportError, open_client
+
+    parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
+    peer = _endpoint(f"{parts.scheme}://{parts.netloc}", parts.scheme)
+    text = _read_query_text(args.sparql)
+    named = parts.path.startswith("/kb/q/")
+    if named and text:
+        raise UserError("give either a named query URI or SPARQL text, not both")
+    if not named and not text:
+        raise UserError("no query: give SPARQL text (or @FILE, or -) or a /kb/q/NAME URI")
+    if parts.path not in ("", "/") and not named:
+        raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
+    transport_options = _retransmission_options(args) if peer.scheme == "coap" else {}
+    transport = await open_client(peer.scheme, **transport_options)
+    client = KBClient(transport, timeout=args.timeout)
+    accept = FORMAT_ACCEPT[args.accept]
+    try:
+        if named:
+            result = await client.named(peer, parts.path.rsplit("/", 1)[1], dict(parse_qsl(parts.query)), accept=accept)
+        else:
+            result = await client.sparql(peer, text or "", accept=accept, method=Method(args.method.upper()))
+    except QueryFailed as exc:
+        print(f"coapkb: {peer} answered {exc}", file=sys.stderr)
+        return 1
+    except TransportError as exc:
+        print(f"coapkb: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        await transport.aclose()
+    sys.stdout.write(render(result, args.format))
+    return 0
+
+
+def _retransmission_options(args: argparse.Namespace) -> dict:
+    from .coap_retransmission import RetransmissionController
+    from .rto import PROFILES
+
+    profile = PROFILES.get(args.retransmission)
+    if profile is None:
+        raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
+    try:
+        profile = profile.with_overrides(ack_timeout=args.ack_timeout, max_retransmit=args.max_retransmit)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return {"tuning_for": RetransmissionController(profile).tuning_for}
+
+
+# --------------------------------------------------------------------------- output
+
+WELL_KNOWN_PREFIXES = {
+    "obj": "http://www.tcs.org/2018/Object#",
+    "loc": "http://www.tcs.org/2018/Location#",
+    "cap": "http://www.tcs.org/2018/Capability#",
+    "rdf": "http://www.w3.org/1999/02/22-rdf-syntax-ns#",
+    "rdfs": "http://www.w3.org/2000/01/rdf-schema#",
+    "owl": "http://www.w3.org/2002/07/owl#",
+    "xsd": "http://www.w3.org/2001/XMLSchema#",
+}
+
+
+def render(result, fmt: str) -> str:  # result: QueryResult
+    """A query result as text: an aligned table, SPARQL-JSON, or SPARQL CSV."""
+    from .results import AskResult, GraphResult, SelectResult
+
+    if fmt == "json":
+        return json.dumps(json.loads(codec.encode_json(result)), indent=2) + "\n"
+    if isinstance(result, AskResult):
+        return ("true" if result.value else "false") + "\n"
+    if isinstance(result, GraphResult):
+        header, rows = ["subject", "predicate", "object"], [list(t) for t in result.triples]
+    else:
+        assert isinstance(result, SelectResult)
+        header, rows = list(result.variables), [list(r) for r in result.rows]
+    if fmt == "csv":
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\r\n")  # SPARQL 1.1 CSV uses CRLF
+        writer.writerow(header)
+        writer.writerows([["" if t is None else str(t) for t in row] for row in rows])
+        return out.getvalue()
+    cells = [[_short(t) for t in row] for row in rows]
+    widths = [max([len(h)] + [len(r[i]) for r in cells]) for i, h in enumerate(header)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths)).rstrip()]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells]
+    truncated = getattr(result, "truncated", False)
+    lines.append(f"({len(rows)} row{'s' if len(rows) != 1 else ''}{', truncated by the server' if truncated else ''})")
+    return "\n".join(lines) + "\n"
+
+
+def _short(term) -> str:
+    from rdflib.term import BNode, Literal, URIRef
+
+    if term is None:
+        return ""
+    if isinstance(term, URIRef):
+        for prefix, ns in WELL_KNOWN_PREFIXES.items():
+            if term.startswith(ns):
+                return f"{prefix}:{term[len(ns):]}"
+        return f"<{term}>"
+    if isinstance(term, BNode):
+        return f"_:{term}"
+    assert isinstance(term, Literal)
+    return str(term) + (f"@{term.language}" if term.language else "")
+
+
+# --------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in COMMANDS:
+        add(sub)
+    return parser
+
+
+COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
+    _add_demo, _add_team, _add_serve, _add_agent, _add_query,
+]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        return asyncio.run(args.run(args))
+    except UserError as exc:
+        parser.exit(2, f"coapkb: error: {exc}\n")
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

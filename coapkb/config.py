@@ -1,0 +1,262 @@
+"""Configuration (the seed's Fig. 2): a robot's fixed parameters, from TOML.
+
+Read once at start-up and never changed while running, as in the seed.  It
+holds the robot-vs-KB map of the team, so the Query Handler knows where each
+knowledge base lives.  Every field is validated; a mistake is reported as a
+:class:`ConfigError` naming the field.
+
+Example ``robot1.toml``::
+
+    robot_id = "Robot1"
+    bind = "coap://127.0.0.1:5701"
+    kb = ["ontologies/Location.owl"]
+    strategy = "compute-by-all"
+    retransmission = "adaptive"
+
+    [start]                  # initial state
+    aisle = 0
+    rack = 0
+    battery_wh = 400.0
+    payload_kg = 40.0
+
+    [team.Robot1]            # every teammate, this robot included
+    endpoint = "coap://127.0.0.1:5701"
+    kbs = ["Location"]
+    [team.Robot2]
+    endpoint = "coap://127.0.0.1:5702"
+    kbs = ["Object"]
+    [team.Robot3]
+    endpoint = "coap://127.0.0.1:5703"
+    kbs = ["Capability"]
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from .transport.base import Endpoint
+
+KB_MODULES = ("Object", "Location", "Capability")
+STRATEGIES = ("compute-by-all", "compute-and-communicate")
+
+
+class ConfigError(ValueError):
+    """A configuration mistake; the message names the field."""
+
+
+@dataclass(frozen=True)
+class Teammate:
+    robot_id: str
+    endpoint: Endpoint
+    #: Knowledge-base modules this teammate serves (e.g. ``("Object",)``).
+    kbs: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class StartState:
+    aisle: int = 0
+    rack: int = 0
+    battery_wh: float = 400.0
+    payload_kg: float = 40.0
+
+
+@dataclass(frozen=True)
+class CostModel:
+    """Battery consumption model of the Task Assigner (Wh)."""
+
+    wh_per_m_empty: float = 0.05
+    wh_per_m_per_kg: float = 0.002
+    wh_per_pick: float = 0.5
+    #: Battery a robot keeps in reserve: it never takes a task that would dip below.
+    reserve_wh: float = 20.0
+    #: After a pick that loads the robot to this fraction of its payload, it
+    #: carries everything to the depot and unloads (part of that task's cost).
+    unload_at_fraction: float = 0.75
+
+
+@dataclass(frozen=True)
+class ExecutionModel:
+    """How the Task Executor simulates motion."""
+
+    speed_m_s: float = 1.5
+    pick_s: float = 4.0
+    #: Simulated seconds per wall-clock second (1.0 = real time).
+    time_scale: float = 20.0
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    robot_id: str
+    bind: Endpoint
+    kb_files: tuple[Path, ...]
+    team: Mapping[str, Teammate]
+    start: StartState = field(default_factory=StartState)
+    strategy: str = "compute-by-all"
+    retransmission: str = "adaptive"
+    #: Where all KBs live in the centralised baseline; None = distributed.
+    central: Endpoint | None = None
+    query_timeout_s: float = 20.0
+    cost: CostModel = field(default_factory=CostModel)
+    execution: ExecutionModel = field(default_factory=ExecutionModel)
+
+    @property
+    def transport(self) -> str:
+        return self.bind.scheme
+
+    def holder_of(self, kb: str) -> Teammate | None:
+        """The teammate that serves KB module ``kb`` (this robot if it has it)."""
+        me = self.team[self.robot_id]
+        if kb in me.kbs:
+            return me
+        for mate in sorted(self.team.values(), key=lambda m: m.robot_id):
+            if kb in mate.kbs:
+                return mate
+        return None
+
+
+def load_config(path: str | Path) -> RobotConfig:
+    """Read and validate a robot's TOML configuration."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        return parse_config(data, base_dir=path.parent)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotConfig:
+    """Validate a configuration mapping (as read from TOML)."""
+    known = {
+        "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
+        "central", "query_timeout_s", "cost", "execution",
+    }
+    _no_unknown(data, known, "")
+    robot_id = _get(data, "robot_id", str)
+    if not robot_id:
+        raise ConfigError("robot_id: must not be empty")
+    bind = _endpoint(_get(data, "bind", str), "bind")
+    kb_files = tuple(_path(base_dir, p, f"kb[{i}]") for i, p in enumerate(_get(data, "kb", list, [])))
+    strategy = _get(data, "strategy", str, "compute-by-all")
+    if strategy not in STRATEGIES:
+        raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
+    team_data = _get(data, "team", dict)
+    team = {}
+    for mate_id, mate in team_data.items():
+        where = f"team.{mate_id}"
+        if not isinstance(mate, dict):
+            raise ConfigError(f"{where}: expected a table")
+        _no_unknown(mate, {"endpoint", "kbs"}, where + ".")
+        endpoint = _endpoint(_get(mate, "endpoint", str, where=where), where + ".endpoint")
+        kbs = tuple(_get(mate, "kbs", list, [], where=where))
+        for kb in kbs:
+            if kb not in KB_MODULES:
+                raise ConfigError(f"{where}.kbs: unknown KB module {kb!r} (choose from {', '.join(KB_MODULES)})")
+        if endpoint.scheme != bind.scheme:
+            raise ConfigError(f"{where}.endpoint: {endpoint.scheme} teammate, but this robot uses {bind.scheme}")
+        team[mate_id] = Teammate(mate_id, endpoint, kbs)
+    if robot_id not in team:
+        raise ConfigError(f"team: must list this robot ({robot_id}) too")
+    central = data.get("central")
+    central_ep = _endpoint(central, "central") if central is not None else None
+    config = RobotConfig(
+        robot_id=robot_id,
+        bind=bind,
+        kb_files=kb_files,
+        team=team,
+        start=_section(data, "start", StartState),
+        strategy=strategy,
+        retransmission=_get(data, "retransmission", str, "adaptive"),
+        central=central_ep,
+        query_timeout_s=float(_get(data, "query_timeout_s", (int, float), 20.0)),
+        cost=_section(data, "cost", CostModel),
+        execution=_section(data, "execution", ExecutionModel),
+    )
+    _check_values(config)
+    return config
+
+
+def _check_values(c: RobotConfig) -> None:
+    if c.query_timeout_s <= 0:
+        raise ConfigError("query_timeout_s: must be positive")
+    if c.start.battery_wh <= 0 or c.start.payload_kg <= 0:
+        raise ConfigError("start: battery_wh and payload_kg must be positive")
+    if c.start.aisle < 0 or c.start.rack < 0:
+        raise ConfigError("start: aisle and rack must be non-negative")
+    if c.execution.speed_m_s <= 0 or c.execution.time_scale <= 0 or c.execution.pick_s < 0:
+        raise ConfigError("execution: speed_m_s and time_scale must be positive, pick_s non-negative")
+    for name in ("wh_per_m_empty", "wh_per_m_per_kg", "wh_per_pick", "reserve_wh"):
+        if getattr(c.cost, name) < 0:
+            raise ConfigError(f"cost.{name}: must not be negative")
+    if not 0 < c.cost.unload_at_fraction <= 1:
+        raise ConfigError("cost.unload_at_fraction: must be in (0, 1]")
+    if c.central is None:
+        missing = [kb for kb in KB_MODULES if c.holder_of(kb) is None]
+        if missing:
+            raise ConfigError(f"team: nobody holds {', '.join(missing)} (and no central server is set)")
+    elif c.central.scheme != c.bind.scheme:
+        raise ConfigError(f"central: {c.central.scheme} server, but this robot uses {c.bind.scheme}")
+
+
+def _no_unknown(data: Mapping[str, Any], known: set[str], where: str) -> None:
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ConfigError(f"{where}{unknown[0]}: unknown field (known: {', '.join(sorted(known))})")
+
+
+_MISSING = object()
+
+
+def _get(data: Mapping[str, Any], key: str, kind: Any, default: Any = _MISSING, where: str = "") -> Any:
+    name = f"{where}.{key}" if where else key
+    if key not in data:
+        if default is _MISSING:
+            raise ConfigError(f"{name}: missing")
+        return default
+    value = data[key]
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        raise ConfigError(f"{name}: expected {' or '.join(k.__name__ for k in kinds)}, got {value!r}")
+    return value
+
+
+def _endpoint(text: str, name: str) -> Endpoint:
+    if not isinstance(text, str):
+        raise ConfigError(f"{name}: expected a URI string like coap://127.0.0.1:5683")
+    try:
+        return Endpoint.parse(text)
+    except ValueError as exc:
+        raise ConfigError(f"{name}: {exc}") from None
+
+
+def _path(base_dir: Path, value: Any, name: str) -> Path:
+    if not isinstance(value, str):
+        raise ConfigError(f"{name}: expected a file path")
+    path = Path(value) if Path(value).is_absolute() else base_dir / value
+    if not path.is_file():
+        raise ConfigError(f"{name}: no such file {path}")
+    return path
+
+
+def _section(data: Mapping[str, Any], key: str, cls: type) -> Any:
+    section = data.get(key, {})
+    if not isinstance(section, dict):
+        raise ConfigError(f"{key}: expected a table")
+    fields = cls.__dataclass_fields__
+    _no_unknown(section, set(fields), key + ".")
+    values = {}
+    for name, value in section.items():
+        default = fields[name].default
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if type(value) is not type(default):
+            raise ConfigError(f"{key}.{name}: expected {type(default).__name__}, got {value!r}")
+        values[name] = value
+    return cls(**values)

@@ -1,0 +1,183 @@
+"""The knowledge base's resources: ``/kb``, ``/kb/sparql`` and ``/kb/q/<name>``.
+
+Transport-neutral handlers mounted on a :class:`~coapkb.router.Router`; the
+CoAP and ZeroMQ transports expose them unchanged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+from dataclasses import dataclass
+
+import cbor2
+
+from . import codec
+from .knowledge_base import KBError, KnowledgeBase, QuerySyntaxError, QueryTimeout, UpdateRefused
+from .messages import ContentFormat, Method, Request, Response, Status
+from .named_queries import NamedQuery, named_queries_for
+from .results import QueryResult
+from .router import Router
+from .transport.base import ResourceInfo
+
+RESULT_FORMATS = (ContentFormat.CBOR, ContentFormat.JSON)
+
+
+@dataclass(frozen=True)
+class QueryLimits:
+    """Per-query limits a robot enforces so one request cannot starve the rest."""
+
+    row_limit: int = 1000
+    time_budget_s: float = 2.0
+    max_request_bytes: int = 8192
+    #: Max-Age of query answers: the KB is read-only, so answers stay fresh.
+    max_age_s: int = 300
+    #: Max-Age on a 5.03 when the time budget ran out: when to try again.
+    retry_after_s: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("row_limit", "max_request_bytes", "max_age_s", "retry_after_s"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not self.time_budget_s > 0:
+            raise ValueError(f"time_budget_s must be positive, got {self.time_budget_s}")
+
+
+def negotiate(accept: int | None) -> ContentFormat | None:
+    """The result format for an Accept option; CBOR when none is given."""
+    if accept is None:
+        return ContentFormat.CBOR
+    return ContentFormat(accept) if accept in RESULT_FORMATS else None
+
+
+def encode_result(result: QueryResult, fmt: ContentFormat) -> bytes:
+    return codec.encode_cbor(result) if fmt == ContentFormat.CBOR else codec.encode_json(result)
+
+
+class KBResources:
+    """Answers SPARQL over one (read-only) knowledge base."""
+
+    def __init__(self, kb: KnowledgeBase, limits: QueryLimits | None = None) -> None:
+        self.kb = kb
+        self.limits = limits or QueryLimits()
+        self.named = {q.name: q for q in named_queries_for(kb.names)}
+
+    def mount(self, router: Router) -> None:
+        router.add(
+            ResourceInfo("/kb", rt="coapkb.kb", ct=RESULT_FORMATS, title="knowledge base summary"),
+            self.get_info,
+        )
+        router.add(
+            ResourceInfo(
+                "/kb/sparql",
+                rt="sparql",
+                ct=RESULT_FORMATS,
+                title="SPARQL 1.1 query (FETCH/POST body or GET ?q=)",
+                methods=("GET", "POST", "FETCH"),
+            ),
+            self.sparql,
+        )
+        for query in self.named.values():
+            router.add(
+                ResourceInfo(
+                    f"/kb/q/{query.name}",
+                    rt="coapkb.q",
+                    ct=RESULT_FORMATS,
+                    title=_link_title(query),
+                ),
+                self.named_query,
+            )
+
+    async def get_info(self, request: Request) -> Response:
+        fmt = negotiate(request.accept)
+        if fmt is None:
+            return _not_acceptable(request.accept)
+        info = {
+            "names": list(self.kb.names),
+            "backend": self.kb.backend,
+            "triples": self.kb.triple_count,
+            "prefixes": dict(self.kb.prefixes),
+            "queries": {q.name: list(q.params) for q in self.named.values()},
+            "etag": self.kb.etag.hex(),
+        }
+        payload = cbor2.dumps(info) if fmt == ContentFormat.CBOR else json.dumps(info).encode()
+        return Response(Status.CONTENT, payload, fmt, max_age=self.limits.max_age_s, etag=self.kb.etag)
+
+    async def sparql(self, request: Request) -> Response:
+        if request.method == Method.GET:
+            if "q" not in request.query:
+                return Response.error(Status.BAD_REQUEST, "GET needs the query in ?q= (or use FETCH/POST)")
+            text = request.query["q"]
+            size = len(text.encode("utf-8"))
+        else:
+            if request.content_format not in (None, ContentFormat.TEXT):
+                return Response.error(
+                    Status.UNSUPPORTED_CONTENT_FORMAT,
+                    f"query body must be text/plain (content-format 0), got {request.content_format}",
+                )
+            size = len(request.payload)
+            try:
+                text = request.payload.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                return Response.error(Status.BAD_REQUEST, f"query is not UTF-8: {exc}")
+        if size > self.limits.max_request_bytes:
+            return Response.error(
+                Status.REQUEST_ENTITY_TOO_LARGE,
+                f"query is {size} bytes; this robot accepts at most {self.limits.max_request_bytes}",
+            )
+        if not text.strip():
+            return Response.error(Status.BAD_REQUEST, "empty query")
+        return await self.answer(text, request.accept)
+
+    async def named_query(self, request: Request) -> Response:
+        name = request.path.rsplit("/", 1)[1]
+        query = self.named.get(name)
+        if query is None:
+            return Response.error(Status.NOT_FOUND, f"no named query {name!r}; see /.well-known/core?rt=coapkb.q")
+        try:
+            text = query.render(request.query)
+        except ValueError as exc:
+            return Response.error(Status.BAD_REQUEST, str(exc))
+        return await self.answer(text, request.accept)
+
+    async def answer(self, text: str, accept: int | None) -> Response:
+        """Run a query within the limits and encode it in the negotiated format."""
+        fmt = negotiate(accept)
+        if fmt is None:
+            return _not_acceptable(accept)
+        limits = self.limits
+        try:
+            # A worker thread keeps the server answering while a slow query runs;
+            # the KB checks the budget between rows, wait_for bounds the rest.
+            result = await asyncio.wait_for(
+                asyncio.to_thread(
+                    self.kb.query, text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s
+                ),
+                limits.time_budget_s + 0.5,
+            )
+        except QuerySyntaxError as exc:
+            return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
+        except UpdateRefused as exc:
+            return Response.error(Status.FORBIDDEN, f"read-only knowledge base: {exc}")
+        except (QueryTimeout, asyncio.TimeoutError):
+            return Response.error(
+                Status.SERVICE_UNAVAILABLE,
+                f"query exceeded the {limits.time_budget_s}s time budget",
+                max_age=limits.retry_after_s,
+            )
+        except KBError as exc:
+            return Response.error(Status.BAD_REQUEST, str(exc))
+        payload = encode_result(result, fmt)
+        etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
+        return Response(Status.CONTENT, payload, fmt, max_age=limits.max_age_s, etag=etag)
+
+
+def _not_acceptable(accept: int | None) -> Response:
+    offered = " or ".join(f"{int(f)} ({f.name.lower()})" for f in RESULT_FORMATS)
+    return Response.error(Status.NOT_ACCEPTABLE, f"cannot answer in content-format {accept}; use {offered}")
+
+
+def _link_title(query: NamedQuery) -> str:
+    params = "&".join(f"{p}=..." for p in query.params)
+    return f"{query.description} ?{params}" if params else query.description

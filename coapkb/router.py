@@ -1,0 +1,63 @@
+"""A transport-neutral resource table: the :class:`~coapkb.transport.base.Service`
+every robot exposes, whatever carries its messages."""
+
+from __future__ import annotations
+
+import logging
+from typing import Awaitable, Callable
+
+from .messages import Request, Response, Status
+from .transport.base import ResourceInfo, Service
+
+Handler = Callable[[Request], Awaitable[Response]]
+
+log = logging.getLogger(__name__)
+
+
+class Router(Service):
+    """Routes requests by exact path; a prefix route (path ending in ``/``)
+    serves every path below it that has no exact route."""
+
+    def __init__(self) -> None:
+        self._routes: dict[str, tuple[ResourceInfo, Handler]] = {}
+        self._listeners: dict[str, list[Callable[[], None]]] = {}
+
+    def add(self, info: ResourceInfo, handler: Handler) -> None:
+        if info.path in self._routes:
+            raise ValueError(f"resource {info.path} is already mounted")
+        self._routes[info.path] = (info, handler)
+
+    def resources(self) -> list[ResourceInfo]:
+        return [info for info, _ in self._routes.values()]
+
+    def _lookup(self, path: str) -> tuple[ResourceInfo, Handler] | None:
+        if path in self._routes:
+            return self._routes[path]
+        parent = path.rsplit("/", 1)[0] + "/"
+        return self._routes.get(parent)
+
+    async def handle(self, request: Request) -> Response:
+        route = self._lookup(request.path)
+        if route is None:
+            return Response.error(Status.NOT_FOUND, f"no resource at {request.path}")
+        info, handler = route
+        if request.method not in info.methods:
+            allowed = ", ".join(info.methods)
+            return Response.error(
+                Status.METHOD_NOT_ALLOWED, f"{request.method} not allowed on {info.path} (use {allowed})"
+            )
+        try:
+            return await handler(request)
+        except Exception:  # a bug must cost one request, never the server
+            log.exception("handler for %s failed", request.path)
+            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error while handling the request")
+
+    def subscribe(self, path: str, on_change: Callable[[], None]) -> Callable[[], None]:
+        listeners = self._listeners.setdefault(path, [])
+        listeners.append(on_change)
+        return lambda: listeners.remove(on_change) if on_change in listeners else None
+
+    def notify(self, path: str) -> None:
+        """Tell observers of ``path`` that its representation changed."""
+        for listener in list(self._listeners.get(path, ())):
+            listener()

@@ -1,0 +1,487 @@
+"""A whole team on one machine: robots as separate OS processes, a task feeder,
+and the record of what happened.
+
+As in the seed's section V, robots form clusters of three; in the distributed
+mode the robots of a cluster hold the Location, Object and Capability KBs
+(Robot1, Robot2, Robot3 of the seed's Fig. 4), and in the centralised
+baseline one server holds all three.  The task list is split into contiguous
+shares, one per cluster, fed in parallel; within a cluster tasks are fed one
+at a time (the seed's "sequentially triggered from an external source"): the
+next goes out once every robot of the cluster has decided the previous one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import random
+import signal
+import socket
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, AsyncIterator, Callable, Sequence
+
+import cbor2
+
+from .agent.robot_state import RobotState
+from .agent.task_assigner import robot_sort_key
+from .config import KB_MODULES, STRATEGIES
+from .knowledge_base import KnowledgeBase
+from .messages import ContentFormat, Method, Request
+from .named_queries import NAMED_QUERIES
+from .transport import open_client
+from .transport.base import ClientTransport, Endpoint, TransportError
+
+log = logging.getLogger(__name__)
+
+CLUSTER_SIZE = 3
+MODES = ("distributed", "central")
+DEFAULT_ONTOLOGIES = Path(__file__).resolve().parent.parent / "ontologies"
+
+
+class TeamError(Exception):
+    """The team could not be started or did not finish its tasks."""
+
+
+@dataclass(frozen=True)
+class TeamSpec:
+    robots: int = 3
+    mode: str = "distributed"
+    transport: str = "coap"
+    strategy: str = "compute-by-all"
+    retransmission: str = "adaptive"
+    query_wire: str = "compact"
+    ontologies: Path = DEFAULT_ONTOLOGIES
+    host: str = "127.0.0.1"
+    query_timeout_s: float = 10.0
+    time_scale: float = 50.0
+    #: Wall-clock limit for one task's coordination before the run is declared stuck.
+    task_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
+            raise ValueError(f"robots must be a multiple of {CLUSTER_SIZE} (clusters of three), got {self.robots}")
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.transport not in ("coap", "zmq"):
+            raise ValueError(f"transport must be coap or zmq, got {self.transport!r}")
+        if self.strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
+        for kb in KB_MODULES:
+            if not (self.ontologies / f"{kb}.owl").is_file():
+                raise ValueError(f"no {kb}.owl in {self.ontologies}")
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return [f"Robot{i}" for i in range(1, self.robots + 1)]
+
+    def clusters(self) -> list[list[str]]:
+        ids = self.robot_ids
+        return [ids[i : i + CLUSTER_SIZE] for i in range(0, len(ids), CLUSTER_SIZE)]
+
+
+@dataclass
+class TaskRecord:
+    object: str
+    cluster: int
+    seq: int
+    skipped: bool = False
+    assigned_to: str | None = None
+    decisions: dict[str, str | None] = field(default_factory=dict)
+    costs: dict[str, float | None] = field(default_factory=dict)
+    errors: dict[str, str] = field(default_factory=dict)
+    coordination_s: float = 0.0
+
+    @property
+    def agreed(self) -> bool:
+        return len(set(self.decisions.values())) == 1 and not self.errors
+
+
+def draw_tasks(n: int, ontologies: Path = DEFAULT_ONTOLOGIES, seed: int = 1) -> list[str]:
+    """``n`` product names drawn (with a seed) from the Object KB."""
+    kb = KnowledgeBase.load([ontologies / "Object.owl"])
+    result = kb.query(
+        "PREFIX o: <http://www.tcs.org/2018/Object#> SELECT ?name WHERE { ?p o:Product_name ?name } ORDER BY ?name",
+        row_limit=10_000_000,
+    )
+    names = [str(row[0]) for row in result.rows]  # type: ignore[union-attr]
+    if not names:
+        raise TeamError("the Object KB has no products")
+    rng = random.Random(seed)
+    return [rng.choice(names) for _ in range(n)]
+
+
+def read_tasks_file(path: str | Path) -> list[str]:
+    """One product name per line; blank lines and ``#`` comments ignored."""
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise TeamError(f"cannot read tasks file {path}: {exc.strerror}") from None
+    tasks = [line.split("#", 1)[0].strip() for line in lines]
+    return [t for t in tasks if t]
+
+
+def split_tasks(tasks: Sequence[str], clusters: int) -> list[list[str]]:
+    """Contiguous, near-equal shares, in order (the seed splits N tasks into equal sets)."""
+    bounds = [round(i * len(tasks) / clusters) for i in range(clusters + 1)]
+    return [list(tasks[bounds[i] : bounds[i + 1]]) for i in range(clusters)]
+
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
+    """Initial position, battery and payload of every robot, from the Location and
+    Capability KBs (the generator puts the robots' homes and specs there)."""
+    location = KnowledgeBase.load([ontologies / "Location.owl"])
+    capability = KnowledgeBase.load([ontologies / "Capability.owl"])
+    starts: dict[str, dict[str, float | int]] = {}
+    for row in location.query(NAMED_QUERIES["robot-positions"].render({})).as_dicts():  # type: ignore[union-attr]
+        starts[str(row["robo_id"])] = {"aisle": int(row["aisle_no"]), "rack": int(row["rack_no"])}
+    for row in capability.query(NAMED_QUERIES["robot-specs"].render({})).as_dicts():  # type: ignore[union-attr]
+        entry = starts.setdefault(str(row["robo_id"]), {"aisle": 1, "rack": 0})
+        entry["battery_wh"] = float(row["battery"])
+        entry["payload_kg"] = float(row["payload"])
+    return starts
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+class Team:
+    """Start with :meth:`launch` (an async context manager), then :meth:`run`."""
+
+    def __init__(self, spec: TeamSpec, workdir: Path) -> None:
+        self.spec = spec
+        self.workdir = workdir
+        self.processes: dict[str, asyncio.subprocess.Process] = {}
+        self.endpoints: dict[str, Endpoint] = {}
+        self.central: Endpoint | None = None
+        self._stderr_tails: dict[str, list[str]] = {}
+
+    # ---------------------------------------------------------------- processes
+
+    def _endpoint(self) -> Endpoint:
+        kind = socket.SOCK_DGRAM if self.spec.transport == "coap" else socket.SOCK_STREAM
+        return Endpoint(self.spec.transport, self.spec.host, _free_port(kind))
+
+    def write_configs(self) -> dict[str, Path]:
+        spec = self.spec
+        starts = robot_starts(spec.ontologies)
+        paths: dict[str, Path] = {}
+        for cluster in spec.clusters():
+            for robot_id in cluster:
+                self.endpoints[robot_id] = self._endpoint()
+        for cluster in spec.clusters():
+            holders = dict(zip(cluster, ("Location", "Object", "Capability")))
+            for robot_id in cluster:
+                start = starts.get(robot_id, {"aisle": 1, "rack": 0})
+                kbs = [holders[robot_id]] if spec.mode == "distributed" else []
+                lines = [
+                    f"robot_id = {_toml_value(robot_id)}",
+                    f"bind = {_toml_value(str(self.endpoints[robot_id]))}",
+                    f"kb = {_toml_value([str(spec.ontologies / f'{kb}.owl') for kb in kbs])}",
+                    f"strategy = {_toml_value(spec.strategy)}",
+                    f"retransmission = {_toml_value(spec.retransmission)}",
+                    f"query_timeout_s = {spec.query_timeout_s!r}",
+                ]
+                if self.central is not None:
+                    lines.append(f"central = {_toml_value(str(self.central))}")
+                lines += ["", "[start]"] + [f"{k} = {v!r}" for k, v in start.items()]
+                lines += ["", "[execution]", f"time_scale = {spec.time_scale!r}"]
+                for mate in cluster:
+                    mate_kbs = [holders[mate]] if spec.mode == "distributed" else []
+                    lines += [
+                        "",
+                        f"[team.{mate}]",
+                        f"endpoint = {_toml_value(str(self.endpoints[mate]))}",
+                        f"kbs = {_toml_value(mate_kbs)}",
+                    ]
+                path = self.workdir / f"{robot_id}.toml"
+                path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+                paths[robot_id] = path
+        return paths
+
+    async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "coapkb", *argv,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.processes[name] = proc
+        assert proc.stdout is not None and proc.stderr is not None
+        tail: list[str] = []
+        self._stderr_tails[name] = tail
+        asyncio.create_task(_drain(proc.stderr, tail), name=f"stderr-{name}")
+        try:
+            line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode().strip()
+        except asyncio.TimeoutError:
+            line = ""
+        if not line.startswith(ready_prefix):
+            await proc.wait() if proc.returncode is not None else None
+            raise TeamError(f"{name} did not start: {line or ' '.join(tail[-3:]) or 'no output'}")
+        asyncio.create_task(_drain(proc.stdout, []), name=f"stdout-{name}")
+        return line
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def launch(cls, spec: TeamSpec) -> AsyncIterator["Team"]:
+        """Start every process; on exit (normal, error or Ctrl-C) stop them all."""
+        with tempfile.TemporaryDirectory(prefix="coapkb-team-") as tmp:
+            team = cls(spec, Path(tmp))
+            try:
+                if spec.mode == "central":
+                    team.central = team._endpoint()
+                    kbs = [str(spec.ontologies / f"{kb}.owl") for kb in KB_MODULES]
+                    await team._spawn(
+                        "central",
+                        ["serve", "--kb", *kbs, "--bind", team.central.hostport, "--transport", spec.transport],
+                        "serving",
+                    )
+                configs = team.write_configs()
+                await asyncio.gather(
+                    *(
+                        team._spawn(r, ["agent", "--config", str(p), "--query-wire", spec.query_wire], "robot")
+                        for r, p in configs.items()
+                    )
+                )
+                yield team
+            finally:
+                await team.stop()
+
+    async def stop(self) -> None:
+        for proc in self.processes.values():
+            if proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.send_signal(signal.SIGTERM)
+        for name, proc in self.processes.items():
+            try:
+                await asyncio.wait_for(proc.wait(), 10)
+            except asyncio.TimeoutError:
+                log.warning("%s did not stop on SIGTERM; killing it", name)
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+
+    def crashed(self) -> list[str]:
+        return [f"{n} (exit {p.returncode}): {' '.join(self._stderr_tails[n][-2:])}"
+                for n, p in self.processes.items() if p.returncode is not None]
+
+    # ---------------------------------------------------------------- feeding
+
+    async def run(
+        self,
+        tasks: Sequence[str],
+        progress: Callable[[TaskRecord], None] | None = None,
+    ) -> dict[str, Any]:
+        """Feed the tasks, wait for every robot to finish executing, return the record."""
+        spec = self.spec
+        client = await open_client(spec.transport, retransmission=spec.retransmission)
+        watcher = _StateWatcher(client, self.endpoints)
+        watcher.start()
+        started = time.monotonic()
+        records: list[TaskRecord] = []
+        try:
+            shares = split_tasks(tasks, len(spec.clusters()))
+            per_cluster = await asyncio.gather(
+                *(
+                    self._feed_cluster(client, watcher, index, cluster, share, progress)
+                    for index, (cluster, share) in enumerate(zip(spec.clusters(), shares))
+                )
+            )
+            coordination_s = time.monotonic() - started
+            await watcher.wait(lambda s: all(st.live.activity == "idle" and st.live.queued == 0 for st in s.values())
+                               and len(s) == len(self.endpoints), timeout=spec.task_timeout_s * 4)
+            completion_s = time.monotonic() - started
+            for share_records in per_cluster:
+                records.extend(share_records)
+            stats = await self._collect_stats(client)
+            feeder = client.counters.as_dict()
+        finally:
+            await watcher.aclose()
+            await client.aclose()
+        return self._record(records, stats, feeder, coordination_s, completion_s)
+
+    async def _feed_cluster(
+        self,
+        client: ClientTransport,
+        watcher: "_StateWatcher",
+        index: int,
+        cluster: list[str],
+        share: list[str],
+        progress: Callable[[TaskRecord], None] | None,
+    ) -> list[TaskRecord]:
+        records = []
+        for seq, name in enumerate(share, start=1):
+            fed = time.monotonic()
+            body = cbor2.dumps({"seq": seq, "object": name})
+            request = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
+            responses = await asyncio.gather(
+                *(client.request(self.endpoints[r], request, timeout=self.spec.task_timeout_s) for r in cluster),
+                return_exceptions=True,
+            )
+            for robot_id, response in zip(cluster, responses):
+                if isinstance(response, BaseException) or not response.status.is_success:
+                    raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
+            states = await watcher.wait(
+                lambda s: all(r in s and s[r].last is not None and s[r].last.seq >= seq for r in cluster),
+                timeout=self.spec.task_timeout_s,
+                what=f"decisions on task {seq} ({name}) from {', '.join(cluster)}",
+            )
+            record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
+            for robot_id in cluster:
+                decision = states[robot_id].last
+                assert decision is not None
+                record.decisions[robot_id] = decision.assigned_to
+                if decision.error:
+                    record.errors[robot_id] = decision.error
+                if decision.skipped:
+                    record.skipped = True
+                if decision.costs and not record.costs:
+                    record.costs = dict(decision.costs)
+            assigned = {d for d in record.decisions.values() if d is not None}
+            record.assigned_to = assigned.pop() if len(assigned) == 1 else None
+            records.append(record)
+            if progress is not None:
+                progress(record)
+        return records
+
+    async def _collect_stats(self, client: ClientTransport) -> dict[str, Any]:
+        request = Request(Method.GET, "/robot/stats", accept=ContentFormat.CBOR)
+        stats = {}
+        for robot_id, endpoint in self.endpoints.items():
+            response = await client.request(endpoint, request, timeout=self.spec.query_timeout_s)
+            stats[robot_id] = cbor2.loads(response.payload)
+        return stats
+
+    def _record(
+        self,
+        records: list[TaskRecord],
+        stats: dict[str, Any],
+        feeder: dict[str, int],
+        coordination_s: float,
+        completion_s: float,
+    ) -> dict[str, Any]:
+        spec = self.spec
+        # Restore the order given: cluster shares are contiguous.
+        records.sort(key=lambda r: (r.cluster, r.seq))
+        return {
+            "mode": spec.mode,
+            "transport": spec.transport,
+            "strategy": spec.strategy,
+            "retransmission": spec.retransmission,
+            "query_wire": spec.query_wire,
+            "robots": spec.robot_ids,
+            "clusters": spec.clusters(),
+            "tasks": [
+                {
+                    "object": r.object,
+                    "cluster": r.cluster,
+                    "seq": r.seq,
+                    "skipped": r.skipped,
+                    "assigned_to": r.assigned_to,
+                    "decisions": r.decisions,
+                    "costs": r.costs,
+                    "errors": r.errors,
+                    "agreed": r.agreed,
+                    "coordination_s": round(r.coordination_s, 6),
+                }
+                for r in records
+            ],
+            "coordination_s": round(coordination_s, 6),
+            "completion_s": round(completion_s, 6),
+            "robot_stats": stats,
+            "feeder_traffic": feeder,
+        }
+
+
+class _StateWatcher:
+    """The feeder's view of every robot's ``/robot/state``, by Observe."""
+
+    def __init__(self, client: ClientTransport, endpoints: dict[str, Endpoint]) -> None:
+        self._client = client
+        self._endpoints = endpoints
+        self.states: dict[str, RobotState] = {}
+        self._changed = asyncio.Condition()
+        self._tasks: list[asyncio.Task] = []
+
+    def start(self) -> None:
+        self._tasks = [asyncio.create_task(self._observe(r, e)) for r, e in self._endpoints.items()]
+
+    async def aclose(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def _observe(self, robot_id: str, endpoint: Endpoint) -> None:
+        request = Request(Method.GET, "/robot/state", accept=ContentFormat.CBOR)
+        while True:
+            try:
+                async for response in self._client.observe(endpoint, request):
+                    if response.status.is_success:
+                        state = RobotState.decode(response.payload)
+                        async with self._changed:
+                            self.states[robot_id] = state
+                            self._changed.notify_all()
+            except (TransportError, ValueError) as exc:
+                log.debug("observing %s: %s", robot_id, exc)
+            await asyncio.sleep(0.2)  # re-register after the observation ended
+
+    async def wait(
+        self, predicate: Callable[[dict[str, RobotState]], bool], timeout: float, what: str = "the team"
+    ) -> dict[str, RobotState]:
+        try:
+            async with asyncio.timeout(timeout):
+                async with self._changed:
+                    await self._changed.wait_for(lambda: predicate(self.states))
+        except TimeoutError:
+            raise TeamError(f"timed out after {timeout:g}s waiting for {what}") from None
+        return dict(self.states)
+
+
+async def _drain(stream: asyncio.StreamReader, tail: list[str], keep: int = 20) -> None:
+    """Read a child's output so it never blocks on a full pipe; keep the last lines."""
+    while line := await stream.readline():
+        tail.append(line.decode(errors="replace").rstrip())
+        del tail[:-keep]
+
+
+def summarise(record: dict[str, Any]) -> str:
+    """A human summary of a team record."""
+    tasks = record["tasks"]
+    done = [t for t in tasks if t["assigned_to"]]
+    skipped = [t for t in tasks if t["skipped"]]
+    errors = [t for t in tasks if t["errors"]]
+    disagreements = [t for t in tasks if not t["agreed"]]
+    per_robot: dict[str, int] = {}
+    for t in done:
+        per_robot[t["assigned_to"]] = per_robot.get(t["assigned_to"], 0) + 1
+    stats = record["robot_stats"]
+    sent = sum(s["server"]["bytes_sent"] + s["client"]["bytes_sent"] for s in stats.values())
+    received = sum(s["server"]["bytes_received"] + s["client"]["bytes_received"] for s in stats.values())
+    datagrams = sum(s["server"]["messages_sent"] + s["client"]["messages_sent"] for s in stats.values())
+    local = sum(s["queries"]["local"] for s in stats.values())
+    remote = sum(s["queries"]["remote"] for s in stats.values())
+    lines = [
+        f"{len(record['robots'])} robots, {record['mode']}, {record['transport']}, {record['strategy']}: "
+        f"{len(tasks)} tasks, {len(done)} assigned, {len(skipped)} skipped, {len(errors)} with errors, "
+        f"{len(disagreements)} disagreements",
+        "assigned: " + ", ".join(f"{r} {n}" for r, n in sorted(per_robot.items(), key=lambda x: robot_sort_key(x[0]))),
+        f"coordination {record['coordination_s']:.2f} s, completion {record['completion_s']:.2f} s",
+        f"robots sent {sent:,} B in {datagrams:,} messages, received {received:,} B; "
+        f"queries: {local} local, {remote} remote",
+    ]
+    return "\n".join(lines)

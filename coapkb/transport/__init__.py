@@ -1,0 +1,65 @@
+"""Communication (the seed's Fig. 2): one interface, two transports.
+
+``open_client`` and ``serve`` pick the implementation from a scheme name
+(``coap`` or ``zmq``), so nothing above this package names a transport.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .base import (
+    ClientTransport,
+    Endpoint,
+    PeerUnreachable,
+    ResourceInfo,
+    ServerTransport,
+    Service,
+    TrafficCounters,
+    TransportError,
+)
+
+SCHEMES = ("coap", "zmq")
+
+
+async def open_client(scheme: str, *, retransmission: Any = "adaptive") -> ClientTransport:
+    """A client transport for ``scheme``.
+
+    ``retransmission`` (a profile name or profile) sets CoAP's confirmable
+    retransmission; TCP retransmits by itself, so ZeroMQ ignores it."""
+    if scheme == "coap":
+        from .coap import CoapClientTransport
+
+        return await CoapClientTransport.create(retransmission=retransmission)
+    if scheme == "zmq":
+        from .zmq import ZmqClientTransport
+
+        return ZmqClientTransport()
+    raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
+
+
+async def serve(service: Service, endpoint: Endpoint) -> ServerTransport:
+    """Expose ``service`` on ``endpoint`` (its scheme picks the transport)."""
+    if endpoint.scheme == "coap":
+        from .coap import CoapServerTransport
+
+        return await CoapServerTransport.start(service, endpoint)
+    if endpoint.scheme == "zmq":
+        from .zmq import ZmqServerTransport
+
+        return await ZmqServerTransport.start(service, endpoint)
+    raise ValueError(f"unknown transport {endpoint.scheme!r} (choose from {', '.join(SCHEMES)})")
+
+
+__all__ = [
+    "ClientTransport",
+    "Endpoint",
+    "PeerUnreachable",
+    "ResourceInfo",
+    "ServerTransport",
+    "Service",
+    "TrafficCounters",
+    "TransportError",
+    "open_client",
+    "serve",
+]

@@ -1,0 +1,129 @@
+"""The one transport interface.
+
+A transport moves :class:`~coapkb.messages.Request` / ``Response`` pairs
+between robots.  The client side is :class:`ClientTransport`; the server side
+exposes a :class:`Service` (the robot's resources) through a
+:class:`ServerTransport`.  CoAP/UDP (``coap``) and ZeroMQ/TCP (``zmq``)
+implement both; the agent, CLI and benchmarks only see these protocols.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import AsyncIterator, Callable, Protocol
+
+from ..messages import Request, Response
+
+
+class TransportError(Exception):
+    """A request could not be completed: peer unreachable, timed out, or reset."""
+
+
+class PeerUnreachable(TransportError):
+    """No answer from the peer within the time budget (after retransmissions)."""
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """Where a robot listens: ``scheme://host:port`` (scheme ``coap`` or ``zmq``)."""
+
+    scheme: str
+    host: str
+    port: int
+
+    @classmethod
+    def parse(cls, uri: str, default_scheme: str = "coap") -> "Endpoint":
+        """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq) or bare ``h:p``."""
+        scheme, sep, rest = uri.partition("://")
+        if not sep:
+            scheme, rest = default_scheme, uri
+        scheme = {"tcp": "zmq"}.get(scheme, scheme)
+        if scheme not in ("coap", "zmq"):
+            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use coap:// or zmq://)")
+        rest = rest.split("/", 1)[0]
+        if rest.startswith("["):  # [IPv6]:port
+            host, _, port = rest[1:].partition("]:")
+        else:
+            host, _, port = rest.rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"expected HOST:PORT in {uri!r}")
+        return cls(scheme, host, int(port))
+
+    @property
+    def hostport(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+    def __str__(self) -> str:
+        return f"{self.scheme}://{self.hostport}"
+
+
+@dataclass
+class TrafficCounters:
+    """What one process put on and took off its sockets (payload of UDP datagrams or
+    TCP segments as seen by the application; IP/UDP/TCP headers are not included).
+    Retransmissions count as sent again."""
+
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    messages_sent: int = 0
+    messages_received: int = 0
+    retransmissions: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(vars(self))
+
+
+@dataclass(frozen=True)
+class ResourceInfo:
+    """A resource as advertised in discovery (RFC 6690 attributes)."""
+
+    path: str
+    rt: str | None = None
+    ct: tuple[int, ...] = ()
+    obs: bool = False
+    title: str | None = None
+    methods: tuple[str, ...] = ("GET",)
+
+
+class Service(abc.ABC):
+    """A robot's resources, independent of transport."""
+
+    @abc.abstractmethod
+    def resources(self) -> list[ResourceInfo]:
+        """All resources, for discovery and routing."""
+
+    @abc.abstractmethod
+    async def handle(self, request: Request) -> Response:
+        """Answer one request.  Must not raise: errors become 4.xx/5.xx responses."""
+
+    def subscribe(self, path: str, on_change: Callable[[], None]) -> Callable[[], None]:
+        """Call ``on_change`` whenever the resource at ``path`` changes (for Observe).
+        Returns a function that cancels the subscription.  Default: never changes."""
+        return lambda: None
+
+
+class ClientTransport(Protocol):
+    """The client side: send a request to a peer, get its response."""
+
+    counters: TrafficCounters
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        """Send ``request``; raise :class:`PeerUnreachable` if ``timeout`` passes."""
+        ...
+
+    def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        """The current representation of a resource, then one item per change."""
+        ...
+
+    async def aclose(self) -> None: ...
+
+
+class ServerTransport(Protocol):
+    """The server side: expose a :class:`Service` on an endpoint."""
+
+    counters: TrafficCounters
+    endpoint: Endpoint
+
+    async def aclose(self) -> None: ...
