@@ -46,7 +46,7 @@ class Endpoint:
             host, _, port = rest[1:].partition("]:")
         else:
             host, _, port = rest.rpartition(":")
-        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        if not host or not port.isdigit() or not 0 <= int(port) < 65536:
             raise ValueError(f"expected HOST:PORT in {uri!r}")
         return cls(scheme, host, int(port))
 

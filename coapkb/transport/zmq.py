@@ -1,0 +1,819 @@
+"""ZeroMQ/TCP transport: the seed paper's transport behind coapkb's interface.
+
+The agent and the benchmarks talk to :class:`~coapkb.transport.base.ClientTransport`
+and :class:`~coapkb.transport.base.ServerTransport`; this module implements both
+over ZeroMQ so the CoAP/UDP transport can be compared against the paper's
+original choice with everything else held equal.
+
+Sockets and envelope
+    The server binds one ROUTER socket; a client opens one DEALER socket per
+    peer, lazily, on first use.  Each request and each response is a single
+    ZeroMQ frame holding the CBOR envelope of :mod:`.zmq_wire` (token, CoAP
+    method/status codes, options, payload).  DEALER/ROUTER rather than REQ/REP
+    because REQ/REP allows one outstanding request per socket and wedges when
+    an answer is lost; with DEALER/ROUTER many requests are in flight at once
+    and replies are matched by token, like CoAP.
+
+Unreachable peers
+    libzmq connects in the background and retries for ever; by default it also
+    queues messages for a peer it has never reached and sends them whenever the
+    connection finally comes up -- minutes later, to a robot that no longer
+    wants the answer.  The client therefore sets ``ZMQ_IMMEDIATE`` (messages are
+    only queued on completed connections; a send waits, within the request's
+    timeout, for one to exist), ``LINGER=0`` (nothing is kept after close) and a
+    small ``SNDHWM``.  A request whose send did not even get out before the
+    timeout raises :class:`PeerUnreachable`, and when nobody else uses that
+    peer's socket it is closed, which stops libzmq's reconnect attempts (SYNs
+    every ``reconnect_ivl_max`` on the radio) until the peer is asked again.
+
+Liveness
+    TCP keep-alive (idle 5 s, then 3 probes 1 s apart) and ``TCP_USER_TIMEOUT``
+    (via ``ZMQ_TCP_MAXRT``, 10 s) let both ends notice a robot that drove out of
+    range instead of waiting for the kernel's defaults (2 h / ~15 min).
+    Reconnects start after 100 ms and back off to 2 s.  Clients set a random
+    routing id and the server sets ``ROUTER_HANDOVER`` so a client that
+    reconnects before the server noticed its old connection die takes over its
+    identity (and its observations) instead of being refused.  ZMTP heartbeats
+    are off by default because they cost payload bytes on slow links; see
+    :class:`ZmqOptions`.
+
+Observe
+    A request carrying the envelope's observe flag registers ``(client
+    identity, token)`` through :meth:`Service.subscribe`.  Each change re-runs
+    the request through :meth:`Service.handle` and pushes the answer with the
+    next ``seq``.  Changes that arrive while an update is being computed are
+    coalesced (an observer gets the latest state, not every intermediate one,
+    as in RFC 7641).  An error answer ends the observation.  The client ends
+    it with a deregistration when its iterator is closed; a client that
+    vanishes is forgotten as soon as a push to it fails (``ROUTER_MANDATORY``
+    reports its route gone once TCP closed the connection).
+
+Traffic counters
+    Count the bytes each message occupies in the TCP byte stream: the envelope
+    plus its ZMTP frame header (2 bytes, or 9 above 255 bytes); checked against
+    a counting TCP proxy, they match the stream exactly except for the ZMTP
+    handshake (115 bytes client to server, 107 back, once per connection).
+    Not counted here: that handshake, heartbeats, TCP/IP headers, ACKs and
+    keep-alive probes -- the link emulator counts those.
+    TCP retransmits invisibly, so ``retransmissions`` stays 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import itertools
+import logging
+import os
+import time
+from collections.abc import AsyncIterator, Callable, Coroutine
+from dataclasses import dataclass, field
+from typing import Any
+
+import zmq
+import zmq.asyncio
+
+from ..messages import Method, Request, Response, Status
+from .base import Endpoint, PeerUnreachable, Service, TrafficCounters, TransportError
+from .zmq_wire import (
+    MAX_TOKEN,
+    Observe,
+    WireError,
+    decode_request,
+    decode_response,
+    encode_request,
+    encode_response,
+)
+
+__all__ = [
+    "ZmqOptions",
+    "ZmqServerTransport",
+    "ZmqClientTransport",
+    "zmtp_frame_bytes",
+]
+
+log = logging.getLogger(__name__)
+
+_OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
+
+
+def zmtp_frame_bytes(size: int) -> int:
+    """Bytes a message frame of ``size`` bytes takes in a ZMTP 3 stream
+    (flags octet plus a 1-octet length, or an 8-octet one above 255)."""
+    return size + (2 if size <= 255 else 9)
+
+
+@dataclass(frozen=True)
+class ZmqOptions:
+    """Socket tuning shared by client and server.  Defaults suit robots on Wi-Fi."""
+
+    #: First reconnect after a lost/refused connection, then doubling up to the max.
+    reconnect_ivl_ms: int = 100
+    reconnect_ivl_max_ms: int = 2000
+    #: Give up a TCP connect after this long (the kernel default is ~2 min of SYNs).
+    connect_timeout_ms: int = 3000
+    #: A connection must finish the ZMTP handshake within this time.
+    handshake_ivl_ms: int = 5000
+    #: Kernel keep-alive: first probe after idle seconds, then every intvl, give up after cnt.
+    tcp_keepalive_idle_s: int = 5
+    tcp_keepalive_intvl_s: int = 1
+    tcp_keepalive_cnt: int = 3
+    #: TCP_USER_TIMEOUT: drop a connection whose sent data stays unacknowledged this long.
+    tcp_user_timeout_ms: int = 10_000
+    #: ZMTP PING interval (0 = off).  Costs ~16 payload bytes per interval and peer.
+    heartbeat_ivl_ms: int = 0
+    heartbeat_timeout_ms: int = 6000
+    #: Client: messages queued per peer before ``request`` waits (within its
+    #: timeout).  Small, so requests to a wedged peer are not hoarded and
+    #: delivered long after their callers gave up.
+    client_sndhwm: int = 100
+    #: Server: answers queued per client; beyond it answers to that client are
+    #: dropped (it is not reading) rather than stalling everyone else.
+    server_sndhwm: int = 1000
+    #: Messages queued per peer on receipt; when full, libzmq stops reading
+    #: that TCP connection (flow control back to the sender).
+    rcvhwm: int = 1000
+    #: Largest request the server accepts (libzmq drops the connection otherwise).
+    max_request_bytes: int = 1 << 20
+    #: Largest response a client accepts (-1: no limit; results can be big).
+    max_response_bytes: int = -1
+    #: Server: requests handled at once; further ones wait in the socket queue.
+    max_concurrent_requests: int = 64
+    #: Server: observations one client identity may hold.
+    max_observations_per_client: int = 16
+    #: Client: undelivered notifications kept per observation (oldest dropped first).
+    observe_queue: int = 64
+    #: At most one "malformed message" warning per this many seconds.
+    malformed_log_interval_s: float = 10.0
+    #: Time an observe iterator waits for the first answer.
+    observe_timeout_s: float = 10.0
+
+
+class _RateLimitedLog:
+    """Warn at most once per interval and say how many warnings were swallowed,
+    so a peer spraying garbage cannot flood the log (or the disk)."""
+
+    def __init__(self, logger: logging.Logger, interval: float) -> None:
+        self._logger = logger
+        self._interval = interval
+        self._last = -float("inf")
+        self._suppressed = 0
+
+    def warning(self, msg: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._last < self._interval:
+            self._suppressed += 1
+            return
+        if self._suppressed:
+            msg += " (%d similar warnings suppressed)"
+            args = (*args, self._suppressed)
+        self._logger.warning(msg, *args)
+        self._last = now
+        self._suppressed = 0
+
+
+def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None:
+    """Options common to both ends; must run before bind/connect.
+
+    IPv6 is enabled only for IPv6 literals: with it on, libzmq may resolve a
+    host name to an IPv6 address the peer does not listen on, and it does not
+    fall back to the IPv4 one."""
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RECONNECT_IVL, options.reconnect_ivl_ms)
+    sock.setsockopt(zmq.RECONNECT_IVL_MAX, options.reconnect_ivl_max_ms)
+    sock.setsockopt(zmq.HANDSHAKE_IVL, options.handshake_ivl_ms)
+    sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, options.tcp_keepalive_idle_s)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, options.tcp_keepalive_intvl_s)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, options.tcp_keepalive_cnt)
+    sock.setsockopt(zmq.TCP_MAXRT, options.tcp_user_timeout_ms)
+    sock.setsockopt(zmq.RCVHWM, options.rcvhwm)
+    if options.heartbeat_ivl_ms > 0:
+        sock.setsockopt(zmq.HEARTBEAT_IVL, options.heartbeat_ivl_ms)
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, options.heartbeat_timeout_ms)
+    if ":" in host:
+        sock.setsockopt(zmq.IPV6, 1)
+
+
+def _check_scheme(endpoint: Endpoint) -> None:
+    if endpoint.scheme != "zmq":
+        raise ValueError(f"{endpoint} is not a zmq:// endpoint")
+
+
+def _tcp_uri(host: str, port: int | str) -> str:
+    return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
+
+
+# =========================================================================== server
+
+
+@dataclass(eq=False)
+class _Observation:
+    """One registered observer: who, under which token, of what."""
+
+    identity: bytes
+    token: int
+    request: Request
+    dirty: asyncio.Event = field(default_factory=asyncio.Event)
+    seq: int = 0
+    active: bool = True
+    unsubscribe: Callable[[], None] | None = None
+    worker: asyncio.Task[None] | None = None
+
+
+class ZmqServerTransport:
+    """Serves a :class:`Service` on a ZeroMQ ROUTER socket.
+
+    Create with :meth:`start`.  Requests are handled concurrently (at most
+    ``options.max_concurrent_requests`` at once; beyond that the receive loop
+    stops reading, so TCP flow control pushes back on the clients instead of
+    the server buffering without bound).  Malformed messages are counted in
+    :attr:`malformed` and dropped.
+    """
+
+    counters: TrafficCounters
+    endpoint: Endpoint
+
+    def __init__(
+        self,
+        service: Service,
+        endpoint: Endpoint,
+        sock: zmq.asyncio.Socket,
+        context: zmq.asyncio.Context,
+        owns_context: bool,
+        options: ZmqOptions,
+    ) -> None:
+        """Private: use :meth:`start`, which binds the socket first."""
+        self.counters = TrafficCounters()
+        self.endpoint = endpoint
+        #: Messages dropped because they were not a valid request envelope.
+        self.malformed = 0
+        self._service = service
+        self._sock = sock
+        self._ctx = context
+        self._owns_context = owns_context
+        self._options = options
+        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._observations: dict[bytes, dict[int, _Observation]] = {}
+        self._bad_log = _RateLimitedLog(log, options.malformed_log_interval_s)
+        self._send_log = _RateLimitedLog(log, options.malformed_log_interval_s)
+        self._closed = False
+        self._receiver = asyncio.create_task(self._receive_loop(), name=f"zmq server {endpoint}")
+
+    @classmethod
+    async def start(
+        cls,
+        service: Service,
+        endpoint: Endpoint,
+        *,
+        options: ZmqOptions | None = None,
+        context: zmq.asyncio.Context | None = None,
+    ) -> ZmqServerTransport:
+        """Bind ``tcp://host:port`` and start serving.
+
+        Port 0 picks a free port; the returned transport's :attr:`endpoint`
+        has the real one.  The host is an IPv4 or IPv6 literal, an interface
+        name, or ``*`` for all IPv4 interfaces (``::`` for IPv6 and IPv4).
+        A shared ``context`` is left open on :meth:`aclose`; otherwise the
+        transport owns (and terminates) its own.  Raises
+        :class:`TransportError` if the address cannot be bound (port in use,
+        no such interface).
+        """
+        _check_scheme(endpoint)
+        options = options or ZmqOptions()
+        ctx = context if context is not None else zmq.asyncio.Context()
+        sock = ctx.socket(zmq.ROUTER)
+        try:
+            _configure(sock, options, endpoint.host)
+            sock.setsockopt(zmq.SNDHWM, options.server_sndhwm)
+            sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+            sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
+            sock.setsockopt(zmq.MAXMSGSIZE, options.max_request_bytes)
+            sock.bind(_tcp_uri(endpoint.host, endpoint.port or "*"))
+            bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        except zmq.ZMQError as exc:
+            sock.close(linger=0)
+            if context is None:
+                ctx.term()
+            if exc.errno == errno.EADDRINUSE:
+                raise TransportError(f"cannot listen on {endpoint}: port {endpoint.port} is already in use") from exc
+            raise TransportError(f"cannot listen on {endpoint}: {exc}") from exc
+        port = int(bound.rsplit(":", 1)[1])
+        return cls(service, Endpoint("zmq", endpoint.host, port), sock, ctx, context is None, options)
+
+    @property
+    def observation_count(self) -> int:
+        """Observations currently registered (all clients)."""
+        return sum(len(per) for per in self._observations.values())
+
+    async def __aenter__(self) -> ZmqServerTransport:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Stop serving: cancel handlers and observations, close the socket
+        (linger 0: unsent answers are discarded).  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._receiver.cancel()
+        for per in list(self._observations.values()):
+            for obs in list(per.values()):
+                self._stop(obs)
+        tasks = [self._receiver, *self._tasks]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._sock.close(linger=0)
+        if self._owns_context:
+            self._ctx.term()
+
+    # ------------------------------------------------------------------ receiving
+
+    async def _receive_loop(self) -> None:
+        sock = self._sock
+        while True:
+            try:
+                frames = await sock.recv_multipart()
+            except zmq.ZMQError as exc:
+                if self._closed or exc.errno in (zmq.ETERM, zmq.ENOTSOCK):
+                    return
+                self._bad_log.warning("zmq server %s: receive failed: %s", self.endpoint, exc)
+                continue
+            identity, body = frames[0], frames[1:]
+            self.counters.messages_received += 1
+            self.counters.bytes_received += sum(zmtp_frame_bytes(len(f)) for f in body)
+            if len(body) != 1:
+                self._malformed(identity, f"{len(body)} frames, expected 1")
+                continue
+            try:
+                token, request, observe = decode_request(body[0])
+            except WireError as exc:
+                self._malformed(identity, str(exc))
+                continue
+            if observe is Observe.DEREGISTER:
+                self._deregister(identity, token)
+                continue
+            await self._slots.acquire()
+            self._spawn(self._serve(identity, token, request, observe))
+
+    def _malformed(self, identity: bytes, why: str) -> None:
+        self.malformed += 1
+        self._bad_log.warning(
+            "zmq server %s: dropped malformed message from peer %s: %s (%d dropped so far)",
+            self.endpoint,
+            identity.hex(),
+            why[:200],
+            self.malformed,
+        )
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("zmq server %s: handler crashed", self.endpoint, exc_info=task.exception())
+
+    # ------------------------------------------------------------------ answering
+
+    async def _serve(self, identity: bytes, token: int, request: Request, observe: Observe) -> None:
+        """One request; holds a concurrency slot (taken by the receive loop)."""
+        try:
+            if observe is Observe.REGISTER and request.method in _OBSERVABLE_METHODS:
+                await self._register(identity, token, request)
+            else:
+                response = await self._call(request)
+                await self._send(identity, self._encode(token, response))
+        finally:
+            self._slots.release()
+
+    async def _call(self, request: Request) -> Response:
+        """``service.handle`` that cannot take the server down."""
+        try:
+            response = await self._service.handle(request)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("Service.handle raised on %s %s (it must answer 5.xx instead)", request.method, request.path)
+            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+        if not isinstance(response, Response):
+            log.error("Service.handle returned %r for %s %s, not a Response", response, request.method, request.path)
+            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+        return response
+
+    def _encode(self, token: int, response: Response, seq: int | None = None) -> bytes:
+        try:
+            return encode_response(token, response, seq=seq)
+        except ValueError as exc:
+            log.error("zmq server %s: service returned an unencodable response: %s", self.endpoint, exc)
+            return encode_response(token, Response.error(Status.INTERNAL_SERVER_ERROR, "internal error"), seq=seq)
+
+    async def _send(self, identity: bytes, data: bytes) -> bool:
+        """Queue one message for ``identity``; never waits.
+
+        False if it could not be queued: the peer is gone (then its
+        observations are dropped) or is not reading (its queue is full; the
+        message is dropped like a lost datagram rather than stalling every
+        other client behind it).
+        """
+        try:
+            await self._sock.send_multipart([identity, data], flags=zmq.NOBLOCK)
+        except zmq.Again:
+            self._send_log.warning(
+                "zmq server %s: peer %s is not reading; dropped a message", self.endpoint, identity.hex()
+            )
+            return False
+        except zmq.ZMQError as exc:
+            if exc.errno == zmq.EHOSTUNREACH:
+                log.debug("zmq server %s: peer %s is gone", self.endpoint, identity.hex())
+                self._forget_client(identity)
+            elif not self._closed:
+                self._send_log.warning("zmq server %s: send to %s failed: %s", self.endpoint, identity.hex(), exc)
+            return False
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += zmtp_frame_bytes(len(data))
+        return True
+
+    # ------------------------------------------------------------------ observe
+
+    async def _register(self, identity: bytes, token: int, request: Request) -> None:
+        per = self._observations.get(identity, {})
+        if (old := per.get(token)) is not None:  # token reused: the new one replaces it
+            self._stop(old)
+            per = self._observations.get(identity, {})
+        if len(per) >= self._options.max_observations_per_client:
+            # Like a CoAP server out of observer slots: answer, but without seq.
+            response = await self._call(request)
+            await self._send(identity, self._encode(token, response))
+            return
+
+        obs = _Observation(identity, token, request)
+        loop = asyncio.get_running_loop()
+
+        def on_change() -> None:
+            # call_soon_threadsafe: the service may change state from a thread.
+            if obs.active:
+                loop.call_soon_threadsafe(obs.dirty.set)
+
+        try:
+            obs.unsubscribe = self._service.subscribe(request.path, on_change)
+        except Exception:
+            log.exception("Service.subscribe(%r) raised; answering without observation", request.path)
+            response = await self._call(request)
+            await self._send(identity, self._encode(token, response))
+            return
+        # Subscribed before the first GET, so a change during it is not lost.
+        self._observations.setdefault(identity, {})[token] = obs
+        response = await self._call(request)
+        if not obs.active:  # deregistered (or the client left) meanwhile
+            return
+        if not response.status.is_success:
+            self._stop(obs)
+            await self._send(identity, self._encode(token, response))
+            return
+        if await self._send(identity, self._encode(token, response, seq=0)) and obs.active:
+            obs.worker = self._spawn(self._notify_loop(obs))
+        else:
+            self._stop(obs)
+
+    async def _notify_loop(self, obs: _Observation) -> None:
+        """Push the current state after each change, one at a time, in seq order."""
+        while obs.active:
+            await obs.dirty.wait()
+            obs.dirty.clear()
+            async with self._slots:
+                response = await self._call(obs.request)
+            if not obs.active:
+                return
+            obs.seq += 1
+            await self._send(obs.identity, self._encode(obs.token, response, seq=obs.seq))
+            if not response.status.is_success:  # RFC 7641: an error ends the observation
+                self._stop(obs)
+
+    def _deregister(self, identity: bytes, token: int) -> None:
+        obs = self._observations.get(identity, {}).get(token)
+        if obs is not None:
+            self._stop(obs)
+
+    def _forget_client(self, identity: bytes) -> None:
+        for obs in list(self._observations.get(identity, {}).values()):
+            self._stop(obs)
+
+    def _stop(self, obs: _Observation) -> None:
+        if not obs.active:
+            return
+        obs.active = False
+        per = self._observations.get(obs.identity)
+        if per is not None and per.get(obs.token) is obs:
+            del per[obs.token]
+            if not per:
+                del self._observations[obs.identity]
+        if obs.unsubscribe is not None:
+            try:
+                obs.unsubscribe()
+            except Exception:
+                log.exception("cancelling the subscription to %r raised", obs.request.path)
+        if obs.worker is not None and obs.worker is not asyncio.current_task():
+            obs.worker.cancel()
+
+
+# =========================================================================== client
+
+_Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
+
+
+def _new_routing_id() -> bytes:
+    """8 random bytes; libzmq reserves ids starting with a zero byte."""
+    rid = os.urandom(8)
+    return rid if rid[0] else b"\x01" + rid[1:]
+
+
+class _PeerLink:
+    """One DEALER socket to one peer, its reader task and whoever waits on it."""
+
+    def __init__(self, peer: Endpoint, sock: zmq.asyncio.Socket, client: ZmqClientTransport) -> None:
+        self.peer = peer
+        self.sock = sock
+        self.pending: dict[int, asyncio.Future[_Delivery]] = {}
+        self.observers: dict[int, asyncio.Queue[_Delivery | TransportError]] = {}
+        #: Requests and observe set-ups currently using the socket.
+        self.users = 0
+        self.closed = False
+        self._client = client
+        self._tokens = itertools.count()
+        self.reader = asyncio.create_task(self._read(), name=f"zmq client reader {peer}")
+
+    def new_token(self) -> int:
+        return next(self._tokens) & MAX_TOKEN
+
+    def close(self) -> None:
+        """Close now (linger 0: whatever is still queued is discarded)."""
+        if self.closed:
+            return
+        self.closed = True
+        self.reader.cancel()
+        self.sock.close(linger=0)
+
+    async def _read(self) -> None:
+        counters = self._client.counters
+        while True:
+            try:
+                frames = await self.sock.recv_multipart()
+            except zmq.ZMQError as exc:
+                if self.closed or exc.errno in (zmq.ETERM, zmq.ENOTSOCK):
+                    return
+                self._client._bad_log.warning("zmq client: receive from %s failed: %s", self.peer, exc)
+                continue
+            counters.messages_received += 1
+            counters.bytes_received += sum(zmtp_frame_bytes(len(f)) for f in frames)
+            if len(frames) != 1:
+                self._client._malformed(self.peer, f"{len(frames)} frames, expected 1")
+                continue
+            try:
+                token, response, seq = decode_response(frames[0])
+            except WireError as exc:
+                self._client._malformed(self.peer, str(exc))
+                continue
+            if (fut := self.pending.get(token)) is not None:
+                if not fut.done():
+                    fut.set_result((response, seq))
+            elif (queue := self.observers.get(token)) is not None:
+                _put_latest(queue, (response, seq))
+            else:
+                log.debug("zmq client: late answer for token %d from %s dropped", token, self.peer)
+
+
+def _put_latest(queue: asyncio.Queue[Any], item: Any) -> None:
+    """Enqueue, dropping the oldest item if full: observers want the newest state."""
+    if queue.full():
+        queue.get_nowait()
+    queue.put_nowait(item)
+
+
+class ZmqClientTransport:
+    """Sends requests to ZeroMQ peers; one DEALER socket per peer, opened lazily.
+
+    Many requests may be in flight to the same peer; answers are matched by
+    token, so they may come back in any order.
+    """
+
+    counters: TrafficCounters
+
+    def __init__(
+        self,
+        *,
+        options: ZmqOptions | None = None,
+        context: zmq.asyncio.Context | None = None,
+    ) -> None:
+        """A shared ``context`` is left open on :meth:`aclose`; otherwise the
+        transport owns and terminates its own."""
+        self.counters = TrafficCounters()
+        #: Messages dropped because they were not a valid response envelope.
+        self.malformed = 0
+        self._options = options or ZmqOptions()
+        self._owns_context = context is None
+        self._ctx = context if context is not None else zmq.asyncio.Context()
+        self._links: dict[Endpoint, _PeerLink] = {}
+        self._closing_readers: set[asyncio.Task[None]] = set()
+        self._bad_log = _RateLimitedLog(log, self._options.malformed_log_interval_s)
+        self._closed = False
+
+    async def __aenter__(self) -> ZmqClientTransport:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    # ------------------------------------------------------------------ sockets
+
+    def _link(self, peer: Endpoint) -> _PeerLink:
+        if self._closed:
+            raise TransportError("the zmq client transport is closed")
+        _check_scheme(peer)
+        link = self._links.get(peer)
+        if link is not None:
+            return link
+        sock = self._ctx.socket(zmq.DEALER)
+        try:
+            _configure(sock, self._options, peer.host)
+            sock.setsockopt(zmq.IMMEDIATE, 1)
+            sock.setsockopt(zmq.SNDHWM, self._options.client_sndhwm)
+            sock.setsockopt(zmq.ROUTING_ID, _new_routing_id())
+            sock.setsockopt(zmq.CONNECT_TIMEOUT, self._options.connect_timeout_ms)
+            sock.setsockopt(zmq.MAXMSGSIZE, self._options.max_response_bytes)
+            sock.connect(_tcp_uri(peer.host, peer.port))
+        except zmq.ZMQError as exc:
+            sock.close(linger=0)
+            raise TransportError(f"cannot connect to {peer}: {exc}") from exc
+        link = self._links[peer] = _PeerLink(peer, sock, self)
+        return link
+
+    def _release(self, link: _PeerLink, *, got_out: bool) -> None:
+        """A user is done with ``link``.  If its message never got out (no
+        connection within the timeout) and nobody else uses the socket, close
+        it: that stops libzmq reconnecting to a dead peer for ever."""
+        link.users -= 1
+        if got_out or link.users or link.observers or link.closed:
+            return
+        if self._links.get(link.peer) is link:
+            del self._links[link.peer]
+        link.close()
+        self._closing_readers.add(link.reader)
+        link.reader.add_done_callback(self._closing_readers.discard)
+
+    def _malformed(self, peer: Endpoint, why: str) -> None:
+        self.malformed += 1
+        self._bad_log.warning("zmq client: dropped malformed message from %s: %s", peer, why[:200])
+
+    def _count_sent(self, data: bytes) -> None:
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += zmtp_frame_bytes(len(data))
+
+    def _closed_error(self) -> TransportError | None:
+        """If our socket was closed under an await, say so instead of leaking
+        a CancelledError that nobody asked for."""
+        task = asyncio.current_task()
+        if self._closed and (task is None or not task.cancelling()):
+            return TransportError("the zmq client transport was closed")
+        return None
+
+    # ------------------------------------------------------------------ API
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        """Send ``request`` to ``peer`` and return its answer.
+
+        Raises :class:`PeerUnreachable` when no answer arrives within
+        ``timeout`` seconds -- whether the peer is down, unreachable, or just
+        slow -- and :class:`TransportError` if the transport is closed meanwhile.
+        """
+        link = self._link(peer)
+        token = link.new_token()
+        data = encode_request(request, token=token)
+        fut: asyncio.Future[_Delivery] = asyncio.get_running_loop().create_future()
+        link.pending[token] = fut
+        link.users += 1
+        got_out = False
+        try:
+            async with asyncio.timeout(timeout):
+                await link.sock.send(data)  # waits for a connection (ZMQ_IMMEDIATE)
+                got_out = True
+                self._count_sent(data)
+                response, _ = await fut
+                return response
+        except TimeoutError:
+            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+        except asyncio.CancelledError:
+            if (err := self._closed_error()) is not None:
+                raise err from None
+            raise
+        except zmq.ZMQError as exc:
+            raise TransportError(f"request to {peer} failed: {exc}") from exc
+        finally:
+            link.pending.pop(token, None)
+            self._release(link, got_out=got_out)
+
+    async def observe(
+        self, peer: Endpoint, request: Request, *, timeout: float | None = None
+    ) -> AsyncIterator[Response]:
+        """The current representation, then one item per change.
+
+        ``timeout`` (default ``options.observe_timeout_s``) bounds the wait for
+        the first answer (:class:`PeerUnreachable`).  The iteration ends after
+        the first item if the server did not register the observation (error
+        status, or it has no observer slot left), and after an error
+        notification.  Closing the iterator (``break``, ``aclose()``; prefer
+        ``contextlib.aclosing`` to make it immediate) deregisters.  If the peer
+        dies the iterator just stops yielding; callers wanting liveness should
+        wrap their reads in a timeout.  Updates are coalesced: a slow reader
+        sees the latest states, not necessarily every one.
+        """
+        timeout = self._options.observe_timeout_s if timeout is None else timeout
+        link = self._link(peer)
+        token = link.new_token()
+        queue: asyncio.Queue[_Delivery | TransportError] = asyncio.Queue(maxsize=self._options.observe_queue)
+        link.observers[token] = queue
+        link.users += 1
+        got_out = registered = False
+        try:
+            try:
+                async with asyncio.timeout(timeout):
+                    data = encode_request(request, token=token, observe=Observe.REGISTER)
+                    await link.sock.send(data)
+                    got_out = True
+                    self._count_sent(data)
+                    item = await queue.get()
+            except TimeoutError:
+                raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+            except asyncio.CancelledError:
+                if (err := self._closed_error()) is not None:
+                    raise err from None
+                raise
+            except zmq.ZMQError as exc:
+                raise TransportError(f"observe request to {peer} failed: {exc}") from exc
+            finally:
+                if not got_out:
+                    link.observers.pop(token, None)  # so _release may close the socket
+                self._release(link, got_out=got_out)
+            if isinstance(item, TransportError):
+                raise item
+            response, seq = item
+            registered = seq is not None and response.status.is_success
+            yield response
+            last = seq
+            while registered:
+                item = await queue.get()
+                if isinstance(item, TransportError):
+                    registered = False
+                    raise item
+                response, seq = item
+                if seq is None or (last is not None and seq <= last):
+                    continue  # not an update of this observation / stale
+                last = seq
+                if not response.status.is_success:
+                    registered = False  # the server has ended it
+                yield response
+        finally:
+            link.observers.pop(token, None)
+            if registered and not link.closed:
+                await self._deregister(link, token, request)
+
+    async def _deregister(self, link: _PeerLink, token: int, request: Request) -> None:
+        """Best effort: a lost deregistration is cleaned up by the server at the
+        latest when its next push to us fails after the connection closed.
+        Only the token matters to the server, so query and payload are left out."""
+        data = encode_request(Request(request.method, request.path), token=token, observe=Observe.DEREGISTER)
+        try:
+            async with asyncio.timeout(1.0):
+                await link.sock.send(data, flags=zmq.NOBLOCK)
+        except (zmq.ZMQError, TimeoutError) as exc:
+            log.debug("zmq client: deregistration to %s not sent: %s", link.peer, exc)
+        else:
+            self._count_sent(data)
+
+    async def aclose(self) -> None:
+        """Fail pending requests and observations with :class:`TransportError`
+        and close every socket (linger 0).  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        readers = list(self._closing_readers)
+        closed = TransportError("the zmq client transport was closed")
+        for link in self._links.values():
+            for fut in link.pending.values():
+                if not fut.done():
+                    fut.set_exception(closed)
+            for queue in link.observers.values():
+                _put_latest(queue, closed)
+            link.close()
+            readers.append(link.reader)
+        self._links.clear()
+        await asyncio.gather(*readers, return_exceptions=True)
+        if self._owns_context:
+            self._ctx.term()
