@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cbor2
 
 from . import codec
-from .knowledge_base import KBError, KnowledgeBase, QuerySyntaxError, QueryTimeout, UpdateRefused
+from .knowledge_base import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
 from .messages import ContentFormat, Method, Request, Response, Status
 from .named_queries import NamedQuery, named_queries_for
 from .results import QueryResult
@@ -158,8 +158,8 @@ class KBResources:
             )
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
-        except UpdateRefused as exc:
-            return Response.error(Status.FORBIDDEN, f"read-only knowledge base: {exc}")
+        except QueryRefused as exc:  # SPARQL Update, or SERVICE/FROM that would fetch from the network
+            return Response.error(Status.FORBIDDEN, f"refused: {exc}")
         except (QueryTimeout, asyncio.TimeoutError):
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,

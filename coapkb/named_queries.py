@@ -1,0 +1,225 @@
+"""The seed paper's queries (Sec. III-D, Query_1..Query_4), corrected and named.
+
+As printed, the paper's queries do not parse: the WHERE clauses lack
+braces, local names are quoted (``ns_1:'Gucci_bag_14'``), Query_3 projects
+``?price`` and ``?color`` without binding them, and Query_4 projects
+``?robo_name`` but binds ``?robo_id``.  The versions here fix that and take
+the object name or grip type as a parameter, so a robot can offer them as
+resources (``/kb/q/<name>?name=...``) and a client sends a few bytes
+instead of the query text.
+
+Parameters are substituted textually, so they are validated strictly: a
+value must be a plain local name (:data:`SAFE_VALUE`).  Nothing that could
+close a literal, an IRI or a group pattern gets through.
+"""
+
+from __future__ import annotations
+
+import re
+import string
+from dataclasses import dataclass
+from collections.abc import Iterable, Mapping
+
+__all__ = ["NAMED_QUERIES", "SAFE_VALUE", "NamedQuery", "named_queries_for"]
+
+#: A parameter value: a SPARQL/XML-safe local name, at most 128 characters,
+#: not ending in "." (a prefixed name cannot end with a dot).
+SAFE_VALUE = re.compile(r"[A-Za-z_](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?")
+
+
+class _Template(string.Template):
+    # ``$name`` placeholders; templates must not use SPARQL's ``$var`` form.
+    idpattern = r"[a-z][a-z0-9_]*"
+
+
+@dataclass(frozen=True)
+class NamedQuery:
+    """A parameterised SPARQL query one KB module answers.
+
+    ``kb`` is the module (file stem) that holds the data; ``params`` the
+    parameter names, in the order they are documented; ``template`` the
+    query with ``$param`` placeholders; ``rt`` the CoRE resource type
+    advertised for it.
+    """
+
+    name: str
+    kb: str
+    params: tuple[str, ...]
+    template: str
+    description: str
+    rt: str = "coapkb.q"
+
+    def __post_init__(self) -> None:
+        placeholders = set(_Template(self.template).get_identifiers())
+        if placeholders != set(self.params) or len(set(self.params)) != len(self.params):
+            raise ValueError(
+                f"named query {self.name!r}: template placeholders {sorted(placeholders)} "
+                f"do not match params {list(self.params)}"
+            )
+
+    def render(self, params: Mapping[str, str]) -> str:
+        """The query text for these parameter values.
+
+        Raises ``ValueError`` naming the problem for a missing, unexpected
+        or unsafe parameter, so a server can answer 4.00 with the message.
+        """
+        missing = [p for p in self.params if p not in params]
+        extra = sorted(k for k in params if k not in self.params)
+        if missing or extra:
+            problems = []
+            if missing:
+                problems.append("missing " + ", ".join(missing))
+            if extra:
+                problems.append("unexpected " + ", ".join(extra))
+            expected = ", ".join(self.params) if self.params else "no parameters"
+            raise ValueError(f"query {self.name!r} takes {expected}: {'; '.join(problems)}")
+        for key in self.params:
+            value = params[key]
+            if not isinstance(value, str) or SAFE_VALUE.fullmatch(value) is None:
+                raise ValueError(
+                    f"parameter {key!r} of query {self.name!r} must be a local name "
+                    f"(letters, digits, '_', '-', '.', at most 128 characters), got {value!r}"
+                )
+        return _Template(self.template).substitute({k: params[k] for k in self.params})
+
+
+_OBJ = "PREFIX ns_2: <http://www.tcs.org/2018/Object#>\n"
+_LOC = "PREFIX ns_1: <http://www.tcs.org/2018/Location#>\n"
+_CAP = "PREFIX ns_3: <http://www.tcs.org/2018/Capability#>\n"
+_RDF = "PREFIX rdf: <http://www.w3.org/1999/02/22-rdf-syntax-ns#>\n"
+_RDFS = "PREFIX rdfs: <http://www.w3.org/2000/01/rdf-schema#>\n"
+
+_QUERIES = (
+    # Query_1, generalised: the paper fixes the class (PersonalItems); an
+    # object of any product class exists if its name matches.
+    NamedQuery(
+        name="object-exists",
+        kb="Object",
+        params=("name",),
+        template=_OBJ + _RDF + _RDFS + """SELECT ?object ?class
+WHERE {
+  ?object ns_2:Product_name "$name" .
+  ?object rdf:type ?class .
+  ?class rdfs:subClassOf ns_2:Product .
+}""",
+        description="Query_1: does a product with this name exist, and of which class",
+    ),
+    # Query_1 exactly as the paper means it (class given).
+    NamedQuery(
+        name="object-exists-in-class",
+        kb="Object",
+        params=("name", "cls"),
+        template=_OBJ + _RDF + """SELECT ?object
+WHERE {
+  ?object rdf:type ns_2:$cls .
+  ?object ns_2:Product_name "$name" .
+}""",
+        description="Query_1 (paper form): a product with this name in this class",
+    ),
+    NamedQuery(
+        name="object-location",
+        kb="Location",
+        params=("name",),
+        template=_LOC + """SELECT ?loc ?warehouse ?aisle_no ?bin_no ?rack_no
+WHERE {
+  ns_1:$name ns_1:Available_At ?loc .
+  ?loc ns_1:Location_name ?warehouse .
+  ns_1:$name ns_1:Inventory_aisle_no ?aisle_no .
+  ns_1:$name ns_1:Inventory_bin_no ?bin_no .
+  ns_1:$name ns_1:Inventory_rack_no ?rack_no .
+}""",
+        description="Query_2: warehouse, aisle, rack and bin of a product",
+    ),
+    # Query_3 plus the bindings for ?price and ?color the paper forgot, and
+    # ?weight, which the battery cost of carrying the object depends on.
+    NamedQuery(
+        name="object-features",
+        kb="Object",
+        params=("name",),
+        template=_OBJ + """SELECT ?frag ?price ?color ?shape ?dim ?grip ?weight
+WHERE {
+  ns_2:$name ns_2:Item_fragility ?frag .
+  ns_2:$name ns_2:price ?price .
+  ns_2:$name ns_2:colour ?color .
+  ns_2:$name ns_2:has_shape ?shape .
+  ?shape ns_2:Item_dimension ?dim .
+  ns_2:$name ns_2:can_be_picked_by ?grip .
+  ns_2:$name ns_2:weight ?weight .
+}""",
+        description="Query_3: fragility, price, colour, shape, size, grip and weight of a product",
+    ),
+    # Query_4 with ?robo_id projected (the paper projects the unbound
+    # ?robo_name); ordered so every robot sees the same row order.
+    NamedQuery(
+        name="robots-for-grip",
+        kb="Capability",
+        params=("grip",),
+        template=_CAP + """SELECT ?robots ?robo_id ?payload
+WHERE {
+  ?robots ns_3:Can_Pick ns_3:$grip .
+  ?robots ns_3:Robot_Id ?robo_id .
+  ?robots ns_3:Robot_payload ?payload .
+}
+ORDER BY ?robo_id""",
+        description="Query_4: robots that can pick with this grip, and their payloads",
+    ),
+    NamedQuery(
+        name="robot-specs",
+        kb="Capability",
+        params=(),
+        template=_CAP + """SELECT ?robot ?robo_id ?payload ?battery ?speed ?e_empty ?e_loaded ?e_pick
+WHERE {
+  ?robot ns_3:Robot_Id ?robo_id .
+  ?robot ns_3:Robot_payload ?payload .
+  ?robot ns_3:Robot_battery ?battery .
+  ?robot ns_3:Robot_speed ?speed .
+  ?robot ns_3:Energy_per_metre_empty ?e_empty .
+  ?robot ns_3:Energy_per_metre_loaded ?e_loaded .
+  ?robot ns_3:Energy_per_pick ?e_pick .
+}
+ORDER BY ?robo_id""",
+        description="Every robot's payload (kg), battery (Wh), speed (m/s) and energy use (Wh/m, Wh/pick)",
+    ),
+    NamedQuery(
+        name="robot-positions",
+        kb="Location",
+        params=(),
+        template=_LOC + """SELECT ?robot ?robo_id ?aisle_no ?rack_no
+WHERE {
+  ?robot ns_1:Robot_Id ?robo_id .
+  ?robot ns_1:Robot_aisle_no ?aisle_no .
+  ?robot ns_1:Robot_rack_no ?rack_no .
+}
+ORDER BY ?robo_id""",
+        description="Initial aisle and rack of every robot",
+    ),
+    NamedQuery(
+        name="warehouse-layout",
+        kb="Location",
+        params=(),
+        template=_LOC + """SELECT ?warehouse ?name ?aisles ?racks_per_aisle ?bins_per_rack
+       ?rack_length_m ?aisle_spacing_m ?cross_aisle_margin_m ?aisle_length_m
+WHERE {
+  ?warehouse ns_1:Location_name ?name .
+  ?warehouse ns_1:Aisle_count ?aisles .
+  ?warehouse ns_1:Racks_per_aisle ?racks_per_aisle .
+  ?warehouse ns_1:Bins_per_rack ?bins_per_rack .
+  ?warehouse ns_1:Rack_length_m ?rack_length_m .
+  ?warehouse ns_1:Aisle_spacing_m ?aisle_spacing_m .
+  ?warehouse ns_1:Cross_aisle_margin_m ?cross_aisle_margin_m .
+  ?warehouse ns_1:Aisle_length_m ?aisle_length_m .
+}""",
+        description="Warehouse geometry constants (metres) for travel-distance costs",
+    ),
+)
+
+#: Every named query, by name.  Read-only by convention: build your own dict
+#: to add queries.
+NAMED_QUERIES: dict[str, NamedQuery] = {q.name: q for q in _QUERIES}
+
+
+def named_queries_for(kb_names: Iterable[str]) -> list[NamedQuery]:
+    """The named queries a KB made of these modules (file stems) can answer,
+    sorted by name."""
+    names = set(kb_names)
+    return sorted((q for q in NAMED_QUERIES.values() if q.kb in names), key=lambda q: q.name)

@@ -1,0 +1,177 @@
+"""The seed paper's Query_1..Query_4, corrected, against the committed ontologies."""
+
+from __future__ import annotations
+
+from decimal import Decimal
+from pathlib import Path
+
+import pytest
+from rdflib import Literal, URIRef
+
+from coapkb.knowledge_base import BACKENDS, KnowledgeBase
+from coapkb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
+from coapkb.warehouse import (
+    CAPABILITY_NS,
+    GRIP_TYPES,
+    LOCATION_NS,
+    OBJECT_NS,
+    Position,
+    WarehouseSpec,
+    generate,
+    layout_from_row,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+WAREHOUSE = generate(WarehouseSpec())  # what ontologies/ was generated from (checked in test_warehouse)
+BAG = WAREHOUSE.product("Gucci_bag_14")
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def team(request: pytest.FixtureRequest) -> dict[str, KnowledgeBase]:
+    """One KB per module, as the paper's Robot1..3 each carry one."""
+    return {
+        name: KnowledgeBase.load([ROOT / "ontologies" / f"{name}.owl"], backend=request.param)
+        for name in ("Object", "Location", "Capability")
+    }
+
+
+def ask(team: dict[str, KnowledgeBase], query_name: str, /, **params: str) -> list[dict]:
+    query = NAMED_QUERIES[query_name]
+    return team[query.kb].query(query.render(params)).as_dicts()
+
+
+def test_query1_object_exists(team: dict[str, KnowledgeBase]) -> None:
+    bag = URIRef(OBJECT_NS + "Gucci_bag_14")
+    assert ask(team, "object-exists", name="Gucci_bag_14") == [
+        {"object": bag, "class": URIRef(OBJECT_NS + "PersonalItems")}
+    ]
+    assert ask(team, "object-exists-in-class", name="Gucci_bag_14", cls="PersonalItems") == [{"object": bag}]
+    assert ask(team, "object-exists-in-class", name="Gucci_bag_14", cls="Electronics") == []
+
+
+def test_query2_object_location(team: dict[str, KnowledgeBase]) -> None:
+    [row] = ask(team, "object-location", name="Gucci_bag_14")
+    assert row["loc"] == URIRef(LOCATION_NS + "Warehouse_A")
+    assert row["warehouse"] == Literal("Warehouse_A")
+    placed = Position(row["aisle_no"].toPython(), row["rack_no"].toPython())
+    assert placed == BAG.position
+    assert row["bin_no"].toPython() == BAG.bin_no
+
+
+def test_query3_object_features(team: dict[str, KnowledgeBase]) -> None:
+    [row] = ask(team, "object-features", name="Gucci_bag_14")
+    assert row["grip"] == URIRef(OBJECT_NS + "gripping")
+    assert row["frag"].toPython() is BAG.fragile
+    assert row["price"].toPython() == BAG.price
+    assert row["weight"].toPython() == BAG.weight_kg
+    assert row["color"] == Literal(BAG.colour)
+    assert row["shape"] == URIRef(OBJECT_NS + "Shape_Gucci_bag_14")
+    assert row["dim"] == Literal(BAG.dimension_text)
+
+
+@pytest.mark.parametrize("grip", GRIP_TYPES)
+def test_query4_robots_for_grip(team: dict[str, KnowledgeBase], grip: str) -> None:
+    rows = ask(team, "robots-for-grip", grip=grip)
+    expected = [r for r in WAREHOUSE.robots if grip in r.can_pick]
+    assert [row["robo_id"] for row in rows] == sorted(Literal(r.robot_id) for r in expected)
+    by_id = {str(row["robo_id"]): row for row in rows}
+    for r in expected:
+        assert by_id[r.robot_id]["robots"] == URIRef(CAPABILITY_NS + r.robot_id)
+        assert by_id[r.robot_id]["payload"].toPython() == r.payload_kg
+
+
+def test_unknown_product_has_no_rows(team: dict[str, KnowledgeBase]) -> None:
+    for query_name in ("object-exists", "object-location", "object-features"):
+        assert ask(team, query_name, name="Gucci_bag_15000") == []
+    assert ask(team, "robots-for-grip", grip="telekinesis") == []
+
+
+def test_robot_positions_and_specs(team: dict[str, KnowledgeBase]) -> None:
+    positions = {
+        str(r["robo_id"]): Position(r["aisle_no"].toPython(), r["rack_no"].toPython())
+        for r in ask(team, "robot-positions")
+    }
+    assert positions == {r.robot_id: r.home for r in WAREHOUSE.robots}
+    profiles = {str(r["robo_id"]): r for r in ask(team, "robot-specs")}
+    for r in WAREHOUSE.robots:
+        p = profiles[r.robot_id]
+        assert (p["payload"].toPython(), p["battery"].toPython(), p["speed"].toPython()) == (
+            r.payload_kg,
+            r.battery_wh,
+            r.speed_m_s,
+        )
+        assert p["e_loaded"].toPython() == r.energy_per_m_loaded_wh
+        assert p["e_pick"].toPython() == r.energy_per_pick_wh
+
+
+def test_layout_from_the_kb(team: dict[str, KnowledgeBase]) -> None:
+    [row] = ask(team, "warehouse-layout")
+    layout = layout_from_row(row)
+    assert layout == WAREHOUSE.layout
+    assert row["aisle_length_m"].toPython() == Decimal(str(layout.aisle_length_m)).normalize()
+
+
+INJECTIONS = [
+    'Gucci_bag_14" } ; DROP ALL #',
+    "Gucci_bag_14> <x",
+    "Gucci_bag_14 . ?s ?p ?o",
+    "Gucci_bag_14}",
+    "a:b",
+    "<http://evil/>",
+    "",
+    " Gucci_bag_14",
+    "Gucci_bag_14\n",
+    "x.",
+    "1abc",
+    "Gücci",
+    "$name",
+    "a" * 129,
+]
+
+
+@pytest.mark.parametrize("value", INJECTIONS)
+def test_injection_rejected(value: str) -> None:
+    for name in ("object-exists", "object-location", "object-features"):
+        with pytest.raises(ValueError, match="local name"):
+            NAMED_QUERIES[name].render({"name": value})
+    with pytest.raises(ValueError):
+        NAMED_QUERIES["robots-for-grip"].render({"grip": value})
+
+
+def test_safe_values_accepted() -> None:
+    for value in ("Gucci_bag_14", "a", "_x", "Ray-Ban_sunglasses_7", "v1.2_x", "a" * 128):
+        assert SAFE_VALUE.fullmatch(value)
+        assert f'"{value}"' in NAMED_QUERIES["object-exists"].render({"name": value})
+
+
+def test_parameters_checked() -> None:
+    q = NAMED_QUERIES["object-location"]
+    with pytest.raises(ValueError, match="missing name"):
+        q.render({})
+    with pytest.raises(ValueError, match="unexpected grip"):
+        q.render({"name": "Gucci_bag_14", "grip": "gripping"})
+    with pytest.raises(ValueError, match="no parameters"):
+        NAMED_QUERIES["robot-positions"].render({"name": "x"})
+    with pytest.raises(ValueError):
+        q.render({"name": 14})  # type: ignore[dict-item]
+    assert "ns_1:Gucci_bag_14 ns_1:Available_At ?loc" in q.render({"name": "Gucci_bag_14"})
+
+
+def test_registry() -> None:
+    assert {
+        "object-exists",
+        "object-location",
+        "object-features",
+        "robots-for-grip",
+        "robot-positions",
+        "warehouse-layout",
+    } <= set(NAMED_QUERIES)
+    assert {q.kb for q in NAMED_QUERIES.values()} == {"Object", "Location", "Capability"}
+    obj = named_queries_for(["Object"])
+    assert [q.name for q in obj] == sorted(q.name for q in NAMED_QUERIES.values() if q.kb == "Object")
+    assert len(named_queries_for(["Object", "Location", "Capability"])) == len(NAMED_QUERIES)
+    assert named_queries_for(["Unrelated"]) == []
+    for q in NAMED_QUERIES.values():
+        assert q.description and q.rt
+    with pytest.raises(ValueError, match="placeholders"):
+        NamedQuery("bad", "Object", ("name",), 'SELECT ?x WHERE { ?x ?p "$nmae" }', "typo")
