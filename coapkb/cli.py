@@ -284,8 +284,7 @@ async def _query(args: argparse.Namespace) -> int:
         raise UserError("no query: give SPARQL text (or @FILE, or -) or a /kb/q/NAME URI")
     if parts.path not in ("", "/") and not named:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
-    transport_options = _retransmission_options(args) if peer.scheme == "coap" else {}
-    transport = await open_client(peer.scheme, **transport_options)
+    transport = await open_client(peer.scheme, retransmission=_retransmission_profile(args))
     client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
     try:
@@ -305,18 +304,13 @@ async def _query(args: argparse.Namespace) -> int:
     return 0
 
 
-def _retransmission_options(args: argparse.Namespace) -> dict:
-    from .coap_retransmission import RetransmissionController
+def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
     from .rto import PROFILES
 
     profile = PROFILES.get(args.retransmission)
     if profile is None:
         raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
-    try:
-        profile = profile.with_overrides(ack_timeout=args.ack_timeout, max_retransmit=args.max_retransmit)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    return {"tuning_for": RetransmissionController(profile).tuning_for}
+    return profile
 
 
 # --------------------------------------------------------------------------- output

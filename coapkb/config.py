@@ -65,11 +65,9 @@ class StartState:
 
 @dataclass(frozen=True)
 class CostModel:
-    """Battery consumption model of the Task Assigner (Wh)."""
+    """Team-wide rules of the Task Assigner (each robot's energy use per metre
+    and per pick comes from the Capability KB)."""
 
-    wh_per_m_empty: float = 0.05
-    wh_per_m_per_kg: float = 0.002
-    wh_per_pick: float = 0.5
     #: Battery a robot keeps in reserve: it never takes a task that would dip below.
     reserve_wh: float = 20.0
     #: After a pick that loads the robot to this fraction of its payload, it
@@ -192,9 +190,8 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("start: aisle and rack must be non-negative")
     if c.execution.speed_m_s <= 0 or c.execution.time_scale <= 0 or c.execution.pick_s < 0:
         raise ConfigError("execution: speed_m_s and time_scale must be positive, pick_s non-negative")
-    for name in ("wh_per_m_empty", "wh_per_m_per_kg", "wh_per_pick", "reserve_wh"):
-        if getattr(c.cost, name) < 0:
-            raise ConfigError(f"cost.{name}: must not be negative")
+    if c.cost.reserve_wh < 0:
+        raise ConfigError("cost.reserve_wh: must not be negative")
     if not 0 < c.cost.unload_at_fraction <= 1:
         raise ConfigError("cost.unload_at_fraction: must be in (0, 1]")
     if c.central is None:

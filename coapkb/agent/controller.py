@@ -25,7 +25,7 @@ from ..transport.base import TransportError
 from ..warehouse import Layout, Position, layout_from_row, travel_distance
 from .query_handler import QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
-from .task_assigner import Assignment, TaskFacts, assign, robot_sort_key
+from .task_assigner import Assignment, RobotEnergy, TaskFacts, assign, robot_sort_key
 from .task_executor import Job, TaskExecutor
 from .team_view import TeamView
 
@@ -91,6 +91,7 @@ class Controller:
         self._tasks: asyncio.Queue[tuple[Task, float]] = asyncio.Queue()
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
         self._layout: Layout | None = None
+        self._energy: dict[str, RobotEnergy] | None = None
         self.log: list[Decision] = []
         self._runner: asyncio.Task | None = None
 
@@ -186,6 +187,17 @@ class Controller:
             self._layout = layout_from_row(rows[0])
         return self._layout
 
+    async def energy(self) -> dict[str, RobotEnergy]:
+        """Every teammate's energy figures, asked once of the Capability KB."""
+        if self._energy is None:
+            rows = _first(await self.queries.run("robot-specs", {}), "robot-specs")
+            self._energy = {
+                str(r["robo_id"]): RobotEnergy(float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]))
+                for r in rows
+                if str(r["robo_id"]) in self.config.team
+            }
+        return self._energy
+
     async def gather(self, task: Task) -> TaskFacts | None:
         """The four queries of the seed's workflow; None if the object does not exist."""
         params = {"name": task.object}
@@ -213,10 +225,10 @@ class Controller:
         facts = await self.gather(task)
         if facts is None:
             return DecisionMessage(Decision(task.seq, task.object, skipped=True))
-        layout = await self.layout()
+        layout, energy = await self.layout(), await self.energy()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
         result: Assignment = assign(
-            facts, states, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost
+            facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost
         )
         decision = Decision(task.seq, task.object, assigned_to=result.assigned_to, costs=result.costs)
         if result.plan is None:

@@ -58,7 +58,6 @@ class Robot:
         self,
         config: RobotConfig,
         kb: KnowledgeBase | None,
-        server: ServerTransport,
         client: ClientTransport,
         router: Router,
         controller: Controller,
@@ -68,7 +67,7 @@ class Robot:
     ) -> None:
         self.config = config
         self.kb = kb
-        self.server = server
+        self.server: ServerTransport | None = None
         self.client = client
         self.router = router
         self.controller = controller
@@ -105,13 +104,13 @@ class Robot:
         controller = Controller(
             config, queries, team, executor, lambda state: router.notify(STATE_PATH), send_decision
         )
+        robot = cls(config, kb, client, router, controller, team, executor, queries)
+        robot._mount()  # before serving: the transport publishes the resource list
         try:
-            server = await serve(router, config.bind)
+            robot.server = await serve(router, config.bind)
         except BaseException:
             await client.aclose()
             raise
-        robot = cls(config, kb, server, client, router, controller, team, executor, queries)
-        robot._mount()
         team.start()
         executor.start()
         controller.start()
@@ -132,7 +131,8 @@ class Robot:
         await self.controller.aclose()
         await self.executor.aclose()
         await self.team.aclose()
-        await self.server.aclose()
+        if self.server is not None:
+            await self.server.aclose()
         await self.client.aclose()
 
     # ---------------------------------------------------------------- resources
@@ -174,7 +174,7 @@ class Robot:
             "strategy": self.config.strategy,
             "query_wire": self.queries.wire,
             "retransmission": self.client.describe() if hasattr(self.client, "describe") else None,
-            "server": self.server.counters.as_dict(),
+            "server": self.server.counters.as_dict() if self.server else None,
             "client": self.client.counters.as_dict(),
             "queries": self.queries.stats.as_dict(),
             "remote_latencies_s": [round(x, 6) for x in self.queries.stats.remote_latencies],

@@ -3,8 +3,9 @@
 Pure functions: the same inputs give the same assignment on every robot,
 which is what lets "compute by all" agree without a further message.  The
 cost is battery consumption in Wh: travel on the warehouse's aisle graph at
-a load-dependent energy per metre, plus a fixed energy to pick, plus the
-trip to the depot when the pick fills the robot up.
+a load-dependent energy per metre, plus an energy to pick, plus the trip to
+the depot when the pick fills the robot up.  Each robot's energy figures come
+from the Capability KB (robots differ).
 """
 
 from __future__ import annotations
@@ -33,6 +34,20 @@ class TaskFacts:
     grip: str
     #: robot id -> payload capacity (kg), for robots that can pick with ``grip``.
     capable: Mapping[str, float]
+
+
+@dataclass(frozen=True)
+class RobotEnergy:
+    """A robot's energy use (Capability KB): Wh per metre empty and with a full
+    payload (linear in between), and Wh per pick."""
+
+    per_m_empty: float
+    per_m_full: float
+    per_pick: float
+
+    def travel(self, metres: float, load_kg: float, payload_kg: float) -> float:
+        fill = load_kg / payload_kg if payload_kg > 0 else 1.0
+        return metres * (self.per_m_empty + (self.per_m_full - self.per_m_empty) * fill)
 
 
 @dataclass(frozen=True)
@@ -70,6 +85,7 @@ def plan_for(
     robot_id: str,
     state: PlannedState,
     task: TaskFacts,
+    energy: RobotEnergy | None,
     distance: Distance,
     depot: Position,
     cost: CostModel,
@@ -78,16 +94,18 @@ def plan_for(
     capacity = task.capable.get(robot_id)
     if capacity is None:
         return f"cannot pick by {task.grip}"
+    if energy is None:
+        return "no energy figures in the Capability KB"
     load = state.load_kg + task.weight_kg
     if load > capacity + 1e-9:
         return f"payload left {capacity - state.load_kg:.2f} kg < {task.weight_kg:.2f} kg"
     target = Position(task.aisle, task.rack)
     to_object = distance(Position(state.aisle, state.rack), target)
-    wh = to_object * (cost.wh_per_m_empty + cost.wh_per_m_per_kg * state.load_kg) + cost.wh_per_pick
+    wh = energy.travel(to_object, state.load_kg, capacity) + energy.per_pick
     to_depot, end, end_load = 0.0, target, load
     if load >= cost.unload_at_fraction * capacity:  # full enough: unload at the depot
         to_depot = distance(target, depot)
-        wh += to_depot * (cost.wh_per_m_empty + cost.wh_per_m_per_kg * load)
+        wh += energy.travel(to_depot, load, capacity)
         end, end_load = depot, 0.0
     if state.battery_wh - wh < cost.reserve_wh:
         return f"battery {state.battery_wh:.1f} Wh would fall below the {cost.reserve_wh:.1f} Wh reserve"
@@ -100,6 +118,7 @@ def plan_for(
 def assign(
     task: TaskFacts,
     states: Mapping[str, PlannedState],
+    energy: Mapping[str, RobotEnergy],
     distance: Distance,
     depot: Position,
     cost: CostModel,
@@ -109,7 +128,7 @@ def assign(
     reasons: dict[str, str] = {}
     best: Plan | None = None
     for robot_id in sorted(states, key=robot_sort_key):
-        plan = plan_for(robot_id, states[robot_id], task, distance, depot, cost)
+        plan = plan_for(robot_id, states[robot_id], task, energy.get(robot_id), distance, depot, cost)
         if isinstance(plan, str):
             costs[robot_id], reasons[robot_id] = None, plan
             continue
