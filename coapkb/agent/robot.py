@@ -3,7 +3,8 @@
 Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 
 =================  ======  ==================================================
-``/robot/state``   GET     live and planned state, observable (RFC 7641)
+``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
+``/robot/plan``    GET     planned state only, for teammates; observable
 ``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON)
 ``/tasks``         GET     the decisions taken so far
 ``/decisions``     POST    the leader's decision ("compute and communicate")
@@ -33,7 +34,7 @@ from .controller import Controller, DecisionMessage, Task
 from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .task_executor import TaskExecutor
-from .team_view import STATE_PATH, TeamView
+from .team_view import PLAN_PATH, STATE_PATH, TeamView
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 
@@ -47,10 +48,16 @@ def _decode_body(request: Request) -> Any:
 
 def _encode(value: Any, accept: int | None) -> Response:
     if accept == ContentFormat.JSON:
-        return Response(Status.CONTENT, json.dumps(value).encode(), ContentFormat.JSON, max_age=0)
+        return Response(Status.CONTENT, json.dumps(value).encode(), ContentFormat.JSON)
     if accept not in (None, ContentFormat.CBOR):
         return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
-    return Response(Status.CONTENT, cbor2.dumps(value), ContentFormat.CBOR, max_age=0)
+    return Response(Status.CONTENT, cbor2.dumps(value), ContentFormat.CBOR)
+
+
+def _cbor_state(payload: bytes, accept: int | None) -> Response:
+    if accept not in (None, ContentFormat.CBOR):
+        return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
+    return Response(Status.CONTENT, payload, ContentFormat.CBOR)
 
 
 class Robot:
@@ -97,12 +104,16 @@ class Robot:
             team.set_own(replace(team.own, live=live))
             router.notify(STATE_PATH)
 
+        def publish_decision(state: RobotState) -> None:
+            router.notify(PLAN_PATH)
+            router.notify(STATE_PATH)
+
         async def send_decision(message: DecisionMessage) -> None:
             await broadcast_decision(client, config, message)
 
         executor = TaskExecutor(config.execution, own.live, publish_live)
         controller = Controller(
-            config, queries, team, executor, lambda state: router.notify(STATE_PATH), send_decision
+            config, queries, team, executor, publish_decision, send_decision
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot._mount()  # before serving: the transport publishes the resource list
@@ -119,6 +130,7 @@ class Robot:
     def _mount(self) -> None:
         add = self.router.add
         add(ResourceInfo(STATE_PATH, rt="coapkb.state", ct=(60, 50), obs=True, title="robot state"), self._get_state)
+        add(ResourceInfo(PLAN_PATH, rt="coapkb.plan", ct=(60,), obs=True, title="planned state"), self._get_plan)
         add(
             ResourceInfo("/tasks", rt="coapkb.tasks", ct=(60, 50), title="task feed", methods=("GET", "POST")),
             self._tasks,
@@ -138,7 +150,12 @@ class Robot:
     # ---------------------------------------------------------------- resources
 
     async def _get_state(self, request: Request) -> Response:
-        return _encode(self.team.own.to_dict(), request.accept)
+        if request.accept == ContentFormat.JSON:
+            return _encode(self.team.own.to_dict(), request.accept)
+        return _cbor_state(self.team.own.encode(), request.accept)
+
+    async def _get_plan(self, request: Request) -> Response:
+        return _cbor_state(self.team.own.encode_plan(), request.accept)
 
     async def _tasks(self, request: Request) -> Response:
         if request.method == Method.GET:

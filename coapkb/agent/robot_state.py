@@ -1,5 +1,7 @@
-"""A robot's state, as its teammates see it through ``/robot/state`` (Observe).
+"""A robot's state, as its teammates see it through Observe (RFC 7641).
 
+``/robot/plan`` carries what teammates need to assign tasks; ``/robot/state``
+adds the live part and the last decision, for the feeder and for people.
 Two parts with different jobs:
 
 * ``plan``: the state the Task Assigner reasons with (where the robot will be,
@@ -75,22 +77,63 @@ class RobotState:
         return None
 
     def to_dict(self) -> dict[str, Any]:
+        """Readable form (for JSON clients and records)."""
         return asdict(self)
 
     def encode(self) -> bytes:
-        return cbor2.dumps(self.to_dict())
+        """Compact CBOR (docs/robot-state.cddl): positional arrays, no key
+        strings; several teammates observe this on slow links."""
+        return cbor2.dumps(
+            [
+                self.robot_id,
+                _plan_array(self.plan),
+                _plan_array(self.prev),
+                [self.live.aisle, self.live.rack, ACTIVITIES.index(self.live.activity), self.live.executing,
+                 self.live.queued, self.live.done],
+                None if self.last is None else _decision_array(self.last),
+            ],
+            canonical=True,  # smallest lossless float widths
+        )
+
+    def encode_plan(self) -> bytes:
+        """Only what teammates need to assign tasks: id, plan, previous plan."""
+        return cbor2.dumps([self.robot_id, _plan_array(self.plan), _plan_array(self.prev)], canonical=True)
 
     @classmethod
     def decode(cls, data: bytes) -> "RobotState":
+        """Decode :meth:`encode` or :meth:`encode_plan` output (the latter with an idle live part)."""
         try:
             raw = cbor2.loads(data)
-            last, prev = raw.get("last"), raw.get("prev")
-            return cls(
-                robot_id=raw["robot_id"],
-                plan=PlannedState(**raw["plan"]),
-                live=LiveState(**raw["live"]),
-                last=Decision(**last) if last else None,
-                prev=PlannedState(**prev) if prev else None,
-            )
-        except (cbor2.CBORDecodeError, KeyError, TypeError, AttributeError) as exc:
+            robot_id, plan, prev = raw[0], _plan(raw[1]), _plan(raw[2]) if raw[2] is not None else None
+            if len(raw) == 3:
+                return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev)
+            live = raw[3]
+            live_state = LiveState(live[0], live[1], ACTIVITIES[live[2]], live[3], live[4], live[5])
+            return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev)
+        except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"not a robot state: {exc}") from None
+
+
+ACTIVITIES = ("idle", "travelling", "picking", "unloading")
+
+
+def _plan_array(plan: PlannedState | None) -> list | None:
+    if plan is None:
+        return None
+    # Floats stay float64: every robot must compute on exactly the numbers
+    # the owner computes with, or "compute by all" could disagree.
+    return [plan.aisle, plan.rack, float(plan.battery_wh), float(plan.load_kg), float(plan.payload_kg), plan.seq]
+
+
+def _plan(raw: list) -> PlannedState:
+    aisle, rack, battery, load, payload, seq = raw
+    return PlannedState(aisle, rack, battery, load, payload, seq)
+
+
+def _decision_array(d: Decision) -> list:
+    return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s]
+
+
+def _decision(raw: list) -> Decision:
+    seq, obj, skipped, assigned_to, costs, error, coordination_s = raw
+    return Decision(seq, obj, skipped, assigned_to, dict(costs), error, coordination_s)

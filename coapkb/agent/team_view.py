@@ -1,5 +1,5 @@
-"""What this robot knows of its teammates' states: pushed to it by Observe
-(RFC 7641) on each teammate's ``/robot/state``, never polled."""
+"""What this robot knows of its teammates' planned states: pushed to it by
+Observe (RFC 7641) on each teammate's ``/robot/plan``, never polled."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from .robot_state import PlannedState, RobotState
 log = logging.getLogger(__name__)
 
 STATE_PATH = "/robot/state"
+PLAN_PATH = "/robot/plan"
 
 
 class TeamView:
@@ -46,13 +47,13 @@ class TeamView:
 
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         """Keep one observation of a teammate alive, re-registering after failures."""
-        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+        request = Request(Method.GET, PLAN_PATH, accept=ContentFormat.CBOR)
         backoff = 0.2
         while True:
             try:
                 async for response in self._transport.observe(endpoint, request):
                     if not response.status.is_success:
-                        log.warning("%s answered %s on %s", robot_id, response.status.dotted, STATE_PATH)
+                        log.warning("%s answered %s on %s", robot_id, response.status.dotted, PLAN_PATH)
                         break
                     try:
                         state = RobotState.decode(response.payload)
