@@ -307,10 +307,26 @@ async def _query(args: argparse.Namespace) -> int:
 def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
     from .rto import PROFILES
 
+    import dataclasses
+
     profile = PROFILES.get(args.retransmission)
     if profile is None:
         raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
-    return profile
+    changes: dict = {}
+    if args.max_retransmit is not None:
+        if args.max_retransmit < 0:
+            raise UserError("--max-retransmit must be at least 0")
+        changes["max_retransmit"] = args.max_retransmit
+    if args.ack_timeout is not None:
+        if not hasattr(profile, "ack_timeout"):
+            raise UserError("--ack-timeout applies to fixed profiles (rfc7252, lossy-fixed), not adaptive")
+        if not args.ack_timeout > 0:
+            raise UserError("--ack-timeout must be positive")
+        changes["ack_timeout"] = args.ack_timeout
+    try:
+        return dataclasses.replace(profile, **changes) if changes else profile
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- output

@@ -35,7 +35,9 @@ from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 from aiocoap.util.asyncio.timeoutdict import TimeoutDict
 
+from ..coap_retransmission import RetransmissionController
 from ..messages import Method, Request, Response, Status
+from ..rto import TransmissionProfile
 from .base import (
     Endpoint,
     PeerUnreachable,
@@ -118,7 +120,10 @@ class _BodyAwareBlock2Cache(Block2Cache):
                 body = b""
         else:
             if body is None:
-                candidates = self._bodies.get(base_key, set())
+                try:
+                    candidates = self._bodies[base_key]
+                except KeyError:
+                    raise IncompleteException from None
                 if len(candidates) != 1:
                     raise IncompleteException
                 (body,) = candidates
@@ -132,7 +137,10 @@ class _BodyAwareBlock2Cache(Block2Cache):
         if not too_big:
             return assembled
         self._completes[(base_key, body)] = assembled
-        bodies = self._bodies.get(base_key) or set()
+        try:
+            bodies = self._bodies[base_key]
+        except KeyError:
+            bodies = set()
         bodies.add(body)
         self._bodies[base_key] = bodies
         block2 = req.opt.block2 or BlockOption.BlockwiseTuple(0, 0, req.remote.maximum_block_size_exp)
@@ -317,32 +325,37 @@ class CoapServerTransport:
 
 # --------------------------------------------------------------------------- client
 
-TuningSource = Callable[[Endpoint], TransportTuning]
-
-
 class CoapClientTransport:
     """Sends requests over CoAP/UDP.
 
-    ``tuning_for`` picks the retransmission parameters per peer (a
-    :class:`TransportTuning`); by default RFC 7252's."""
+    Confirmable retransmission follows a profile (``rfc7252``,
+    ``lossy-fixed`` or ``adaptive``: a CoCoA-style RTO per peer), applied by
+    a :class:`RetransmissionController` hooked into this context only."""
 
-    def __init__(self, ctx: aiocoap.Context, tuning_for: TuningSource | None = None) -> None:
+    def __init__(self, ctx: aiocoap.Context, retransmission: RetransmissionController) -> None:
         self._ctx = ctx
-        self._tuning_for = tuning_for or (lambda peer: TransportTuning())
+        self.retransmission = retransmission
         self.counters = TrafficCounters()
         _count_traffic(ctx, self.counters)
 
     @classmethod
-    async def create(cls, retransmission: Any = "rfc7252") -> "CoapClientTransport":
+    async def create(cls, retransmission: TransmissionProfile | str = "adaptive") -> "CoapClientTransport":
+        """``retransmission``: a profile or its name (see :data:`coapkb.rto.PROFILES`)."""
+        controller = RetransmissionController(retransmission)
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.coap.client")
-        return cls(ctx, None)
+        controller.install(ctx)
+        return cls(ctx, controller)
+
+    def describe(self) -> dict[str, Any]:
+        """Retransmission profile and per-peer estimates, for the agent's record."""
+        return self.retransmission.as_dict()
 
     def _message(self, peer: Endpoint, request: Request, observe: bool = False) -> aiocoap.Message:
         msg = aiocoap.Message(
             code=_METHOD_CODES[request.method],
             uri=f"coap://{peer.hostport}{request.path}",
             payload=request.payload,
-            transport_tuning=self._tuning_for(peer),
+            transport_tuning=self.retransmission.tuning_for(peer),
         )
         query = [f"{k}={v}" for k, v in request.query.items()]
         if request.payload and request.method in (Method.FETCH, Method.POST):
@@ -386,6 +399,7 @@ class CoapClientTransport:
                 pending.observation.cancel()
 
     async def aclose(self) -> None:
+        self.retransmission.uninstall(self._ctx)
         await self._ctx.shutdown()
 
 
