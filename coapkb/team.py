@@ -161,12 +161,28 @@ def _toml_value(value: Any) -> str:
     return repr(value)
 
 
+class Placement:
+    """Where each process of the team runs: here, on loopback, each on a free port.
+
+    The benchmark's link emulator subclasses this to put every robot in its
+    own network namespace behind an emulated link."""
+
+    def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
+        kind = socket.SOCK_DGRAM if spec.transport == "coap" else socket.SOCK_STREAM
+        return Endpoint(spec.transport, spec.host, _free_port(kind))
+
+    def command(self, name: str, argv: list[str]) -> list[str]:
+        """The command line that starts ``argv`` for process ``name``."""
+        return argv
+
+
 class Team:
     """Start with :meth:`launch` (an async context manager), then :meth:`run`."""
 
-    def __init__(self, spec: TeamSpec, workdir: Path) -> None:
+    def __init__(self, spec: TeamSpec, workdir: Path, placement: Placement | None = None) -> None:
         self.spec = spec
         self.workdir = workdir
+        self.placement = placement or Placement()
         self.processes: dict[str, asyncio.subprocess.Process] = {}
         self.endpoints: dict[str, Endpoint] = {}
         self.central: Endpoint | None = None
@@ -174,17 +190,13 @@ class Team:
 
     # ---------------------------------------------------------------- processes
 
-    def _endpoint(self) -> Endpoint:
-        kind = socket.SOCK_DGRAM if self.spec.transport == "coap" else socket.SOCK_STREAM
-        return Endpoint(self.spec.transport, self.spec.host, _free_port(kind))
-
     def write_configs(self) -> dict[str, Path]:
         spec = self.spec
         starts = robot_starts(spec.ontologies)
         paths: dict[str, Path] = {}
         for cluster in spec.clusters():
             for robot_id in cluster:
-                self.endpoints[robot_id] = self._endpoint()
+                self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
         for cluster in spec.clusters():
             holders = dict(zip(cluster, ("Location", "Object", "Capability")))
             for robot_id in cluster:
@@ -217,7 +229,7 @@ class Team:
 
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "coapkb", *argv,
+            *self.placement.command(name, [sys.executable, "-m", "coapkb", *argv]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
@@ -238,13 +250,13 @@ class Team:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def launch(cls, spec: TeamSpec) -> AsyncIterator["Team"]:
+    async def launch(cls, spec: TeamSpec, placement: Placement | None = None) -> AsyncIterator["Team"]:
         """Start every process; on exit (normal, error or Ctrl-C) stop them all."""
         with tempfile.TemporaryDirectory(prefix="coapkb-team-") as tmp:
-            team = cls(spec, Path(tmp))
+            team = cls(spec, Path(tmp), placement)
             try:
                 if spec.mode == "central":
-                    team.central = team._endpoint()
+                    team.central = team.placement.endpoint("central", spec)
                     kbs = [str(spec.ontologies / f"{kb}.owl") for kb in KB_MODULES]
                     await team._spawn(
                         "central",
