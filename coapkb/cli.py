@@ -158,7 +158,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 async def _demo(args: argparse.Namespace) -> int:
     from .team import draw_tasks, DEFAULT_ONTOLOGIES
 
-    tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7) + list(DEMO_TASKS[1:])
+    tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS) + list(DEMO_TASKS[1:])
     print("Demo: a team of 3 robots (Robot1: Location KB, Robot2: Object KB, Robot3: Capability KB)")
     print("on loopback, each a separate process, over " + args.transport + "; tasks: " + ", ".join(tasks))
     print("Each robot runs the seed's four queries per task and computes every robot's cost (Wh);")
@@ -207,9 +207,24 @@ async def _team(args: argparse.Namespace) -> int:
         print(f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
               f"({record.coordination_s * 1000:.0f} ms){agreed}", flush=True)
         if getattr(args, "verbose_costs", False) and record.costs:
-            costs = ", ".join(f"{r}: {'-' if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items())
+            costs = ", ".join(
+                f"{r}: {record.reasons.get(r, '-') if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items()
+            )
             print(f"      costs: {costs}", flush=True)
 
+    # SIGTERM (kill, a CI timeout) must stop the robots too, as Ctrl-C does:
+    # cancel this task so that Team.launch's clean-up runs.
+    loop = asyncio.get_running_loop()
+    this_task = asyncio.current_task()
+    terminated = False
+
+    def on_sigterm() -> None:
+        nonlocal terminated
+        terminated = True
+        if this_task is not None:
+            this_task.cancel()
+
+    loop.add_signal_handler(signal.SIGTERM, on_sigterm)
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
@@ -217,6 +232,13 @@ async def _team(args: argparse.Namespace) -> int:
     except TeamError as exc:
         print(f"coapkb: team run failed: {exc}", file=sys.stderr)
         return 1
+    except asyncio.CancelledError:
+        if not terminated:
+            raise
+        print("coapkb: terminated; robots stopped", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    finally:
+        loop.remove_signal_handler(signal.SIGTERM)
     print()
     print(summarise(record))
     if args.record:

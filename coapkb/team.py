@@ -94,6 +94,7 @@ class TaskRecord:
     assigned_to: str | None = None
     decisions: dict[str, str | None] = field(default_factory=dict)
     costs: dict[str, float | None] = field(default_factory=dict)
+    reasons: dict[str, str] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
     coordination_s: float = 0.0
 
@@ -102,14 +103,16 @@ class TaskRecord:
         return len(set(self.decisions.values())) == 1 and not self.errors
 
 
-def draw_tasks(n: int, ontologies: Path = DEFAULT_ONTOLOGIES, seed: int = 1) -> list[str]:
-    """``n`` product names drawn (with a seed) from the Object KB."""
+def draw_tasks(
+    n: int, ontologies: Path = DEFAULT_ONTOLOGIES, seed: int = 1, exclude: Sequence[str] = ()
+) -> list[str]:
+    """``n`` product names drawn (with a seed, with replacement) from the Object KB."""
     kb = KnowledgeBase.load([ontologies / "Object.owl"])
     result = kb.query(
         "PREFIX o: <http://www.tcs.org/2018/Object#> SELECT ?name WHERE { ?p o:Product_name ?name } ORDER BY ?name",
         row_limit=10_000_000,
     )
-    names = [str(row[0]) for row in result.rows]  # type: ignore[union-attr]
+    names = [str(row[0]) for row in result.rows if str(row[0]) not in exclude]  # type: ignore[union-attr]
     if not names:
         raise TeamError("the Object KB has no products")
     rng = random.Random(seed)
@@ -364,6 +367,7 @@ class Team:
                     record.skipped = True
                 if decision.costs and not record.costs:
                     record.costs = dict(decision.costs)
+                    record.reasons = dict(decision.reasons)
             assigned = {d for d in record.decisions.values() if d is not None}
             record.assigned_to = assigned.pop() if len(assigned) == 1 else None
             records.append(record)
@@ -407,6 +411,7 @@ class Team:
                     "assigned_to": r.assigned_to,
                     "decisions": r.decisions,
                     "costs": r.costs,
+                    "reasons": r.reasons,
                     "errors": r.errors,
                     "agreed": r.agreed,
                     "coordination_s": round(r.coordination_s, 6),

@@ -230,7 +230,9 @@ class Controller:
         result: Assignment = assign(
             facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost
         )
-        decision = Decision(task.seq, task.object, assigned_to=result.assigned_to, costs=result.costs)
+        decision = Decision(
+            task.seq, task.object, assigned_to=result.assigned_to, costs=result.costs, reasons=result.reasons
+        )
         if result.plan is None:
             return DecisionMessage(decision)
         plan = result.plan

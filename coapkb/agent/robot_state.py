@@ -44,6 +44,8 @@ class Decision:
     costs: dict[str, float | None] = field(default_factory=dict)
     error: str | None = None
     coordination_s: float = 0.0
+    #: Why a robot cannot take the task (robot id -> reason), for people.
+    reasons: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -131,9 +133,9 @@ def _plan(raw: list) -> PlannedState:
 
 
 def _decision_array(d: Decision) -> list:
-    return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s]
+    return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons]
 
 
 def _decision(raw: list) -> Decision:
-    seq, obj, skipped, assigned_to, costs, error, coordination_s = raw
-    return Decision(seq, obj, skipped, assigned_to, dict(costs), error, coordination_s)
+    seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons = raw
+    return Decision(seq, obj, skipped, assigned_to, dict(costs), error, coordination_s, dict(reasons))
