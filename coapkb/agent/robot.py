@@ -118,7 +118,7 @@ class Robot:
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot._mount()  # before serving: the transport publishes the resource list
         try:
-            robot.server = await serve(router, config.bind)
+            robot.server = await serve(router, config.bind, retransmission=config.retransmission)
         except BaseException:
             await client.aclose()
             raise
@@ -190,7 +190,8 @@ class Robot:
             "transport": self.config.transport,
             "strategy": self.config.strategy,
             "query_wire": self.queries.wire,
-            "retransmission": self.client.describe() if hasattr(self.client, "describe") else None,
+            "retransmission": getattr(self.client, "describe", lambda: None)(),
+            "server_retransmission": getattr(self.server, "describe", lambda: None)(),
             "server": self.server.counters.as_dict() if self.server else None,
             "client": self.client.counters.as_dict(),
             "queries": self.queries.stats.as_dict(),

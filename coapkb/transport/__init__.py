@@ -38,12 +38,13 @@ async def open_client(scheme: str, *, retransmission: Any = "adaptive") -> Clien
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
 
 
-async def serve(service: Service, endpoint: Endpoint) -> ServerTransport:
-    """Expose ``service`` on ``endpoint`` (its scheme picks the transport)."""
+async def serve(service: Service, endpoint: Endpoint, *, retransmission: Any = "adaptive") -> ServerTransport:
+    """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
+    ``retransmission`` applies to CoAP's confirmable notifications."""
     if endpoint.scheme == "coap":
         from .coap import CoapServerTransport
 
-        return await CoapServerTransport.start(service, endpoint)
+        return await CoapServerTransport.start(service, endpoint, retransmission=retransmission)
     if endpoint.scheme == "zmq":
         from .zmq import ZmqServerTransport
 

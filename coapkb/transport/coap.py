@@ -177,11 +177,12 @@ def _message_from_response(response: Response) -> aiocoap.Message:
 class _ServiceResource(aiocoap.resource.ObservableResource):
     """One path of a :class:`Service` as an aiocoap resource."""
 
-    def __init__(self, service: Service, info: ResourceInfo) -> None:
+    def __init__(self, service: Service, info: ResourceInfo, retransmission: RetransmissionController) -> None:
         super().__init__()
         self._block2 = _BodyAwareBlock2Cache()
         self.service = service
         self.info = info
+        self.retransmission = retransmission
         self.rt = info.rt
         if info.obs:
             service.subscribe(info.path, self.updated_state)
@@ -210,7 +211,11 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         except Exception:  # the service must not raise; never let a bug kill the server
             log.exception("service failed on %s", self.info.path)
             response = Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
-        return _message_from_response(response)
+        message = _message_from_response(response)
+        # Piggybacked answers are never retransmitted, but Observe notifications
+        # are CON: give them this peer's timeouts rather than RFC 7252's 2-3 s.
+        message.transport_tuning = self.retransmission.tuning_for(request.remote.hostinfo, reliability=None)
+        return message
 
     async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
         if self.info.obs:
@@ -286,15 +291,27 @@ def _count_traffic(ctx: aiocoap.Context, counters: TrafficCounters) -> None:
 
 
 class CoapServerTransport:
-    """Serves a :class:`Service` over CoAP/UDP."""
+    """Serves a :class:`Service` over CoAP/UDP.
 
-    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, counters: TrafficCounters) -> None:
+    The server's confirmable messages (Observe notifications) follow a
+    retransmission profile too, with its own per-peer estimates."""
+
+    def __init__(
+        self,
+        ctx: aiocoap.Context,
+        endpoint: Endpoint,
+        counters: TrafficCounters,
+        retransmission: RetransmissionController,
+    ) -> None:
         self._ctx = ctx
         self.endpoint = endpoint
         self.counters = counters
+        self.retransmission = retransmission
 
     @classmethod
-    async def start(cls, service: Service, endpoint: Endpoint) -> "CoapServerTransport":
+    async def start(
+        cls, service: Service, endpoint: Endpoint, retransmission: TransmissionProfile | str = "adaptive"
+    ) -> "CoapServerTransport":
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
         site = aiocoap.resource.Site()
@@ -302,9 +319,10 @@ class CoapServerTransport:
             [".well-known", "core"],
             aiocoap.resource.WKCResource(site.get_resources_as_linkheader, impl_info=None),
         )
+        controller = RetransmissionController(retransmission)
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
-            site.add_resource(segments, _ServiceResource(service, info))
+            site.add_resource(segments, _ServiceResource(service, info, controller))
         logger = logging.getLogger("coapkb.coap.server")
         if not any(isinstance(f, _RateLimitFilter) for f in logger.filters):
             logger.addFilter(_RateLimitFilter())
@@ -314,12 +332,17 @@ class CoapServerTransport:
             )
         except OSError as exc:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
+        controller.install(ctx)
         port = _udp_interface(ctx)._local_port()
         counters = TrafficCounters()
         _count_traffic(ctx, counters)
-        return cls(ctx, Endpoint("coap", endpoint.host, port), counters)
+        return cls(ctx, Endpoint("coap", endpoint.host, port), counters, controller)
+
+    def describe(self) -> dict[str, Any]:
+        return self.retransmission.as_dict()
 
     async def aclose(self) -> None:
+        self.retransmission.uninstall(self._ctx)
         await self._ctx.shutdown()
 
 
