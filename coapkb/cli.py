@@ -351,6 +351,31 @@ def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
         raise UserError(str(exc)) from None
 
 
+# --------------------------------------------------------------------------- bench
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from . import bench
+
+    p = sub.add_parser(
+        "bench",
+        help="benchmark systems on kernel-emulated slow, lossy links (root); one CSV row per run",
+        description="Each run puts every robot, the central server and the task feeder in its own network "
+        "namespace behind a tbf shaper and a loss rule (docs/link-emulation.md, docs/benchmarks.md).",
+    )
+    bench.add_arguments(p)
+    p.set_defaults(run=_bench)
+
+
+async def _bench(args: argparse.Namespace) -> int:
+    from . import bench
+
+    try:
+        return await bench.main(args)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
 # --------------------------------------------------------------------------- output
 
 WELL_KNOWN_PREFIXES = {
@@ -422,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_team, _add_serve, _add_agent, _add_query,
+    _add_demo, _add_team, _add_serve, _add_agent, _add_query, _add_bench,
 ]
 
 

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from .rto import PROFILES
 from .transport.base import Endpoint
 
 KB_MODULES = ("Object", "Location", "Capability")
@@ -145,6 +146,9 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     strategy = _get(data, "strategy", str, "compute-by-all")
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
+    retransmission = _get(data, "retransmission", str, "adaptive")
+    if retransmission not in PROFILES:
+        raise ConfigError(f"retransmission: {retransmission!r} is not one of {', '.join(PROFILES)}")
     team_data = _get(data, "team", dict)
     team = {}
     for mate_id, mate in team_data.items():
@@ -171,7 +175,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         team=team,
         start=_section(data, "start", StartState),
         strategy=strategy,
-        retransmission=_get(data, "retransmission", str, "adaptive"),
+        retransmission=retransmission,
         central=central_ep,
         query_timeout_s=float(_get(data, "query_timeout_s", (int, float), 20.0)),
         cost=_section(data, "cost", CostModel),

@@ -28,12 +28,14 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 import cbor2
 
+from .agent.query_handler import QUERY_WIRES
 from .agent.robot_state import RobotState
 from .agent.task_assigner import robot_sort_key
 from .config import KB_MODULES, STRATEGIES
 from .knowledge_base import KnowledgeBase
 from .messages import ContentFormat, Method, Request
 from .named_queries import NAMED_QUERIES
+from .rto import PROFILES
 from .transport import open_client
 from .transport.base import ClientTransport, Endpoint, TransportError
 
@@ -72,6 +74,10 @@ class TeamSpec:
             raise ValueError(f"transport must be coap or zmq, got {self.transport!r}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
+        if self.retransmission not in PROFILES:
+            raise ValueError(f"retransmission must be one of {', '.join(PROFILES)}, got {self.retransmission!r}")
+        if self.query_wire not in QUERY_WIRES:
+            raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")
@@ -267,12 +273,14 @@ class Team:
                         "serving",
                     )
                 configs = team.write_configs()
-                await asyncio.gather(
-                    *(
-                        team._spawn(r, ["agent", "--config", str(p), "--query-wire", spec.query_wire], "robot")
-                        for r, p in configs.items()
-                    )
-                )
+                # A TaskGroup cancels the other start-ups as soon as one fails.
+                try:
+                    async with asyncio.TaskGroup() as starting:
+                        for robot_id, path in configs.items():
+                            argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
+                            starting.create_task(team._spawn(robot_id, argv, "robot"))
+                except ExceptionGroup as failed:
+                    raise failed.exceptions[0] from None
                 yield team
             finally:
                 await team.stop()

@@ -1,0 +1,132 @@
+"""`coapkb team` and `coapkb demo` as a user runs them: subprocesses, exit codes, output, record file."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+TASKS = ["Gucci_bag_14", "Dell_monitor_986", "Nonexistent_thing_1", "Levis_jeans_234", "Canon_tv_995"]
+
+
+def coapkb(*args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "coapkb", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
+
+
+@pytest.mark.slow
+def test_team_with_tasks_file_and_record(tmp_path: Path) -> None:
+    tasks_file = tmp_path / "tasks.txt"
+    tasks_file.write_text(
+        "# picks for the test\n\n" + "\n".join(f"{t}   # comment" if i == 1 else t for i, t in enumerate(TASKS)) + "\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "out.json"
+    result = coapkb("team", "--robots", "3", "--tasks-file", str(tasks_file), "--record", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Traceback" not in result.stderr
+    stdout = result.stdout
+    assert stdout.startswith("team up: Robot1 coap://127.0.0.1:")
+
+    # One progress line per task, in the order given.
+    lines = [line for line in stdout.splitlines() if line.startswith("[cluster ")]
+    assert len(lines) == len(TASKS), stdout
+    for seq, (line, name) in enumerate(zip(lines, TASKS), start=1):
+        assert re.match(rf"\[cluster 1\] task +{seq} {re.escape(name)} ", line), line
+        if name.startswith("Nonexistent"):
+            assert "skipped: no such object" in line, line
+        else:
+            assert re.search(r"-> Robot[123] \(\d+ ms\)$", line), line
+        assert "DISAGREEMENT" not in line and "ERROR" not in line
+
+    # The summary.
+    assert re.search(
+        r"^3 robots, distributed, coap, compute-by-all: 5 tasks, 4 assigned, 1 skipped, 0 with errors, "
+        r"0 disagreements$", stdout, re.M), stdout
+    assert re.search(r"^assigned: Robot\d \d+", stdout, re.M)
+    assert re.search(r"^coordination \d+\.\d\d s, completion \d+\.\d\d s$", stdout, re.M)
+    assert re.search(r"^robots sent [\d,]+ B in [\d,]+ messages, received [\d,]+ B; queries: \d+ local, \d+ remote$",
+                     stdout, re.M)
+    assert f"record written to {out}" in stdout
+
+    record = json.loads(out.read_text(encoding="utf-8"))
+    assert [t["object"] for t in record["tasks"]] == TASKS
+    assert [t["seq"] for t in record["tasks"]] == [1, 2, 3, 4, 5]
+    assert record["robots"] == ["Robot1", "Robot2", "Robot3"]
+    assert record["mode"] == "distributed" and record["transport"] == "coap"
+    for task, line in zip(record["tasks"], lines):
+        assert task["agreed"] and not task["errors"]
+        if task["skipped"]:
+            assert task["assigned_to"] is None
+        else:
+            assert line.split("-> ")[1].split()[0] == task["assigned_to"]
+    assert set(record["robot_stats"]) == {"Robot1", "Robot2", "Robot3"}
+
+
+@pytest.mark.slow
+def test_team_zmq_central_quiet(tmp_path: Path) -> None:
+    out = tmp_path / "out.json"
+    result = coapkb("team", "--robots", "3", "--tasks", "4", "--transport", "zmq", "--mode", "central", "--quiet",
+                    "--record", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "[cluster" not in result.stdout
+    assert "3 robots, central, zmq, compute-by-all: 4 tasks, 4 assigned" in result.stdout
+    record = json.loads(out.read_text(encoding="utf-8"))
+    assert record["mode"] == "central" and record["transport"] == "zmq"
+    assert all(s["queries"]["local"] == 0 for s in record["robot_stats"].values())
+
+
+@pytest.mark.slow
+def test_demo_shows_costs_and_gucci_bag(tmp_path: Path) -> None:
+    out = tmp_path / "demo.json"
+    result = coapkb("demo", "--record", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    stdout = result.stdout
+    assert "Gucci_bag_14" in stdout.splitlines()[1]  # announced in the task list
+    gucci = re.search(r"^\[cluster 1\] task +1 Gucci_bag_14 +-> (Robot[123]) \(\d+ ms\)$", stdout, re.M)
+    assert gucci, stdout
+    cost_lines = [line.strip() for line in stdout.splitlines() if line.strip().startswith("costs:")]
+    assert len(cost_lines) >= 5, stdout  # one per existing object (the demo's missing widget has none)
+    # Each robot has a cost in Wh, or a dash or the reason it cannot take the task; the winner's is the lowest.
+    first = cost_lines[0]
+    costs = dict(re.findall(r"(Robot\d+): ([^,]+)", first))
+    assert set(costs) == {"Robot1", "Robot2", "Robot3"}, first
+    finite = {r: float(c[:-3]) for r, c in costs.items() if re.fullmatch(r"\d+\.\d\d Wh", c)}
+    assert gucci.group(1) in finite, first
+    assert finite[gucci.group(1)] == min(finite.values())
+    assert re.search(r"Nonexistent_widget_1 +skipped: no such object", stdout)
+    record = json.loads(out.read_text(encoding="utf-8"))
+    assert record["tasks"][0]["object"] == "Gucci_bag_14"
+    assert record["tasks"][0]["assigned_to"] == gucci.group(1)
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["team", "--robots", "4", "--tasks", "2"], "multiple of 3"),
+        (["team", "--robots", "3", "--tasks", "0"], "--tasks must be at least 1"),
+        (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], "cannot read tasks file"),
+        (["team", "--robots", "3", "--tasks", "2", "--ontologies", "/nonexistent"], "no Object.owl"),
+    ],
+    ids=["robots-not-multiple-of-3", "zero-tasks", "missing-tasks-file", "missing-ontologies"],
+)
+def test_team_usage_errors(args: list[str], needle: str) -> None:
+    result = coapkb(*args, timeout=30)
+    assert result.returncode == 2, (result.returncode, result.stdout, result.stderr)
+    assert result.stderr.startswith("coapkb: error: "), result.stderr
+    assert needle in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_team_empty_tasks_file(tmp_path: Path) -> None:
+    tasks_file = tmp_path / "empty.txt"
+    tasks_file.write_text("# nothing\n\n", encoding="utf-8")
+    result = coapkb("team", "--tasks-file", str(tasks_file), timeout=30)
+    assert result.returncode == 2 and "no tasks to run" in result.stderr, result.stderr
