@@ -1,0 +1,299 @@
+"""The ``coapkb`` command as a user sees it: ``python -m coapkb ...`` in a
+subprocess, against a real server process.
+
+Every user mistake must end in exactly one ``coapkb: ...`` line on stderr and
+a non-zero exit, with no traceback anywhere.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+import json
+import re
+import socket
+import sys
+import time
+from dataclasses import dataclass
+from decimal import Decimal
+from pathlib import Path
+from typing import AsyncIterator
+
+import pytest
+import pytest_asyncio
+
+from conftest import ONTOLOGIES, ROOT, ServerProcess, free_udp_port
+
+pytestmark = pytest.mark.asyncio(loop_scope="module")
+
+KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
+
+GRIPPING_ROBOTS = {
+    "Robot1": Decimal("60.6"),
+    "Robot2": Decimal("31.4"),
+    "Robot4": Decimal("75.4"),
+    "Robot6": Decimal("32.1"),
+    "Robot7": Decimal("73"),
+    "Robot8": Decimal("29.9"),
+}
+
+
+@dataclass
+class Result:
+    code: int
+    stdout: str
+    stderr: str
+    seconds: float
+
+
+async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> Result:
+    started = time.monotonic()
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "coapkb", *args,
+        stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
+    )
+    try:
+        out, err = await asyncio.wait_for(proc.communicate(stdin.encode() if stdin is not None else None), timeout)
+    except asyncio.TimeoutError:
+        proc.kill()
+        await proc.wait()
+        raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None
+    return Result(proc.returncode or 0, out.decode(), err.decode(), time.monotonic() - started)
+
+
+def assert_user_error(result: Result, *fragments: str) -> str:
+    """One ``coapkb: ...`` line on stderr, non-zero exit, no traceback; returns the line."""
+    assert "Traceback" not in result.stdout + result.stderr, result.stderr
+    assert result.code != 0, result
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    [line] = lines
+    assert line.startswith("coapkb: "), line
+    for fragment in fragments:
+        assert fragment in line, (fragment, line)
+    return line
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def server() -> AsyncIterator[ServerProcess]:
+    port = free_udp_port()
+    srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}")
+    yield srv
+    assert srv.proc.returncode is None
+    await srv.stop()
+
+
+@pytest.fixture
+def uri(server: ServerProcess) -> str:
+    return server.uri
+
+
+def table(text: str) -> tuple[list[str], list[list[str]], str]:
+    """The CLI's table: header, rows (split on 2+ spaces), footer line."""
+    lines = text.rstrip("\n").splitlines()
+    header = lines[0].split()
+    assert set(lines[1].replace(" ", "")) == {"-"}
+    rows = [re.split(r"\s{2,}", line.strip()) for line in lines[2:-1]]
+    return header, rows, lines[-1]
+
+
+# --------------------------------------------------------------------------- query
+
+
+async def test_query_table(uri: str) -> None:
+    result = await coapkb("query", f"{uri}/kb/q/object-location?name=Gucci_bag_14")
+    assert result.code == 0, result.stderr
+    assert result.stderr == ""
+    header, rows, footer = table(result.stdout)
+    assert header == ["loc", "warehouse", "aisle_no", "bin_no", "rack_no"]
+    assert rows == [["loc:Warehouse_A", "Warehouse_A", "3", "3", "21"]]
+    assert footer == "(1 row)"
+
+
+async def test_query_sparql_text_every_method(uri: str, tmp_path: Path) -> None:
+    text = ("PREFIX l: <http://www.tcs.org/2018/Location#>\n"
+            "SELECT ?aisle ?rack ?bin WHERE { l:Gucci_bag_14 l:Inventory_aisle_no ?aisle ;"
+            " l:Inventory_rack_no ?rack ; l:Inventory_bin_no ?bin }")
+    (tmp_path / "q.rq").write_text(text)
+    results = await asyncio.gather(
+        *(coapkb("query", uri, text, *how)
+          for how in (["--method", "fetch"], ["--method", "post"], ["--method", "get"], ["--accept", "json"])),
+        coapkb("query", uri, f"@{tmp_path / 'q.rq'}"),
+        coapkb("query", uri, "-", stdin=text),
+    )
+    assert all(r.code == 0 for r in results), [r.stderr for r in results]
+    outputs = [r.stdout for r in results]
+    assert len(set(outputs)) == 1, outputs
+    header, rows, _ = table(outputs[0])
+    assert header == ["aisle", "rack", "bin"] and rows == [["3", "21", "3"]]
+
+
+async def test_query_json(uri: str) -> None:
+    result = await coapkb("query", f"{uri}/kb/q/object-features?name=Gucci_bag_14", "--accept", "json",
+                          "--format", "json")
+    assert result.code == 0, result.stderr
+    doc = json.loads(result.stdout)
+    assert doc["head"]["vars"] == ["frag", "price", "color", "shape", "dim", "grip", "weight"]
+    [b] = doc["results"]["bindings"]
+    assert b["grip"] == {"type": "uri", "value": "http://www.tcs.org/2018/Object#gripping"}
+    assert b["weight"]["type"] == "literal" and Decimal(b["weight"]["value"]) == Decimal("0.8")
+    # the wire format does not change the printed answer
+    via_cbor = await coapkb("query", f"{uri}/kb/q/object-features?name=Gucci_bag_14", "--format", "json")
+    assert json.loads(via_cbor.stdout) == doc
+
+
+async def test_query_ask(uri: str) -> None:
+    result = await coapkb("query", uri, "ASK { ?s ?p ?o }")
+    assert (result.code, result.stdout) == (0, "true\n")
+    as_json = await coapkb("query", uri, "ASK { ?s ?p <urn:nothing> }", "--format", "json")
+    assert json.loads(as_json.stdout) == {"head": {}, "boolean": False}
+
+
+async def test_query_csv(uri: str) -> None:
+    result = await coapkb("query", f"{uri}/kb/q/robots-for-grip?grip=gripping", "--format", "csv")
+    assert result.code == 0, result.stderr
+    assert result.stdout.endswith("\r\n")  # SPARQL 1.1 CSV uses CRLF
+    rows = list(csv.reader(io.StringIO(result.stdout, newline="")))
+    assert rows[0] == ["robots", "robo_id", "payload"]
+    assert {r[1]: Decimal(r[2]) for r in rows[1:]} == GRIPPING_ROBOTS
+    assert [r[1] for r in rows[1:]] == list(GRIPPING_ROBOTS)
+    assert rows[1][0] == "http://www.tcs.org/2018/Capability#Robot1"
+
+
+async def test_query_over_zmq_matches(tmp_path: Path) -> None:
+    from conftest import free_tcp_port
+
+    port = free_tcp_port()
+    srv = await ServerProcess.start("--kb", *KB_FILES, "--transport", "zmq", "--bind", f"127.0.0.1:{port}")
+    try:
+        result = await coapkb("query", f"zmq://127.0.0.1:{port}/kb/q/object-location?name=Gucci_bag_14")
+        assert result.code == 0, result.stderr
+        assert table(result.stdout)[1] == [["loc:Warehouse_A", "Warehouse_A", "3", "3", "21"]]
+    finally:
+        await srv.stop()
+
+
+# --------------------------------------------------------------------------- query mistakes
+
+
+QUERY_MISTAKES = [
+    (["query", "htp://127.0.0.1:5683", "ASK {}"], ["htp"]),
+    (["query", "coap://127.0.0.1", "ASK {}"], ["HOST:PORT"]),
+    (["query", "coap://127.0.0.1:99999", "ASK {}"], ["HOST:PORT"]),
+    (["query", "coap://127.0.0.1:5683/kb/other", "ASK {}"], ["/kb/other"]),
+    (["query", "coap://127.0.0.1:5683"], ["no query"]),
+    (["query", "coap://127.0.0.1:5683/kb/q/object-exists?name=x", "ASK {}"], ["not both"]),
+    (["query", "coap://127.0.0.1:5683", "ASK {}", "--retransmission", "nope"], ["nope", "rfc7252"]),
+    (["query", "coap://127.0.0.1:5683", "@/nonexistent/q.rq"], ["/nonexistent/q.rq"]),
+]
+
+
+async def check_mistakes(cases: list[tuple[list[str], list[str]]]) -> None:
+    """Run the cases concurrently (each is a cold Python start), check each."""
+    results = await asyncio.gather(*(coapkb(*args) for args, _ in cases))
+    for (args, fragments), result in zip(cases, results):
+        try:
+            assert_user_error(result, *fragments)
+            assert result.stdout == ""
+        except AssertionError as exc:
+            raise AssertionError(f"coapkb {' '.join(args)}: {exc}") from None
+
+
+async def test_query_user_mistakes() -> None:
+    await check_mistakes(QUERY_MISTAKES)
+
+
+async def test_query_unreachable_peer() -> None:
+    closed = free_udp_port()  # nobody listens: ICMP port unreachable
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:  # bound, never answers
+        silent.bind(("127.0.0.1", 0))
+        port = silent.getsockname()[1]
+        to_closed, to_silent = await asyncio.gather(
+            coapkb("query", f"coap://127.0.0.1:{closed}", "ASK {}", "--timeout", "2"),
+            coapkb("query", f"coap://127.0.0.1:{port}", "ASK {}", "--timeout", "2"),
+        )
+    assert_user_error(to_closed, str(closed))
+    assert to_closed.seconds < 6  # (generous: a cold Python start on a loaded CI machine)
+    assert_user_error(to_silent, str(port), "2s")
+    assert 2 <= to_silent.seconds < 6
+
+
+async def test_query_server_errors_shown(uri: str) -> None:
+    await check_mistakes([
+        (["query", uri, "SELECT ?x WHERE { ?x ?p }"], ["4.00", "malformed SPARQL", "line 1, column"]),
+        (["query", uri, "CLEAR ALL"], ["4.03"]),
+        (["query", f"{uri}/kb/q/object-exists?name=x%22%20%7D"], ["4.00", "name"]),
+        (["query", f"{uri}/kb/q/nope?x=1"], ["4.04"]),
+    ])
+
+
+# --------------------------------------------------------------------------- serve mistakes
+
+
+async def test_serve_mistakes(tmp_path: Path) -> None:
+    junk = []
+    for suffix in (".owl", ".ttl"):
+        path = tmp_path / f"junk{suffix}"
+        path.write_bytes(b"<rdf:RDF this is <not> RDF \x00\xff\xfe {{{ ")
+        junk.append(path)
+    unknown = tmp_path / "kb.docx"
+    unknown.write_text("hello")
+    cap = KB_FILES[2]
+    await check_mistakes([
+        (["serve", "--kb", "nonexistent.owl", "--bind", "127.0.0.1:0"], ["nonexistent.owl"]),
+        *((["serve", "--kb", str(p), "--bind", "127.0.0.1:0"], [p.name]) for p in junk),
+        (["serve", "--kb", cap, str(junk[0]), "--bind", "127.0.0.1:0"], [junk[0].name]),
+        (["serve", "--kb", str(unknown), "--bind", "127.0.0.1:0"], ["kb.docx"]),
+        (["serve", "--kb", cap, "--bind", "nonsense"], ["nonsense"]),
+        (["serve", "--kb", cap, "--bind", "127.0.0.1:70000"], ["70000"]),
+        (["serve", "--kb", cap, "--bind", "no-such-host.invalid:5683"], ["no-such-host.invalid"]),
+        (["serve", "--kb", cap, "--bind", "127.0.0.1:0", "--row-limit", "0"], ["row_limit"]),
+        (["serve", "--kb", cap, "--bind", "127.0.0.1:0", "--time-budget", "0"], ["time_budget"]),
+    ])
+
+
+# --------------------------------------------------------------------------- agent and team mistakes
+
+
+VALID_CONFIG = """\
+robot_id = "Robot1"
+bind = "coap://127.0.0.1:0"
+kb = ["{kb}"]
+strategy = "{strategy}"
+
+[team.Robot1]
+endpoint = "coap://127.0.0.1:5701"
+kbs = ["Location"]
+[team.Robot2]
+endpoint = "coap://127.0.0.1:5702"
+kbs = ["Object"]
+[team.Robot3]
+endpoint = "coap://127.0.0.1:5703"
+kbs = ["Capability"]
+"""
+
+
+async def test_agent_mistakes(tmp_path: Path) -> None:
+    location = ONTOLOGIES / "Location.owl"
+    (tmp_path / "strategy.toml").write_text(VALID_CONFIG.format(kb=location, strategy="nope"))
+    (tmp_path / "field.toml").write_text(VALID_CONFIG.format(kb=location, strategy="compute-by-all")
+                                         + "\n[start]\nbatery_wh = 10\n")
+    (tmp_path / "syntax.toml").write_text("robot_id = \n")
+    (tmp_path / "kb.toml").write_text(VALID_CONFIG.format(kb="/nonexistent/Location.owl", strategy="compute-by-all"))
+    await check_mistakes([
+        (["agent", "--config", "/nonexistent/robot.toml"], ["/nonexistent/robot.toml"]),
+        (["agent", "--config", str(tmp_path / "strategy.toml")], ["strategy", "nope"]),
+        (["agent", "--config", str(tmp_path / "field.toml")], ["batery_wh"]),
+        (["agent", "--config", str(tmp_path / "syntax.toml")], ["TOML"]),
+        (["agent", "--config", str(tmp_path / "kb.toml")], ["kb[0]", "/nonexistent/Location.owl"]),
+    ])
+
+
+async def test_team_mistakes() -> None:
+    await check_mistakes([
+        (["team", "--robots", "4", "--tasks", "1"], ["multiple of 3"]),
+        (["team", "--robots", "3", "--tasks", "0"], ["--tasks"]),
+        (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], ["/nonexistent/tasks.txt"]),
+    ])
