@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import threading
 from dataclasses import dataclass
 
 import cbor2
@@ -35,9 +36,12 @@ class QueryLimits:
     max_age_s: int = 300
     #: Max-Age on a 5.03 when the time budget ran out: when to try again.
     retry_after_s: int = 5
+    #: Queries evaluated at once (including ones still running past their
+    #: budget); beyond this the robot answers 5.03 at once.
+    max_concurrent: int = 8
 
     def __post_init__(self) -> None:
-        for name in ("row_limit", "max_request_bytes", "max_age_s", "retry_after_s"):
+        for name in ("row_limit", "max_request_bytes", "max_age_s", "retry_after_s", "max_concurrent"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not self.time_budget_s > 0:
@@ -62,6 +66,7 @@ class KBResources:
         self.kb = kb
         self.limits = limits or QueryLimits()
         self.named = {q.name: q for q in named_queries_for(kb.names)}
+        self.running = 0
 
     def mount(self, router: Router) -> None:
         router.add(
@@ -147,15 +152,14 @@ class KBResources:
         if fmt is None:
             return _not_acceptable(accept)
         limits = self.limits
-        try:
-            # A worker thread keeps the server answering while a slow query runs;
-            # the KB checks the budget between rows, wait_for bounds the rest.
-            result = await asyncio.wait_for(
-                asyncio.to_thread(
-                    self.kb.query, text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s
-                ),
-                limits.time_budget_s + 0.5,
+        if self.running >= limits.max_concurrent:
+            return Response.error(
+                Status.SERVICE_UNAVAILABLE,
+                f"{self.running} queries are running; try again later",
+                max_age=limits.retry_after_s,
             )
+        try:
+            result = await asyncio.wait_for(self._evaluate(text), limits.time_budget_s + 0.5)
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
         except QueryRefused as exc:  # SPARQL Update, or SERVICE/FROM that would fetch from the network
@@ -171,6 +175,43 @@ class KBResources:
         payload = encode_result(result, fmt)
         etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
         return Response(Status.CONTENT, payload, fmt, max_age=limits.max_age_s, etag=etag)
+
+
+    def _evaluate(self, text: str) -> asyncio.Future[QueryResult]:
+        """Run the query on its own daemon thread, so the server keeps answering.
+
+        The KB checks the time budget between result rows; a query whose cost
+        lies in one step (a sort, an aggregate over a huge join) cannot be
+        interrupted and keeps its thread until it ends.  A daemon thread never
+        holds up the robot's shutdown, and ``running`` counts such queries
+        until they really finish, so they cannot pile up unbounded."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[QueryResult] = loop.create_future()
+        limits = self.limits
+
+        def settle(outcome: QueryResult | BaseException) -> None:
+            self.running -= 1
+            if future.done():  # the caller already gave up (time budget)
+                return
+            if isinstance(outcome, BaseException):
+                future.set_exception(outcome)
+            else:
+                future.set_result(outcome)
+
+        def work() -> None:
+            outcome: QueryResult | BaseException
+            try:
+                outcome = self.kb.query(text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s)
+            except BaseException as exc:  # delivered to the awaiting request
+                outcome = exc
+            try:
+                loop.call_soon_threadsafe(settle, outcome)
+            except RuntimeError:  # the loop is closed: the robot has shut down
+                pass
+
+        self.running += 1
+        threading.Thread(target=work, name="sparql-query", daemon=True).start()
+        return future
 
 
 def _not_acceptable(accept: int | None) -> Response:

@@ -636,11 +636,6 @@ def _block1_fetch(mid: int, block1: bytes, payload: bytes) -> bytes:
             + b"\xff" + payload)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="product bug (aiocoap 0.4.17 Block1Spool): a Block1 block that does not continue the "
-    "body raises ValueError -> 5.00 and a logged traceback per datagram, instead of 4.08",
-)
 async def test_block1_gap_is_408_without_a_traceback() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}")
@@ -724,11 +719,6 @@ async def test_time_budget_is_503_with_max_age() -> None:
         await _stop_quickly(srv, 1)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="product bug: a query past its time budget keeps running in a worker thread, and "
-    "asyncio.run() waits for it at shutdown, so SIGTERM does not stop `coapkb serve`",
-)
 async def test_server_stops_promptly_after_a_runaway_query() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
@@ -742,11 +732,6 @@ async def test_server_stops_promptly_after_a_runaway_query() -> None:
     assert (code, took < 3) == (0, True)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="product bug: each query past its time budget keeps a worker of the default executor "
-    "busy (min(32, cpus+4) of them), so a few runaway queries make every later query 5.03",
-)
 async def test_runaway_queries_do_not_starve_the_robot() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")

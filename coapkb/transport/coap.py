@@ -29,7 +29,7 @@ from typing import Any, AsyncIterator, Callable
 import aiocoap
 import aiocoap.error
 import aiocoap.resource
-from aiocoap.blockwise import Block2Cache, IncompleteException, _extract_block_key
+from aiocoap.blockwise import Block1Spool, Block2Cache, IncompleteException, _extract_block_key
 from aiocoap.numbers.codes import Code
 from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
@@ -96,6 +96,17 @@ class _RateLimitFilter(logging.Filter):
             record.msg = f"{record.msg} (and {self.suppressed} similar messages suppressed)"
             self.suppressed = 0
         return True
+
+
+class _GapSafeBlock1Spool(Block1Spool):
+    """aiocoap's Block1 spool answers a gap in the blocks (ValueError) with a
+    5.00 and a logged traceback; it is the client's error: 4.08 Incomplete."""
+
+    def feed_and_take(self, req: aiocoap.Message) -> aiocoap.Message:
+        try:
+            return super().feed_and_take(req)
+        except ValueError:
+            raise IncompleteException from None
 
 
 class _BodyAwareBlock2Cache(Block2Cache):
@@ -179,6 +190,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
 
     def __init__(self, service: Service, info: ResourceInfo, retransmission: RetransmissionController) -> None:
         super().__init__()
+        self._block1 = _GapSafeBlock1Spool()
         self._block2 = _BodyAwareBlock2Cache()
         self.service = service
         self.info = info
