@@ -55,6 +55,8 @@ from __future__ import annotations
 
 import asyncio
 import atexit
+import contextlib
+import ctypes
 import ipaddress
 import json
 import math
@@ -70,7 +72,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from types import FrameType, TracebackType
 from typing import Any, cast
@@ -88,6 +90,7 @@ __all__ = [
     "DEFAULT_PREFIX",
     "UDP_IPV4_OVERHEAD",
     "UdpRelay",
+    "enter_netns",
 ]
 
 #: Prefix of every namespace this module creates: ``<prefix><pid>-<tok>[-host]``.
@@ -936,6 +939,64 @@ class Testbed:
     async def acounters(self) -> dict[str, LinkCounters]:
         """:meth:`counters` off the event loop (it runs a few short commands per host)."""
         return await asyncio.to_thread(self.counters)
+
+
+# --------------------------------------------------------------------------
+# Running code of *this* process inside a host's namespace
+# --------------------------------------------------------------------------
+
+#: ``CLONE_NEWNET`` from <sched.h>: the namespace type argument of setns(2).
+CLONE_NEWNET = 0x40000000
+
+
+def _setns(fd: int, what: str) -> None:
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.setns(fd, CLONE_NEWNET) != 0:
+        err = ctypes.get_errno()
+        raise LinkEmulationError(f"setns into {what} failed: {os.strerror(err)}")
+
+
+@contextlib.contextmanager
+def enter_netns(name: str) -> Iterator[None]:
+    """Move the **calling thread** into network namespace ``name`` (as listed
+    by ``ip netns``, e.g. ``testbed["feeder"].netns``) and back on exit.
+
+    Why: a benchmark's task feeder runs in the benchmark process itself
+    (:meth:`coapkb.team.Team.run`), yet its traffic must cross an emulated
+    link like every other host's.  A socket belongs to the namespace of the
+    thread that *creates* it, for its whole life, so code that opens its
+    sockets inside this block talks from ``name`` even while an event loop
+    interleaves it with other work; sockets created before stay where they
+    were.  Threads started inside the block (a ZeroMQ context's I/O threads,
+    executor threads) inherit ``name`` and keep it after the block ends.
+
+    The original namespace is the calling thread's own
+    (``/proc/thread-self/ns/net``, not ``/proc/self``, which is the main
+    thread's), kept open as a file descriptor so the way back works even if
+    ``name`` is deleted meanwhile.  Needs ``CAP_SYS_ADMIN``; failures raise
+    :class:`LinkEmulationError`.
+    """
+    if "/" in name or not name:
+        raise ValueError(f"not a namespace name: {name!r}")
+    try:
+        original = os.open("/proc/thread-self/ns/net", os.O_RDONLY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise LinkEmulationError(f"cannot open this thread's network namespace: {exc.strerror}") from None
+    try:
+        try:
+            target = os.open(f"/run/netns/{name}", os.O_RDONLY | os.O_CLOEXEC)
+        except OSError as exc:
+            raise LinkEmulationError(f"no network namespace {name!r}: {exc.strerror}") from None
+        try:
+            _setns(target, f"namespace {name!r}")
+        finally:
+            os.close(target)
+        try:
+            yield
+        finally:
+            _setns(original, "the original namespace")
+    finally:
+        os.close(original)
 
 
 # --------------------------------------------------------------------------

@@ -1,0 +1,560 @@
+"""Benchmark runs: one system, one team, one emulated link setting, one CSV row.
+
+This reproduces the seed paper's experiment (section IV: 3/6/9 robots,
+5..80 tasks, 35..512 kbit/s, 2..20 % loss, distributed vs centralised,
+bytes exchanged and task completion time) on real processes and kernel
+links, and adds the comparison the seed could not make: CoAP/UDP with
+compact CBOR answers against the seed's own ZeroMQ/TCP with SPARQL text and
+SPARQL-JSON answers.
+
+Every process of a run lives in its own network namespace of a
+:class:`coapkb.linkemu.Testbed`: each robot (``Robot1`` ..), the central
+server (``central``, centralised systems only) and the task feeder
+(``feeder``).  Robots and the central server get the run's
+``LinkSpec(rate_kbit=B, loss_pct=L)``; the feeder stands for the seed's
+external task source and gets an unshaped, lossless link.  The feeder itself
+is :meth:`coapkb.team.Team.run`, which runs in this process; it is moved into
+its namespace with :func:`coapkb.linkemu.enter_netns` for the duration of the
+run, so its sockets are created there.
+
+What a row measures (see ``docs/benchmarks.md``):
+
+``wire_bytes`` / ``wire_packets``
+    Sum over every host (robots, central, feeder) of what its ``eth0`` put on
+    its link between "team up" and "all tasks done": Ethernet frames with
+    IP/UDP/TCP headers, TCP handshakes, ACKs and retransmissions, CoAP
+    retransmissions and the packets the loss rule then dropped.  The
+    benchmark's own statistics download at the end is excluded (the counters
+    are read just before it).
+``app_bytes``
+    What the robots' and the feeder's transports counted as sent (CoAP
+    datagram payloads, ZMTP frames).  The central server keeps no counters,
+    so its replies are missing here; ``app_bytes`` is for seeing the header
+    and retransmission overhead within one row, not for comparing systems.
+``retransmissions``
+    CoAP: retransmitted confirmable messages (robots' clients, robots'
+    servers' confirmable notifications, the feeder's client).  ZeroMQ: the
+    kernel's ``TcpRetransSegs`` summed over every host's namespace.
+``coordination_s`` / ``completion_s``
+    From :meth:`Team.run`: feeding the first task until every cluster decided
+    its last one / until every robot also finished executing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import csv
+import datetime as _dt
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from .linkemu import LinkCounters, LinkEmulationError, LinkSpec, Testbed, available, cleanup_stale, enter_netns
+from .team import CLUSTER_SIZE, DEFAULT_ONTOLOGIES, Placement, Team, TeamError, TeamSpec, draw_tasks
+from .transport.base import ClientTransport, Endpoint, TransportError
+
+__all__ = [
+    "SYSTEMS",
+    "COLUMNS",
+    "KEY_COLUMNS",
+    "SystemDef",
+    "Timeouts",
+    "NetnsPlacement",
+    "system_spec",
+    "timeouts_for",
+    "retransmission_label",
+    "run_once",
+    "row_key",
+    "read_rows",
+    "append_rows",
+    "done_keys",
+    "format_row",
+]
+
+#: Fixed ports: every host has its own namespace, so all can use the usual one.
+PORTS = {"coap": 5683, "zmq": 5555}
+FEEDER = "feeder"
+CENTRAL = "central"
+
+
+@dataclass(frozen=True)
+class SystemDef:
+    """One system under test: how the team is organised and what goes on the wire."""
+
+    mode: str  # "distributed" or "central"
+    transport: str  # "coap" or "zmq"
+    query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
+    description: str
+
+
+SYSTEMS: dict[str, SystemDef] = {
+    "coap-distributed": SystemDef("distributed", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, KB split over the robots"),
+    "coap-central": SystemDef("central", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, one remote KB server"),
+    "zmq-distributed": SystemDef("distributed", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, KB split over the robots"),
+    "zmq-central": SystemDef("central", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, one remote KB server"),
+    "seed-distributed": SystemDef("distributed", "zmq", "seed", "the seed's set-up: ZeroMQ/TCP, whole SPARQL text, SPARQL-JSON answers"),
+    "seed-central": SystemDef("central", "zmq", "seed", "the seed's centralised baseline: ZeroMQ/TCP, SPARQL text, SPARQL-JSON"),
+}
+
+#: The CSV schema, in column order.  The first block is the brief's minimum.
+COLUMNS: tuple[str, ...] = (
+    "system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep", "retransmission_profile",
+    "ok", "coordination_s", "completion_s", "wire_bytes", "wire_packets", "retransmissions",
+    "query_p50_ms", "query_p99_ms",
+    "mode", "transport", "query_wire", "seed", "emulation",
+    "app_bytes", "feeder_wire_bytes", "dropped_packets", "queue_drops",
+    "remote_queries", "local_queries", "failed_queries", "spurious_retransmissions",
+    "tasks_agreed", "query_timeout_s", "task_timeout_s", "wall_s", "started_at", "error",
+)
+
+#: A run's identity: rows with equal keys are repetitions of nothing, they are the same run.
+KEY_COLUMNS: tuple[str, ...] = (
+    "system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep", "retransmission_profile",
+)
+
+#: How columns are typed when a CSV is read back (everything else stays text).
+_INT_COLUMNS = {
+    "robots", "tasks", "rep", "seed", "wire_bytes", "wire_packets", "retransmissions", "app_bytes",
+    "feeder_wire_bytes", "dropped_packets", "queue_drops", "remote_queries", "local_queries",
+    "failed_queries", "spurious_retransmissions", "tasks_agreed",
+}
+_FLOAT_COLUMNS = {
+    "bandwidth_kbps", "loss_pct", "coordination_s", "completion_s", "query_p50_ms", "query_p99_ms",
+    "query_timeout_s", "task_timeout_s", "wall_s",
+}
+
+
+# --------------------------------------------------------------------------- systems and timeouts
+
+
+@dataclass(frozen=True)
+class Timeouts:
+    """Time limits of one run, scaled to its link so a slow lossy run still ends."""
+
+    query_s: float  # one remote query, retransmissions included
+    task_s: float  # one task's coordination (TeamSpec.task_timeout_s)
+    run_s: float  # the whole run, a hard stop on top of the team's own limits
+
+
+def timeouts_for(bandwidth_kbps: float, loss_pct: float, tasks_per_cluster: int) -> Timeouts:
+    """Limits that only bind when something is wrong.
+
+    Why these numbers: a remote query moves a few hundred bytes; at 35 kbit/s
+    a 1 KB answer needs 0.25 s on each of two links, and a queue of nine
+    robots' traffic at the central server can add seconds.  Each loss costs a
+    retransmission timeout (CoAP: 0.5 s and up, backing off by 3x/2x; TCP:
+    200 ms and up, doubling), and at 20 % loss three losses in a row on one
+    exchange happen about once per 40 exchanges.  So the query limit grows
+    with the serialisation time (``512/B``) and with the loss; the task limit
+    covers the four queries of a task plus waiting for the teammates'
+    decisions; the run limit covers every task of a cluster at a generous
+    per-task pace.
+    """
+    slow = math.sqrt(512.0 / bandwidth_kbps)  # 1 at 512 kbit/s, 3.8 at 35 kbit/s
+    lossy = 1.0 + loss_pct / 5.0  # 1.4 at 2 %, 5 at 20 %
+    query = min(120.0, max(15.0, 6.0 * slow * lossy))
+    task = 4.0 * query + 30.0
+    run = 120.0 + tasks_per_cluster * (10.0 * slow * lossy + 10.0) + 2 * task
+    return Timeouts(round(query, 1), round(task, 1), round(run, 1))
+
+
+def system_spec(
+    system: str,
+    robots: int,
+    *,
+    retransmission: str = "adaptive",
+    timeouts: Timeouts | None = None,
+    ontologies: Path = DEFAULT_ONTOLOGIES,
+) -> TeamSpec:
+    """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`)."""
+    try:
+        d = SYSTEMS[system]
+    except KeyError:
+        raise ValueError(f"unknown system {system!r} (choose from {', '.join(SYSTEMS)})") from None
+    extra: dict[str, Any] = {}
+    if timeouts is not None:
+        extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
+    return TeamSpec(
+        robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
+        retransmission=retransmission, ontologies=ontologies, **extra,
+    )
+
+
+def retransmission_label(system: str, profile: str) -> str:
+    """What the ``retransmission_profile`` column holds: the CoAP profile, or
+    ``tcp`` for ZeroMQ systems (TCP retransmits by itself; the CoAP profile
+    has no effect there, so it must not split the resume key)."""
+    return profile if SYSTEMS[system].transport == "coap" else "tcp"
+
+
+# --------------------------------------------------------------------------- placement
+
+
+class NetnsPlacement(Placement):
+    """Every process of the team in its own namespace of ``testbed``.
+
+    The testbed's host names are the team's process names (``Robot1`` ..,
+    ``central``); each binds its namespace address at the transport's usual
+    port and is started with ``ip netns exec``."""
+
+    def __init__(self, testbed: Testbed) -> None:
+        self.testbed = testbed
+
+    def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
+        return Endpoint(spec.transport, self.testbed.address(name), PORTS[spec.transport])
+
+    def command(self, name: str, argv: list[str]) -> list[str]:
+        return self.testbed.exec_args(name, argv)
+
+
+class _MeteredTeam(Team):
+    """A :class:`Team` that reads the link counters when the run is over but
+    before the feeder downloads the robots' statistics, so that download (a
+    few KB of latency lists at 80 tasks) is not charged to the system."""
+
+    snapshot: Any = None  # async () -> dict, set by run_once
+    end_reading: dict[str, Any] | None = None
+
+    async def _collect_stats(self, client: ClientTransport) -> dict[str, Any]:
+        if self.snapshot is not None:
+            self.end_reading = await self.snapshot()
+        return await super()._collect_stats(client)
+
+
+# --------------------------------------------------------------------------- one run
+
+
+async def _tcp_retrans_segs(testbed: Testbed, hosts: Iterable[str]) -> dict[str, int]:
+    """``Tcp: RetransSegs`` of each host's namespace (``/proc/net/snmp`` read inside it)."""
+
+    async def one(host: str) -> tuple[str, int]:
+        proc = await asyncio.create_subprocess_exec(
+            *testbed.exec_args(host, ["cat", "/proc/net/snmp"]),
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
+        )
+        out, _ = await proc.communicate()
+        return host, parse_retrans_segs(out.decode())
+
+    return dict(await asyncio.gather(*(one(h) for h in hosts)))
+
+
+def parse_retrans_segs(snmp: str) -> int:
+    """``RetransSegs`` from the text of ``/proc/net/snmp`` (0 when absent)."""
+    tcp = [line.split()[1:] for line in snmp.splitlines() if line.startswith("Tcp:")]
+    if len(tcp) < 2:
+        return 0
+    values = dict(zip(tcp[0], tcp[1]))
+    return int(values.get("RetransSegs", 0))
+
+
+def _percentile(values: Sequence[float], q: float) -> float | None:
+    """Linear-interpolated percentile (numpy's default), or None for no values."""
+    if not values:
+        return None
+    ordered = sorted(values)
+    pos = (len(ordered) - 1) * q / 100.0
+    lo, hi = math.floor(pos), math.ceil(pos)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
+
+
+def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
+              retransmission: str, seed: int) -> dict[str, Any]:
+    d = SYSTEMS[system]
+    row: dict[str, Any] = {c: "" for c in COLUMNS}
+    row.update(
+        system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
+        retransmission_profile=retransmission_label(system, retransmission), ok=False,
+        mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
+        started_at=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    )
+    return row
+
+
+def _sum_counters(readings: Mapping[str, LinkCounters]) -> LinkCounters:
+    total = LinkCounters()
+    for c in readings.values():
+        total = LinkCounters(*(a + b for a, b in zip(vars(total).values(), vars(c).values())))
+    return total
+
+
+def _fill_from_record(row: dict[str, Any], record: dict[str, Any], tasks: int) -> None:
+    """Everything the team's own record tells: times, queries, app bytes, CoAP retransmissions."""
+    stats: dict[str, Any] = record["robot_stats"]
+    feeder: dict[str, int] = record["feeder_traffic"]
+    latencies = [x for s in stats.values() for x in s.get("remote_latencies_s") or ()]
+    row["coordination_s"] = record["coordination_s"]
+    row["completion_s"] = record["completion_s"]
+    p50, p99 = _percentile(latencies, 50), _percentile(latencies, 99)
+    row["query_p50_ms"] = "" if p50 is None else round(p50 * 1000, 2)
+    row["query_p99_ms"] = "" if p99 is None else round(p99 * 1000, 2)
+    row["remote_queries"] = sum(s["queries"]["remote"] for s in stats.values())
+    row["local_queries"] = sum(s["queries"]["local"] for s in stats.values())
+    row["failed_queries"] = sum(s["queries"]["failed"] for s in stats.values())
+    row["app_bytes"] = feeder["bytes_sent"] + sum(
+        s["client"]["bytes_sent"] + (s["server"] or {}).get("bytes_sent", 0) for s in stats.values()
+    )
+    row["coap_retransmissions"] = feeder.get("retransmissions", 0) + sum(
+        s["client"].get("retransmissions", 0) + (s["server"] or {}).get("retransmissions", 0)
+        for s in stats.values()
+    )
+    spurious = 0
+    for s in stats.values():
+        peers = ((s.get("retransmission") or {}).get("peers") or {}).values()
+        spurious += sum(p.get("spurious_retransmissions", 0) for p in peers)
+    row["spurious_retransmissions"] = spurious
+    done = record["tasks"]
+    row["tasks_agreed"] = sum(1 for t in done if t["agreed"] and not t["errors"])
+    problems = [f"task {t['cluster']}.{t['seq']} {t['object']}: {t['errors'] or t['decisions']}"
+                for t in done if not t["agreed"] or t["errors"]]
+    if len(done) != tasks:
+        problems.insert(0, f"{len(done)} of {tasks} tasks recorded")
+    row["ok"] = not problems
+    if problems:
+        row["error"] = "; ".join(problems)[:500]
+
+
+async def run_once(
+    system: str,
+    robots: int,
+    tasks: int,
+    bandwidth_kbps: float,
+    loss_pct: float,
+    rep: int = 0,
+    retransmission: str = "adaptive",
+    seed: int | None = None,
+    *,
+    ontologies: Path = DEFAULT_ONTOLOGIES,
+    timeouts: Timeouts | None = None,
+) -> dict[str, Any]:
+    """Run ``system`` once and return its CSV row (keys: :data:`COLUMNS`).
+
+    The task list is ``draw_tasks(tasks, seed=seed)`` with ``seed`` defaulting
+    to ``1 + rep``, so every system of a repetition does the same tasks.
+    Never raises for a failed run: a timeout, a crash or an emulator failure
+    gives ``ok=False`` and the reason in ``error``, so a sweep goes on.
+    """
+    seed = 1 + rep if seed is None else seed
+    row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed)
+    started = time.monotonic()
+    try:
+        link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct)
+        limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
+        spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies)
+        task_list = draw_tasks(tasks, ontologies, seed=seed)
+    except (ValueError, TeamError) as exc:
+        row["error"] = f"bad configuration: {exc}"
+        return row
+    row["query_timeout_s"], row["task_timeout_s"] = limits.query_s, limits.task_s
+    hosts = [*spec.robot_ids, *([CENTRAL] if spec.mode == "central" else []), FEEDER]
+    links = {h: link for h in hosts}
+    links[FEEDER] = LinkSpec()  # the external task source: unshaped, lossless
+    try:
+        async with asyncio.timeout(limits.run_s):
+            async with Testbed(hosts, links) as testbed:
+                row.update(await _measure(testbed, spec, task_list, hosts, tasks))
+    except TimeoutError:
+        row["error"] = f"run did not finish within {limits.run_s:g} s"
+    except (TeamError, TransportError, LinkEmulationError, OSError) as exc:
+        row["error"] = f"{type(exc).__name__}: {exc}"[:500]
+    except Exception as exc:  # noqa: BLE001 -- a sweep must survive any one run's failure
+        row["error"] = f"unexpected {type(exc).__name__}: {exc}"[:500]
+    row["wall_s"] = round(time.monotonic() - started, 2)
+    return row
+
+
+async def _measure(
+    testbed: Testbed, spec: TeamSpec, task_list: list[str], hosts: list[str], tasks: int
+) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    tcp = spec.transport == "zmq"
+
+    async def reading() -> dict[str, Any]:
+        counters = await testbed.acounters()
+        retrans = await _tcp_retrans_segs(testbed, hosts) if tcp else {}
+        return {"counters": counters, "tcp": retrans}
+
+    async with _MeteredTeam.launch(spec, NetnsPlacement(testbed)) as team:
+        assert isinstance(team, _MeteredTeam)
+        team.snapshot = reading
+        before = await reading()
+        # The feeder's client transport is opened inside Team.run, so its
+        # sockets (and a ZeroMQ context's I/O threads) belong to the feeder's
+        # namespace; the robots' addresses are reachable only from there.
+        with enter_netns(testbed[FEEDER].netns):
+            record = await team.run(task_list)
+        after = team.end_reading or await reading()
+    delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
+    total = _sum_counters(delta)
+    out["wire_bytes"] = total.tx_bytes
+    out["wire_packets"] = total.tx_packets
+    out["dropped_packets"] = total.dropped
+    out["queue_drops"] = total.queue_drops
+    out["feeder_wire_bytes"] = delta[FEEDER].tx_bytes
+    _fill_from_record(out, record, tasks)
+    coap_retx = out.pop("coap_retransmissions")
+    if tcp:
+        out["retransmissions"] = sum(after["tcp"][h] - before["tcp"][h] for h in hosts)
+    else:
+        out["retransmissions"] = coap_retx
+    return out
+
+
+# --------------------------------------------------------------------------- CSV
+
+
+def row_key(row: Mapping[str, Any]) -> tuple[str, ...]:
+    """The resume key of a row (read back from CSV or fresh), normalised to text
+    so ``35`` and ``35.0`` are the same bandwidth."""
+
+    def norm(v: Any) -> str:
+        if isinstance(v, float) and v.is_integer():
+            return str(int(v))
+        text = str(v)
+        with contextlib.suppress(ValueError):
+            f = float(text)
+            if f.is_integer() and "." in text:
+                return str(int(f))
+        return text
+
+    return tuple(norm(row[c]) for c in KEY_COLUMNS)
+
+
+def _typed(row: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = dict(row)
+    for k, v in row.items():
+        if v is None or v == "":
+            out[k] = None if k not in ("error", "started_at") else (v or "")
+        elif k in _INT_COLUMNS:
+            out[k] = int(float(v))
+        elif k in _FLOAT_COLUMNS:
+            out[k] = float(v)
+        elif k == "ok":
+            out[k] = v.strip().lower() in ("true", "1", "yes")
+    return out
+
+
+def read_rows(path: str | Path, *, latest_only: bool = True) -> list[dict[str, Any]]:
+    """Typed rows of a results CSV ([] if it does not exist).  With
+    ``latest_only``, a key that was re-run (``--retry-failed``) keeps its last row."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    with path.open(newline="", encoding="utf-8") as f:
+        rows = [_typed(r) for r in csv.DictReader(f)]
+    if not latest_only:
+        return rows
+    by_key: dict[tuple[str, ...], dict[str, Any]] = {}
+    for r in rows:
+        by_key[row_key(r)] = r
+    return list(by_key.values())
+
+
+def done_keys(path: str | Path, *, include_failed: bool = True) -> set[tuple[str, ...]]:
+    """Keys of the runs already in the CSV (failed ones only if ``include_failed``)."""
+    return {row_key(r) for r in read_rows(path) if include_failed or r.get("ok")}
+
+
+def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
+    """Append rows; write the header first if the file is new or empty.  An
+    existing file keeps its own header (columns it lacks are dropped)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header: list[str] = list(COLUMNS)
+    new = not path.exists() or path.stat().st_size == 0
+    if not new:
+        with path.open(newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), list(COLUMNS))
+    with path.open("a", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
+        if new:
+            writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+
+
+def format_row(row: Mapping[str, Any]) -> str:
+    """One line of key numbers for a terminal."""
+    head = (f"{row['system']:<17} {row['robots']}r {row['tasks']:>2}t {row['bandwidth_kbps']:g}k "
+            f"{row['loss_pct']:g}% rep{row['rep']}")
+    if not row.get("ok"):
+        return f"{head}: FAILED after {row.get('wall_s') or 0:.0f} s: {row.get('error') or 'unknown'}"
+
+    def ms(v: Any) -> str:
+        return "-" if v in (None, "") else f"{float(v):.0f}"
+
+    return (f"{head}: completion {float(row['completion_s']):.1f} s, wire {int(row['wire_bytes']):,} B "
+            f"in {int(row['wire_packets']):,} pkts, retx {row['retransmissions']}, "
+            f"query p50/p99 {ms(row['query_p50_ms'])}/{ms(row['query_p99_ms'])} ms")
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``coapkb bench`` options (also used by ``experiments/sweep.py``)."""
+    p.add_argument("--robots", type=int, required=True, help="team size, a multiple of 3")
+    p.add_argument("--tasks", type=int, required=True, help="number of picking tasks")
+    p.add_argument("--bandwidth", type=float, required=True, metavar="KBPS", help="link rate, kbit/s")
+    p.add_argument("--loss", type=float, required=True, metavar="PCT", help="packet loss, percent")
+    p.add_argument("--systems", default="coap-distributed,coap-central,zmq-distributed,zmq-central",
+                   help=f"comma-separated, from: {', '.join(SYSTEMS)}")
+    p.add_argument("--reps", type=int, default=1, help="repetitions (rep numbers first-rep .. first-rep+reps-1)")
+    p.add_argument("--first-rep", type=int, default=0, help="number of the first repetition")
+    p.add_argument("--retransmission", default="adaptive", metavar="PROFILE",
+                   help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive")
+    p.add_argument("--seed", type=int, default=None, help="task-list seed (default: 1 + rep)")
+    p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
+    p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
+
+
+def parse_systems(text: str) -> list[str]:
+    systems = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = [s for s in systems if s not in SYSTEMS]
+    if unknown or not systems:
+        raise ValueError(f"unknown system(s) {', '.join(unknown) or '(none given)'}; choose from {', '.join(SYSTEMS)}")
+    return systems
+
+
+async def main(args: argparse.Namespace) -> int:
+    """``coapkb bench``: exit 0 if every run was ok, 1 if one failed, 2 if none could start."""
+    from .rto import PROFILES
+
+    systems = parse_systems(args.systems)
+    if args.robots < CLUSTER_SIZE or args.robots % CLUSTER_SIZE:
+        raise ValueError(f"--robots must be a multiple of {CLUSTER_SIZE}, got {args.robots}")
+    if args.tasks < 1 or args.reps < 1:
+        raise ValueError("--tasks and --reps must be at least 1")
+    if args.retransmission not in PROFILES:
+        raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
+    LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss)  # validates, raises ValueError
+    ok, why = available()
+    if not ok:
+        print(f"coapkb bench: no kernel link emulation here: {why}", file=sys.stderr)
+        return 2
+    cleanup_stale()
+    failed = 0
+    for rep in range(args.first_rep, args.first_rep + args.reps):
+        for system in systems:
+            row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
+                                 args.retransmission, args.seed)
+            if args.out:
+                append_rows(args.out, [row])
+            if args.json:
+                print(json.dumps(row), flush=True)
+            else:
+                print(format_row(row), flush=True)
+            failed += not row["ok"]
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":  # pragma: no cover - `coapkb bench` is the entry point
+    parser = argparse.ArgumentParser(prog="python -m coapkb.bench")
+    add_arguments(parser)
+    sys.exit(asyncio.run(main(parser.parse_args())))
