@@ -44,7 +44,7 @@ async def _serve(args: argparse.Namespace) -> int:
     from .kb_resources import KBResources, QueryLimits
     from .knowledge_base import KBError, KnowledgeBase
     from .router import Router
-    from .transport import Endpoint, TransportError, serve
+    from .transport import TransportError, serve
 
     endpoint = _endpoint(args.bind, args.transport)
     try:
@@ -294,7 +294,7 @@ def _read_query_text(arg: str | None) -> str | None:
 
 async def _query(args: argparse.Namespace) -> int:
     from .client import KBClient, QueryFailed
-    from .transport import Endpoint, TransportError, open_client
+    from .transport import TransportError, open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
     peer = _endpoint(f"{parts.scheme}://{parts.netloc}", parts.scheme)

@@ -31,7 +31,7 @@ from coapkb.messages import ContentFormat, Method, Request
 from coapkb.named_queries import NAMED_QUERIES
 from coapkb.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
 from coapkb.transport import open_client
-from coapkb.warehouse import Position, layout_from_row, travel_distance
+from coapkb.warehouse import layout_from_row, travel_distance
 
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"

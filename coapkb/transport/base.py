@@ -10,10 +10,32 @@ implement both; the agent, CLI and benchmarks only see these protocols.
 from __future__ import annotations
 
 import abc
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass
 from typing import AsyncIterator, Callable, Protocol
 
 from ..messages import Request, Response
+
+
+class RateLimiter:
+    """At most one event per ``interval_s``; counts the ones it swallowed.
+
+    Servers log malformed input through this, so a peer spraying garbage
+    cannot flood the log (or the disk)."""
+
+    def __init__(self, interval_s: float = 10.0) -> None:
+        self.interval_s = interval_s
+        self._last = -float("inf")
+        self._suppressed = 0
+
+    def allow(self) -> int | None:
+        """None if the event must be dropped; else how many were dropped since the last one."""
+        now = time.monotonic()
+        if now - self._last < self.interval_s:
+            self._suppressed += 1
+            return None
+        self._last, suppressed, self._suppressed = now, self._suppressed, 0
+        return suppressed
 
 
 class TransportError(Exception):

@@ -22,7 +22,6 @@ import hashlib
 import ipaddress
 import logging
 import socket
-import time
 from collections import OrderedDict
 from typing import Any, AsyncIterator, Callable
 
@@ -41,6 +40,7 @@ from ..rto import TransmissionProfile
 from .base import (
     Endpoint,
     PeerUnreachable,
+    RateLimiter,
     ResourceInfo,
     Service,
     TrafficCounters,
@@ -74,27 +74,23 @@ def code_to_status(code: Code) -> Status:
 
 
 class _RateLimitFilter(logging.Filter):
-    """Let one warning per interval through, so a stream of garbage datagrams
-    (each logged by aiocoap) cannot flood the log; counts what it suppressed."""
+    """One :class:`RateLimiter` per message template, so a stream of garbage
+    datagrams (each logged by aiocoap) cannot flood the log.  Errors pass."""
 
     def __init__(self, interval_s: float = 10.0) -> None:
         super().__init__()
         self.interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self.suppressed = 0
+        self._limiters: dict[str, RateLimiter] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
         if record.levelno >= logging.ERROR:
             return True
-        now = time.monotonic()
         key = str(record.msg)
-        if now - self._last.get(key, -1e9) < self.interval_s:
-            self.suppressed += 1
+        suppressed = self._limiters.setdefault(key, RateLimiter(self.interval_s)).allow()
+        if suppressed is None:
             return False
-        self._last[key] = now
-        if self.suppressed:
-            record.msg = f"{record.msg} (and {self.suppressed} similar messages suppressed)"
-            self.suppressed = 0
+        if suppressed:
+            record.msg = f"{record.msg} (and {suppressed} similar messages suppressed)"
         return True
 
 

@@ -65,7 +65,6 @@ import errno
 import itertools
 import logging
 import os
-import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
@@ -74,7 +73,7 @@ import zmq
 import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
-from .base import Endpoint, PeerUnreachable, Service, TrafficCounters, TransportError
+from .base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
 from .zmq_wire import (
     MAX_TOKEN,
     Observe,
@@ -150,26 +149,20 @@ class ZmqOptions:
 
 
 class _RateLimitedLog:
-    """Warn at most once per interval and say how many warnings were swallowed,
-    so a peer spraying garbage cannot flood the log (or the disk)."""
+    """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
 
     def __init__(self, logger: logging.Logger, interval: float) -> None:
         self._logger = logger
-        self._interval = interval
-        self._last = -float("inf")
-        self._suppressed = 0
+        self._limiter = RateLimiter(interval)
 
     def warning(self, msg: str, *args: object) -> None:
-        now = time.monotonic()
-        if now - self._last < self._interval:
-            self._suppressed += 1
+        suppressed = self._limiter.allow()
+        if suppressed is None:
             return
-        if self._suppressed:
+        if suppressed:
             msg += " (%d similar warnings suppressed)"
-            args = (*args, self._suppressed)
+            args = (*args, suppressed)
         self._logger.warning(msg, *args)
-        self._last = now
-        self._suppressed = 0
 
 
 def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None:
