@@ -29,7 +29,7 @@ from typing import Any, AsyncIterator, Callable, Sequence
 import cbor2
 
 from .agent.query_handler import QUERY_WIRES
-from .agent.robot_state import RobotState
+from .agent.team_view import STATE_PATH, ObservedStates, States
 from .agent.task_assigner import robot_sort_key
 from .config import KB_MODULES, STRATEGIES
 from .knowledge_base import KnowledgeBase
@@ -37,7 +37,7 @@ from .messages import ContentFormat, Method, Request
 from .named_queries import NAMED_QUERIES
 from .rto import PROFILES
 from .transport import open_client
-from .transport.base import ClientTransport, Endpoint, TransportError
+from .transport.base import ClientTransport, Endpoint
 
 log = logging.getLogger(__name__)
 
@@ -313,7 +313,7 @@ class Team:
         """Feed the tasks, wait for every robot to finish executing, return the record."""
         spec = self.spec
         client = await open_client(spec.transport, retransmission=spec.retransmission)
-        watcher = _StateWatcher(client, self.endpoints)
+        watcher = ObservedStates(client, self.endpoints, STATE_PATH)
         watcher.start()
         started = time.monotonic()
         records: list[TaskRecord] = []
@@ -326,8 +326,13 @@ class Team:
                 )
             )
             coordination_s = time.monotonic() - started
-            await watcher.wait(lambda s: all(st.live.activity == "idle" and st.live.queued == 0 for st in s.values())
-                               and len(s) == len(self.endpoints), timeout=spec.task_timeout_s * 4)
+            await _wait_for(
+                watcher,
+                lambda s: len(s) == len(self.endpoints)
+                and all(st.live.activity == "idle" and st.live.queued == 0 for st in s.values()),
+                spec.task_timeout_s * 4,
+                "every robot to finish executing",
+            )
             completion_s = time.monotonic() - started
             for share_records in per_cluster:
                 records.extend(share_records)
@@ -341,7 +346,7 @@ class Team:
     async def _feed_cluster(
         self,
         client: ClientTransport,
-        watcher: "_StateWatcher",
+        watcher: ObservedStates,
         index: int,
         cluster: list[str],
         share: list[str],
@@ -359,10 +364,11 @@ class Team:
             for robot_id, response in zip(cluster, responses):
                 if isinstance(response, BaseException) or not response.status.is_success:
                     raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
-            states = await watcher.wait(
+            states = await _wait_for(
+                watcher,
                 lambda s: all(r in s and s[r].last is not None and s[r].last.seq >= seq for r in cluster),
-                timeout=self.spec.task_timeout_s,
-                what=f"decisions on task {seq} ({name}) from {', '.join(cluster)}",
+                self.spec.task_timeout_s,
+                f"decisions on task {seq} ({name}) from {', '.join(cluster)}",
             )
             record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
             for robot_id in cluster:
@@ -433,48 +439,13 @@ class Team:
         }
 
 
-class _StateWatcher:
-    """The feeder's view of every robot's ``/robot/state``, by Observe."""
-
-    def __init__(self, client: ClientTransport, endpoints: dict[str, Endpoint]) -> None:
-        self._client = client
-        self._endpoints = endpoints
-        self.states: dict[str, RobotState] = {}
-        self._changed = asyncio.Condition()
-        self._tasks: list[asyncio.Task] = []
-
-    def start(self) -> None:
-        self._tasks = [asyncio.create_task(self._observe(r, e)) for r, e in self._endpoints.items()]
-
-    async def aclose(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
-
-    async def _observe(self, robot_id: str, endpoint: Endpoint) -> None:
-        request = Request(Method.GET, "/robot/state", accept=ContentFormat.CBOR)
-        while True:
-            try:
-                async for response in self._client.observe(endpoint, request):
-                    if response.status.is_success:
-                        state = RobotState.decode(response.payload)
-                        async with self._changed:
-                            self.states[robot_id] = state
-                            self._changed.notify_all()
-            except (TransportError, ValueError) as exc:
-                log.debug("observing %s: %s", robot_id, exc)
-            await asyncio.sleep(0.2)  # re-register after the observation ended
-
-    async def wait(
-        self, predicate: Callable[[dict[str, RobotState]], bool], timeout: float, what: str = "the team"
-    ) -> dict[str, RobotState]:
-        try:
-            async with asyncio.timeout(timeout):
-                async with self._changed:
-                    await self._changed.wait_for(lambda: predicate(self.states))
-        except TimeoutError:
-            raise TeamError(f"timed out after {timeout:g}s waiting for {what}") from None
-        return dict(self.states)
+async def _wait_for(
+    watcher: ObservedStates, predicate: Callable[[States], bool], timeout: float, what: str
+) -> States:
+    try:
+        return await watcher.wait(predicate, timeout)
+    except TimeoutError:
+        raise TeamError(f"timed out after {timeout:g}s waiting for {what}") from None
 
 
 async def _drain(stream: asyncio.StreamReader, tail: list[str], keep: int = 20) -> None:

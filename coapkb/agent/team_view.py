@@ -1,11 +1,11 @@
-"""What this robot knows of its teammates' planned states: pushed to it by
-Observe (RFC 7641) on each teammate's ``/robot/plan``, never polled."""
+"""What a robot (or the task feeder) knows of the team's states: pushed by
+Observe (RFC 7641) on each robot's state resource, never polled."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Mapping
+from typing import Callable, Mapping
 
 from ..messages import ContentFormat, Method, Request
 from ..transport.base import ClientTransport, Endpoint, TransportError
@@ -13,32 +13,31 @@ from .robot_state import PlannedState, RobotState
 
 log = logging.getLogger(__name__)
 
+#: Full state: live progress and the last decision (the feeder, people).
 STATE_PATH = "/robot/state"
+#: Planned state only: all a teammate needs to assign tasks.
 PLAN_PATH = "/robot/plan"
 
+States = dict[str, RobotState]
 
-class TeamView:
-    def __init__(self, own: RobotState, teammates: Mapping[str, Endpoint], transport: ClientTransport) -> None:
-        self._own = own
-        self._peers = dict(teammates)
+
+class ObservedStates:
+    """The latest state of each robot in ``endpoints``, one observation each,
+    re-registered whenever it ends (robot not up yet, restarted, or lost)."""
+
+    def __init__(self, transport: ClientTransport, endpoints: Mapping[str, Endpoint], path: str) -> None:
         self._transport = transport
-        self._states: dict[str, RobotState] = {}
+        self._endpoints = dict(endpoints)
+        self._request = Request(Method.GET, path, accept=ContentFormat.CBOR)
+        self.states: States = {}
         self._changed = asyncio.Condition()
         self._watchers: list[asyncio.Task] = []
 
-    @property
-    def own(self) -> RobotState:
-        return self._own
-
-    def set_own(self, state: RobotState) -> None:
-        self._own = state
-
-    def states(self) -> dict[str, RobotState]:
-        return {**self._states, self._own.robot_id: self._own}
-
     def start(self) -> None:
-        for robot_id, endpoint in self._peers.items():
-            self._watchers.append(asyncio.create_task(self._watch(robot_id, endpoint), name=f"observe-{robot_id}"))
+        self._watchers = [
+            asyncio.create_task(self._watch(robot_id, endpoint), name=f"observe-{robot_id}")
+            for robot_id, endpoint in self._endpoints.items()
+        ]
 
     async def aclose(self) -> None:
         for watcher in self._watchers:
@@ -46,14 +45,12 @@ class TeamView:
         await asyncio.gather(*self._watchers, return_exceptions=True)
 
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
-        """Keep one observation of a teammate alive, re-registering after failures."""
-        request = Request(Method.GET, PLAN_PATH, accept=ContentFormat.CBOR)
         backoff = 0.2
         while True:
             try:
-                async for response in self._transport.observe(endpoint, request):
+                async for response in self._transport.observe(endpoint, self._request):
                     if not response.status.is_success:
-                        log.warning("%s answered %s on %s", robot_id, response.status.dotted, PLAN_PATH)
+                        log.warning("%s answered %s on %s", robot_id, response.status.dotted, self._request.path)
                         break
                     try:
                         state = RobotState.decode(response.payload)
@@ -62,7 +59,7 @@ class TeamView:
                         continue
                     backoff = 0.2
                     async with self._changed:
-                        self._states[robot_id] = state
+                        self.states[robot_id] = state
                         self._changed.notify_all()
             except TransportError as exc:
                 log.debug("observing %s: %s", robot_id, exc)
@@ -70,29 +67,51 @@ class TeamView:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)
 
+    async def wait(self, predicate: Callable[[States], bool], timeout: float) -> States:
+        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s."""
+        async with asyncio.timeout(timeout):
+            async with self._changed:
+                await self._changed.wait_for(lambda: predicate(self.states))
+        return dict(self.states)
+
+
+class TeamView:
+    """This robot's own state plus its teammates' planned states."""
+
+    def __init__(self, own: RobotState, teammates: Mapping[str, Endpoint], transport: ClientTransport) -> None:
+        self._own = own
+        self._teammates = ObservedStates(transport, teammates, PLAN_PATH)
+        self._peers = set(teammates)
+
+    @property
+    def own(self) -> RobotState:
+        return self._own
+
+    def set_own(self, state: RobotState) -> None:
+        self._own = state
+
+    def start(self) -> None:
+        self._teammates.start()
+
+    async def aclose(self) -> None:
+        await self._teammates.aclose()
+
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
         """Every team member's planned state right after task ``seq``; waits for
         teammates that have not decided it yet, for at most ``timeout`` seconds."""
 
-        def ready() -> bool:
-            return all(s.plan_at(seq) is not None for s in self._states.values()) and set(self._states) >= set(
-                self._peers
-            )
+        def ready(states: States) -> bool:
+            return set(states) >= self._peers and all(s.plan_at(seq) is not None for s in states.values())
 
         try:
-            async with asyncio.timeout(timeout):
-                async with self._changed:
-                    await self._changed.wait_for(ready)
+            states = await self._teammates.wait(ready, timeout)
         except TimeoutError:
-            missing = sorted(
-                r for r in self._peers if r not in self._states or self._states[r].plan_at(seq) is None
-            )
-            raise TransportError(
-                f"no state for task {seq} from {', '.join(missing)} within {timeout:g}s"
-            ) from None
-        plans = {r: s.plan_at(seq) for r, s in self._states.items()}
+            states = self._teammates.states
+            missing = sorted(r for r in self._peers if r not in states or states[r].plan_at(seq) is None)
+            raise TransportError(f"no state for task {seq} from {', '.join(missing)} within {timeout:g}s") from None
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")
+        plans = {robot_id: state.plan_at(seq) for robot_id, state in states.items()}
         plans[self._own.robot_id] = own
         return {r: p for r, p in plans.items() if p is not None}
