@@ -133,7 +133,7 @@ class KBResources:
             )
         if not text.strip():
             return Response.error(Status.BAD_REQUEST, "empty query")
-        return await self.answer(text, request.accept)
+        return await self.answer(text, request.accept, request.etags)
 
     async def named_query(self, request: Request) -> Response:
         name = request.path.rsplit("/", 1)[1]
@@ -144,14 +144,21 @@ class KBResources:
             text = query.render(request.query)
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        return await self.answer(text, request.accept)
+        return await self.answer(text, request.accept, request.etags)
 
-    async def answer(self, text: str, accept: int | None) -> Response:
-        """Run a query within the limits and encode it in the negotiated format."""
+    async def answer(self, text: str, accept: int | None, etags: tuple[bytes, ...] = ()) -> Response:
+        """Run a query within the limits and encode it in the negotiated format.
+
+        The KB is read-only, so an answer's ETag follows from the KB's ETag,
+        the format and the query text: a client that still holds it gets
+        2.03 Valid and the query is not even run."""
         fmt = negotiate(accept)
         if fmt is None:
             return _not_acceptable(accept)
         limits = self.limits
+        etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
+        if etag in etags:
+            return Response(Status.VALID, max_age=limits.max_age_s, etag=etag)
         if self.running >= limits.max_concurrent:
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
@@ -173,7 +180,6 @@ class KBResources:
         except KBError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
         payload = encode_result(result, fmt)
-        etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
         return Response(Status.CONTENT, payload, fmt, max_age=limits.max_age_s, etag=etag)
 
 

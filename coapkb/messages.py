@@ -73,6 +73,9 @@ class Request:
     payload: bytes = b""
     content_format: int | None = None
     accept: int | None = None
+    #: ETags of representations the client holds (RFC 7252 section 5.10.6):
+    #: if one still matches, the answer is 2.03 Valid without a payload.
+    etags: tuple[bytes, ...] = ()
 
 
 @dataclass(frozen=True)

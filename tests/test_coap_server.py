@@ -9,6 +9,7 @@ Every wait is on the thing itself (a response, a line, a process exit).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
 import random
@@ -797,3 +798,13 @@ async def test_zmq_transport_answers_identically(client: KBClient, peer: Endpoin
     finally:
         await zmq_transport.aclose()
         assert await srv.stop() == 0
+
+
+async def test_etag_validation_answers_203_without_payload(transport: ClientTransport, peer: Endpoint) -> None:
+    request = Request(Method.GET, "/kb/q/object-exists", {"name": "Gucci_bag_14"}, accept=ContentFormat.CBOR)
+    first = await call(transport, peer, request)
+    assert first.status == Status.CONTENT and first.etag
+    again = await call(transport, peer, dataclasses.replace(request, etags=(b"stale!!!", first.etag)))
+    assert again.status == Status.VALID and again.payload == b"" and again.etag == first.etag
+    other = await call(transport, peer, dataclasses.replace(request, etags=(b"stale!!!",)))
+    assert other.status == Status.CONTENT and other.payload == first.payload

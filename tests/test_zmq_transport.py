@@ -606,3 +606,12 @@ def test_encode_rejects_what_the_envelope_cannot_carry() -> None:
         encode_request(Request(Method.GET, "/", content_format=-5), token=1)
     with pytest.raises(ValueError):
         encode_response(1, Response(Status.CONTENT), seq=-1)
+
+
+def test_wire_carries_etags_with_and_without_observe() -> None:
+    from coapkb.transport.zmq_wire import Observe, decode_request, encode_request
+
+    request = Request(Method.GET, "/kb/q/x", {"name": "y"}, accept=60, etags=(b"\x01\x02", b"abcdefgh"))
+    for observe in (Observe.NONE, Observe.REGISTER):
+        token, decoded, obs = decode_request(encode_request(request, observe=observe, token=7))
+        assert (token, decoded, obs) == (7, request, observe)

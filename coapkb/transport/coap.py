@@ -167,6 +167,7 @@ def _request_from_message(path: str, msg: aiocoap.Message) -> Request:
         payload=msg.payload,
         content_format=None if msg.opt.content_format is None else int(msg.opt.content_format),
         accept=None if msg.opt.accept is None else int(msg.opt.accept),
+        etags=tuple(msg.opt.etags),
     )
 
 
@@ -400,6 +401,8 @@ class CoapClientTransport:
             msg.opt.content_format = request.content_format
         if request.accept is not None:
             msg.opt.accept = request.accept
+        if request.etags:
+            msg.opt.etags = request.etags
         if observe:
             msg.opt.observe = 0
         return msg

@@ -17,7 +17,8 @@ Layout (CDDL, RFC 8610)::
         content-format: uint / null,      ; IANA CoAP Content-Format of payload
         accept:         uint / null,
         payload:        bstr,
-        ? observe:      0 / 1,            ; RFC 7641 values: 0 register, 1 deregister
+        ? observe:      0 / 1 / null,     ; RFC 7641 values: 0 register, 1 deregister
+        ? etags:        [* bstr .size (1..8)],  ; RFC 7252 ETag options (validation)
     ]
 
     response = [
@@ -136,8 +137,11 @@ def encode_request(req: Request, *, observe: bool | Observe = False, token: int)
         bytes(req.payload),
     ]
     obs = Observe(int(observe))
-    if obs is not Observe.NONE:
-        fields.append(_OBSERVE_TO_WIRE[obs])
+    etags = [bytes(e) for e in req.etags]
+    if obs is not Observe.NONE or etags:
+        fields.append(_OBSERVE_TO_WIRE[obs] if obs is not Observe.NONE else None)
+    if etags:
+        fields.append(etags)
     return cbor2.dumps(fields)
 
 
@@ -205,7 +209,7 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
     Raises :class:`WireError` for anything that is not a valid envelope.
     """
     what = "request"
-    f = _load_array(data, what, (_REQUEST_FIELDS, _REQUEST_FIELDS + 1))
+    f = _load_array(data, what, (_REQUEST_FIELDS, _REQUEST_FIELDS + 1, _REQUEST_FIELDS + 2))
     token = _uint(what, "token", f[0])
     if isinstance(f[1], bool) or not isinstance(f[1], int) or f[1] not in _METHODS_BY_CODE:
         raise WireError(f"{what}: unknown method code {f[1]!r}"[:200])
@@ -214,11 +218,17 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
     if not isinstance(f[3], dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in f[3].items()):
         raise WireError(f"{what}: query must be a map of text strings")
     observe = Observe.NONE
-    if len(f) > _REQUEST_FIELDS:
+    if len(f) > _REQUEST_FIELDS and not (f[_REQUEST_FIELDS] is None and len(f) > _REQUEST_FIELDS + 1):
         wire = f[_REQUEST_FIELDS]
         if isinstance(wire, bool) or not isinstance(wire, int) or wire not in _OBSERVE_FROM_WIRE:
             raise WireError(f"{what}: observe must be 0 or 1, got {wire!r}"[:200])
         observe = _OBSERVE_FROM_WIRE[wire]
+    etags: tuple[bytes, ...] = ()
+    if len(f) > _REQUEST_FIELDS + 1:
+        raw = f[_REQUEST_FIELDS + 1]
+        if not isinstance(raw, list) or not all(isinstance(e, bytes) and len(e) <= 8 for e in raw):
+            raise WireError(f"{what}: etags must be an array of byte strings of at most 8 bytes")
+        etags = tuple(raw)
     request = Request(
         method=_METHODS_BY_CODE[f[1]],
         path=f[2],
@@ -226,6 +236,7 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
         content_format=_opt(what, "content-format", f[4]),
         accept=_opt(what, "accept", f[5]),
         payload=_bstr(what, "payload", f[6]),
+        etags=etags,
     )
     return token, request, observe
 
