@@ -2,12 +2,32 @@
 
 from __future__ import annotations
 
-from typing import Mapping
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Callable, Mapping
 
 from . import codec
-from .messages import ContentFormat, Method, Request, Response
+from .messages import ContentFormat, Method, Request, Response, Status
 from .results import QueryResult
 from .transport.base import ClientTransport, Endpoint, TransportError
+
+#: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
+DEFAULT_MAX_AGE_S = 60
+
+
+@dataclass
+class _Cached:
+    expires: float
+    etag: bytes | None
+    result: QueryResult
+
+
+@dataclass
+class CacheStats:
+    hits: int = 0
+    revalidated: int = 0
+    misses: int = 0
 
 
 class QueryFailed(Exception):
@@ -19,11 +39,25 @@ class QueryFailed(Exception):
 
 
 class KBClient:
-    """Queries over any :class:`ClientTransport`."""
+    """Queries over any :class:`ClientTransport`.
 
-    def __init__(self, transport: ClientTransport, *, timeout: float = 30.0) -> None:
+    With ``cache=True``, named-query answers are kept for their Max-Age (a
+    robot's KB is read-only) and revalidated with their ETag afterwards (2.03
+    Valid costs a few bytes instead of the answer): RFC 7252 section 5.6."""
+
+    def __init__(
+        self,
+        transport: ClientTransport,
+        *,
+        timeout: float = 30.0,
+        cache: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.transport = transport
         self.timeout = timeout
+        self._cache: dict[tuple, _Cached] | None = {} if cache else None
+        self._clock = clock
+        self.cache_stats = CacheStats()
 
     async def sparql(
         self,
@@ -53,7 +87,27 @@ class KBClient:
     ) -> QueryResult:
         """Run the named query ``/kb/q/<name>?params`` on ``peer``: a few bytes on the wire."""
         request = Request(Method.GET, f"/kb/q/{name}", dict(params or {}), accept=accept)
-        return decode(await self.call(peer, request, timeout))
+        if self._cache is None:
+            return decode(await self.call(peer, request, timeout))
+        key = (peer, request.path, tuple(sorted(request.query.items())), accept)
+        cached = self._cache.get(key)
+        now = self._clock()
+        if cached is not None and now < cached.expires:
+            self.cache_stats.hits += 1
+            return cached.result
+        if cached is not None and cached.etag is not None:
+            request = dataclasses.replace(request, etags=(cached.etag,))
+        response = await self.call(peer, request, timeout)
+        max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
+        if response.status == Status.VALID and cached is not None:
+            self.cache_stats.revalidated += 1
+            cached.expires = now + max_age
+            return cached.result
+        self.cache_stats.misses += 1
+        result = decode(response)
+        if max_age > 0:
+            self._cache[key] = _Cached(now + max_age, response.etag, result)
+        return result
 
     async def call(self, peer: Endpoint, request: Request, timeout: float | None = None) -> Response:
         response = await self.transport.request(peer, request, timeout=timeout or self.timeout)

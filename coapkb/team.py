@@ -471,6 +471,7 @@ def summarise(record: dict[str, Any]) -> str:
     datagrams = sum(s["server"]["messages_sent"] + s["client"]["messages_sent"] for s in stats.values())
     local = sum(s["queries"]["local"] for s in stats.values())
     remote = sum(s["queries"]["remote"] for s in stats.values())
+    cached = sum(s["queries"].get("cached", 0) for s in stats.values())
     lines = [
         f"{len(record['robots'])} robots, {record['mode']}, {record['transport']}, {record['strategy']}: "
         f"{len(tasks)} tasks, {len(done)} assigned, {len(skipped)} skipped, {len(errors)} with errors, "
@@ -478,6 +479,6 @@ def summarise(record: dict[str, Any]) -> str:
         "assigned: " + ", ".join(f"{r} {n}" for r, n in sorted(per_robot.items(), key=lambda x: robot_sort_key(x[0]))),
         f"coordination {record['coordination_s']:.2f} s, completion {record['completion_s']:.2f} s",
         f"robots sent {sent:,} B in {datagrams:,} messages, received {received:,} B; "
-        f"queries: {local} local, {remote} remote",
+        f"queries: {local} local, {remote} remote, {cached} answered from the cache",
     ]
     return "\n".join(lines)

@@ -808,3 +808,21 @@ async def test_etag_validation_answers_203_without_payload(transport: ClientTran
     assert again.status == Status.VALID and again.payload == b"" and again.etag == first.etag
     other = await call(transport, peer, dataclasses.replace(request, etags=(b"stale!!!",)))
     assert other.status == Status.CONTENT and other.payload == first.payload
+
+
+async def test_client_cache_serves_fresh_answers_and_revalidates_stale_ones(
+    transport: ClientTransport, peer: Endpoint
+) -> None:
+    now = [1000.0]
+    client = KBClient(transport, timeout=10, cache=True, clock=lambda: now[0])
+    sent = transport.counters.messages_sent
+    first = await client.named(peer, "object-location", {"name": "Gucci_bag_14"})
+    assert transport.counters.messages_sent > sent
+    sent = transport.counters.messages_sent
+    assert await client.named(peer, "object-location", {"name": "Gucci_bag_14"}) == first
+    assert transport.counters.messages_sent == sent  # fresh: no traffic at all
+    now[0] += 10_000  # past Max-Age: revalidate with the ETag, 2.03 Valid
+    received = transport.counters.bytes_received
+    assert await client.named(peer, "object-location", {"name": "Gucci_bag_14"}) == first
+    assert transport.counters.bytes_received - received < 30  # no payload came back
+    assert (client.cache_stats.hits, client.cache_stats.revalidated, client.cache_stats.misses) == (1, 1, 1)

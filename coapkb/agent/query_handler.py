@@ -34,11 +34,13 @@ class QueryStats:
     local: int = 0
     remote: int = 0
     failed: int = 0
+    #: Remote answers served from the client's cache (fresh, or revalidated by ETag).
+    cached: int = 0
     #: Wall-clock latency of each remote query, in seconds.
     remote_latencies: list[float] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        return {"local": self.local, "remote": self.remote, "failed": self.failed}
+        return {"local": self.local, "remote": self.remote, "failed": self.failed, "cached": self.cached}
 
 
 class QueryHandler:
@@ -82,9 +84,13 @@ class QueryHandler:
                 raise QueryError(f"{name} on own {query.kb} KB: {exc}") from None
         who, peer = target
         started = time.monotonic()
+        hits_before = self.client.cache_stats.hits
         try:
             if self.wire == "compact":
                 result = await self.client.named(peer, name, params, timeout=self.config.query_timeout_s)
+                if self.client.cache_stats.hits > hits_before:  # answered from the cache, no traffic
+                    self.stats.cached += 1
+                    return result
             else:
                 result = await self.client.sparql(
                     peer,

@@ -98,7 +98,10 @@ class Robot:
         )
         teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
         team = TeamView(own, teammates, client)
-        queries = QueryHandler(config, kb, KBClient(client, timeout=config.query_timeout_s), wire=query_wire)
+        # The compact wire caches answers for their Max-Age (the KBs are
+        # read-only); the seed's wire reproduces the paper: no cache.
+        kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
+        queries = QueryHandler(config, kb, kb_client, wire=query_wire)
 
         def publish_live(live: LiveState) -> None:
             team.set_own(replace(team.own, live=live))
