@@ -52,7 +52,7 @@ def test_team_with_tasks_file_and_record(tmp_path: Path) -> None:
         r"0 disagreements$", stdout, re.M), stdout
     assert re.search(r"^assigned: Robot\d \d+", stdout, re.M)
     assert re.search(r"^coordination \d+\.\d\d s, completion \d+\.\d\d s$", stdout, re.M)
-    assert re.search(r"^robots sent [\d,]+ B in [\d,]+ messages, received [\d,]+ B; queries: \d+ local, \d+ remote$",
+    assert re.search(r"^robots sent [\d,]+ B in [\d,]+ messages, received [\d,]+ B; queries: \d+ local, \d+ remote, \d+ answered from the cache$",
                      stdout, re.M)
     assert f"record written to {out}" in stdout
 
