@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
 from ..config import RobotConfig
@@ -139,9 +139,8 @@ class Controller:
             except Exception as exc:  # keep the robot alive and the team informed
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
-            decision = message.decision
-            decision = Decision(**{**asdict(decision), "coordination_s": round(time.monotonic() - received, 6)})
-            self._apply(DecisionMessage(decision, message.after, message.job))
+            coordination_s = round(time.monotonic() - received, 6)
+            self._apply(replace(message, decision=replace(message.decision, coordination_s=coordination_s)))
 
     def _apply(self, message: DecisionMessage) -> None:
         decision = message.decision
@@ -151,7 +150,7 @@ class Controller:
             plan = message.after
             self.executor.submit(message.job)
         self.log.append(decision)
-        self.team.set_own(me.with_plan(PlannedState(**{**asdict(plan), "seq": decision.seq}), decision))
+        self.team.set_own(me.with_plan(replace(plan, seq=decision.seq), decision))
         self._publish(self.team.own)
         log.info(
             "task %d %s: %s", decision.seq, decision.object,
