@@ -34,7 +34,9 @@ What a row measures (see ``docs/benchmarks.md``):
 ``retransmissions``
     CoAP: retransmitted confirmable messages (robots' clients, robots'
     servers' confirmable notifications, the feeder's client).  ZeroMQ: the
-    kernel's ``TcpRetransSegs`` summed over every host's namespace.
+    kernel's ``TcpRetransSegs`` summed over every host's namespace
+    (``tcp_aborts``: its ``TCPAbortOnTimeout``, connections the kernel gave
+    up on -- keep-alive or ``TCP_USER_TIMEOUT`` -- which ZeroMQ then re-opens).
 ``coordination_s`` / ``completion_s``
     From :meth:`Team.run`: feeding the first task until every cluster decided
     its last one / until every robot also finished executing.
@@ -49,33 +51,49 @@ import csv
 import datetime as _dt
 import json
 import math
-import os
 import sys
 import time
+from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
-from .linkemu import LinkCounters, LinkEmulationError, LinkSpec, Testbed, available, cleanup_stale, enter_netns
-from .team import CLUSTER_SIZE, DEFAULT_ONTOLOGIES, Placement, Team, TeamError, TeamSpec, draw_tasks
+from .linkemu import (
+    LinkCounters,
+    LinkEmulationError,
+    LinkSpec,
+    Testbed,
+    available,
+    cleanup_stale,
+    enter_netns,
+)
+from .team import (
+    CLUSTER_SIZE,
+    DEFAULT_ONTOLOGIES,
+    Placement,
+    Team,
+    TeamError,
+    TeamSpec,
+    draw_tasks,
+)
 from .transport.base import ClientTransport, Endpoint, TransportError
 
 __all__ = [
-    "SYSTEMS",
     "COLUMNS",
     "KEY_COLUMNS",
+    "SYSTEMS",
+    "NetnsPlacement",
     "SystemDef",
     "Timeouts",
-    "NetnsPlacement",
-    "system_spec",
-    "timeouts_for",
-    "retransmission_label",
-    "run_once",
-    "row_key",
-    "read_rows",
     "append_rows",
     "done_keys",
     "format_row",
+    "read_rows",
+    "retransmission_label",
+    "row_key",
+    "run_once",
+    "system_spec",
+    "timeouts_for",
 ]
 
 #: Fixed ports: every host has its own namespace, so all can use the usual one.
@@ -111,7 +129,7 @@ COLUMNS: tuple[str, ...] = (
     "mode", "transport", "query_wire", "seed", "emulation",
     "app_bytes", "feeder_wire_bytes", "dropped_packets", "queue_drops",
     "remote_queries", "local_queries", "failed_queries", "spurious_retransmissions",
-    "tasks_agreed", "query_timeout_s", "task_timeout_s", "wall_s", "started_at", "error",
+    "tasks_agreed", "tcp_aborts", "query_timeout_s", "task_timeout_s", "wall_s", "started_at", "error",
 )
 
 #: A run's identity: rows with equal keys are repetitions of nothing, they are the same run.
@@ -123,7 +141,7 @@ KEY_COLUMNS: tuple[str, ...] = (
 _INT_COLUMNS = {
     "robots", "tasks", "rep", "seed", "wire_bytes", "wire_packets", "retransmissions", "app_bytes",
     "feeder_wire_bytes", "dropped_packets", "queue_drops", "remote_queries", "local_queries",
-    "failed_queries", "spurious_retransmissions", "tasks_agreed",
+    "failed_queries", "spurious_retransmissions", "tasks_agreed", "tcp_aborts",
 }
 _FLOAT_COLUMNS = {
     "bandwidth_kbps", "loss_pct", "coordination_s", "completion_s", "query_p50_ms", "query_p99_ms",
@@ -219,7 +237,8 @@ class _MeteredTeam(Team):
     before the feeder downloads the robots' statistics, so that download (a
     few KB of latency lists at 80 tasks) is not charged to the system."""
 
-    snapshot: Any = None  # async () -> dict, set by run_once
+    #: Reads the counters; set by run_once before the run.
+    snapshot: Callable[[], Awaitable[dict[str, Any]]] | None = None
     end_reading: dict[str, Any] | None = None
 
     async def _collect_stats(self, client: ClientTransport) -> dict[str, Any]:
@@ -231,27 +250,35 @@ class _MeteredTeam(Team):
 # --------------------------------------------------------------------------- one run
 
 
-async def _tcp_retrans_segs(testbed: Testbed, hosts: Iterable[str]) -> dict[str, int]:
-    """``Tcp: RetransSegs`` of each host's namespace (``/proc/net/snmp`` read inside it)."""
+async def _tcp_counters(testbed: Testbed, hosts: Iterable[str]) -> dict[str, tuple[int, int]]:
+    """``(RetransSegs, TCPAbortOnTimeout)`` of each host's namespace, from
+    ``/proc/net/snmp`` and ``/proc/net/netstat`` read inside it."""
 
-    async def one(host: str) -> tuple[str, int]:
+    async def one(host: str) -> tuple[str, tuple[int, int]]:
         proc = await asyncio.create_subprocess_exec(
-            *testbed.exec_args(host, ["cat", "/proc/net/snmp"]),
+            *testbed.exec_args(host, ["cat", "/proc/net/snmp", "/proc/net/netstat"]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
         )
         out, _ = await proc.communicate()
-        return host, parse_retrans_segs(out.decode())
+        text = out.decode()
+        return host, (parse_proc_counter(text, "Tcp", "RetransSegs"), parse_proc_counter(text, "TcpExt", "TCPAbortOnTimeout"))
 
     return dict(await asyncio.gather(*(one(h) for h in hosts)))
 
 
+def parse_proc_counter(text: str, group: str, name: str) -> int:
+    """One counter from ``/proc/net/snmp``-style text (a header line of names
+    and a line of values, both starting with ``group:``); 0 when absent."""
+    lines = [line.split()[1:] for line in text.splitlines() if line.startswith(f"{group}:")]
+    for names, values in zip(lines[::2], lines[1::2]):
+        if name in names:
+            return int(values[names.index(name)])
+    return 0
+
+
 def parse_retrans_segs(snmp: str) -> int:
     """``RetransSegs`` from the text of ``/proc/net/snmp`` (0 when absent)."""
-    tcp = [line.split()[1:] for line in snmp.splitlines() if line.startswith("Tcp:")]
-    if len(tcp) < 2:
-        return 0
-    values = dict(zip(tcp[0], tcp[1]))
-    return int(values.get("RetransSegs", 0))
+    return parse_proc_counter(snmp, "Tcp", "RetransSegs")
 
 
 def _percentile(values: Sequence[float], q: float) -> float | None:
@@ -266,13 +293,13 @@ def _percentile(values: Sequence[float], q: float) -> float | None:
 
 def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
               retransmission: str, seed: int) -> dict[str, Any]:
-    d = SYSTEMS[system]
+    d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
     row: dict[str, Any] = {c: "" for c in COLUMNS}
     row.update(
         system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
-        retransmission_profile=retransmission_label(system, retransmission), ok=False,
+        retransmission_profile=retransmission if d.transport != "zmq" else "tcp", ok=False,
         mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
-        started_at=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        started_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
     return row
 
@@ -377,7 +404,7 @@ async def _measure(
 
     async def reading() -> dict[str, Any]:
         counters = await testbed.acounters()
-        retrans = await _tcp_retrans_segs(testbed, hosts) if tcp else {}
+        retrans = await _tcp_counters(testbed, hosts) if tcp else {}
         return {"counters": counters, "tcp": retrans}
 
     async with _MeteredTeam.launch(spec, NetnsPlacement(testbed)) as team:
@@ -400,7 +427,8 @@ async def _measure(
     _fill_from_record(out, record, tasks)
     coap_retx = out.pop("coap_retransmissions")
     if tcp:
-        out["retransmissions"] = sum(after["tcp"][h] - before["tcp"][h] for h in hosts)
+        out["retransmissions"] = sum(after["tcp"][h][0] - before["tcp"][h][0] for h in hosts)
+        out["tcp_aborts"] = sum(after["tcp"][h][1] - before["tcp"][h][1] for h in hosts)
     else:
         out["retransmissions"] = coap_retx
     return out

@@ -1,0 +1,249 @@
+"""The benchmark runner (coapkb.bench) and the experiment scripts around it.
+
+The runner test starts real teams in real network namespaces (root only; a
+skip on a laptop, a failure under CI).  Everything else is pure: the CSV
+append/resume logic, the sweep's plan, and the figure and report scripts on a
+small synthetic CSV.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import socket
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+from conftest import require
+
+from coapkb import bench
+from coapkb.bench import COLUMNS, SYSTEMS, append_rows, done_keys, read_rows, row_key
+from coapkb.linkemu import LinkSpec, Testbed, available, enter_netns
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _load(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _require_netns() -> None:
+    ok, why = available()
+    require(ok, why)
+
+
+# --------------------------------------------------------------------------- real runs (root)
+
+
+@pytest.mark.root
+@pytest.mark.timeout(120)
+async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
+    """3 robots, 2 tasks, 512 kbit/s, 2 % loss: one CoAP and one ZeroMQ system.
+
+    The feeder only reaches the robots (10.77.0.x exists only inside the
+    testbed's namespaces) if enter_netns really moved its sockets there."""
+    _require_netns()
+    rows = [await bench.run_once(system, 3, 2, 512, 2, rep=0) for system in ("coap-distributed", "zmq-central")]
+    for row in rows:
+        assert set(row) >= set(COLUMNS)
+        assert row["ok"] is True, row["error"]
+        assert row["error"] == ""
+        assert row["tasks_agreed"] == 2
+        # Headers, ACKs and retransmissions make the wire heavier than the payloads.
+        assert row["wire_bytes"] > row["app_bytes"] > 0
+        assert row["wire_packets"] > 0 and row["completion_s"] >= row["coordination_s"] > 0
+        assert row["remote_queries"] > 0 and row["query_p99_ms"] >= row["query_p50_ms"] > 0
+        assert row["feeder_wire_bytes"] > 0 and row["queue_drops"] == 0
+    coap, zmq = rows
+    assert coap["retransmission_profile"] == "adaptive" and zmq["retransmission_profile"] == "tcp"
+    assert coap["local_queries"] > 0 and zmq["local_queries"] == 0  # distributed answers some queries itself
+
+
+@pytest.mark.root
+@pytest.mark.timeout(30)
+def test_enter_netns_moves_only_the_calling_thread_and_back() -> None:
+    _require_netns()
+
+    def netns_inode() -> int:
+        return os.stat("/proc/thread-self/ns/net").st_ino
+
+    home = netns_inode()
+    with Testbed(["a", "b"], LinkSpec()) as tb:
+        target = os.stat(f"/run/netns/{tb['a'].netns}").st_ino
+        with enter_netns(tb["a"].netns):
+            assert netns_inode() == target
+            inside = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            inside.bind((tb.address("a"), 0))  # the address exists only in that namespace
+        assert netns_inode() == home
+        with inside, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as outside:
+            with pytest.raises(OSError):
+                outside.bind((tb.address("a"), 0))
+            # The socket made inside stays there: it reaches b over the testbed link.
+            with enter_netns(tb["b"].netns):
+                receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                receiver.bind((tb.address("b"), 0))
+            with receiver:
+                receiver.settimeout(5)
+                inside.sendto(b"ping", receiver.getsockname())
+                assert receiver.recv(16) == b"ping"
+
+
+def test_enter_netns_refuses_bad_names() -> None:
+    with pytest.raises(ValueError), enter_netns("../etc"):
+        pass
+
+
+# --------------------------------------------------------------------------- pure parts
+
+
+def test_every_system_maps_to_a_team_spec() -> None:
+    t = bench.timeouts_for(35, 20, 5)
+    for name, d in SYSTEMS.items():
+        spec = bench.system_spec(name, 6, timeouts=t)
+        assert (spec.mode, spec.transport, spec.query_wire) == (d.mode, d.transport, d.query_wire)
+        assert spec.query_timeout_s == t.query_s and spec.task_timeout_s == t.task_s
+    assert bench.system_spec("seed-central", 3).query_wire == "seed"
+    with pytest.raises(ValueError):
+        bench.system_spec("carrier-pigeon", 3)
+
+
+def test_timeouts_grow_with_slower_and_lossier_links() -> None:
+    fast, slow, lossy = bench.timeouts_for(512, 2, 5), bench.timeouts_for(35, 2, 5), bench.timeouts_for(35, 20, 5)
+    assert fast.query_s <= slow.query_s < lossy.query_s
+    assert fast.task_s <= slow.task_s < lossy.task_s
+    assert bench.timeouts_for(35, 20, 80).run_s > lossy.run_s > lossy.task_s
+
+
+async def test_a_bad_configuration_is_a_failed_row_not_an_exception() -> None:
+    row = await bench.run_once("coap-distributed", 4, 2, 512, 2)  # 4 robots: not clusters of three
+    assert row["ok"] is False and "multiple of 3" in row["error"]
+    assert set(row) >= set(COLUMNS)
+    row = await bench.run_once("carrier-pigeon", 3, 2, 512, 2)
+    assert row["ok"] is False and "unknown system" in row["error"]
+
+
+def test_parse_retrans_segs_and_percentile() -> None:
+    snmp = ("Ip: Forwarding DefaultTTL\nIp: 1 64\n"
+            "Tcp: RtoAlgorithm RtoMin ActiveOpens RetransSegs InErrs\nTcp: 1 200 4 17 0\n")
+    assert bench.parse_retrans_segs(snmp) == 17
+    assert bench.parse_retrans_segs("") == 0
+    assert bench._percentile([], 50) is None
+    assert bench._percentile([float(v) for v in range(1, 101)], 99) == pytest.approx(99.01)
+
+
+def _row(system: str = "coap-distributed", **kw: Any) -> dict[str, Any]:
+    row: dict[str, Any] = {c: "" for c in COLUMNS}
+    row.update(system=system, robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=2.0, rep=0,
+               retransmission_profile=bench.retransmission_label(system, "adaptive"), ok=True,
+               coordination_s=1.5, completion_s=2.0, wire_bytes=1000, wire_packets=10, retransmissions=0,
+               query_p50_ms=5.0, query_p99_ms=50.0, mode=SYSTEMS[system].mode, transport=SYSTEMS[system].transport,
+               query_wire=SYSTEMS[system].query_wire, app_bytes=500)
+    row.update(kw)
+    return row
+
+
+def test_csv_append_writes_one_header_and_reads_back_typed(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "r.csv"
+    append_rows(path, [_row()])
+    append_rows(path, [_row("zmq-central", ok=False, error="timed out, badly")])
+    lines = path.read_text().splitlines()
+    assert lines[0] == ",".join(COLUMNS) and sum(1 for line in lines if line.startswith("system,")) == 1
+    rows = read_rows(path)
+    assert [r["system"] for r in rows] == ["coap-distributed", "zmq-central"]
+    assert rows[0]["ok"] is True and rows[1]["ok"] is False and rows[1]["error"] == "timed out, badly"
+    assert isinstance(rows[0]["wire_bytes"], int) and rows[0]["bandwidth_kbps"] == 35.0
+    assert rows[0]["retransmission_profile"] == "adaptive" and rows[1]["retransmission_profile"] == "tcp"
+
+
+def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
+    path = tmp_path / "r.csv"
+    assert done_keys(path) == set()
+    append_rows(path, [_row(), _row("zmq-central", ok=False)])
+    # 35 and 35.0 (and "35") are the same bandwidth.
+    assert row_key(_row(bandwidth_kbps=35)) == row_key(_row(bandwidth_kbps="35.0")) in done_keys(path)
+    assert len(done_keys(path)) == 2 and len(done_keys(path, include_failed=False)) == 1
+    append_rows(path, [_row("zmq-central", ok=True)])  # the retry of the failed key
+    latest = {r["system"]: r["ok"] for r in read_rows(path)}
+    assert latest == {"coap-distributed": True, "zmq-central": True}
+    assert len(read_rows(path, latest_only=False)) == 3
+
+
+def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> None:
+    sweep = _load("sweep")
+    quick = sweep.PROFILES["quick"]
+    runs = sweep.plan(quick, "adaptive")
+    assert len(runs) == len({r.key() for r in runs})
+    assert {r.system for r in runs} >= set(sweep.QUICK_SYSTEMS)
+    path = tmp_path / "quick.csv"
+    first = runs[0]
+    append_rows(path, [_row(first.system, robots=first.robots, tasks=first.tasks, bandwidth_kbps=first.bandwidth,
+                            loss_pct=first.loss, rep=first.rep)])
+    left = sweep.pending(runs, done_keys(path))
+    assert first not in left and len(left) == len(runs) - 1
+    # ZeroMQ rows do not depend on the CoAP profile: another profile re-runs only CoAP systems.
+    other = sweep.pending(sweep.plan(quick, "lossy-fixed"), {r.key() for r in runs})
+    assert other and all(SYSTEMS[r.system].transport == "coap" for r in other)
+    paper = sweep.plan(sweep.PROFILES["paper"], "adaptive")
+    assert len(paper) == 3 * 5 * 4 * 5 * len(SYSTEMS)
+    eta = sweep.Eta()
+    assert eta.remaining(runs) is None
+    eta.record(runs[0], 10.0)
+    assert eta.remaining(runs) is not None and eta.remaining(runs) > 0
+
+
+def _synthetic(path: Path) -> None:
+    """A small matrix with the seed's trends: central > distributed, seed wire > compact."""
+    rows = []
+    for system, d in SYSTEMS.items():
+        for robots in (3, 9):
+            for tasks in (5, 20):
+                for bw in (35.0, 256.0):
+                    for loss in (2.0, 20.0):
+                        factor = (1.7 if d.mode == "central" else 1.0) * (2.5 if d.query_wire == "seed" else 1.0)
+                        factor *= 0.6 if d.transport == "coap" else 1.0
+                        rows.append(_row(system, robots=robots, tasks=tasks, bandwidth_kbps=bw, loss_pct=loss,
+                                         wire_bytes=int(tasks * 4000 * factor * (1 + loss / 100)),
+                                         completion_s=tasks * (1 + loss / 10) * (2 if d.transport == "coap" else 1),
+                                         query_p99_ms=100 * (1 + loss)))
+    rows.append(_row("coap-central", robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=20.0, rep=1, ok=False,
+                     error="run did not finish within 600 s"))
+    append_rows(path, rows)
+
+
+def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
+    figures = _load("figures")
+    path = tmp_path / "synthetic.csv"
+    _synthetic(path)
+    outdir = tmp_path / "figs"
+    assert figures.main([str(path), "--outdir", str(outdir)]) == 0
+    pngs = sorted(p.name for p in outdir.glob("*.png"))
+    assert {"fig06_bytes_vs_loss.png", "fig09_bytes_difference.png", "fig12_completion_per_robots.png",
+            "transport_bytes.png", "query_latency.png"} <= set(pngs)
+    assert all((outdir / p).read_bytes().startswith(b"\x89PNG") for p in pngs)
+    # A CSV without the data a figure needs skips that figure instead of failing.
+    one = tmp_path / "one.csv"
+    append_rows(one, [_row()])
+    results = figures.draw_all(read_rows(one), tmp_path / "few")
+    assert all(isinstance(v, str) for k, v in results.items() if k in ("fig06", "fig08", "fig09", "fig10"))
+
+
+def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
+    report = _load("report")
+    path = tmp_path / "synthetic.csv"
+    _synthetic(path)
+    out = tmp_path / "report.md"
+    assert report.main([str(path), "--out", str(out), "--profile", "test"]) == 0
+    text = out.read_text()
+    assert "## Key ratios" in text and "| comparison | bytes on the wire | completion time | seed paper |" in text
+    # central is 1.7x distributed in the synthetic data: a 41 % saving, next to the seed's ~42 %.
+    assert "distributed vs central, CoAP + compact: saving | 41 %" in text
+    assert "~42% fewer bytes" in text
+    assert "coap-central | 3 | 5 | 35 | 20 | 1 | - | run did not finish" in text  # the failed run is listed
