@@ -126,6 +126,12 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def _legend(ax: Any, size: int) -> None:
+    """A legend if the panel has labelled lines (a family may lack a setting)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=size)
+
+
 def _kb(v: float) -> float:
     return v / 1000.0
 
@@ -160,7 +166,7 @@ def fig6(data: Data, out: Path) -> Path | str:
                 drawn |= _line(ax, losses, ys, linestyle=style, color=ROBOT_COLOURS.get(robots),
                                label=f"{robots} robots, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="loss (%)", ylabel="kB on the wire", xticks=data.values("loss"))
-        ax.legend(fontsize=7)
+        _legend(ax, 7)
         ax.set_ylim(bottom=0)
     return _save(fig, out / "fig06_bytes_vs_loss.png") if drawn else "no points at that bandwidth/tasks"
 
@@ -182,7 +188,7 @@ def fig7(data: Data, out: Path) -> Path | str:
             ys = [_kb(data.get(dist, r, tasks, bw, loss).wire_bytes) for r in robots]  # type: ignore[union-attr]
             drawn |= _line(ax, robots, ys, label=f"{bw:g} kbit/s")
         ax.set(title=name, xlabel="robots", ylabel="kB on the wire", xticks=data.values("robots"))
-        ax.legend(fontsize=7)
+        _legend(ax, 7)
         ax.set_ylim(bottom=0)
     return _save(fig, out / "fig07_bytes_vs_robots.png") if drawn else "no bandwidth with two team sizes"
 
@@ -204,7 +210,7 @@ def fig8(data: Data, out: Path) -> Path | str:
                 ys = [_kb(data.get(system, 3, t, bw, loss).wire_bytes) for t in tasks]  # type: ignore[union-attr]
                 drawn |= _line(ax, tasks, ys, linestyle=style, label=f"{loss:g} % loss, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="tasks", ylabel="kB on the wire", xticks=data.values("tasks"))
-        ax.legend(fontsize=7)
+        _legend(ax, 7)
         ax.set_ylim(bottom=0)
     return _save(fig, out / "fig08_bytes_vs_tasks.png") if drawn else "no loss level with two task counts"
 
@@ -230,7 +236,7 @@ def _difference_figure(data: Data, out: Path, attr: str, scale: Callable[[float]
                 drawn |= _line(ax, xs, ys, color=ROBOT_COLOURS.get(robots), label=f"{robots} robots")
         ax.axhline(0, color="grey", linewidth=0.8)
         ax.set(title=name, xlabel="tasks", ylabel=ylabel, xticks=data.values("tasks"))
-        ax.legend(fontsize=7)
+        _legend(ax, 7)
     return _save(fig, out / filename) if drawn else "no team size with two task counts in both modes"
 
 
@@ -262,7 +268,7 @@ def fig10(data: Data, out: Path) -> Path | str:
             ax.set(title=f"{name}, {bw:g} kbit/s", xlabel="tasks", ylabel="completion (s)",
                    xticks=data.values("tasks"))
             ax.title.set_fontsize(9)
-            ax.legend(fontsize=6)
+            _legend(ax, 6)
             ax.set_ylim(bottom=0)
     return _save(fig, out / "fig10_completion_vs_tasks.png") if drawn else "no setting with two task counts"
 
@@ -295,7 +301,7 @@ def fig12(data: Data, out: Path) -> Path | str:
             ax.set(title=f"{name}, {bw:g} kbit/s", xlabel="tasks", ylabel="completion (s)",
                    xticks=data.values("tasks"))
             ax.title.set_fontsize(9)
-            ax.legend(fontsize=6)
+            _legend(ax, 6)
             ax.set_ylim(bottom=0)
     return _save(fig, out / "fig12_completion_per_robots.png") if drawn else "no team size with two task counts"
 
@@ -333,7 +339,7 @@ def _setting_bars(data: Data, out: Path, attr: str, scale: Callable[[float], flo
         ax.bar(xs, ys, width=width, label=system, color=COLOURS.get(system))
     ax.set_xticks(range(len(settings)), [f"{bw:g} kbit/s\n{loss:g} % loss" for bw, loss in settings], fontsize=8)
     ax.set(ylabel=ylabel, title=f"{title} ({robots} robots, {tasks} tasks)")
-    ax.legend(fontsize=7)
+    _legend(ax, 7)
     return _save(fig, out / filename)
 
 
@@ -367,7 +373,7 @@ def query_latency(data: Data, out: Path) -> Path | str:
         ax.set_yscale("log")
         ax.set_xticks(range(len(systems)), systems, rotation=25, fontsize=8, ha="right")
         ax.set(ylabel=f"{label} latency (ms)", title=label)
-        ax.legend(fontsize=7)
+        _legend(ax, 7)
     return _save(fig, out / "query_latency.png")
 
 
