@@ -23,26 +23,71 @@ States = dict[str, RobotState]
 
 class ObservedStates:
     """The latest state of each robot in ``endpoints``, one observation each,
-    re-registered whenever it ends (robot not up yet, restarted, or lost)."""
+    re-registered whenever it ends (robot not up yet, restarted, or lost).
 
-    def __init__(self, transport: ClientTransport, endpoints: Mapping[str, Endpoint], path: str) -> None:
+    A server drops an observation whose notification it could not deliver,
+    and the client is not told (RFC 7641 leaves that to Max-Age).  So a wait
+    that sees no progress for ``refresh_s`` asks every robot once with a plain
+    GET, and re-registers the observations that turned out to be stale."""
+
+    def __init__(
+        self,
+        transport: ClientTransport,
+        endpoints: Mapping[str, Endpoint],
+        path: str,
+        *,
+        refresh_s: float = 10.0,
+        request_timeout_s: float = 10.0,
+    ) -> None:
         self._transport = transport
         self._endpoints = dict(endpoints)
         self._request = Request(Method.GET, path, accept=ContentFormat.CBOR)
+        self.refresh_s = refresh_s
+        self.request_timeout_s = request_timeout_s
         self.states: States = {}
+        self.refreshes = 0
         self._changed = asyncio.Condition()
-        self._watchers: list[asyncio.Task] = []
+        self._watchers: dict[str, asyncio.Task] = {}
 
     def start(self) -> None:
-        self._watchers = [
-            asyncio.create_task(self._watch(robot_id, endpoint), name=f"observe-{robot_id}")
-            for robot_id, endpoint in self._endpoints.items()
-        ]
+        for robot_id in self._endpoints:
+            self._start_watch(robot_id)
+
+    def _start_watch(self, robot_id: str) -> None:
+        old = self._watchers.get(robot_id)
+        if old is not None:
+            old.cancel()
+        self._watchers[robot_id] = asyncio.create_task(
+            self._watch(robot_id, self._endpoints[robot_id]), name=f"observe-{robot_id}"
+        )
 
     async def aclose(self) -> None:
-        for watcher in self._watchers:
+        for watcher in self._watchers.values():
             watcher.cancel()
-        await asyncio.gather(*self._watchers, return_exceptions=True)
+        await asyncio.gather(*self._watchers.values(), return_exceptions=True)
+
+    async def _update(self, robot_id: str, state: RobotState) -> None:
+        async with self._changed:
+            self.states[robot_id] = state
+            self._changed.notify_all()
+
+    async def refresh(self) -> None:
+        """GET every robot's state once; re-observe where the observation missed a change."""
+        self.refreshes += 1
+
+        async def one(robot_id: str, endpoint: Endpoint) -> None:
+            try:
+                response = await self._transport.request(endpoint, self._request, timeout=self.request_timeout_s)
+                state = RobotState.decode(response.payload) if response.status.is_success else None
+            except (TransportError, ValueError) as exc:
+                log.debug("refreshing %s: %s", robot_id, exc)
+                return
+            if state is not None and state != self.states.get(robot_id):
+                log.info("observation of %s missed a change; registering again", robot_id)
+                await self._update(robot_id, state)
+                self._start_watch(robot_id)
+
+        await asyncio.gather(*(one(r, e) for r, e in self._endpoints.items()))
 
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         backoff = 0.2
@@ -58,9 +103,7 @@ class ObservedStates:
                         log.warning("bad state from %s: %s", robot_id, exc)
                         continue
                     backoff = 0.2
-                    async with self._changed:
-                        self.states[robot_id] = state
-                        self._changed.notify_all()
+                    await self._update(robot_id, state)
             except TransportError as exc:
                 log.debug("observing %s: %s", robot_id, exc)
             # Not up yet, or the observation ended: register again shortly.
@@ -70,9 +113,16 @@ class ObservedStates:
     async def wait(self, predicate: Callable[[States], bool], timeout: float) -> States:
         """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s."""
         async with asyncio.timeout(timeout):
-            async with self._changed:
-                await self._changed.wait_for(lambda: predicate(self.states))
-        return dict(self.states)
+            while True:
+                try:
+                    async with asyncio.timeout(self.refresh_s):
+                        async with self._changed:
+                            await self._changed.wait_for(lambda: predicate(self.states))
+                    return dict(self.states)
+                except TimeoutError:
+                    await self.refresh()
+                    if predicate(self.states):
+                        return dict(self.states)
 
 
 class TeamView:
