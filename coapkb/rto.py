@@ -55,6 +55,7 @@ __all__ = [
     "classify_sample",
     "variable_backoff_factor",
     "worst_case_wait",
+    "backed_off_cap",
     "RttEstimator",
     "CocoaRto",
     "attribute_reply",
@@ -126,12 +127,23 @@ def _schedule_total(initial: float, factor: float, max_retransmit: int, cap: flo
     return sum(min(initial * factor**n, cap) for n in range(max_retransmit + 1))
 
 
+def backed_off_cap(initial: float, max_timeout: float, backoff_cap: float | None) -> float:
+    """The largest timeout an exchange whose initial timeout is ``initial``
+    may back off to: ``max_timeout``, or with a ``backoff_cap``
+    ``min(max_timeout, max(backoff_cap, initial))``.  The cap limits the
+    backoff only; it never shortens an initial timeout the RTO asked for."""
+    if backoff_cap is None:
+        return max_timeout
+    return min(max_timeout, max(backoff_cap, initial))
+
+
 def worst_case_wait(
     low: float,
     high: float,
     max_retransmit: int,
     max_timeout: float,
     backoff_factor: float | None = None,
+    backoff_cap: float | None = None,
 ) -> float:
     """Supremum of the total wait (first transmission → give-up) over every
     initial timeout in ``[low, high]``.
@@ -140,16 +152,23 @@ def worst_case_wait(
     so it is reached at ``high``.  With CoCoA's VBF (``backoff_factor=None``)
     it is not monotonic: 0.99 s × 3ⁿ outgrows 1.0 s × 2ⁿ.  So we also check the
     right end of each VBF band that lies inside the range, taking the limit
-    from below for the open bands."""
+    from below for the open bands.  A ``backoff_cap`` (see
+    :func:`backed_off_cap`) keeps the total non-decreasing within each band
+    (below the cap it is a constant; above it every timeout equals the
+    initial one), so the same candidates give the supremum."""
     if high < low:
         raise ValueError("high < low")
+
+    def total(initial: float, factor: float) -> float:
+        return _schedule_total(initial, factor, max_retransmit, backed_off_cap(initial, max_timeout, backoff_cap))
+
     if backoff_factor is not None:
-        return _schedule_total(high, backoff_factor, max_retransmit, max_timeout)
-    candidates = [_schedule_total(high, variable_backoff_factor(high), max_retransmit, max_timeout)]
+        return total(high, backoff_factor)
+    candidates = [total(high, variable_backoff_factor(high))]
     if low < 1.0 <= high:  # sup of the ×3 band [low, 1): its limit at 1 s
-        candidates.append(_schedule_total(1.0, 3.0, max_retransmit, max_timeout))
+        candidates.append(total(1.0, 3.0))
     if low <= 3.0 < high:  # the ×2 band [1, 3] ends, closed, at 3 s
-        candidates.append(_schedule_total(3.0, 2.0, max_retransmit, max_timeout))
+        candidates.append(total(3.0, 2.0))
     return max(candidates)
 
 
@@ -551,7 +570,21 @@ class AdaptiveProfile(TransmissionProfile):
     variable backoff factor (:func:`variable_backoff_factor`), and each
     timeout capped at ``max_timeout``.  ``link_rate_bps`` turns on size
     normalisation (see the module docstring).  :meth:`with_link_rate` fills
-    it in from the link configuration."""
+    it in from the link configuration.
+
+    ``backoff_cap`` (coapkb's choice, 8 s as in ``lossy-fixed``) stops the
+    backoff once a timeout reaches it, unless the initial timeout is already
+    longer (then every timeout equals the initial one; see
+    :func:`backed_off_cap`).  Why: CoCoA's VBF of 3 for sub-second timeouts
+    gives, from the 0.5 s clamp, waits of 0.5, 1.5, 4.5, 13.5, 40.5, 60, 60 s
+    with our 6 retransmissions.  Under random loss the 13.5 s and later waits
+    only add latency: measured on emulated 20 % loss links they made the
+    adaptive tail longer than ``lossy-fixed``'s, and a give-up took 180 s,
+    longer than the agents' query timeouts (see docs/retransmission.md,
+    "Measured on emulated links").  With the cap the early backoff is still
+    CoCoA's (×3 or ×2), a stuck exchange sends at most one datagram per 8 s,
+    and a give-up from the clamp takes 38.5 s.  ``None`` restores plain
+    CoCoA."""
 
     name: str = "adaptive"
     max_retransmit: int = 6
@@ -561,8 +594,13 @@ class AdaptiveProfile(TransmissionProfile):
     max_timeout: float = 60.0
     dither: float = 1.5
     link_rate_bps: float | None = None
+    backoff_cap: float | None = 8.0
 
     kind: ClassVar[str] = "adaptive"
+
+    def __post_init__(self) -> None:
+        if self.backoff_cap is not None and self.backoff_cap <= 0:
+            raise ValueError("backoff_cap must be positive (or None for plain CoCoA)")
 
     def with_link_rate(self, link_rate_bps: float | None) -> "AdaptiveProfile":
         return replace(self, link_rate_bps=link_rate_bps)
@@ -590,7 +628,7 @@ class AdaptiveProfile(TransmissionProfile):
             initial_timeout=initial,
             backoff_factor=variable_backoff_factor(initial),
             max_retransmit=self.max_retransmit,
-            max_timeout=self.max_timeout,
+            max_timeout=backed_off_cap(initial, self.max_timeout, self.backoff_cap),
         )
 
     def _initial_bounds(self) -> tuple[float, float]:
@@ -602,7 +640,7 @@ class AdaptiveProfile(TransmissionProfile):
 
     def max_transmit_wait(self) -> float:
         low, high = self._initial_bounds()
-        return worst_case_wait(low, high, self.max_retransmit, self.max_timeout)
+        return worst_case_wait(low, high, self.max_retransmit, self.max_timeout, backoff_cap=self.backoff_cap)
 
     def max_transmit_span(self) -> float:
         # The last timeout is at most max_timeout and at least min_timeout; the
@@ -613,7 +651,7 @@ class AdaptiveProfile(TransmissionProfile):
         """Tighter bound for the next exchange to a peer in state ``rto``:
         the worst case over the initial timeouts it can currently draw."""
         low, high = rto.initial_timeout_range(now, wire_bytes)
-        return worst_case_wait(low, high, self.max_retransmit, self.max_timeout)
+        return worst_case_wait(low, high, self.max_retransmit, self.max_timeout, backoff_cap=self.backoff_cap)
 
 
 PROFILES: dict[str, TransmissionProfile] = {
@@ -635,7 +673,8 @@ PROFILES: dict[str, TransmissionProfile] = {
         max_timeout=8.0,
     ),
     # CoCoA (draft-ietf-core-cocoa-03) with the same retransmission budget as
-    # lossy-fixed, so that comparisons isolate the timeout policy.
+    # lossy-fixed, so that comparisons isolate the timeout policy, and its
+    # backoff capped at 8 s like lossy-fixed's (see AdaptiveProfile).
     "adaptive": AdaptiveProfile(),
 }
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import random
+from dataclasses import replace
 
 import pytest
 from hypothesis import given, settings
@@ -20,6 +21,7 @@ from coapkb.rto import (
     RttEstimator,
     SampleKind,
     attribute_reply,
+    backed_off_cap,
     classify_sample,
     get_profile,
     variable_backoff_factor,
@@ -257,6 +259,31 @@ def test_worst_case_wait_handles_non_monotonic_vbf() -> None:
     assert worst_case_wait(2.0, 3.0, 4, math.inf, backoff_factor=2.0) == approx(93.0)
 
 
+def test_adaptive_backoff_cap() -> None:
+    rng = random.Random(5)
+    capped, plain = AdaptiveProfile(), AdaptiveProfile(backoff_cap=None)
+    assert capped.backoff_cap == 8.0 and capped.as_dict()["backoff_cap"] == 8.0
+    rto = capped.new_rto()
+    for _ in range(20):
+        rto.on_sample(0.001, 0, now=0.0)
+    # from the 0.5 s clamp, ×3: 0.5, 1.5, 4.5, then capped at 8 (plain CoCoA: 13.5, 40.5, 60, 60)
+    s = capped.schedule(rng, rto, now=0.0)
+    assert s.timeouts() == approx((0.5, 1.5, 4.5, 8.0, 8.0, 8.0, 8.0)) and s.total_wait == approx(38.5)
+    assert plain.schedule(rng, rto, now=0.0).timeouts() == approx((0.5, 1.5, 4.5, 13.5, 40.5, 60.0, 60.0))
+    # an initial timeout above the cap is never shortened; it just does not grow
+    slow = CocoaRto(initial_rto=10.0)
+    s = capped.schedule(rng, slow, now=0.0)
+    assert 10.0 <= s.initial_timeout <= 15.0 and set(s.timeouts()) == {s.initial_timeout}
+    assert backed_off_cap(0.5, 60.0, 8.0) == 8.0 and backed_off_cap(12.0, 60.0, 8.0) == 12.0
+    assert backed_off_cap(90.0, 60.0, 8.0) == 60.0 and backed_off_cap(0.5, 60.0, None) == 60.0
+    # the bound over a range crossing the cap: worst at the top, 7·9 = 63
+    assert worst_case_wait(0.5, 9.0, 6, 60.0, backoff_cap=8.0) == approx(63.0)
+    # below the cap the VBF bands still decide: [0.5, 1.2] → just below 1 s (×3): 1+3+8·5 = 44
+    assert worst_case_wait(0.5, 1.2, 6, 60.0, backoff_cap=8.0) == approx(44.0)
+    with pytest.raises(ValueError):
+        AdaptiveProfile(backoff_cap=0.0)
+
+
 def test_profiles_registry_and_bounds() -> None:
     assert set(PROFILES) == {"rfc7252", "lossy-fixed", "adaptive"}
     rfc = PROFILES["rfc7252"]
@@ -266,8 +293,10 @@ def test_profiles_registry_and_bounds() -> None:
     # worst initial 0.8·1.25 = 1.0: 1, 2, 4, 8, 8, 8, 8 → 39 s (span: minus the last 8 → 31)
     assert (lossy.max_transmit_span(), lossy.max_transmit_wait()) == approx((31.0, 39.0))
     adaptive = PROFILES["adaptive"]
-    # worst initial 1.5·32 = 48 (×1.5): 48 + 6·60 = 408
-    assert adaptive.max_transmit_wait() == approx(408.0)
+    # worst initial 1.5·32 = 48 (×1.5), above the 8 s backoff cap, so every
+    # timeout stays 48: 7·48 = 336.  Plain CoCoA (no cap): 48 + 6·60 = 408.
+    assert adaptive.max_transmit_wait() == approx(336.0)
+    assert replace(adaptive, backoff_cap=None).max_transmit_wait() == approx(408.0)
     for profile in PROFILES.values():
         d = profile.as_dict()
         json.dumps(d)
@@ -291,9 +320,11 @@ def test_profile_schedules() -> None:
         rto.on_sample(0.001, 0, now=0.0)
     s = adaptive.schedule(rng, rto, now=0.0)  # converged: clamp 0.5, ×3
     assert (s.initial_timeout, s.backoff_factor) == (0.5, 3.0)
-    # the per-peer bound is then much tighter than the static one:
-    #   0.5, 1.5, 4.5, 13.5, 40.5, 60, 60 = 180.5
-    assert adaptive.max_transmit_wait_for(rto, now=0.0) == approx(180.5)
+    # the per-peer bound is then much tighter than the static one (×3 from
+    # the clamp, capped at 8 s):
+    #   0.5, 1.5, 4.5, 8, 8, 8, 8 = 38.5   (plain CoCoA: 0.5, 1.5, 4.5, 13.5, 40.5, 60, 60 = 180.5)
+    assert adaptive.max_transmit_wait_for(rto, now=0.0) == approx(38.5)
+    assert replace(adaptive, backoff_cap=None).max_transmit_wait_for(rto, now=0.0) == approx(180.5)
     fast = adaptive.with_link_rate(35_000)
     assert fast.new_rto().link_rate_bps == 35_000 and fast.as_dict()["link_rate_bps"] == 35_000
     with pytest.raises(ValueError):
