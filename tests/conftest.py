@@ -7,6 +7,7 @@ import os
 import shutil
 import socket
 import sys
+from decimal import Decimal
 from pathlib import Path
 from typing import AsyncIterator
 
@@ -15,6 +16,17 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"
 IN_CI = bool(os.environ.get("CI"))
+KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
+
+#: Robots of the committed ontologies that can pick by gripping (Query_4), and their payloads.
+GRIPPING_ROBOTS = {
+    "Robot1": Decimal("60.6"),
+    "Robot2": Decimal("31.4"),
+    "Robot4": Decimal("75.4"),
+    "Robot6": Decimal("32.1"),
+    "Robot7": Decimal("73"),
+    "Robot8": Decimal("29.9"),
+}
 
 
 def require(condition: bool, reason: str) -> None:

@@ -23,20 +23,9 @@ from typing import AsyncIterator
 import pytest
 import pytest_asyncio
 
-from conftest import ONTOLOGIES, ROOT, ServerProcess, free_udp_port
+from conftest import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, ROOT, ServerProcess, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
-
-KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-
-GRIPPING_ROBOTS = {
-    "Robot1": Decimal("60.6"),
-    "Robot2": Decimal("31.4"),
-    "Robot4": Decimal("75.4"),
-    "Robot6": Decimal("32.1"),
-    "Robot7": Decimal("73"),
-    "Robot8": Decimal("29.9"),
-}
 
 
 @dataclass

@@ -33,11 +33,10 @@ from coapkb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 
-from conftest import ONTOLOGIES, ServerProcess, free_tcp_port, free_udp_port
+from conftest import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
-KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
 
 OBJ = "http://www.tcs.org/2018/Object#"
 LOC = "http://www.tcs.org/2018/Location#"
@@ -51,14 +50,6 @@ SEED_QUERIES = {
     "robots-for-grip": {"grip": "gripping"},
 }
 
-GRIPPING_ROBOTS = {
-    "Robot1": Decimal("60.6"),
-    "Robot2": Decimal("31.4"),
-    "Robot4": Decimal("75.4"),
-    "Robot6": Decimal("32.1"),
-    "Robot7": Decimal("73"),
-    "Robot8": Decimal("29.9"),
-}
 
 #: Takes minutes to evaluate (27k^3 solutions to count), inside one next() the
 #: KB's deadline cannot interrupt: only the server's outer timeout answers.

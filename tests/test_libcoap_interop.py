@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from decimal import Decimal
 from pathlib import Path
 from typing import AsyncIterator
 
@@ -25,22 +24,13 @@ from coapkb.named_queries import NAMED_QUERIES
 from coapkb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 
-from conftest import ONTOLOGIES, ServerProcess, free_udp_port, require_libcoap
+from conftest import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap
 
 pytestmark = [pytest.mark.libcoap, pytest.mark.asyncio(loop_scope="module")]
 
-KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
 OBJ = "http://www.tcs.org/2018/Object#"
 CAP = "http://www.tcs.org/2018/Capability#"
 
-GRIPPING_ROBOTS = {
-    "Robot1": Decimal("60.6"),
-    "Robot2": Decimal("31.4"),
-    "Robot4": Decimal("75.4"),
-    "Robot6": Decimal("32.1"),
-    "Robot7": Decimal("73"),
-    "Robot8": Decimal("29.9"),
-}
 
 BIG = "SELECT * WHERE { ?s ?p ?o } LIMIT 100"
 
