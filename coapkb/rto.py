@@ -541,17 +541,14 @@ class FixedProfile(TransmissionProfile):
         wire_bytes: int = 0,
         outstanding: int = 1,
     ) -> RetransmissionSchedule:
-        initial = rng.uniform(self.ack_timeout, self.ack_timeout * self.ack_random_factor)
-        return RetransmissionSchedule(
-            initial_timeout=min(initial, self.max_timeout),
-            backoff_factor=self.backoff_factor,
-            max_retransmit=self.max_retransmit,
-            max_timeout=self.max_timeout,
-        )
+        return self._from_initial(rng.uniform(self.ack_timeout, self.ack_timeout * self.ack_random_factor))
 
     def _worst(self) -> RetransmissionSchedule:
+        return self._from_initial(self.ack_timeout * self.ack_random_factor)
+
+    def _from_initial(self, initial: float) -> RetransmissionSchedule:
         return RetransmissionSchedule(
-            initial_timeout=min(self.ack_timeout * self.ack_random_factor, self.max_timeout),
+            initial_timeout=min(initial, self.max_timeout),
             backoff_factor=self.backoff_factor,
             max_retransmit=self.max_retransmit,
             max_timeout=self.max_timeout,
