@@ -53,7 +53,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,7 +76,7 @@ from .team import (
     TeamSpec,
     draw_tasks,
 )
-from .transport.base import ClientTransport, Endpoint, TransportError
+from .transport.base import Endpoint, TransportError
 
 __all__ = [
     "COLUMNS",
@@ -230,21 +230,6 @@ class NetnsPlacement(Placement):
 
     def command(self, name: str, argv: list[str]) -> list[str]:
         return self.testbed.exec_args(name, argv)
-
-
-class _MeteredTeam(Team):
-    """A :class:`Team` that reads the link counters when the run is over but
-    before the feeder downloads the robots' statistics, so that download (a
-    few KB of latency lists at 80 tasks) is not charged to the system."""
-
-    #: Reads the counters; set by run_once before the run.
-    snapshot: Callable[[], Awaitable[dict[str, Any]]] | None = None
-    end_reading: dict[str, Any] | None = None
-
-    async def _collect_stats(self, client: ClientTransport) -> dict[str, Any]:
-        if self.snapshot is not None:
-            self.end_reading = await self.snapshot()
-        return await super()._collect_stats(client)
 
 
 # --------------------------------------------------------------------------- one run
@@ -407,16 +392,21 @@ async def _measure(
         retrans = await _tcp_counters(testbed, hosts) if tcp else {}
         return {"counters": counters, "tcp": retrans}
 
-    async with _MeteredTeam.launch(spec, NetnsPlacement(testbed)) as team:
-        assert isinstance(team, _MeteredTeam)
-        team.snapshot = reading
+    end: dict[str, Any] = {}
+
+    async def read_end() -> None:
+        # Before the feeder downloads the robots' statistics (a few KB at 80
+        # tasks), so that download is not charged to the system.
+        end.update(await reading())
+
+    async with Team.launch(spec, NetnsPlacement(testbed)) as team:
         before = await reading()
         # The feeder's client transport is opened inside Team.run, so its
         # sockets (and a ZeroMQ context's I/O threads) belong to the feeder's
         # namespace; the robots' addresses are reachable only from there.
         with enter_netns(testbed[FEEDER].netns):
-            record = await team.run(task_list)
-        after = team.end_reading or await reading()
+            record = await team.run(task_list, finished=read_end)
+        after = end or await reading()
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
     total = _sum_counters(delta)
     out["wire_bytes"] = total.tx_bytes

@@ -24,7 +24,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, AsyncIterator, Callable, Sequence
+from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 
 import cbor2
 
@@ -309,8 +309,13 @@ class Team:
         self,
         tasks: Sequence[str],
         progress: Callable[[TaskRecord], None] | None = None,
+        finished: Callable[[], Awaitable[None]] | None = None,
     ) -> dict[str, Any]:
-        """Feed the tasks, wait for every robot to finish executing, return the record."""
+        """Feed the tasks, wait for every robot to finish executing, return the record.
+
+        ``finished`` is awaited once every robot is done and before the feeder
+        downloads their statistics (a benchmark reads its counters there, so
+        that download is not charged to the system)."""
         spec = self.spec
         client = await open_client(spec.transport, retransmission=spec.retransmission)
         watcher = ObservedStates(client, self.endpoints, STATE_PATH)
@@ -336,6 +341,8 @@ class Team:
             completion_s = time.monotonic() - started
             for share_records in per_cluster:
                 records.extend(share_records)
+            if finished is not None:
+                await finished()
             stats = await self._collect_stats(client)
             feeder = client.counters.as_dict()
         finally:

@@ -303,6 +303,34 @@ def _count_traffic(ctx: aiocoap.Context, counters: TrafficCounters) -> None:
     interface.datagram_msg_received = counting_received
 
 
+def _tolerate_late_events(ctx: aiocoap.Context) -> None:
+    """Survive a response or ICMP error for a request the caller gave up on.
+
+    aiocoap 0.4.17 drops interest in a cancelled request only in a
+    done-callback; a response or ICMP error handled before that callback runs
+    hits the cancelled future, and the InvalidStateError escapes through the
+    socket callback (which can close the context's socket).  The event has
+    nobody to go to, so it is dropped here, on this context's message manager
+    only."""
+    manager = ctx.request_interfaces[0].token_interface
+    dispatch_message, dispatch_error = manager.dispatch_message, manager.dispatch_error
+
+    def tolerant_dispatch_message(message: aiocoap.Message) -> None:
+        try:
+            dispatch_message(message)
+        except asyncio.InvalidStateError:
+            log.debug("late response from %s for an abandoned request", message.remote)
+
+    def tolerant_dispatch_error(exc: Exception, remote: Any) -> None:
+        try:
+            dispatch_error(exc, remote)
+        except asyncio.InvalidStateError:
+            log.debug("late error for an abandoned request to %s: %s", remote, exc)
+
+    manager.dispatch_message = tolerant_dispatch_message
+    manager.dispatch_error = tolerant_dispatch_error
+
+
 class CoapServerTransport:
     """Serves a :class:`Service` over CoAP/UDP.
 
@@ -346,6 +374,7 @@ class CoapServerTransport:
         except OSError as exc:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
         controller.install(ctx)
+        _tolerate_late_events(ctx)
         port = _udp_interface(ctx)._local_port()
         counters = TrafficCounters()
         _count_traffic(ctx, counters)
@@ -380,6 +409,7 @@ class CoapClientTransport:
         controller = RetransmissionController(retransmission)
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.coap.client")
         controller.install(ctx)
+        _tolerate_late_events(ctx)
         return cls(ctx, controller)
 
     def describe(self) -> dict[str, Any]:
