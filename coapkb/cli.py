@@ -20,6 +20,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from . import codec
 from .messages import ContentFormat, Method
+from .warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
 
 class UserError(Exception):
@@ -379,9 +380,9 @@ async def _bench(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- output
 
 WELL_KNOWN_PREFIXES = {
-    "obj": "http://www.tcs.org/2018/Object#",
-    "loc": "http://www.tcs.org/2018/Location#",
-    "cap": "http://www.tcs.org/2018/Capability#",
+    "obj": OBJECT_NS,
+    "loc": LOCATION_NS,
+    "cap": CAPABILITY_NS,
     "rdf": "http://www.w3.org/1999/02/22-rdf-syntax-ns#",
     "rdfs": "http://www.w3.org/2000/01/rdf-schema#",
     "owl": "http://www.w3.org/2002/07/owl#",

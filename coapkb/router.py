@@ -15,8 +15,7 @@ log = logging.getLogger(__name__)
 
 
 class Router(Service):
-    """Routes requests by exact path; a prefix route (path ending in ``/``)
-    serves every path below it that has no exact route."""
+    """Routes requests by exact path (every resource is listed in discovery)."""
 
     def __init__(self) -> None:
         self._routes: dict[str, tuple[ResourceInfo, Handler]] = {}
@@ -30,14 +29,8 @@ class Router(Service):
     def resources(self) -> list[ResourceInfo]:
         return [info for info, _ in self._routes.values()]
 
-    def _lookup(self, path: str) -> tuple[ResourceInfo, Handler] | None:
-        if path in self._routes:
-            return self._routes[path]
-        parent = path.rsplit("/", 1)[0] + "/"
-        return self._routes.get(parent)
-
     async def handle(self, request: Request) -> Response:
-        route = self._lookup(request.path)
+        route = self._routes.get(request.path)
         if route is None:
             return Response.error(Status.NOT_FOUND, f"no resource at {request.path}")
         info, handler = route

@@ -37,11 +37,11 @@ from .messages import ContentFormat, Method, Request
 from .named_queries import NAMED_QUERIES
 from .rto import PROFILES
 from .transport import open_client
+from .warehouse import CLUSTER_SIZE, OBJECT_NS
 from .transport.base import ClientTransport, Endpoint
 
 log = logging.getLogger(__name__)
 
-CLUSTER_SIZE = 3
 MODES = ("distributed", "central")
 DEFAULT_ONTOLOGIES = Path(__file__).resolve().parent.parent / "ontologies"
 
@@ -115,7 +115,7 @@ def draw_tasks(
     """``n`` product names drawn (with a seed, with replacement) from the Object KB."""
     kb = KnowledgeBase.load([ontologies / "Object.owl"])
     result = kb.query(
-        "PREFIX o: <http://www.tcs.org/2018/Object#> SELECT ?name WHERE { ?p o:Product_name ?name } ORDER BY ?name",
+        f"PREFIX o: <{OBJECT_NS}> SELECT ?name WHERE {{ ?p o:Product_name ?name }} ORDER BY ?name",
         row_limit=10_000_000,
     )
     names = [str(row[0]) for row in result.rows if str(row[0]) not in exclude]  # type: ignore[union-attr]
