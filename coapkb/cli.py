@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
 
-from . import codec
-from .messages import ContentFormat, Method
-from .warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
+from .wire import codec
+from .transport.messages import ContentFormat, Method
+from .world.warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
 
 class UserError(Exception):
@@ -42,9 +42,9 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
 
 
 async def _serve(args: argparse.Namespace) -> int:
-    from .kb_resources import KBResources, QueryLimits
-    from .knowledge_base import KBError, KnowledgeBase
-    from .router import Router
+    from .kb.resources import KBResources, QueryLimits
+    from .kb.store import KBError, KnowledgeBase
+    from .transport.router import Router
     from .transport import TransportError, serve
 
     endpoint = _endpoint(args.bind, args.transport)
@@ -106,7 +106,7 @@ def _add_agent(sub: argparse._SubParsersAction) -> None:
 async def _agent(args: argparse.Namespace) -> int:
     from .agent.robot import Robot
     from .config import ConfigError, load_config
-    from .knowledge_base import KBError
+    from .kb.store import KBError
     from .transport import TransportError
 
     try:
@@ -157,7 +157,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 async def _demo(args: argparse.Namespace) -> int:
-    from .team import draw_tasks, DEFAULT_ONTOLOGIES
+    from .harness.team import draw_tasks, DEFAULT_ONTOLOGIES
 
     tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS) + list(DEMO_TASKS[1:])
     print("Demo: a team of 3 robots (Robot1: Location KB, Robot2: Object KB, Robot3: Capability KB)")
@@ -173,7 +173,7 @@ async def _demo(args: argparse.Namespace) -> int:
 
 
 async def _team(args: argparse.Namespace) -> int:
-    from .team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file, summarise
+    from .harness.team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file, summarise
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
@@ -294,7 +294,7 @@ def _read_query_text(arg: str | None) -> str | None:
 
 
 async def _query(args: argparse.Namespace) -> int:
-    from .client import KBClient, QueryFailed
+    from .kb.client import KBClient, QueryFailed
     from .transport import TransportError, open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
@@ -328,7 +328,7 @@ async def _query(args: argparse.Namespace) -> int:
 
 
 def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
-    from .rto import PROFILES
+    from .transport.coap.reliability.rto import PROFILES
 
     import dataclasses
 
@@ -356,7 +356,7 @@ def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    from . import bench
+    from .bench import run as bench
 
     p = sub.add_parser(
         "bench",
@@ -369,7 +369,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 async def _bench(args: argparse.Namespace) -> int:
-    from . import bench
+    from .bench import run as bench
 
     try:
         return await bench.main(args)
@@ -392,7 +392,7 @@ WELL_KNOWN_PREFIXES = {
 
 def render(result, fmt: str) -> str:  # result: QueryResult
     """A query result as text: an aligned table, SPARQL-JSON, or SPARQL CSV."""
-    from .results import AskResult, GraphResult, SelectResult
+    from .kb.results import AskResult, GraphResult, SelectResult
 
     if fmt == "json":
         return json.dumps(json.loads(codec.encode_json(result)), indent=2) + "\n"

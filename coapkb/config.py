@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from .rto import PROFILES
+from .transport.coap.reliability.rto import PROFILES
 from .transport.base import Endpoint
 
 KB_MODULES = ("Object", "Location", "Capability")

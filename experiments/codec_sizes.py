@@ -5,19 +5,19 @@ Usage::
     .venv/bin/python experiments/codec_sizes.py [--backend oxigraph|rdflib] [--synthetic]
 
 Answers come from the warehouse KB (``ontologies/Object.owl`` through
-``coapkb.knowledge_base``) when it is there, else from synthetic results of
+``coapkb.kb.store``) when it is there, else from synthetic results of
 the same shape.  Prints a table and writes ``experiments/results/codec_sizes.csv``.
 
 Columns:
 
-* ``json``: SPARQL 1.1 Query Results JSON as ``coapkb.codec.encode_json``
+* ``json``: SPARQL 1.1 Query Results JSON as ``coapkb.wire.codec.encode_json``
   writes it (no whitespace; rdflib's serialiser adds ~10 %).
 * ``cbor(json)``: the same JSON document encoded as CBOR (cbor2).
 * ``anchor``: the layout measured in docs perf-anchors section 3,
   ``[vars, prefixes, rows]`` with prefixes from the query's PREFIX lines,
   IRIs as ``[index, local]`` and native literals, rebuilt here so the 955 B
   reference can be compared on the same answer.
-* ``compact``: ``coapkb.codec.encode_cbor`` (content-format 60).
+* ``compact``: ``coapkb.wire.codec.encode_cbor`` (content-format 60).
 * ``+zlib``: compact CBOR deflated (level 6), for reference only.
 
 Timings are process CPU time per call: the best of 7 repeats of a loop
@@ -44,8 +44,8 @@ from rdflib.term import Literal, URIRef
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.codec import decode_cbor, decode_json, encode_cbor, encode_json  # noqa: E402 (after sys.path)
-from coapkb.results import AskResult, GraphResult, QueryResult, SelectResult  # noqa: E402
+from coapkb.wire.codec import decode_cbor, decode_json, encode_cbor, encode_json  # noqa: E402 (after sys.path)
+from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult  # noqa: E402
 
 OBJ = "http://www.tcs.org/2018/Object#"
 XSD = "http://www.w3.org/2001/XMLSchema#"
@@ -100,7 +100,7 @@ def kb_answers(backend: str) -> list[tuple[str, str, QueryResult]] | None:
     """The answers from the real KB, or None when it is not available."""
     owl = ROOT / "ontologies" / "Object.owl"
     try:
-        from coapkb.knowledge_base import KnowledgeBase
+        from coapkb.kb.store import KnowledgeBase
     except ImportError:
         return None
     if not owl.exists():

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench import SYSTEMS, read_rows
+from coapkb.bench.run import SYSTEMS, read_rows
 
 FAMILIES: dict[str, tuple[str, str]] = {
     # family: (distributed system, central system)

@@ -25,8 +25,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.messages import ContentFormat, Method, Request  # noqa: E402
-from coapkb.named_queries import NAMED_QUERIES  # noqa: E402
+from coapkb.transport.messages import ContentFormat, Method, Request  # noqa: E402
+from coapkb.kb.named_queries import NAMED_QUERIES  # noqa: E402
 from coapkb.transport import Endpoint, open_client  # noqa: E402
 
 QUERIES = {

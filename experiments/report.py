@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench import SYSTEMS, read_rows
+from coapkb.bench.run import SYSTEMS, read_rows
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -149,7 +149,7 @@ def section_setup(rows: Sequence[dict[str, Any]], csv_path: Path, profile: str) 
         f"{', '.join(v for v in _values(rows, 'retransmission_profile') if v != 'tcp') or '-'}.",
         f"- **Machine**: {os.cpu_count()} CPUs, Linux {platform.release()}, Python {platform.python_version()}. "
         "Every robot, the central KB server and the task feeder are separate OS processes, each in its own "
-        "network namespace (`coapkb.linkemu.Testbed`): a `tbf` shaper at the given rate on both directions of "
+        "network namespace (`coapkb.bench.linkemu.Testbed`): a `tbf` shaper at the given rate on both directions of "
         "each robot's and the server's link, independent per-packet loss charged to the sender, no added delay "
         "(the kernel has no netem). The feeder's link is unshaped and lossless (it is the seed's external task "
         "source).",

@@ -1,15 +1,15 @@
 """Confirmable retransmission on slow, lossy links: the three profiles of
-:data:`coapkb.rto.PROFILES`, measured on kernel-emulated links.
+:data:`coapkb.transport.coap.reliability.rto.PROFILES`, measured on kernel-emulated links.
 
 Two levels (see ``docs/retransmission.md``, "Measured on emulated links"):
 
-**Query level.**  One :class:`coapkb.linkemu.Testbed` per link setting.  For
+**Query level.**  One :class:`coapkb.bench.linkemu.Testbed` per link setting.  For
 every profile it has ``--streams`` independent pairs of hosts
 (``s-<profile>-<i>`` runs ``coapkb serve`` with the three warehouse KBs,
 ``c-<profile>-<i>`` is a client), each host behind its own shaped, lossy
 link, so the pairs never share a queue.  All profiles run at the same time,
 in the same conditions.  Each client (in this process, its sockets opened in
-its namespace with :func:`coapkb.linkemu.enter_netns`) sends a warm-up and
+its namespace with :func:`coapkb.bench.linkemu.enter_netns`) sends a warm-up and
 then ``--queries`` sequential named queries, a seeded mix of the seed's four
 (the same list for every profile).  Recorded per query: latency and outcome;
 per stream: the client's :class:`RetransmissionController` counters
@@ -17,7 +17,7 @@ per stream: the client's :class:`RetransmissionController` counters
 of both hosts (wire bytes and datagrams, including the ones the loss rule
 dropped).
 
-**Team level.**  :func:`coapkb.bench.run_once` with ``coap-distributed``,
+**Team level.**  :func:`coapkb.bench.run.run_once` with ``coap-distributed``,
 3 robots and ``--team-tasks`` tasks, once per profile, with one task list.
 
 Outputs (in ``--out``, default ``experiments/results/retransmission/``):
@@ -50,7 +50,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.rto import (
+from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     SampleKind,
     TransmissionProfile,
@@ -130,7 +130,7 @@ def parse_list(text: str, kind: type = float) -> list[Any]:
 
 
 def profile_for(name: str, bandwidth_kbps: float) -> TransmissionProfile:
-    """A profile of :data:`coapkb.rto.PROFILES` or one of :data:`VARIANTS`."""
+    """A profile of :data:`coapkb.transport.coap.reliability.rto.PROFILES` or one of :data:`VARIANTS`."""
     from dataclasses import replace
 
     if name in PROFILES:
@@ -252,7 +252,7 @@ def team_excess_bound(row: Mapping[str, Any]) -> int:
 
 
 def team_row(row: Mapping[str, Any]) -> dict[str, Any]:
-    """The columns of a :func:`coapkb.bench.run_once` row this experiment reports."""
+    """The columns of a :func:`coapkb.bench.run.run_once` row this experiment reports."""
     out = {k: row.get(k, "") for k in TEAM_COLUMNS if k in row}
     out["bandwidth_kbps"], out["loss_pct"] = row.get("bandwidth_kbps"), row.get("loss_pct")
     out["retransmission_profile"] = row.get("retransmission_profile")
@@ -285,7 +285,7 @@ def simulate(
     wire_bytes: tuple[int, int] = (1216, 300),
 ) -> SimResult:
     """Monte Carlo model of ``n`` sequential single-exchange queries, using the
-    profile's own schedule and estimator code (:mod:`coapkb.rto`).
+    profile's own schedule and estimator code (:mod:`coapkb.transport.coap.reliability.rto`).
 
     Each transmission reaches the server and its reply comes back with
     probability ``(1 - loss)²`` (the testbed drops each datagram with
@@ -293,7 +293,7 @@ def simulate(
     retransmits on the schedule until the first reply arrives, so a copy sent
     after a surviving earlier copy's reply was due is spurious; its RTT
     sample is classified and, as the controller does, re-attributed with
-    :func:`coapkb.rto.attribute_reply`.  It models the link's loss and the
+    :func:`coapkb.transport.coap.reliability.rto.attribute_reply`.  It models the link's loss and the
     timers, nothing else (no queueing, no processing jitter), so it gives
     the percentiles a run of ``n`` queries would converge to, which 100
     measured queries cannot pin down at p99.  ``wire_bytes`` (what the
@@ -645,7 +645,7 @@ async def _start_server(tb: Any, host: str) -> Any:
 async def _warm_up(kb: Any, peer: Any, plan: Sequence[tuple[str, dict[str, str]]]) -> None:
     """Unmeasured queries, so the adaptive estimator starts converged (as on a
     robot that has been talking to its peers)."""
-    from coapkb.client import QueryFailed
+    from coapkb.kb.client import QueryFailed
     from coapkb.transport import TransportError
 
     for name, params in plan:
@@ -657,7 +657,7 @@ async def _warm_up(kb: Any, peer: Any, plan: Sequence[tuple[str, dict[str, str]]
 
 async def _measure_stream(kb: Any, peer: Any, plan: Sequence[tuple[str, dict[str, str]]]) -> list[dict[str, Any]]:
     """The plan's queries in sequence: one record (latency, outcome) each."""
-    from coapkb.client import QueryFailed
+    from coapkb.kb.client import QueryFailed
     from coapkb.transport import TransportError
 
     records = []
@@ -687,9 +687,9 @@ async def measure_cell(
     """Query level for one link setting, every profile (names of
     :data:`ALL_PROFILES`) at once.  Returns the per-query records and the
     summary rows."""
-    from coapkb.client import KBClient
-    from coapkb.linkemu import LinkSpec, Testbed, enter_netns
-    from coapkb.team import draw_tasks
+    from coapkb.kb.client import KBClient
+    from coapkb.bench.linkemu import LinkSpec, Testbed, enter_netns
+    from coapkb.harness.team import draw_tasks
     from coapkb.transport import Endpoint, open_client
 
     link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct)
@@ -762,7 +762,7 @@ async def measure_cell(
 
 
 async def measure_team(bandwidth_kbps: float, loss_pct: float, profile: str, tasks: int, seed: int) -> dict[str, Any]:
-    from coapkb import bench
+    from coapkb.bench import run as bench
 
     row = await bench.run_once("coap-distributed", 3, tasks, bandwidth_kbps, loss_pct, rep=0,
                                retransmission=profile, seed=seed)
@@ -790,7 +790,7 @@ def report(out: Path, model_samples: int = 20_000) -> str:
 async def amain(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not args.report_only:
-        from coapkb.linkemu import available, cleanup_stale
+        from coapkb.bench.linkemu import available, cleanup_stale
 
         ok, why = available()
         if not ok:

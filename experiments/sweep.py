@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench import (
+from coapkb.bench.run import (
     CLUSTER_SIZE,
     SYSTEMS,
     append_rows,
@@ -47,7 +47,7 @@ from coapkb.bench import (
     row_key,
     timeouts_for,
 )
-from coapkb.linkemu import available, cleanup_stale
+from coapkb.bench.linkemu import available, cleanup_stale
 
 RESULTS = ROOT / "experiments" / "results"
 

@@ -1,4 +1,4 @@
-"""The benchmark runner (coapkb.bench) and the experiment scripts around it.
+"""The benchmark runner (coapkb.bench.run) and the experiment scripts around it.
 
 The runner test starts real teams in real network namespaces (root only; a
 skip on a laptop, a failure under CI).  Everything else is pure: the CSV
@@ -19,9 +19,9 @@ from typing import Any
 import pytest
 from conftest import require
 
-from coapkb import bench
-from coapkb.bench import COLUMNS, SYSTEMS, append_rows, done_keys, read_rows, row_key
-from coapkb.linkemu import LinkSpec, Testbed, available, enter_netns
+from coapkb.bench import run as bench
+from coapkb.bench.run import COLUMNS, SYSTEMS, append_rows, done_keys, read_rows, row_key
+from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
 
 ROOT = Path(__file__).resolve().parent.parent
 

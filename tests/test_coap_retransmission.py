@@ -22,11 +22,11 @@ import aiocoap.meta
 import aiocoap.resource
 import pytest
 
-from coapkb.coap_retransmission import (
+from coapkb.transport.coap.reliability.cocoa_hooks import (
     RetransmissionController,
     UnsupportedAiocoapVersion,
 )
-from coapkb.rto import FixedProfile, SampleKind
+from coapkb.transport.coap.reliability.rto import FixedProfile, SampleKind
 
 pytestmark = pytest.mark.timeout(90)
 

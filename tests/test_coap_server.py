@@ -1,8 +1,8 @@
 """A robot's KB resources over CoAP/UDP, end to end.
 
 The server is ``coapkb serve`` in its own OS process on 127.0.0.1; the client
-is coapkb's own :class:`~coapkb.transport.coap.CoapClientTransport` (aiocoap)
-with :class:`~coapkb.client.KBClient`, plus a raw UDP socket for garbage.
+is coapkb's own :class:`~coapkb.transport.coap.transport.CoapClientTransport` (aiocoap)
+with :class:`~coapkb.kb.client.KBClient`, plus a raw UDP socket for garbage.
 Every wait is on the thing itself (a response, a line, a process exit).
 """
 
@@ -25,11 +25,11 @@ import pytest
 import pytest_asyncio
 from rdflib import Literal, URIRef
 
-from coapkb import codec
-from coapkb.client import KBClient, QueryFailed, decode
-from coapkb.messages import ContentFormat, Method, Request, Response, Status
-from coapkb.named_queries import NAMED_QUERIES, named_queries_for
-from coapkb.results import SelectResult
+from coapkb.wire import codec
+from coapkb.kb.client import KBClient, QueryFailed, decode
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.kb.named_queries import NAMED_QUERIES, named_queries_for
+from coapkb.kb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 
@@ -449,7 +449,7 @@ async def test_body_hash_mismatch_is_400(transport: ClientTransport, peer: Endpo
     """The transport-level ``qh=`` (hash of the body) must match the body."""
     import aiocoap
 
-    from coapkb.transport.coap import CoapClientTransport
+    from coapkb.transport.coap.transport import CoapClientTransport
 
     assert isinstance(transport, CoapClientTransport)
     msg = aiocoap.Message(code=aiocoap.FETCH, uri=f"coap://{peer.hostport}/kb/sparql", payload=b"ASK {}")

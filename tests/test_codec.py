@@ -28,7 +28,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef
 
-from coapkb.codec import (
+from coapkb.wire.codec import (
     GRAPH_VARS,
     MAX_PREFIX_TABLE_CHARS,
     WELL_KNOWN_DATATYPES,
@@ -40,7 +40,7 @@ from coapkb.codec import (
     render_decimal,
     render_double,
 )
-from coapkb.results import AskResult, GraphResult, QueryResult, SelectResult
+from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
 
 # rdflib's XSD/RDF namespace objects warn when pytest inspects module globals.
 _X = "http://www.w3.org/2001/XMLSchema#"
@@ -187,7 +187,7 @@ COLOURS = ["silver", "grey", "brown", "red", "navy", "blue", "purple", "gold", "
 
 
 def warehouse_row(i: int) -> tuple[URIRef, Literal, Literal, Literal, Literal, Literal, URIRef]:
-    """A product row like coapkb.warehouse's (names average 17 characters there)."""
+    """A product row like coapkb.world.warehouse's (names average 17 characters there)."""
     name = f"{BRAND_KINDS[i % len(BRAND_KINDS)]}_{37 * i + 14}"
     return (
         URIRef(OBJ + name),

@@ -9,7 +9,7 @@ import pytest
 from rdflib import BNode, Literal, URIRef
 from rdflib import namespace as rdfns
 
-from coapkb.knowledge_base import (
+from coapkb.kb.store import (
     BACKENDS,
     FeatureRefused,
     KBError,
@@ -20,9 +20,9 @@ from coapkb.knowledge_base import (
     QueryTimeout,
     UpdateRefused,
 )
-from coapkb.named_queries import NAMED_QUERIES
-from coapkb.results import AskResult, GraphResult, SelectResult
-from coapkb.warehouse import OBJECT_NS, WarehouseSpec, build_graphs
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.results import AskResult, GraphResult, SelectResult
+from coapkb.world.warehouse import OBJECT_NS, WarehouseSpec, build_graphs
 
 ROOT = Path(__file__).resolve().parent.parent
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]

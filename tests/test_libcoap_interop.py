@@ -18,10 +18,10 @@ import pytest
 import pytest_asyncio
 from rdflib import URIRef
 
-from coapkb import codec
-from coapkb.messages import Method, Request, Status
-from coapkb.named_queries import NAMED_QUERIES
-from coapkb.results import SelectResult
+from coapkb.wire import codec
+from coapkb.transport.messages import Method, Request, Status
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 
 from conftest import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap

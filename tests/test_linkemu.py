@@ -1,4 +1,4 @@
-"""Tests of the kernel link emulator itself (coapkb.linkemu).
+"""Tests of the kernel link emulator itself (coapkb.bench.linkemu).
 
 The namespace tests need root, iproute2 and nftables.  They skip with the
 reason from ``linkemu.available()`` when those are missing -- except under CI
@@ -24,8 +24,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from coapkb import linkemu
-from coapkb.linkemu import LinkCounters, LinkSpec, Testbed, UdpRelay, available, cleanup_stale
+from coapkb.bench import linkemu
+from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, UdpRelay, available, cleanup_stale
 
 PY = sys.executable
 PORT = 47000
@@ -323,7 +323,7 @@ async def test_async_teardown_kills_spawned(netns: None) -> None:
 def test_sigterm_tears_down(netns: None) -> None:
     script = (
         "import sys, time\n"
-        "from coapkb.linkemu import Testbed, LinkSpec\n"
+        "from coapkb.bench.linkemu import Testbed, LinkSpec\n"
         "with Testbed(['a', 'b'], LinkSpec(rate_kbit=64)) as tb:\n"
         "    tb.popen('a', ['sleep', '60'])\n"
         "    print(tb.run_id, flush=True)\n"

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from rdflib import Literal, URIRef
 
-from coapkb.knowledge_base import BACKENDS, KnowledgeBase
-from coapkb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
-from coapkb.warehouse import (
+from coapkb.kb.store import BACKENDS, KnowledgeBase
+from coapkb.kb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
+from coapkb.world.warehouse import (
     CAPABILITY_NS,
     GRIP_TYPES,
     LOCATION_NS,

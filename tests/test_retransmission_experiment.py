@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import require
 
-from coapkb.rto import PROFILES
+from coapkb.transport.coap.reliability.rto import PROFILES
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -150,7 +150,7 @@ def test_model_uses_the_profiles_schedules() -> None:
 def test_tiny_real_run(tmp_path: Path) -> None:
     """Every profile at once over one emulated 512 kbit/s, 10 % loss link
     setting: a few queries each, and the whole report pipeline."""
-    from coapkb import linkemu
+    from coapkb.bench import linkemu
 
     ok, why = linkemu.available()
     require(ok, f"no kernel link emulation: {why}")

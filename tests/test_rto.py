@@ -1,4 +1,4 @@
-"""coapkb.rto as a pure unit: every expected RTO below is computed by hand in
+"""coapkb.transport.coap.reliability.rto as a pure unit: every expected RTO below is computed by hand in
 the comments (α = 1/8, β = 1/4, G = 0.1, K_strong = 4, K_weak = 1)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from coapkb.rto import (
+from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     AdaptiveProfile,
     CocoaRto,

@@ -26,12 +26,12 @@ from coapkb.agent.controller import DEPOT
 from coapkb.agent.robot_state import PlannedState
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign
 from coapkb.config import CostModel
-from coapkb.knowledge_base import KnowledgeBase
-from coapkb.messages import ContentFormat, Method, Request
-from coapkb.named_queries import NAMED_QUERIES
-from coapkb.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
+from coapkb.kb.store import KnowledgeBase
+from coapkb.transport.messages import ContentFormat, Method, Request
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
 from coapkb.transport import open_client
-from coapkb.warehouse import layout_from_row, travel_distance
+from coapkb.world.warehouse import layout_from_row, travel_distance
 
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"

@@ -7,7 +7,7 @@ from typing import AsyncIterator
 
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import PLAN_PATH, ObservedStates
-from coapkb.messages import ContentFormat, Request, Response, Status
+from coapkb.transport.messages import ContentFormat, Request, Response, Status
 from coapkb.transport.base import Endpoint, TrafficCounters
 
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rdflib.namespace import OWL, RDF, RDFS
 
-from coapkb.warehouse import (
+from coapkb.world.warehouse import (
     CAPABILITY_NS,
     GRIP_COMPONENT,
     GRIP_TYPES,

@@ -23,7 +23,7 @@ import zmq.asyncio
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from coapkb.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.base import (
     Endpoint,
     PeerUnreachable,
@@ -31,8 +31,8 @@ from coapkb.transport.base import (
     Service,
     TransportError,
 )
-from coapkb.transport.zmq import ZmqClientTransport, ZmqOptions, ZmqServerTransport, zmtp_frame_bytes
-from coapkb.transport.zmq_wire import (
+from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqOptions, ZmqServerTransport, zmtp_frame_bytes
+from coapkb.wire.zmq_envelope import (
     Observe,
     WireError,
     decode_request,
@@ -266,7 +266,7 @@ async def test_garbage_does_not_kill_the_server(server, client, caplog) -> None:
     raw.setsockopt(zmq.LINGER, 0)
     raw.connect(f"tcp://{server.endpoint.hostport}")
     try:
-        with caplog.at_level(logging.WARNING, logger="coapkb.transport.zmq"):
+        with caplog.at_level(logging.WARNING, logger="coapkb.transport.zmq.transport"):
             for _ in range(20):
                 for frames in garbage:
                     await raw.send_multipart(frames)
@@ -420,9 +420,9 @@ async def test_client_that_vanishes_is_forgotten(server, service) -> None:
 SERVER_PROCESS = textwrap.dedent(
     """
     import asyncio, sys
-    from coapkb.messages import Response, Status
+    from coapkb.transport.messages import Response, Status
     from coapkb.transport.base import Endpoint, Service
-    from coapkb.transport.zmq import ZmqServerTransport
+    from coapkb.transport.zmq.transport import ZmqServerTransport
 
     class Echo(Service):
         def resources(self):
@@ -609,7 +609,7 @@ def test_encode_rejects_what_the_envelope_cannot_carry() -> None:
 
 
 def test_wire_carries_etags_with_and_without_observe() -> None:
-    from coapkb.transport.zmq_wire import Observe, decode_request, encode_request
+    from coapkb.wire.zmq_envelope import Observe, decode_request, encode_request
 
     request = Request(Method.GET, "/kb/q/x", {"name": "y"}, accept=60, etags=(b"\x01\x02", b"abcdefgh"))
     for observe in (Observe.NONE, Observe.REGISTER):

@@ -4,7 +4,7 @@
     python tools/gen_warehouse.py --products 1000 --robots 9 --seed 7 --out ontologies/
 
 Output is deterministic: the same arguments give byte-identical files.  The
-logic lives in :mod:`coapkb.warehouse`; this is only its command line.
+logic lives in :mod:`coapkb.world.warehouse`; this is only its command line.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from coapkb.warehouse import WarehouseSpec, generate, write_ontologies
+from coapkb.world.warehouse import WarehouseSpec, generate, write_ontologies
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """The robot agent, one module per component of the seed's Fig. 2:
 
 ========================  =====================================
-Knowledge Base            :mod:`coapkb.knowledge_base`
+Knowledge Base            :mod:`coapkb.kb.store`
 Configuration             :mod:`coapkb.config`
 Controller                :mod:`coapkb.agent.controller`
 Query Handler             :mod:`coapkb.agent.query_handler`

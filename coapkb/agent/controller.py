@@ -20,9 +20,9 @@ from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
 from ..config import RobotConfig
-from ..results import SelectResult
+from ..kb.results import SelectResult
 from ..transport.base import TransportError
-from ..warehouse import Layout, Position, layout_from_row, travel_distance
+from ..world.warehouse import Layout, Position, layout_from_row, travel_distance
 from .query_handler import QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import Assignment, RobotEnergy, TaskFacts, assign, robot_sort_key

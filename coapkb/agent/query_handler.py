@@ -11,12 +11,12 @@ import time
 from dataclasses import dataclass, field
 from typing import Mapping
 
-from ..client import KBClient, QueryFailed
+from ..kb.client import KBClient, QueryFailed
 from ..config import RobotConfig
-from ..knowledge_base import KBError, KnowledgeBase
-from ..messages import ContentFormat, Method
-from ..named_queries import NAMED_QUERIES
-from ..results import QueryResult
+from ..kb.store import KBError, KnowledgeBase
+from ..transport.messages import ContentFormat, Method
+from ..kb.named_queries import NAMED_QUERIES
+from ..kb.results import QueryResult
 from ..transport.base import Endpoint, TransportError
 
 #: How queries travel: "compact" = named query resources with CBOR answers

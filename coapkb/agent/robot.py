@@ -22,12 +22,12 @@ from typing import Any
 
 import cbor2
 
-from ..client import KBClient
+from ..kb.client import KBClient
 from ..config import RobotConfig
-from ..kb_resources import KBResources
-from ..knowledge_base import KnowledgeBase
-from ..messages import ContentFormat, Method, Request, Response, Status
-from ..router import Router
+from ..kb.resources import KBResources
+from ..kb.store import KnowledgeBase
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.router import Router
 from ..transport import open_client, serve
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task

@@ -7,7 +7,7 @@ import asyncio
 import logging
 from typing import Callable, Mapping
 
-from ..messages import ContentFormat, Method, Request
+from ..transport.messages import ContentFormat, Method, Request
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from .robot_state import PlannedState, RobotState
 

@@ -28,11 +28,11 @@ async def open_client(scheme: str, *, retransmission: Any = "adaptive") -> Clien
     ``retransmission`` (a profile name or profile) sets CoAP's confirmable
     retransmission; TCP retransmits by itself, so ZeroMQ ignores it."""
     if scheme == "coap":
-        from .coap import CoapClientTransport
+        from .coap.transport import CoapClientTransport
 
         return await CoapClientTransport.create(retransmission=retransmission)
     if scheme == "zmq":
-        from .zmq import ZmqClientTransport
+        from .zmq.transport import ZmqClientTransport
 
         return ZmqClientTransport()
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
@@ -42,11 +42,11 @@ async def serve(service: Service, endpoint: Endpoint, *, retransmission: Any = "
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``retransmission`` applies to CoAP's confirmable notifications."""
     if endpoint.scheme == "coap":
-        from .coap import CoapServerTransport
+        from .coap.transport import CoapServerTransport
 
         return await CoapServerTransport.start(service, endpoint, retransmission=retransmission)
     if endpoint.scheme == "zmq":
-        from .zmq import ZmqServerTransport
+        from .zmq.transport import ZmqServerTransport
 
         return await ZmqServerTransport.start(service, endpoint)
     raise ValueError(f"unknown transport {endpoint.scheme!r} (choose from {', '.join(SCHEMES)})")

@@ -1,6 +1,6 @@
 """The one transport interface.
 
-A transport moves :class:`~coapkb.messages.Request` / ``Response`` pairs
+A transport moves :class:`~coapkb.transport.messages.Request` / ``Response`` pairs
 between robots.  The client side is :class:`ClientTransport`; the server side
 exposes a :class:`Service` (the robot's resources) through a
 :class:`ServerTransport`.  CoAP/UDP (``coap``) and ZeroMQ/TCP (``zmq``)
@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 from typing import AsyncIterator, Callable, Protocol
 
-from ..messages import Request, Response
+from .messages import Request, Response
 
 
 class RateLimiter:

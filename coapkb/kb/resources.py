@@ -1,6 +1,6 @@
 """The knowledge base's resources: ``/kb``, ``/kb/sparql`` and ``/kb/q/<name>``.
 
-Transport-neutral handlers mounted on a :class:`~coapkb.router.Router`; the
+Transport-neutral handlers mounted on a :class:`~coapkb.transport.router.Router`; the
 CoAP and ZeroMQ transports expose them unchanged.
 """
 
@@ -14,13 +14,13 @@ from dataclasses import dataclass
 
 import cbor2
 
-from . import codec
-from .knowledge_base import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
-from .messages import ContentFormat, Method, Request, Response, Status
+from ..wire import codec
+from .store import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .named_queries import NamedQuery, named_queries_for
 from .results import QueryResult
-from .router import Router
-from .transport.base import ResourceInfo
+from ..transport.router import Router
+from ..transport.base import ResourceInfo
 
 RESULT_FORMATS = (ContentFormat.CBOR, ContentFormat.JSON)
 

@@ -7,7 +7,7 @@ import logging
 from typing import Awaitable, Callable
 
 from .messages import Request, Response, Status
-from .transport.base import ResourceInfo, Service
+from .base import ResourceInfo, Service
 
 Handler = Callable[[Request], Awaitable[Response]]
 

@@ -8,13 +8,13 @@ compact CBOR answers against the seed's own ZeroMQ/TCP with SPARQL text and
 SPARQL-JSON answers.
 
 Every process of a run lives in its own network namespace of a
-:class:`coapkb.linkemu.Testbed`: each robot (``Robot1`` ..), the central
+:class:`coapkb.bench.linkemu.Testbed`: each robot (``Robot1`` ..), the central
 server (``central``, centralised systems only) and the task feeder
 (``feeder``).  Robots and the central server get the run's
 ``LinkSpec(rate_kbit=B, loss_pct=L)``; the feeder stands for the seed's
 external task source and gets an unshaped, lossless link.  The feeder itself
-is :meth:`coapkb.team.Team.run`, which runs in this process; it is moved into
-its namespace with :func:`coapkb.linkemu.enter_netns` for the duration of the
+is :meth:`coapkb.harness.team.Team.run`, which runs in this process; it is moved into
+its namespace with :func:`coapkb.bench.linkemu.enter_netns` for the duration of the
 run, so its sockets are created there.
 
 What a row measures (see ``docs/benchmarks.md``):
@@ -67,7 +67,7 @@ from .linkemu import (
     cleanup_stale,
     enter_netns,
 )
-from .team import (
+from ..harness.team import (
     CLUSTER_SIZE,
     DEFAULT_ONTOLOGIES,
     Placement,
@@ -76,7 +76,7 @@ from .team import (
     TeamSpec,
     draw_tasks,
 )
-from .transport.base import Endpoint, TransportError
+from ..transport.base import Endpoint, TransportError
 
 __all__ = [
     "COLUMNS",
@@ -542,7 +542,7 @@ def parse_systems(text: str) -> list[str]:
 
 async def main(args: argparse.Namespace) -> int:
     """``coapkb bench``: exit 0 if every run was ok, 1 if one failed, 2 if none could start."""
-    from .rto import PROFILES
+    from ..transport.coap.reliability.rto import PROFILES
 
     systems = parse_systems(args.systems)
     if args.robots < CLUSTER_SIZE or args.robots % CLUSTER_SIZE:
@@ -573,6 +573,6 @@ async def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover - `coapkb bench` is the entry point
-    parser = argparse.ArgumentParser(prog="python -m coapkb.bench")
+    parser = argparse.ArgumentParser(prog="coapkb bench")
     add_arguments(parser)
     sys.exit(asyncio.run(main(parser.parse_args())))

@@ -1,6 +1,6 @@
 """Result codecs: compact CBOR (content-format 60) and SPARQL 1.1 JSON (50).
 
-Pure functions over :mod:`coapkb.results`.  Both codecs are *lossless*:
+Pure functions over :mod:`coapkb.kb.results`.  Both codecs are *lossless*:
 ``decode(encode(r)) == r`` down to the exact lexical form, datatype and
 language tag of every literal.  Decoders raise :class:`CodecError` and
 nothing else on malformed input.
@@ -54,7 +54,7 @@ from typing import Any, Final, cast
 import cbor2
 from rdflib.term import BNode, Literal, URIRef
 
-from .results import AskResult, GraphResult, QueryResult, SelectResult, Term
+from ..kb.results import AskResult, GraphResult, QueryResult, SelectResult, Term
 
 __all__ = [
     "CodecError",

@@ -34,10 +34,10 @@ from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 from aiocoap.util.asyncio.timeoutdict import TimeoutDict
 
-from ..coap_retransmission import RetransmissionController
+from .reliability.cocoa_hooks import RetransmissionController
 from ..messages import Method, Request, Response, Status
-from ..rto import TransmissionProfile
-from .base import (
+from .reliability.rto import TransmissionProfile
+from ..base import (
     Endpoint,
     PeerUnreachable,
     RateLimiter,
@@ -405,7 +405,7 @@ class CoapClientTransport:
 
     @classmethod
     async def create(cls, retransmission: TransmissionProfile | str = "adaptive") -> "CoapClientTransport":
-        """``retransmission``: a profile or its name (see :data:`coapkb.rto.PROFILES`)."""
+        """``retransmission``: a profile or its name (see :data:`coapkb.transport.coap.reliability.rto.PROFILES`)."""
         controller = RetransmissionController(retransmission)
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.coap.client")
         controller.install(ctx)

@@ -4,7 +4,7 @@ estimation and the three transmission profiles coapkb can run with.
 Everything here is pure: no I/O, no asyncio, no clocks.  Times are plain
 floats in seconds, passed in by the caller (``now``), and randomness comes
 from a ``random.Random`` the caller owns, so the arithmetic can be unit-tested
-exactly and replayed.  :mod:`coapkb.coap_retransmission` wires it into aiocoap.
+exactly and replayed.  :mod:`coapkb.transport.coap.reliability.cocoa_hooks` wires it into aiocoap.
 
 Why: RFC 7252's fixed timers (ACK_TIMEOUT 2 s, dithered to 2-3 s, doubling)
 make every lost datagram cost 2-3 s, while a fixed *short* timeout fires

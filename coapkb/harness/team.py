@@ -28,22 +28,22 @@ from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 
 import cbor2
 
-from .agent.query_handler import QUERY_WIRES
-from .agent.team_view import STATE_PATH, ObservedStates, States
-from .agent.task_assigner import robot_sort_key
-from .config import KB_MODULES, STRATEGIES
-from .knowledge_base import KnowledgeBase
-from .messages import ContentFormat, Method, Request
-from .named_queries import NAMED_QUERIES
-from .rto import PROFILES
-from .transport import open_client
-from .warehouse import CLUSTER_SIZE, OBJECT_NS
-from .transport.base import ClientTransport, Endpoint
+from ..agent.query_handler import QUERY_WIRES
+from ..agent.team_view import STATE_PATH, ObservedStates, States
+from ..agent.task_assigner import robot_sort_key
+from ..config import KB_MODULES, STRATEGIES
+from ..kb.store import KnowledgeBase
+from ..transport.messages import ContentFormat, Method, Request
+from ..kb.named_queries import NAMED_QUERIES
+from ..transport.coap.reliability.rto import PROFILES
+from ..transport import open_client
+from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
+from ..transport.base import ClientTransport, Endpoint
 
 log = logging.getLogger(__name__)
 
 MODES = ("distributed", "central")
-DEFAULT_ONTOLOGIES = Path(__file__).resolve().parent.parent / "ontologies"
+DEFAULT_ONTOLOGIES = Path(__file__).resolve().parents[2] / "ontologies"
 
 
 class TeamError(Exception):

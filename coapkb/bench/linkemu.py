@@ -619,7 +619,7 @@ class Testbed:
         if self._state != "new":
             raise LinkEmulationError(f"testbed {self.run_id} was already set up")
         if os.geteuid() != 0:
-            raise LinkEmulationError("link emulation needs root; see coapkb.linkemu.available()")
+            raise LinkEmulationError("link emulation needs root; see coapkb.bench.linkemu.available()")
         self._state = "up"
         atexit.register(self.close)
         self._install_sigterm()
@@ -962,7 +962,7 @@ def enter_netns(name: str) -> Iterator[None]:
     by ``ip netns``, e.g. ``testbed["feeder"].netns``) and back on exit.
 
     Why: a benchmark's task feeder runs in the benchmark process itself
-    (:meth:`coapkb.team.Team.run`), yet its traffic must cross an emulated
+    (:meth:`coapkb.harness.team.Team.run`), yet its traffic must cross an emulated
     link like every other host's.  A socket belongs to the namespace of the
     thread that *creates* it, for its whole life, so code that opens its
     sockets inside this block talks from ``name`` even while an event loop

@@ -49,7 +49,7 @@ from typing import Any
 
 import cbor2
 
-from ..messages import Method, Request, Response, Status
+from ..transport.messages import Method, Request, Response, Status
 
 __all__ = [
     "WireError",

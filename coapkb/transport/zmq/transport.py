@@ -75,8 +75,8 @@ import zmq
 import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
-from .base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
-from .zmq_wire import (
+from ..base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
+from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
     WireError,

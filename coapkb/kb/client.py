@@ -7,10 +7,10 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
-from . import codec
-from .messages import ContentFormat, Method, Request, Response, Status
+from ..wire import codec
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .results import QueryResult
-from .transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.base import ClientTransport, Endpoint, TransportError
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
 DEFAULT_MAX_AGE_S = 60

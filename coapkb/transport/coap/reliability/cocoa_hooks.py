@@ -2,7 +2,7 @@
 
 aiocoap has no RTT estimation.  Its timers come from the message's
 ``transport_tuning``, and the backoff factor of 2 is hard-coded.  This module
-adds what :mod:`coapkb.rto` needs, without touching aiocoap's classes:
+adds what :mod:`coapkb.transport.coap.reliability.rto` needs, without touching aiocoap's classes:
 
 * :meth:`RetransmissionController.tuning_for` returns a :class:`PeerTuning`
   (a ``TransportTuning``) that marks a request as belonging to a peer.  Put it
@@ -54,7 +54,7 @@ instead.  Re-check the call graph before bumping the pin.
 **Spurious retransmissions** are detected in two ways.  Both give lower
 bounds on the count, and we take the larger:
 
-1. *Timing* (Eifel-like, :func:`coapkb.rto.attribute_reply`).  A reply that
+1. *Timing* (Eifel-like, :func:`coapkb.transport.coap.reliability.rto.attribute_reply`).  A reply that
    arrives sooner after a retransmission than half the peer's minimum
    observed RTT cannot be the answer to that retransmission.  Every
    transmission after the latest one the reply can answer was therefore
@@ -361,8 +361,8 @@ class _ManagerHooks:
 class RetransmissionController:
     """Per-peer retransmission timeouts for CoAP CON requests sent by aiocoap.
 
-    One controller holds one :class:`~coapkb.rto.TransmissionProfile` and a
-    :class:`~coapkb.rto.CocoaRto` per peer key.  A peer key is anything
+    One controller holds one :class:`~coapkb.transport.coap.reliability.rto.TransmissionProfile` and a
+    :class:`~coapkb.transport.coap.reliability.rto.CocoaRto` per peer key.  A peer key is anything
     hashable that identifies a peer, for example the transport's
     ``Endpoint``.  Use it like this::
 
@@ -416,7 +416,7 @@ class RetransmissionController:
 
         ``expected_reply_bytes`` is the CoAP size of the reply if the caller
         knows it.  It only matters for the adaptive profile with a link rate.
-        The default assumes a full block (:data:`~coapkb.rto.DEFAULT_REPLY_BYTES`),
+        The default assumes a full block (:data:`~coapkb.transport.coap.reliability.rto.DEFAULT_REPLY_BYTES`),
         or a small 2.31 Continue for non-final Block1 requests.
         ``reliability=True`` makes aiocoap send CON.  Only CON requests are
         retransmitted, and so only they are handled here."""

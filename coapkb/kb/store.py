@@ -1,6 +1,6 @@
 """A robot's read-only knowledge base: RDF files answering SPARQL queries.
 
-Two interchangeable backends give identical :mod:`coapkb.results`:
+Two interchangeable backends give identical :mod:`coapkb.kb.results`:
 
 * ``"oxigraph"`` (default): a pyoxigraph in-memory ``Store``.  About
   0.03 ms per lookup query, flat in the KB size, and ~20x faster loading
