@@ -1,7 +1,8 @@
 """The ``coapkb`` command line.
 
 Every user mistake ends in one ``coapkb: error: ...`` line and a non-zero
-exit (2 for usage, 1 for a failed operation), never a traceback.
+exit (2 for usage, 1 for a failed operation), never a traceback: any
+:class:`~coapkb.errors.CoapkbError` that reaches :func:`main` is printed so.
 """
 
 from __future__ import annotations
@@ -18,12 +19,13 @@ from pathlib import Path
 from typing import Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
 
+from .errors import CoapkbError
 from .wire import codec
 from .transport.messages import ContentFormat, Method
 from .world.warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
 
-class UserError(Exception):
+class UserError(CoapkbError):
     """A mistake the user can fix; printed as one line."""
 
 
@@ -43,25 +45,19 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
 
 async def _serve(args: argparse.Namespace) -> int:
     from .kb.resources import KBResources, QueryLimits
-    from .kb.store import KBError, KnowledgeBase
+    from .kb.store import KnowledgeBase
     from .transport.router import Router
-    from .transport import TransportError, serve
+    from .transport import serve
 
     endpoint = _endpoint(args.bind, args.transport)
     try:
         limits = QueryLimits(row_limit=args.row_limit, time_budget_s=args.time_budget)
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    try:
-        kb = KnowledgeBase.load(args.kb, backend=args.backend)
-    except KBError as exc:
-        raise UserError(str(exc)) from None
+    kb = KnowledgeBase.load(args.kb, backend=args.backend)
     router = Router()
     KBResources(kb, limits).mount(router)
-    try:
-        server = await serve(router, endpoint)
-    except TransportError as exc:
-        raise UserError(str(exc)) from None
+    server = await serve(router, endpoint)
     print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}) on {server.endpoint}", flush=True)
     try:
         await _until_signalled()
@@ -105,15 +101,10 @@ def _add_agent(sub: argparse._SubParsersAction) -> None:
 
 async def _agent(args: argparse.Namespace) -> int:
     from .agent.robot import Robot
-    from .config import ConfigError, load_config
-    from .kb.store import KBError
-    from .transport import TransportError
+    from .config import load_config
 
-    try:
-        config = load_config(args.config)
-        robot = await Robot.start(config, query_wire=args.query_wire)
-    except (ConfigError, KBError, TransportError) as exc:
-        raise UserError(str(exc)) from None
+    config = load_config(args.config)
+    robot = await Robot.start(config, query_wire=args.query_wire)
     print(f"robot {config.robot_id} ready on {robot.server.endpoint}", flush=True)
     try:
         await _until_signalled()
@@ -190,7 +181,7 @@ async def _team(args: argparse.Namespace) -> int:
             if args.tasks < 1:
                 raise UserError("--tasks must be at least 1")
             tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
-    except (ValueError, TeamError) as exc:
+    except ValueError as exc:  # TeamSpec's checks; a TeamError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
     if not tasks:
         raise UserError("no tasks to run")
@@ -459,7 +450,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         return asyncio.run(args.run(args))
-    except UserError as exc:
+    except CoapkbError as exc:  # a user mistake, a bad file, an unreachable peer: one line
         parser.exit(2, f"coapkb: error: {exc}\n")
     except KeyboardInterrupt:
         return 130

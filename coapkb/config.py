@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from .errors import CoapkbError
 from .transport.coap.reliability.rto import PROFILES
 from .transport.base import Endpoint
 
@@ -44,7 +45,7 @@ KB_MODULES = ("Object", "Location", "Capability")
 STRATEGIES = ("compute-by-all", "compute-and-communicate")
 
 
-class ConfigError(ValueError):
+class ConfigError(CoapkbError, ValueError):
     """A configuration mistake; the message names the field."""
 
 

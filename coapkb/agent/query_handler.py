@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Mapping
 
+from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
 from ..config import RobotConfig
 from ..kb.store import KBError, KnowledgeBase
@@ -25,7 +26,7 @@ from ..transport.base import Endpoint, TransportError
 QUERY_WIRES = ("compact", "seed")
 
 
-class QueryError(Exception):
+class QueryError(CoapkbError):
     """A query could not be answered; the message says which, where and why."""
 
 

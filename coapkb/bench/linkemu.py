@@ -77,6 +77,8 @@ from dataclasses import dataclass
 from types import FrameType, TracebackType
 from typing import Any, cast
 
+from ..errors import CoapkbError
+
 __all__ = [
     "ETH_FRAME_MAX",
     "DEFAULT_QUEUE_BYTES",
@@ -131,7 +133,7 @@ _BRIDGE_IF = "br0"
 _NFT_TABLE = "coapkb"
 
 
-class LinkEmulationError(RuntimeError):
+class LinkEmulationError(CoapkbError, RuntimeError):
     """Setting up, changing or tearing down the emulated network failed."""
 
 

@@ -60,7 +60,6 @@ from typing import Any
 
 from .linkemu import (
     LinkCounters,
-    LinkEmulationError,
     LinkSpec,
     Testbed,
     available,
@@ -76,7 +75,8 @@ from ..harness.team import (
     TeamSpec,
     draw_tasks,
 )
-from ..transport.base import Endpoint, TransportError
+from ..errors import CoapkbError
+from ..transport.base import Endpoint
 
 __all__ = [
     "COLUMNS",
@@ -373,7 +373,7 @@ async def run_once(
                 row.update(await _measure(testbed, spec, task_list, hosts, tasks))
     except TimeoutError:
         row["error"] = f"run did not finish within {limits.run_s:g} s"
-    except (TeamError, TransportError, LinkEmulationError, OSError) as exc:
+    except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
         row["error"] = f"{type(exc).__name__}: {exc}"[:500]
     except Exception as exc:  # noqa: BLE001 -- a sweep must survive any one run's failure
         row["error"] = f"unexpected {type(exc).__name__}: {exc}"[:500]

@@ -28,6 +28,7 @@ from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 
 import cbor2
 
+from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.team_view import STATE_PATH, ObservedStates, States
 from ..agent.task_assigner import robot_sort_key
@@ -46,7 +47,7 @@ MODES = ("distributed", "central")
 DEFAULT_ONTOLOGIES = Path(__file__).resolve().parents[2] / "ontologies"
 
 
-class TeamError(Exception):
+class TeamError(CoapkbError):
     """The team could not be started or did not finish its tasks."""
 
 

@@ -7,6 +7,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
+from ..errors import CoapkbError
 from ..wire import codec
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .results import QueryResult
@@ -30,7 +31,7 @@ class CacheStats:
     misses: int = 0
 
 
-class QueryFailed(Exception):
+class QueryFailed(CoapkbError):
     """The robot answered with an error (4.xx/5.xx); ``str()`` is its diagnostic."""
 
     def __init__(self, response: Response) -> None:

@@ -30,6 +30,7 @@ import rdflib
 from rdflib.plugins.sparql.sparql import Query as SparqlQuery
 from rdflib.term import BNode, Literal, URIRef
 
+from ..errors import CoapkbError
 from .results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
 
 __all__ = [
@@ -55,7 +56,7 @@ _RDF_LANGSTRING = "http://www.w3.org/1999/02/22-rdf-syntax-ns#langString"
 # Errors
 
 
-class KBError(Exception):
+class KBError(CoapkbError):
     """Base of every knowledge-base error; the message is fit for a client."""
 
 

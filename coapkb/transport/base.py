@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 from typing import AsyncIterator, Callable, Protocol
 
+from ..errors import CoapkbError
 from .messages import Request, Response
 
 
@@ -38,7 +39,7 @@ class RateLimiter:
         return suppressed
 
 
-class TransportError(Exception):
+class TransportError(CoapkbError):
     """A request could not be completed: peer unreachable, timed out, or reset."""
 
 

@@ -54,6 +54,7 @@ from typing import Any, Final, cast
 import cbor2
 from rdflib.term import BNode, Literal, URIRef
 
+from ..errors import CoapkbError
 from ..kb.results import AskResult, GraphResult, QueryResult, SelectResult, Term
 
 __all__ = [
@@ -71,7 +72,7 @@ __all__ = [
 ]
 
 
-class CodecError(ValueError):
+class CodecError(CoapkbError, ValueError):
     """Input that is not a valid encoding, or a result that cannot be encoded."""
 
 

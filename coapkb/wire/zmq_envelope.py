@@ -49,6 +49,7 @@ from typing import Any
 
 import cbor2
 
+from ..errors import CoapkbError
 from ..transport.messages import Method, Request, Response, Status
 
 __all__ = [
@@ -77,7 +78,7 @@ _REQUEST_FIELDS = 7  # without the optional observe element
 _RESPONSE_FIELDS = 6  # without the optional seq element
 
 
-class WireError(ValueError):
+class WireError(CoapkbError, ValueError):
     """Bytes that are not a well-formed request or response envelope."""
 
 

@@ -1,0 +1,32 @@
+"""The one root of the errors coapkb raises on purpose.
+
+Every error class of the package derives from :class:`CoapkbError`, so a
+caller that means "anything coapkb reports" catches one class, not a tuple:
+
+=========================  ==========================================  ========================
+class                      raised by                                   also a
+=========================  ==========================================  ========================
+``ConfigError``            :mod:`coapkb.config` (a robot's TOML)        ``ValueError``
+``KBError`` and subclasses :mod:`coapkb.kb.store` (load, query)
+``QueryFailed``            :mod:`coapkb.kb.client` (a 4.xx/5.xx answer)
+``QueryError``             :mod:`coapkb.agent.query_handler`
+``TransportError``         :mod:`coapkb.transport` (``PeerUnreachable``)
+``CodecError``             :mod:`coapkb.wire.codec`                     ``ValueError``
+``WireError``              :mod:`coapkb.wire.zmq_envelope`              ``ValueError``
+``TeamError``              :mod:`coapkb.harness.team`
+``LinkEmulationError``     :mod:`coapkb.bench.linkemu`                  ``RuntimeError``
+``UserError``              :mod:`coapkb.cli`
+=========================  ==========================================  ========================
+
+The ``also a`` column keeps existing ``except ValueError`` callers working.
+A bad argument to a function or constructor (a programming mistake, such as
+a negative row limit) stays a plain ``ValueError``, as Python code expects;
+the command line turns the ones it passes through from the user into one
+error line.
+"""
+
+from __future__ import annotations
+
+
+class CoapkbError(Exception):
+    """Base of every error coapkb raises on purpose; ``str()`` is fit for a user."""
