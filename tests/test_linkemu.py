@@ -368,14 +368,14 @@ def test_cleanup_stale_removes_dead_runs_only(netns: None, fake_namespaces: list
 @pytest.mark.root
 def test_partial_setup_failure_leaves_nothing(netns: None, monkeypatch: pytest.MonkeyPatch) -> None:
     """A failure half-way through setup (here: loading the nft table) removes what was built."""
-    real_run = linkemu._run
+    real_run = linkemu.testbed._run
 
     def failing_run(argv, **kwargs):  # type: ignore[no-untyped-def]
         if "nft" in argv and "-f" in argv:
             raise linkemu.LinkEmulationError("injected failure")
         return real_run(argv, **kwargs)
 
-    monkeypatch.setattr(linkemu, "_run", failing_run)
+    monkeypatch.setattr(linkemu.testbed, "_run", failing_run)
     tb = Testbed(["a", "b", "c"], LinkSpec(rate_kbit=128))
     with pytest.raises(linkemu.LinkEmulationError, match="injected"):
         with tb:
