@@ -37,7 +37,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import csv
-import math
 import random
 import sys
 import time
@@ -50,6 +49,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from coapkb.bench.stats import percentile
 from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     SampleKind,
@@ -107,18 +107,6 @@ TEAM_COLUMNS = (
 
 
 # --------------------------------------------------------------------------- pure helpers
-
-
-def percentile(values: Sequence[float], q: float) -> float | None:
-    """Linear-interpolated percentile (numpy's default method), None for no values."""
-    if not values:
-        return None
-    if not 0 <= q <= 100:
-        raise ValueError("q must be in [0, 100]")
-    ordered = sorted(values)
-    pos = (len(ordered) - 1) * q / 100.0
-    lo, hi = math.floor(pos), math.ceil(pos)
-    return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
 
 
 def parse_list(text: str, kind: type = float) -> list[Any]:

@@ -20,6 +20,7 @@ import pytest
 from conftest import require
 
 from coapkb.bench import run as bench
+from coapkb.bench.stats import percentile
 from coapkb.bench.run import COLUMNS, SYSTEMS, append_rows, done_keys, read_rows, row_key
 from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
 
@@ -135,8 +136,8 @@ def test_parse_retrans_segs_and_percentile() -> None:
             "Tcp: RtoAlgorithm RtoMin ActiveOpens RetransSegs InErrs\nTcp: 1 200 4 17 0\n")
     assert bench.parse_retrans_segs(snmp) == 17
     assert bench.parse_retrans_segs("") == 0
-    assert bench._percentile([], 50) is None
-    assert bench._percentile([float(v) for v in range(1, 101)], 99) == pytest.approx(99.01)
+    assert percentile([], 50) is None
+    assert percentile([float(v) for v in range(1, 101)], 99) == pytest.approx(99.01)
 
 
 def _row(system: str = "coap-distributed", **kw: Any) -> dict[str, Any]:

@@ -53,7 +53,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,6 +76,7 @@ from ..harness.team import (
     draw_tasks,
 )
 from ..errors import CoapkbError
+from .stats import percentile
 from ..transport.base import Endpoint
 
 __all__ = [
@@ -266,16 +267,6 @@ def parse_retrans_segs(snmp: str) -> int:
     return parse_proc_counter(snmp, "Tcp", "RetransSegs")
 
 
-def _percentile(values: Sequence[float], q: float) -> float | None:
-    """Linear-interpolated percentile (numpy's default), or None for no values."""
-    if not values:
-        return None
-    ordered = sorted(values)
-    pos = (len(ordered) - 1) * q / 100.0
-    lo, hi = math.floor(pos), math.ceil(pos)
-    return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
-
-
 def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
               retransmission: str, seed: int) -> dict[str, Any]:
     d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
@@ -303,7 +294,7 @@ def _fill_from_record(row: dict[str, Any], record: dict[str, Any], tasks: int) -
     latencies = [x for s in stats.values() for x in s.get("remote_latencies_s") or ()]
     row["coordination_s"] = record["coordination_s"]
     row["completion_s"] = record["completion_s"]
-    p50, p99 = _percentile(latencies, 50), _percentile(latencies, 99)
+    p50, p99 = percentile(latencies, 50), percentile(latencies, 99)
     row["query_p50_ms"] = "" if p50 is None else round(p50 * 1000, 2)
     row["query_p99_ms"] = "" if p99 is None else round(p99 * 1000, 2)
     row["remote_queries"] = sum(s["queries"]["remote"] for s in stats.values())
