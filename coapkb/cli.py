@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
 
+from tqdm import tqdm
+
 from .errors import CoapkbError
 from .wire import codec
 from .transport.messages import ContentFormat, Method
@@ -186,7 +188,8 @@ async def _team(args: argparse.Namespace) -> int:
     if not tasks:
         raise UserError("no tasks to run")
 
-    def progress(record) -> None:  # record: TaskRecord
+    def progress(bar: tqdm, record) -> None:  # record: TaskRecord
+        bar.update()
         if args.quiet:
             return
         if record.skipped:
@@ -196,13 +199,15 @@ async def _team(args: argparse.Namespace) -> int:
         else:
             outcome = f"-> {record.assigned_to or 'nobody can'}"
         agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
-        print(f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
-              f"({record.coordination_s * 1000:.0f} ms){agreed}", flush=True)
+        lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
+                 f"({record.coordination_s * 1000:.0f} ms){agreed}"]
         if getattr(args, "verbose_costs", False) and record.costs:
             costs = ", ".join(
                 f"{r}: {record.reasons.get(r, '-') if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items()
             )
-            print(f"      costs: {costs}", flush=True)
+            lines.append(f"      costs: {costs}")
+        bar.write("\n".join(lines), file=sys.stdout)
+        sys.stdout.flush()
 
     # SIGTERM (kill, a CI timeout) must stop the robots too, as Ctrl-C does:
     # cancel this task so that Team.launch's clean-up runs.
@@ -220,7 +225,11 @@ async def _team(args: argparse.Namespace) -> int:
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
-            record = await team.run(tasks, progress)
+            # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
+            # per-task lines go to stdout above it, so a log or a pipe gets just those.
+            with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
+                      disable=True if args.quiet else None) as bar:
+                record = await team.run(tasks, lambda r: progress(bar, r))
     except TeamError as exc:
         print(f"coapkb: team run failed: {exc}", file=sys.stderr)
         return 1

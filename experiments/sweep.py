@@ -26,9 +26,8 @@ import math
 import signal
 import sys
 import time
-from collections import defaultdict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import product
 from pathlib import Path
 from typing import Any
@@ -48,6 +47,7 @@ from coapkb.bench.run import (
     timeouts_for,
 )
 from coapkb.bench.linkemu import available, cleanup_stale
+from tqdm import tqdm
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -171,51 +171,11 @@ def pending(runs: Iterable[Run], done: set[tuple[str, ...]]) -> list[Run]:
     return [r for r in runs if r.key() not in done]
 
 
-@dataclass
-class Eta:
-    """Remaining time from the durations of finished runs.
-
-    A run's time is roughly (tasks per cluster + 1) x a per-task cost that
-    depends on the transport and the loss (CoAP's retransmission timeouts at
-    20 % loss cost 10-25 s per task, a 2 % run ~1 s); the "+ 1" is start-up.
-    The per-task cost is learnt from finished runs of the same transport and
-    loss, else of any run."""
-
-    jobs: int = 1
-    _by_kind: dict[tuple[Any, ...], list[float]] = field(default_factory=lambda: defaultdict(list))
-    _all: list[float] = field(default_factory=list)
-
-    @staticmethod
-    def _kind(run: Run) -> tuple[Any, ...]:
-        return (SYSTEMS[run.system].transport, run.loss)
-
-    @staticmethod
-    def _units(run: Run) -> float:
-        return math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)) + 1.0
-
-    def record(self, run: Run, seconds: float) -> None:
-        self._by_kind[self._kind(run)].append(seconds / self._units(run))
-        self._all.append(seconds / self._units(run))
-
-    def predict(self, run: Run) -> float | None:
-        per_unit = self._by_kind.get(self._kind(run)) or self._all
-        if not per_unit:
-            return None
-        return sum(per_unit) / len(per_unit) * self._units(run)
-
-    def remaining(self, runs: Iterable[Run]) -> float | None:
-        guesses = [self.predict(r) for r in runs]
-        if any(g is None for g in guesses):
-            return None
-        return sum(g for g in guesses if g is not None) / self.jobs
-
-
-def _clock(seconds: float | None) -> str:
-    if seconds is None:
-        return "?"
-    seconds = int(seconds)
-    h, rest = divmod(seconds, 3600)
-    return f"{h}h{rest // 60:02d}m" if h else f"{rest // 60}m{rest % 60:02d}s"
+def units(run: Run) -> int:
+    """A run's length in units of one task per cluster, plus one for start-up:
+    what the progress bar counts, so an 80-task run weighs 16 times a 5-task
+    one and the ETA follows."""
+    return math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)) + 1
 
 
 async def _run_child(run: Run, limit_s: float) -> dict[str, Any]:
@@ -256,41 +216,40 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
         await proc.wait()
 
 
-async def sweep(runs: list[Run], out: Path, jobs: int, total: int) -> int:
+async def sweep(runs: list[Run], out: Path, jobs: int, done_runs: list[Run]) -> int:
     """Run ``runs`` (``jobs`` at a time), appending each row to ``out`` as it
-    finishes and printing one progress line per run.  Returns failed runs."""
-    eta = Eta(jobs=jobs)
-    started = time.monotonic()
+    finishes.  Progress: a bar on a terminal's stderr, and one line per run on
+    stdout with the count, elapsed time and ETA (for a log).  ``done_runs``
+    are the profile's runs already in the CSV.  Returns failed runs."""
     queue: asyncio.Queue[Run] = asyncio.Queue()
     for r in runs:
         queue.put_nowait(r)
-    in_flight: set[Run] = set()
-    done_before = total - len(runs)
+    total = len(runs) + len(done_runs)
     finished = 0
     failed = 0
-    lock = asyncio.Lock()
+    # tqdm's ETA is the remaining units at the mean rate so far (smoothing=0):
+    # runs of one sweep are interleaved by setting, so the mean is a fair guess.
+    bar = tqdm(total=sum(map(units, [*done_runs, *runs])), initial=sum(map(units, done_runs)), unit="task",
+               desc="sweep", file=sys.stderr, smoothing=0, disable=None)
+    log_format = "{elapsed} ETA {remaining}"
 
     async def worker() -> None:
         nonlocal finished, failed
         while not queue.empty():
             run = queue.get_nowait()
-            in_flight.add(run)
-            t0 = time.monotonic()
             t = timeouts_for(run.bandwidth, run.loss, math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)))
             row = await _run_child(run, t.run_s + 180)
-            seconds = time.monotonic() - t0
-            in_flight.discard(run)
-            async with lock:
-                append_rows(out, [row])
-                eta.record(run, seconds)
-                finished += 1
-                failed += not row.get("ok")
-                left = [*in_flight, *list(queue._queue)]
-                count = done_before + finished
-                print(f"[{count}/{total} {100 * count / total:3.0f}%] elapsed {_clock(time.monotonic() - started)} "
-                      f"ETA {_clock(eta.remaining(left))} | {format_row(row)}", flush=True)
+            append_rows(out, [row])
+            finished += 1
+            failed += not row.get("ok")
+            bar.update(units(run))
+            count = len(done_runs) + finished
+            times = tqdm.format_meter(**{**bar.format_dict, "bar_format": log_format})
+            bar.write(f"[{count}/{total} {100 * count / total:3.0f}%] {times} | {format_row(row)}", file=sys.stdout)
+            sys.stdout.flush()
 
-    await asyncio.gather(*(worker() for _ in range(max(1, jobs))))
+    with bar:
+        await asyncio.gather(*(worker() for _ in range(max(1, jobs))))
     return failed
 
 
@@ -315,6 +274,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             p.error(f"unknown systems: {', '.join(unknown)}")
     runs = plan(profile, args.retransmission, args.reps, systems)
     todo = pending(runs, done_keys(out, include_failed=not args.retry_failed))
+    waiting = set(todo)
+    done_runs = [r for r in runs if r not in waiting]
     print(f"profile {profile.name}: {len(runs)} runs ({profile.note}); {len(runs) - len(todo)} already in {out}, "
           f"{len(todo)} to go, {args.jobs} at a time", flush=True)
     if args.dry_run:
@@ -333,11 +294,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"removed {len(removed)} namespaces left by crashed runs", flush=True)
     t0 = time.monotonic()
     try:
-        failed = asyncio.run(sweep(todo, out, args.jobs, len(runs)))
+        failed = asyncio.run(sweep(todo, out, args.jobs, done_runs))
     except KeyboardInterrupt:
         print("\ninterrupted; finished rows are kept, run again to resume", file=sys.stderr)
         return 130
-    print(f"done in {_clock(time.monotonic() - t0)} ({time.monotonic() - t0:.0f} s): {len(todo) - failed} ok, "
+    print(f"done in {tqdm.format_interval(time.monotonic() - t0)} ({time.monotonic() - t0:.0f} s): {len(todo) - failed} ok, "
           f"{failed} failed; rows in {out}", flush=True)
     return 1 if failed else 0
 

@@ -194,11 +194,30 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     assert other and all(SYSTEMS[r.system].transport == "coap" for r in other)
     paper = sweep.plan(sweep.PROFILES["paper"], "adaptive")
     assert len(paper) == 3 * 5 * 4 * 5 * len(SYSTEMS)
-    eta = sweep.Eta()
-    assert eta.remaining(runs) is None
-    eta.record(runs[0], 10.0)
-    assert eta.remaining(runs) is not None and eta.remaining(runs) > 0
+    # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
+    short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0, "adaptive") for r, t in ((3, 5), (3, 80)))
+    assert (sweep.units(short), sweep.units(long)) == (6, 81)
+    assert sweep.units(sweep.Run("coap-distributed", 9, 80, 35.0, 2.0, 0, "adaptive")) == 28
 
+
+
+async def test_sweep_appends_each_row_and_prints_count_and_eta(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sweep = _load("sweep")
+    runs = sweep.plan(sweep.PROFILES["quick"], "adaptive")[:3]
+
+    async def child(run: Any, limit_s: float) -> dict[str, Any]:  # no root, no namespaces: the row only
+        return _row(run.system, robots=run.robots, tasks=run.tasks, bandwidth_kbps=run.bandwidth,
+                    loss_pct=run.loss, rep=run.rep, ok=run is not runs[2], error="" if run is not runs[2] else "x")
+
+    monkeypatch.setattr(sweep, "_run_child", child)
+    path = tmp_path / "s.csv"
+    assert await sweep.sweep(runs[1:], path, 1, runs[:1]) == 1
+    assert [r["system"] for r in read_rows(path)] == [r.system for r in runs[1:]]
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split("]")[0] for line in lines] == ["[2/3  67%", "[3/3 100%"]
+    assert all(" ETA " in line and "FAILED" in line for line in lines[1:])
 
 def _synthetic(path: Path) -> None:
     """A small matrix with the seed's trends: central > distributed, seed wire > compact."""
