@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Awaitable, Callable
 
 from ..config import ExecutionModel
 from .robot_state import LiveState
@@ -37,8 +37,11 @@ class TaskExecutor:
         model: ExecutionModel,
         start: LiveState,
         publish: Callable[[LiveState], None],
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
     ) -> None:
         self.model = model
+        #: Waits out simulated time (wall-clock seconds); a test passes a fast clock.
+        self._sleep = sleep
         self.live = start
         self._publish = publish
         self._jobs: asyncio.Queue[Job] = asyncio.Queue()
@@ -71,7 +74,7 @@ class TaskExecutor:
 
     async def _simulate(self, seconds: float) -> None:
         # Simulated physical time: nothing to await but the clock itself.
-        await asyncio.sleep(seconds / self.model.time_scale)
+        await self._sleep(seconds / self.model.time_scale)
 
     async def _run(self) -> None:
         while True:

@@ -1,0 +1,210 @@
+"""Controller: the seed's four queries per task, the barrier on the teammates'
+planned states, both strategies, and how failures become a decision's error.
+Teammates are routers on the in-memory transport; no processes."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Awaitable, Callable, Mapping
+
+import pytest
+from agent_helpers import config, endpoint
+
+from coapkb.agent.controller import Controller, DecisionMessage, Task
+from coapkb.agent.query_handler import QueryError, QueryHandler
+from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
+from coapkb.agent.task_executor import TaskExecutor
+from coapkb.agent.team_view import PLAN_PATH, TeamView
+from coapkb.config import RobotConfig
+from coapkb.kb.client import KBClient
+from coapkb.kb.store import KnowledgeBase
+from coapkb.transport.base import ResourceInfo, TransportError
+from coapkb.transport.memory import MemoryNetwork
+from coapkb.transport.messages import ContentFormat, Request, Response, Status
+from coapkb.transport.router import Router
+
+ALL = ("Location", "Object", "Capability")
+#: Robot1 answers every query itself; Robot2 is a teammate with no KB.
+PAIR = {"Robot1": ALL, "Robot2": ()}
+OBJECT = "Gucci_bag_14"
+
+
+def _state(robot_id: str, seq: int = 0, aisle: int = 1) -> RobotState:
+    return RobotState(robot_id, PlannedState(aisle, 0, 400.0, 0.0, 60.0, seq), LiveState(float(aisle), 0.0))
+
+
+class Teammate:
+    """A teammate that only publishes its planned state on /robot/plan."""
+
+    def __init__(self, robot_id: str) -> None:
+        self.state = _state(robot_id)
+        self.router = Router()
+        self.router.add(ResourceInfo(PLAN_PATH, obs=True), self._get)
+
+    async def _get(self, request: Request) -> Response:
+        return Response(Status.CONTENT, self.state.encode_plan(), ContentFormat.CBOR)
+
+    def decide(self, seq: int) -> None:
+        self.state = self.state.with_plan(PlannedState(1, 0, 400.0, 0.0, 60.0, seq), Decision(seq, OBJECT))
+        self.router.notify(PLAN_PATH)
+
+
+class Published:
+    """What the controller publishes, awaitable by decision count."""
+
+    def __init__(self) -> None:
+        self.decisions: list[Decision] = []
+        self._changed = asyncio.Event()
+
+    def __call__(self, state: RobotState) -> None:
+        assert state.last is not None
+        self.decisions.append(state.last)
+        self._changed.set()
+
+    async def wait(self, count: int, timeout: float = 5.0) -> list[Decision]:
+        async with asyncio.timeout(timeout):
+            while len(self.decisions) < count:  # no await between the check and the wait: no lost wake-up
+                self._changed.clear()
+                await self._changed.wait()
+        return self.decisions
+
+
+class Harness:
+    def __init__(self, controller: Controller, published: Published, sent: list[DecisionMessage]) -> None:
+        self.controller, self.published, self.sent = controller, published, sent
+
+
+@pytest.fixture
+async def make(network: MemoryNetwork, all_kbs: KnowledgeBase):
+    """``make(config, queries=None)``: a started controller of ``config``'s robot."""
+    started: list[tuple[Controller, TeamView, TaskExecutor]] = []
+
+    async def build(cfg: RobotConfig, queries: object = None,
+                    send: Callable[[DecisionMessage], Awaitable[None]] | None = None) -> Harness:
+        client = network.client()
+        own = _state(cfg.robot_id)
+        team = TeamView(own, {r: m.endpoint for r, m in cfg.team.items() if r != cfg.robot_id}, client)
+        executor = TaskExecutor(cfg.execution, own.live, lambda live: None)
+        published = Published()
+        sent: list[DecisionMessage] = []
+
+        async def record(message: DecisionMessage) -> None:
+            sent.append(message)
+
+        if queries is None:
+            kb = all_kbs if cfg.team[cfg.robot_id].kbs else None
+            queries = QueryHandler(cfg, kb, KBClient(client))
+        controller = Controller(cfg, queries, team, executor, published, send or record)  # type: ignore[arg-type]
+        team.start()
+        executor.start()
+        controller.start()
+        started.append((controller, team, executor))
+        return Harness(controller, published, sent)
+
+    yield build
+    for controller, team, executor in started:
+        await controller.aclose()
+        await executor.aclose()
+        await team.aclose()
+
+
+async def test_gather_runs_the_four_queries(make: Callable) -> None:
+    h = await make(config("Robot1", {"Robot1": ALL, "Robot2": (), "Robot4": ()}))
+    facts = await h.controller.gather(Task(1, OBJECT))
+    assert facts is not None and facts.object == OBJECT and facts.weight_kg > 0
+    assert set(facts.capable) <= {"Robot1", "Robot2", "Robot4"} and facts.capable  # only teammates
+    assert await h.controller.gather(Task(2, "Nonexistent_widget_1")) is None
+
+
+async def test_compute_by_all_waits_for_every_teammate_to_decide_the_previous_task(
+    make: Callable, network: MemoryNetwork
+) -> None:
+    mate = Teammate("Robot2")
+    await network.serve(mate.router, endpoint("Robot2"))
+    h = await make(config("Robot1", PAIR))
+    h.controller.submit(Task(1, OBJECT))
+    h.controller.submit(Task(2, OBJECT))
+    first = (await h.published.wait(1))[0]
+    assert first.seq == 1 and first.error is None and first.assigned_to in ("Robot1", "Robot2")
+    assert set(first.costs) == {"Robot1", "Robot2"}
+    # Task 2 needs Robot2's state after task 1: nothing is decided until it publishes it.
+    with pytest.raises(TimeoutError):
+        await h.published.wait(2, timeout=0.3)
+    mate.decide(1)
+    second = (await h.published.wait(2))[1]
+    assert second.seq == 2 and second.error is None and set(second.costs) == {"Robot1", "Robot2"}
+    assert h.sent == []  # compute-by-all sends nothing
+    assert h.controller.team.own.plan.seq == 2
+
+
+async def test_the_winner_gets_the_job_and_plans_ahead(make: Callable) -> None:
+    h = await make(config("Robot1", {"Robot1": ALL}))
+    h.controller.submit(Task(1, OBJECT))
+    decision = (await h.published.wait(1))[0]
+    assert decision.assigned_to == "Robot1"
+    await asyncio.wait_for(h.controller.executor.wait_idle(), 5)
+    assert h.controller.executor.live.done == 1
+    plan = h.controller.team.own.plan
+    assert plan.seq == 1 and plan.battery_wh < 400.0
+
+
+async def test_compute_and_communicate_leader_sends_its_decision(make: Callable) -> None:
+    h = await make(config("Robot1", {"Robot1": ALL}, strategy="compute-and-communicate"))
+    h.controller.submit(Task(1, "Nonexistent_widget_1"))
+    await h.published.wait(1)
+    assert [m.decision.skipped for m in h.sent] == [True]
+
+
+async def test_a_failed_send_leaves_the_leaders_decision_standing(make: Callable) -> None:
+    async def unreachable(message: DecisionMessage) -> None:
+        raise TransportError("decision not delivered to Robot2")
+
+    h = await make(config("Robot1", {"Robot1": ALL}, strategy="compute-and-communicate"), send=unreachable)
+    h.controller.submit(Task(1, "Nonexistent_widget_1"))
+    assert (await h.published.wait(1))[0].error is None
+
+
+async def test_compute_and_communicate_follower_applies_the_leaders_decision(make: Callable) -> None:
+    h = await make(config("Robot2", PAIR, strategy="compute-and-communicate"), queries=NoQueries())
+    h.controller.submit(Task(1, OBJECT))
+    h.controller.receive_decision(DecisionMessage(Decision(1, OBJECT, assigned_to="Robot1", costs={"Robot1": 1.5})))
+    decision = (await h.published.wait(1))[0]
+    assert (decision.assigned_to, decision.costs, decision.error) == ("Robot1", {"Robot1": 1.5}, None)
+    assert h.controller.team.own.plan.seq == 1 and h.controller.executor.live.queued == 0
+
+
+async def test_a_follower_without_the_leaders_decision_records_an_error(make: Callable) -> None:
+    h = await make(config("Robot2", PAIR, strategy="compute-and-communicate", query_timeout_s=0.02),
+                   queries=NoQueries())
+    h.controller.submit(Task(1, OBJECT))
+    assert (await h.published.wait(1))[0].error == "no decision from Robot1 for task 1"
+
+
+class NoQueries:
+    """A Query Handler that must not be asked."""
+
+    async def run(self, name: str, params: Mapping[str, str]) -> object:
+        raise AssertionError(f"unexpected query {name}")
+
+
+class Failing:
+    def __init__(self, error: Exception) -> None:
+        self.error = error
+
+    async def run(self, name: str, params: Mapping[str, str]) -> object:
+        raise self.error
+
+
+@pytest.mark.parametrize("error, expected", [
+    (QueryError("object-exists to Robot2 failed: 5.03"), "object-exists to Robot2 failed: 5.03"),
+    (TransportError("no state for task 0 from Robot2"), "no state for task 0 from Robot2"),
+    (RuntimeError("a bug"), "internal error: a bug"),
+])
+async def test_failures_become_the_decisions_error_and_the_robot_goes_on(
+    make: Callable, error: Exception, expected: str
+) -> None:
+    h = await make(config("Robot1", {"Robot1": ALL}), queries=Failing(error))
+    h.controller.submit(Task(1, OBJECT))
+    h.controller.submit(Task(2, OBJECT))
+    decisions = await h.published.wait(2)
+    assert [(d.seq, d.error, d.assigned_to) for d in decisions] == [(1, expected, None), (2, expected, None)]

@@ -1,0 +1,117 @@
+"""Query Handler: each named query runs where its KB module lives, and every
+failure becomes a QueryError that names the query, the peer and the KB."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Callable
+
+import pytest
+from agent_helpers import config, endpoint
+
+from coapkb.agent.query_handler import QueryError, QueryHandler
+from coapkb.kb.client import KBClient
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.results import SelectResult
+from coapkb.kb.store import KnowledgeBase, QueryEvaluationError
+from coapkb.transport.base import ResourceInfo
+from coapkb.transport.memory import MemoryNetwork
+from coapkb.transport.messages import Request, Response
+from coapkb.transport.router import Router
+
+EXISTS = {"name": "Gucci_bag_14"}
+
+
+def handler(network: MemoryNetwork, kb: KnowledgeBase | None, wire: str = "compact", cache: bool = False,
+            **changes: object) -> QueryHandler:
+    cfg = config("Robot1", **changes)
+    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire)
+
+
+async def test_own_module_runs_locally_without_traffic(network: MemoryNetwork, kbs: dict) -> None:
+    queries = handler(network, kbs["Location"])
+    result = await queries.run("warehouse-layout", {})
+    assert isinstance(result, SelectResult) and len(result.rows) == 1
+    assert (queries.stats.local, queries.stats.remote) == (1, 0)
+    assert queries.client.transport.counters.messages_sent == 0
+
+
+@pytest.mark.parametrize("wire", ["compact", "seed"])
+async def test_other_modules_go_to_the_teammate_holding_them(
+    network: MemoryNetwork, kbs: dict, serve_kbs: Callable, wire: str
+) -> None:
+    object_server = await serve_kbs("Robot2", ["Object"])
+    capability_server = await serve_kbs("Robot3", ["Capability"])
+    queries = handler(network, kbs["Location"], wire=wire)
+    exists = await queries.run("object-exists", EXISTS)
+    assert isinstance(exists, SelectResult) and len(exists.rows) == 1
+    assert await queries.run("robot-specs", {}) == kbs["Capability"].query(NAMED_QUERIES["robot-specs"].render({}))
+    assert (queries.stats.local, queries.stats.remote, queries.stats.failed) == (0, 2, 0)
+    assert len(queries.stats.remote_latencies) == 2
+    assert object_server.counters.messages_received == capability_server.counters.messages_received == 1
+
+
+async def test_central_baseline_sends_every_query_to_the_server(
+    network: MemoryNetwork, serve_kbs: Callable
+) -> None:
+    central = await serve_kbs("Central", ["Object", "Location", "Capability"])
+    queries = handler(network, None, holders={"Robot1": (), "Robot2": (), "Robot3": ()}, central=endpoint("Central"))
+    await queries.run("object-exists", EXISTS)
+    await queries.run("warehouse-layout", {})
+    assert central.counters.messages_received == 2 and queries.stats.remote == 2
+
+
+async def test_cached_answers_are_counted_and_cost_no_traffic(network: MemoryNetwork, serve_kbs: Callable) -> None:
+    await serve_kbs("Robot2", ["Object"])
+    queries = handler(network, None, cache=True)
+    first = await queries.run("object-exists", EXISTS)
+    assert await queries.run("object-exists", EXISTS) == first
+    assert (queries.stats.remote, queries.stats.cached) == (1, 1)
+    assert queries.client.transport.counters.messages_sent == 1
+
+
+async def test_nobody_holding_a_module_is_a_query_error(network: MemoryNetwork, kbs: dict) -> None:
+    queries = handler(network, kbs["Location"], holders={"Robot1": "Location", "Robot2": "Object"})
+    with pytest.raises(QueryError, match="no teammate holds the Capability KB"):
+        await queries.run("robot-specs", {})
+
+
+async def test_unreachable_teammate_is_a_query_error_naming_it(network: MemoryNetwork, kbs: dict) -> None:
+    queries = handler(network, kbs["Location"])
+    with pytest.raises(QueryError, match=r"object-exists to Robot2 \(coap://robot2:5683\) for the Object KB failed"):
+        await queries.run("object-exists", EXISTS)
+    assert queries.stats.failed == 1 and queries.stats.remote == 0
+
+
+async def test_a_teammate_that_does_not_answer_in_time_is_a_query_error(network: MemoryNetwork, kbs: dict) -> None:
+    silent = Router()
+
+    async def never(request: Request) -> Response:
+        await asyncio.Event().wait()
+        raise AssertionError("unreachable")
+
+    silent.add(ResourceInfo("/kb/q/object-exists"), never)
+    await network.serve(silent, endpoint("Robot2"))
+    queries = handler(network, kbs["Location"], query_timeout_s=0.05)
+    with pytest.raises(QueryError, match="no answer within 0.05s"):
+        await queries.run("object-exists", EXISTS)
+    assert queries.stats.failed == 1
+
+
+async def test_an_error_answer_is_a_query_error_with_its_diagnostic(network: MemoryNetwork, kbs: dict) -> None:
+    await network.serve(Router(), endpoint("Robot2"))  # up, but serves no KB: 4.04
+    queries = handler(network, kbs["Location"])
+    with pytest.raises(QueryError, match="4.04 NOT_FOUND"):
+        await queries.run("object-exists", EXISTS)
+
+
+class _BrokenStore:
+    def query(self, text: str) -> None:
+        raise QueryEvaluationError("the store broke")
+
+
+async def test_a_failing_local_query_is_a_query_error(network: MemoryNetwork) -> None:
+    queries = handler(network, _BrokenStore())  # type: ignore[arg-type]
+    with pytest.raises(QueryError, match="warehouse-layout on own Location KB: the store broke"):
+        await queries.run("warehouse-layout", {})
+    assert queries.stats.failed == 1
