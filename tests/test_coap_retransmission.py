@@ -22,6 +22,7 @@ import aiocoap.meta
 import aiocoap.resource
 import pytest
 
+from coapkb.transport.coap.aiocoap_adapter import ContextHooks
 from coapkb.transport.coap.reliability.cocoa_hooks import (
     RetransmissionController,
     UnsupportedAiocoapVersion,
@@ -301,6 +302,8 @@ async def test_install_is_per_context_and_pinned(monkeypatch: pytest.MonkeyPatch
         with pytest.raises(ValueError):
             RetransmissionController("adaptive").install(a)
         controller.uninstall(a)
+        assert ContextHooks.of(a).con_policy is None  # aiocoap's own timers again
+        ContextHooks.of(a).remove()
         assert "_retransmit" not in vars(mm_a)
 
         monkeypatch.setattr(aiocoap.meta, "version", "0.4.18")

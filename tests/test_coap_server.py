@@ -1,7 +1,7 @@
 """A robot's KB resources over CoAP/UDP, end to end.
 
 The server is ``coapkb serve`` in its own OS process on 127.0.0.1; the client
-is coapkb's own :class:`~coapkb.transport.coap.transport.CoapClientTransport` (aiocoap)
+is coapkb's own :class:`~coapkb.transport.coap.CoapClientTransport` (aiocoap)
 with :class:`~coapkb.kb.client.KBClient`, plus a raw UDP socket for garbage.
 Every wait is on the thing itself (a response, a line, a process exit).
 """
@@ -110,9 +110,11 @@ async def _drain(srv: ServerProcess) -> None:
         srv.log.extend(chunk)  # type: ignore[attr-defined]
 
 
-@pytest_asyncio.fixture(scope="module", loop_scope="module")
-async def transport() -> AsyncIterator[ClientTransport]:
-    t = await open_client("coap", retransmission="rfc7252")
+@pytest_asyncio.fixture(scope="module", loop_scope="module", params=["robust", "rfc7252"])
+async def transport(request: pytest.FixtureRequest) -> AsyncIterator[ClientTransport]:
+    """The server must answer the same through the reliability layer (NON
+    tries, block by block) and through plain confirmable exchanges."""
+    t = await open_client("coap", retransmission=request.param)
     yield t
     await t.aclose()
 
@@ -449,7 +451,7 @@ async def test_body_hash_mismatch_is_400(transport: ClientTransport, peer: Endpo
     """The transport-level ``qh=`` (hash of the body) must match the body."""
     import aiocoap
 
-    from coapkb.transport.coap.transport import CoapClientTransport
+    from coapkb.transport.coap import CoapClientTransport
 
     assert isinstance(transport, CoapClientTransport)
     msg = aiocoap.Message(code=aiocoap.FETCH, uri=f"coap://{peer.hostport}/kb/sparql", payload=b"ASK {}")

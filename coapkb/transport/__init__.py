@@ -22,13 +22,26 @@ from .base import (
 SCHEMES = ("coap", "zmq")
 
 
-async def open_client(scheme: str, *, retransmission: Any = "adaptive") -> ClientTransport:
+def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | None = None) -> Any:
+    """What a robot hands to both :func:`open_client` and :func:`serve` as
+    ``retransmission``: for CoAP's ``robust`` profile one shared layer (its
+    server's notifications then use its client's path estimates), else the
+    profile name.  TCP retransmits by itself: ZeroMQ ignores it."""
+    if scheme == "coap":
+        from .coap.reliability import make_reliability
+
+        return make_reliability(profile, link_kbps=link_kbps)
+    return profile
+
+
+async def open_client(scheme: str, *, retransmission: Any = "robust") -> ClientTransport:
     """A client transport for ``scheme``.
 
-    ``retransmission`` (a profile name or profile) sets CoAP's confirmable
-    retransmission; TCP retransmits by itself, so ZeroMQ ignores it."""
+    ``retransmission``: a reliability profile name (``robust``, the default,
+    or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
+    or what :func:`reliability_for` returned; ZeroMQ ignores it."""
     if scheme == "coap":
-        from .coap.transport import CoapClientTransport
+        from .coap import CoapClientTransport
 
         return await CoapClientTransport.create(retransmission=retransmission)
     if scheme == "zmq":
@@ -38,11 +51,11 @@ async def open_client(scheme: str, *, retransmission: Any = "adaptive") -> Clien
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
 
 
-async def serve(service: Service, endpoint: Endpoint, *, retransmission: Any = "adaptive") -> ServerTransport:
+async def serve(service: Service, endpoint: Endpoint, *, retransmission: Any = "robust") -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``retransmission`` applies to CoAP's confirmable notifications."""
     if endpoint.scheme == "coap":
-        from .coap.transport import CoapServerTransport
+        from .coap import CoapServerTransport
 
         return await CoapServerTransport.start(service, endpoint, retransmission=retransmission)
     if endpoint.scheme == "zmq":
@@ -62,5 +75,6 @@ __all__ = [
     "TrafficCounters",
     "TransportError",
     "open_client",
+    "reliability_for",
     "serve",
 ]

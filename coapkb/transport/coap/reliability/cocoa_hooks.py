@@ -7,49 +7,15 @@ adds what :mod:`coapkb.transport.coap.reliability.rto` needs, without touching a
 * :meth:`RetransmissionController.tuning_for` returns a :class:`PeerTuning`
   (a ``TransportTuning``) that marks a request as belonging to a peer.  Put it
   on the ``aiocoap.Message``.
-* :meth:`RetransmissionController.install` replaces five methods **on the
-  instances** of one context's ``MessageManager`` objects (never on the class,
-  so other contexts in the process keep stock behaviour):
-
-  ``_add_exchange(message, monitor)``
-      Called in ``_send_initially`` just before the *first* transmission of a
-      CON, after any NSTART backlog wait.  We draw the exchange's whole
-      schedule here, so the RTO used is the one current when the datagram
-      really leaves.  A request that sat in the backlog behind a slow exchange
-      benefits from that exchange's sample.
-  ``_schedule_retransmit(message, timeout, counter)``
-      The only place a timeout becomes a timer (``loop.call_later``).  We
-      replace aiocoap's ``timeout``, which it draws as
-      ``uniform(ACK_TIMEOUT, ACK_TIMEOUT·ACK_RANDOM_FACTOR)`` and then doubles,
-      with our schedule's timeout number ``counter``.  That is how the dithering
-      and the variable backoff factor (CoCoA) or the capped backoff
-      (``lossy-fixed``) take effect.  aiocoap's ``_retransmit`` multiplies the
-      value we passed by 2 and hands it back here, where it is replaced again,
-      so the hard-coded doubling never reaches a timer.
-  ``_retransmit(message, timeout, counter)``
-      We note the retransmission's send time.  We also see the give-up
-      (``counter >= MAX_RETRANSMIT``), which aiocoap reports only to the
-      token layer.
-  ``_remove_exchange(incoming)``
-      ``dispatch_message`` calls this for every incoming ACK and RST before
-      anything else.  The first one for a pending exchange gives the RTT
-      sample.  Later ones for a finished exchange are duplicate ACKs: the
-      server answered several copies of the CON, so some copies were
-      redundant.
-  ``dispatch_error(error, remote)``
-      ICMP errors drop every exchange to a remote without going through
-      ``_remove_exchange``.  We drop our records for it too.
-
-  Every wrapper calls the original bound method, so aiocoap's own
-  bookkeeping (the backlog, the monitors, the error dispatch) is unchanged.
-
-**Version pin.**  The hooks depend on private method names, their argument
-lists, and the call graph described above (checked against
-aiocoap 0.4.17's ``messagemanager.py``).  :meth:`install` refuses any other
-aiocoap version, and any MessageManager whose hooked methods have different
-signatures, with :class:`UnsupportedAiocoapVersion`.  A silent mismatch would
-make the timers quietly revert to aiocoap's defaults, so we fail loudly
-instead.  Re-check the call graph before bumping the pin.
+* :class:`RetransmissionController` is a
+  :class:`~coapkb.transport.coap.aiocoap_adapter.ConPolicy`: the adapter
+  calls it just before a CON's first transmission (so the RTO used is the
+  one current when the datagram really leaves, after any NSTART backlog
+  wait), for every retransmission timeout (replacing aiocoap's hard-coded
+  doubling with the profile's schedule: CoCoA's dithering and variable
+  backoff, or ``lossy-fixed``'s capped backoff), on each retransmission and
+  give-up, and on the first and any duplicate ACK/RST.  The hooks
+  themselves, and the aiocoap version pin, live in the adapter.
 
 **Spurious retransmissions** are detected in two ways.  Both give lower
 bounds on the count, and we take the larger:
@@ -78,21 +44,19 @@ exchanges to the peer, in case that changes.
 
 from __future__ import annotations
 
-import inspect
 import logging
 import random
 import time
-import weakref
 from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable, Hashable
 
 import aiocoap
 import aiocoap.meta
-from aiocoap.messagemanager import MessageManager
 from aiocoap.numbers.constants import TransportTuning
 from aiocoap.numbers.types import RST
 
+from ..aiocoap_adapter import ContextHooks, UnsupportedAiocoapVersion
 from .rto import (
     DEFAULT_REPLY_BYTES,
     AdaptiveProfile,
@@ -106,8 +70,6 @@ from .rto import (
 )
 
 __all__ = [
-    "SUPPORTED_AIOCOAP_VERSION",
-    "UnsupportedAiocoapVersion",
     "PeerTuning",
     "ExchangeRecord",
     "PeerStats",
@@ -116,7 +78,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SUPPORTED_AIOCOAP_VERSION = "0.4.17"
 
 #: Reply size assumed for a non-final Block1 request: its reply is a small
 #: 2.31 Continue (header, token, Block1 option).
@@ -125,22 +86,6 @@ SMALL_REPLY_BYTES = 32
 #: Strong samples needed before a peer's minimum RTT is used as evidence
 #: that a reply answered an earlier copy (see the module docstring).
 MIN_SAMPLES_FOR_ATTRIBUTION = 3
-
-#: Signatures of the hooked MessageManager methods in aiocoap 0.4.17 (without self).
-_EXPECTED_SIGNATURES = {
-    "_add_exchange": ("message", "messageerror_monitor"),
-    "_schedule_retransmit": ("message", "timeout", "retransmission_counter"),
-    "_retransmit": ("message", "timeout", "retransmission_counter"),
-    "_remove_exchange": ("message",),
-    "dispatch_error": ("error", "remote"),
-}
-_HOOKED = tuple(_EXPECTED_SIGNATURES)
-_MARKER = "_coapkb_retransmission_controller"
-
-
-class UnsupportedAiocoapVersion(RuntimeError):
-    """The installed aiocoap is not the one these hooks were verified against."""
-
 
 def _ip_udp_overhead(remote: Any) -> int:
     """IP+UDP header bytes per datagram to ``remote``: 28 for IPv4 (aiocoap's
@@ -277,87 +222,6 @@ class _PeerState:
         self.history: deque[ExchangeRecord] = deque()
 
 
-class _ManagerHooks:
-    """The per-MessageManager half of a controller: originals and live records."""
-
-    def __init__(self, controller: "RetransmissionController", mm: MessageManager) -> None:
-        self.controller = controller
-        self.mm = mm
-        self.originals: dict[str, Callable[..., Any]] = {name: getattr(mm, name) for name in _HOOKED}
-        #: (remote, mid) → record, for exchanges aiocoap has in _active_exchanges.
-        self.pending: dict[tuple[Any, int], ExchangeRecord] = {}
-        #: finished exchanges that had retransmissions: (remote, mid) → (record, expiry).
-        self.finished: OrderedDict[tuple[Any, int], tuple[ExchangeRecord, float]] = OrderedDict()
-
-    # ---- the hooks (installed as instance attributes of self.mm)
-
-    def add_exchange(self, message: aiocoap.Message, messageerror_monitor: Callable[[], None]) -> None:
-        tuning = message.transport_tuning
-        if isinstance(tuning, PeerTuning) and tuning.controller is self.controller:
-            self.pending[(message.remote, message.mid)] = self.controller._start_exchange(message, tuning)
-        self.originals["_add_exchange"](message, messageerror_monitor)
-
-    def schedule_retransmit(self, message: aiocoap.Message, timeout: float, retransmission_counter: int) -> Any:
-        record = self.pending.get((message.remote, message.mid))
-        if record is not None:
-            timeout = record.schedule.timeout(retransmission_counter)
-        return self.originals["_schedule_retransmit"](message, timeout, retransmission_counter)
-
-    def retransmit(self, message: aiocoap.Message, timeout: float, retransmission_counter: int) -> None:
-        key = (message.remote, message.mid)
-        record = self.pending.get(key)
-        if record is None:
-            self.originals["_retransmit"](message, timeout, retransmission_counter)
-            return
-        gives_up = retransmission_counter >= message.transport_tuning.MAX_RETRANSMIT
-        if gives_up:
-            self.pending.pop(key, None)
-            self.controller._finish_failed(record, "timeout")
-        else:
-            record.transmit_times.append(self.controller.clock())
-            self.controller._count_retransmission(record)
-        self.originals["_retransmit"](message, timeout, retransmission_counter)
-
-    def remove_exchange(self, message: aiocoap.Message) -> None:
-        key = (message.remote, message.mid)
-        now = self.controller.clock()
-        record = self.pending.pop(key, None)
-        if record is not None:
-            self.controller._finish_replied(record, message, now)
-            if record.retransmissions:
-                self._remember_finished(key, record, now)
-        else:
-            self._purge_finished(now)
-            entry = self.finished.get(key)
-            if entry is not None:
-                self.controller._duplicate_reply(entry[0])
-        self.originals["_remove_exchange"](message)
-
-    def dispatch_error(self, error: Exception, remote: Any) -> None:
-        for key in [k for k in self.pending if k[0] == remote]:
-            self.controller._finish_failed(self.pending.pop(key), "error")
-        self.originals["dispatch_error"](error, remote)
-
-    # ---- bookkeeping
-
-    def _remember_finished(self, key: tuple[Any, int], record: ExchangeRecord, now: float) -> None:
-        # A duplicate reply answers a copy sent before `now`, so it arrives
-        # within about one RTT of it; twice the measured RTT plus a second is
-        # ample, and 60 s bounds the memory.
-        linger = min(60.0, 2 * (record.rtt or 0.0) + 1.0)
-        self._purge_finished(now)
-        self.finished[key] = (record, now + linger)
-        while len(self.finished) > 1024:
-            self.finished.popitem(last=False)
-
-    def _purge_finished(self, now: float) -> None:
-        while self.finished:
-            key, (_, expiry) = next(iter(self.finished.items()))
-            if expiry > now:
-                break
-            self.finished.popitem(last=False)
-
-
 class RetransmissionController:
     """Per-peer retransmission timeouts for CoAP CON requests sent by aiocoap.
 
@@ -398,9 +262,8 @@ class RetransmissionController:
         self.history = history
         self.spurious_rtt_fraction = spurious_rtt_fraction
         self._peers: dict[Hashable, _PeerState] = {}
-        #: Weak: a context's MessageManager owns its hooks (through the patched
-        #: methods), so a discarded context is collected with them.
-        self._hooks: weakref.WeakSet[_ManagerHooks] = weakref.WeakSet()
+        #: CON exchanges sent and not yet finished, per peer (CoCoA's "blind" multiplier).
+        self._outstanding: dict[Hashable, int] = {}
 
     # ------------------------------------------------------------ public API
 
@@ -455,49 +318,47 @@ class RetransmissionController:
         return self.profile.max_transmit_wait()
 
     def install(self, context: aiocoap.Context) -> None:
-        """Hook every UDP MessageManager of ``context`` (call once, right after
-        creating it).
+        """Route the CON timers of ``context`` through this controller (call
+        once, right after creating it; again is a no-op).
 
-        Only that context's instances are patched.  Raises
-        :class:`UnsupportedAiocoapVersion` if aiocoap is not 0.4.17 or the
-        hooked methods' signatures differ, and ``ValueError`` if the context
-        has no UDP message manager or another controller already hooked it."""
-        if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
-            raise UnsupportedAiocoapVersion(
-                f"coapkb's retransmission hooks are verified against aiocoap "
-                f"{SUPPORTED_AIOCOAP_VERSION}, found {aiocoap.meta.version}"
-            )
-        managers = self._message_managers(context)
-        if not managers:
-            raise ValueError("context has no UDP MessageManager to hook")
-        for mm in managers:
-            _check_hookable(mm)
-            existing = mm.__dict__.get(_MARKER)
-            if existing is not None:
-                if existing.controller is self:
-                    continue
-                raise ValueError(f"{mm!r} is already hooked by another RetransmissionController")
-            hooks = _ManagerHooks(self, mm)
-            mm._add_exchange = hooks.add_exchange
-            mm._schedule_retransmit = hooks.schedule_retransmit
-            mm._retransmit = hooks.retransmit
-            mm._remove_exchange = hooks.remove_exchange
-            mm.dispatch_error = hooks.dispatch_error
-            setattr(mm, _MARKER, hooks)
-            self._hooks.add(hooks)
+        Raises :class:`UnsupportedAiocoapVersion` if aiocoap is not the
+        verified version, and ``ValueError`` if the context has no UDP
+        message manager or another policy already drives its timers."""
+        ContextHooks.of(context).set_con_policy(self)
 
     def uninstall(self, context: aiocoap.Context) -> None:
-        """Remove the hooks from ``context`` (before ``context.shutdown()``,
-        to break the MessageManager↔hooks reference cycle early).  An exchange
-        in flight keeps the timer already scheduled and then follows stock
-        aiocoap rules; it is no longer measured."""
-        for mm in self._message_managers(context):
-            hooks = mm.__dict__.get(_MARKER)
-            if hooks is None or hooks.controller is not self:
-                continue
-            for name in (*_HOOKED, _MARKER):
-                mm.__dict__.pop(name, None)
-            self._hooks.discard(hooks)
+        """Give ``context``'s CON timers back to aiocoap.  An exchange in
+        flight keeps the timer already scheduled and is no longer measured."""
+        hooks = ContextHooks.of(context)
+        if hooks.con_policy is self:
+            hooks.set_con_policy(None)
+
+    # ------------------------------------------------------------ ConPolicy
+
+    def on_send(self, message: aiocoap.Message) -> ExchangeRecord | None:
+        tuning = message.transport_tuning
+        if isinstance(tuning, PeerTuning) and tuning.controller is self:
+            return self._start_exchange(message, tuning)
+        return None
+
+    def timeout(self, record: ExchangeRecord, retransmission_counter: int) -> float:
+        return record.schedule.timeout(retransmission_counter)
+
+    def on_retransmit(self, record: ExchangeRecord) -> None:
+        record.transmit_times.append(self.clock())
+        self._count_retransmission(record)
+
+    def on_give_up(self, record: ExchangeRecord, reason: str) -> None:
+        self._finish_failed(record, reason)
+
+    def on_reply(self, record: ExchangeRecord, message: aiocoap.Message) -> None:
+        self._finish_replied(record, message, self.clock())
+
+    def on_duplicate_reply(self, record: ExchangeRecord, message: aiocoap.Message) -> None:
+        self._duplicate_reply(record)
+
+    def max_retransmit(self, record: ExchangeRecord) -> int:
+        return self.profile.max_retransmit
 
     def rto(self, peer_key: Hashable) -> float:
         """The peer's current overall RTO (s), aged to now."""
@@ -541,14 +402,6 @@ class RetransmissionController:
         return state
 
     @staticmethod
-    def _message_managers(context: aiocoap.Context) -> list[MessageManager]:
-        return [
-            ti.token_interface
-            for ti in context.request_interfaces
-            if isinstance(getattr(ti, "token_interface", None), MessageManager)
-        ]
-
-    @staticmethod
     def _wire_bytes(message: aiocoap.Message | None, expected_reply_bytes: int | None, overhead: int = 28) -> int:
         """Link bytes of a whole exchange: request datagram plus expected reply."""
         request = _encoded_len(message) if message is not None else 64
@@ -566,9 +419,8 @@ class RetransmissionController:
             reply_bytes = SMALL_REPLY_BYTES
         else:
             reply_bytes = DEFAULT_REPLY_BYTES
-        outstanding = 1 + sum(
-            1 for h in list(self._hooks) for r in h.pending.values() if r.peer_key == tuning.peer_key
-        )
+        outstanding = self._outstanding.get(tuning.peer_key, 0) + 1
+        self._outstanding[tuning.peer_key] = outstanding
         schedule = self.profile.schedule(
             self.rng,
             state.rto,
@@ -657,19 +509,7 @@ class RetransmissionController:
         self._archive(state, record)
 
     def _archive(self, state: _PeerState, record: ExchangeRecord) -> None:
+        self._outstanding[record.peer_key] = max(0, self._outstanding.get(record.peer_key, 1) - 1)
         state.history.append(record)
         while len(state.history) > self.history:
             state.history.popleft()
-
-
-def _check_hookable(mm: MessageManager) -> None:
-    """Verify the private surface the hooks rely on (aiocoap 0.4.17)."""
-    for name, params in _EXPECTED_SIGNATURES.items():
-        method = getattr(type(mm), name, None)
-        if method is None:
-            raise UnsupportedAiocoapVersion(f"aiocoap MessageManager has no {name}")
-        found = tuple(inspect.signature(method).parameters)[1:]
-        if found != params:
-            raise UnsupportedAiocoapVersion(f"aiocoap MessageManager.{name}{found} differs from {params}")
-    if not isinstance(getattr(mm, "_active_exchanges", None), dict):
-        raise UnsupportedAiocoapVersion("aiocoap MessageManager has no _active_exchanges dict")

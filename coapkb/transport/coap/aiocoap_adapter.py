@@ -1,0 +1,345 @@
+"""The one place where coapkb touches aiocoap's private surface.
+
+aiocoap is kept for messages, resources, Observe, block-wise transfer and
+interop; everything else coapkb needs from it (per-context traffic counters,
+per-peer retransmission timers, tolerance of late events, the block-wise
+cache's key and block extraction) reaches into names aiocoap does not
+promise to keep.  They are all here, behind one version pin, and
+:func:`verify` checks every one of them, so an upgrade fails loudly in one
+test (``tests/transport/coap/test_aiocoap_adapter.py``) instead of quietly
+reverting to stock behaviour.
+
+What is hooked, per context (never on a class, so other contexts in the
+process keep stock behaviour), by :class:`ContextHooks`:
+
+* the UDP message interface's ``send`` and ``datagram_msg_received``:
+  traffic counters, and dropping datagrams whose string options are not
+  UTF-8 (aiocoap 0.4.17 lets that UnicodeDecodeError escape);
+* the MessageManager's ``dispatch_message`` / ``dispatch_error``: a
+  response or ICMP error for a request the caller already abandoned raises
+  InvalidStateError inside aiocoap's socket callback; it is dropped;
+* the MessageManager's CON exchange methods (``_add_exchange``,
+  ``_schedule_retransmit``, ``_retransmit``, ``_remove_exchange``): a
+  :class:`ConPolicy` (Californium's layer shape: on_send / timeout /
+  on_reply / on_give_up) sets each retransmission timeout instead of
+  aiocoap's ``uniform(ACK_TIMEOUT, ACK_TIMEOUT*1.5)`` doubling.
+
+The call graph the CON hooks rely on (checked against aiocoap 0.4.17's
+``messagemanager.py``): ``_send_initially`` calls ``_add_exchange`` just
+before a CON's first transmission (after any NSTART backlog wait);
+``_add_exchange`` and ``_retransmit`` call ``_schedule_retransmit``, the only
+place a timeout becomes a timer; ``_retransmit`` gives up when its counter
+reaches ``MAX_RETRANSMIT``; ``dispatch_message`` calls ``_remove_exchange``
+for every incoming ACK and RST; ``dispatch_error`` drops every exchange to a
+remote without calling ``_remove_exchange``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+from collections import OrderedDict
+from typing import Any, Callable, Protocol
+
+import aiocoap
+import aiocoap.meta
+from aiocoap.blockwise import Block1Spool, Block2Cache, IncompleteException, _extract_block_key
+from aiocoap.messagemanager import MessageManager
+from aiocoap.numbers.types import CON
+from aiocoap.util.asyncio.timeoutdict import TimeoutDict
+
+from ...errors import CoapkbError
+from ..base import TrafficCounters
+
+__all__ = [
+    "SUPPORTED_AIOCOAP_VERSION",
+    "UnsupportedAiocoapVersion",
+    "verify",
+    "ConPolicy",
+    "ContextHooks",
+    "local_port",
+    "block_key",
+    "extract_block",
+    "Block1Spool",
+    "Block2Cache",
+    "IncompleteException",
+    "TimeoutDict",
+]
+
+log = logging.getLogger(__name__)
+
+SUPPORTED_AIOCOAP_VERSION = "0.4.17"
+
+#: Private methods of MessageManager hooked here, with their parameters (without self).
+_CON_HOOKS = {
+    "_add_exchange": ("message", "messageerror_monitor"),
+    "_schedule_retransmit": ("message", "timeout", "retransmission_counter"),
+    "_retransmit": ("message", "timeout", "retransmission_counter"),
+    "_remove_exchange": ("message",),
+}
+#: Public methods of MessageManager and the UDP interface wrapped here.
+_WRAPPED = {
+    (MessageManager, "dispatch_message"): ("message",),
+    (MessageManager, "dispatch_error"): ("error", "remote"),
+}
+_MARKER = "_coapkb_hooks"
+
+
+class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):
+    """The installed aiocoap is not the one these hooks were verified against."""
+
+
+def verify() -> None:
+    """Check the version pin and every private name this module uses.
+
+    Raises :class:`UnsupportedAiocoapVersion` naming the first mismatch."""
+    if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
+        raise UnsupportedAiocoapVersion(
+            f"coapkb's aiocoap hooks are verified against aiocoap {SUPPORTED_AIOCOAP_VERSION}, "
+            f"found {aiocoap.meta.version}"
+        )
+    checks: dict[tuple[type, str], tuple[str, ...]] = {(MessageManager, n): p for n, p in _CON_HOOKS.items()}
+    checks.update(_WRAPPED)
+    from aiocoap.transports.udp6 import MessageInterfaceUDP6
+
+    checks[(MessageInterfaceUDP6, "send")] = ("message",)
+    checks[(MessageInterfaceUDP6, "datagram_msg_received")] = ("data", "ancdata", "flags", "address")
+    checks[(MessageInterfaceUDP6, "_local_port")] = ()
+    checks[(aiocoap.Message, "_extract_block")] = ("number", "size_exp", "max_bert_size")
+    for (owner, name), params in checks.items():
+        method = getattr(owner, name, None)
+        if method is None:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__} has no {name}")
+        found = tuple(inspect.signature(method).parameters)[1:]
+        if found != params:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+    if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
+        raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
+
+
+# --------------------------------------------------------------------- small accessors
+
+
+def _message_manager(ctx: aiocoap.Context) -> MessageManager:
+    """The UDP MessageManager of a context created with ``transports=["udp6"]``."""
+    for ri in ctx.request_interfaces:
+        mm = getattr(ri, "token_interface", None)
+        if isinstance(mm, MessageManager):
+            return mm
+    raise ValueError("context has no UDP MessageManager (create it with transports=['udp6'])")
+
+
+def local_port(ctx: aiocoap.Context) -> int:
+    """The UDP port a context's socket is bound to."""
+    return int(_message_manager(ctx).message_interface._local_port())
+
+
+def block_key(request: aiocoap.Message) -> Any:
+    """aiocoap's key of a block-wise transfer: remote, code and options but not
+    the body and not the Block options."""
+    return _extract_block_key(request)
+
+
+def extract_block(message: aiocoap.Message, number: int, size_exp: int, max_payload: int) -> aiocoap.Message:
+    """Block ``number`` (of size ``2**(size_exp+4)``) of a whole response."""
+    return message._extract_block(number, size_exp, max_payload)
+
+
+# --------------------------------------------------------------------- CON retransmission policy
+
+
+class ConPolicy(Protocol):
+    """Decides the retransmission timers of the CON messages a context sends.
+
+    ``on_send`` sees every CON just before its first transmission and returns
+    a record to track it by, or None to leave the message to aiocoap's own
+    timers.  The other calls receive that record."""
+
+    def on_send(self, message: aiocoap.Message) -> Any | None: ...
+
+    def timeout(self, record: Any, retransmission_counter: int) -> float:
+        """Seconds from transmission number ``retransmission_counter`` (0 = the
+        first) to the next one, or to the give-up after the last."""
+        ...
+
+    def on_retransmit(self, record: Any) -> None: ...
+
+    def on_give_up(self, record: Any, reason: str) -> None:
+        """``reason``: ``timeout`` (retransmissions exhausted) or ``error`` (ICMP)."""
+        ...
+
+    def on_reply(self, record: Any, message: aiocoap.Message) -> None:
+        """The first ACK or RST of the exchange."""
+        ...
+
+    def on_duplicate_reply(self, record: Any, message: aiocoap.Message) -> None:
+        """A further ACK/RST of a finished exchange: one more copy reached the peer."""
+        ...
+
+    def max_retransmit(self, record: Any) -> int: ...
+
+
+class ContextHooks:
+    """All per-context patches of one aiocoap context, installed once.
+
+    ``ContextHooks.of(ctx)`` installs them on first use and returns the same
+    object afterwards; :meth:`remove` takes every patch off again (call it
+    before ``ctx.shutdown()``)."""
+
+    def __init__(self, ctx: aiocoap.Context) -> None:
+        self.ctx = ctx
+        self.mm = _message_manager(ctx)
+        self.interface = self.mm.message_interface
+        self.counters = TrafficCounters()
+        self.con_policy: ConPolicy | None = None
+        self._originals: dict[tuple[Any, str], Callable[..., Any]] = {}
+        #: (remote, mid) -> policy record, for CON exchanges aiocoap has active.
+        self._pending: dict[tuple[Any, int], Any] = {}
+        #: finished exchanges that were retransmitted: (remote, mid) -> (record, expiry).
+        self._finished: OrderedDict[tuple[Any, int], tuple[Any, float]] = OrderedDict()
+        self._recent_con: OrderedDict[tuple[Any, int], None] = OrderedDict()
+
+    @classmethod
+    def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
+        mm = _message_manager(ctx)
+        hooks = mm.__dict__.get(_MARKER)
+        if hooks is None:
+            verify()
+            hooks = cls(ctx)
+            hooks._install()
+            setattr(mm, _MARKER, hooks)
+        return hooks
+
+    def set_con_policy(self, policy: ConPolicy | None) -> None:
+        """Route this context's CON timers through ``policy`` (None: aiocoap's)."""
+        if policy is not None and self.con_policy is not None and self.con_policy is not policy:
+            raise ValueError("this context's CON timers already follow another policy")
+        self.con_policy = policy
+        if policy is None:
+            self._pending.clear()
+            self._finished.clear()
+
+    def remove(self) -> None:
+        for (owner, name) in self._originals:
+            owner.__dict__.pop(name, None)
+        self._originals.clear()
+        self.mm.__dict__.pop(_MARKER, None)
+        self.con_policy = None
+
+    # ------------------------------------------------------------ installation
+
+    def _patch(self, owner: Any, name: str, replacement: Callable[..., Any]) -> None:
+        self._originals[(owner, name)] = getattr(owner, name)
+        setattr(owner, name, replacement)
+
+    def _install(self) -> None:
+        self._patch(self.interface, "send", self._send)
+        self._patch(self.interface, "datagram_msg_received", self._datagram_received)
+        self._patch(self.mm, "dispatch_message", self._dispatch_message)
+        self._patch(self.mm, "dispatch_error", self._dispatch_error)
+        self._patch(self.mm, "_add_exchange", self._add_exchange)
+        self._patch(self.mm, "_schedule_retransmit", self._schedule_retransmit)
+        self._patch(self.mm, "_retransmit", self._retransmit)
+        self._patch(self.mm, "_remove_exchange", self._remove_exchange)
+
+    def _original(self, owner: Any, name: str) -> Callable[..., Any]:
+        return self._originals[(owner, name)]
+
+    # ------------------------------------------------------------ socket: counters
+
+    def _send(self, message: aiocoap.Message) -> None:
+        self._original(self.interface, "send")(message)
+        counters = self.counters
+        counters.messages_sent += 1
+        counters.bytes_sent += len(message.encode())
+        if message.mtype == CON:
+            key = (message.remote.sockaddr, message.mid)
+            if key in self._recent_con:
+                counters.retransmissions += 1
+            else:
+                self._recent_con[key] = None
+                if len(self._recent_con) > 4096:
+                    self._recent_con.popitem(last=False)
+
+    def _datagram_received(self, data: bytes, ancdata: Any, flags: int, address: Any) -> None:
+        self.counters.messages_received += 1
+        self.counters.bytes_received += len(data)
+        try:
+            self._original(self.interface, "datagram_msg_received")(data, ancdata, flags, address)
+        except UnicodeDecodeError:
+            log.debug("dropped a datagram from %s: string option is not UTF-8", address)
+
+    # ------------------------------------------------------------ late events
+
+    def _dispatch_message(self, message: aiocoap.Message) -> None:
+        try:
+            self._original(self.mm, "dispatch_message")(message)
+        except asyncio.InvalidStateError:
+            log.debug("late response from %s for an abandoned request", message.remote)
+
+    def _dispatch_error(self, error: Exception, remote: Any) -> None:
+        if self.con_policy is not None:
+            for key in [k for k in self._pending if k[0] == remote]:
+                self.con_policy.on_give_up(self._pending.pop(key), "error")
+        try:
+            self._original(self.mm, "dispatch_error")(error, remote)
+        except asyncio.InvalidStateError:
+            log.debug("late error for an abandoned request to %s: %s", remote, error)
+
+    # ------------------------------------------------------------ CON timers
+
+    def _add_exchange(self, message: aiocoap.Message, messageerror_monitor: Callable[[], None]) -> None:
+        if self.con_policy is not None:
+            record = self.con_policy.on_send(message)
+            if record is not None:
+                self._pending[(message.remote, message.mid)] = record
+        self._original(self.mm, "_add_exchange")(message, messageerror_monitor)
+
+    def _schedule_retransmit(self, message: aiocoap.Message, timeout: float, retransmission_counter: int) -> Any:
+        record = self._pending.get((message.remote, message.mid))
+        if record is not None and self.con_policy is not None:
+            timeout = self.con_policy.timeout(record, retransmission_counter)
+        return self._original(self.mm, "_schedule_retransmit")(message, timeout, retransmission_counter)
+
+    def _retransmit(self, message: aiocoap.Message, timeout: float, retransmission_counter: int) -> None:
+        key = (message.remote, message.mid)
+        record = self._pending.get(key)
+        if record is not None and self.con_policy is not None:
+            if retransmission_counter >= message.transport_tuning.MAX_RETRANSMIT:
+                self._pending.pop(key, None)
+                self.con_policy.on_give_up(record, "timeout")
+            else:
+                self.con_policy.on_retransmit(record)
+        self._original(self.mm, "_retransmit")(message, timeout, retransmission_counter)
+
+    def _remove_exchange(self, message: aiocoap.Message) -> None:
+        key = (message.remote, message.mid)
+        policy = self.con_policy
+        if policy is not None:
+            now = self.mm.loop.time()
+            record = self._pending.pop(key, None)
+            if record is not None:
+                policy.on_reply(record, message)
+                self._remember_finished(key, record, now)
+            else:
+                self._purge_finished(now)
+                entry = self._finished.get(key)
+                if entry is not None:
+                    policy.on_duplicate_reply(entry[0], message)
+        self._original(self.mm, "_remove_exchange")(message)
+
+    def _remember_finished(self, key: tuple[Any, int], record: Any, now: float) -> None:
+        # A duplicate reply answers a copy sent before now, so it comes within
+        # about one RTT; a few seconds is ample, and 1024 entries bound memory.
+        self._purge_finished(now)
+        self._finished[key] = (record, now + 5.0)
+        while len(self._finished) > 1024:
+            self._finished.popitem(last=False)
+
+    def _purge_finished(self, now: float) -> None:
+        while self._finished:
+            _, (_, expiry) = next(iter(self._finished.items()))
+            if expiry > now:
+                break
+            self._finished.popitem(last=False)

@@ -1,0 +1,169 @@
+"""The CoAP client of a robot (and of ``coapkb query``).
+
+With the ``robust`` profile every request goes through the
+:class:`~.reliability.ReliabilityLayer`: each try a NON request with a
+fresh token, Block2 answers fetched block by block, each block its own
+exchange (a lost block costs one retry of that block, not a restart).
+Requests whose body needs Block1 (over 1024 bytes: long SPARQL text) and
+every request under the older profiles use aiocoap's confirmable
+exchanges, with the profile's timers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any, AsyncIterator
+
+import aiocoap
+import aiocoap.error
+from aiocoap.numbers.types import NON
+from aiocoap.optiontypes import BlockOption
+
+from ..base import Endpoint, PeerUnreachable, TrafficCounters, TransportError
+from ..messages import Request, Response
+from .aiocoap_adapter import ContextHooks
+from .mapping import message_from_request, response_from_message
+from .reliability import ReliabilityLayer
+from .reliability.cocoa_hooks import RetransmissionController
+from .reliability.layer import Attempt, ExchangeTimeout
+from .reliability.rto import TransmissionProfile
+
+#: Largest body sent in one datagram (aiocoap's default block size).
+MAX_SINGLE_BODY = 1024
+
+
+def _reply_bytes(message: aiocoap.Message) -> int:
+    return len(message.payload) + 16  # header, token and the usual options
+
+
+class CoapClientTransport:
+    """Sends requests over CoAP/UDP with a reliability profile: ``robust``
+    (the layer, default) or a CON profile (``rfc7252``, ``lossy-fixed``,
+    ``adaptive``) applied by a :class:`RetransmissionController`."""
+
+    def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer | RetransmissionController) -> None:
+        self._ctx = ctx
+        self._hooks = hooks
+        self.reliability = reliability
+        self.counters: TrafficCounters = hooks.counters
+
+    @classmethod
+    async def create(
+        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust"
+    ) -> "CoapClientTransport":
+        """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile."""
+        ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.coap.client")
+        hooks = ContextHooks.of(ctx)
+        if retransmission == "robust":
+            retransmission = ReliabilityLayer()
+        if isinstance(retransmission, ReliabilityLayer):
+            reliability: ReliabilityLayer | RetransmissionController = retransmission
+        else:
+            reliability = RetransmissionController(retransmission)
+            hooks.set_con_policy(reliability)
+        return cls(ctx, hooks, reliability)
+
+    def describe(self) -> dict[str, Any]:
+        """Reliability profile and per-peer estimates, for the agent's record."""
+        return self.reliability.as_dict()
+
+    # ------------------------------------------------------------ requests
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        try:
+            async with asyncio.timeout(timeout):
+                if isinstance(self.reliability, ReliabilityLayer) and len(request.payload) <= MAX_SINGLE_BODY:
+                    message = await self._request_blockwise(peer, request, timeout)
+                else:
+                    message = await self._request_con(peer, request)
+        except (TimeoutError, ExchangeTimeout):
+            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+        except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+            raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
+        except aiocoap.error.Error as exc:
+            raise TransportError(f"request to {peer} failed: {exc}") from None
+        return response_from_message(message)
+
+    async def _request_con(self, peer: Endpoint, request: Request) -> aiocoap.Message:
+        msg = message_from_request(peer, request)
+        if isinstance(self.reliability, RetransmissionController):
+            msg.transport_tuning = self.reliability.tuning_for(peer)
+        return await self._ctx.request(msg).response
+
+    async def _exchange(self, peer: Endpoint, request: Request, timeout: float, *, block2: tuple[int, int] | None = None,
+                        observe: bool = False) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
+        assert isinstance(self.reliability, ReliabilityLayer)
+
+        def send(try_number: int) -> Attempt[aiocoap.Message]:
+            msg = message_from_request(peer, request, observe=observe)
+            msg.mtype = NON
+            if block2 is not None:
+                msg.opt.block2 = BlockOption.BlockwiseTuple(block2[0], False, block2[1])
+            pending = self._ctx.request(msg, handle_blockwise=False)
+            return Attempt(pending.response, cancel=lambda: _abandon(pending), handle=pending)
+
+        return await self.reliability.exchange(
+            peer, send, timeout=timeout, request_bytes=len(request.payload) + 32,
+            reply_key=(request.path, request.accept, block2 is not None), reply_size=_reply_bytes,
+        )
+
+    async def _request_blockwise(self, peer: Endpoint, request: Request, timeout: float) -> aiocoap.Message:
+        first, _ = await self._exchange(peer, request, timeout)
+        block = first.opt.block2
+        if block is None or not block.more:
+            return first
+        payload = bytearray(first.payload)
+        number, szx = block.block_number, block.size_exponent
+        while True:
+            number += 1
+            part, _ = await self._exchange(peer, request, timeout, block2=(number, szx))
+            if part.code != first.code or part.opt.etag != first.opt.etag:
+                raise TransportError(f"the answer from {peer} changed during its block-wise transfer")
+            if part.opt.block2 is None or part.opt.block2.block_number != number:
+                raise TransportError(f"{peer} answered block {number} out of order")
+            payload += part.payload
+            if not part.opt.block2.more:
+                break
+        whole = first.copy(payload=bytes(payload))
+        whole.opt.block2 = None
+        return whole
+
+    async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        if isinstance(self.reliability, ReliabilityLayer):
+            try:
+                first, attempt = await self._exchange(peer, request, timeout=60.0, observe=True)
+            except ExchangeTimeout:
+                raise PeerUnreachable(f"no answer from {peer} to the observation") from None
+            except (aiocoap.error.NetworkError, aiocoap.error.ConRetransmitsExceeded) as exc:
+                raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
+            pending = attempt.handle
+        else:
+            msg = message_from_request(peer, request, observe=True)
+            if isinstance(self.reliability, RetransmissionController):
+                msg.transport_tuning = self.reliability.tuning_for(peer)
+            pending = self._ctx.request(msg)
+            try:
+                first = await pending.response
+            except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+                raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
+        try:
+            yield response_from_message(first)
+            if pending.observation is None:
+                return
+            async for notification in pending.observation:
+                yield response_from_message(notification)
+        finally:
+            _abandon(pending)
+
+    async def aclose(self) -> None:
+        self._hooks.remove()
+        await self._ctx.shutdown()
+
+
+def _abandon(pending: Any) -> None:
+    """Stop waiting for a request's answer and end its observation, if any."""
+    if not pending.response.done():
+        pending.response.cancel()
+    observation = getattr(pending, "observation", None)
+    if observation is not None and not observation.cancelled:
+        observation.cancel()

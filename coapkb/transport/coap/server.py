@@ -1,0 +1,196 @@
+"""The CoAP server of a robot: a :class:`~coapkb.transport.base.Service` over UDP.
+
+Every :class:`ResourceInfo` of the service becomes an aiocoap resource,
+plus ``/.well-known/core`` (RFC 6690).  Block-wise transfer (RFC 7959,
+:mod:`.blockwise`), Observe (RFC 7641) and FETCH (RFC 8132) come from
+aiocoap.  ``SO_REUSEPORT`` would let a second server silently share a port:
+binding checks the port first and fails clearly.
+"""
+
+from __future__ import annotations
+
+import errno
+import ipaddress
+import logging
+import socket
+from typing import Any
+
+import aiocoap
+import aiocoap.resource
+
+from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters, TransportError
+from ..messages import Response, Status
+from .aiocoap_adapter import ContextHooks, local_port
+from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
+from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
+from .reliability import ReliabilityLayer
+from .reliability.cocoa_hooks import RetransmissionController
+from .reliability.notifications import NotificationPolicy, NotificationTuning
+from .reliability.rto import TransmissionProfile
+
+log = logging.getLogger(__name__)
+
+
+class _RateLimitFilter(logging.Filter):
+    """One :class:`RateLimiter` per message template, so a stream of garbage
+    datagrams (each logged by aiocoap) cannot flood the log.  Errors pass."""
+
+    def __init__(self, interval_s: float = 10.0) -> None:
+        super().__init__()
+        self.interval_s = interval_s
+        self._limiters: dict[str, RateLimiter] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.ERROR:
+            return True
+        key = str(record.msg)
+        suppressed = self._limiters.setdefault(key, RateLimiter(self.interval_s)).allow()
+        if suppressed is None:
+            return False
+        if suppressed:
+            record.msg = f"{record.msg} (and {suppressed} similar messages suppressed)"
+        return True
+
+
+class _ServiceResource(aiocoap.resource.ObservableResource):
+    """One path of a :class:`Service` as an aiocoap resource."""
+
+    def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any) -> None:
+        super().__init__()
+        self._block1 = GapSafeBlock1Spool()
+        self._block2 = BodyAwareBlock2Cache()
+        self.service = service
+        self.info = info
+        self._tuning_for = tuning_for
+        self.rt = info.rt
+        if info.obs:
+            service.subscribe(info.path, self.updated_state)
+
+    def get_link_description(self) -> dict[str, Any]:
+        link: dict[str, Any] = {}
+        if self.info.rt:
+            link["rt"] = self.info.rt
+        if self.info.ct:
+            link["ct"] = " ".join(str(int(c)) for c in self.info.ct)
+        if self.info.title:
+            link["title"] = self.info.title
+        if self.info.obs:
+            link["obs"] = None
+        return link
+
+    async def render(self, request: aiocoap.Message) -> aiocoap.Message:
+        try:
+            req = request_from_message(self.info.path, request)
+        except ValueError:
+            return message_from_response(Response.error(Status.METHOD_NOT_ALLOWED, f"{request.code} not supported"))
+        sent_hash = dict(q.partition("=")[::2] for q in request.opt.uri_query).get(BODY_HASH_PARAM)
+        if req.payload and sent_hash is not None and sent_hash != body_hash(req.payload):
+            return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
+        try:
+            response = await self.service.handle(req)
+        except Exception:  # the service must not raise; never let a bug kill the server
+            log.exception("service failed on %s", self.info.path)
+            response = Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+        message = message_from_response(response)
+        # Piggybacked answers are never retransmitted, but Observe
+        # notifications are CON: they follow the reliability policy's timers.
+        message.transport_tuning = self._tuning_for(request)
+        return message
+
+    async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
+        if self.info.obs:
+            await super().add_observation(request, serverobservation)
+
+
+def _check_port_free(host: str, port: int) -> None:
+    """Fail clearly if another process already serves CoAP on (host, port).
+
+    aiocoap binds with SO_REUSEPORT, which would let a second server share the
+    port silently and steal its traffic; this probe binds without it."""
+    if port == 0:
+        return
+    addr = ipaddress.ip_address(host)
+    bind_host = f"::ffff:{addr}" if addr.version == 4 else host
+    probe = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+    try:
+        probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+        probe.bind((bind_host, port))
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise TransportError(f"UDP port {host}:{port} is already in use by another server") from None
+        raise TransportError(f"cannot bind {host}:{port}: {exc.strerror}") from None
+    finally:
+        probe.close()
+
+
+def _resolve_host(host: str) -> str:
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        try:
+            return socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)[0][4][0]
+        except socket.gaierror as exc:
+            raise TransportError(f"cannot resolve {host!r}: {exc.strerror}") from None
+
+
+class CoapServerTransport:
+    """Serves a :class:`Service` over CoAP/UDP.
+
+    ``retransmission`` times the server's confirmable messages (Observe
+    notifications): a :class:`ReliabilityLayer` shared with the robot's
+    client (its path estimates), or a CON profile name (its own per-peer
+    estimates)."""
+
+    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: Any) -> None:
+        self._ctx = ctx
+        self._hooks = hooks
+        self.endpoint = endpoint
+        self.counters: TrafficCounters = hooks.counters
+        self.policy = policy
+
+    @classmethod
+    async def start(
+        cls, service: Service, endpoint: Endpoint,
+        retransmission: ReliabilityLayer | TransmissionProfile | str = "robust",
+    ) -> "CoapServerTransport":
+        host = _resolve_host(endpoint.host)
+        _check_port_free(host, endpoint.port)
+        if retransmission == "robust":
+            retransmission = ReliabilityLayer()
+        if isinstance(retransmission, ReliabilityLayer):
+            policy: Any = NotificationPolicy(retransmission)
+            tuning = NotificationTuning()
+            tuning_for: Any = lambda request: tuning  # noqa: E731
+        else:
+            policy = RetransmissionController(retransmission)
+            tuning_for = lambda request: policy.tuning_for(request.remote.hostinfo, reliability=None)  # noqa: E731
+        site = aiocoap.resource.Site()
+        site.add_resource(
+            [".well-known", "core"],
+            aiocoap.resource.WKCResource(site.get_resources_as_linkheader, impl_info=None),
+        )
+        for info in service.resources():
+            segments = [s for s in info.path.split("/") if s]
+            site.add_resource(segments, _ServiceResource(service, info, tuning_for))
+        logger = logging.getLogger("coapkb.coap.server")
+        if not any(isinstance(f, _RateLimitFilter) for f in logger.filters):
+            logger.addFilter(_RateLimitFilter())
+        try:
+            ctx = await aiocoap.Context.create_server_context(
+                site, bind=(host, endpoint.port), transports=["udp6"], loggername=logger.name
+            )
+        except OSError as exc:
+            raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
+        hooks = ContextHooks.of(ctx)
+        hooks.set_con_policy(policy)
+        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
+
+    def describe(self) -> dict[str, Any]:
+        if isinstance(self.policy, NotificationPolicy):
+            return {"profile": {"name": "robust"}, "notifications": "timed from the client's path estimates"}
+        return self.policy.as_dict()
+
+    async def aclose(self) -> None:
+        self._hooks.remove()
+        await self._ctx.shutdown()
