@@ -17,6 +17,7 @@ import cbor2
 from ..wire import codec
 from .store import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from .answer_cache import AnswerCache
 from .named_queries import NamedQuery, named_queries_for
 from .results import QueryResult
 from ..transport.router import Router
@@ -67,6 +68,7 @@ class KBResources:
         self.limits = limits or QueryLimits()
         self.named = {q.name: q for q in named_queries_for(kb.names)}
         self.running = 0
+        self.answers = AnswerCache()
 
     def mount(self, router: Router) -> None:
         router.add(
@@ -159,6 +161,10 @@ class KBResources:
         etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
         if etag in etags:
             return Response(Status.VALID, max_age=limits.max_age_s, etag=etag)
+        return await self.answers.get_or_compute(etag, lambda: self._run(text, fmt, etag))
+
+    async def _run(self, text: str, fmt: ContentFormat, etag: bytes) -> Response:
+        limits = self.limits
         if self.running >= limits.max_concurrent:
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
