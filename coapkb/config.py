@@ -11,7 +11,7 @@ Example ``robot1.toml``::
     bind = "coap://127.0.0.1:5701"
     kb = ["ontologies/Location.owl"]
     strategy = "compute-by-all"
-    retransmission = "adaptive"
+    retransmission = "robust"
 
     [start]                  # initial state
     aisle = 0
@@ -33,12 +33,14 @@ Example ``robot1.toml``::
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 from .errors import CoapkbError
-from .transport.coap.reliability.rto import PROFILES
+import tomli_w
+
+from .transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from .transport.base import Endpoint
 
 KB_MODULES = ("Object", "Location", "Capability")
@@ -95,7 +97,7 @@ class RobotConfig:
     team: Mapping[str, Teammate]
     start: StartState = field(default_factory=StartState)
     strategy: str = "compute-by-all"
-    retransmission: str = "adaptive"
+    retransmission: str = DEFAULT_PROFILE
     #: Where all KBs live in the centralised baseline; None = distributed.
     central: Endpoint | None = None
     query_timeout_s: float = 20.0
@@ -132,6 +134,31 @@ def load_config(path: str | Path) -> RobotConfig:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def config_to_dict(config: RobotConfig) -> dict[str, Any]:
+    """The mapping :func:`parse_config` reads back into an equal ``config``
+    (file paths absolute, so it does not depend on where it is written)."""
+    data: dict[str, Any] = {
+        "robot_id": config.robot_id,
+        "bind": str(config.bind),
+        "kb": [str(path.resolve()) for path in config.kb_files],
+        "strategy": config.strategy,
+        "retransmission": config.retransmission,
+        "query_timeout_s": config.query_timeout_s,
+    }
+    if config.central is not None:
+        data["central"] = str(config.central)
+    data["start"] = asdict(config.start)
+    data["cost"] = asdict(config.cost)
+    data["execution"] = asdict(config.execution)
+    data["team"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)} for m in config.team.values()}
+    return data
+
+
+def dump_config(config: RobotConfig) -> str:
+    """``config`` as TOML that :func:`load_config` reads back into an equal config."""
+    return tomli_w.dumps(config_to_dict(config))
+
+
 def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotConfig:
     """Validate a configuration mapping (as read from TOML)."""
     known = {
@@ -147,9 +174,9 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     strategy = _get(data, "strategy", str, "compute-by-all")
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
-    retransmission = _get(data, "retransmission", str, "adaptive")
-    if retransmission not in PROFILES:
-        raise ConfigError(f"retransmission: {retransmission!r} is not one of {', '.join(PROFILES)}")
+    retransmission = _get(data, "retransmission", str, DEFAULT_PROFILE)
+    if retransmission not in PROFILE_NAMES:
+        raise ConfigError(f"retransmission: {retransmission!r} is not one of {', '.join(PROFILE_NAMES)}")
     team_data = _get(data, "team", dict)
     team = {}
     for mate_id, mate in team_data.items():

@@ -8,7 +8,17 @@ from typing import Any
 
 import pytest
 
-from coapkb.config import ConfigError, CostModel, ExecutionModel, RobotConfig, StartState, load_config, parse_config
+from coapkb.config import (
+    ConfigError,
+    CostModel,
+    ExecutionModel,
+    RobotConfig,
+    StartState,
+    config_to_dict,
+    dump_config,
+    load_config,
+    parse_config,
+)
 from coapkb.transport.base import Endpoint
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -118,6 +128,22 @@ def test_zmq_and_central_mode() -> None:
     assert config.central == Endpoint("zmq", "127.0.0.1", 6000)
     assert config.kb_files == ()
 
+
+
+@pytest.mark.parametrize("central", [False, True])
+def test_dump_config_is_read_back_as_the_same_config(tmp_path: Path, central: bool) -> None:
+    data = base()
+    data.update(strategy="compute-and-communicate", retransmission="lossy-fixed", query_timeout_s=7.5,
+                start={"aisle": 3, "rack": 9, "battery_wh": 312.5, "payload_kg": 31.4},
+                cost={"reserve_wh": 12.0}, execution={"time_scale": 50.0, "pick_s": 2.0})
+    if central:
+        data.update(central="coap://127.0.0.1:5700", kb=[])
+    config = parse_config(data)
+    path = tmp_path / "elsewhere" / "robot.toml"
+    path.parent.mkdir()
+    path.write_text(dump_config(config), encoding="utf-8")
+    assert load_config(path) == config
+    assert parse_config(config_to_dict(config)) == config
 
 def _edit(path: str, value: Any) -> dict[str, Any]:
     """base() with the dotted ``path`` set to ``value`` (or deleted if value is DELETE)."""

@@ -32,11 +32,19 @@ from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.team_view import STATE_PATH, ObservedStates, States
 from ..agent.task_assigner import robot_sort_key
-from ..config import KB_MODULES, STRATEGIES
+from ..config import (
+    KB_MODULES,
+    STRATEGIES,
+    ExecutionModel,
+    RobotConfig,
+    StartState,
+    Teammate,
+    dump_config,
+)
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request
 from ..kb.named_queries import NAMED_QUERIES
-from ..transport.coap.reliability.rto import PROFILES
+from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from ..transport import open_client
 from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import ClientTransport, Endpoint
@@ -57,7 +65,7 @@ class TeamSpec:
     mode: str = "distributed"
     transport: str = "coap"
     strategy: str = "compute-by-all"
-    retransmission: str = "adaptive"
+    retransmission: str = DEFAULT_PROFILE
     query_wire: str = "compact"
     ontologies: Path = DEFAULT_ONTOLOGIES
     host: str = "127.0.0.1"
@@ -75,8 +83,8 @@ class TeamSpec:
             raise ValueError(f"transport must be coap or zmq, got {self.transport!r}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
-        if self.retransmission not in PROFILES:
-            raise ValueError(f"retransmission must be one of {', '.join(PROFILES)}, got {self.retransmission!r}")
+        if self.retransmission not in PROFILE_NAMES:
+            raise ValueError(f"retransmission must be one of {', '.join(PROFILE_NAMES)}, got {self.retransmission!r}")
         if self.query_wire not in QUERY_WIRES:
             raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
         for kb in KB_MODULES:
@@ -163,14 +171,6 @@ def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
     return starts
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return repr(value)
-
-
 class Placement:
     """Where each process of the team runs: here, on loopback, each on a free port.
 
@@ -209,31 +209,25 @@ class Team:
                 self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
         for cluster in spec.clusters():
             holders = dict(zip(cluster, ("Location", "Object", "Capability")))
+            team = {
+                mate: Teammate(mate, self.endpoints[mate], (holders[mate],) if spec.mode == "distributed" else ())
+                for mate in cluster
+            }
             for robot_id in cluster:
-                start = starts.get(robot_id, {"aisle": 1, "rack": 0})
-                kbs = [holders[robot_id]] if spec.mode == "distributed" else []
-                lines = [
-                    f"robot_id = {_toml_value(robot_id)}",
-                    f"bind = {_toml_value(str(self.endpoints[robot_id]))}",
-                    f"kb = {_toml_value([str(spec.ontologies / f'{kb}.owl') for kb in kbs])}",
-                    f"strategy = {_toml_value(spec.strategy)}",
-                    f"retransmission = {_toml_value(spec.retransmission)}",
-                    f"query_timeout_s = {spec.query_timeout_s!r}",
-                ]
-                if self.central is not None:
-                    lines.append(f"central = {_toml_value(str(self.central))}")
-                lines += ["", "[start]"] + [f"{k} = {v!r}" for k, v in start.items()]
-                lines += ["", "[execution]", f"time_scale = {spec.time_scale!r}"]
-                for mate in cluster:
-                    mate_kbs = [holders[mate]] if spec.mode == "distributed" else []
-                    lines += [
-                        "",
-                        f"[team.{mate}]",
-                        f"endpoint = {_toml_value(str(self.endpoints[mate]))}",
-                        f"kbs = {_toml_value(mate_kbs)}",
-                    ]
+                config = RobotConfig(
+                    robot_id=robot_id,
+                    bind=self.endpoints[robot_id],
+                    kb_files=tuple(spec.ontologies / f"{kb}.owl" for kb in team[robot_id].kbs),
+                    team=team,
+                    start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
+                    strategy=spec.strategy,
+                    retransmission=spec.retransmission,
+                    central=self.central,
+                    query_timeout_s=spec.query_timeout_s,
+                    execution=ExecutionModel(time_scale=spec.time_scale),
+                )
                 path = self.workdir / f"{robot_id}.toml"
-                path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+                path.write_text(dump_config(config), encoding="utf-8")
                 paths[robot_id] = path
         return paths
 
