@@ -14,10 +14,12 @@ $(VENV)/.installed: pyproject.toml
 venv: $(VENV)/.installed
 
 # Debian packages used by the interop and link-emulation tests (needs root; skipped otherwise).
+# iptables: its NFQUEUE target feeds the link emulator's delay line (this kernel's nftables has no queue).
 system-deps:
 	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	  command -v coap-client-notls >/dev/null && command -v nft >/dev/null && command -v tc >/dev/null || { \
-	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 >/dev/null; }; \
+	  command -v coap-client-notls >/dev/null && command -v nft >/dev/null && command -v tc >/dev/null \
+	    && command -v iptables >/dev/null || { \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 iptables >/dev/null; }; \
 	else echo "system-deps: not root or no apt-get; interop/netns tests will skip"; fi
 
 demo: venv

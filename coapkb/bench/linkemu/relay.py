@@ -185,6 +185,9 @@ class UdpRelay:
     ) -> None:
         if not isinstance(up, LinkSpec) or not isinstance(down, (LinkSpec, type(None))):
             raise ValueError("up and down must be LinkSpec (down=None: same as up)")
+        for spec in (up, down):
+            if spec is not None and (spec.jitter_ms or spec.loss_model != "random"):
+                raise ValueError("UdpRelay emulates rate, random loss and fixed delay only (no jitter, no burst loss)")
         self.target = target
         self.up_spec = up
         self.down_spec = up if down is None else down

@@ -8,7 +8,7 @@ from typing import Protocol
 
 from .spec import LOSS_SCALE, LinkSpec
 
-__all__ = ["ETH_HEADER", "NFT_TABLE", "loss_rule", "nft_table", "tc_lines"]
+__all__ = ["ETH_HEADER", "NFT_TABLE", "loss_rule", "nft_table", "queue_rule", "tc_lines"]
 
 #: nftables table (family ``bridge``) holding the loss rules, in the bridge namespace.
 NFT_TABLE = "coapkb"
@@ -30,8 +30,8 @@ class _Port(Protocol):
 def loss_rule(index: int, spec: LinkSpec) -> str:
     """The nft rule that drops host ``index``'s packets with ``spec.loss_pct`` ("" = none)."""
     t = spec.loss_threshold
-    if t <= 0:
-        return ""
+    if t <= 0 or spec.loss_model != "random":
+        return ""  # burst loss is the delay line's
     return f'numgen random mod {LOSS_SCALE} < {t} counter name "dropped_h{index}" drop'
 
 
@@ -48,7 +48,9 @@ def nft_table(hosts: Sequence[_Port], links: Mapping[int, LinkSpec]) -> str:
     vmap = ", ".join(f'"{h.port}" : jump loss_h{h.index}' for h in hosts)
     nft += [
         "  chain forward {",
-        "    type filter hook forward priority 0; policy accept;",
+        # Priority -1: before br_netfilter's hook (0), which hands packets to
+        # iptables and so to the delay line; a lost packet is not delayed first.
+        "    type filter hook forward priority -1; policy accept;",
         f"    iifname vmap {{ {vmap} }}",
         "  }",
         "}",
@@ -56,17 +58,20 @@ def nft_table(hosts: Sequence[_Port], links: Mapping[int, LinkSpec]) -> str:
     return "\n".join(nft) + "\n"
 
 
-def tc_lines(dev: str, spec: LinkSpec, *, uplink: bool) -> list[str]:
+def tc_lines(dev: str, spec: LinkSpec) -> list[str]:
     """``tc -batch`` lines for ``dev``'s root qdisc ([] = leave it unshaped)."""
-    lines = []
-    delay = spec.delay_ms if uplink else 0.0
-    if spec.rate_bit_s is not None:
-        lines.append(
-            f"qdisc add dev {dev} root handle 1: tbf rate {spec.rate_bit_s}bit "
-            f"burst {spec.burst_bytes} limit {spec.limit_bytes}"
-        )
-        if delay:
-            lines.append(f"qdisc add dev {dev} parent 1:1 handle 10: netem delay {delay:g}ms limit 100000")
-    elif delay:
-        lines.append(f"qdisc add dev {dev} root handle 1: netem delay {delay:g}ms limit 100000")
-    return lines
+    if spec.rate_bit_s is None:
+        return []
+    return [
+        f"qdisc add dev {dev} root handle 1: tbf rate {spec.rate_bit_s}bit "
+        f"burst {spec.burst_bytes} limit {spec.limit_bytes}"
+    ]
+
+
+def queue_rule(port: str, queue: int) -> list[str]:
+    """iptables arguments (after ``-A``/``-D FORWARD``) sending what enters the
+    bridge from ``port`` to netfilter queue ``queue``, i.e. to the delay line.
+    Needs ``br_netfilter`` (``bridge-nf-call-iptables=1`` in the bridge namespace);
+    no ``--queue-bypass``: if the delay line is gone, packets are dropped,
+    never passed on undelayed."""
+    return ["-m", "physdev", "--physdev-in", port, "-j", "NFQUEUE", "--queue-num", str(queue)]

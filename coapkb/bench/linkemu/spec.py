@@ -11,6 +11,7 @@ __all__ = [
     "BURST_SECONDS",
     "DEFAULT_QUEUE_BYTES",
     "ETH_FRAME_MAX",
+    "LOSS_MODELS",
     "LOSS_SCALE",
     "MIN_BURST_BYTES",
     "LinkCounters",
@@ -44,6 +45,9 @@ DEFAULT_QUEUE_BYTES = 1000 * ETH_FRAME_MAX
 #: Loss is drawn as ``numgen random mod LOSS_SCALE < threshold``: 0.01 % steps.
 LOSS_SCALE = 10_000
 
+#: ``LinkSpec.loss_model`` values: independent per-packet loss, or Gilbert bursts.
+LOSS_MODELS = ("random", "burst")
+
 class LinkEmulationError(CoapkbError, RuntimeError):
     """Setting up, changing or tearing down the emulated network failed."""
 
@@ -74,16 +78,33 @@ class LinkSpec:
         Percent (0..100, 0.01 % steps) of the packets *this host sends* that
         are lost after having used its link.
     ``delay_ms``
-        One-way delay added to packets this host sends.  Needs ``sch_netem``
-        in the kernel; refused otherwise (see :func:`Testbed.set_link`).
+        One-way delay added to packets this host sends, after its shaper
+        (the user-space delay line, :mod:`.delayline`).  The RTT between two
+        hosts is the sum of both hosts' ``delay_ms``.
     ``queue_bytes``
         Shaper queue limit in bytes; ``None`` = :data:`DEFAULT_QUEUE_BYTES`.
+    ``jitter_ms``
+        Each packet's delay is ``delay_ms`` plus a uniform draw from
+        ``[-jitter_ms, +jitter_ms]``, but never earlier than the host's
+        previous packet (no reordering), so ``jitter_ms <= delay_ms``.
+    ``loss_model``
+        ``"random"``: each packet is lost independently with ``loss_pct``
+        (in nftables).  ``"burst"``: Gilbert's two-state model (a Good state
+        that loses nothing, a Bad state that loses everything) with mean
+        loss ``loss_pct`` and mean run of consecutive losses ``burst_len``
+        (in the delay line; see :attr:`gilbert_p`).
+    ``burst_len``
+        Mean number of consecutive lost packets for ``loss_model="burst"``
+        (at least 1); ignored for ``"random"``.
     """
 
     rate_kbit: float | None = None
     loss_pct: float = 0.0
     delay_ms: float = 0.0
     queue_bytes: int | None = None
+    jitter_ms: float = 0.0
+    loss_model: str = "random"
+    burst_len: float = 3.0
 
     def __post_init__(self) -> None:
         _check_number("rate_kbit", self.rate_kbit, allow_none=True)
@@ -97,6 +118,26 @@ class LinkSpec:
         _check_number("delay_ms", self.delay_ms)
         if not 0.0 <= self.delay_ms <= 60_000:
             raise ValueError(f"LinkSpec.delay_ms must be within 0..60000, got {self.delay_ms!r}")
+        _check_number("jitter_ms", self.jitter_ms)
+        if not 0.0 <= self.jitter_ms <= self.delay_ms:
+            raise ValueError(
+                f"LinkSpec.jitter_ms must be within 0..delay_ms ({self.delay_ms:g}), got {self.jitter_ms!r}"
+            )
+        if self.loss_model not in LOSS_MODELS:
+            raise ValueError(f"LinkSpec.loss_model must be one of {', '.join(LOSS_MODELS)}, got {self.loss_model!r}")
+        _check_number("burst_len", self.burst_len)
+        if self.burst_len < 1.0:
+            raise ValueError(f"LinkSpec.burst_len must be at least 1 packet, got {self.burst_len!r}")
+        if self.loss_model == "burst" and self.loss_pct > 0:
+            # p = l / (b (1 - l)) is a probability only for b >= l / (1 - l):
+            # a high loss rate cannot come in short bursts.
+            loss = self.loss_pct / 100
+            if loss >= 1.0 or loss / (1 - loss) > self.burst_len:
+                shortest = "no burst length" if loss >= 1.0 else f"at least {loss / (1 - loss):.3g}"
+                raise ValueError(
+                    f"LinkSpec.burst_len {self.burst_len:g} cannot give {self.loss_pct:g} % burst loss "
+                    f"({shortest} can)"
+                )
         if self.queue_bytes is not None:
             if isinstance(self.queue_bytes, bool) or not isinstance(self.queue_bytes, int):
                 raise ValueError(f"LinkSpec.queue_bytes must be an int or None, got {self.queue_bytes!r}")
@@ -128,10 +169,37 @@ class LinkSpec:
         """``numgen random mod LOSS_SCALE < loss_threshold`` drops a packet."""
         return round(self.loss_pct * LOSS_SCALE / 100)
 
+    @property
+    def gilbert_p(self) -> float:
+        """Burst loss: probability of going Good -> Bad at a packet.
+
+        With ``r`` = :attr:`gilbert_r`, the Bad state's stationary share (the
+        mean loss) is ``p / (p + r)``; solving for ``loss_pct / 100 = l`` gives
+        ``p = l * r / (1 - l)``.
+        """
+        loss = self.loss_pct / 100
+        return 0.0 if loss <= 0 else loss * self.gilbert_r / (1 - loss)
+
+    @property
+    def gilbert_r(self) -> float:
+        """Burst loss: probability of going Bad -> Good at a packet; a stay in
+        Bad is geometric with mean ``1 / r`` = :attr:`burst_len` packets."""
+        return 1.0 / self.burst_len
+
+    @property
+    def needs_delay_line(self) -> bool:
+        """Whether this host's packets must pass the user-space delay line."""
+        return self.delay_ms > 0 or self.jitter_ms > 0 or (self.loss_model == "burst" and self.loss_pct > 0)
+
     def __str__(self) -> str:
         rate = "unshaped" if self.rate_kbit is None else f"{self.rate_kbit:g} kbit/s"
-        extra = f", {self.delay_ms:g} ms delay" if self.delay_ms else ""
-        return f"{rate}, {self.loss_pct:g} % loss{extra}"
+        loss = f"{self.loss_pct:g} % loss"
+        if self.loss_model == "burst":
+            loss += f" in bursts of {self.burst_len:g}"
+        extra = ""
+        if self.delay_ms:
+            extra = f", {self.delay_ms:g} ms delay" + (f" +- {self.jitter_ms:g} ms" if self.jitter_ms else "")
+        return f"{rate}, {loss}{extra}"
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ import json
 import os
 import re
 import secrets
+import shutil
 import signal
 import subprocess
 import threading
@@ -18,7 +19,8 @@ from types import FrameType, TracebackType
 from typing import Any
 
 from .netns import DEFAULT_PREFIX, _delete_netns, _kill_netns_processes, _list_netns, _run
-from .shaping import ETH_HEADER, NFT_TABLE, loss_rule, nft_table, tc_lines
+from .delayline import DelayLine, QueueStats
+from .shaping import ETH_HEADER, NFT_TABLE, loss_rule, nft_table, queue_rule, tc_lines
 from .spec import LinkCounters, LinkEmulationError, LinkSpec
 
 __all__ = ["Host", "Testbed"]
@@ -159,7 +161,8 @@ class Testbed:
         self._state = "new"  # new -> up -> closed
         self._prev_sigterm: Any = None
         self._installed_sigterm = False
-        self._netem: bool | None = None  # probed on first use of delay_ms
+        self._delay_line: DelayLine | None = None  # started when a link first needs it
+        self._queued: set[str] = set()  # hosts whose packets go to the delay line
         self._owner_pid = os.getpid()
 
     # ---- lookup -----------------------------------------------------------
@@ -259,6 +262,7 @@ class Testbed:
         _run(["ip", "netns", "exec", ns, "sh", "-c", f"[ ! -e {_V6_DEFAULT} ] || echo 1 > {_V6_DEFAULT}"])
 
     def _build(self) -> None:
+        self._require_delay_tools(self._links.values())
         br = self.bridge_netns
         self._add_netns(br)
         hosts = list(self._hosts.values())
@@ -302,35 +306,57 @@ class Testbed:
         specs = {h.index: self._links[h.name] for h in hosts}
         _run(["ip", "netns", "exec", br, "nft", "-f", "-"], input=nft_table(hosts, specs))
 
-        self._require_netem(self._links.values())
         for h in hosts:
             self._apply_shaping(h, self._links[h.name], fresh=True)
+        for h in hosts:
+            self._apply_delay(h, self._links[h.name])
 
     def _apply_shaping(self, h: Host, spec: LinkSpec, *, fresh: bool) -> None:
         """(Re)install uplink and downlink qdiscs for ``h``."""
-        for ns, dev, uplink in ((h.netns, _HOST_IF, True), (self.bridge_netns, h.port, False)):
+        for ns, dev in ((h.netns, _HOST_IF), (self.bridge_netns, h.port)):
             if not fresh:
                 # Deleting a root that is not there (noqueue) fails harmlessly.
                 _run(["tc", "-n", ns, "qdisc", "del", "dev", dev, "root"], check=False)
-            lines = tc_lines(dev, spec, uplink=uplink)
+            lines = tc_lines(dev, spec)
             if not lines:
                 continue
             _run(["tc", "-n", ns, "-batch", "-"], input="\n".join(lines) + "\n")
 
-    def _require_netem(self, specs: Iterable[LinkSpec]) -> None:
-        """Refuse delay up front (before touching any link) when the kernel lacks netem."""
-        delays = [s.delay_ms for s in specs if s.delay_ms > 0]
-        if not delays:
-            return
-        if self._netem is None:
-            probe = ["tc", "-n", self.bridge_netns, "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms"]
-            self._netem = _run(probe, check=False).returncode == 0
-            _run(["tc", "-n", self.bridge_netns, "qdisc", "del", "dev", "lo", "root"], check=False)
-        if not self._netem:
+    @staticmethod
+    def _require_delay_tools(specs: Iterable[LinkSpec]) -> None:
+        """Refuse delay, jitter and burst loss up front (before touching any
+        link) when ``iptables`` is missing: it puts packets in the delay line's queue."""
+        if any(s.needs_delay_line for s in specs) and shutil.which("iptables") is None:
             raise LinkEmulationError(
-                f"delay_ms={max(delays):g} needs the kernel's sch_netem (CONFIG_NET_SCH_NETEM), "
-                "which this kernel lacks; use delay_ms=0 (delay is not emulated without netem)"
+                "delay, jitter and burst loss need iptables (its NFQUEUE target feeds the delay line); "
+                "install the Debian package iptables"
             )
+
+    def _ensure_delay_line(self) -> DelayLine:
+        if self._delay_line is None:
+            # br_netfilter hands bridged IPv4 packets to iptables' FORWARD
+            # chain; on by default in a new namespace, but say so.
+            knob = "/proc/sys/net/bridge/bridge-nf-call-iptables"
+            _run(["ip", "netns", "exec", self.bridge_netns, "sh", "-c", f"echo 1 > {knob}"])
+            line = DelayLine(self.bridge_netns, [h.index for h in self._hosts.values()])
+            self._delay_line = line  # before start: close() must stop a half-started one too
+            line.start()
+        return self._delay_line
+
+    def _apply_delay(self, h: Host, spec: LinkSpec) -> None:
+        """Route ``h``'s packets through the delay line if ``spec`` needs it, or stop doing so.
+
+        The queue is configured before packets are sent to it; packets held at
+        a change keep the release time they were given."""
+        iptables = ["ip", "netns", "exec", self.bridge_netns, "iptables", "-w"]
+        if spec.needs_delay_line:
+            self._ensure_delay_line().configure(h.index, spec)
+            if h.name not in self._queued:
+                _run([*iptables, "-A", "FORWARD", *queue_rule(h.port, h.index)])
+                self._queued.add(h.name)
+        elif h.name in self._queued:
+            _run([*iptables, "-D", "FORWARD", *queue_rule(h.port, h.index)])
+            self._queued.discard(h.name)
 
     def set_link(self, name: str, spec: LinkSpec) -> None:
         """Change ``name``'s link in place (between runs; counters keep counting).
@@ -342,13 +368,14 @@ class Testbed:
             raise ValueError(f"spec must be a LinkSpec, got {spec!r}")
         h = self.host(name)
         self._require_up()
-        self._require_netem([spec])
+        self._require_delay_tools([spec])
         self._apply_shaping(h, spec, fresh=False)
         rule = loss_rule(h.index, spec)
         script = f"flush chain bridge {NFT_TABLE} loss_h{h.index}\n"
         if rule:
             script += f"add rule bridge {NFT_TABLE} loss_h{h.index} {rule}\n"
         _run(["ip", "netns", "exec", self.bridge_netns, "nft", "-f", "-"], input=script)
+        self._apply_delay(h, spec)
         self._links[name] = spec
 
     def _require_up(self) -> None:
@@ -381,6 +408,10 @@ class Testbed:
                         ap.terminate()
                     except ProcessLookupError:
                         pass
+            if self._delay_line is not None:
+                # Closing its control pipe stops it; what it still holds is dropped.
+                self._delay_line.close()
+                self._delay_line = None
             mine = self._owned_namespaces()
             survivors = _kill_netns_processes(mine, self._kill_grace_s)
             for p in self._popen:
@@ -486,6 +517,9 @@ class Testbed:
         for q in json.loads(cp.stdout or "[]"):
             if q.get("root"):
                 down_drops[q.get("dev", "")] = int(q.get("drops", 0))
+        # Burst losses and kernel-queue overflows of the delay line; a delay
+        # line that died raises here rather than leaving silent gaps.
+        delayed = self._delay_line.stats() if self._delay_line is not None else {}
         out: dict[str, LinkCounters] = {}
         for h in self._hosts.values():
             cp = _run(["ip", "-n", h.netns, "-s", "-j", "link", "show", "dev", _HOST_IF])
@@ -493,16 +527,17 @@ class Testbed:
             cp = _run(["tc", "-n", h.netns, "-s", "-j", "qdisc", "show", "dev", _HOST_IF])
             up_drops = sum(int(q.get("drops", 0)) for q in json.loads(cp.stdout or "[]") if q.get("root"))
             dp, db = dropped.get(f"dropped_h{h.index}", (0, 0))
+            dl = delayed.get(h.index, QueueStats())
             out[h.name] = LinkCounters(
                 tx_bytes=int(stats["tx"]["bytes"]),
                 tx_packets=int(stats["tx"]["packets"]),
                 rx_bytes=int(stats["rx"]["bytes"]),
                 rx_packets=int(stats["rx"]["packets"]),
-                dropped=dp,
+                dropped=dp + dl.dropped,
                 # The bridge hook sees frames with the Ethernet header already
                 # pulled; add it back so dropped_bytes compares with tx_bytes.
-                dropped_bytes=db + dp * ETH_HEADER,
-                queue_drops=up_drops + down_drops.get(h.port, 0),
+                dropped_bytes=db + dp * ETH_HEADER + dl.dropped_bytes,
+                queue_drops=up_drops + down_drops.get(h.port, 0) + dl.kernel_drops,
             )
         return out
 
