@@ -71,6 +71,12 @@ class Profile:
     grids: tuple[Grid, ...]
     reps: int = 1
     note: str = ""
+    # The link beyond rate and loss, for every run of the profile (coapkb bench
+    # --delay/--jitter/--loss-model/--burst-len); the defaults are the plain link.
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss_model: str = "random"
+    burst_len: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -82,12 +88,22 @@ class Run:
     loss: float
     rep: int
     retransmission: str
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss_model: str = "random"
+    burst_len: float = 3.0
+
+    def link_columns(self) -> dict[str, Any]:
+        """The row's link columns as ``coapkb bench`` writes them (burst_len 0 for random loss)."""
+        return {"delay_ms": self.delay_ms, "jitter_ms": self.jitter_ms, "loss_model": self.loss_model,
+                "burst_len": self.burst_len if self.loss_model == "burst" else 0.0}
 
     def key(self) -> tuple[str, ...]:
         return row_key({
             "system": self.system, "robots": self.robots, "tasks": self.tasks, "bandwidth_kbps": self.bandwidth,
             "loss_pct": self.loss, "rep": self.rep,
             "retransmission_profile": retransmission_label(self.system, self.retransmission),
+            **self.link_columns(),
         })
 
     def argv(self) -> list[str]:
@@ -95,6 +111,8 @@ class Run:
             sys.executable, "-m", "coapkb", "bench", "--robots", str(self.robots), "--tasks", str(self.tasks),
             "--bandwidth", f"{self.bandwidth:g}", "--loss", f"{self.loss:g}", "--systems", self.system,
             "--first-rep", str(self.rep), "--reps", "1", "--retransmission", self.retransmission, "--json",
+            "--delay", f"{self.delay_ms:g}", "--jitter", f"{self.jitter_ms:g}", "--loss-model", self.loss_model,
+            "--burst-len", f"{self.burst_len:g}",
         ]
 
     def label(self) -> str:
@@ -159,7 +177,8 @@ def plan(profile: Profile, retransmission: str, reps: int | None = None,
                 for s in g.systems:
                     if systems is not None and s not in systems:
                         continue
-                    run = Run(s, r, t, float(b), float(loss), rep, retransmission)
+                    run = Run(s, r, t, float(b), float(loss), rep, retransmission, profile.delay_ms,
+                              profile.jitter_ms, profile.loss_model, profile.burst_len)
                     if run.key() not in seen:
                         seen.add(run.key())
                         runs.append(run)
@@ -199,7 +218,7 @@ async def _run_child(run: Run, limit_s: float) -> dict[str, Any]:
         "system": run.system, "robots": run.robots, "tasks": run.tasks, "bandwidth_kbps": run.bandwidth,
         "loss_pct": run.loss, "rep": run.rep, "retransmission_profile": retransmission_label(run.system, run.retransmission),
         "ok": False, "mode": SYSTEMS[run.system].mode, "transport": SYSTEMS[run.system].transport,
-        "query_wire": SYSTEMS[run.system].query_wire, "emulation": "netns",
+        "query_wire": SYSTEMS[run.system].query_wire, "emulation": "netns", **run.link_columns(),
         "error": f"bench child exited {proc.returncode}: {tail or 'no output'}"[:500],
     }
 

@@ -69,6 +69,21 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
 
 
 @pytest.mark.root
+@pytest.mark.timeout(120)
+async def test_run_once_over_delayed_bursty_links() -> None:
+    """50 +- 5 ms one-way delay and 5 % burst loss on every robot's link: the
+    team still agrees, and the row carries the link columns (so the resume key does)."""
+    _require_netns()
+    row = await bench.run_once("coap-distributed", 3, 2, 512, 5, rep=0, delay_ms=50, jitter_ms=5,
+                               loss_model="burst", burst_len=2)
+    assert row["ok"] is True, row["error"]
+    assert (row["delay_ms"], row["jitter_ms"], row["loss_model"], row["burst_len"]) == (50, 5, "burst", 2)
+    # A remote query is at least one round trip: 2 x (50 - 5) ms.
+    assert row["query_p50_ms"] >= 90
+    assert row_key(row) != row_key({**row, "delay_ms": 0})
+
+
+@pytest.mark.root
 @pytest.mark.timeout(30)
 def test_enter_netns_moves_only_the_calling_thread_and_back() -> None:
     _require_netns()
@@ -162,6 +177,23 @@ def test_csv_append_writes_one_header_and_reads_back_typed(tmp_path: Path) -> No
     assert rows[0]["ok"] is True and rows[1]["ok"] is False and rows[1]["error"] == "timed out, badly"
     assert isinstance(rows[0]["wire_bytes"], int) and rows[0]["bandwidth_kbps"] == 35.0
     assert rows[0]["retransmission_profile"] == "adaptive" and rows[1]["retransmission_profile"] == "tcp"
+
+
+def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) -> None:
+    """A results CSV from before delay_ms/jitter_ms/loss_model/burst_len: its rows
+    read with the defaults, and their keys equal those of plain-link runs."""
+    path = tmp_path / "old.csv"
+    old_columns = [c for c in COLUMNS if c not in bench.LINK_DEFAULTS]
+    row = _row()
+    path.write_text(",".join(old_columns) + "\n" + ",".join(str(row[c]) for c in old_columns) + "\n")
+    (back,) = read_rows(path)
+    assert (back["delay_ms"], back["jitter_ms"], back["loss_model"], back["burst_len"]) == (0.0, 0.0, "random", 0.0)
+    assert row_key(back) == row_key(_row(delay_ms=0, loss_model="random")) in done_keys(path)
+    assert row_key(_row(delay_ms=100)) not in done_keys(path)
+    sweep = _load("sweep")
+    plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive")
+    assert plain.key() == row_key(back)
+    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", delay_ms=300).key() != plain.key()
 
 
 def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:

@@ -131,11 +131,17 @@ COLUMNS: tuple[str, ...] = (
     "app_bytes", "feeder_wire_bytes", "dropped_packets", "queue_drops",
     "remote_queries", "local_queries", "failed_queries", "spurious_retransmissions",
     "tasks_agreed", "tcp_aborts", "query_timeout_s", "task_timeout_s", "wall_s", "started_at", "error",
+    "delay_ms", "jitter_ms", "loss_model", "burst_len",
 )
+
+#: The link columns added with the delay line, and what a CSV written before
+#: them (or a row without them) means: no delay, independent loss.
+LINK_DEFAULTS: dict[str, Any] = {"delay_ms": 0.0, "jitter_ms": 0.0, "loss_model": "random", "burst_len": 0.0}
 
 #: A run's identity: rows with equal keys are repetitions of nothing, they are the same run.
 KEY_COLUMNS: tuple[str, ...] = (
     "system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep", "retransmission_profile",
+    "delay_ms", "jitter_ms", "loss_model", "burst_len",
 )
 
 #: How columns are typed when a CSV is read back (everything else stays text).
@@ -146,7 +152,7 @@ _INT_COLUMNS = {
 }
 _FLOAT_COLUMNS = {
     "bandwidth_kbps", "loss_pct", "coordination_s", "completion_s", "query_p50_ms", "query_p99_ms",
-    "query_timeout_s", "task_timeout_s", "wall_s",
+    "query_timeout_s", "task_timeout_s", "wall_s", "delay_ms", "jitter_ms", "burst_len",
 }
 
 
@@ -335,6 +341,10 @@ async def run_once(
     *,
     ontologies: Path = DEFAULT_ONTOLOGIES,
     timeouts: Timeouts | None = None,
+    delay_ms: float = 0.0,
+    jitter_ms: float = 0.0,
+    loss_model: str = "random",
+    burst_len: float = 3.0,
 ) -> dict[str, Any]:
     """Run ``system`` once and return its CSV row (keys: :data:`COLUMNS`).
 
@@ -342,12 +352,18 @@ async def run_once(
     to ``1 + rep``, so every system of a repetition does the same tasks.
     Never raises for a failed run: a timeout, a crash or an emulator failure
     gives ``ok=False`` and the reason in ``error``, so a sweep goes on.
+    ``delay_ms``, ``jitter_ms``, ``loss_model`` and ``burst_len`` go into the
+    robots' and the central's :class:`LinkSpec` (one-way, per sending host).
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed)
+    # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
+    row.update(delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
+               burst_len=burst_len if loss_model == "burst" else 0.0)
     started = time.monotonic()
     try:
-        link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct)
+        link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
+                        loss_model=loss_model, burst_len=burst_len)
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
         spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
@@ -432,7 +448,11 @@ def row_key(row: Mapping[str, Any]) -> tuple[str, ...]:
                 return str(int(f))
         return text
 
-    return tuple(norm(row[c]) for c in KEY_COLUMNS)
+    def value(c: str) -> Any:
+        v = row.get(c)
+        return LINK_DEFAULTS[c] if c in LINK_DEFAULTS and v in (None, "") else v
+
+    return tuple(norm(value(c)) for c in KEY_COLUMNS)
 
 
 def _typed(row: dict[str, str]) -> dict[str, Any]:
@@ -446,6 +466,9 @@ def _typed(row: dict[str, str]) -> dict[str, Any]:
             out[k] = float(v)
         elif k == "ok":
             out[k] = v.strip().lower() in ("true", "1", "yes")
+    for k, default in LINK_DEFAULTS.items():  # a CSV from before these columns
+        if out.get(k) is None:
+            out[k] = default
     return out
 
 
@@ -512,6 +535,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", type=int, required=True, help="number of picking tasks")
     p.add_argument("--bandwidth", type=float, required=True, metavar="KBPS", help="link rate, kbit/s")
     p.add_argument("--loss", type=float, required=True, metavar="PCT", help="packet loss, percent")
+    p.add_argument("--delay", type=float, default=0.0, metavar="MS",
+                   help="one-way delay per sending host, ms (RTT between two hosts: twice this)")
+    p.add_argument("--jitter", type=float, default=0.0, metavar="MS",
+                   help="uniform +- jitter on each packet's delay, ms (at most --delay; no reordering)")
+    p.add_argument("--loss-model", choices=("random", "burst"), default="random",
+                   help="random: independent per packet; burst: Gilbert bursts of mean --burst-len")
+    p.add_argument("--burst-len", type=float, default=3.0, metavar="PKTS",
+                   help="mean run of consecutive losses for --loss-model burst (default 3)")
     p.add_argument("--systems", default="coap-distributed,coap-central,zmq-distributed,zmq-central",
                    help=f"comma-separated, from: {', '.join(SYSTEMS)}")
     p.add_argument("--reps", type=int, default=1, help="repetitions (rep numbers first-rep .. first-rep+reps-1)")
@@ -542,7 +573,9 @@ async def main(args: argparse.Namespace) -> int:
         raise ValueError("--tasks and --reps must be at least 1")
     if args.retransmission not in PROFILES:
         raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
-    LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss)  # validates, raises ValueError
+    link = {"delay_ms": args.delay, "jitter_ms": args.jitter, "loss_model": args.loss_model,
+            "burst_len": args.burst_len}
+    LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss, **link)  # validates, raises ValueError
     ok, why = available()
     if not ok:
         print(f"coapkb bench: no kernel link emulation here: {why}", file=sys.stderr)
@@ -552,7 +585,7 @@ async def main(args: argparse.Namespace) -> int:
     for rep in range(args.first_rep, args.first_rep + args.reps):
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
-                                 args.retransmission, args.seed)
+                                 args.retransmission, args.seed, **link)
             if args.out:
                 append_rows(args.out, [row])
             if args.json:
