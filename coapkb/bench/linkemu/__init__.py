@@ -39,19 +39,21 @@ flooding of unknown unicast into other hosts' downlinks), and ``eth0`` hands
 at most one segment per packet to the link (``gso_max_segs 1``) so TCP is
 counted and shaped in real frames.
 
-Delay and jitter need the kernel's ``sch_netem``.  Where the kernel has it,
-``delay_ms`` is applied with netem under the uplink shaper; where it lacks it
-(as on the machine this was written on), a spec with ``delay_ms > 0`` is
-refused with a clear error rather than approximated.
+* **delay, jitter, burst loss** -- the kernel has no ``sch_netem``, so X's
+  packets go (after its shaper and the random-loss rule) through iptables'
+  ``NFQUEUE`` to a user-space delay line in the bridge namespace, which
+  releases them after ``delay_ms +- jitter_ms`` (FIFO) and drops Gilbert
+  bursts for ``loss_model="burst"`` (:mod:`.delayline`).
 
 The package's modules, by concern: :mod:`.spec` (``LinkSpec``,
 ``LinkCounters``, validation), :mod:`.netns` (namespace commands,
-``available``, ``cleanup_stale``, ``enter_netns``), :mod:`.shaping` (tbf and
-nftables rule text), :mod:`.testbed` (``Testbed``: build, change, count,
+``available``, ``cleanup_stale``, ``enter_netns``), :mod:`.shaping` (tbf, nftables and
+iptables rule text), :mod:`.delayline` (NFQUEUE delay line), :mod:`.testbed` (``Testbed``: build, change, count,
 tear down) and :mod:`.relay` (``UdpRelay``).
 
 Everything here needs root (``CAP_NET_ADMIN``) and the Debian packages
-``iproute2`` (``ip``, ``tc``, ``bridge``) and ``nftables`` (``nft``); call
+``iproute2`` (``ip``, ``tc``, ``bridge``) and ``nftables`` (``nft``), plus
+``iptables`` for delay, jitter and burst loss; call
 :func:`available` first and print its reason when it says no.  Without root,
 CoAP-only runs can use :class:`UdpRelay`, a user-space relay whose results
 must be labelled as such (it emulates a path, not a host's link).
