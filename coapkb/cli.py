@@ -132,8 +132,8 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
     p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
-    p.add_argument("--retransmission", default="adaptive", metavar="PROFILE",
-                   help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive")
+    p.add_argument("--retransmission", default="robust", metavar="PROFILE",
+                   help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
     p.add_argument("--query-wire", choices=("compact", "seed"), default="compact")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
     p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
@@ -159,7 +159,7 @@ async def _demo(args: argparse.Namespace) -> int:
     print("the cheapest capable robot gets the task; all robots must agree.\n")
     team_args = argparse.Namespace(
         robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
-        strategy="compute-by-all", retransmission="adaptive", query_wire="compact", ontologies=None,
+        strategy="compute-by-all", retransmission="robust", query_wire="compact", ontologies=None,
         time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
     )
     return await _team(team_args)
@@ -271,9 +271,9 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
     p.add_argument(
         "--retransmission",
-        default="adaptive",
+        default="robust",
         metavar="PROFILE",
-        help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive",
+        help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive",
     )
     p.add_argument("--ack-timeout", type=float, metavar="SECONDS", help="override the profile's ACK_TIMEOUT")
     p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
@@ -327,14 +327,19 @@ async def _query(args: argparse.Namespace) -> int:
     return 0
 
 
-def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile
+def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile | "robust"
+    from .transport.coap.reliability import ROBUST
     from .transport.coap.reliability.rto import PROFILES
 
     import dataclasses
 
+    if args.retransmission == ROBUST:
+        if args.max_retransmit is not None or args.ack_timeout is not None:
+            raise UserError("--ack-timeout and --max-retransmit apply to the CON profiles (rfc7252, lossy-fixed, adaptive)")
+        return ROBUST
     profile = PROFILES.get(args.retransmission)
     if profile is None:
-        raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
+        raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from robust, {', '.join(PROFILES)})")
     changes: dict = {}
     if args.max_retransmit is not None:
         if args.max_retransmit < 0:

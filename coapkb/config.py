@@ -101,6 +101,9 @@ class RobotConfig:
     #: Where all KBs live in the centralised baseline; None = distributed.
     central: Endpoint | None = None
     query_timeout_s: float = 20.0
+    #: Rate of the robot's radio link (kbit/s), if known: the reliability
+    #: layer adds each exchange's airtime to its timeout and sizes its window.
+    link_kbps: float | None = None
     cost: CostModel = field(default_factory=CostModel)
     execution: ExecutionModel = field(default_factory=ExecutionModel)
 
@@ -145,6 +148,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         "retransmission": config.retransmission,
         "query_timeout_s": config.query_timeout_s,
     }
+    if config.link_kbps is not None:
+        data["link_kbps"] = config.link_kbps
     if config.central is not None:
         data["central"] = str(config.central)
     data["start"] = asdict(config.start)
@@ -163,7 +168,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     """Validate a configuration mapping (as read from TOML)."""
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
-        "central", "query_timeout_s", "cost", "execution",
+        "central", "query_timeout_s", "link_kbps", "cost", "execution",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -206,6 +211,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         retransmission=retransmission,
         central=central_ep,
         query_timeout_s=float(_get(data, "query_timeout_s", (int, float), 20.0)),
+        link_kbps=None if data.get("link_kbps") is None else float(_get(data, "link_kbps", (int, float))),
         cost=_section(data, "cost", CostModel),
         execution=_section(data, "execution", ExecutionModel),
     )
@@ -216,6 +222,8 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
 def _check_values(c: RobotConfig) -> None:
     if c.query_timeout_s <= 0:
         raise ConfigError("query_timeout_s: must be positive")
+    if c.link_kbps is not None and c.link_kbps <= 0:
+        raise ConfigError("link_kbps: must be positive")
     if c.start.battery_wh <= 0 or c.start.payload_kg <= 0:
         raise ConfigError("start: battery_wh and payload_kg must be positive")
     if c.start.aisle < 0 or c.start.rack < 0:

@@ -277,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--profile", choices=tuple(PROFILES), default="quick")
     p.add_argument("--jobs", type=int, default=1, help="runs at once (default 1; more distorts timings)")
     p.add_argument("--out", type=Path, help="CSV (default experiments/results/<profile>.csv)")
-    p.add_argument("--retransmission", default="adaptive", help="CoAP retransmission profile")
+    p.add_argument("--retransmission", default="robust", help="CoAP reliability profile")
     p.add_argument("--reps", type=int, help="override the profile's repetitions")
     p.add_argument("--systems", help="only these systems (comma-separated)")
     p.add_argument("--retry-failed", action="store_true", help="run again the keys whose row has ok=False")

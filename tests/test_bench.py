@@ -17,7 +17,7 @@ from types import ModuleType
 from typing import Any
 
 import pytest
-from conftest import require
+from support import require
 
 from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
@@ -64,7 +64,7 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
         assert row["remote_queries"] > 0 and row["query_p99_ms"] >= row["query_p50_ms"] > 0
         assert row["feeder_wire_bytes"] > 0 and row["queue_drops"] == 0
     coap, zmq = rows
-    assert coap["retransmission_profile"] == "adaptive" and zmq["retransmission_profile"] == "tcp"
+    assert coap["retransmission_profile"] == "robust" and zmq["retransmission_profile"] == "tcp"
     assert coap["local_queries"] > 0 and zmq["local_queries"] == 0  # distributed answers some queries itself
 
 

@@ -23,7 +23,7 @@ from typing import AsyncIterator
 import pytest
 import pytest_asyncio
 
-from conftest import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, ROOT, ServerProcess, free_udp_port
+from support import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, ROOT, ServerProcess, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -152,7 +152,7 @@ async def test_query_csv(uri: str) -> None:
 
 
 async def test_query_over_zmq_matches(tmp_path: Path) -> None:
-    from conftest import free_tcp_port
+    from support import free_tcp_port
 
     port = free_tcp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--transport", "zmq", "--bind", f"127.0.0.1:{port}")

@@ -33,7 +33,7 @@ from coapkb.kb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 
-from conftest import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -750,7 +750,7 @@ async def test_second_server_on_same_port_fails_clearly(server: ServerProcess) -
     port = Endpoint.parse(server.uri).port
     import sys
 
-    from conftest import ROOT
+    from support import ROOT
 
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}",

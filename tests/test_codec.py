@@ -23,7 +23,7 @@ from types import SimpleNamespace
 import cbor2
 import pytest
 
-from conftest import require
+from support import require
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef

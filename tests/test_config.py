@@ -111,7 +111,7 @@ def test_relative_kb_path_is_relative_to_the_config_file(tmp_path: Path) -> None
 def test_defaults() -> None:
     config = parse_config(base())
     assert config.strategy == "compute-by-all"
-    assert config.retransmission == "adaptive"
+    assert config.retransmission == "robust"
     assert config.start == StartState()
     assert config.cost == CostModel()
     assert config.execution == ExecutionModel()

@@ -24,7 +24,7 @@ from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 
-from conftest import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap
 
 pytestmark = [pytest.mark.libcoap, pytest.mark.asyncio(loop_scope="module")]
 

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import require
+from support import require
 
 from coapkb.transport.coap.reliability.rto import PROFILES
 

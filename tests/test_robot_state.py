@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from coapkb.agent.robot_state import ACTIVITIES, Decision, LiveState, PlannedState, RobotState
-from conftest import require
+from support import require
 
 CDDL = (Path(__file__).resolve().parent.parent / "docs" / "robot-state.cddl").read_text()
 

@@ -28,7 +28,7 @@ from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
-from ..transport import open_client, serve
+from ..transport import open_client, reliability_for, serve
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
 from .query_handler import QueryHandler
@@ -82,6 +82,8 @@ class Robot:
         self.executor = executor
         self.queries = queries
         self._next_seq = 1
+        #: Object of every task taken, by sequence number (a repeated post is recognised).
+        self._accepted: dict[int, str] = {}
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
@@ -89,7 +91,9 @@ class Robot:
         router = Router()
         if kb is not None:
             KBResources(kb).mount(router)
-        client = await open_client(config.transport, retransmission=config.retransmission)
+        # One reliability layer for the client and the server's notifications.
+        reliability = reliability_for(config.transport, config.retransmission, link_kbps=config.link_kbps)
+        client = await open_client(config.transport, retransmission=reliability)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
@@ -121,7 +125,7 @@ class Robot:
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot._mount()  # before serving: the transport publishes the resource list
         try:
-            robot.server = await serve(router, config.bind, retransmission=config.retransmission)
+            robot.server = await serve(router, config.bind, retransmission=reliability)
         except BaseException:
             await client.aclose()
             raise
@@ -170,9 +174,14 @@ class Robot:
             return Response.error(Status.BAD_REQUEST, 'expected {"seq": int, "object": name} in CBOR or JSON')
         if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
             return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
+        if seq < self._next_seq and self._accepted.get(seq) == name:
+            # A repeat of a post already taken (its answer was lost and the
+            # feeder asked again as a new exchange): same answer, no new task.
+            return Response(Status.CHANGED)
         if seq != self._next_seq:
             return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
         self._next_seq += 1
+        self._accepted[seq] = name
         self.controller.submit(Task(seq, name))
         return Response(Status.CHANGED)
 

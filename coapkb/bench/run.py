@@ -194,9 +194,10 @@ def system_spec(
     system: str,
     robots: int,
     *,
-    retransmission: str = "adaptive",
+    retransmission: str = "robust",
     timeouts: Timeouts | None = None,
     ontologies: Path = DEFAULT_ONTOLOGIES,
+    link_kbps: float | None = None,
 ) -> TeamSpec:
     """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`)."""
     try:
@@ -208,7 +209,7 @@ def system_spec(
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
-        retransmission=retransmission, ontologies=ontologies, **extra,
+        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, **extra,
     )
 
 
@@ -336,7 +337,7 @@ async def run_once(
     bandwidth_kbps: float,
     loss_pct: float,
     rep: int = 0,
-    retransmission: str = "adaptive",
+    retransmission: str = "robust",
     seed: int | None = None,
     *,
     ontologies: Path = DEFAULT_ONTOLOGIES,
@@ -365,7 +366,9 @@ async def run_once(
         link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
                         loss_model=loss_model, burst_len=burst_len)
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
-        spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies)
+        # Robots know their radio's rate, as a real radio reports it.
+        spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies,
+                           link_kbps=bandwidth_kbps)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
         row["error"] = f"bad configuration: {exc}"
@@ -547,8 +550,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma-separated, from: {', '.join(SYSTEMS)}")
     p.add_argument("--reps", type=int, default=1, help="repetitions (rep numbers first-rep .. first-rep+reps-1)")
     p.add_argument("--first-rep", type=int, default=0, help="number of the first repetition")
-    p.add_argument("--retransmission", default="adaptive", metavar="PROFILE",
-                   help="CoAP retransmission profile: rfc7252, lossy-fixed or adaptive")
+    p.add_argument("--retransmission", default="robust", metavar="PROFILE",
+                   help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
     p.add_argument("--seed", type=int, default=None, help="task-list seed (default: 1 + rep)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
@@ -564,15 +567,15 @@ def parse_systems(text: str) -> list[str]:
 
 async def main(args: argparse.Namespace) -> int:
     """``coapkb bench``: exit 0 if every run was ok, 1 if one failed, 2 if none could start."""
-    from ..transport.coap.reliability.rto import PROFILES
+    from ..transport.coap.reliability import PROFILE_NAMES
 
     systems = parse_systems(args.systems)
     if args.robots < CLUSTER_SIZE or args.robots % CLUSTER_SIZE:
         raise ValueError(f"--robots must be a multiple of {CLUSTER_SIZE}, got {args.robots}")
     if args.tasks < 1 or args.reps < 1:
         raise ValueError("--tasks and --reps must be at least 1")
-    if args.retransmission not in PROFILES:
-        raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILES)})")
+    if args.retransmission not in PROFILE_NAMES:
+        raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILE_NAMES)})")
     link = {"delay_ms": args.delay, "jitter_ms": args.jitter, "loss_model": args.loss_model,
             "burst_len": args.burst_len}
     LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss, **link)  # validates, raises ValueError

@@ -70,6 +70,8 @@ class TeamSpec:
     ontologies: Path = DEFAULT_ONTOLOGIES
     host: str = "127.0.0.1"
     query_timeout_s: float = 10.0
+    #: The robots' link rate (kbit/s), when they run behind an emulated link.
+    link_kbps: float | None = None
     time_scale: float = 50.0
     #: Wall-clock limit for one task's coordination before the run is declared stuck.
     task_timeout_s: float = 120.0
@@ -224,6 +226,7 @@ class Team:
                     retransmission=spec.retransmission,
                     central=self.central,
                     query_timeout_s=spec.query_timeout_s,
+                    link_kbps=spec.link_kbps,
                     execution=ExecutionModel(time_scale=spec.time_scale),
                 )
                 path = self.workdir / f"{robot_id}.toml"

@@ -18,6 +18,11 @@ process keep stock behaviour), by :class:`ContextHooks`:
 * the MessageManager's ``dispatch_message`` / ``dispatch_error``: a
   response or ICMP error for a request the caller already abandoned raises
   InvalidStateError inside aiocoap's socket callback; it is dropped;
+* the MessageManager's ``send_message``: a CON notification queued behind
+  an unacknowledged one (aiocoap keeps NSTART=1 per peer) replaces any
+  older notification of the same observation still in that queue (RFC 7641
+  section 4.5.2: only the newest state matters); on a lossy link the queue
+  otherwise grows, and a robot's decision waits behind stale live states;
 * the MessageManager's CON exchange methods (``_add_exchange``,
   ``_schedule_retransmit``, ``_retransmit``, ``_remove_exchange``): a
   :class:`ConPolicy` (Californium's layer shape: on_send / timeout /
@@ -80,6 +85,7 @@ _CON_HOOKS = {
 }
 #: Public methods of MessageManager and the UDP interface wrapped here.
 _WRAPPED = {
+    (MessageManager, "send_message"): ("message", "messageerror_monitor"),
     (MessageManager, "dispatch_message"): ("message",),
     (MessageManager, "dispatch_error"): ("error", "remote"),
 }
@@ -199,6 +205,8 @@ class ContextHooks:
         #: finished exchanges that were retransmitted: (remote, mid) -> (record, expiry).
         self._finished: OrderedDict[tuple[Any, int], tuple[Any, float]] = OrderedDict()
         self._recent_con: OrderedDict[tuple[Any, int], None] = OrderedDict()
+        #: Queued notifications dropped because a newer one of the same observation came.
+        self.superseded_notifications = 0
 
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
@@ -236,6 +244,7 @@ class ContextHooks:
     def _install(self) -> None:
         self._patch(self.interface, "send", self._send)
         self._patch(self.interface, "datagram_msg_received", self._datagram_received)
+        self._patch(self.mm, "send_message", self._send_message)
         self._patch(self.mm, "dispatch_message", self._dispatch_message)
         self._patch(self.mm, "dispatch_error", self._dispatch_error)
         self._patch(self.mm, "_add_exchange", self._add_exchange)
@@ -269,6 +278,20 @@ class ContextHooks:
             self._original(self.interface, "datagram_msg_received")(data, ancdata, flags, address)
         except UnicodeDecodeError:
             log.debug("dropped a datagram from %s: string option is not UTF-8", address)
+
+    # ------------------------------------------------------------ notifications
+
+    def _send_message(self, message: aiocoap.Message, messageerror_monitor: Any = None) -> Any:
+        result = self._original(self.mm, "send_message")(message, messageerror_monitor)
+        if message.opt.observe is not None and message.code.is_response():
+            backlog = self.mm._backlogs.get(message.remote)
+            if backlog and backlog[-1][0] is message:
+                superseded = [entry for entry in backlog[:-1]
+                              if entry[0].token == message.token and entry[0].opt.observe is not None]
+                for entry in superseded:
+                    backlog.remove(entry)
+                self.superseded_notifications += len(superseded)
+        return result
 
     # ------------------------------------------------------------ late events
 

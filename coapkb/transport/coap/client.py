@@ -12,6 +12,7 @@ exchanges, with the profile's timers.
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import Any, AsyncIterator
 
 import aiocoap
@@ -30,6 +31,15 @@ from .reliability.rto import TransmissionProfile
 
 #: Largest body sent in one datagram (aiocoap's default block size).
 MAX_SINGLE_BODY = 1024
+
+
+class _AbandonedTryFilter(logging.Filter):
+    """aiocoap warns when a request is cancelled before its token was even
+    registered; the layer abandons hedge copies and retries that way as a
+    matter of course."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("on_interest_end callback")
 
 
 def _reply_bytes(message: aiocoap.Message) -> int:
@@ -52,7 +62,10 @@ class CoapClientTransport:
         cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust"
     ) -> "CoapClientTransport":
         """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile."""
-        ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.coap.client")
+        logger = logging.getLogger("coapkb.coap.client")
+        if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
+            logger.addFilter(_AbandonedTryFilter())
+        ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername=logger.name)
         hooks = ContextHooks.of(ctx)
         if retransmission == "robust":
             retransmission = ReliabilityLayer()

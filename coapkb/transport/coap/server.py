@@ -17,6 +17,7 @@ from typing import Any
 
 import aiocoap
 import aiocoap.resource
+from aiocoap.numbers.constants import TransportTuning
 
 from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters, TransportError
 from ..messages import Response, Status
@@ -160,8 +161,10 @@ class CoapServerTransport:
             retransmission = ReliabilityLayer()
         if isinstance(retransmission, ReliabilityLayer):
             policy: Any = NotificationPolicy(retransmission)
-            tuning = NotificationTuning()
-            tuning_for: Any = lambda request: tuning  # noqa: E731
+            notification, answer = NotificationTuning(), TransportTuning()
+            # Only an observation's answers are CON; an answer to a NON try is
+            # NON (the client's layer repeats the try if it is lost).
+            tuning_for: Any = lambda request: notification if request.opt.observe == 0 else answer  # noqa: E731
         else:
             policy = RetransmissionController(retransmission)
             tuning_for = lambda request: policy.tuning_for(request.remote.hostinfo, reliability=None)  # noqa: E731

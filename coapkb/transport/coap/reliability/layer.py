@@ -73,6 +73,9 @@ class ReliabilitySettings:
     #: Rate of the robot's radio link, if known (kbit/s): airtime in the timeout, window size.
     link_kbps: float | None = None
     min_rto: float = 0.05
+    #: The floor when the link rate is not known: samples then mix sizes, and
+    #: a shaper's burst allowance makes the first ones far too short.
+    min_rto_unknown_link: float = 0.2
     max_rto: float = 8.0
     #: Timeout of a path with no sample yet (RFC 6298: 1 s).
     initial_rto: float = 1.0
@@ -164,7 +167,8 @@ class _Path:
 
     def rto(self) -> float:
         s = self.settings
-        return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=s.min_rto, ceiling=s.max_rto,
+        floor = s.min_rto if s.link_bps else max(s.min_rto, s.min_rto_unknown_link)
+        return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=floor, ceiling=s.max_rto,
                             initial=s.initial_rto)
 
     def congested(self) -> bool:
@@ -290,11 +294,15 @@ class ReliabilityLayer:
             path = self._paths[peer] = _Path(self.settings, self.clock())
         return path
 
-    def path_for_host(self, host: str) -> _Path | None:
+    def path_for_host(self, host: str) -> _Path:
         """The path with the most samples to any port of ``host`` (the
-        server's notifications go to the peer's client port, not its server's)."""
-        candidates = [p for key, p in self._paths.items() if getattr(key, "host", key) == host]
-        return max(candidates, key=lambda p: p.rtt.samples, default=None)
+        server's notifications go to the peer's client port, not its
+        server's); a path of its own for a host never asked anything (the
+        feeder, a person's client), which the notifications' ACKs then train."""
+        candidates = [p for key, p in self._paths.items() if getattr(key, "host", None) == host]
+        if candidates:
+            return max(candidates, key=lambda p: p.rtt.samples)
+        return self.path(host)
 
     async def exchange(
         self,

@@ -24,13 +24,21 @@ from .layer import ReliabilityLayer, _Path
 
 #: Size of the empty ACK that answers a notification.
 _ACK_BYTES = 4
+#: Retransmissions of a notification at the path's timeout before it doubles.
+FAST_RETRANSMISSIONS = 3
 
 
 class NotificationTuning(TransportTuning):  # type: ignore[misc]  # aiocoap ships no type information
-    """``transport_tuning`` of a notification: more retransmissions than RFC
-    7252's 4, because each one costs a round trip, not seconds."""
+    """``transport_tuning`` of a notification: confirmable, with more
+    retransmissions than RFC 7252's 4, because each costs a round trip, not
+    seconds.
+
+    ``reliability`` must be set: aiocoap otherwise sends a notification NON
+    whenever the registration was NON (as the layer's tries are), and a lost
+    NON notification is never repeated."""
 
     MAX_RETRANSMIT = 10
+    reliability = True
 
 
 def _host_of(remote: Any) -> str:
@@ -40,7 +48,7 @@ def _host_of(remote: Any) -> str:
 
 @dataclass
 class _Notification:
-    path: _Path | None
+    path: _Path
     sent_at: float
     nbytes: int
     retransmissions: int = 0
@@ -54,30 +62,30 @@ class NotificationPolicy:
 
     def on_send(self, message: aiocoap.Message) -> _Notification:
         path = self.layer.path_for_host(_host_of(message.remote))
-        if path is not None:
-            path.stats.notifications += 1
+        path.stats.notifications += 1
         return _Notification(path, self.layer.clock(), len(message.payload) + 16)
 
     def timeout(self, record: _Notification, retransmission_counter: int) -> float:
-        if record.path is None:  # a host we never asked anything: no estimate
-            return self.layer.settings.initial_rto * 2 ** min(retransmission_counter, 3)
-        return record.path.try_timeout(retransmission_counter, record.nbytes, None, self.layer.clock()) - airtime(
-            record.path.expected_reply(None), self.layer.settings.link_bps
-        ) + airtime(_ACK_BYTES, self.layer.settings.link_bps)
+        """The path's timeout for the first few transmissions, then doubling:
+        a notification is never abandoned for want of patience (the server
+        would drop the observation, and the teammate would wait for a
+        refresh), but a peer that stays silent is not flooded either."""
+        link = self.layer.settings.link_bps
+        path = record.path
+        base = path.rto() + airtime(record.nbytes, link) + airtime(_ACK_BYTES, link)
+        backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
+        return min(self.layer.settings.max_rto, base * backoff)
 
     def on_retransmit(self, record: _Notification) -> None:
         record.retransmissions += 1
-        if record.path is not None:
-            record.path.stats.notification_retransmissions += 1
-            record.path.last_send = self.layer.clock()
+        record.path.stats.notification_retransmissions += 1
+        record.path.last_send = self.layer.clock()
 
     def on_give_up(self, record: _Notification, reason: str) -> None:
         return None
 
     def on_reply(self, record: _Notification, message: aiocoap.Message) -> None:
         path = record.path
-        if path is None:
-            return
         now = self.layer.clock()
         path.last_answer = now
         path.loss.on_outcome(record.retransmissions > 0)
