@@ -200,10 +200,23 @@ class Controller:
     async def gather(self, task: Task) -> TaskFacts | None:
         """The four queries of the seed's workflow; None if the object does not exist."""
         params = {"name": task.object}
-        if not _first(await self.queries.run("object-exists", params), "Query_1"):
+        # Query_2 and Query_3 need only the name, so they go out with Query_1
+        # (the transports keep several exchanges in flight): two round trips
+        # on the critical path instead of four.  For an object that does not
+        # exist their empty answers are simply dropped.
+        exists, where, features = (
+            _first(rows, label)
+            for rows, label in zip(
+                await asyncio.gather(
+                    self.queries.run("object-exists", params),
+                    self.queries.run("object-location", params),
+                    self.queries.run("object-features", params),
+                ),
+                ("Query_1", "Query_2", "Query_3"),
+            )
+        )
+        if not exists:
             return None
-        where = _first(await self.queries.run("object-location", params), "Query_2")
-        features = _first(await self.queries.run("object-features", params), "Query_3")
         if not where or not features:
             raise QueryError(f"{task.object} exists but has no location or features in the KB")
         grip = _local_name(features[0]["grip"])

@@ -83,7 +83,7 @@ class ReliabilitySettings:
     granularity: float = 0.01
     #: Round-trip loss above which retries go out as two copies, and above which every try does.
     hedge_retries_above: float = 0.10
-    hedge_all_above: float = 0.30
+    hedge_all_above: float = 0.50
     #: Least spacing between the copies of one try (plus one request's airtime).
     hedge_gap: float = 0.01
     max_copies: int = 2
