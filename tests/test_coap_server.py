@@ -20,6 +20,8 @@ import time
 from decimal import Decimal
 from typing import AsyncIterator
 
+import aiocoap
+import aiocoap.error
 import cbor2
 import pytest
 import pytest_asyncio
@@ -30,6 +32,7 @@ from coapkb.kb.client import KBClient, QueryFailed, decode
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.kb.named_queries import NAMED_QUERIES, named_queries_for
 from coapkb.kb.results import SelectResult
+from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 
@@ -449,8 +452,6 @@ async def test_unknown_path_is_404_and_wrong_method_405(
 
 async def test_body_hash_mismatch_is_400(transport: ClientTransport, peer: Endpoint) -> None:
     """The transport-level ``qh=`` (hash of the body) must match the body."""
-    import aiocoap
-
     from coapkb.transport.coap import CoapClientTransport
 
     assert isinstance(transport, CoapClientTransport)
@@ -819,3 +820,109 @@ async def test_client_cache_serves_fresh_answers_and_revalidates_stale_ones(
     assert await client.named(peer, "object-location", {"name": "Gucci_bag_14"}) == first
     assert transport.counters.bytes_received - received < 30  # no payload came back
     assert (client.cache_stats.hits, client.cache_stats.revalidated, client.cache_stats.misses) == (1, 1, 1)
+
+
+# --------------------------------------------------------------------------- block-wise with aiocoap's own client
+
+
+def varied_query(i: int) -> str:
+    """A different question for each ``i``, its JSON answer 1 to 6 blocks long."""
+    return f"SELECT ?s ?p ?o WHERE {{ ?s ?p ?o }} ORDER BY ?s ?p ?o OFFSET {i * 13} LIMIT {2 + i % 5 * 6}"
+
+
+@pytest.fixture(scope="module")
+def local_kb() -> KnowledgeBase:
+    """The server's KBs, loaded here: every answer is compared with the KB's own result."""
+    return KnowledgeBase.load(KB_FILES)
+
+
+def aiocoap_query(peer: Endpoint, text: str, method: aiocoap.Code = aiocoap.FETCH,
+                  request_tag: bytes | None = None) -> aiocoap.Message:
+    """A plain aiocoap request, as any user of aiocoap would write it (no ``qh=``)."""
+    msg = aiocoap.Message(code=method, uri=f"coap://{peer.hostport}/kb/sparql", payload=text.encode(),
+                          content_format=0, accept=ContentFormat.JSON)
+    if request_tag is not None:
+        msg.opt.request_tag = (request_tag,)
+    return msg
+
+
+def check_kb_answer(local_kb: KnowledgeBase, text: str, answer: aiocoap.Message) -> None:
+    assert answer.code == aiocoap.CONTENT, (answer.code, answer.payload[:200])
+    assert codec.decode_json(answer.payload) == local_kb.query(text), text
+
+
+@pytest.mark.parametrize("method", [aiocoap.FETCH, aiocoap.POST])
+async def test_aiocoap_client_large_questions_in_a_row(
+    server: ServerProcess, peer: Endpoint, local_kb: KnowledgeBase, method: aiocoap.Code
+) -> None:
+    """aiocoap's client sends Block2 follow-ups without the body: twelve
+    different multi-block questions in a row from one context each get their
+    own answer (the old cache refused every one after the first with 4.08)."""
+    texts = [varied_query(i) for i in range(12)]
+    assert sum(len(codec.encode_json(local_kb.query(t))) > 1024 for t in texts) >= 9, "mostly multi-block"
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+    try:
+        for _ in range(2):  # and the same questions again: answers served afresh
+            for text in texts:
+                answer = await asyncio.wait_for(ctx.request(aiocoap_query(peer, text, method)).response, 15)
+                check_kb_answer(local_kb, text, answer)
+    finally:
+        await ctx.shutdown()
+
+
+async def test_aiocoap_clients_concurrently(server: ServerProcess, peer: Endpoint, local_kb: KnowledgeBase) -> None:
+    """Eight contexts (eight client endpoints) at once, each asking in a row."""
+    async def user(n: int) -> None:
+        ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+        try:
+            for i in range(6):
+                text = varied_query(n * 6 + i)
+                answer = await asyncio.wait_for(ctx.request(aiocoap_query(peer, text)).response, 30)
+                check_kb_answer(local_kb, text, answer)
+        finally:
+            await ctx.shutdown()
+
+    await asyncio.gather(*(user(n) for n in range(8)))
+
+
+async def test_request_tag_separates_concurrent_transfers(
+    server: ServerProcess, peer: Endpoint, local_kb: KnowledgeBase
+) -> None:
+    """RFC 9175: with a Request-Tag per request, concurrent body-less transfers
+    from one endpoint are each matched to their own answer."""
+    texts = [varied_query(i) for i in (1, 2, 3, 4, 6, 7)]
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+    try:
+        answers = await asyncio.wait_for(asyncio.gather(*(
+            ctx.request(aiocoap_query(peer, t, request_tag=bytes([n]))).response for n, t in enumerate(texts)
+        )), 30)
+    finally:
+        await ctx.shutdown()
+    for text, answer in zip(texts, answers):
+        check_kb_answer(local_kb, text, answer)
+
+
+async def test_untagged_concurrent_transfers_never_mix(
+    server: ServerProcess, peer: Endpoint, local_kb: KnowledgeBase
+) -> None:
+    """Without Request-Tag or body, concurrent transfers from one endpoint are
+    ambiguous.  Every block of an answer carries that answer's ETag, so
+    aiocoap's client (which checks it) fails such a request rather than
+    assembling two answers: each result is right or an error, never wrong."""
+    texts = [varied_query(i) for i in (1, 2, 3, 4, 6, 7)]
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+    try:
+        answers = await asyncio.wait_for(asyncio.gather(
+            *(ctx.request(aiocoap_query(peer, t)).response for t in texts), return_exceptions=True), 30)
+    finally:
+        await ctx.shutdown()
+    right = 0
+    for text, answer in zip(texts, answers):
+        if isinstance(answer, aiocoap.Message) and answer.code == aiocoap.CONTENT:
+            check_kb_answer(local_kb, text, answer)
+            right += 1
+        elif isinstance(answer, aiocoap.Message):
+            assert answer.code == aiocoap.REQUEST_ENTITY_INCOMPLETE, answer
+        else:
+            assert isinstance(answer, aiocoap.error.ResourceChanged), repr(answer)
+    assert right >= 1  # the newest transfer always completes
