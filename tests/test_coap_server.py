@@ -36,7 +36,7 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 
-from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port, varied_query
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -823,11 +823,6 @@ async def test_client_cache_serves_fresh_answers_and_revalidates_stale_ones(
 
 
 # --------------------------------------------------------------------------- block-wise with aiocoap's own client
-
-
-def varied_query(i: int) -> str:
-    """A different question for each ``i``, its JSON answer 1 to 6 blocks long."""
-    return f"SELECT ?s ?p ?o WHERE {{ ?s ?p ?o }} ORDER BY ?s ?p ?o OFFSET {i * 13} LIMIT {2 + i % 5 * 6}"
 
 
 @pytest.fixture(scope="module")

@@ -22,9 +22,10 @@ from coapkb.wire import codec
 from coapkb.transport.messages import Method, Request, Status
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import SelectResult
+from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, open_client
 
-from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap, varied_query
 
 pytestmark = [pytest.mark.libcoap, pytest.mark.asyncio(loop_scope="module")]
 
@@ -242,3 +243,47 @@ async def test_errors(coap_client: str, base: str, tmp_path: Path) -> None:
     # and the server is still fine
     ok = await coap(coap_client, tmp_path, "-A", "60", f"{base}/kb/q/object-exists?name=Gucci_bag_14")
     assert ok.output is not None and codec.decode_cbor(ok.output).rows
+
+
+# --------------------------------------------------------------------------- block-wise from one endpoint
+
+
+@pytest.fixture(scope="module")
+def local_kb() -> KnowledgeBase:
+    """The server's KBs, loaded here: every answer is compared with the KB's own result."""
+    return KnowledgeBase.load(KB_FILES)
+
+
+async def test_large_questions_in_a_row_from_one_port(
+    coap_client: str, base: str, tmp_path: Path, local_kb: KnowledgeBase
+) -> None:
+    """coap-client sends Block2 follow-ups without the body.  With ``-p`` every
+    run has the same source port, so the server sees one client endpoint
+    asking different multi-block FETCH and POST questions one after another."""
+    port = str(free_udp_port())
+    multi_block = 0
+    for i in range(8):
+        text = varied_query(i)
+        method = ("fetch", "post")[i % 2]
+        run = await coap(coap_client, tmp_path, "-p", port, "-m", method, "-t", "0", "-A", "50",
+                         "-f", query_file(tmp_path, text, f"q{i}.rq"), f"{base}/kb/sparql")
+        assert run.output is not None, (i, run.error)
+        assert codec.decode_json(run.output) == local_kb.query(text), text
+        multi_block += len(run.output) > 1024
+    assert multi_block >= 5, "the test would prove little without multi-block answers"
+
+
+async def test_large_questions_concurrently_from_many_ports(
+    coap_client: str, base: str, tmp_path: Path, local_kb: KnowledgeBase
+) -> None:
+    """Six client endpoints (fixed ports), each asking three questions in a row, all at once."""
+    async def user(n: int) -> None:
+        port = str(free_udp_port())
+        for i in range(3):
+            text = varied_query(n * 3 + i)
+            run = await coap(coap_client, tmp_path, "-p", port, "-m", "fetch", "-t", "0", "-A", "50",
+                             "-f", query_file(tmp_path, text, f"u{n}-{i}.rq"), f"{base}/kb/sparql")
+            assert run.output is not None, (n, i, run.error)
+            assert codec.decode_json(run.output) == local_kb.query(text), text
+
+    await asyncio.gather(*(user(n) for n in range(6)))
