@@ -19,9 +19,12 @@ from the server's answer cache (a query never runs twice), and their POSTs
 (tasks, decisions) are keyed by task number.
 
 **A timeout near the real round trip.**  RFC 6298 over the clean samples,
-with the airtime of the exchange at the known link rate taken out of the
-sample and added back for the exchange at hand (:mod:`.estimator`); no
-0.5 s floor.  The timeout does not grow on a loss: random loss is not
+plus, for an exchange larger than the path's usual one, the airtime of the
+extra bytes at the known link rate (a 1 KB answer at 35 kbit/s takes 0.2 s
+longer than a 100-byte one); no 0.5 s floor.  Samples are kept raw, not
+with the airtime taken out: a shaper's burst allowance (and a radio's
+frame aggregation) lets some datagrams through faster than the line rate,
+and samples cut to zero would hide the variance the timeout must cover.  The timeout does not grow on a loss: random loss is not
 congestion.  It backs off (doubling per try) only on evidence that more
 sending would hurt: the smoothed RTT has risen well above the path's
 minimum (a queue is building: FASOR's point that the round trip, not loss,
@@ -87,9 +90,10 @@ class ReliabilitySettings:
     #: Least spacing between the copies of one try (plus one request's airtime).
     hedge_gap: float = 0.01
     max_copies: int = 2
-    #: Queueing evidence: SRTT above min RTT by this factor and by ``congestion_slack``.
+    #: Queueing evidence: SRTT above min RTT by this factor and by ``congestion_slack``
+    #: (a few answers queued ahead at 35 kbit/s are normal; a standing queue is not).
     congestion_factor: float = 2.0
-    congestion_slack: float = 0.1
+    congestion_slack: float = 0.3
     #: Silence evidence: no answer from the path for this many timeouts (and at least 1 s).
     silence_timeouts: float = 4.0
     window_min: int = 2
@@ -162,6 +166,8 @@ class _Path:
         self.last_send = now
         #: EWMA of answer sizes per resource, to time an answer before it comes.
         self.reply_bytes: OrderedDict[Hashable, float] = OrderedDict()
+        #: EWMA of the bytes of the exchanges the samples come from.
+        self.sampled_bytes: float | None = None
 
     # ---- policy
 
@@ -189,7 +195,7 @@ class _Path:
         if s.link_bps is None or self.rtt.srtt is None:
             return s.window_max
         exchange_bytes = 64 + self.expected_reply(None)
-        bdp_bytes = s.link_bps / 8 * (self.rtt.srtt + airtime(exchange_bytes, s.link_bps))
+        bdp_bytes = s.link_bps / 8 * self.rtt.srtt
         return max(s.window_min, min(s.window_max, math.ceil(bdp_bytes / exchange_bytes) + 1))
 
     def copies(self, try_number: int) -> int:
@@ -206,8 +212,19 @@ class _Path:
         if try_number and (self.congested() or self.silent(now)):
             base *= 2 ** min(try_number, 8)
             self.stats.backoffs += 1
-        wire = airtime(request_bytes, s.link_bps) + airtime(self.expected_reply(reply_key), s.link_bps)
-        return min(s.max_rto, base) + wire
+        return min(s.max_rto, base) + self.extra_airtime(request_bytes + self.expected_reply(reply_key))
+
+    def extra_airtime(self, exchange_bytes: float) -> float:
+        """How much longer than the sampled exchanges one of ``exchange_bytes`` takes on the link."""
+        if self.sampled_bytes is None:
+            return airtime(exchange_bytes, self.settings.link_bps)
+        link = self.settings.link_bps
+        return max(0.0, airtime(exchange_bytes, link) - airtime(self.sampled_bytes, link))
+
+    def on_sample(self, rtt: float, exchange_bytes: float) -> None:
+        self.rtt.on_sample(rtt)
+        self.sampled_bytes = exchange_bytes if self.sampled_bytes is None else (
+            0.875 * self.sampled_bytes + 0.125 * exchange_bytes)
 
     def expected_reply(self, reply_key: Hashable | None) -> float:
         if reply_key is None:
@@ -343,7 +360,7 @@ class ReliabilityLayer:
                 if finished:
                     winner = self._pick_winner(attempts)
                     answer = winner.task.result()  # type: ignore[union-attr]  # raises the attempt's error
-                    self._on_answer(path, winner, attempts, reply_key, reply_size(answer))
+                    self._on_answer(path, winner, attempts, reply_key, reply_size(answer), request_bytes)
                     return answer, winner
                 path.stats.tries += 1
             path.stats.failed += 1
@@ -385,16 +402,13 @@ class ReliabilityLayer:
         return (answered or done)[0]
 
     def _on_answer(self, path: _Path, winner: Attempt[T], attempts: list[Attempt[T]], reply_key: Hashable,
-                   reply_bytes: int) -> None:
+                   reply_bytes: int, winner_request_bytes: int) -> None:
         now = self.clock()
         stats = path.stats
         stats.completed += 1
         path.last_answer = now
         # The try's own token names it: this RTT is unambiguous.
-        rtt = now - winner.sent_at
-        s = self.settings
-        request_air = airtime(64, s.link_bps)
-        path.rtt.on_sample(max(0.0, rtt - request_air - airtime(reply_bytes, s.link_bps)))
+        path.on_sample(now - winner.sent_at, winner_request_bytes + reply_bytes)
         stats.samples += 1
         path.note_reply_size(reply_key, reply_bytes)
         if winner.try_number < max(a.try_number for a in attempts):
@@ -405,8 +419,10 @@ class ReliabilityLayer:
         for attempt in attempts:
             if attempt is winner:
                 path.loss.on_outcome(False)
-            elif now - attempt.sent_at >= attempt.timeout:
-                path.loss.on_outcome(True)  # had its full time and no answer
+            elif attempt.sent_at < winner.sent_at and now - attempt.sent_at >= attempt.timeout:
+                # Sent before the answered try, had its full time, unanswered:
+                # lost.  (Tries sent after it say nothing: they were cut short.)
+                path.loss.on_outcome(True)
 
     def _on_give_up(self, path: _Path, attempts: list[Attempt[T]]) -> None:
         now = self.clock()

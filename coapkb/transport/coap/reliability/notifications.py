@@ -19,7 +19,6 @@ from typing import Any
 import aiocoap
 from aiocoap.numbers.constants import TransportTuning
 
-from .estimator import airtime
 from .layer import ReliabilityLayer, _Path
 
 #: Size of the empty ACK that answers a notification.
@@ -70,9 +69,8 @@ class NotificationPolicy:
         a notification is never abandoned for want of patience (the server
         would drop the observation, and the teammate would wait for a
         refresh), but a peer that stays silent is not flooded either."""
-        link = self.layer.settings.link_bps
         path = record.path
-        base = path.rto() + airtime(record.nbytes, link) + airtime(_ACK_BYTES, link)
+        base = path.rto() + path.extra_airtime(record.nbytes + _ACK_BYTES)
         backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
         return min(self.layer.settings.max_rto, base * backoff)
 
@@ -88,10 +86,9 @@ class NotificationPolicy:
         path = record.path
         now = self.layer.clock()
         path.last_answer = now
-        path.loss.on_outcome(record.retransmissions > 0)
-        if record.retransmissions == 0:
-            link = self.layer.settings.link_bps
-            path.rtt.on_sample(max(0.0, now - record.sent_at - airtime(record.nbytes, link) - airtime(_ACK_BYTES, link)))
+        if record.retransmissions == 0:  # Karn: a retransmitted CON says nothing certain
+            path.loss.on_outcome(False)
+            path.on_sample(now - record.sent_at, record.nbytes + _ACK_BYTES)
 
     def on_duplicate_reply(self, record: _Notification, message: aiocoap.Message) -> None:
         return None
