@@ -166,7 +166,8 @@ async def _demo(args: argparse.Namespace) -> int:
 
 
 async def _team(args: argparse.Namespace) -> int:
-    from .harness.team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file, summarise
+    from .harness.record import TaskRecord, summarise
+    from .harness.team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
@@ -188,7 +189,7 @@ async def _team(args: argparse.Namespace) -> int:
     if not tasks:
         raise UserError("no tasks to run")
 
-    def progress(bar: tqdm, record) -> None:  # record: TaskRecord
+    def progress(bar: tqdm, record: TaskRecord) -> None:
         bar.update()
         if args.quiet:
             return
@@ -243,10 +244,9 @@ async def _team(args: argparse.Namespace) -> int:
     print()
     print(summarise(record))
     if args.record:
-        Path(args.record).write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
-    bad = [t for t in record["tasks"] if not t["agreed"] or t["errors"]]
-    return 1 if bad else 0
+    return 1 if record.disputed else 0
 
 
 # --------------------------------------------------------------------------- query

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench.run import SYSTEMS, read_rows
+from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
 
 FAMILIES: dict[str, tuple[str, str]] = {
     # family: (distributed system, central system)
@@ -71,25 +71,25 @@ class Point:
 class Data:
     """The ok rows of a CSV, averaged per (system, robots, tasks, bandwidth, loss)."""
 
-    def __init__(self, rows: Sequence[dict[str, Any]]) -> None:
-        groups: dict[tuple[Any, ...], list[dict[str, Any]]] = defaultdict(list)
-        self.failed = [r for r in rows if not r.get("ok")]
+    def __init__(self, rows: Sequence[BenchRow]) -> None:
+        groups: dict[tuple[Any, ...], list[BenchRow]] = defaultdict(list)
+        self.failed = [r for r in rows if not r.ok]
         for r in rows:
-            if r.get("ok") and r.get("system") in SYSTEMS:
-                groups[(r["system"], r["robots"], r["tasks"], r["bandwidth_kbps"], r["loss_pct"])].append(r)
+            if r.ok and r.system in SYSTEMS:
+                groups[(r.system, r.robots, r.tasks, r.bandwidth_kbps, r.loss_pct)].append(r)
         self.points: dict[tuple[Any, ...], Point] = {}
         for key, rs in groups.items():
-            p50 = [r["query_p50_ms"] for r in rs if r.get("query_p50_ms") is not None]
-            p99 = [r["query_p99_ms"] for r in rs if r.get("query_p99_ms") is not None]
+            p50 = [r.query_p50_ms for r in rs if r.query_p50_ms is not None]
+            p99 = [r.query_p99_ms for r in rs if r.query_p99_ms is not None]
             self.points[key] = Point(
                 *key,
-                wire_bytes=statistics.fmean(r["wire_bytes"] for r in rs),
-                completion_s=statistics.fmean(r["completion_s"] for r in rs),
+                wire_bytes=statistics.fmean(r.wire_bytes for r in rs),
+                completion_s=statistics.fmean(r.completion_s for r in rs),
                 p50_ms=statistics.median(p50) if p50 else None,
                 p99_ms=statistics.median(p99) if p99 else None,
                 n=len(rs),
             )
-        self.rows = [r for r in rows if r.get("ok")]
+        self.rows = [r for r in rows if r.ok]
 
     def get(self, system: str, robots: int, tasks: int, bandwidth: float, loss: float) -> Point | None:
         return self.points.get((system, robots, tasks, float(bandwidth), float(loss)))
@@ -355,10 +355,10 @@ def transport_time(data: Data, out: Path) -> Path | str:
 
 def query_latency(data: Data, out: Path) -> Path | str:
     """p50 and p99 of remote-query latency per system, one marker per run, by loss."""
-    systems = [s for s in data.systems() if any(r["system"] == s and r.get("query_p50_ms") for r in data.rows)]
+    systems = [s for s in data.systems() if any(r.system == s and r.query_p50_ms for r in data.rows)]
     if not systems:
         return "no query latencies"
-    losses = sorted({r["loss_pct"] for r in data.rows})
+    losses = sorted({r.loss_pct for r in data.rows})
     fig, axes = _panels(2, "Remote query latency per run (all settings)", width=6.0)
     markers = ["o", "s", "^", "D", "v"]
     for ax, column, label in ((axes[0], "query_p50_ms", "p50"), (axes[1], "query_p99_ms", "p99")):
@@ -366,9 +366,9 @@ def query_latency(data: Data, out: Path) -> Path | str:
             xs, ys = [], []
             for i, system in enumerate(systems):
                 for r in data.rows:
-                    if r["system"] == system and r["loss_pct"] == loss and r.get(column):
+                    if r.system == system and r.loss_pct == loss and getattr(r, column):
                         xs.append(i + (k - (len(losses) - 1) / 2) * 0.15)
-                        ys.append(r[column])
+                        ys.append(getattr(r, column))
             ax.scatter(xs, ys, marker=markers[k % len(markers)], label=f"{loss:g} % loss", alpha=0.75)
         ax.set_yscale("log")
         ax.set_xticks(range(len(systems)), systems, rotation=25, fontsize=8, ha="right")
@@ -384,7 +384,7 @@ FIGURES: dict[str, Callable[[Data, Path], Path | str]] = {
 }
 
 
-def draw_all(rows: Iterable[dict[str, Any]], outdir: Path) -> dict[str, Path | str]:
+def draw_all(rows: Iterable[BenchRow], outdir: Path) -> dict[str, Path | str]:
     """Every figure; values are written paths or the reason a figure was skipped."""
     outdir.mkdir(parents=True, exist_ok=True)
     data = Data(list(rows))

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench.run import SYSTEMS, read_rows
+from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -69,22 +69,22 @@ class Ratio:
                 f"n={self.n})")
 
 
-def _setting(row: dict[str, Any]) -> tuple[Any, ...]:
-    return tuple(row[c] for c in SETTING)
+def _setting(row: BenchRow) -> tuple[Any, ...]:
+    return tuple(getattr(row, c) for c in SETTING)
 
 
-def paired(rows: Sequence[dict[str, Any]], a: str, b: str,
-           where: Any = None) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+def paired(rows: Sequence[BenchRow], a: str, b: str,
+           where: Any = None) -> list[tuple[BenchRow, BenchRow]]:
     """(row of a, row of b) for every setting where both have an ok row (and ``where(row)`` holds)."""
-    by: dict[str, dict[tuple[Any, ...], dict[str, Any]]] = defaultdict(dict)
+    by: dict[str, dict[tuple[Any, ...], BenchRow]] = defaultdict(dict)
     for r in rows:
-        if r.get("ok") and (where is None or where(r)):
-            by[r["system"]][_setting(r)] = r
+        if r.ok and (where is None or where(r)):
+            by[r.system][_setting(r)] = r
     return [(by[a][k], by[b][k]) for k in sorted(by[a].keys() & by[b].keys())]
 
 
-def ratio(pairs: Iterable[tuple[dict[str, Any], dict[str, Any]]], column: str) -> Ratio | None:
-    values = [x[column] / y[column] for x, y in pairs if x.get(column) and y.get(column)]
+def ratio(pairs: Iterable[tuple[BenchRow, BenchRow]], column: str) -> Ratio | None:
+    values = [getattr(x, column) / getattr(y, column) for x, y in pairs if getattr(x, column) and getattr(y, column)]
     if not values:
         return None
     return Ratio(math.exp(statistics.fmean(math.log(v) for v in values)), min(values), max(values), len(values))
@@ -110,13 +110,13 @@ def _md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]
     return lines
 
 
-def _systems(rows: Sequence[dict[str, Any]]) -> list[str]:
-    present = {r["system"] for r in rows}
+def _systems(rows: Sequence[BenchRow]) -> list[str]:
+    present = {r.system for r in rows}
     return [s for s in SYSTEMS if s in present]
 
 
-def _values(rows: Sequence[dict[str, Any]], column: str) -> list[Any]:
-    return sorted({r[column] for r in rows if r.get(column) is not None})
+def _values(rows: Sequence[BenchRow], column: str) -> list[Any]:
+    return sorted({getattr(r, column) for r in rows if getattr(r, column) is not None})
 
 
 def _g(v: float) -> str:
@@ -126,15 +126,15 @@ def _g(v: float) -> str:
 # --------------------------------------------------------------------------- sections
 
 
-def section_setup(rows: Sequence[dict[str, Any]], csv_path: Path, profile: str) -> list[str]:
-    ok = [r for r in rows if r.get("ok")]
-    starts = sorted(r["started_at"] for r in rows if r.get("started_at"))
-    wall = sum(r.get("wall_s") or 0 for r in rows)
+def section_setup(rows: Sequence[BenchRow], csv_path: Path, profile: str) -> list[str]:
+    ok = [r for r in rows if r.ok]
+    starts = sorted(r.started_at for r in rows if r.started_at)
+    wall = sum(r.wall_s or 0 for r in rows)
     span = ""
     if starts:
         first = dt.datetime.fromisoformat(starts[0])
-        last_row = max((r for r in rows if r.get("started_at")), key=lambda r: r["started_at"])
-        end = dt.datetime.fromisoformat(last_row["started_at"]) + dt.timedelta(seconds=last_row.get("wall_s") or 0)
+        last_row = max((r for r in rows if r.started_at), key=lambda r: r.started_at)
+        end = dt.datetime.fromisoformat(last_row.started_at) + dt.timedelta(seconds=last_row.wall_s or 0)
         span = f"; first run started {starts[0]}, last ended {(end - first).total_seconds() / 60:.1f} min later"
     lines = [
         "## Setup",
@@ -185,7 +185,7 @@ def section_commands(csv_path: Path, profile: str) -> list[str]:
     ]
 
 
-def key_ratios(rows: Sequence[dict[str, Any]]) -> list[tuple[str, str, str, str]]:
+def key_ratios(rows: Sequence[BenchRow]) -> list[tuple[str, str, str, str]]:
     """(comparison, bytes, completion time, the seed's number) rows."""
     out: list[tuple[str, str, str, str]] = []
     for label, dist, cent in (
@@ -210,7 +210,7 @@ def key_ratios(rows: Sequence[dict[str, Any]]) -> list[tuple[str, str, str, str]
     return out
 
 
-def section_ratios(rows: Sequence[dict[str, Any]]) -> list[str]:
+def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
     lines = [
         "## Key ratios",
         "",
@@ -236,7 +236,7 @@ def section_ratios(rows: Sequence[dict[str, Any]]) -> list[str]:
                 for robots in _values(rows, "robots"):
                     want = (bw, t, loss, robots)
                     pairs = paired(rows, dist, cent, lambda r, want=want: (  # type: ignore[misc]
-                        r["bandwidth_kbps"], r["tasks"], r["loss_pct"], r["robots"]) == want)
+                        r.bandwidth_kbps, r.tasks, r.loss_pct, r.robots) == want)
                     r = ratio(pairs, "wire_bytes")
                     if r is not None:
                         head.append((dist.split("-")[0], robots, _g(loss), f"{100 * (1 - r.gmean):.0f} %", r.n))
@@ -249,7 +249,7 @@ def section_ratios(rows: Sequence[dict[str, Any]]) -> list[str]:
     by_loss = []
     for loss in losses:
         for a, b in (("coap-distributed", "zmq-distributed"), ("coap-central", "zmq-central")):
-            pairs = paired(rows, a, b, lambda r, loss=loss: r["loss_pct"] == loss)  # type: ignore[misc]
+            pairs = paired(rows, a, b, lambda r, loss=loss: r.loss_pct == loss)  # type: ignore[misc]
             rb, rt = ratio(pairs, "wire_bytes"), ratio(pairs, "completion_s")
             if rb and rt:
                 by_loss.append((_g(loss), f"{a} / {b}", f"x{rb.gmean:.2f}", f"x{rt.gmean:.2f}", rb.n))
@@ -259,15 +259,15 @@ def section_ratios(rows: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def section_tables(rows: Sequence[dict[str, Any]]) -> list[str]:
+def section_tables(rows: Sequence[BenchRow]) -> list[str]:
     systems = _systems(rows)
-    cells: dict[tuple[Any, ...], dict[str, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
+    cells: dict[tuple[Any, ...], dict[str, list[BenchRow]]] = defaultdict(lambda: defaultdict(list))
     for r in rows:
-        cells[(r["robots"], r["tasks"], r["bandwidth_kbps"], r["loss_pct"])][r["system"]].append(r)
+        cells[(r.robots, r.tasks, r.bandwidth_kbps, r.loss_pct)][r.system].append(r)
 
-    def cell(rs: list[dict[str, Any]], column: str, fmt: Any) -> str:
-        good = [r[column] for r in rs if r.get("ok") and r.get(column) is not None]
-        bad = sum(1 for r in rs if not r.get("ok"))
+    def cell(rs: list[BenchRow], column: str, fmt: Any) -> str:
+        good = [getattr(r, column) for r in rs if r.ok and getattr(r, column) is not None]
+        bad = sum(1 for r in rs if not r.ok)
         text = fmt(statistics.fmean(good)) if good else "-"
         return text + (f" ({bad} failed)" if bad else "")
 
@@ -299,7 +299,7 @@ def section_figures(figdir: Path, report_dir: Path) -> list[str]:
     return lines
 
 
-def section_notes(rows: Sequence[dict[str, Any]]) -> list[str]:
+def section_notes(rows: Sequence[BenchRow]) -> list[str]:
     """Where distribution and CoAP win or lose, stated from the data."""
     lines = [
         "## Where each choice wins or loses (from this data)",
@@ -319,36 +319,36 @@ def section_notes(rows: Sequence[dict[str, Any]]) -> list[str]:
         pairs = paired(rows, a, b)
         if not pairs:
             continue
-        fewer = sum(1 for x, y in pairs if x["wire_bytes"] < y["wire_bytes"])
-        faster = sum(1 for x, y in pairs if x["completion_s"] < y["completion_s"])
-        slower = [(x, y) for x, y in pairs if x["completion_s"] >= y["completion_s"]]
-        worst = max(slower, key=lambda p: p[0]["completion_s"] / p[1]["completion_s"], default=None)
+        fewer = sum(1 for x, y in pairs if x.wire_bytes < y.wire_bytes)
+        faster = sum(1 for x, y in pairs if x.completion_s < y.completion_s)
+        slower = [(x, y) for x, y in pairs if x.completion_s >= y.completion_s]
+        worst = max(slower, key=lambda p: p[0].completion_s / p[1].completion_s, default=None)
         text = (f"- **{label}**: fewer bytes in {fewer} of {len(pairs)} paired settings, "
                 f"faster in {faster} of {len(pairs)}.")
         if worst is not None:
             x, y = worst
-            text += (f" Largest slow-down x{x['completion_s'] / y['completion_s']:.1f} at {x['robots']} robots, "
-                     f"{x['tasks']} tasks, {_g(x['bandwidth_kbps'])} kbit/s, {_g(x['loss_pct'])} % loss "
-                     f"({x['completion_s']:.1f} s vs {y['completion_s']:.1f} s).")
+            text += (f" Largest slow-down x{x.completion_s / y.completion_s:.1f} at {x.robots} robots, "
+                     f"{x.tasks} tasks, {_g(x.bandwidth_kbps)} kbit/s, {_g(x.loss_pct)} % loss "
+                     f"({x.completion_s:.1f} s vs {y.completion_s:.1f} s).")
         lines.append(text)
-    tcp = [r for r in rows if r.get("transport") == "zmq" and r.get("tcp_aborts") is not None]
+    tcp = [r for r in rows if r.transport == "zmq" and r.tcp_aborts is not None]
     if tcp:
-        aborted = [r for r in tcp if r["tcp_aborts"] > 0]
+        aborted = [r for r in tcp if r.tcp_aborts > 0]
         lines.append(
             f"- **ZeroMQ connections given up by the kernel** (`tcp_aborts` > 0): {len(aborted)} of {len(tcp)} "
-            f"ZeroMQ runs; {sum(1 for r in aborted if not r.get('ok'))} of those failed, against "
-            f"{sum(1 for r in tcp if not r['tcp_aborts'] and not r.get('ok'))} failures among the others."
+            f"ZeroMQ runs; {sum(1 for r in aborted if not r.ok)} of those failed, against "
+            f"{sum(1 for r in tcp if not r.tcp_aborts and not r.ok)} failures among the others."
         )
-    failed = [r for r in rows if not r.get("ok")]
+    failed = [r for r in rows if not r.ok]
     lines += ["", "### Failed runs", ""]
     if not failed:
         lines.append("None.")
     else:
         lines += _md_table(
             ("system", "robots", "tasks", "kbit/s", "loss %", "rep", "TCP aborts", "error"),
-            ((r["system"], r["robots"], r["tasks"], _g(r["bandwidth_kbps"]), _g(r["loss_pct"]), r["rep"],
-              "-" if r.get("tcp_aborts") is None else r["tcp_aborts"],
-              (r.get("error") or "").replace("|", "/")[:200]) for r in failed),
+            ((r.system, r.robots, r.tasks, _g(r.bandwidth_kbps), _g(r.loss_pct), r.rep,
+              "-" if r.tcp_aborts is None else r.tcp_aborts,
+              (r.error or "").replace("|", "/")[:200]) for r in failed),
         )
     lines += [
         "",
@@ -375,7 +375,7 @@ def _rel(path: Path) -> str:
         return str(path)
 
 
-def build_report(rows: Sequence[dict[str, Any]], csv_path: Path, figdir: Path, report_path: Path,
+def build_report(rows: Sequence[BenchRow], csv_path: Path, figdir: Path, report_path: Path,
                  profile: str | None = None) -> str:
     """The whole markdown text."""
     profile = profile or csv_path.stem

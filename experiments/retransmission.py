@@ -49,6 +49,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from coapkb.bench.row import BenchRow
 from coapkb.bench.stats import percentile
 from coapkb.transport.coap.reliability.rto import (
     PROFILES,
@@ -239,15 +240,11 @@ def team_excess_bound(row: Mapping[str, Any]) -> int:
         return 0
 
 
-def team_row(row: Mapping[str, Any]) -> dict[str, Any]:
+def team_row(row: BenchRow) -> dict[str, Any]:
     """The columns of a :func:`coapkb.bench.run.run_once` row this experiment reports."""
-    out = {k: row.get(k, "") for k in TEAM_COLUMNS if k in row}
-    out["bandwidth_kbps"], out["loss_pct"] = row.get("bandwidth_kbps"), row.get("loss_pct")
-    out["retransmission_profile"] = row.get("retransmission_profile")
-    out["tasks"] = row.get("tasks")
-    packets, spurious = row.get("wire_packets"), row.get("spurious_retransmissions")
-    out["spurious_share"] = (round(int(spurious) / int(packets), 4)
-                             if packets not in (None, "", 0) and spurious not in (None, "") else "")
+    out: dict[str, Any] = {k: v for k, v in row.to_dict().items() if k in TEAM_COLUMNS}
+    packets, spurious = row.wire_packets, row.spurious_retransmissions
+    out["spurious_share"] = round(spurious / packets, 4) if packets and spurious is not None else ""
     return {k: ("" if out.get(k) is None else out.get(k, "")) for k in TEAM_COLUMNS}
 
 
@@ -749,7 +746,7 @@ async def measure_cell(
     return records, summary
 
 
-async def measure_team(bandwidth_kbps: float, loss_pct: float, profile: str, tasks: int, seed: int) -> dict[str, Any]:
+async def measure_team(bandwidth_kbps: float, loss_pct: float, profile: str, tasks: int, seed: int) -> BenchRow:
     from coapkb.bench import run as bench
 
     row = await bench.run_once("coap-distributed", 3, tasks, bandwidth_kbps, loss_pct, rep=0,
@@ -815,10 +812,10 @@ async def amain(args: argparse.Namespace) -> int:
                     for p in team_profiles:
                         row = await measure_team(bw, loss, p, args.team_tasks, args.seed)
                         rows.append(team_row(row))
-                        print(f"team {bw:g} kbit/s {loss:g} % {p:<11} ok={row['ok']} coordination "
-                              f"{row['coordination_s']} s wire {row['wire_bytes']} B retx {row['retransmissions']} "
-                              f"spurious {row['spurious_retransmissions']} p50/p99 {row['query_p50_ms']}/"
-                              f"{row['query_p99_ms']} ms wall {row['wall_s']} s {row['error']}", flush=True)
+                        print(f"team {bw:g} kbit/s {loss:g} % {p:<11} ok={row.ok} coordination "
+                              f"{row.coordination_s} s wire {row.wire_bytes} B retx {row.retransmissions} "
+                              f"spurious {row.spurious_retransmissions} p50/p99 {row.query_p50_ms}/"
+                              f"{row.query_p99_ms} ms wall {row.wall_s} s {row.error}", flush=True)
                         replace_rows(out / "team.csv", TEAM_COLUMNS, [rows[-1]],
                                      ("bandwidth_kbps", "loss_pct", "retransmission_profile"))
         print(f"measured in {time.monotonic() - started:.0f} s", flush=True)

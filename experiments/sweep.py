@@ -39,11 +39,11 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout without install
 from coapkb.bench.run import (
     CLUSTER_SIZE,
     SYSTEMS,
+    BenchRow,
     append_rows,
     done_keys,
     format_row,
     retransmission_label,
-    row_key,
     timeouts_for,
 )
 from coapkb.bench.linkemu import available, cleanup_stale
@@ -93,18 +93,19 @@ class Run:
     loss_model: str = "random"
     burst_len: float = 3.0
 
-    def link_columns(self) -> dict[str, Any]:
-        """The row's link columns as ``coapkb bench`` writes them (burst_len 0 for random loss)."""
-        return {"delay_ms": self.delay_ms, "jitter_ms": self.jitter_ms, "loss_model": self.loss_model,
-                "burst_len": self.burst_len if self.loss_model == "burst" else 0.0}
+    def row(self, **measured: Any) -> BenchRow:
+        """This run's row: its identity (link columns as ``coapkb bench`` writes
+        them, burst_len 0 for random loss) and ``measured``."""
+        return BenchRow(
+            system=self.system, robots=self.robots, tasks=self.tasks, bandwidth_kbps=self.bandwidth,
+            loss_pct=self.loss, rep=self.rep,
+            retransmission_profile=retransmission_label(self.system, self.retransmission),
+            delay_ms=self.delay_ms, jitter_ms=self.jitter_ms, loss_model=self.loss_model,
+            burst_len=self.burst_len if self.loss_model == "burst" else 0.0, **measured,
+        )
 
     def key(self) -> tuple[str, ...]:
-        return row_key({
-            "system": self.system, "robots": self.robots, "tasks": self.tasks, "bandwidth_kbps": self.bandwidth,
-            "loss_pct": self.loss, "rep": self.rep,
-            "retransmission_profile": retransmission_label(self.system, self.retransmission),
-            **self.link_columns(),
-        })
+        return self.row().key()
 
     def argv(self) -> list[str]:
         return [
@@ -197,7 +198,7 @@ def units(run: Run) -> int:
     return math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)) + 1
 
 
-async def _run_child(run: Run, limit_s: float) -> dict[str, Any]:
+async def _run_child(run: Run, limit_s: float) -> BenchRow:
     """One ``coapkb bench --json`` child; its row, or a failed row if it died or hung."""
     proc = await asyncio.create_subprocess_exec(
         *run.argv(), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
@@ -212,15 +213,13 @@ async def _run_child(run: Run, limit_s: float) -> dict[str, Any]:
         out, err = b"", f"killed after {limit_s:.0f} s".encode()
     for line in reversed(out.decode(errors="replace").splitlines()):
         if line.startswith("{"):
-            return json.loads(line)
+            return BenchRow.from_dict(json.loads(line))
     tail = " | ".join(err.decode(errors="replace").strip().splitlines()[-3:])
-    return {
-        "system": run.system, "robots": run.robots, "tasks": run.tasks, "bandwidth_kbps": run.bandwidth,
-        "loss_pct": run.loss, "rep": run.rep, "retransmission_profile": retransmission_label(run.system, run.retransmission),
-        "ok": False, "mode": SYSTEMS[run.system].mode, "transport": SYSTEMS[run.system].transport,
-        "query_wire": SYSTEMS[run.system].query_wire, "emulation": "netns", **run.link_columns(),
-        "error": f"bench child exited {proc.returncode}: {tail or 'no output'}"[:500],
-    }
+    system = SYSTEMS[run.system]
+    return run.row(
+        ok=False, mode=system.mode, transport=system.transport, query_wire=system.query_wire, emulation="netns",
+        error=f"bench child exited {proc.returncode}: {tail or 'no output'}"[:500],
+    )
 
 
 async def _stop(proc: asyncio.subprocess.Process) -> None:
@@ -260,7 +259,7 @@ async def sweep(runs: list[Run], out: Path, jobs: int, done_runs: list[Run]) -> 
             row = await _run_child(run, t.run_s + 180)
             append_rows(out, [row])
             finished += 1
-            failed += not row.get("ok")
+            failed += not row.ok
             bar.update(units(run))
             count = len(done_runs) + finished
             times = tqdm.format_meter(**{**bar.format_dict, "bar_format": log_format})

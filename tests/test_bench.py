@@ -8,11 +8,14 @@ small synthetic CSV.
 
 from __future__ import annotations
 
+import csv
 import importlib.util
+import json
 import os
 import socket
 import sys
 from pathlib import Path
+from dataclasses import replace
 from types import ModuleType
 from typing import Any
 
@@ -21,7 +24,7 @@ from support import require
 
 from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
-from coapkb.bench.run import COLUMNS, SYSTEMS, append_rows, done_keys, read_rows, row_key
+from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -54,18 +57,18 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
     _require_netns()
     rows = [await bench.run_once(system, 3, 2, 512, 2, rep=0) for system in ("coap-distributed", "zmq-central")]
     for row in rows:
-        assert set(row) >= set(COLUMNS)
-        assert row["ok"] is True, row["error"]
-        assert row["error"] == ""
-        assert row["tasks_agreed"] == 2
+        assert tuple(row.to_dict()) == COLUMNS
+        assert row.ok is True, row.error
+        assert row.error == ""
+        assert row.tasks_agreed == 2
         # Headers, ACKs and retransmissions make the wire heavier than the payloads.
-        assert row["wire_bytes"] > row["app_bytes"] > 0
-        assert row["wire_packets"] > 0 and row["completion_s"] >= row["coordination_s"] > 0
-        assert row["remote_queries"] > 0 and row["query_p99_ms"] >= row["query_p50_ms"] > 0
-        assert row["feeder_wire_bytes"] > 0 and row["queue_drops"] == 0
+        assert row.wire_bytes > row.app_bytes > 0
+        assert row.wire_packets > 0 and row.completion_s >= row.coordination_s > 0
+        assert row.remote_queries > 0 and row.query_p99_ms >= row.query_p50_ms > 0
+        assert row.feeder_wire_bytes > 0 and row.queue_drops == 0
     coap, zmq = rows
-    assert coap["retransmission_profile"] == "robust" and zmq["retransmission_profile"] == "tcp"
-    assert coap["local_queries"] > 0 and zmq["local_queries"] == 0  # distributed answers some queries itself
+    assert coap.retransmission_profile == "robust" and zmq.retransmission_profile == "tcp"
+    assert coap.local_queries > 0 and zmq.local_queries == 0  # distributed answers some queries itself
 
 
 @pytest.mark.root
@@ -76,11 +79,11 @@ async def test_run_once_over_delayed_bursty_links() -> None:
     _require_netns()
     row = await bench.run_once("coap-distributed", 3, 2, 512, 5, rep=0, delay_ms=50, jitter_ms=5,
                                loss_model="burst", burst_len=2)
-    assert row["ok"] is True, row["error"]
-    assert (row["delay_ms"], row["jitter_ms"], row["loss_model"], row["burst_len"]) == (50, 5, "burst", 2)
+    assert row.ok is True, row.error
+    assert (row.delay_ms, row.jitter_ms, row.loss_model, row.burst_len) == (50, 5, "burst", 2)
     # A remote query is at least one round trip: 2 x (50 - 5) ms.
-    assert row["query_p50_ms"] >= 90
-    assert row_key(row) != row_key({**row, "delay_ms": 0})
+    assert row.query_p50_ms >= 90
+    assert row.key() != replace(row, delay_ms=0).key()
 
 
 @pytest.mark.root
@@ -140,10 +143,10 @@ def test_timeouts_grow_with_slower_and_lossier_links() -> None:
 
 async def test_a_bad_configuration_is_a_failed_row_not_an_exception() -> None:
     row = await bench.run_once("coap-distributed", 4, 2, 512, 2)  # 4 robots: not clusters of three
-    assert row["ok"] is False and "multiple of 3" in row["error"]
-    assert set(row) >= set(COLUMNS)
+    assert row.ok is False and "multiple of 3" in row.error
+    assert tuple(row.to_dict()) == COLUMNS
     row = await bench.run_once("carrier-pigeon", 3, 2, 512, 2)
-    assert row["ok"] is False and "unknown system" in row["error"]
+    assert row.ok is False and "unknown system" in row.error
 
 
 def test_parse_retrans_segs_and_percentile() -> None:
@@ -155,15 +158,13 @@ def test_parse_retrans_segs_and_percentile() -> None:
     assert percentile([float(v) for v in range(1, 101)], 99) == pytest.approx(99.01)
 
 
-def _row(system: str = "coap-distributed", **kw: Any) -> dict[str, Any]:
-    row: dict[str, Any] = {c: "" for c in COLUMNS}
-    row.update(system=system, robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=2.0, rep=0,
-               retransmission_profile=bench.retransmission_label(system, "adaptive"), ok=True,
-               coordination_s=1.5, completion_s=2.0, wire_bytes=1000, wire_packets=10, retransmissions=0,
-               query_p50_ms=5.0, query_p99_ms=50.0, mode=SYSTEMS[system].mode, transport=SYSTEMS[system].transport,
-               query_wire=SYSTEMS[system].query_wire, app_bytes=500)
-    row.update(kw)
-    return row
+def _row(system: str = "coap-distributed", **kw: Any) -> BenchRow:
+    row = BenchRow(system=system, robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=2.0, rep=0,
+                   retransmission_profile=bench.retransmission_label(system, "adaptive"), ok=True,
+                   coordination_s=1.5, completion_s=2.0, wire_bytes=1000, wire_packets=10, retransmissions=0,
+                   query_p50_ms=5.0, query_p99_ms=50.0, mode=SYSTEMS[system].mode,
+                   transport=SYSTEMS[system].transport, query_wire=SYSTEMS[system].query_wire, app_bytes=500)
+    return replace(row, **kw)
 
 
 def test_csv_append_writes_one_header_and_reads_back_typed(tmp_path: Path) -> None:
@@ -173,26 +174,54 @@ def test_csv_append_writes_one_header_and_reads_back_typed(tmp_path: Path) -> No
     lines = path.read_text().splitlines()
     assert lines[0] == ",".join(COLUMNS) and sum(1 for line in lines if line.startswith("system,")) == 1
     rows = read_rows(path)
-    assert [r["system"] for r in rows] == ["coap-distributed", "zmq-central"]
-    assert rows[0]["ok"] is True and rows[1]["ok"] is False and rows[1]["error"] == "timed out, badly"
-    assert isinstance(rows[0]["wire_bytes"], int) and rows[0]["bandwidth_kbps"] == 35.0
-    assert rows[0]["retransmission_profile"] == "adaptive" and rows[1]["retransmission_profile"] == "tcp"
+    assert [r.system for r in rows] == ["coap-distributed", "zmq-central"]
+    assert rows[0].ok is True and rows[1].ok is False and rows[1].error == "timed out, badly"
+    assert isinstance(rows[0].wire_bytes, int) and rows[0].bandwidth_kbps == 35.0
+    assert rows[0].retransmission_profile == "adaptive" and rows[1].retransmission_profile == "tcp"
+
+
+def test_a_row_parses_csv_text_and_json_values_by_field_type() -> None:
+    row = _row("zmq-central", ok=False, error="x", tcp_aborts=2, query_p50_ms=None)
+    assert BenchRow.from_dict(row.to_csv()) == row  # every cell text, None as ""
+    assert BenchRow.from_dict(json.loads(json.dumps(row.to_dict()))) == row  # a --json line
+    cells = {**row.to_csv(), "robots": "3.0", "ok": "TRUE", "bandwidth_kbps": "35", "not_a_column": "?"}
+    back = BenchRow.from_dict(cells)
+    assert (back.robots, back.ok, back.bandwidth_kbps) == (3, True, 35.0)
+    assert bench.KEY_COLUMNS == ("system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep",
+                                 "retransmission_profile", "delay_ms", "jitter_ms", "loss_model", "burst_len")
+
+
+def test_the_committed_results_csv_reads_back_and_writes_the_same_cells(tmp_path: Path) -> None:
+    """The schema is the one experiments/results/quick.csv was written with (it
+    predates the link columns, which come last)."""
+    committed = ROOT / "experiments" / "results" / "quick.csv"
+    with committed.open(newline="", encoding="utf-8") as f:
+        original = list(csv.DictReader(f))
+    assert list(original[0]) == list(COLUMNS[: len(original[0])])
+    rows = read_rows(committed, latest_only=False)
+    copy = tmp_path / "copy.csv"
+    append_rows(copy, rows)
+    with copy.open(newline="", encoding="utf-8") as f:
+        again = list(csv.DictReader(f))
+    for before, after in zip(original, again, strict=True):
+        for column, text in before.items():  # a float cell may come back as "35.0" for "35"
+            assert after[column] == text or float(after[column]) == float(text), (column, text, after[column])
 
 
 def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) -> None:
     """A results CSV from before delay_ms/jitter_ms/loss_model/burst_len: its rows
     read with the defaults, and their keys equal those of plain-link runs."""
     path = tmp_path / "old.csv"
-    old_columns = [c for c in COLUMNS if c not in bench.LINK_DEFAULTS]
-    row = _row()
-    path.write_text(",".join(old_columns) + "\n" + ",".join(str(row[c]) for c in old_columns) + "\n")
+    old_columns = [c for c in COLUMNS if c not in ("delay_ms", "jitter_ms", "loss_model", "burst_len")]
+    cells = _row().to_csv()
+    path.write_text(",".join(old_columns) + "\n" + ",".join(str(cells[c]) for c in old_columns) + "\n")
     (back,) = read_rows(path)
-    assert (back["delay_ms"], back["jitter_ms"], back["loss_model"], back["burst_len"]) == (0.0, 0.0, "random", 0.0)
-    assert row_key(back) == row_key(_row(delay_ms=0, loss_model="random")) in done_keys(path)
-    assert row_key(_row(delay_ms=100)) not in done_keys(path)
+    assert (back.delay_ms, back.jitter_ms, back.loss_model, back.burst_len) == (0.0, 0.0, "random", 0.0)
+    assert back.key() == _row(delay_ms=0, loss_model="random").key() in done_keys(path)
+    assert _row(delay_ms=100).key() not in done_keys(path)
     sweep = _load("sweep")
     plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive")
-    assert plain.key() == row_key(back)
+    assert plain.key() == back.key()
     assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", delay_ms=300).key() != plain.key()
 
 
@@ -201,10 +230,10 @@ def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
     assert done_keys(path) == set()
     append_rows(path, [_row(), _row("zmq-central", ok=False)])
     # 35 and 35.0 (and "35") are the same bandwidth.
-    assert row_key(_row(bandwidth_kbps=35)) == row_key(_row(bandwidth_kbps="35.0")) in done_keys(path)
+    assert _row(bandwidth_kbps=35).key() == _row(bandwidth_kbps=35.0).key() in done_keys(path)
     assert len(done_keys(path)) == 2 and len(done_keys(path, include_failed=False)) == 1
     append_rows(path, [_row("zmq-central", ok=True)])  # the retry of the failed key
-    latest = {r["system"]: r["ok"] for r in read_rows(path)}
+    latest = {r.system: r.ok for r in read_rows(path)}
     assert latest == {"coap-distributed": True, "zmq-central": True}
     assert len(read_rows(path, latest_only=False)) == 3
 
@@ -246,7 +275,7 @@ async def test_sweep_appends_each_row_and_prints_count_and_eta(
     monkeypatch.setattr(sweep, "_run_child", child)
     path = tmp_path / "s.csv"
     assert await sweep.sweep(runs[1:], path, 1, runs[:1]) == 1
-    assert [r["system"] for r in read_rows(path)] == [r.system for r in runs[1:]]
+    assert [r.system for r in read_rows(path)] == [r.system for r in runs[1:]]
     lines = capsys.readouterr().out.splitlines()
     assert [line.split("]")[0] for line in lines] == ["[2/3  67%", "[3/3 100%"]
     assert all(" ETA " in line and "FAILED" in line for line in lines[1:])

@@ -9,6 +9,7 @@ strategy or team size.
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import select
 import signal
@@ -29,6 +30,7 @@ from coapkb.config import CostModel
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import ContentFormat, Method, Request
 from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
 from coapkb.transport import open_client
 from coapkb.world.warehouse import layout_from_row, travel_distance
@@ -121,43 +123,48 @@ def test_task_lists_are_what_the_tests_assume() -> None:
 # --------------------------------------------------------------------------- checks on a record
 
 
-def check_record(record: dict[str, Any], spec: TeamSpec, tasks: list[str]) -> None:
-    assert record["mode"] == spec.mode
-    assert record["transport"] == spec.transport
-    assert record["strategy"] == spec.strategy
-    assert record["robots"] == spec.robot_ids
-    assert record["clusters"] == spec.clusters()
-    assert [t["object"] for t in record["tasks"]] == tasks, "tasks in the order given"
+def check_record(record: TeamRecord, spec: TeamSpec, tasks: list[str]) -> None:
+    # The JSON form (what `coapkb team --record` writes) keeps its keys and reads back as the same record.
+    data = json.loads(json.dumps(record.to_dict()))
+    assert all(TASK_KEYS <= set(t) for t in data["tasks"]), data["tasks"]
+    assert all(COUNTER_KEYS <= set(s[side]) for s in data["robot_stats"].values() for side in ("server", "client"))
+    assert TeamRecord.from_dict(data).to_dict() == data
+    assert record.mode == spec.mode
+    assert record.transport == spec.transport
+    assert record.strategy == spec.strategy
+    assert record.robots == spec.robot_ids
+    assert record.clusters == spec.clusters()
+    assert [t.object for t in record.tasks] == tasks, "tasks in the order given"
 
     clusters = spec.clusters()
     executed: dict[str, int] = {r: 0 for r in spec.robot_ids}
     loads: dict[str, float] = {r: 0.0 for r in spec.robot_ids}
-    for task in record["tasks"]:
-        name = task["object"]
-        assert TASK_KEYS <= set(task), set(task) ^ TASK_KEYS
-        assert task["coordination_s"] >= 0
-        cluster = clusters[task["cluster"] - 1]
+    for task in record.tasks:
+        name = task.object
+        assert task.coordination_s >= 0
+        cluster = clusters[task.cluster - 1]
         # Every robot of the cluster decided, with no error, and all agree.
-        assert set(task["decisions"]) == set(cluster), name
-        assert task["errors"] == {}, (name, task["errors"])
-        assert len(set(task["decisions"].values())) == 1, (name, task["decisions"])
-        assert task["agreed"] is True
+        assert set(task.decisions) == set(cluster), name
+        assert task.errors == {}, (name, task.errors)
+        assert len(set(task.decisions.values())) == 1, (name, task.decisions)
+        assert task.agreed is True
         facts = facts_of(name)
         if facts is None:
-            assert task["skipped"] is True, name
-            assert task["assigned_to"] is None
-            assert set(task["decisions"].values()) == {None}
+            assert task.skipped is True, name
+            assert task.assigned_to is None
+            assert set(task.decisions.values()) == {None}
             continue
-        assert task["skipped"] is False, name
-        winner = task["assigned_to"]
+        assert task.skipped is False, name
+        winner = task.assigned_to
         assert winner is not None, f"{name} not assigned: {task}"
         assert winner in cluster
-        assert set(task["decisions"].values()) == {winner}
+        assert set(task.decisions.values()) == {winner}
         # Capability: the winner is among robots-for-grip of the object's grip (straight from the KBs).
         assert winner in facts.capable, f"{winner} cannot pick {name} by {facts.grip}"
-        assert task["costs"][winner] is not None
-        assert all(c is None or task["costs"][winner] <= c for c in task["costs"].values()), task["costs"]
-        assert all(task["costs"][r] is None for r in cluster if r not in facts.capable), task["costs"]
+        cost = task.costs[winner]
+        assert cost is not None
+        assert all(c is None or cost <= c for c in task.costs.values()), task.costs
+        assert all(task.costs[r] is None for r in cluster if r not in facts.capable), task.costs
         # Payload: the object fits, and what the winner carries between unloads never exceeds its payload.
         payload = payloads()[winner]
         assert facts.weight_kg <= payload
@@ -168,36 +175,34 @@ def check_record(record: dict[str, Any], spec: TeamSpec, tasks: list[str]) -> No
         executed[winner] += 1
 
     # Determinism: the same assignments as an offline replay of the cost model.
-    assert [t["assigned_to"] for t in record["tasks"]] == expected_assignments(tasks, clusters)
+    assert [t.assigned_to for t in record.tasks] == expected_assignments(tasks, clusters)
 
-    stats = record["robot_stats"]
+    stats = record.robot_stats
     assert set(stats) == set(spec.robot_ids)
     for robot_id, s in stats.items():
-        for side in ("server", "client"):
-            assert COUNTER_KEYS <= set(s[side]), (robot_id, side, s[side])
-        assert s["server"]["messages_received"] > 0 and s["server"]["bytes_received"] > 0
-        assert s["server"]["messages_sent"] > 0 and s["server"]["bytes_sent"] > 0
-        assert {"local", "remote"} <= set(s["queries"])
-        assert s["queries"]["failed"] == 0
-        assert s["executed"] == executed[robot_id], (robot_id, s["executed"], executed)
-        assert s["idle"] is True
+        assert s.server is not None, robot_id
+        assert s.server.messages_received > 0 and s.server.bytes_received > 0
+        assert s.server.messages_sent > 0 and s.server.bytes_sent > 0
+        assert s.queries.failed == 0
+        assert s.executed == executed[robot_id], (robot_id, s.executed, executed)
+        assert s.idle is True
         computes = spec.strategy == "compute-by-all" or robot_id == min(
             next(c for c in clusters if robot_id in c), key=lambda r: int(r[5:])
         )
         if not computes:  # compute-and-communicate: only the leader queries
-            assert s["queries"]["local"] == 0 and s["queries"]["remote"] == 0, (robot_id, s["queries"])
+            assert s.queries.local == 0 and s.queries.remote == 0, (robot_id, s.queries)
             continue
-        assert s["client"]["messages_sent"] > 0 and s["client"]["bytes_received"] > 0
-        assert s["queries"]["remote"] > 0
+        assert s.client.messages_sent > 0 and s.client.bytes_received > 0
+        assert s.queries.remote > 0
         if spec.mode == "central":
-            assert s["queries"]["local"] == 0, (robot_id, s["queries"])
+            assert s.queries.local == 0, (robot_id, s.queries)
         else:
-            assert s["queries"]["local"] > 0, (robot_id, s["queries"])
-    total_local = sum(s["queries"]["local"] for s in stats.values())
+            assert s.queries.local > 0, (robot_id, s.queries)
+    total_local = sum(s.queries.local for s in stats.values())
     assert (total_local > 0) == (spec.mode == "distributed")
 
 
-async def run_team(spec: TeamSpec, tasks: list[str], budget_s: float = 90.0) -> dict[str, Any]:
+async def run_team(spec: TeamSpec, tasks: list[str], budget_s: float = 90.0) -> TeamRecord:
     async with asyncio.timeout(budget_s):
         async with Team.launch(spec) as team:
             expected = set(spec.robot_ids) | ({"central"} if spec.mode == "central" else set())
@@ -223,12 +228,12 @@ async def test_six_robots(transport: str, mode: str) -> None:
     check_payload_bound(record)
 
 
-def check_payload_bound(record: dict[str, Any]) -> None:
+def check_payload_bound(record: TeamRecord) -> None:
     """The capable but nearly full robot is refused (cost None) and the other lifter wins."""
-    task = next(t for t in record["tasks"] if t["object"] == PAYLOAD_BOUND["object"])
+    task = next(t for t in record.tasks if t.object == PAYLOAD_BOUND["object"])
     assert PAYLOAD_BOUND["overloaded"] in facts_of(PAYLOAD_BOUND["object"]).capable  # type: ignore[union-attr]
-    assert task["costs"][PAYLOAD_BOUND["overloaded"]] is None, task
-    assert task["assigned_to"] == PAYLOAD_BOUND["winner"], task
+    assert task.costs[PAYLOAD_BOUND["overloaded"]] is None, task
+    assert task.assigned_to == PAYLOAD_BOUND["winner"], task
 
 
 @pytest.mark.slow
@@ -248,7 +253,7 @@ async def test_nine_robots() -> None:
     tasks[7:7] = [MISSING[1]]
     spec = TeamSpec(robots=9, query_timeout_s=5.0, task_timeout_s=30.0)
     record = await run_team(spec, tasks)
-    assert record["clusters"] == [["Robot1", "Robot2", "Robot3"], ["Robot4", "Robot5", "Robot6"],
+    assert record.clusters == [["Robot1", "Robot2", "Robot3"], ["Robot4", "Robot5", "Robot6"],
                                   ["Robot7", "Robot8", "Robot9"]]
     check_record(record, spec, tasks)
 

@@ -33,6 +33,7 @@ from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, Tra
 from .controller import Controller, DecisionMessage, Task
 from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
+from .stats import RobotStats
 from .task_executor import TaskExecutor
 from .team_view import PLAN_PATH, STATE_PATH, TeamView
 
@@ -194,23 +195,24 @@ class Robot:
         return Response(Status.CHANGED)
 
     async def _get_stats(self, request: Request) -> Response:
-        return _encode(self.stats(), request.accept)
+        return _encode(self.stats().to_dict(), request.accept)
 
-    def stats(self) -> dict[str, Any]:
-        return {
-            "robot_id": self.config.robot_id,
-            "transport": self.config.transport,
-            "strategy": self.config.strategy,
-            "query_wire": self.queries.wire,
-            "retransmission": getattr(self.client, "describe", lambda: None)(),
-            "server_retransmission": getattr(self.server, "describe", lambda: None)(),
-            "server": self.server.counters.as_dict() if self.server else None,
-            "client": self.client.counters.as_dict(),
-            "queries": self.queries.stats.as_dict(),
-            "remote_latencies_s": [round(x, 6) for x in self.queries.stats.remote_latencies],
-            "executed": self.executor.live.done,
-            "idle": self.executor.live.activity == "idle" and self.executor.live.queued == 0,
-        }
+    def stats(self) -> RobotStats:
+        """A snapshot: copies of the live counters, so later traffic does not change it."""
+        queries = self.queries.stats
+        return RobotStats(
+            robot_id=self.config.robot_id,
+            transport=self.config.transport,
+            strategy=self.config.strategy,
+            query_wire=self.queries.wire,
+            retransmission=getattr(self.client, "describe", lambda: None)(),
+            server_retransmission=getattr(self.server, "describe", lambda: None)(),
+            server=replace(self.server.counters) if self.server else None,
+            client=replace(self.client.counters),
+            queries=replace(queries, remote_latencies=[round(x, 6) for x in queries.remote_latencies]),
+            executed=self.executor.live.done,
+            idle=self.executor.live.activity == "idle" and self.executor.live.queued == 0,
+        )
 
 
 async def broadcast_decision(client: ClientTransport, config: RobotConfig, message: DecisionMessage) -> None:

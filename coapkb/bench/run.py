@@ -46,15 +46,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
-import csv
 import datetime as _dt
 import json
 import math
 import sys
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -75,14 +73,17 @@ from ..harness.team import (
     TeamSpec,
     draw_tasks,
 )
+from ..harness.record import TeamRecord
 from ..errors import CoapkbError
+from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
 from .stats import percentile
-from ..transport.base import Endpoint
+from ..transport.base import Endpoint, TrafficCounters
 
 __all__ = [
     "COLUMNS",
     "KEY_COLUMNS",
     "SYSTEMS",
+    "BenchRow",
     "NetnsPlacement",
     "SystemDef",
     "Timeouts",
@@ -91,7 +92,6 @@ __all__ = [
     "format_row",
     "read_rows",
     "retransmission_label",
-    "row_key",
     "run_once",
     "system_spec",
     "timeouts_for",
@@ -121,40 +121,6 @@ SYSTEMS: dict[str, SystemDef] = {
     "seed-distributed": SystemDef("distributed", "zmq", "seed", "the seed's set-up: ZeroMQ/TCP, whole SPARQL text, SPARQL-JSON answers"),
     "seed-central": SystemDef("central", "zmq", "seed", "the seed's centralised baseline: ZeroMQ/TCP, SPARQL text, SPARQL-JSON"),
 }
-
-#: The CSV schema, in column order.  The first block is the brief's minimum.
-COLUMNS: tuple[str, ...] = (
-    "system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep", "retransmission_profile",
-    "ok", "coordination_s", "completion_s", "wire_bytes", "wire_packets", "retransmissions",
-    "query_p50_ms", "query_p99_ms",
-    "mode", "transport", "query_wire", "seed", "emulation",
-    "app_bytes", "feeder_wire_bytes", "dropped_packets", "queue_drops",
-    "remote_queries", "local_queries", "failed_queries", "spurious_retransmissions",
-    "tasks_agreed", "tcp_aborts", "query_timeout_s", "task_timeout_s", "wall_s", "started_at", "error",
-    "delay_ms", "jitter_ms", "loss_model", "burst_len",
-)
-
-#: The link columns added with the delay line, and what a CSV written before
-#: them (or a row without them) means: no delay, independent loss.
-LINK_DEFAULTS: dict[str, Any] = {"delay_ms": 0.0, "jitter_ms": 0.0, "loss_model": "random", "burst_len": 0.0}
-
-#: A run's identity: rows with equal keys are repetitions of nothing, they are the same run.
-KEY_COLUMNS: tuple[str, ...] = (
-    "system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep", "retransmission_profile",
-    "delay_ms", "jitter_ms", "loss_model", "burst_len",
-)
-
-#: How columns are typed when a CSV is read back (everything else stays text).
-_INT_COLUMNS = {
-    "robots", "tasks", "rep", "seed", "wire_bytes", "wire_packets", "retransmissions", "app_bytes",
-    "feeder_wire_bytes", "dropped_packets", "queue_drops", "remote_queries", "local_queries",
-    "failed_queries", "spurious_retransmissions", "tasks_agreed", "tcp_aborts",
-}
-_FLOAT_COLUMNS = {
-    "bandwidth_kbps", "loss_pct", "coordination_s", "completion_s", "query_p50_ms", "query_p99_ms",
-    "query_timeout_s", "task_timeout_s", "wall_s", "delay_ms", "jitter_ms", "burst_len",
-}
-
 
 # --------------------------------------------------------------------------- systems and timeouts
 
@@ -275,16 +241,14 @@ def parse_retrans_segs(snmp: str) -> int:
 
 
 def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
-              retransmission: str, seed: int) -> dict[str, Any]:
+              retransmission: str, seed: int) -> BenchRow:
     d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
-    row: dict[str, Any] = {c: "" for c in COLUMNS}
-    row.update(
+    return BenchRow(
         system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
         retransmission_profile=retransmission if d.transport != "zmq" else "tcp", ok=False,
         mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
         started_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
-    return row
 
 
 def _sum_counters(readings: Mapping[str, LinkCounters]) -> LinkCounters:
@@ -294,40 +258,33 @@ def _sum_counters(readings: Mapping[str, LinkCounters]) -> LinkCounters:
     return total
 
 
-def _fill_from_record(row: dict[str, Any], record: dict[str, Any], tasks: int) -> None:
-    """Everything the team's own record tells: times, queries, app bytes, CoAP retransmissions."""
-    stats: dict[str, Any] = record["robot_stats"]
-    feeder: dict[str, int] = record["feeder_traffic"]
-    latencies = [x for s in stats.values() for x in s.get("remote_latencies_s") or ()]
-    row["coordination_s"] = record["coordination_s"]
-    row["completion_s"] = record["completion_s"]
+def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRow, int]:
+    """``row`` with what the team's own record tells (times, queries, app
+    bytes, agreement), and the CoAP retransmissions the transports counted
+    (the ``retransmissions`` column of a CoAP run; TCP's come from the kernel)."""
+    stats = record.robot_stats.values()
+    latencies = [x for s in stats for x in s.queries.remote_latencies]
     p50, p99 = percentile(latencies, 50), percentile(latencies, 99)
-    row["query_p50_ms"] = "" if p50 is None else round(p50 * 1000, 2)
-    row["query_p99_ms"] = "" if p99 is None else round(p99 * 1000, 2)
-    row["remote_queries"] = sum(s["queries"]["remote"] for s in stats.values())
-    row["local_queries"] = sum(s["queries"]["local"] for s in stats.values())
-    row["failed_queries"] = sum(s["queries"]["failed"] for s in stats.values())
-    row["app_bytes"] = feeder["bytes_sent"] + sum(
-        s["client"]["bytes_sent"] + (s["server"] or {}).get("bytes_sent", 0) for s in stats.values()
+    robots_traffic = sum((s.traffic for s in stats), TrafficCounters())
+    problems = [f"task {t.cluster}.{t.seq} {t.object}: {t.errors or t.decisions}" for t in record.disputed]
+    if len(record.tasks) != tasks:
+        problems.insert(0, f"{len(record.tasks)} of {tasks} tasks recorded")
+    row = replace(
+        row,
+        coordination_s=record.coordination_s,
+        completion_s=record.completion_s,
+        query_p50_ms=None if p50 is None else round(p50 * 1000, 2),
+        query_p99_ms=None if p99 is None else round(p99 * 1000, 2),
+        remote_queries=sum(s.queries.remote for s in stats),
+        local_queries=sum(s.queries.local for s in stats),
+        failed_queries=sum(s.queries.failed for s in stats),
+        app_bytes=record.feeder_traffic.bytes_sent + robots_traffic.bytes_sent,
+        spurious_retransmissions=sum(s.spurious_retransmissions for s in stats),
+        tasks_agreed=sum(1 for t in record.tasks if t.agreed),
+        ok=not problems,
+        error="; ".join(problems)[:500],
     )
-    row["coap_retransmissions"] = feeder.get("retransmissions", 0) + sum(
-        s["client"].get("retransmissions", 0) + (s["server"] or {}).get("retransmissions", 0)
-        for s in stats.values()
-    )
-    spurious = 0
-    for s in stats.values():
-        peers = ((s.get("retransmission") or {}).get("peers") or {}).values()
-        spurious += sum(p.get("spurious_retransmissions", 0) for p in peers)
-    row["spurious_retransmissions"] = spurious
-    done = record["tasks"]
-    row["tasks_agreed"] = sum(1 for t in done if t["agreed"] and not t["errors"])
-    problems = [f"task {t['cluster']}.{t['seq']} {t['object']}: {t['errors'] or t['decisions']}"
-                for t in done if not t["agreed"] or t["errors"]]
-    if len(done) != tasks:
-        problems.insert(0, f"{len(done)} of {tasks} tasks recorded")
-    row["ok"] = not problems
-    if problems:
-        row["error"] = "; ".join(problems)[:500]
+    return row, record.feeder_traffic.retransmissions + robots_traffic.retransmissions
 
 
 async def run_once(
@@ -346,8 +303,8 @@ async def run_once(
     jitter_ms: float = 0.0,
     loss_model: str = "random",
     burst_len: float = 3.0,
-) -> dict[str, Any]:
-    """Run ``system`` once and return its CSV row (keys: :data:`COLUMNS`).
+) -> BenchRow:
+    """Run ``system`` once and return its row.
 
     The task list is ``draw_tasks(tasks, seed=seed)`` with ``seed`` defaulting
     to ``1 + rep``, so every system of a repetition does the same tasks.
@@ -359,8 +316,8 @@ async def run_once(
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed)
     # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
-    row.update(delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
-               burst_len=burst_len if loss_model == "burst" else 0.0)
+    row = replace(row, delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
+                  burst_len=burst_len if loss_model == "burst" else 0.0)
     started = time.monotonic()
     try:
         link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
@@ -371,30 +328,26 @@ async def run_once(
                            link_kbps=bandwidth_kbps)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
-        row["error"] = f"bad configuration: {exc}"
-        return row
-    row["query_timeout_s"], row["task_timeout_s"] = limits.query_s, limits.task_s
+        return replace(row, error=f"bad configuration: {exc}")
+    row = replace(row, query_timeout_s=limits.query_s, task_timeout_s=limits.task_s)
     hosts = [*spec.robot_ids, *([CENTRAL] if spec.mode == "central" else []), FEEDER]
     links = {h: link for h in hosts}
     links[FEEDER] = LinkSpec()  # the external task source: unshaped, lossless
     try:
         async with asyncio.timeout(limits.run_s):
             async with Testbed(hosts, links) as testbed:
-                row.update(await _measure(testbed, spec, task_list, hosts, tasks))
+                row = await _measure(testbed, row, spec, task_list, hosts)
     except TimeoutError:
-        row["error"] = f"run did not finish within {limits.run_s:g} s"
+        row = replace(row, error=f"run did not finish within {limits.run_s:g} s")
     except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
-        row["error"] = f"{type(exc).__name__}: {exc}"[:500]
+        row = replace(row, error=f"{type(exc).__name__}: {exc}"[:500])
     except Exception as exc:  # noqa: BLE001 -- a sweep must survive any one run's failure
-        row["error"] = f"unexpected {type(exc).__name__}: {exc}"[:500]
-    row["wall_s"] = round(time.monotonic() - started, 2)
-    return row
+        row = replace(row, error=f"unexpected {type(exc).__name__}: {exc}"[:500])
+    return replace(row, wall_s=round(time.monotonic() - started, 2))
 
 
-async def _measure(
-    testbed: Testbed, spec: TeamSpec, task_list: list[str], hosts: list[str], tasks: int
-) -> dict[str, Any]:
-    out: dict[str, Any] = {}
+async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str]) -> BenchRow:
+    """``row`` with what one team run measured: link counters and the team's record."""
     tcp = spec.transport == "zmq"
 
     async def reading() -> dict[str, Any]:
@@ -419,114 +372,17 @@ async def _measure(
         after = end or await reading()
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
     total = _sum_counters(delta)
-    out["wire_bytes"] = total.tx_bytes
-    out["wire_packets"] = total.tx_packets
-    out["dropped_packets"] = total.dropped
-    out["queue_drops"] = total.queue_drops
-    out["feeder_wire_bytes"] = delta[FEEDER].tx_bytes
-    _fill_from_record(out, record, tasks)
-    coap_retx = out.pop("coap_retransmissions")
+    row, coap_retx = _with_record(row, record, row.tasks)
     if tcp:
-        out["retransmissions"] = sum(after["tcp"][h][0] - before["tcp"][h][0] for h in hosts)
-        out["tcp_aborts"] = sum(after["tcp"][h][1] - before["tcp"][h][1] for h in hosts)
+        retransmissions = sum(after["tcp"][h][0] - before["tcp"][h][0] for h in hosts)
+        tcp_aborts: int | None = sum(after["tcp"][h][1] - before["tcp"][h][1] for h in hosts)
     else:
-        out["retransmissions"] = coap_retx
-    return out
-
-
-# --------------------------------------------------------------------------- CSV
-
-
-def row_key(row: Mapping[str, Any]) -> tuple[str, ...]:
-    """The resume key of a row (read back from CSV or fresh), normalised to text
-    so ``35`` and ``35.0`` are the same bandwidth."""
-
-    def norm(v: Any) -> str:
-        if isinstance(v, float) and v.is_integer():
-            return str(int(v))
-        text = str(v)
-        with contextlib.suppress(ValueError):
-            f = float(text)
-            if f.is_integer() and "." in text:
-                return str(int(f))
-        return text
-
-    def value(c: str) -> Any:
-        v = row.get(c)
-        return LINK_DEFAULTS[c] if c in LINK_DEFAULTS and v in (None, "") else v
-
-    return tuple(norm(value(c)) for c in KEY_COLUMNS)
-
-
-def _typed(row: dict[str, str]) -> dict[str, Any]:
-    out: dict[str, Any] = dict(row)
-    for k, v in row.items():
-        if v is None or v == "":
-            out[k] = None if k not in ("error", "started_at") else (v or "")
-        elif k in _INT_COLUMNS:
-            out[k] = int(float(v))
-        elif k in _FLOAT_COLUMNS:
-            out[k] = float(v)
-        elif k == "ok":
-            out[k] = v.strip().lower() in ("true", "1", "yes")
-    for k, default in LINK_DEFAULTS.items():  # a CSV from before these columns
-        if out.get(k) is None:
-            out[k] = default
-    return out
-
-
-def read_rows(path: str | Path, *, latest_only: bool = True) -> list[dict[str, Any]]:
-    """Typed rows of a results CSV ([] if it does not exist).  With
-    ``latest_only``, a key that was re-run (``--retry-failed``) keeps its last row."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    with path.open(newline="", encoding="utf-8") as f:
-        rows = [_typed(r) for r in csv.DictReader(f)]
-    if not latest_only:
-        return rows
-    by_key: dict[tuple[str, ...], dict[str, Any]] = {}
-    for r in rows:
-        by_key[row_key(r)] = r
-    return list(by_key.values())
-
-
-def done_keys(path: str | Path, *, include_failed: bool = True) -> set[tuple[str, ...]]:
-    """Keys of the runs already in the CSV (failed ones only if ``include_failed``)."""
-    return {row_key(r) for r in read_rows(path) if include_failed or r.get("ok")}
-
-
-def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
-    """Append rows; write the header first if the file is new or empty.  An
-    existing file keeps its own header (columns it lacks are dropped)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    header: list[str] = list(COLUMNS)
-    new = not path.exists() or path.stat().st_size == 0
-    if not new:
-        with path.open(newline="", encoding="utf-8") as f:
-            header = next(csv.reader(f), list(COLUMNS))
-    with path.open("a", newline="", encoding="utf-8") as f:
-        writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
-        if new:
-            writer.writeheader()
-        for row in rows:
-            writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
-
-
-def format_row(row: Mapping[str, Any]) -> str:
-    """One line of key numbers for a terminal."""
-    head = (f"{row['system']:<17} {row['robots']}r {row['tasks']:>2}t {row['bandwidth_kbps']:g}k "
-            f"{row['loss_pct']:g}% rep{row['rep']}")
-    if not row.get("ok"):
-        return f"{head}: FAILED after {row.get('wall_s') or 0:.0f} s: {row.get('error') or 'unknown'}"
-
-    def ms(v: Any) -> str:
-        return "-" if v in (None, "") else f"{float(v):.0f}"
-
-    return (f"{head}: completion {float(row['completion_s']):.1f} s, wire {int(row['wire_bytes']):,} B "
-            f"in {int(row['wire_packets']):,} pkts, retx {row['retransmissions']}, "
-            f"query p50/p99 {ms(row['query_p50_ms'])}/{ms(row['query_p99_ms'])} ms")
+        retransmissions, tcp_aborts = coap_retx, None
+    return replace(
+        row, wire_bytes=total.tx_bytes, wire_packets=total.tx_packets, dropped_packets=total.dropped,
+        queue_drops=total.queue_drops, feeder_wire_bytes=delta[FEEDER].tx_bytes,
+        retransmissions=retransmissions, tcp_aborts=tcp_aborts,
+    )
 
 
 # --------------------------------------------------------------------------- command line
@@ -592,10 +448,10 @@ async def main(args: argparse.Namespace) -> int:
             if args.out:
                 append_rows(args.out, [row])
             if args.json:
-                print(json.dumps(row), flush=True)
+                print(json.dumps(row.to_dict()), flush=True)
             else:
                 print(format_row(row), flush=True)
-            failed += not row["ok"]
+            failed += not row.ok
     return 1 if failed else 0
 
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import abc
 import time
-from dataclasses import dataclass
-from typing import AsyncIterator, Callable, Protocol
+from dataclasses import dataclass, fields
+from typing import AsyncIterator, Callable, Mapping, Protocol
 
 from ..errors import CoapkbError
 from .messages import Request, Response
@@ -96,6 +96,15 @@ class TrafficCounters:
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, int]) -> "TrafficCounters":
+        """The inverse of :meth:`as_dict`; a counter missing from ``data`` is 0
+        (a record written before that counter existed)."""
+        return cls(**{f.name: int(data.get(f.name, 0)) for f in fields(cls)})
+
+    def __add__(self, other: "TrafficCounters") -> "TrafficCounters":
+        return TrafficCounters(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
 
 
 @dataclass(frozen=True)

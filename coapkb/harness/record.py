@@ -1,0 +1,154 @@
+"""What a team run leaves behind: one record per task and the team's record.
+
+:meth:`TeamRecord.to_dict` is the JSON that ``coapkb team --record`` writes
+(the same keys and layout as before these were dataclasses);
+:meth:`TeamRecord.from_dict` reads such a file back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from ..agent.stats import RobotStats
+from ..agent.task_assigner import robot_sort_key
+from ..transport.base import TrafficCounters
+
+
+@dataclass
+class TaskRecord:
+    """One task as the feeder saw it: what every robot of its cluster decided."""
+
+    object: str
+    cluster: int
+    seq: int
+    skipped: bool = False
+    assigned_to: str | None = None
+    decisions: dict[str, str | None] = field(default_factory=dict)
+    costs: dict[str, float | None] = field(default_factory=dict)
+    reasons: dict[str, str] = field(default_factory=dict)
+    errors: dict[str, str] = field(default_factory=dict)
+    coordination_s: float = 0.0
+
+    @property
+    def agreed(self) -> bool:
+        """Every robot of the cluster took the same decision, and none failed."""
+        return len(set(self.decisions.values())) == 1 and not self.errors
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "object": self.object,
+            "cluster": self.cluster,
+            "seq": self.seq,
+            "skipped": self.skipped,
+            "assigned_to": self.assigned_to,
+            "decisions": self.decisions,
+            "costs": self.costs,
+            "reasons": self.reasons,
+            "errors": self.errors,
+            "agreed": self.agreed,  # derived; written for readers of the JSON, ignored on reading
+            "coordination_s": round(self.coordination_s, 6),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "TaskRecord":
+        return cls(
+            object=str(data["object"]),
+            cluster=int(data["cluster"]),
+            seq=int(data["seq"]),
+            skipped=bool(data.get("skipped", False)),
+            assigned_to=data.get("assigned_to"),
+            decisions=dict(data.get("decisions") or {}),
+            costs=dict(data.get("costs") or {}),
+            reasons=dict(data.get("reasons") or {}),
+            errors=dict(data.get("errors") or {}),
+            coordination_s=float(data.get("coordination_s", 0.0)),
+        )
+
+
+@dataclass(frozen=True)
+class TeamRecord:
+    """One team run: its set-up, every task in the order given, times and statistics."""
+
+    mode: str
+    transport: str
+    strategy: str
+    retransmission: str
+    query_wire: str
+    robots: list[str]
+    clusters: list[list[str]]
+    tasks: list[TaskRecord]
+    #: Feeding the first task until every cluster decided its last one, seconds.
+    coordination_s: float
+    #: Until every robot also finished executing, seconds.
+    completion_s: float
+    robot_stats: dict[str, RobotStats]
+    #: The task feeder's own transport counters.
+    feeder_traffic: TrafficCounters
+
+    @property
+    def disputed(self) -> list[TaskRecord]:
+        """Tasks on which the robots disagreed or one of them failed."""
+        return [t for t in self.tasks if not t.agreed]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "mode": self.mode,
+            "transport": self.transport,
+            "strategy": self.strategy,
+            "retransmission": self.retransmission,
+            "query_wire": self.query_wire,
+            "robots": list(self.robots),
+            "clusters": [list(c) for c in self.clusters],
+            "tasks": [t.to_dict() for t in self.tasks],
+            "coordination_s": round(self.coordination_s, 6),
+            "completion_s": round(self.completion_s, 6),
+            "robot_stats": {r: s.to_dict() for r, s in self.robot_stats.items()},
+            "feeder_traffic": self.feeder_traffic.as_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "TeamRecord":
+        """A record read back from ``coapkb team --record``'s JSON."""
+        return cls(
+            mode=str(data["mode"]),
+            transport=str(data["transport"]),
+            strategy=str(data["strategy"]),
+            retransmission=str(data["retransmission"]),
+            query_wire=str(data["query_wire"]),
+            robots=[str(r) for r in data["robots"]],
+            clusters=[[str(r) for r in c] for c in data["clusters"]],
+            tasks=[TaskRecord.from_dict(t) for t in data["tasks"]],
+            coordination_s=float(data["coordination_s"]),
+            completion_s=float(data["completion_s"]),
+            robot_stats={r: RobotStats.from_dict(s) for r, s in data["robot_stats"].items()},
+            feeder_traffic=TrafficCounters.from_dict(data["feeder_traffic"]),
+        )
+
+
+def summarise(record: TeamRecord) -> str:
+    """A human summary of a team record."""
+    tasks = record.tasks
+    done = [t for t in tasks if t.assigned_to]
+    skipped = [t for t in tasks if t.skipped]
+    errors = [t for t in tasks if t.errors]
+    per_robot: dict[str, int] = {}
+    for t in done:
+        assert t.assigned_to is not None
+        per_robot[t.assigned_to] = per_robot.get(t.assigned_to, 0) + 1
+    stats = record.robot_stats.values()
+    traffic = sum((s.traffic for s in stats), TrafficCounters())
+    local = sum(s.queries.local for s in stats)
+    remote = sum(s.queries.remote for s in stats)
+    cached = sum(s.queries.cached for s in stats)
+    lines = [
+        f"{len(record.robots)} robots, {record.mode}, {record.transport}, {record.strategy}: "
+        f"{len(tasks)} tasks, {len(done)} assigned, {len(skipped)} skipped, {len(errors)} with errors, "
+        f"{len(record.disputed)} disagreements",
+        "assigned: " + ", ".join(f"{r} {n}" for r, n in sorted(per_robot.items(), key=lambda x: robot_sort_key(x[0]))),
+        f"coordination {record.coordination_s:.2f} s, completion {record.completion_s:.2f} s",
+        f"robots sent {traffic.bytes_sent:,} B in {traffic.messages_sent:,} messages, "
+        f"received {traffic.bytes_received:,} B; "
+        f"queries: {local} local, {remote} remote, {cached} answered from the cache",
+    ]
+    return "\n".join(lines)

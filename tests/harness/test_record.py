@@ -1,0 +1,82 @@
+"""Team records and robot statistics: typed in the process, the same JSON/CBOR on the wire and on disk."""
+
+from __future__ import annotations
+
+import json
+
+import cbor2
+
+from coapkb.agent.query_handler import QueryStats
+from coapkb.agent.stats import RobotStats
+from coapkb.harness.record import TaskRecord, TeamRecord, summarise
+from coapkb.transport.base import TrafficCounters
+
+
+def _stats(robot_id: str, *, sent: int, spurious: int = 0) -> RobotStats:
+    return RobotStats(
+        robot_id=robot_id, transport="coap", strategy="compute-by-all", query_wire="compact",
+        retransmission={"profile": {"name": "robust"}, "peers": {"10.0.0.2:5683": {"spurious_retransmissions": spurious}}},
+        server_retransmission=None,
+        server=TrafficCounters(bytes_sent=sent, bytes_received=10, messages_sent=2, messages_received=1),
+        client=TrafficCounters(bytes_sent=sent, bytes_received=20, messages_sent=3, messages_received=3,
+                               retransmissions=1),
+        queries=QueryStats(local=1, remote=2, failed=0, cached=1, remote_latencies=[0.012345, 0.5]),
+        executed=1, idle=True,
+    )
+
+
+def _record() -> TeamRecord:
+    tasks = [
+        TaskRecord("Gucci_bag_14", 1, 1, assigned_to="Robot2", decisions={"Robot1": "Robot2", "Robot2": "Robot2"},
+                   costs={"Robot1": 3.5, "Robot2": 1.25}, reasons={}, coordination_s=0.1234567),
+        TaskRecord("Nonexistent_thing_1", 1, 2, skipped=True, decisions={"Robot1": None, "Robot2": None}),
+        TaskRecord("Canon_tv_995", 1, 3, decisions={"Robot1": "Robot1", "Robot2": None},
+                   errors={"Robot2": "query timed out"}),
+    ]
+    return TeamRecord(
+        mode="distributed", transport="coap", strategy="compute-by-all", retransmission="robust",
+        query_wire="compact", robots=["Robot1", "Robot2"], clusters=[["Robot1", "Robot2"]], tasks=tasks,
+        coordination_s=1.5, completion_s=2.25,
+        robot_stats={"Robot1": _stats("Robot1", sent=100, spurious=2), "Robot2": _stats("Robot2", sent=50)},
+        feeder_traffic=TrafficCounters(bytes_sent=7, retransmissions=1),
+    )
+
+
+def test_robot_stats_keep_their_wire_form() -> None:
+    stats = _stats("Robot1", sent=100, spurious=2)
+    wire = stats.to_dict()
+    assert list(wire) == ["robot_id", "transport", "strategy", "query_wire", "retransmission",
+                          "server_retransmission", "server", "client", "queries", "remote_latencies_s",
+                          "executed", "idle"]
+    assert wire["queries"] == {"local": 1, "remote": 2, "failed": 0, "cached": 1}
+    assert RobotStats.from_dict(cbor2.loads(cbor2.dumps(wire))) == stats
+    assert RobotStats.from_dict(json.loads(json.dumps(wire))) == stats
+    assert stats.traffic.bytes_sent == 200 and stats.traffic.retransmissions == 1
+    assert stats.spurious_retransmissions == 2
+    # A ZeroMQ robot: no reliability description; a record from before 'cached' existed.
+    old = {**wire, "retransmission": None, "queries": {"local": 1, "remote": 2, "failed": 0}}
+    back = RobotStats.from_dict(old)
+    assert back.spurious_retransmissions == 0 and back.queries.cached == 0
+
+
+def test_team_record_round_trips_through_its_json_file() -> None:
+    record = _record()
+    data = json.loads(json.dumps(record.to_dict()))
+    assert list(data) == ["mode", "transport", "strategy", "retransmission", "query_wire", "robots", "clusters",
+                          "tasks", "coordination_s", "completion_s", "robot_stats", "feeder_traffic"]
+    assert data["tasks"][0]["coordination_s"] == 0.123457 and data["tasks"][0]["agreed"] is True
+    assert [t["agreed"] for t in data["tasks"]] == [True, True, False]
+    back = TeamRecord.from_dict(data)
+    assert back.to_dict() == data
+    assert back.robot_stats == record.robot_stats and back.feeder_traffic == record.feeder_traffic
+    assert [t.object for t in back.disputed] == ["Canon_tv_995"]
+
+
+def test_summary_counts_tasks_traffic_and_queries() -> None:
+    lines = summarise(_record()).splitlines()
+    assert lines[0] == ("2 robots, distributed, coap, compute-by-all: 3 tasks, 1 assigned, 1 skipped, "
+                        "1 with errors, 1 disagreements")
+    assert lines[1] == "assigned: Robot2 1"
+    assert lines[2] == "coordination 1.50 s, completion 2.25 s"
+    assert lines[3] == ("robots sent 300 B in 10 messages, received 60 B; "
+                        "queries: 2 local, 4 remote, 2 answered from the cache")
