@@ -207,6 +207,8 @@ class ContextHooks:
         self._recent_con: OrderedDict[tuple[Any, int], None] = OrderedDict()
         #: Queued notifications dropped because a newer one of the same observation came.
         self.superseded_notifications = 0
+        #: Told the size of every datagram this context sends (a link-queue model, say).
+        self.on_datagram: Callable[[int], None] | None = None
 
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
@@ -260,8 +262,11 @@ class ContextHooks:
     def _send(self, message: aiocoap.Message) -> None:
         self._original(self.interface, "send")(message)
         counters = self.counters
+        size = len(message.encode())
         counters.messages_sent += 1
-        counters.bytes_sent += len(message.encode())
+        counters.bytes_sent += size
+        if self.on_datagram is not None:
+            self.on_datagram(size)
         if message.mtype == CON:
             key = (message.remote.sockaddr, message.mid)
             if key in self._recent_con:

@@ -71,6 +71,7 @@ class CoapClientTransport:
             retransmission = ReliabilityLayer()
         if isinstance(retransmission, ReliabilityLayer):
             reliability: ReliabilityLayer | RetransmissionController = retransmission
+            hooks.on_datagram = retransmission.on_datagram
         else:
             reliability = RetransmissionController(retransmission)
             hooks.set_con_policy(reliability)

@@ -187,6 +187,8 @@ class CoapServerTransport:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
         hooks = ContextHooks.of(ctx)
         hooks.set_con_policy(policy)
+        if isinstance(retransmission, ReliabilityLayer):
+            hooks.on_datagram = retransmission.on_datagram
         return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
 
     def describe(self) -> dict[str, Any]:

@@ -63,6 +63,27 @@ class RttEstimator:
 
 
 @dataclass
+class UplinkQueue:
+    """When the datagrams a host sends leave its own link, at ``link_bps``.
+
+    Every datagram the robot sends (its client's and its server's) takes its
+    airtime on the link after the ones before it; a timeout must start when
+    the datagram leaves, not when it was handed to the socket.  Shapers
+    with a burst allowance send faster at first, so this errs long."""
+
+    link_bps: float | None
+    free_at: float = 0.0
+
+    def on_sent(self, nbytes: int, now: float) -> None:
+        if self.link_bps:
+            self.free_at = max(self.free_at, now) + airtime(nbytes, self.link_bps)
+
+    def wait(self, now: float) -> float:
+        """Seconds until what is queued now has left the link."""
+        return max(0.0, self.free_at - now)
+
+
+@dataclass
 class LossEstimator:
     """Share of attempts lost on the round trip, averaged with weight ``gain``
     (1/16: about the last 16 attempts count)."""

@@ -57,7 +57,7 @@ from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, field
 from typing import Any, Awaitable, Callable, Generic, Hashable, TypeVar
 
-from .estimator import LossEstimator, RttEstimator, airtime
+from .estimator import LossEstimator, RttEstimator, UplinkQueue, airtime
 
 log = logging.getLogger(__name__)
 
@@ -284,6 +284,8 @@ class Attempt(Generic[T]):
     cancel: Callable[[], None]
     try_number: int = 0
     sent_at: float = 0.0
+    #: Link time of what was queued ahead of this try when it was sent.
+    queued: float = 0.0
     timeout: float = 0.0
     #: The transport's own handle of this try (an aiocoap request, say).
     handle: Any = field(default=None, repr=False)
@@ -302,6 +304,12 @@ class ReliabilityLayer:
         self.settings = settings or ReliabilitySettings()
         self.clock = clock
         self._paths: dict[Hashable, _Path] = {}
+        #: The robot's own link: both its client's and its server's datagrams.
+        self.uplink = UplinkQueue(self.settings.link_bps)
+
+    def on_datagram(self, nbytes: int) -> None:
+        """Hand this every datagram the robot sends (the CoAP contexts do)."""
+        self.uplink.on_sent(nbytes, self.clock())
 
     name = "robust"
 
@@ -354,7 +362,7 @@ class ReliabilityLayer:
                 pending = {a.task for a in attempts if a.task is not None and not a.task.done()}
                 finished = {a.task for a in attempts if a.task is not None and a.task.done()}
                 if not finished:
-                    wait = min(try_timeout, deadline - self.clock())
+                    wait = min(attempts[-1].timeout, deadline - self.clock())
                     if wait > 0 and pending:
                         finished, _ = await asyncio.wait(pending, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
                 if finished:
@@ -387,7 +395,10 @@ class ReliabilityLayer:
                 await asyncio.sleep(gap)
                 path.stats.hedge_copies += 1
             attempt = send(try_number)
-            attempt.try_number, attempt.sent_at, attempt.timeout = try_number, self.clock(), try_timeout
+            now = self.clock()
+            # The timer runs from when the datagram leaves the robot's link.
+            attempt.try_number, attempt.sent_at, attempt.queued = try_number, now, self.uplink.wait(now)
+            attempt.timeout = try_timeout + attempt.queued
             attempt.task = asyncio.ensure_future(attempt.answer)
             attempts.append(attempt)
             path.stats.attempts += 1
@@ -408,7 +419,7 @@ class ReliabilityLayer:
         stats.completed += 1
         path.last_answer = now
         # The try's own token names it: this RTT is unambiguous.
-        path.on_sample(now - winner.sent_at, winner_request_bytes + reply_bytes)
+        path.on_sample(now - winner.sent_at - winner.queued, winner_request_bytes + reply_bytes)
         stats.samples += 1
         path.note_reply_size(reply_key, reply_bytes)
         if winner.try_number < max(a.try_number for a in attempts):

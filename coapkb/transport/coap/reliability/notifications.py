@@ -50,6 +50,8 @@ class _Notification:
     path: _Path
     sent_at: float
     nbytes: int
+    #: Link time of what was queued ahead of the first transmission.
+    queued: float = 0.0
     retransmissions: int = 0
 
 
@@ -62,7 +64,10 @@ class NotificationPolicy:
     def on_send(self, message: aiocoap.Message) -> _Notification:
         path = self.layer.path_for_host(_host_of(message.remote))
         path.stats.notifications += 1
-        return _Notification(path, self.layer.clock(), len(message.payload) + 16)
+        # Called just before the datagram is handed to the socket: what is
+        # queued on the link now goes first.
+        return _Notification(path, self.layer.clock(), len(message.payload) + 16,
+                             queued=self.layer.uplink.wait(self.layer.clock()))
 
     def timeout(self, record: _Notification, retransmission_counter: int) -> float:
         """The path's timeout for the first few transmissions, then doubling:
@@ -72,7 +77,8 @@ class NotificationPolicy:
         path = record.path
         base = path.rto() + path.extra_airtime(record.nbytes + _ACK_BYTES)
         backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
-        return min(self.layer.settings.max_rto, base * backoff)
+        queued = record.queued if retransmission_counter == 0 else self.layer.uplink.wait(self.layer.clock())
+        return min(self.layer.settings.max_rto, base * backoff) + queued
 
     def on_retransmit(self, record: _Notification) -> None:
         record.retransmissions += 1
@@ -88,7 +94,7 @@ class NotificationPolicy:
         path.last_answer = now
         if record.retransmissions == 0:  # Karn: a retransmitted CON says nothing certain
             path.loss.on_outcome(False)
-            path.on_sample(now - record.sent_at, record.nbytes + _ACK_BYTES)
+            path.on_sample(now - record.sent_at - record.queued, record.nbytes + _ACK_BYTES)
 
     def on_duplicate_reply(self, record: _Notification, message: aiocoap.Message) -> None:
         return None
