@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from coapkb.agent.robot_state import ACTIVITIES, Decision, LiveState, PlannedState, RobotState
-from support import require
+from support import ROOT, require
 
-CDDL = (Path(__file__).resolve().parent.parent / "docs" / "robot-state.cddl").read_text()
+CDDL = (ROOT / "docs" / "robot-state.cddl").read_text()
 
 ids = st.sampled_from(["Robot1", "Robot2", "Robot10"])
 floats = st.floats(min_value=0, max_value=1e4, allow_nan=False)

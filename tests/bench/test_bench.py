@@ -20,14 +20,13 @@ from types import ModuleType
 from typing import Any
 
 import pytest
-from support import require
+from support import ROOT, require
 
 from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
 from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
 
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def _load(name: str) -> ModuleType:

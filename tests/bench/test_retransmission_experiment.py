@@ -9,11 +9,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from support import require
+from support import ROOT, require
 
 from coapkb.transport.coap.reliability.rto import PROFILES
 
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def _load():

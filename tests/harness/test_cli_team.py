@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from support import ROOT
 
 TASKS = ["Gucci_bag_14", "Dell_monitor_986", "Nonexistent_thing_1", "Levis_jeans_234", "Canon_tv_995"]
 

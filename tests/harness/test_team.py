@@ -17,7 +17,6 @@ import subprocess
 import sys
 import time
 from functools import lru_cache
-from pathlib import Path
 from typing import Any
 
 import cbor2
@@ -35,7 +34,7 @@ from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts, split_
 from coapkb.transport import open_client
 from coapkb.world.warehouse import layout_from_row, travel_distance
 
-ROOT = Path(__file__).resolve().parent.parent
+from support import ROOT
 ONTOLOGIES = ROOT / "ontologies"
 
 MISSING = ("Nonexistent_thing_1", "Nonexistent_thing_2")

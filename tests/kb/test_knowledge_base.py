@@ -24,7 +24,7 @@ from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
 from coapkb.world.warehouse import OBJECT_NS, WarehouseSpec, build_graphs
 
-ROOT = Path(__file__).resolve().parent.parent
+from support import ROOT
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]
 PARAMS = {"name": "Gucci_bag_14", "grip": "gripping", "cls": "PersonalItems"}
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from decimal import Decimal
-from pathlib import Path
 
 import pytest
 from rdflib import Literal, URIRef
@@ -21,7 +20,7 @@ from coapkb.world.warehouse import (
     layout_from_row,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+from support import ROOT
 WAREHOUSE = generate(WarehouseSpec())  # what ontologies/ was generated from (checked in test_warehouse)
 BAG = WAREHOUSE.product("Gucci_bag_14")
 

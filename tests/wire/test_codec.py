@@ -17,13 +17,12 @@ import logging
 import math
 from collections.abc import Iterator
 from decimal import Decimal
-from pathlib import Path
 from types import SimpleNamespace
 
 import cbor2
 import pytest
 
-from support import require
+from support import ROOT, require
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef
@@ -49,7 +48,6 @@ _XSD_USED = ["string", "boolean", "decimal", "integer", "double", "float", "date
 XSD = SimpleNamespace(**{name: URIRef(_X + name) for name in _XSD_USED})
 RDF = SimpleNamespace(**{name: URIRef(_R + name) for name in ["HTML", "XMLLiteral", "langString"]})
 
-ROOT = Path(__file__).resolve().parent.parent
 CDDL = ROOT / "docs" / "compact-results.cddl"
 OBJ = "http://www.tcs.org/2018/Object#"
 LOC = "http://www.tcs.org/2018/Location#"

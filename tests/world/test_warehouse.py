@@ -32,7 +32,7 @@ from coapkb.world.warehouse import (
     write_ontologies,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+from support import ROOT
 SMALL = WarehouseSpec(products=200, aisles=4, racks_per_aisle=6, bins_per_rack=3, seed=3)
 
 
