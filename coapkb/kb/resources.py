@@ -9,7 +9,9 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import math
 import threading
+import time
 from dataclasses import dataclass
 
 import cbor2
@@ -40,6 +42,10 @@ class QueryLimits:
     #: Queries evaluated at once (including ones still running past their
     #: budget); beyond this the robot answers 5.03 at once.
     max_concurrent: int = 8
+    #: A named query whose every run so far took less than this runs inline
+    #: on the event loop: starting a thread costs more than the query (an
+    #: index lookup on pyoxigraph takes tens of microseconds).  0 disables.
+    inline_below_s: float = 0.002
 
     def __post_init__(self) -> None:
         for name in ("row_limit", "max_request_bytes", "max_age_s", "retry_after_s", "max_concurrent"):
@@ -47,6 +53,8 @@ class QueryLimits:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not self.time_budget_s > 0:
             raise ValueError(f"time_budget_s must be positive, got {self.time_budget_s}")
+        if not 0 <= self.inline_below_s < self.time_budget_s:
+            raise ValueError(f"inline_below_s must be in [0, time_budget_s), got {self.inline_below_s}")
 
 
 def negotiate(accept: int | None) -> ContentFormat | None:
@@ -69,6 +77,8 @@ class KBResources:
         self.named = {q.name: q for q in named_queries_for(kb.names)}
         self.running = 0
         self.answers = AnswerCache()
+        #: named query -> the longest any of its runs took (s); runs inline once known cheap.
+        self.slowest_run: dict[str, float] = {}
 
     def mount(self, router: Router) -> None:
         router.add(
@@ -146,14 +156,18 @@ class KBResources:
             text = query.render(request.query)
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        return await self.answer(text, request.accept, request.etags)
+        return await self.answer(text, request.accept, request.etags, shape=name)
 
-    async def answer(self, text: str, accept: int | None, etags: tuple[bytes, ...] = ()) -> Response:
+    async def answer(
+        self, text: str, accept: int | None, etags: tuple[bytes, ...] = (), *, shape: str | None = None
+    ) -> Response:
         """Run a query within the limits and encode it in the negotiated format.
 
         The KB is read-only, so an answer's ETag follows from the KB's ETag,
         the format and the query text: a client that still holds it gets
-        2.03 Valid and the query is not even run."""
+        2.03 Valid and the query is not even run.  ``shape`` names the
+        query's kind (a named query's name) for the inline fast path; free
+        SPARQL text has none and always runs on a thread."""
         fmt = negotiate(accept)
         if fmt is None:
             return _not_acceptable(accept)
@@ -161,18 +175,23 @@ class KBResources:
         etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
         if etag in etags:
             return Response(Status.VALID, max_age=limits.max_age_s, etag=etag)
-        return await self.answers.get_or_compute(etag, lambda: self._run(text, fmt, etag))
+        return await self.answers.get_or_compute(etag, lambda: self._run(text, fmt, etag, shape))
 
-    async def _run(self, text: str, fmt: ContentFormat, etag: bytes) -> Response:
+    async def _run(self, text: str, fmt: ContentFormat, etag: bytes, shape: str | None) -> Response:
         limits = self.limits
-        if self.running >= limits.max_concurrent:
+        slowest = self.slowest_run.get(shape) if shape is not None else None
+        inline = slowest is not None and slowest < limits.inline_below_s
+        if not inline and self.running >= limits.max_concurrent:
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
                 f"{self.running} queries are running; try again later",
                 max_age=limits.retry_after_s,
             )
         try:
-            result = await asyncio.wait_for(self._evaluate(text), limits.time_budget_s + 0.5)
+            if inline:
+                result = self._evaluate_inline(text, shape)  # type: ignore[arg-type]  # inline implies a shape
+            else:
+                result = await asyncio.wait_for(self._evaluate(text, shape), limits.time_budget_s + 0.5)
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
         except QueryRefused as exc:  # SPARQL Update, or SERVICE/FROM that would fetch from the network
@@ -189,7 +208,26 @@ class KBResources:
         return Response(Status.CONTENT, payload, fmt, max_age=limits.max_age_s, etag=etag)
 
 
-    def _evaluate(self, text: str) -> asyncio.Future[QueryResult]:
+    def _record_run(self, shape: str | None, seconds: float) -> None:
+        if shape is not None:
+            self.slowest_run[shape] = max(seconds, self.slowest_run.get(shape, 0.0))
+
+    def _evaluate_inline(self, text: str, shape: str) -> QueryResult:
+        """Run a query known to be cheap right here, on the event loop.
+
+        The KB's deadline still applies between rows; a run that turns out
+        slow (other parameters, a bigger answer) is recorded, and the
+        query's next runs go to a thread again."""
+        started = time.thread_time()
+        try:
+            result = self.kb.query(text, row_limit=self.limits.row_limit, time_budget_s=self.limits.time_budget_s)
+        except QueryTimeout:
+            self._record_run(shape, math.inf)  # a run that ran out of time is never cheap
+            raise
+        self._record_run(shape, time.thread_time() - started)
+        return result
+
+    def _evaluate(self, text: str, shape: str | None) -> asyncio.Future[QueryResult]:
         """Run the query on its own daemon thread, so the server keeps answering.
 
         The KB checks the time budget between result rows; a query whose cost
@@ -201,8 +239,10 @@ class KBResources:
         future: asyncio.Future[QueryResult] = loop.create_future()
         limits = self.limits
 
-        def settle(outcome: QueryResult | BaseException) -> None:
+        def settle(outcome: QueryResult | BaseException, seconds: float) -> None:
             self.running -= 1
+            # a run that ran out of time never makes the query look cheap
+            self._record_run(shape, math.inf if isinstance(outcome, QueryTimeout) else seconds)
             if future.done():  # the caller already gave up (time budget)
                 return
             if isinstance(outcome, BaseException):
@@ -212,12 +252,14 @@ class KBResources:
 
         def work() -> None:
             outcome: QueryResult | BaseException
+            # CPU time of this thread: the query's own cost, not its waits for the GIL
+            started = time.thread_time()
             try:
                 outcome = self.kb.query(text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s)
             except BaseException as exc:  # delivered to the awaiting request
                 outcome = exc
             try:
-                loop.call_soon_threadsafe(settle, outcome)
+                loop.call_soon_threadsafe(settle, outcome, time.thread_time() - started)
             except RuntimeError:  # the loop is closed: the robot has shut down
                 pass
 
