@@ -132,7 +132,9 @@ class CoapClientTransport:
             number += 1
             part, _ = await self._exchange(peer, request, timeout, block2=(number, szx))
             if part.code != first.code or part.opt.etag != first.opt.etag:
-                raise TransportError(f"the answer from {peer} changed during its block-wise transfer")
+                raise TransportError(
+                    f"the answer from {peer} changed during its block-wise transfer (block {number}: "
+                    f"{part.code} etag {part.opt.etag!r}, block 0: {first.code} etag {first.opt.etag!r}: {part.payload[:80]!r})")
             if part.opt.block2 is None or part.opt.block2.block_number != number:
                 raise TransportError(f"{peer} answered block {number} out of order")
             payload += part.payload
