@@ -31,6 +31,8 @@ from .reliability.rto import TransmissionProfile
 
 #: Largest body sent in one datagram (aiocoap's default block size).
 MAX_SINGLE_BODY = 1024
+#: Block-wise transfers started over before giving up on an answer that keeps changing.
+MAX_TRANSFER_RESTARTS = 4
 
 
 class _AbandonedTryFilter(logging.Filter):
@@ -122,27 +124,29 @@ class CoapClientTransport:
         )
 
     async def _request_blockwise(self, peer: Endpoint, request: Request, timeout: float) -> aiocoap.Message:
-        first, _ = await self._exchange(peer, request, timeout)
-        block = first.opt.block2
-        if block is None or not block.more:
-            return first
-        payload = bytearray(first.payload)
-        number, szx = block.block_number, block.size_exponent
-        while True:
-            number += 1
-            part, _ = await self._exchange(peer, request, timeout, block2=(number, szx))
-            if part.code != first.code or part.opt.etag != first.opt.etag:
-                raise TransportError(
-                    f"the answer from {peer} changed during its block-wise transfer (block {number}: "
-                    f"{part.code} etag {part.opt.etag!r}, block 0: {first.code} etag {first.opt.etag!r}: {part.payload[:80]!r})")
-            if part.opt.block2 is None or part.opt.block2.block_number != number:
-                raise TransportError(f"{peer} answered block {number} out of order")
-            payload += part.payload
-            if not part.opt.block2.more:
-                break
-        whole = first.copy(payload=bytes(payload))
-        whole.opt.block2 = None
-        return whole
+        """Block 0, then the rest block by block.  An answer whose ETag changes
+        midway (a live resource, a retried block 0 that made the server start
+        afresh) is fetched again from block 0 (RFC 7959 section 2.4)."""
+        for _ in range(MAX_TRANSFER_RESTARTS):
+            first, _ = await self._exchange(peer, request, timeout)
+            block = first.opt.block2
+            if block is None or not block.more:
+                return first
+            payload = bytearray(first.payload)
+            number, szx = block.block_number, block.size_exponent
+            while True:
+                number += 1
+                part, _ = await self._exchange(peer, request, timeout, block2=(number, szx))
+                if part.code != first.code or part.opt.etag != first.opt.etag:
+                    break  # another answer: start over
+                if part.opt.block2 is None or part.opt.block2.block_number != number:
+                    raise TransportError(f"{peer} answered block {number} out of order")
+                payload += part.payload
+                if not part.opt.block2.more:
+                    whole = first.copy(payload=bytes(payload))
+                    whole.opt.block2 = None
+                    return whole
+        raise TransportError(f"the answer from {peer} kept changing during its block-wise transfer")
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         if isinstance(self.reliability, ReliabilityLayer):
