@@ -67,6 +67,18 @@ T = TypeVar("T")
 
 #: Reply size assumed for a resource never answered before: a small answer.
 DEFAULT_REPLY_BYTES = 128
+#: Tries of one request that may fail outright (ICMP) before the error is raised.
+MAX_ERRORS = 2
+
+
+def _answered(attempt: "Attempt[Any]") -> bool:
+    task = attempt.task
+    return task is not None and task.done() and not task.cancelled() and task.exception() is None
+
+
+def _failed(attempt: "Attempt[Any]") -> bool:
+    task = attempt.task
+    return task is not None and task.done() and not task.cancelled() and task.exception() is not None
 
 
 @dataclass(frozen=True)
@@ -344,7 +356,10 @@ class ReliabilityLayer:
         registration lives on).  ``send(try_number)`` sends one copy.
 
         Raises :class:`ExchangeTimeout` when ``timeout`` passes or the tries
-        run out, and whatever an attempt raised (an ICMP error, say) at once."""
+        run out.  A try that fails outright (an ICMP error) is tried again at
+        once, and the error is raised only when it repeats: Linux reports a
+        pending ICMP error on the next send of the socket, whatever its
+        destination, so one error may belong to another peer."""
         path = self.path(peer)
         path.stats.requests += 1
         deadline = self.clock() + timeout
@@ -352,6 +367,8 @@ class ReliabilityLayer:
             await path.admit()
         attempts: list[Attempt[T]] = []
         winner: Attempt[T] | None = None
+        errors: list[BaseException] = []
+        counted: set[int] = set()  # attempts whose error is in ``errors``
         try:
             for try_number in range(self.settings.max_tries):
                 now = self.clock()
@@ -359,17 +376,27 @@ class ReliabilityLayer:
                     break
                 try_timeout = path.try_timeout(try_number, request_bytes, reply_key, now)
                 await self._send_try(path, send, try_number, try_timeout, attempts)
-                pending = {a.task for a in attempts if a.task is not None and not a.task.done()}
-                finished = {a.task for a in attempts if a.task is not None and a.task.done()}
-                if not finished:
+                while True:
+                    answered = [a for a in attempts if _answered(a)]
+                    if answered:
+                        winner = answered[0]
+                        answer = winner.task.result()  # type: ignore[union-attr]
+                        self._on_answer(path, winner, attempts, reply_key, reply_size(answer), request_bytes)
+                        return answer, winner
+                    failed = [a for a in attempts if _failed(a) and id(a) not in counted]
+                    if failed:
+                        counted.update(id(a) for a in failed)
+                        errors.extend(a.task.exception() for a in failed)  # type: ignore[union-attr,misc]
+                        if len(errors) >= MAX_ERRORS:
+                            raise errors[-1]
+                        break  # the next try, at once
+                    pending = {a.task for a in attempts if a.task is not None and not a.task.done()}
                     wait = min(attempts[-1].timeout, deadline - self.clock())
-                    if wait > 0 and pending:
-                        finished, _ = await asyncio.wait(pending, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
-                if finished:
-                    winner = self._pick_winner(attempts)
-                    answer = winner.task.result()  # type: ignore[union-attr]  # raises the attempt's error
-                    self._on_answer(path, winner, attempts, reply_key, reply_size(answer), request_bytes)
-                    return answer, winner
+                    if wait <= 0 or not pending:
+                        break
+                    done, _ = await asyncio.wait(pending, timeout=wait, return_when=asyncio.FIRST_COMPLETED)
+                    if not done:
+                        break  # timed out: the next try
                 path.stats.tries += 1
             path.stats.failed += 1
             self._on_give_up(path, attempts)
@@ -406,11 +433,6 @@ class ReliabilityLayer:
             if try_number and not copy:
                 path.stats.retries += 1
 
-    @staticmethod
-    def _pick_winner(attempts: list[Attempt[T]]) -> Attempt[T]:
-        done = [a for a in attempts if a.task is not None and a.task.done() and not a.task.cancelled()]
-        answered = [a for a in done if a.task.exception() is None]  # type: ignore[union-attr]
-        return (answered or done)[0]
 
     def _on_answer(self, path: _Path, winner: Attempt[T], attempts: list[Attempt[T]], reply_key: Hashable,
                    reply_bytes: int, winner_request_bytes: int) -> None:
