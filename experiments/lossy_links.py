@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import random
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -45,17 +44,16 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' shared helpers
+    if str(_path) not in sys.path:
+        sys.path.insert(0, str(_path))
 
 import pandas as pd  # noqa: E402
 
 from coapkb.bench.stats import percentile  # noqa: E402
+from kb_servers import PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "lossy_links"
-KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-PORTS = {"coap": 5683, "zmq": 5555}
-GRIPS = ("gripping", "grasping", "lifting", "suction")
 
 
 @dataclass(frozen=True)
@@ -80,30 +78,6 @@ MATRIX_SYSTEMS = ("robust", "adaptive", "rfc7252", "zmq")
 BOTTLENECK_SYSTEMS = ("robust", "robust-nowindow", "adaptive")
 
 
-def query_plan(n: int, seed: int, products: Sequence[str]) -> list[tuple[str, dict[str, str]]]:
-    """A seeded mix of the seed's Query_1..Query_4 as named queries."""
-    rng = random.Random(seed)
-    plan = []
-    for _ in range(n):
-        kind = rng.randrange(4)
-        if kind == 3:
-            plan.append(("robots-for-grip", {"grip": rng.choice(GRIPS)}))
-        else:
-            plan.append((("object-exists", "object-location", "object-features")[kind], {"name": rng.choice(products)}))
-    return plan
-
-
-async def _start_server(tb: Any, host: str, scheme: str) -> Any:
-    proc = await tb.spawn(host, [sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--transport", scheme,
-                                 "--bind", f"{tb.address(host)}:{PORTS[scheme]}"],
-                          stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=str(ROOT))
-    line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
-    if not line.startswith("serving"):
-        err = (await proc.stderr.read()).decode()[-500:] if proc.stderr else ""
-        raise RuntimeError(f"server on {host} did not start: {line!r} {err}")
-    return proc
-
-
 async def _open_client(system: System, link_kbps: float) -> Any:
     from coapkb.transport import open_client
     from coapkb.transport.coap.reliability import ReliabilityLayer, ReliabilitySettings
@@ -124,7 +98,7 @@ def _spurious(client: Any) -> int | None:
 
     reliability = getattr(client, "reliability", None)
     if isinstance(reliability, ReliabilityLayer):
-        return sum(p.spurious_retries for p in reliability.stats().values())
+        return sum(p.spurious_retransmissions for p in reliability.stats().values())
     if reliability is not None:
         return sum(reliability.stats(k).spurious_retransmissions for k in reliability.peers())
     return None
@@ -169,7 +143,7 @@ async def measure(
     records: list[dict[str, Any]] = []
     summary: list[dict[str, Any]] = []
     async with Testbed(list(links), links) as tb:
-        procs = await asyncio.gather(*(_start_server(tb, servers[n], SYSTEMS[n].scheme) for n in systems))
+        procs = await asyncio.gather(*(start_kb_server(tb, servers[n], SYSTEMS[n].scheme) for n in systems))
         opened: dict[tuple[str, int], Any] = {}
         try:
             for name in systems:
@@ -219,14 +193,7 @@ async def measure(
         finally:
             for client in opened.values():
                 await client.aclose()
-            for proc in procs:
-                if proc.returncode is None:
-                    proc.terminate()
-            for proc in procs:
-                try:
-                    await asyncio.wait_for(proc.wait(), 10)
-                except TimeoutError:
-                    proc.kill()
+            await stop_processes(procs)
     return records, summary
 
 
@@ -263,6 +230,9 @@ def report(out: Path) -> str:
             parts += ["Per cell, robust against ZeroMQ (p99 ratio, bytes ratio):", "",
                       ratio.to_markdown(index=False), ""]
         _plot(s, out / "lossy_links.png")
+    team_path = out / "team.csv"
+    if team_path.exists():
+        parts += team_tables(pd.read_csv(team_path))
     bottleneck_path = out / "bottleneck.csv"
     if bottleneck_path.exists():
         b = pd.read_csv(bottleneck_path)
@@ -274,6 +244,40 @@ def report(out: Path) -> str:
     text = "\n".join(parts)
     (out / "table.md").write_text(text, encoding="utf-8")
     return text
+
+
+def team_tables(t: pd.DataFrame) -> list[str]:
+    """Team runs (``coapkb bench`` rows): medians per cell and system, and the
+    paired ratios the issue's targets are stated in."""
+    t = t[t.ok.astype(str).str.lower() == "true"].copy()
+    t["label"] = t.system.str.replace("-distributed", "") + "/" + t.retransmission_profile.astype(str)
+    t["bytes_per_task"] = t.wire_bytes / t.tasks
+    t["spurious_pct"] = 100 * t.spurious_retransmissions / t.wire_packets
+    keys = ["delay_ms", "tasks", "loss_pct", "label"]
+    med = t.groupby(keys).agg(runs=("completion_s", "size"), completion_s=("completion_s", "median"),
+                              completion_min=("completion_s", "min"), completion_max=("completion_s", "max"),
+                              query_p99_ms=("query_p99_ms", "median"), wire_bytes=("wire_bytes", "median"),
+                              spurious_pct=("spurious_pct", "median")).round(2).reset_index()
+    cells = med.pivot_table(index=["delay_ms", "tasks", "loss_pct"], columns="label",
+                            values=["completion_s", "wire_bytes", "query_p99_ms"])
+    rows = []
+    for cell, r in cells.iterrows():
+        def get(metric: str, label: str) -> float:
+            return float(r.get((metric, label), float("nan")))
+        rows.append({
+            "delay_ms": cell[0], "tasks": cell[1], "loss_pct": cell[2],
+            "completion robust/zmq": round(get("completion_s", "coap/robust") / get("completion_s", "zmq/tcp"), 2),
+            "completion adaptive/zmq": round(get("completion_s", "coap/adaptive") / get("completion_s", "zmq/tcp"), 2),
+            "bytes robust/zmq": round(get("wire_bytes", "coap/robust") / get("wire_bytes", "zmq/tcp"), 2),
+            "query p99 robust ms": get("query_p99_ms", "coap/robust"),
+            "query p99 zmq ms": get("query_p99_ms", "zmq/tcp"),
+        })
+    return ["## Team level (3 robots, 35 kbit/s, `coapkb bench`)", "",
+            "Medians over the repetitions (runs), with the range of completion times:", "",
+            med.to_markdown(index=False), "",
+            "Ratios of the medians, per cell (the issue's targets: completion robust/zmq <= 1 everywhere and "
+            "<= 0.5 at 20 % loss; bytes <= 0.75; query p99 < 2 s at 20 % loss, < 0.3 s + airtime at 2 %):", "",
+            pd.DataFrame(rows).to_markdown(index=False), ""]
 
 
 def _ratios(s: pd.DataFrame) -> pd.DataFrame:

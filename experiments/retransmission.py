@@ -46,11 +46,13 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' shared helpers
+    if str(_path) not in sys.path:
+        sys.path.insert(0, str(_path))
 
 from coapkb.bench.row import BenchRow
 from coapkb.bench.stats import percentile
+from kb_servers import GRIPS, QUERY_MIX, query_plan, start_kb_server, stop_processes  # noqa: F401 (re-exported)
 from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     SampleKind,
@@ -72,15 +74,6 @@ _HOST_TAGS = {"rfc7252": "rfc", "lossy-fixed": "lossy", "adaptive": "adapt", "ad
 COLOURS = {"rfc7252": "tab:red", "lossy-fixed": "tab:blue", "adaptive": "tab:green",
            "adaptive-uncapped": "tab:olive", "adaptive+rate": "tab:purple"}
 ONTOLOGIES = ROOT / "ontologies"
-KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-GRIPS = ("gripping", "grasping", "lifting", "suction")
-#: The seed's four queries (Query_1..Query_4) as named queries, and the parameter each takes.
-QUERY_MIX: tuple[tuple[str, str], ...] = (
-    ("object-exists", "name"),
-    ("object-location", "name"),
-    ("object-features", "name"),
-    ("robots-for-grip", "grip"),
-)
 COAP_PORT = 5683
 #: The three aims of the issue, as numbers.
 AIM_TAIL_FACTOR = 3.0  # adaptive p99 at the highest loss <= 3 x its p50 at the lowest loss
@@ -130,20 +123,6 @@ def profile_for(name: str, bandwidth_kbps: float) -> TransmissionProfile:
     if name == "adaptive+rate":
         return adaptive.with_link_rate(bandwidth_kbps * 1000)  # type: ignore[attr-defined]
     raise ValueError(f"unknown profile {name!r} (choose from {', '.join(ALL_PROFILES)})")
-
-
-def query_plan(n: int, seed: int, products: Sequence[str]) -> list[tuple[str, dict[str, str]]]:
-    """``n`` named queries: the four of the seed in turn (so each is a quarter
-    of the load), with product names and grips drawn from ``seed``."""
-    if not products:
-        raise ValueError("no products")
-    rng = random.Random(seed)
-    plan = []
-    for i in range(n):
-        name, param = QUERY_MIX[i % len(QUERY_MIX)]
-        value = rng.choice(GRIPS) if param == "grip" else rng.choice(list(products))
-        plan.append((name, {param: value}))
-    return plan
 
 
 #: PeerStats fields summed over streams (and diffed over the measured window).
@@ -616,17 +595,6 @@ def replace_rows(path: Path, columns: Sequence[str], new: Sequence[Mapping[str, 
 # --------------------------------------------------------------------------- measurement (needs root)
 
 
-async def _start_server(tb: Any, host: str) -> Any:
-    proc = await tb.spawn(host, [sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES,
-                                 "--bind", f"{tb.address(host)}:{COAP_PORT}"],
-                          stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=str(ROOT))
-    line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
-    if not line.startswith("serving"):
-        err = (await proc.stderr.read()).decode()[-500:] if proc.stderr else ""
-        raise RuntimeError(f"server on {host} did not start: {line!r} {err}")
-    return proc
-
-
 async def _warm_up(kb: Any, peer: Any, plan: Sequence[tuple[str, dict[str, str]]]) -> None:
     """Unmeasured queries, so the adaptive estimator starts converged (as on a
     robot that has been talking to its peers)."""
@@ -685,7 +653,7 @@ async def measure_cell(
     records: list[dict[str, Any]] = []
     per_stream: dict[str, list[dict[str, Any]]] = {p: [] for p in profiles}
     async with Testbed(hosts, link) as tb:
-        servers = await asyncio.gather(*(_start_server(tb, s) for _, _, s, _ in pairs))
+        servers = await asyncio.gather(*(start_kb_server(tb, s) for _, _, s, _ in pairs))
         clients = {}
         try:
             for p, i, s, c in pairs:
@@ -693,8 +661,8 @@ async def measure_cell(
                 # The client's socket is created here, so it lives in c's namespace.
                 with enter_netns(tb[c].netns):
                     client = await open_client("coap", retransmission=profile)
-                client.retransmission.rng = random.Random(seed * 1000 + i)
-                client.retransmission.history = 2 * (warmup + queries) + 64  # keep every exchange
+                client.reliability.rng = random.Random(seed * 1000 + i)
+                client.reliability.history = 2 * (warmup + queries) + 64  # keep every exchange
                 clients[(p, i)] = client
 
             peers = {(p, i): Endpoint("coap", tb.address(s), COAP_PORT) for p, i, s, _ in pairs}
@@ -705,14 +673,14 @@ async def measure_cell(
             # stream: each stream has its own two hosts, which are idle
             # outside their stream, so per-host deltas are per-stream.
             before_link = await tb.acounters()
-            before_stats = {k: clients[k].retransmission.stats(peers[k]).as_dict() for k in clients}
+            before_stats = {k: clients[k].reliability.stats(peers[k]).as_dict() for k in clients}
 
             async def run(key: tuple[str, int]) -> tuple[list[dict[str, Any]], float, Any]:
                 t0 = time.monotonic()
                 recs = await _measure_stream(kbs[key], peers[key], plans[key][warmup:])
                 # The estimator as the stream left it (read later, it would
                 # have aged while the slower streams were still running).
-                controller = clients[key].retransmission
+                controller = clients[key].reliability
                 return recs, time.monotonic() - t0, controller.stats(peers[key])
 
             results = await asyncio.gather(*(run((p, i)) for p, i, _, _ in pairs))
@@ -721,7 +689,7 @@ async def measure_cell(
                 link_delta = {k: sum(getattr(after_link[h], k) - getattr(before_link[h], k) for h in (s, c))
                               for k in ("tx_packets", "tx_bytes", "dropped", "queue_drops")}
                 delta = stats_delta(st.as_dict(), before_stats[(p, i)])
-                history = clients[(p, i)].retransmission.recent_exchanges(peers[(p, i)])
+                history = clients[(p, i)].reliability.recent_exchanges(peers[(p, i)])
                 measured = history[-delta["exchanges"]:] if delta["exchanges"] else []
                 per_stream[p].append({
                     "stats": delta, "link": link_delta,
@@ -733,14 +701,7 @@ async def measure_cell(
         finally:
             for client in clients.values():
                 await client.aclose()
-            for proc in servers:
-                if proc.returncode is None:
-                    proc.terminate()
-            for proc in servers:
-                try:
-                    await asyncio.wait_for(proc.wait(), 10)
-                except TimeoutError:
-                    proc.kill()
+            await stop_processes(servers)
     summary = [summarise(bandwidth_kbps, loss_pct, p, [r for r in records if r["profile"] == p], per_stream[p])
                for p in profiles]
     return records, summary

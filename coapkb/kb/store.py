@@ -383,9 +383,10 @@ class _OxigraphBackend:
     #: answers many different queries does not grow without end.
     _CACHE_MAX = 50_000
 
-    #: pyoxigraph parses with the GIL released and its store takes
-    #: concurrent bulk loads: the files of a KB are loaded side by side.
-    parallel_load = True
+    #: pyoxigraph would parse the files side by side (GIL released), but
+    #: concurrent loads interleave in the store and the order of unordered
+    #: results then differs from load to load: a KB's answers must not.
+    parallel_load = False
 
     def __init__(self) -> None:
         self.store = ox.Store()

@@ -23,6 +23,11 @@ process keep stock behaviour), by :class:`ContextHooks`:
   older notification of the same observation still in that queue (RFC 7641
   section 4.5.2: only the newest state matters); on a lossy link the queue
   otherwise grows, and a robot's decision waits behind stale live states;
+* the context's logger: aiocoap 0.4.17's ``Pipe`` logs a discarded
+  exception with ``log.error(..., exception=...)``, which ``logging``
+  rejects with a TypeError; it happens when a request the caller abandoned
+  meets the context's shutdown, and the TypeError escapes as "Task
+  exception was never retrieved";
 * the MessageManager's CON exchange methods (``_add_exchange``,
   ``_schedule_retransmit``, ``_retransmit``, ``_remove_exchange``): a
   :class:`ConPolicy` (Californium's layer shape: on_send / timeout /
@@ -152,6 +157,22 @@ def extract_block(message: aiocoap.Message, number: int, size_exp: int, max_payl
     return message._extract_block(number, size_exp, max_payload)
 
 
+class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
+    """A context's logger that takes aiocoap's ``exception=`` keyword."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        super().__init__(logger, {})
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        exception = kwargs.pop("exception", None)
+        if exception is not None:
+            msg = f"{msg}: {exception!r}"
+        return msg, kwargs
+
+    def getChild(self, suffix: str) -> logging.Logger:  # noqa: N802 -- aiocoap calls it
+        return self.logger.getChild(suffix)
+
+
 # --------------------------------------------------------------------- CON retransmission policy
 
 
@@ -199,7 +220,8 @@ class ContextHooks:
         self.interface = self.mm.message_interface
         self.counters = TrafficCounters()
         self.con_policy: ConPolicy | None = None
-        self._originals: dict[tuple[Any, str], Callable[..., Any]] = {}
+        self._originals: dict[tuple[Any, str], Any] = {}
+        self._instance_attributes: dict[int, set[str]] = {}
         #: (remote, mid) -> policy record, for CON exchanges aiocoap has active.
         self._pending: dict[tuple[Any, int], Any] = {}
         #: finished exchanges that were retransmitted: (remote, mid) -> (record, expiry).
@@ -231,19 +253,28 @@ class ContextHooks:
             self._finished.clear()
 
     def remove(self) -> None:
-        for (owner, name) in self._originals:
-            owner.__dict__.pop(name, None)
+        """Take the patches off (after ``ctx.shutdown()``: shutting down is
+        when the logger patch matters)."""
+        for (owner, name), original in self._originals.items():
+            if name in self._instance_attributes.get(id(owner), ()):
+                setattr(owner, name, original)
+            else:
+                owner.__dict__.pop(name, None)
         self._originals.clear()
         self.mm.__dict__.pop(_MARKER, None)
         self.con_policy = None
 
     # ------------------------------------------------------------ installation
 
-    def _patch(self, owner: Any, name: str, replacement: Callable[..., Any]) -> None:
+    def _patch(self, owner: Any, name: str, replacement: Any) -> None:
+        if name in vars(owner):  # an attribute of the instance itself: restore it, not the class's
+            self._instance_attributes.setdefault(id(owner), set()).add(name)
         self._originals[(owner, name)] = getattr(owner, name)
         setattr(owner, name, replacement)
 
     def _install(self) -> None:
+        if not isinstance(self.ctx.log, _PipeSafeLogger):
+            self._patch(self.ctx, "log", _PipeSafeLogger(self.ctx.log))
         self._patch(self.interface, "send", self._send)
         self._patch(self.interface, "datagram_msg_received", self._datagram_received)
         self._patch(self.mm, "send_message", self._send_message)

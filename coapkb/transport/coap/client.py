@@ -110,7 +110,13 @@ class CoapClientTransport:
                         observe: bool = False) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
         assert isinstance(self.reliability, ReliabilityLayer)
 
+        sent = 0
+
         def send(try_number: int) -> Attempt[aiocoap.Message]:
+            nonlocal sent
+            if sent:  # a retry or a hedge copy: the same request again, as a new exchange
+                self.counters.retransmissions += 1
+            sent += 1
             msg = message_from_request(peer, request, observe=observe)
             msg.mtype = NON
             if block2 is not None:
@@ -176,8 +182,8 @@ class CoapClientTransport:
             _abandon(pending)
 
     async def aclose(self) -> None:
-        self._hooks.remove()
         await self._ctx.shutdown()
+        self._hooks.remove()
 
 
 def _abandon(pending: Any) -> None:

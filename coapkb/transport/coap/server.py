@@ -197,5 +197,5 @@ class CoapServerTransport:
         return self.policy.as_dict()
 
     async def aclose(self) -> None:
-        self._hooks.remove()
         await self._ctx.shutdown()
+        self._hooks.remove()

@@ -183,7 +183,7 @@ async def test_window_bounds_requests_in_flight(served: Served) -> None:
         await client.aclose()
 
 
-async def test_late_answer_to_an_earlier_try_completes_the_request_and_counts_spurious_retries(served: Served) -> None:
+async def test_late_answer_to_an_earlier_try_completes_the_request_and_counts_spurious_retransmissions(served: Served) -> None:
     """A timeout far below the server's 0.3 s makes the layer retry; the answer
     to the first try still completes the request, and the retries sent after
     that try left count as spurious (exactly, thanks to the tokens)."""
@@ -196,7 +196,7 @@ async def test_late_answer_to_an_earlier_try_completes_the_request_and_counts_sp
         (stats,) = layer.stats().values()
         assert stats.retries >= 2
         assert stats.answered_by_earlier_try == 1
-        assert stats.spurious_retries == stats.retries
+        assert stats.spurious_retransmissions == stats.retries
         # The sample is the first try's true round trip, not the last retry's.
         assert stats.srtt is not None and stats.srtt >= 0.25
     finally:

@@ -146,7 +146,7 @@ class PathStats:
     retries: int = 0
     hedge_copies: int = 0
     #: Retries sent after the try that was answered had left: not needed.
-    spurious_retries: int = 0
+    spurious_retransmissions: int = 0
     answered_by_earlier_try: int = 0
     samples: int = 0
     backoffs: int = 0
@@ -446,7 +446,7 @@ class ReliabilityLayer:
         path.note_reply_size(reply_key, reply_bytes)
         if winner.try_number < max(a.try_number for a in attempts):
             stats.answered_by_earlier_try += 1
-            stats.spurious_retries += sum(
+            stats.spurious_retransmissions += sum(
                 1 for a in attempts if a.try_number > winner.try_number and a.sent_at >= winner.sent_at
             )
         for attempt in attempts:

@@ -1,0 +1,62 @@
+"""What the query-level experiments share: the seed's query mix, and KB
+servers started in (and stopped from) a testbed's namespaces."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import sys
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
+PORTS = {"coap": 5683, "zmq": 5555}
+GRIPS = ("gripping", "grasping", "lifting", "suction")
+#: The seed's four queries (Query_1..Query_4) as named queries, and the parameter each takes.
+QUERY_MIX: tuple[tuple[str, str], ...] = (
+    ("object-exists", "name"),
+    ("object-location", "name"),
+    ("object-features", "name"),
+    ("robots-for-grip", "grip"),
+)
+
+
+def query_plan(n: int, seed: int, products: Sequence[str]) -> list[tuple[str, dict[str, str]]]:
+    """``n`` named queries: the four of the seed in turn (so each is a quarter
+    of the load), with product names and grips drawn from ``seed``."""
+    if not products:
+        raise ValueError("no products")
+    rng = random.Random(seed)
+    plan = []
+    for i in range(n):
+        name, param = QUERY_MIX[i % len(QUERY_MIX)]
+        value = rng.choice(GRIPS) if param == "grip" else rng.choice(list(products))
+        plan.append((name, {param: value}))
+    return plan
+
+
+async def start_kb_server(tb: Any, host: str, scheme: str = "coap") -> Any:
+    """``coapkb serve`` with the three warehouse KBs in ``host``'s namespace."""
+    proc = await tb.spawn(host, [sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--transport", scheme,
+                                 "--bind", f"{tb.address(host)}:{PORTS[scheme]}"],
+                          stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=str(ROOT))
+    line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+    if not line.startswith("serving"):
+        err = (await proc.stderr.read()).decode()[-500:] if proc.stderr else ""
+        raise RuntimeError(f"server on {host} did not start: {line!r} {err}")
+    return proc
+
+
+async def stop_processes(procs: Iterable[Any], grace_s: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL whatever has not exited after ``grace_s``."""
+    procs = list(procs)
+    for proc in procs:
+        if proc.returncode is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            await asyncio.wait_for(proc.wait(), grace_s)
+        except TimeoutError:
+            proc.kill()
