@@ -61,7 +61,7 @@ from .estimator import LossEstimator, RttEstimator, UplinkQueue, airtime
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ReliabilitySettings", "PathStats", "ReliabilityLayer", "Attempt", "ExchangeTimeout"]
+__all__ = ["ReliabilitySettings", "PathStats", "PeerPath", "ReliabilityLayer", "Attempt", "ExchangeTimeout"]
 
 T = TypeVar("T")
 
@@ -164,8 +164,9 @@ class PathStats:
         return asdict(self)
 
 
-class _Path:
-    """What the layer knows of one peer."""
+class PeerPath:
+    """What the layer knows of one peer: its estimators, window and counters,
+    and the policy decisions that follow from them."""
 
     def __init__(self, settings: ReliabilitySettings, now: float) -> None:
         self.settings = settings
@@ -312,10 +313,13 @@ class ReliabilityLayer:
     NON request each time.  One layer serves a robot's client and its
     server's notifications, so both use the same path estimates."""
 
+    #: The profile name users select it by.
+    name = "robust"
+
     def __init__(self, settings: ReliabilitySettings | None = None, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.settings = settings or ReliabilitySettings()
         self.clock = clock
-        self._paths: dict[Hashable, _Path] = {}
+        self._paths: dict[Hashable, PeerPath] = {}
         #: The robot's own link: both its client's and its server's datagrams.
         self.uplink = UplinkQueue(self.settings.link_bps)
 
@@ -323,15 +327,13 @@ class ReliabilityLayer:
         """Hand this every datagram the robot sends (the CoAP contexts do)."""
         self.uplink.on_sent(nbytes, self.clock())
 
-    name = "robust"
-
-    def path(self, peer: Hashable) -> _Path:
+    def path(self, peer: Hashable) -> PeerPath:
         path = self._paths.get(peer)
         if path is None:
-            path = self._paths[peer] = _Path(self.settings, self.clock())
+            path = self._paths[peer] = PeerPath(self.settings, self.clock())
         return path
 
-    def path_for_host(self, host: str) -> _Path:
+    def path_for_host(self, host: str) -> PeerPath:
         """The path with the most samples to any port of ``host`` (the
         server's notifications go to the peer's client port, not its
         server's); a path of its own for a host never asked anything (the
@@ -409,7 +411,7 @@ class ReliabilityLayer:
                         attempt.task.cancel()
             path.release()
 
-    async def _send_try(self, path: _Path, send: Callable[[int], Attempt[T]], try_number: int,
+    async def _send_try(self, path: PeerPath, send: Callable[[int], Attempt[T]], try_number: int,
                         try_timeout: float, attempts: list[Attempt[T]]) -> None:
         copies = path.copies(try_number)
         for copy in range(copies):
@@ -434,7 +436,7 @@ class ReliabilityLayer:
                 path.stats.retries += 1
 
 
-    def _on_answer(self, path: _Path, winner: Attempt[T], attempts: list[Attempt[T]], reply_key: Hashable,
+    def _on_answer(self, path: PeerPath, winner: Attempt[T], attempts: list[Attempt[T]], reply_key: Hashable,
                    reply_bytes: int, winner_request_bytes: int) -> None:
         now = self.clock()
         stats = path.stats
@@ -457,7 +459,7 @@ class ReliabilityLayer:
                 # lost.  (Tries sent after it say nothing: they were cut short.)
                 path.loss.on_outcome(True)
 
-    def _on_give_up(self, path: _Path, attempts: list[Attempt[T]]) -> None:
+    def _on_give_up(self, path: PeerPath, attempts: list[Attempt[T]]) -> None:
         now = self.clock()
         for attempt in attempts:
             if now - attempt.sent_at >= attempt.timeout:

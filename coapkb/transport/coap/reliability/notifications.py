@@ -19,7 +19,7 @@ from typing import Any
 import aiocoap
 from aiocoap.numbers.constants import TransportTuning
 
-from .layer import ReliabilityLayer, _Path
+from .layer import ReliabilityLayer, PeerPath
 
 #: Size of the empty ACK that answers a notification.
 _ACK_BYTES = 4
@@ -47,7 +47,7 @@ def _host_of(remote: Any) -> str:
 
 @dataclass
 class _Notification:
-    path: _Path
+    path: PeerPath
     sent_at: float
     nbytes: int
     #: Link time of what was queued ahead of the first transmission.
