@@ -184,11 +184,23 @@ class PeerPath:
 
     # ---- policy
 
+    def floor(self) -> float:
+        s = self.settings
+        return s.min_rto if s.link_bps else max(s.min_rto, s.min_rto_unknown_link)
+
     def rto(self) -> float:
         s = self.settings
-        floor = s.min_rto if s.link_bps else max(s.min_rto, s.min_rto_unknown_link)
-        return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=floor, ceiling=s.max_rto,
+        return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=self.floor(), ceiling=s.max_rto,
                             initial=s.initial_rto)
+
+    def exchange_timeout(self, base: float, exchange_bytes: float) -> float:
+        """``base`` (the RTO, maybe backed off) plus the airtime by which this
+        exchange exceeds the sampled ones; never less than the floor plus its
+        whole airtime at the line rate, since samples taken while a shaper's
+        burst allowance lasted are shorter than the line allows."""
+        s = self.settings
+        return max(min(s.max_rto, base) + self.extra_airtime(exchange_bytes),
+                   self.floor() + airtime(exchange_bytes, s.link_bps))
 
     def congested(self) -> bool:
         s = self.settings
@@ -225,7 +237,7 @@ class PeerPath:
         if try_number and (self.congested() or self.silent(now)):
             base *= 2 ** min(try_number, 8)
             self.stats.backoffs += 1
-        return min(s.max_rto, base) + self.extra_airtime(request_bytes + self.expected_reply(reply_key))
+        return self.exchange_timeout(base, request_bytes + self.expected_reply(reply_key))
 
     def extra_airtime(self, exchange_bytes: float) -> float:
         """How much longer than the sampled exchanges one of ``exchange_bytes`` takes on the link."""

@@ -75,10 +75,9 @@ class NotificationPolicy:
         would drop the observation, and the teammate would wait for a
         refresh), but a peer that stays silent is not flooded either."""
         path = record.path
-        base = path.rto() + path.extra_airtime(record.nbytes + _ACK_BYTES)
         backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
         queued = record.queued if retransmission_counter == 0 else self.layer.uplink.wait(self.layer.clock())
-        return min(self.layer.settings.max_rto, base * backoff) + queued
+        return path.exchange_timeout(path.rto() * backoff, record.nbytes + _ACK_BYTES) + queued
 
     def on_retransmit(self, record: _Notification) -> None:
         record.retransmissions += 1
