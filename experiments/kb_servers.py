@@ -23,6 +23,18 @@ QUERY_MIX: tuple[tuple[str, str], ...] = (
 )
 
 
+def prepare_link_emulation() -> str | None:
+    """None when the kernel testbed can run here (after removing what crashed
+    runs left behind), else the reason it cannot."""
+    from coapkb.bench.linkemu import available, cleanup_stale
+
+    ok, why = available()
+    if not ok:
+        return why
+    cleanup_stale()
+    return None
+
+
 def query_plan(n: int, seed: int, products: Sequence[str]) -> list[tuple[str, dict[str, str]]]:
     """``n`` named queries: the four of the seed in turn (so each is a quarter
     of the load), with product names and grips drawn from ``seed``."""

@@ -51,7 +51,7 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
 import pandas as pd  # noqa: E402
 
 from coapkb.bench.stats import percentile  # noqa: E402
-from kb_servers import PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
+from kb_servers import prepare_link_emulation, PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "lossy_links"
 
@@ -329,13 +329,10 @@ def _floats(text: str) -> list[float]:
 async def amain(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not args.report_only:
-        from coapkb.bench.linkemu import available, cleanup_stale
-
-        ok, why = available()
-        if not ok:
+        why = prepare_link_emulation()
+        if why is not None:
             print(f"no kernel link emulation here: {why}", file=sys.stderr)
             return 2
-        cleanup_stale()
         systems = [s for s in args.systems.split(",") if s]
         unknown = [s for s in systems if s not in SYSTEMS]
         if unknown:

@@ -52,7 +52,7 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
 
 from coapkb.bench.row import BenchRow
 from coapkb.bench.stats import percentile
-from kb_servers import GRIPS, QUERY_MIX, query_plan, start_kb_server, stop_processes  # noqa: F401 (re-exported)
+from kb_servers import prepare_link_emulation, GRIPS, QUERY_MIX, query_plan, start_kb_server, stop_processes  # noqa: F401 (re-exported)
 from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     SampleKind,
@@ -736,13 +736,10 @@ def report(out: Path, model_samples: int = 20_000) -> str:
 async def amain(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not args.report_only:
-        from coapkb.bench.linkemu import available, cleanup_stale
-
-        ok, why = available()
-        if not ok:
+        why = prepare_link_emulation()
+        if why is not None:
             print(f"no kernel link emulation here: {why}", file=sys.stderr)
             return 2
-        cleanup_stale()
         profiles = parse_list(args.profiles, str)
         unknown = [p for p in profiles if p not in ALL_PROFILES]
         if unknown:
