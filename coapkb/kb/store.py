@@ -15,7 +15,7 @@ row limit and an optional time budget, so one request cannot starve a robot.
 from __future__ import annotations
 
 import hashlib
-import io
+import os
 import re
 import time
 import xml.etree.ElementTree as ET
@@ -155,43 +155,149 @@ _TURTLE_PREFIX = re.compile(
 )
 
 
-def _format_for(path: Path, data: bytes) -> str:
+def _format_for(path: Path, head: bytes) -> str:
+    """The file's format from its suffix (and, for ``.owl``, its first bytes)."""
     suffix = path.suffix.lower()
     fmt = _SUFFIX_FORMATS.get(suffix)
     if fmt is None:
         fmt = rdflib.util.guess_format(path.name)
     if fmt is None:
         raise KBLoadError(path, f"unknown RDF format for suffix {suffix!r} (use .owl/.rdf, .ttl, .nt, .n3, .jsonld)")
-    if suffix == ".owl" and not data.lstrip(b"\xef\xbb\xbf \t\r\n").startswith(b"<"):
+    if suffix == ".owl" and not head.lstrip(b"\xef\xbb\xbf \t\r\n").startswith(b"<"):
         fmt = "turtle"  # Protege can save .owl files as Turtle too
     return fmt
 
 
-def _declared_prefixes(data: bytes, fmt: str) -> dict[str, str]:
-    """Prefixes a file declares, the same way for both backends.
+_TAIL = 1 << 16
 
-    RDF/XML: the root element's ``xmlns:p`` attributes (read by an
-    incremental parser that stops at the root, so large files cost nothing).
-    Turtle/N3: ``@prefix``/``PREFIX`` lines.  The default namespace (empty
-    prefix) is left out: every module has its own, so it names nothing
-    across a multi-file KB.
+
+def _xml_root(path: Path, size: int) -> dict[str, str]:
+    """The prefixes an RDF/XML file declares on its root, after checking that
+    the file ends with the root's end tag.
+
+    Prefixes: the root element's ``xmlns:p`` attributes, read by an
+    incremental parser that stops at the root (large files cost nothing).
+    End tag: Oxigraph's RDF/XML parser accepts a document that stops after
+    any complete element, so a file cut short at an element boundary (a
+    partial copy) would load part of a KB without a word; the last bytes
+    tell.  Malformed heads are left to the real parser and its message.
     """
     found: dict[str, str] = {}
-    if fmt == "xml":
-        try:
-            for event, item in ET.iterparse(io.BytesIO(data), events=("start-ns", "start")):
+    default_ns: str | None = None
+    root: str | None = None
+    try:
+        with path.open("rb") as f:
+            for event, item in ET.iterparse(f, events=("start-ns", "start")):
                 if event == "start":
+                    root = item.tag  # type: ignore[union-attr]
                     break
                 prefix, uri = item  # type: ignore[misc]
                 if prefix:
                     found.setdefault(prefix, uri)
-        except ET.ParseError:
-            pass  # the real parser reports the error with its own message
-    elif fmt in ("turtle", "n3"):
-        for m in _TURTLE_PREFIX.finditer(data):
-            if m.group(1):
-                found.setdefault(m.group(1).decode(), m.group(2).decode())
+                else:
+                    default_ns = uri
+            if root is None:
+                return found  # no element at all: the parser will say so
+            f.seek(max(0, size - _TAIL))
+            tail = f.read()
+    except ET.ParseError:
+        return found  # the real parser reports the error with its own message
+    except OSError as exc:
+        raise KBLoadError(path, exc.strerror or str(exc)) from exc
+    uri, _, local = root.rpartition("}")
+    uri = uri.lstrip("{")
+    names = {f"{p}:{local}" for p, u in found.items() if u == uri}
+    if uri == (default_ns or ""):
+        names.add(local)
+    # What may follow the root: whitespace, comments, processing instructions.
+    body = tail.rstrip()
+    while body.endswith((b"-->", b"?>")):
+        start = body.rfind(b"<!--" if body.endswith(b"-->") else b"<?")
+        if start < 0:
+            break
+        body = body[:start].rstrip()
+    start = body.rfind(b"</")
+    last = body[start + 2 : -1].strip().decode("utf-8", "replace") if start >= 0 and body.endswith(b">") else None
+    if last not in names:
+        if not (body.endswith(b"/>") and b"</" not in tail and size <= _TAIL):  # an empty <rdf:RDF/>
+            expected = min(names) if names else local
+            raise KBLoadError(path, f"truncated: the file does not end with the root element's end tag </{expected}>")
     return found
+
+
+def _turtle_prefixes(data: bytes, found: dict[str, str]) -> None:
+    """``@prefix``/``PREFIX`` lines of Turtle or N3 (whole lines) into ``found``."""
+    for m in _TURTLE_PREFIX.finditer(data):
+        if m.group(1):
+            found.setdefault(m.group(1).decode(), m.group(2).decode())
+
+
+_CHUNK = 1 << 20
+
+
+@dataclass
+class _KBFile:
+    """A KB file as first seen: its format, what says it has not changed, and
+    the prefixes it declares (the first declaration of a prefix wins; the
+    default namespace is left out: every module has its own, so it names
+    nothing across a multi-file KB)."""
+
+    path: Path
+    fmt: str
+    size: int
+    stamp: tuple[int, int, int, int]  # st_dev, st_ino, st_size, st_mtime_ns
+    prefixes: dict[str, str]
+
+    @classmethod
+    def open(cls, path: Path) -> _KBFile:
+        try:
+            with path.open("rb") as f:
+                st = os.fstat(f.fileno())
+                head = f.read(_TAIL)
+        except OSError as exc:
+            raise KBLoadError(path, exc.strerror or str(exc)) from exc
+        fmt = _format_for(path, head)
+        prefixes = _xml_root(path, st.st_size) if fmt == "xml" else {}
+        return cls(path, fmt, st.st_size, _stamp(st), prefixes)
+
+    def hash_into(self, digest: hashlib._Hash) -> None:  # type: ignore[name-defined]
+        """Feed the file's name, size and bytes to ``digest``; collect Turtle
+        prefixes on the way.  Reads in chunks (hashlib releases the GIL), so
+        it runs beside a parse on another thread without holding the file."""
+        digest.update(self.path.name.encode() + b"\0" + self.size.to_bytes(8, "big"))
+        turtle = self.fmt in ("turtle", "n3")
+        carry = b""
+        read = 0
+        try:
+            with self.path.open("rb") as f:
+                while chunk := f.read(_CHUNK):
+                    read += len(chunk)
+                    digest.update(chunk)
+                    if turtle:
+                        text = carry + chunk
+                        cut = text.rfind(b"\n") + 1
+                        _turtle_prefixes(text[:cut], self.prefixes)
+                        carry = text[cut:]
+        except OSError as exc:
+            raise KBLoadError(self.path, exc.strerror or str(exc)) from exc
+        if turtle and carry:
+            _turtle_prefixes(carry, self.prefixes)
+        if read != self.size:
+            raise KBLoadError(self.path, "the file changed while it was being loaded")
+
+    def check_unchanged(self) -> None:
+        """The bytes hashed are the bytes parsed: the file was not modified or
+        replaced while it was read twice (hash, parse)."""
+        try:
+            unchanged = _stamp(self.path.stat()) == self.stamp
+        except OSError:
+            unchanged = False
+        if not unchanged:
+            raise KBLoadError(self.path, "the file changed while it was being loaded")
+
+
+def _stamp(st: os.stat_result) -> tuple[int, int, int, int]:
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
 def _message(exc: BaseException | str) -> str:
@@ -371,7 +477,7 @@ class _Backend(Protocol):
     @property
     def triple_count(self) -> int: ...
 
-    def load(self, path: Path, data: bytes, fmt: str) -> None: ...
+    def load(self, path: Path, fmt: str) -> None: ...
 
     def query(self, text: str, row_limit: int, deadline: _Deadline) -> QueryResult: ...
 
@@ -396,17 +502,21 @@ class _OxigraphBackend:
     def triple_count(self) -> int:
         return len(self.store)
 
-    def load(self, path: Path, data: bytes, fmt: str) -> None:
+    def load(self, path: Path, fmt: str) -> None:
         base = path.resolve().as_uri()
         native = _OX_FORMATS.get(fmt)
         try:
             if native is not None:
-                # bulk_load: no transaction to keep (the KB is built once, and
-                # a failed load discards it); faster than load on big files.
-                self.store.bulk_load(data, format=native, base_iri=base)
+                # Store.load from the path: Oxigraph reads the file itself (no
+                # copy of it in Python) and parses and inserts in one pass.
+                # bulk_load is no faster for an in-memory store and peaks
+                # ~150 MB higher on the 100k-product KB; lenient=True would
+                # save ~10 % but lets invalid IRIs and language tags in
+                # (experiments/kb_load.py).
+                self.store.load(path=path, format=native, base_iri=base)
                 return
             graph = rdflib.Graph(bind_namespaces="none")
-            graph.parse(data=data, format=fmt, publicID=base)
+            graph.parse(data=path.read_bytes(), format=fmt, publicID=base)
         except Exception as exc:  # broad on purpose: parsers raise SyntaxError, ValueError, OSError, ...
             raise KBLoadError(path, _message(exc)) from exc
         self.store.extend(
@@ -576,9 +686,9 @@ class _RdflibBackend:
     def triple_count(self) -> int:
         return len(self.graph)
 
-    def load(self, path: Path, data: bytes, fmt: str) -> None:
+    def load(self, path: Path, fmt: str) -> None:
         try:
-            self.graph.parse(data=data, format=fmt, publicID=path.resolve().as_uri())
+            self.graph.parse(data=path.read_bytes(), format=fmt, publicID=path.resolve().as_uri())
         except Exception as exc:  # broad on purpose: rdflib's parsers raise anything
             raise KBLoadError(path, _message(exc)) from exc
 
@@ -692,29 +802,30 @@ class KnowledgeBase:
         if not paths:
             raise ValueError("a knowledge base needs at least one file")
         engine: _Backend = _OxigraphBackend() if backend == "oxigraph" else _RdflibBackend()
-        files: list[tuple[Path, bytes, str]] = []
-        for item in paths:
-            path = Path(item)
-            try:
-                data = path.read_bytes()
-            except OSError as exc:
-                raise KBLoadError(path, exc.strerror or str(exc)) from exc
-            files.append((path, data, _format_for(path, data)))
-        # Parsing is nearly all of a big KB's load time; pyoxigraph parses
-        # the files side by side (GIL released) while this thread hashes them.
+        # Unreadable, unknown or truncated files are reported before any parsing.
+        files = [_KBFile.open(Path(item)) for item in paths]
+        # Parsing is nearly all of a big KB's load time: the files are parsed
+        # one after another on a worker thread (GIL released) while this
+        # thread hashes them for the ETag.
+        digest = hashlib.blake2b(digest_size=8)
+        digest.update(backend.encode() + b"\0")
         with ThreadPoolExecutor(max_workers=len(files) if engine.parallel_load else 1) as pool:
-            loads = [pool.submit(engine.load, path, data, fmt) for path, data, fmt in files]
-            digest = hashlib.blake2b(digest_size=8)
-            digest.update(backend.encode() + b"\0")
-            prefixes: dict[str, str] = {}
-            for path, data, fmt in files:
-                for prefix, ns in _declared_prefixes(data, fmt).items():
-                    prefixes.setdefault(prefix, ns)
-                digest.update(path.name.encode() + b"\0" + len(data).to_bytes(8, "big"))
-                digest.update(data)
-            for load in loads:  # the first failing file, in the order given
-                load.result()
-        resolved = [path for path, _, _ in files]
+            loads = [pool.submit(engine.load, f.path, f.fmt) for f in files]
+            try:
+                for f in files:
+                    f.hash_into(digest)
+                for load in loads:  # the first failing file, in the order given
+                    load.result()
+            except BaseException:
+                for load in loads:
+                    load.cancel()
+                raise
+        prefixes: dict[str, str] = {}
+        for f in files:
+            f.check_unchanged()
+            for prefix, ns in f.prefixes.items():
+                prefixes.setdefault(prefix, ns)
+        resolved = [f.path for f in files]
         return cls(
             backend=backend,
             engine=engine,

@@ -1,0 +1,166 @@
+"""Where a large KB's load time goes: ``KnowledgeBase.load`` and its parts.
+
+    .venv/bin/python tools/gen_warehouse.py --products 100000 --out /tmp/kb100k
+    .venv/bin/python tools/gen_warehouse.py --products 100000 --format ttl --out /tmp/kb100k-ttl
+    .venv/bin/python tools/gen_warehouse.py --products 100000 --format nt --out /tmp/kb100k-nt
+    .venv/bin/python experiments/kb_load.py --dirs /tmp/kb100k /tmp/kb100k-ttl /tmp/kb100k-nt
+
+Every measurement runs in a fresh process (its peak RSS is its own); each is
+repeated ``--repeat`` times, interleaved, and the minimum kept (the machine
+may be shared).  Variants, per directory (its ``*.owl``/``*.ttl``/``*.nt``
+files, loaded in name order):
+
+* ``KnowledgeBase.load``: the loader as a robot runs it (read, ETag hash,
+  prefixes, parse and insert, triple count);
+* ``Store.load bytes`` / ``Store.load path`` / ``Store.bulk_load bytes`` /
+  ``Store.bulk_load path``: pyoxigraph alone, one file after another into an
+  in-memory ``Store``;
+* ``... lenient``: the same with ``lenient=True`` (for comparison only: it
+  lets invalid IRIs and language tags in, so the loader does not use it);
+* ``parse only``: ``pyoxigraph.parse`` iterated, no store (an upper bound of
+  the parser's own time: it also builds a Python object per triple);
+* ``read + blake2b``: reading the files and hashing them for the ETag.
+
+Prints a table and writes ``experiments/results/kb_load.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+SUFFIXES = {".owl": "RDF/XML", ".rdf": "RDF/XML", ".ttl": "Turtle", ".nt": "N-Triples"}
+
+VARIANTS = [
+    "KnowledgeBase.load",
+    "Store.load bytes",
+    "Store.load path",
+    "Store.bulk_load bytes",
+    "Store.bulk_load path",
+    "Store.load bytes lenient",
+    "parse only",
+    "parse only lenient",
+    "read + blake2b",
+]
+
+CSV_FIELDS = ["variant", "format", "dir", "files_mb", "triples", "runs", "min_s", "median_s", "triples_per_s",
+              "peak_rss_mb"]
+
+
+def kb_files(directory: Path) -> list[Path]:
+    return sorted(p for p in directory.iterdir() if p.suffix in SUFFIXES)
+
+
+def measure(variant: str, directory: Path) -> dict[str, float]:
+    """One measurement in this process; returns seconds, triples, peak RSS."""
+    import pyoxigraph as ox
+
+    from coapkb.kb.store import KnowledgeBase
+
+    formats = {"RDF/XML": ox.RdfFormat.RDF_XML, "Turtle": ox.RdfFormat.TURTLE, "N-Triples": ox.RdfFormat.N_TRIPLES}
+    paths = kb_files(directory)
+    lenient = variant.endswith(" lenient")
+    started = time.perf_counter()
+    triples = 0
+    if variant == "KnowledgeBase.load":
+        triples = KnowledgeBase.load(paths).triple_count
+    elif variant.startswith("Store."):
+        store = ox.Store()
+        method = store.bulk_load if variant.startswith("Store.bulk_load") else store.load
+        for p in paths:
+            kw = {"format": formats[SUFFIXES[p.suffix]], "base_iri": p.resolve().as_uri(), "lenient": lenient}
+            if " path" in variant:
+                method(path=p, **kw)
+            else:
+                method(p.read_bytes(), **kw)
+        triples = len(store)
+    elif variant.startswith("parse only"):
+        for p in paths:
+            for _ in ox.parse(path=p, format=formats[SUFFIXES[p.suffix]], base_iri=p.resolve().as_uri(),
+                              lenient=lenient):
+                triples += 1
+    elif variant == "read + blake2b":
+        digest = hashlib.blake2b(digest_size=8)
+        for p in paths:
+            digest.update(p.read_bytes())
+    else:
+        raise ValueError(variant)
+    seconds = time.perf_counter() - started
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return {"s": seconds, "triples": triples, "peak_rss_mb": peak_kib / 1024}
+
+
+def run_one(variant: str, directory: Path) -> dict[str, float]:
+    out = subprocess.run([sys.executable, __file__, "--one", variant, str(directory)], check=True,
+                         capture_output=True, text=True, cwd=ROOT)
+    return json.loads(out.stdout)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dirs", type=Path, nargs="+", default=[Path("/tmp/kb100k")])
+    p.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS, metavar="VARIANT")
+    p.add_argument("--repeat", type=int, default=3, help="runs per variant and directory (minimum kept)")
+    p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "kb_load.csv")
+    p.add_argument("--one", nargs=2, metavar=("VARIANT", "DIR"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(measure(args.one[0], Path(args.one[1]))))
+        return 0
+    jobs = []
+    for directory in args.dirs:
+        files = kb_files(directory)
+        if not files:
+            p.error(f"{directory}: no *.owl, *.ttl or *.nt files")
+        fmt = "+".join(sorted({SUFFIXES[f.suffix] for f in files}))
+        size_mb = sum(f.stat().st_size for f in files) / 1e6
+        for variant in args.variants:
+            if "bulk_load path" in variant and fmt != "RDF/XML":
+                continue  # same picture as for RDF/XML; keeps the run short
+            jobs.append((variant, directory, fmt, size_mb))
+    runs: dict[tuple[str, Path], list[dict[str, float]]] = {(v, d): [] for v, d, _, _ in jobs}
+    for round_no in range(args.repeat):  # interleaved: other load on the machine hits every variant alike
+        for variant, directory, _, _ in jobs:
+            runs[variant, directory].append(run_one(variant, directory))
+            print(f"round {round_no + 1}: {variant:26} {directory}: {runs[variant, directory][-1]['s']:.2f} s",
+                  file=sys.stderr, flush=True)
+    rows = []
+    for variant, directory, fmt, size_mb in jobs:
+        results = runs[variant, directory]
+        best = min(r["s"] for r in results)
+        triples = int(max(r["triples"] for r in results))
+        rows.append({
+            "variant": variant, "format": fmt, "dir": str(directory), "files_mb": round(size_mb),
+            "triples": triples or "", "runs": len(results), "min_s": round(best, 2),
+            "median_s": round(statistics.median(r["s"] for r in results), 2),
+            "triples_per_s": round(triples / best) if triples else "",
+            "peak_rss_mb": round(min(r["peak_rss_mb"] for r in results)),
+        })
+    print(f"{'variant':26} {'format':10} {'MB':>4} {'triples':>9} {'min s':>6} {'med s':>6} {'triples/s':>10} "
+          f"{'RSS MB':>7}")
+    for r in rows:
+        tps = f"{r['triples_per_s']:,}" if r["triples_per_s"] else ""
+        print(f"{r['variant']:26} {r['format']:10} {r['files_mb']:>4} {r['triples'] or '':>9} {r['min_s']:>6} "
+              f"{r['median_s']:>6} {tps:>10} {r['peak_rss_mb']:>7}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with args.out.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
