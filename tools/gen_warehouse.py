@@ -2,21 +2,50 @@
 """Generate the warehouse KBs: ``Object.owl``, ``Location.owl``, ``Capability.owl``.
 
     python tools/gen_warehouse.py --products 1000 --robots 9 --seed 7 --out ontologies/
+    python tools/gen_warehouse.py --products 100000 --format ttl --out /tmp/kb100k-ttl
 
 Output is deterministic: the same arguments give byte-identical files.  The
 logic lives in :mod:`coapkb.world.warehouse`; this is only its command line.
+``--format ttl`` or ``nt`` writes the same graphs as Turtle or N-Triples
+(``Object.ttl``, ...), converted from the RDF/XML with pyoxigraph.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from coapkb.world.warehouse import WarehouseSpec, generate, write_ontologies
+
+SUFFIXES = {"ttl": ".ttl", "nt": ".nt"}
+
+
+def convert(owl: Path, out: Path, fmt: str) -> Path:
+    """``owl`` (RDF/XML) as Turtle or N-Triples in ``out``, same stem; streamed."""
+    import pyoxigraph as ox
+
+    prefixes = {}
+    for event, item in ET.iterparse(owl, events=("start-ns", "start")):
+        if event == "start":
+            break
+        if item[0]:
+            prefixes[item[0]] = item[1]
+    target = out / (owl.stem + SUFFIXES[fmt])
+    tmp = target.with_name(target.name + ".tmp")
+    base = target.with_suffix(".owl").resolve().as_uri()  # as if the RDF/XML file were in out
+    triples = (q.triple for q in ox.parse(path=owl, format=ox.RdfFormat.RDF_XML, base_iri=base))
+    if fmt == "ttl":
+        ox.serialize(triples, output=tmp, format=ox.RdfFormat.TURTLE, prefixes=prefixes)
+    else:
+        ox.serialize(triples, output=tmp, format=ox.RdfFormat.N_TRIPLES)
+    tmp.replace(target)
+    return target
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,6 +58,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--racks-per-aisle", type=int, default=defaults.racks_per_aisle)
     p.add_argument("--bins-per-rack", type=int, default=defaults.bins_per_rack)
     p.add_argument("--out", type=Path, default=Path("ontologies"), help="output directory")
+    p.add_argument("--format", choices=["owl", "ttl", "nt"], default="owl",
+                   help="RDF/XML (.owl, default), Turtle (.ttl) or N-Triples (.nt)")
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -43,7 +74,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         p.error(str(exc))
     start = time.perf_counter()
-    written = write_ontologies(spec, args.out)
+    if args.format == "owl":
+        written = write_ontologies(spec, args.out)
+    else:
+        args.out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix="gen_warehouse-") as tmp:
+            owl = write_ontologies(spec, tmp)
+            written = {name: convert(path, args.out, args.format) for name, path in owl.items()}
     elapsed = time.perf_counter() - start
     if not args.quiet:
         for path in written.values():
