@@ -152,6 +152,13 @@ async def measure(
                         opened[(name, i)] = await _open_client(SYSTEMS[name], bandwidth_kbps)
             peers = {n: Endpoint(SYSTEMS[n].scheme, tb.address(servers[n]), PORTS[SYSTEMS[n].scheme]) for n in systems}
             kbs = {key: KBClient(c, timeout=timeout_s, cache=False) for key, c in opened.items()}
+            # A ZeroMQ client connects (and starts its I/O thread) at its first
+            # request: make that request inside the client's namespace, one
+            # client at a time, so the connection is made from there.
+            for (name, i), kb in kbs.items():
+                if SYSTEMS[name].scheme == "zmq":
+                    with enter_netns(tb[clients[name][i]].netns):
+                        await kb.named(peers[name], "object-exists", {"name": products[0]})
             plans = {(key, s): query_plan(warmup + queries, seed * 1000 + key[1] * 100 + s, products)
                      for key in opened for s in range(streams)}
             await asyncio.gather(*(_stream(kbs[k], peers[k[0]], plans[(k, s)][:warmup], s)
