@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import threading
 import time
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
@@ -809,16 +810,24 @@ class KnowledgeBase:
         # thread hashes them for the ETag.
         digest = hashlib.blake2b(digest_size=8)
         digest.update(backend.encode() + b"\0")
-        with ThreadPoolExecutor(max_workers=len(files) if engine.parallel_load else 1) as pool:
-            loads = [pool.submit(engine.load, f.path, f.fmt) for f in files]
+        stop = threading.Event()
+
+        def load_in_order(batch: list[_KBFile]) -> None:
+            for f in batch:  # after a failure, the next files are not parsed
+                if stop.is_set():
+                    return
+                engine.load(f.path, f.fmt)
+
+        batches = [[f] for f in files] if engine.parallel_load else [files]
+        with ThreadPoolExecutor(max_workers=len(batches)) as pool:
+            loads = [pool.submit(load_in_order, batch) for batch in batches]
             try:
                 for f in files:
                     f.hash_into(digest)
                 for load in loads:  # the first failing file, in the order given
                     load.result()
             except BaseException:
-                for load in loads:
-                    load.cancel()
+                stop.set()
                 raise
         prefixes: dict[str, str] = {}
         for f in files:

@@ -99,3 +99,28 @@ def test_turtle_prefixes_across_chunks(tmp_path: Path, monkeypatch: pytest.Monke
     kb = KnowledgeBase.load([write(tmp_path, "T.ttl", text)])
     assert kb.prefixes == {"ex": "http://ex.org/", "late": "http://late.org/"}
     assert kb.triple_count == 2
+
+
+def test_files_after_a_bad_one_are_not_parsed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    parsed: list[str] = []
+    real_load = kb_store._OxigraphBackend.load
+
+    def spy(self: object, p: Path, fmt: str) -> None:
+        parsed.append(p.name)
+        real_load(self, p, fmt)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(kb_store._OxigraphBackend, "load", spy)
+    bad = write(tmp_path, "Bad.ttl", "<urn:a> <urn:b> .\n")
+    good = write(tmp_path, "Good.owl", GOOD)
+    with pytest.raises(KBLoadError, match=r"Bad\.ttl"):
+        KnowledgeBase.load([bad, good])
+    assert parsed == ["Bad.ttl"]
+
+
+def test_unordered_answers_repeat_between_loads(tmp_path: Path) -> None:
+    files = [write(tmp_path, "A.owl", GOOD),
+             write(tmp_path, "B.ttl", "".join(f"<urn:s{n}> <http://ex.org/p> <urn:o{n % 7}> .\n" for n in range(300)))]
+    query = "SELECT ?s ?o WHERE { ?s <http://ex.org/p> ?o }"
+    first = KnowledgeBase.load(files).query(query, row_limit=10_000)
+    for _ in range(3):
+        assert KnowledgeBase.load(files).query(query, row_limit=10_000) == first
