@@ -74,7 +74,10 @@ SYSTEMS: dict[str, System] = {s.name: s for s in (
     System("zmq", "zmq", "tcp"),
     System("robust-nowindow", "coap", "robust", window=False),
 )}
-MATRIX_SYSTEMS = ("robust", "adaptive", "rfc7252", "zmq")
+#: rfc7252 is left out of the default matrix: at 20 % loss its 2-3 s timeouts,
+#: doubled per retry, make one cell take many minutes (its numbers are in
+#: experiments/results/retransmission/); name it with --systems to include it.
+MATRIX_SYSTEMS = ("robust", "adaptive", "zmq")
 BOTTLENECK_SYSTEMS = ("robust", "robust-nowindow", "adaptive")
 
 
@@ -291,7 +294,8 @@ def _ratios(s: pd.DataFrame) -> pd.DataFrame:
     keys = ["delay_ms", "bandwidth_kbps", "loss_pct"]
     robust = s[s.system == "robust"].set_index(keys)
     zmq = s[s.system == "zmq"].set_index(keys)
-    both = robust.join(zmq, lsuffix="_robust", rsuffix="_zmq", how="inner")
+    both = robust.merge(
+        zmq, left_index=True, right_index=True, suffixes=("_robust", "_zmq"))
     if both.empty:
         return pd.DataFrame()
     return pd.DataFrame({
