@@ -138,7 +138,8 @@ async def measure(
     slow = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms)
     bottleneck = clients_per_system > 1
     fast = LinkSpec(loss_pct=loss_pct, delay_ms=delay_ms) if bottleneck else slow
-    tags = {name: name.replace("-", "")[:6] for name in systems}
+    # Host names must be unique and short (interface names): an index, then the system's name.
+    tags = {name: f"{i}{name.replace('-', '')[:5]}" for i, name in enumerate(systems)}
     servers = {name: f"s-{tags[name]}" for name in systems}
     clients = {name: [f"c-{tags[name]}-{i}" for i in range(clients_per_system)] for name in systems}
     links = {**{s: slow for s in servers.values()}, **{c: fast for cs in clients.values() for c in cs}}
