@@ -137,6 +137,12 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--query-wire", choices=("compact", "seed"), default="compact")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
     p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
+    p.add_argument("--replication", type=int, default=2, metavar="R",
+                   help="robots of a cluster holding each KB module (1-3, default 2: one may fail)")
+    p.add_argument("--kill", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
+    p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
+                   help="start a killed robot again at S seconds (it does not rejoin the team yet)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
     p.set_defaults(run=_team)
@@ -153,7 +159,8 @@ async def _demo(args: argparse.Namespace) -> int:
     from .harness.team import draw_tasks, DEFAULT_ONTOLOGIES
 
     tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS) + list(DEMO_TASKS[1:])
-    print("Demo: a team of 3 robots (Robot1: Location KB, Robot2: Object KB, Robot3: Capability KB)")
+    print("Demo: a team of 3 robots, each KB module on two of them "
+          "(Robot1: Location+Object, Robot2: Object+Capability, Robot3: Capability+Location)")
     print("on loopback, each a separate process, over " + args.transport + "; tasks: " + ", ".join(tasks))
     print("Each robot runs the seed's four queries per task and computes every robot's cost (Wh);")
     print("the cheapest capable robot gets the task; all robots must agree.\n")
@@ -167,14 +174,19 @@ async def _demo(args: argparse.Namespace) -> int:
 
 async def _team(args: argparse.Namespace) -> int:
     from .harness.record import TaskRecord, summarise
-    from .harness.team import DEFAULT_ONTOLOGIES, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
+    from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
+        faults = tuple(
+            Fault.parse(action, text)
+            for action in ("kill", "restart")
+            for text in getattr(args, action, None) or ()
+        )
         spec = TeamSpec(
             robots=args.robots, mode=args.mode, transport=args.transport, strategy=args.strategy,
             retransmission=args.retransmission, query_wire=args.query_wire, ontologies=ontologies,
-            time_scale=args.time_scale,
+            time_scale=args.time_scale, replication=getattr(args, "replication", 2), faults=faults,
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)
@@ -199,6 +211,10 @@ async def _team(args: argparse.Namespace) -> int:
             outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
         else:
             outcome = f"-> {record.assigned_to or 'nobody can'}"
+        if record.reassigned_from is not None:
+            outcome += f" (again: task {record.reassigned_from})"
+        if record.absent:
+            outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
         agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
         lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
                  f"({record.coordination_s * 1000:.0f} ms){agreed}"]

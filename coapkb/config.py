@@ -113,13 +113,15 @@ class RobotConfig:
 
     def holder_of(self, kb: str) -> Teammate | None:
         """The teammate that serves KB module ``kb`` (this robot if it has it)."""
+        holders = self.holders_of(kb)
+        return holders[0] if holders else None
+
+    def holders_of(self, kb: str) -> list[Teammate]:
+        """Every teammate serving KB module ``kb`` (replicas), this robot first,
+        then in robot-id order: the order the Query Handler fails over in."""
         me = self.team[self.robot_id]
-        if kb in me.kbs:
-            return me
-        for mate in sorted(self.team.values(), key=lambda m: m.robot_id):
-            if kb in mate.kbs:
-                return mate
-        return None
+        others = sorted((m for m in self.team.values() if m is not me and kb in m.kbs), key=lambda m: m.robot_id)
+        return ([me] if kb in me.kbs else []) + others
 
 
 def load_config(path: str | Path) -> RobotConfig:

@@ -128,6 +128,10 @@ class Controller:
         if not future.done():
             future.set_result(message)
 
+    def _with_membership(self, decision: Decision) -> Decision:
+        membership = self.team.membership
+        return replace(decision, epoch=membership.epoch, members=membership.members)
+
     async def _run(self) -> None:
         while True:
             task, received = await self._tasks.get()
@@ -140,7 +144,8 @@ class Controller:
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
             coordination_s = round(time.monotonic() - received, 6)
-            self._apply(replace(message, decision=replace(message.decision, coordination_s=coordination_s)))
+            decision = self._with_membership(replace(message.decision, coordination_s=coordination_s))
+            self._apply(replace(message, decision=decision))
 
     def _apply(self, message: DecisionMessage) -> None:
         decision = message.decision

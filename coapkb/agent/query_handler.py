@@ -1,24 +1,27 @@
 """Query Handler (the seed's Fig. 2): each query goes to the KB that can answer it.
 
 A query for a KB module this robot holds runs on its own knowledge base; any
-other goes, through the transport interface, to the teammate holding that
-module (or to the central server in the centralised baseline).
+other goes, through the transport interface, to a teammate holding that
+module (or to the central server in the centralised baseline).  A module may
+be held by several teammates (replicas): a dead or unreachable holder is
+failed over to the next, and a slow one is hedged.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
-from ..config import RobotConfig
+from ..config import RobotConfig, Teammate
 from ..kb.store import KBError, KnowledgeBase
 from ..transport.messages import ContentFormat, Method
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.results import QueryResult
-from ..transport.base import Endpoint, TransportError
+from ..transport.base import TransportError
 
 #: How queries travel: "compact" = named query resources with CBOR answers
 #: (a few bytes each way); "seed" = the whole SPARQL text in every request
@@ -37,11 +40,18 @@ class QueryStats:
     failed: int = 0
     #: Remote answers served from the client's cache (fresh, or revalidated by ETag).
     cached: int = 0
+    #: Queries re-sent to another holder of the module after a transport failure.
+    failovers: int = 0
+    #: Queries also sent to a second holder because the first was slow.
+    hedged: int = 0
     #: Wall-clock latency of each remote query, in seconds.
     remote_latencies: list[float] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        return {"local": self.local, "remote": self.remote, "failed": self.failed, "cached": self.cached}
+        return {
+            "local": self.local, "remote": self.remote, "failed": self.failed, "cached": self.cached,
+            "failovers": self.failovers, "hedged": self.hedged,
+        }
 
 
 class QueryHandler:
@@ -51,6 +61,8 @@ class QueryHandler:
         kb: KnowledgeBase | None,
         client: KBClient,
         wire: str = "compact",
+        alive: Callable[[str], bool] = lambda robot_id: True,
+        hedge_floor_s: float = 1.0,
     ) -> None:
         if wire not in QUERY_WIRES:
             raise ValueError(f"query wire {wire!r} is not one of {', '.join(QUERY_WIRES)}")
@@ -59,23 +71,41 @@ class QueryHandler:
         self.client = client
         self.wire = wire
         self.stats = QueryStats()
+        #: Whether a teammate is up, as the team view knows it (failure detection).
+        self._alive = alive
+        self.hedge_floor_s = hedge_floor_s
+        #: Holders whose last request failed at the transport: asked last.
+        self._suspects: set[str] = set()
 
-    def _remote_for(self, module: str) -> tuple[str, Endpoint] | None:
-        """(who, where) for a remote query, or None if this robot answers itself."""
+    def _holders_for(self, module: str) -> list[Teammate] | None:
+        """The remote holders of ``module`` to ask, best first; None if this robot
+        answers itself.  Holders known to be down (team view) or that failed
+        lately go last: asked only when the others fail too."""
         if self.config.central is not None:
-            return "central server", self.config.central
-        holder = self.config.holder_of(module)
-        if holder is None:
+            return [Teammate("central server", self.config.central, (module,))]
+        holders = self.config.holders_of(module)
+        if not holders:
             raise QueryError(f"no teammate holds the {module} KB")
-        if holder.robot_id == self.config.robot_id and self.kb is not None:
+        if holders[0].robot_id == self.config.robot_id and self.kb is not None:
             return None
-        return holder.robot_id, holder.endpoint
+        remote = [m for m in holders if m.robot_id != self.config.robot_id]
+        # sorted() is stable: the configured order stays among equals.
+        return sorted(remote, key=lambda m: (not self._alive(m.robot_id), m.robot_id in self._suspects))
+
+    def hedge_after_s(self) -> float:
+        """How long to wait for one holder before also asking the next replica:
+        a multiple of the recent remote latencies, never under the floor."""
+        recent = sorted(self.stats.remote_latencies[-64:])
+        if not recent:
+            return self.hedge_floor_s
+        p90 = recent[min(len(recent) - 1, int(0.9 * len(recent)))]
+        return max(self.hedge_floor_s, 4 * p90)
 
     async def run(self, name: str, params: Mapping[str, str]) -> QueryResult:
         """Run the named query ``name`` wherever its KB module lives."""
         query = NAMED_QUERIES[name]
-        target = self._remote_for(query.kb)
-        if target is None:
+        holders = self._holders_for(query.kb)
+        if holders is None:
             self.stats.local += 1
             assert self.kb is not None
             try:
@@ -83,26 +113,74 @@ class QueryHandler:
             except KBError as exc:
                 self.stats.failed += 1
                 raise QueryError(f"{name} on own {query.kb} KB: {exc}") from None
-        who, peer = target
-        started = time.monotonic()
-        hits_before = self.client.cache_stats.hits
+        return await self._remote(name, params, holders)
+
+    async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
+        """Ask the first holder; on a transport failure (dead or unreachable
+        peer) ask the next, and when the first is slow, hedge: ask the next
+        too and take whichever answers first."""
+        query = NAMED_QUERIES[name]
+        waiting = list(holders)
+        pending: dict[asyncio.Task[QueryResult], Teammate] = {}
+        errors: list[str] = []
+
+        def ask_next() -> None:
+            mate = waiting.pop(0)
+            pending[asyncio.create_task(self._ask(mate, name, params))] = mate
+
+        ask_next()
         try:
-            if self.wire == "compact":
-                result = await self.client.named(peer, name, params, timeout=self.config.query_timeout_s)
-                if self.client.cache_stats.hits > hits_before:  # answered from the cache, no traffic
-                    self.stats.cached += 1
-                    return result
-            else:
-                result = await self.client.sparql(
-                    peer,
-                    query.render(params),
-                    accept=ContentFormat.JSON,
-                    method=Method.POST,
-                    timeout=self.config.query_timeout_s,
+            while pending:
+                done, _ = await asyncio.wait(
+                    pending, timeout=self.hedge_after_s() if waiting else None, return_when=asyncio.FIRST_COMPLETED
                 )
-        except (QueryFailed, TransportError) as exc:
-            self.stats.failed += 1
-            raise QueryError(f"{name} to {who} ({peer}) for the {query.kb} KB failed: {exc}") from None
+                if not done:  # the holders asked are slow: a replica too
+                    self.stats.hedged += 1
+                    ask_next()
+                    continue
+                for task in done:
+                    mate = pending.pop(task)
+                    exc = task.exception()
+                    if exc is None:
+                        self._suspects.discard(mate.robot_id)
+                        return task.result()
+                    if isinstance(exc, QueryFailed):  # the KB answered: another replica would say the same
+                        self.stats.failed += 1
+                        raise QueryError(
+                            f"{name} to {mate.robot_id} ({mate.endpoint}) for the {query.kb} KB failed: {exc}"
+                        ) from None
+                    assert isinstance(exc, TransportError), exc
+                    self._suspects.add(mate.robot_id)
+                    errors.append(f"{name} to {mate.robot_id} ({mate.endpoint}) for the {query.kb} KB failed: {exc}")
+                    if waiting and not pending:
+                        self.stats.failovers += 1
+                        ask_next()
+        finally:
+            for task in pending:
+                task.cancel()
+            await asyncio.gather(*pending, return_exceptions=True)
+        self.stats.failed += 1
+        raise QueryError("; then ".join(errors))
+
+    async def _ask(self, mate: Teammate, name: str, params: Mapping[str, str]) -> QueryResult:
+        """One remote query to one holder; raises QueryFailed or TransportError."""
+        query = NAMED_QUERIES[name]
+        peer = mate.endpoint
+        started = time.monotonic()
+        if self.wire == "compact":
+            hits_before = self.client.cache_stats.hits
+            result = await self.client.named(peer, name, params, timeout=self.config.query_timeout_s)
+            if self.client.cache_stats.hits > hits_before:  # answered from the cache, no traffic
+                self.stats.cached += 1
+                return result
+        else:
+            result = await self.client.sparql(
+                peer,
+                query.render(params),
+                accept=ContentFormat.JSON,
+                method=Method.POST,
+                timeout=self.config.query_timeout_s,
+            )
         self.stats.remote += 1
         self.stats.remote_latencies.append(time.monotonic() - started)
         return result

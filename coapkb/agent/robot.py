@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import random
 import re
 from dataclasses import asdict, replace
 from typing import Any
@@ -100,13 +101,15 @@ class Robot:
             robot_id=config.robot_id,
             plan=PlannedState(start.aisle, start.rack, start.battery_wh, 0.0, start.payload_kg, seq=0),
             live=LiveState(float(start.aisle), float(start.rack)),
+            # Nonzero, so it is always sent: teammates tell a restart by it.
+            boot=random.randrange(1, 2**32),
         )
         teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
-        team = TeamView(own, teammates, client)
+        team = TeamView(own, teammates, client, link_kbps=config.link_kbps)
         # The compact wire caches answers for their Max-Age (the KBs are
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
-        queries = QueryHandler(config, kb, kb_client, wire=query_wire)
+        queries = QueryHandler(config, kb, kb_client, wire=query_wire, alive=team.is_up)
 
         def publish_live(live: LiveState) -> None:
             team.set_own(replace(team.own, live=live))
@@ -163,7 +166,15 @@ class Robot:
         return _cbor_state(self.team.own.encode(), request.accept)
 
     async def _get_plan(self, request: Request) -> Response:
-        return _cbor_state(self.team.own.encode_plan(), request.accept)
+        about = request.query.get("of")
+        if about is None or about == self.config.robot_id:
+            return _cbor_state(self.team.own.encode_plan(), request.accept)
+        # A teammate's plan as this robot observed it: survivors compare notes
+        # on a robot that died (TeamView._plan_from_survivors).
+        state = self.team.state_of(about)
+        if state is None:
+            return Response.error(Status.NOT_FOUND, f"no state of {about}")
+        return _cbor_state(state.encode_plan(), request.accept)
 
     async def _tasks(self, request: Request) -> Response:
         if request.method == Method.GET:

@@ -46,6 +46,11 @@ class Decision:
     coordination_s: float = 0.0
     #: Why a robot cannot take the task (robot id -> reason), for people.
     reasons: dict[str, str] = field(default_factory=dict)
+    #: The membership the decision was taken in: its epoch (membership
+    #: changes so far) and the robots taking part, so survivors' agreement
+    #: on who is in the team is visible in the record.
+    epoch: int = 0
+    members: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -67,6 +72,10 @@ class RobotState:
     #: The plan before the last decision: a teammate that is one task ahead
     #: still shows the state the others need for that task.
     prev: PlannedState | None = None
+    #: This process's incarnation (a random number drawn at start, 0 =
+    #: unnamed): a restarted robot has a new one, so teammates can tell it
+    #: from the process they knew even before it decides anything.
+    boot: int = 0
 
     def with_plan(self, plan: PlannedState, last: Decision) -> "RobotState":
         return replace(self, plan=plan, last=last, prev=self.plan)
@@ -93,13 +102,19 @@ class RobotState:
                 [self.live.aisle, self.live.rack, ACTIVITIES.index(self.live.activity), self.live.executing,
                  self.live.queued, self.live.done],
                 None if self.last is None else _decision_array(self.last),
+                *self._boot(),
             ],
             canonical=True,  # smallest lossless float widths
         )
 
+    def _boot(self) -> list[int]:
+        return [self.boot] if self.boot else []
+
     def encode_plan(self) -> bytes:
         """Only what teammates need to assign tasks: id, plan, previous plan."""
-        return cbor2.dumps([self.robot_id, _plan_array(self.plan), _plan_array(self.prev)], canonical=True)
+        return cbor2.dumps(
+            [self.robot_id, _plan_array(self.plan), _plan_array(self.prev), *self._boot()], canonical=True
+        )
 
     @classmethod
     def decode(cls, data: bytes) -> "RobotState":
@@ -107,11 +122,13 @@ class RobotState:
         try:
             raw = cbor2.loads(data)
             robot_id, plan, prev = raw[0], _plan(raw[1]), _plan(raw[2]) if raw[2] is not None else None
-            if len(raw) == 3:
-                return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev)
+            if len(raw) in (3, 4):  # the plan form, with or without the incarnation
+                boot = int(raw[3]) if len(raw) == 4 else 0
+                return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev, boot)
             live = raw[3]
             live_state = LiveState(live[0], live[1], ACTIVITIES[live[2]], live[3], live[4], live[5])
-            return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev)
+            boot = int(raw[5]) if len(raw) > 5 else 0
+            return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot)
         except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"not a robot state: {exc}") from None
 
@@ -133,9 +150,15 @@ def _plan(raw: list) -> PlannedState:
 
 
 def _decision_array(d: Decision) -> list:
-    return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons]
+    return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons,
+            d.epoch, list(d.members)]
 
 
 def _decision(raw: list) -> Decision:
-    seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons = raw
-    return Decision(seq, obj, skipped, assigned_to, dict(costs), error, coordination_s, dict(reasons))
+    # Eight items: a robot from before membership epochs (epoch 0, members unnamed).
+    seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons, *membership = raw
+    epoch, members = membership if membership else (0, ())
+    return Decision(
+        seq, obj, skipped, assigned_to, dict(costs), error, coordination_s, dict(reasons), int(epoch),
+        tuple(members),
+    )

@@ -84,6 +84,8 @@ class RobotStats:
                 remote=int(queries.get("remote", 0)),
                 failed=int(queries.get("failed", 0)),
                 cached=int(queries.get("cached", 0)),
+                failovers=int(queries.get("failovers", 0)),
+                hedged=int(queries.get("hedged", 0)),
                 remote_latencies=[float(x) for x in data.get("remote_latencies_s") or ()],
             ),
             executed=int(data.get("executed", 0)),

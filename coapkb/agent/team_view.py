@@ -1,10 +1,19 @@
 """What a robot (or the task feeder) knows of the team's states: pushed by
-Observe (RFC 7641) on each robot's state resource, never polled."""
+Observe (RFC 7641) on each robot's state resource, never polled.
+
+Liveness comes from the same exchanges: while a wait makes no progress, each
+robot is asked once with a plain GET (the refresh below); a robot that fails
+:data:`FAILURES_TO_DOWN` such requests in a row, each given a timeout that
+follows the measured round trip, is declared down.  A down robot is not
+watched or asked any more (a restarted process is a new member: joining is
+not handled here)."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import time
+from dataclasses import dataclass
 from typing import Callable, Mapping
 
 from ..transport.messages import ContentFormat, Method, Request
@@ -19,6 +28,42 @@ STATE_PATH = "/robot/state"
 PLAN_PATH = "/robot/plan"
 
 States = dict[str, RobotState]
+
+#: Failed requests in a row after which a robot is declared down: one lost
+#: datagram or one busy moment must not remove a live teammate.
+FAILURES_TO_DOWN = 2
+
+
+def liveness_floor_s(link_kbps: float | None) -> float:
+    """The shortest liveness timeout: 1 s on loopback or an unknown link; on a
+    known slow radio link (emulated in the benchmarks) 5 s, so two requests
+    lost in a row on a lossy link do not remove a live teammate."""
+    return 1.0 if link_kbps is None else 5.0
+
+
+@dataclass
+class RoundTrip:
+    """Smoothed round trip of the liveness requests (RFC 6298's estimator)."""
+
+    #: No liveness timeout is shorter than this, seconds (a robot busy with a
+    #: query answers late on a loaded machine; loopback round trips are ~1 ms).
+    floor_s: float = 1.0
+    srtt: float | None = None
+    rttvar: float = 0.0
+
+    def sample(self, rtt: float) -> None:
+        if self.srtt is None:
+            self.srtt, self.rttvar = rtt, rtt / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
+            self.srtt = 0.875 * self.srtt + 0.125 * rtt
+
+    @property
+    def timeout_s(self) -> float:
+        """How long one liveness request may take before it counts as failed."""
+        if self.srtt is None:
+            return 2 * self.floor_s
+        return max(self.floor_s, 4 * (self.srtt + 4 * self.rttvar))
 
 
 class ObservedStates:
@@ -38,14 +83,24 @@ class ObservedStates:
         *,
         refresh_s: float = 10.0,
         request_timeout_s: float = 10.0,
+        liveness: bool = False,
+        liveness_floor_s: float = 1.0,
     ) -> None:
         self._transport = transport
         self._endpoints = dict(endpoints)
         self._request = Request(Method.GET, path, accept=ContentFormat.CBOR)
-        self.refresh_s = refresh_s
-        self.request_timeout_s = request_timeout_s
+        self._refresh_s = refresh_s
+        self._request_timeout_s = request_timeout_s
+        #: With liveness, stalled waits refresh (and so probe) after a few
+        #: round trips instead of ``refresh_s``, and failures declare robots down.
+        self.liveness = liveness
+        self.round_trip = RoundTrip(floor_s=liveness_floor_s)
         self.states: States = {}
         self.refreshes = 0
+        #: Robots declared down: robot id -> why, and when (monotonic seconds).
+        self.down: dict[str, str] = {}
+        self.down_at: dict[str, float] = {}
+        self._failures: dict[str, int] = {}
         self._changed = asyncio.Condition()
         self._watchers: dict[str, asyncio.Task] = {}
 
@@ -66,7 +121,43 @@ class ObservedStates:
             watcher.cancel()
         await asyncio.gather(*self._watchers.values(), return_exceptions=True)
 
+    @property
+    def refresh_s(self) -> float:
+        return min(self._refresh_s, self.round_trip.timeout_s) if self.liveness else self._refresh_s
+
+    @property
+    def request_timeout_s(self) -> float:
+        return self.round_trip.timeout_s if self.liveness else self._request_timeout_s
+
+    @property
+    def alive(self) -> list[str]:
+        return [r for r in self._endpoints if r not in self.down]
+
+    async def declare_down(self, robot_id: str, reason: str) -> None:
+        """Stop counting on ``robot_id``: waits re-evaluate without it."""
+        if robot_id in self.down:
+            return
+        log.warning("%s is down: %s", robot_id, reason)
+        async with self._changed:
+            self.down[robot_id] = reason
+            self.down_at[robot_id] = time.monotonic()
+            self._changed.notify_all()
+        watcher = self._watchers.pop(robot_id, None)
+        if watcher is not None:
+            watcher.cancel()
+
+    async def _failed(self, robot_id: str, exc: Exception) -> None:
+        self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
+        if self.liveness and failures >= FAILURES_TO_DOWN:
+            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
+
     async def _update(self, robot_id: str, state: RobotState) -> None:
+        old = self.states.get(robot_id)
+        if self.liveness and old is not None and (state.boot != old.boot or state.plan.seq < old.plan.seq):
+            # A new process that lost the old one's state (a restart): the
+            # tasks it was given are gone.  Rejoining is not done, so it stays out.
+            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
+            return
         async with self._changed:
             self.states[robot_id] = state
             self._changed.notify_all()
@@ -74,20 +165,46 @@ class ObservedStates:
     async def refresh(self) -> None:
         """GET every robot's state once; re-observe where the observation missed a change."""
         self.refreshes += 1
+        await asyncio.gather(*(self.probe(r) for r in self.alive))
 
-        async def one(robot_id: str, endpoint: Endpoint) -> None:
+    async def probe(self, robot_id: str) -> None:
+        """GET ``robot_id``'s state (re-observing if the observation missed a
+        change); with liveness, failures in a row declare it down."""
+        endpoint = self._endpoints[robot_id]
+        for _ in range(FAILURES_TO_DOWN if self.liveness else 1):
+            started = time.monotonic()
             try:
                 response = await self._transport.request(endpoint, self._request, timeout=self.request_timeout_s)
                 state = RobotState.decode(response.payload) if response.status.is_success else None
-            except (TransportError, ValueError) as exc:
+            except TransportError as exc:
+                log.debug("refreshing %s: %s", robot_id, exc)
+                await self._failed(robot_id, exc)
+                if robot_id in self.down:
+                    return
+                continue
+            except ValueError as exc:
                 log.debug("refreshing %s: %s", robot_id, exc)
                 return
+            self.round_trip.sample(time.monotonic() - started)
+            self._failures[robot_id] = 0
             if state is not None and state != self.states.get(robot_id):
                 log.info("observation of %s missed a change; registering again", robot_id)
                 await self._update(robot_id, state)
                 self._start_watch(robot_id)
+            return
 
-        await asyncio.gather(*(one(r, e) for r, e in self._endpoints.items()))
+    async def hearsay(self, robot_id: str, about: str) -> RobotState | None:
+        """What robot ``robot_id`` has observed of robot ``about`` (``?of=``),
+        or None if it has nothing or does not answer."""
+        request = Request(Method.GET, self._request.path, {"of": about}, accept=ContentFormat.CBOR)
+        try:
+            response = await self._transport.request(
+                self._endpoints[robot_id], request, timeout=self.request_timeout_s
+            )
+            return RobotState.decode(response.payload) if response.status.is_success else None
+        except (TransportError, ValueError) as exc:
+            log.debug("asking %s about %s: %s", robot_id, about, exc)
+            return None
 
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         backoff = 0.2
@@ -125,13 +242,38 @@ class ObservedStates:
                         return dict(self.states)
 
 
-class TeamView:
-    """This robot's own state plus its teammates' planned states."""
+@dataclass(frozen=True)
+class Membership:
+    """Who takes part in assigning a task.  ``epoch`` counts the membership
+    changes so far; every decision names it, so the record shows that the
+    survivors decided with the same team."""
 
-    def __init__(self, own: RobotState, teammates: Mapping[str, Endpoint], transport: ClientTransport) -> None:
+    epoch: int
+    members: tuple[str, ...]
+
+
+class TeamView:
+    """This robot's own state plus its teammates' planned states.
+
+    Membership: a teammate declared down (failed liveness requests) is
+    excluded from task ``k`` on, where ``k`` is the first task it did not
+    publish a plan for; every survivor that saw the same plans derives the
+    same ``k``, and once excluded it stays excluded (rejoining is not done)."""
+
+    def __init__(
+        self,
+        own: RobotState,
+        teammates: Mapping[str, Endpoint],
+        transport: ClientTransport,
+        link_kbps: float | None = None,
+    ) -> None:
         self._own = own
-        self._teammates = ObservedStates(transport, teammates, PLAN_PATH)
+        self._teammates = ObservedStates(
+            transport, teammates, PLAN_PATH, liveness=True, liveness_floor_s=liveness_floor_s(link_kbps)
+        )
         self._peers = set(teammates)
+        #: Teammate -> the first task it is excluded from.
+        self.excluded: dict[str, int] = {}
 
     @property
     def own(self) -> RobotState:
@@ -146,22 +288,59 @@ class TeamView:
     async def aclose(self) -> None:
         await self._teammates.aclose()
 
+    def state_of(self, robot_id: str) -> RobotState | None:
+        """The last state observed of teammate ``robot_id`` (served as ``?of=``)."""
+        return self._teammates.states.get(robot_id)
+
+    def is_up(self, robot_id: str) -> bool:
+        """False once ``robot_id`` is known to be down (for the Query Handler)."""
+        return robot_id not in self._teammates.down
+
+    @property
+    def membership(self) -> Membership:
+        members = (self._peers - set(self.excluded)) | {self._own.robot_id}
+        return Membership(len(self.excluded), tuple(sorted(members)))
+
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
-        """Every team member's planned state right after task ``seq``; waits for
-        teammates that have not decided it yet, for at most ``timeout`` seconds."""
+        """Every member's planned state right after task ``seq``; waits for
+        teammates that have not decided it yet, for at most ``timeout`` seconds.
+        A teammate that is down without a plan for ``seq`` leaves the team from
+        task ``seq + 1`` on (see :attr:`membership`)."""
+        down = self._teammates.down
+        expected = self._peers - set(self.excluded)
 
         def ready(states: States) -> bool:
-            return set(states) >= self._peers and all(s.plan_at(seq) is not None for s in states.values())
+            return all(r in down or (r in states and states[r].plan_at(seq) is not None) for r in expected)
 
         try:
             states = await self._teammates.wait(ready, timeout)
         except TimeoutError:
             states = self._teammates.states
-            missing = sorted(r for r in self._peers if r not in states or states[r].plan_at(seq) is None)
+            missing = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)
             raise TransportError(f"no state for task {seq} from {', '.join(missing)} within {timeout:g}s") from None
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")
-        plans = {robot_id: state.plan_at(seq) for robot_id, state in states.items()}
+        plans = {r: states[r].plan_at(seq) for r in expected if r in states}
+        for robot_id in sorted(expected):
+            if plans.get(robot_id) is None:
+                plans[robot_id] = await self._plan_from_survivors(robot_id, seq)
+            if plans[robot_id] is None:
+                log.warning("%s is down (%s): excluded from task %d on", robot_id, down[robot_id], seq + 1)
+                self.excluded[robot_id] = seq + 1
         plans[self._own.robot_id] = own
         return {r: p for r, p in plans.items() if p is not None}
+
+    async def _plan_from_survivors(self, robot_id: str, seq: int) -> PlannedState | None:
+        """``robot_id`` (down) after task ``seq`` as some survivor saw it.  The
+        last plan a robot published before dying may have reached one teammate
+        and not another; asking keeps "compute by all" on the same inputs:
+        a survivor that has it includes the dead robot, and so do the others."""
+        survivors = sorted(r for r in self._peers if r not in self._teammates.down and r not in self.excluded)
+        heard = await asyncio.gather(*(self._teammates.hearsay(r, robot_id) for r in survivors))
+        for state in heard:
+            plan = state.plan_at(seq) if state is not None else None
+            if plan is not None:
+                log.info("%s's plan after task %d came from a teammate", robot_id, seq)
+                return plan
+        return None

@@ -173,9 +173,11 @@ def system_spec(
     extra: dict[str, Any] = {}
     if timeouts is not None:
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
+    # replication=1: the benchmarks compare with the seed's system, one KB
+    # module per robot (replicas change which queries are remote).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
-        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, **extra,
+        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, replication=1, **extra,
     )
 
 

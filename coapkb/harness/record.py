@@ -29,11 +29,33 @@ class TaskRecord:
     reasons: dict[str, str] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
     coordination_s: float = 0.0
+    #: Robots of the cluster that were down and did not decide: robot -> why.
+    absent: dict[str, str] = field(default_factory=dict)
+    #: The membership epoch each deciding robot named, and the members it named.
+    epochs: dict[str, int] = field(default_factory=dict)
+    members: list[str] = field(default_factory=list)
+    #: This task is a re-run of task ``reassigned_from`` of the same cluster.
+    reassigned_from: int | None = None
+    #: Why this task went round again (its robot went down before executing it).
+    orphaned: str | None = None
 
     @property
     def agreed(self) -> bool:
-        """Every robot of the cluster took the same decision, and none failed."""
-        return len(set(self.decisions.values())) == 1 and not self.errors
+        """Every robot that decided took the same decision in the same
+        membership epoch, and none failed."""
+        return len(set(self.decisions.values())) == 1 and not self.errors and len(set(self.epochs.values())) <= 1
+
+    @property
+    def fate(self) -> str:
+        """One word: skipped, assigned, reassigned (went round again as a later
+        task), failed (errors or disagreement) or unassigned (nobody could)."""
+        if self.skipped:
+            return "skipped"
+        if not self.agreed:
+            return "failed"
+        if self.orphaned is not None:
+            return "reassigned"
+        return "assigned" if self.assigned_to else "unassigned"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -48,6 +70,12 @@ class TaskRecord:
             "errors": self.errors,
             "agreed": self.agreed,  # derived; written for readers of the JSON, ignored on reading
             "coordination_s": round(self.coordination_s, 6),
+            "absent": self.absent,
+            "epochs": self.epochs,
+            "members": self.members,
+            "reassigned_from": self.reassigned_from,
+            "orphaned": self.orphaned,
+            "fate": self.fate,  # derived, like "agreed"
         }
 
     @classmethod
@@ -63,7 +91,34 @@ class TaskRecord:
             reasons=dict(data.get("reasons") or {}),
             errors=dict(data.get("errors") or {}),
             coordination_s=float(data.get("coordination_s", 0.0)),
+            absent=dict(data.get("absent") or {}),
+            epochs={str(r): int(e) for r, e in (data.get("epochs") or {}).items()},
+            members=[str(r) for r in data.get("members") or ()],
+            reassigned_from=data.get("reassigned_from"),
+            orphaned=data.get("orphaned"),
         )
+
+
+@dataclass
+class FaultEvent:
+    """A failure injected during a run, when it happened, and how long the
+    feeder took to declare the robot down (kills only)."""
+
+    action: str
+    robot: str
+    #: Seconds after the first task was fed.
+    at_s: float
+    detected_after_s: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"action": self.action, "robot": self.robot, "at_s": self.at_s,
+                "detected_after_s": self.detected_after_s}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "FaultEvent":
+        detected = data.get("detected_after_s")
+        return cls(str(data["action"]), str(data["robot"]), float(data["at_s"]),
+                   None if detected is None else float(detected))
 
 
 @dataclass(frozen=True)
@@ -85,6 +140,10 @@ class TeamRecord:
     robot_stats: dict[str, RobotStats]
     #: The task feeder's own transport counters.
     feeder_traffic: TrafficCounters
+    #: Failures injected (``--kill``, ``--restart``).
+    faults: list[FaultEvent] = field(default_factory=list)
+    #: Robots the feeder declared down: robot -> why.
+    down: dict[str, str] = field(default_factory=dict)
 
     @property
     def disputed(self) -> list[TaskRecord]:
@@ -105,6 +164,8 @@ class TeamRecord:
             "completion_s": round(self.completion_s, 6),
             "robot_stats": {r: s.to_dict() for r, s in self.robot_stats.items()},
             "feeder_traffic": self.feeder_traffic.as_dict(),
+            "faults": [f.to_dict() for f in self.faults],
+            "down": dict(self.down),
         }
 
     @classmethod
@@ -123,13 +184,15 @@ class TeamRecord:
             completion_s=float(data["completion_s"]),
             robot_stats={r: RobotStats.from_dict(s) for r, s in data["robot_stats"].items()},
             feeder_traffic=TrafficCounters.from_dict(data["feeder_traffic"]),
+            faults=[FaultEvent.from_dict(f) for f in data.get("faults") or ()],
+            down={str(r): str(why) for r, why in (data.get("down") or {}).items()},
         )
 
 
 def summarise(record: TeamRecord) -> str:
     """A human summary of a team record."""
     tasks = record.tasks
-    done = [t for t in tasks if t.assigned_to]
+    done = [t for t in tasks if t.assigned_to and not t.orphaned]
     skipped = [t for t in tasks if t.skipped]
     errors = [t for t in tasks if t.errors]
     per_robot: dict[str, int] = {}
@@ -141,14 +204,19 @@ def summarise(record: TeamRecord) -> str:
     local = sum(s.queries.local for s in stats)
     remote = sum(s.queries.remote for s in stats)
     cached = sum(s.queries.cached for s in stats)
+    reassigned = [t for t in tasks if t.orphaned]
     lines = [
         f"{len(record.robots)} robots, {record.mode}, {record.transport}, {record.strategy}: "
         f"{len(tasks)} tasks, {len(done)} assigned, {len(skipped)} skipped, {len(errors)} with errors, "
-        f"{len(record.disputed)} disagreements",
+        f"{len(record.disputed)} disagreements"
+        + (f", {len(reassigned)} reassigned" if reassigned else ""),
         "assigned: " + ", ".join(f"{r} {n}" for r, n in sorted(per_robot.items(), key=lambda x: robot_sort_key(x[0]))),
         f"coordination {record.coordination_s:.2f} s, completion {record.completion_s:.2f} s",
         f"robots sent {traffic.bytes_sent:,} B in {traffic.messages_sent:,} messages, "
         f"received {traffic.bytes_received:,} B; "
         f"queries: {local} local, {remote} remote, {cached} answered from the cache",
     ]
+    for event in record.faults:
+        detected = "" if event.detected_after_s is None else f", declared down {event.detected_after_s:.1f} s later"
+        lines.append(f"{event.action} {event.robot} at {event.at_s:.1f} s{detected}")
     return "\n".join(lines)

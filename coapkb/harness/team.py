@@ -30,7 +30,7 @@ import cbor2
 
 from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
-from ..agent.team_view import STATE_PATH, ObservedStates, States
+from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
 from ..agent.stats import RobotStats
 from ..config import (
     KB_MODULES,
@@ -47,8 +47,8 @@ from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from ..transport import open_client
 from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
-from ..transport.base import ClientTransport, Endpoint, TrafficCounters
-from .record import TaskRecord, TeamRecord
+from ..transport.base import ClientTransport, Endpoint, TrafficCounters, TransportError
+from .record import FaultEvent, TaskRecord, TeamRecord
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,32 @@ DEFAULT_ONTOLOGIES = Path(__file__).resolve().parents[2] / "ontologies"
 
 class TeamError(CoapkbError):
     """The team could not be started or did not finish its tasks."""
+
+
+FAULT_ACTIONS = ("kill", "restart")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """An injected failure: ``kill`` sends SIGKILL to a robot's process,
+    ``restart`` starts it again (same configuration and port), ``at_s``
+    seconds of wall time after the first task was fed."""
+
+    action: str
+    robot: str
+    at_s: float
+
+    @classmethod
+    def parse(cls, action: str, text: str) -> "Fault":
+        """``Robot4@12s`` (or ``Robot4@12``) for ``action``."""
+        robot, sep, when = text.partition("@")
+        try:
+            at_s = float(when.removesuffix("s"))
+        except ValueError:
+            at_s = -1.0
+        if not sep or not robot or at_s < 0:
+            raise ValueError(f"--{action} expects ROBOT@SECONDS, like Robot4@12s, got {text!r}")
+        return cls(action, robot, at_s)
 
 
 @dataclass(frozen=True)
@@ -76,6 +102,11 @@ class TeamSpec:
     time_scale: float = 50.0
     #: Wall-clock limit for one task's coordination before the run is declared stuck.
     task_timeout_s: float = 120.0
+    #: How many robots of a cluster hold each KB module (distributed mode):
+    #: 2 = every module on two of the three robots, so one may fail.
+    replication: int = 2
+    #: Failures injected during the run (``coapkb team --kill/--restart``).
+    faults: tuple[Fault, ...] = ()
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
@@ -90,6 +121,17 @@ class TeamSpec:
             raise ValueError(f"retransmission must be one of {', '.join(PROFILE_NAMES)}, got {self.retransmission!r}")
         if self.query_wire not in QUERY_WIRES:
             raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
+        if not 1 <= self.replication <= CLUSTER_SIZE:
+            raise ValueError(f"replication must be 1 to {CLUSTER_SIZE} (robots per cluster), got {self.replication}")
+        for fault in self.faults:
+            if fault.action not in FAULT_ACTIONS:
+                raise ValueError(f"fault action must be one of {', '.join(FAULT_ACTIONS)}, got {fault.action!r}")
+            if fault.robot not in self.robot_ids:
+                raise ValueError(f"cannot {fault.action} {fault.robot}: the team is {', '.join(self.robot_ids)}")
+            if fault.action == "restart" and not any(
+                f.action == "kill" and f.robot == fault.robot and f.at_s < fault.at_s for f in self.faults
+            ):
+                raise ValueError(f"cannot restart {fault.robot} at {fault.at_s:g}s: it is not killed before")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")
@@ -156,6 +198,16 @@ def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
     return starts
 
 
+#: The seed's Fig. 4: the i-th robot of a cluster holds the i-th module.
+CLUSTER_MODULES = ("Location", "Object", "Capability")
+
+
+def cluster_modules(index: int, spec: TeamSpec) -> tuple[str, ...]:
+    """The modules the ``index``-th robot of a cluster holds: its own and, with
+    replication r, the next r-1 (so each module lives on r robots)."""
+    return tuple(CLUSTER_MODULES[(index + j) % CLUSTER_SIZE] for j in range(spec.replication))
+
+
 class Placement:
     """Where each process of the team runs: here, on loopback, each on a free port.
 
@@ -182,6 +234,7 @@ class Team:
         self.endpoints: dict[str, Endpoint] = {}
         self.central: Endpoint | None = None
         self._stderr_tails: dict[str, list[str]] = {}
+        self._argv: dict[str, list[str]] = {}
 
     # ---------------------------------------------------------------- processes
 
@@ -193,10 +246,9 @@ class Team:
             for robot_id in cluster:
                 self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
         for cluster in spec.clusters():
-            holders = dict(zip(cluster, ("Location", "Object", "Capability")))
             team = {
-                mate: Teammate(mate, self.endpoints[mate], (holders[mate],) if spec.mode == "distributed" else ())
-                for mate in cluster
+                mate: Teammate(mate, self.endpoints[mate], cluster_modules(i, spec) if spec.mode == "distributed" else ())
+                for i, mate in enumerate(cluster)
             }
             for robot_id in cluster:
                 config = RobotConfig(
@@ -218,6 +270,7 @@ class Team:
         return paths
 
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
+        self._argv[name] = argv
         proc = await asyncio.create_subprocess_exec(
             *self.placement.command(name, [sys.executable, "-m", "coapkb", *argv]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
@@ -299,10 +352,16 @@ class Team:
         that download is not charged to the system)."""
         spec = self.spec
         client = await open_client(spec.transport, retransmission=spec.retransmission)
-        watcher = ObservedStates(client, self.endpoints, STATE_PATH)
+        # With liveness the feeder declares a robot down when its requests
+        # fail, and then waits for the survivors only.
+        watcher = ObservedStates(
+            client, self.endpoints, STATE_PATH, liveness=True, liveness_floor_s=liveness_floor_s(spec.link_kbps)
+        )
         watcher.start()
         started = time.monotonic()
         records: list[TaskRecord] = []
+        events: list[FaultEvent] = []
+        injector = asyncio.create_task(self._inject(started, events), name="faults")
         try:
             shares = split_tasks(tasks, len(spec.clusters()))
             per_cluster = await asyncio.gather(
@@ -311,25 +370,44 @@ class Team:
                     for index, (cluster, share) in enumerate(zip(spec.clusters(), shares))
                 )
             )
-            coordination_s = time.monotonic() - started
-            await _wait_for(
-                watcher,
-                lambda s: len(s) == len(self.endpoints)
-                and all(st.live.activity == "idle" and st.live.queued == 0 for st in s.values()),
-                spec.task_timeout_s * 4,
-                "every robot to finish executing",
-            )
+            coordination_s = max(decided_at for _, decided_at in per_cluster) - started
             completion_s = time.monotonic() - started
-            for share_records in per_cluster:
+            for share_records, _ in per_cluster:
                 records.extend(share_records)
             if finished is not None:
                 await finished()
-            stats = await self._collect_stats(client)
+            stats = await self._collect_stats(client, watcher.alive)
             feeder = replace(client.counters)  # a copy: the client still counts while closing
         finally:
+            injector.cancel()
+            await asyncio.gather(injector, return_exceptions=True)
             await watcher.aclose()
             await client.aclose()
-        return self._record(records, stats, feeder, coordination_s, completion_s)
+        for event in events:
+            if event.robot in watcher.down_at and event.action == "kill":
+                event.detected_after_s = round(watcher.down_at[event.robot] - started - event.at_s, 3)
+        return self._record(records, stats, feeder, coordination_s, completion_s, events, dict(watcher.down))
+
+    async def _inject(self, started: float, events: list[FaultEvent]) -> None:
+        """Carry out the spec's faults at their wall times after ``started``."""
+        for fault in sorted(self.spec.faults, key=lambda f: f.at_s):
+            # A schedule, not a wait for an event: the user asked for this time.
+            await asyncio.sleep(max(0.0, started + fault.at_s - time.monotonic()))
+            at_s = round(time.monotonic() - started, 3)
+            if fault.action == "kill":
+                proc = self.processes[fault.robot]
+                with contextlib.suppress(ProcessLookupError):
+                    proc.send_signal(signal.SIGKILL)
+                await proc.wait()
+                log.warning("killed %s at %.1fs", fault.robot, at_s)
+            else:
+                try:
+                    await self._spawn(fault.robot, self._argv[fault.robot], "robot")
+                except TeamError as exc:  # the run goes on without it
+                    log.error("restarting %s: %s", fault.robot, exc)
+                    continue
+                log.warning("restarted %s at %.1fs (it does not rejoin the team)", fault.robot, at_s)
+            events.append(FaultEvent(fault.action, fault.robot, at_s))
 
     async def _feed_cluster(
         self,
@@ -339,48 +417,108 @@ class Team:
         cluster: list[str],
         share: list[str],
         progress: Callable[[TaskRecord], None] | None,
-    ) -> list[TaskRecord]:
-        records = []
-        for seq, name in enumerate(share, start=1):
-            fed = time.monotonic()
-            body = cbor2.dumps({"seq": seq, "object": name})
-            request = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
-            responses = await asyncio.gather(
-                *(client.request(self.endpoints[r], request, timeout=self.spec.task_timeout_s) for r in cluster),
-                return_exceptions=True,
-            )
-            for robot_id, response in zip(cluster, responses):
-                if isinstance(response, BaseException) or not response.status.is_success:
-                    raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
-            states = await _wait_for(
+    ) -> tuple[list[TaskRecord], float]:
+        """Feed one cluster's share; returns its records and when its last task was decided."""
+        records: list[TaskRecord] = []
+        queue: list[tuple[str, int | None]] = [(name, None) for name in share]
+        seq = 0
+        decided_at = time.monotonic()
+        while queue:
+            for name, reassigned_from in queue:
+                seq += 1
+                record = await self._feed_task(client, watcher, index, cluster, seq, name)
+                record.reassigned_from = reassigned_from
+                records.append(record)
+                if progress is not None:
+                    progress(record)
+            decided_at = time.monotonic()
+            # Until the cluster's survivors have executed everything: a robot
+            # that dies meanwhile is found by the stalled wait's liveness requests.
+            await _wait_for(
                 watcher,
-                lambda s: all(r in s and s[r].last is not None and s[r].last.seq >= seq for r in cluster),
-                self.spec.task_timeout_s,
-                f"decisions on task {seq} ({name}) from {', '.join(cluster)}",
+                lambda s: all(r in watcher.down or _idle(s, r) for r in cluster),
+                self.spec.task_timeout_s * 4,
+                f"cluster {index + 1} to finish executing",
             )
-            record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
-            for robot_id in cluster:
-                decision = states[robot_id].last
-                assert decision is not None
-                record.decisions[robot_id] = decision.assigned_to
-                if decision.error:
-                    record.errors[robot_id] = decision.error
-                if decision.skipped:
-                    record.skipped = True
-                if decision.costs and not record.costs:
-                    record.costs = dict(decision.costs)
-                    record.reasons = dict(decision.reasons)
-            assigned = {d for d in record.decisions.values() if d is not None}
-            record.assigned_to = assigned.pop() if len(assigned) == 1 else None
-            records.append(record)
-            if progress is not None:
-                progress(record)
-        return records
+            # Tasks assigned to robots that went down before executing them
+            # go round again, in their order, to the survivors.
+            queue = [(r.object, r.seq) for r in _orphans(records, watcher)]
+        return records, decided_at
 
-    async def _collect_stats(self, client: ClientTransport) -> dict[str, RobotStats]:
+    async def _feed_task(
+        self, client: ClientTransport, watcher: ObservedStates, index: int, cluster: list[str], seq: int, name: str
+    ) -> TaskRecord:
+        fed = time.monotonic()
+        body = cbor2.dumps({"seq": seq, "object": name})
+        request = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
+        live = [r for r in cluster if r not in watcher.down]
+        if not live:
+            raise TeamError(f"every robot of cluster {index + 1} is down: {watcher.down}")
+        await asyncio.gather(*(self._post_task(client, watcher, r, request, seq, name) for r in live))
+
+        def decided(states: States, robot_id: str) -> bool:
+            last = states[robot_id].last if robot_id in states else None
+            return last is not None and last.seq >= seq
+
+        states = await _wait_for(
+            watcher,
+            lambda s: all(r in watcher.down or decided(s, r) for r in cluster),
+            self.spec.task_timeout_s,
+            f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
+        )
+        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
+        for robot_id in cluster:
+            if not decided(states, robot_id):
+                record.absent[robot_id] = watcher.down.get(robot_id, "no decision")
+                continue
+            decision = states[robot_id].last
+            assert decision is not None
+            record.decisions[robot_id] = decision.assigned_to
+            record.epochs[robot_id] = decision.epoch
+            if decision.members and not record.members:
+                record.members = list(decision.members)
+            if decision.error:
+                record.errors[robot_id] = decision.error
+            if decision.skipped:
+                record.skipped = True
+            if decision.costs and not record.costs:
+                record.costs = dict(decision.costs)
+                record.reasons = dict(decision.reasons)
+        assigned = {d for d in record.decisions.values() if d is not None}
+        record.assigned_to = assigned.pop() if len(assigned) == 1 else None
+        return record
+
+    async def _post_task(
+        self, client: ClientTransport, watcher: ObservedStates, robot_id: str, request: Request, seq: int, name: str
+    ) -> None:
+        """POST a task to one robot; if it does not answer, ask the watcher
+        whether it is down (then the task goes to the survivors only) or
+        post again (a robot recognises a repeated post)."""
+        deadline = time.monotonic() + self.spec.task_timeout_s
+        while True:
+            try:
+                response = await client.request(
+                    self.endpoints[robot_id], request, timeout=max(watcher.request_timeout_s, 1.0)
+                )
+            except TransportError as exc:
+                await watcher.probe(robot_id)
+                if robot_id in watcher.down:
+                    return
+                if time.monotonic() > deadline:
+                    raise TeamError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
+                continue
+            if not response.status.is_success:
+                await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
+                if robot_id in watcher.down:
+                    return
+                raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
+            return
+
+    async def _collect_stats(self, client: ClientTransport, robots: Sequence[str]) -> dict[str, RobotStats]:
         request = Request(Method.GET, "/robot/stats", accept=ContentFormat.CBOR)
         stats = {}
-        for robot_id, endpoint in self.endpoints.items():
+        for robot_id in robots:
+            endpoint = self.endpoints[robot_id]
             response = await client.request(endpoint, request, timeout=self.spec.query_timeout_s)
             stats[robot_id] = RobotStats.from_dict(cbor2.loads(response.payload))
         return stats
@@ -392,6 +530,8 @@ class Team:
         feeder: TrafficCounters,
         coordination_s: float,
         completion_s: float,
+        faults: list[FaultEvent] | None = None,
+        down: dict[str, str] | None = None,
     ) -> TeamRecord:
         spec = self.spec
         # Restore the order given: cluster shares are contiguous.
@@ -411,7 +551,33 @@ class Team:
             completion_s=round(completion_s, 6),
             robot_stats=stats,
             feeder_traffic=feeder,
+            faults=list(faults or []),
+            down=dict(down or {}),
         )
+
+
+def _idle(states: States, robot_id: str) -> bool:
+    state = states.get(robot_id)
+    return state is not None and state.live.activity == "idle" and state.live.queued == 0
+
+
+def _orphans(records: list[TaskRecord], watcher: ObservedStates) -> list[TaskRecord]:
+    """Tasks assigned to a robot now down that it had not executed, not yet
+    sent round again.  A robot executes its jobs in the order assigned, so
+    its last observed ``done`` count says how many of them are finished (a
+    job finished in the instant before the crash counts as not done: done
+    again rather than lost)."""
+    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+    orphans = []
+    for robot_id in watcher.down:
+        state = watcher.states.get(robot_id)
+        done = state.live.done if state is not None else 0
+        mine = [r for r in records if r.assigned_to == robot_id]
+        for record in mine[done:]:
+            if record.seq not in taken:
+                record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
+                orphans.append(record)
+    return sorted(orphans, key=lambda r: r.seq)
 
 
 async def _wait_for(

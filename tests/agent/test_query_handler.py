@@ -83,15 +83,20 @@ async def test_unreachable_teammate_is_a_query_error_naming_it(network: MemoryNe
     assert queries.stats.failed == 1 and queries.stats.remote == 0
 
 
-async def test_a_teammate_that_does_not_answer_in_time_is_a_query_error(network: MemoryNetwork, kbs: dict) -> None:
+async def serve_silent(network: MemoryNetwork, robot_id: str, query: str) -> None:
+    """``robot_id`` is up but never answers the named query ``query``."""
     silent = Router()
 
     async def never(request: Request) -> Response:
         await asyncio.Event().wait()
         raise AssertionError("unreachable")
 
-    silent.add(ResourceInfo("/kb/q/object-exists"), never)
-    await network.serve(silent, endpoint("Robot2"))
+    silent.add(ResourceInfo(f"/kb/q/{query}"), never)
+    await network.serve(silent, endpoint(robot_id))
+
+
+async def test_a_teammate_that_does_not_answer_in_time_is_a_query_error(network: MemoryNetwork, kbs: dict) -> None:
+    await serve_silent(network, "Robot2", "object-exists")
     queries = handler(network, kbs["Location"], query_timeout_s=0.05)
     with pytest.raises(QueryError, match="no answer within 0.05s"):
         await queries.run("object-exists", EXISTS)
@@ -114,4 +119,48 @@ async def test_a_failing_local_query_is_a_query_error(network: MemoryNetwork) ->
     queries = handler(network, _BrokenStore())  # type: ignore[arg-type]
     with pytest.raises(QueryError, match="warehouse-layout on own Location KB: the store broke"):
         await queries.run("warehouse-layout", {})
+    assert queries.stats.failed == 1
+
+
+# --------------------------------------------------------------------------- replicas
+
+REPLICATED = {"Robot1": ("Location", "Object"), "Robot2": ("Object", "Capability"), "Robot3": ("Capability", "Location")}
+
+
+async def test_a_dead_holder_is_failed_over_to_the_replica(network: MemoryNetwork, kbs: dict,
+                                                           serve_kbs: Callable) -> None:
+    # Robot2 holds Capability too, but nobody listens there: Robot3's replica answers.
+    replica = await serve_kbs("Robot3", ["Capability", "Location"])
+    queries = handler(network, kbs["Location"], holders=REPLICATED)
+    assert await queries.run("robot-specs", {}) == kbs["Capability"].query(NAMED_QUERIES["robot-specs"].render({}))
+    assert (queries.stats.failovers, queries.stats.remote, queries.stats.failed) == (1, 1, 0)
+    assert replica.counters.messages_received == 1
+    # The failed holder goes last from now on: no second failover.
+    await queries.run("robots-for-grip", {"grip": "gripping"})
+    assert queries.stats.failovers == 1 and replica.counters.messages_received == 2
+
+
+async def test_a_holder_the_team_knows_is_down_is_not_asked_first(network: MemoryNetwork, kbs: dict,
+                                                                  serve_kbs: Callable) -> None:
+    await serve_kbs("Robot3", ["Capability", "Location"])
+    cfg = config("Robot1", holders=REPLICATED)
+    queries = QueryHandler(cfg, kbs["Location"], KBClient(network.client()), alive=lambda r: r != "Robot2")
+    await queries.run("robot-specs", {})
+    assert (queries.stats.failovers, queries.stats.remote) == (0, 1)
+
+
+async def test_a_slow_holder_is_hedged_to_the_replica(network: MemoryNetwork, kbs: dict,
+                                                      serve_kbs: Callable) -> None:
+    await serve_silent(network, "Robot2", "robot-specs")
+    await serve_kbs("Robot3", ["Capability", "Location"])
+    cfg = config("Robot1", holders=REPLICATED)
+    queries = QueryHandler(cfg, kbs["Location"], KBClient(network.client()), hedge_floor_s=0.05)
+    await queries.run("robot-specs", {})
+    assert (queries.stats.hedged, queries.stats.remote, queries.stats.failed) == (1, 1, 0)
+
+
+async def test_every_holder_down_names_each_failure(network: MemoryNetwork, kbs: dict) -> None:
+    queries = handler(network, kbs["Location"], holders=REPLICATED)
+    with pytest.raises(QueryError, match=r"robot-specs to Robot2 .* failed: .*; then robot-specs to Robot3 "):
+        await queries.run("robot-specs", {})
     assert queries.stats.failed == 1

@@ -80,3 +80,12 @@ def test_compact_enough_for_slow_links() -> None:
 def test_garbage_is_a_value_error(garbage: bytes) -> None:
     with pytest.raises(ValueError):
         RobotState.decode(garbage)
+
+
+def test_incarnation_travels_in_both_forms_and_is_optional(validator: object) -> None:
+    state = RobotState("Robot1", PlannedState(3, 21, 412.25, 0.8, 60.6, 5), LiveState(3.0, 21.0), boot=2**32 - 1)
+    assert RobotState.decode(state.encode()) == state
+    assert RobotState.decode(state.encode_plan()).boot == state.boot
+    for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan")):
+        assert validator.validate(data, root_type=root).valid  # type: ignore[attr-defined]
+    assert len(state.encode_plan()) < 80

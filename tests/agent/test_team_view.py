@@ -50,3 +50,82 @@ async def test_a_stale_observation_is_refreshed_and_registered_again() -> None:
         assert transport.observations == 2
     finally:
         await states.aclose()
+
+
+# --------------------------------------------------------------------------- membership (issue 11)
+
+from agent_helpers import endpoint  # noqa: E402
+
+from coapkb.agent.team_view import RoundTrip, TeamView  # noqa: E402
+from coapkb.transport.base import ResourceInfo  # noqa: E402
+from coapkb.transport.memory import MemoryNetwork  # noqa: E402
+from coapkb.transport.router import Router  # noqa: E402
+
+
+def robot(robot_id: str, seq: int, boot: int = 1) -> RobotState:
+    return RobotState(robot_id, PlannedState(1, seq, 400.0, 0.0, 30.0, seq), LiveState(1.0, 0.0), boot=boot)
+
+
+async def serve_plan(network: MemoryNetwork, own: RobotState, seen: dict[str, RobotState] | None = None):
+    """A teammate's /robot/plan on the memory network, with ``?of=`` answered from ``seen``."""
+    router = Router()
+
+    async def plan(request: Request) -> Response:
+        about = request.query.get("of")
+        shown = own if about is None else (seen or {}).get(about)
+        if shown is None:
+            return Response.error(Status.NOT_FOUND, f"no state of {about}")
+        return Response(Status.CONTENT, shown.encode_plan(), ContentFormat.CBOR)
+
+    router.add(ResourceInfo(PLAN_PATH, obs=True), plan)
+    return await network.serve(router, endpoint(own.robot_id))
+
+
+def view(network: MemoryNetwork, own: RobotState) -> TeamView:
+    return TeamView(own, {r: endpoint(r) for r in ("Robot2", "Robot3")}, network.client())
+
+
+async def test_a_dead_teammate_without_a_plan_is_excluded_in_a_new_epoch() -> None:
+    network = MemoryNetwork()
+    dead = await serve_plan(network, robot("Robot2", 0))
+    await serve_plan(network, robot("Robot3", 1))
+    team = view(network, robot("Robot1", 1))
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: "Robot2" in s, timeout=2)
+        await dead.aclose()  # dies before deciding task 1
+        plans = await team.planned_states(1, timeout=10)
+        assert set(plans) == {"Robot1", "Robot3"}
+        assert team.excluded == {"Robot2": 2}
+        assert (team.membership.epoch, team.membership.members) == (1, ("Robot1", "Robot3"))
+        assert not team.is_up("Robot2")
+    finally:
+        await team.aclose()
+
+
+async def test_a_dead_teammates_last_plan_comes_from_a_survivor() -> None:
+    network = MemoryNetwork()
+    dead = await serve_plan(network, robot("Robot2", 0))
+    # Robot3 saw Robot2's plan after task 1; Robot1 never did.
+    await serve_plan(network, robot("Robot3", 1), seen={"Robot2": robot("Robot2", 1)})
+    team = view(network, robot("Robot1", 1))
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: "Robot2" in s, timeout=2)
+        await dead.aclose()
+        plans = await team.planned_states(1, timeout=10)
+        assert plans["Robot2"] == robot("Robot2", 1).plan
+        assert team.excluded == {} and team.membership.epoch == 0
+    finally:
+        await team.aclose()
+
+
+def test_liveness_timeout_follows_the_round_trip() -> None:
+    rtt = RoundTrip(floor_s=1.0)
+    assert rtt.timeout_s == 2.0  # no sample yet: twice the floor
+    for _ in range(20):
+        rtt.sample(0.002)
+    assert rtt.timeout_s == 1.0  # loopback: the floor
+    for _ in range(50):
+        rtt.sample(0.8)
+    assert 3.2 <= rtt.timeout_s < 6  # a slow link: four smoothed round trips and more

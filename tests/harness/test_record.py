@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import cbor2
 
 from coapkb.agent.query_handler import QueryStats
 from coapkb.agent.stats import RobotStats
-from coapkb.harness.record import TaskRecord, TeamRecord, summarise
+from coapkb.harness.record import FaultEvent, TaskRecord, TeamRecord, summarise
 from coapkb.transport.base import TrafficCounters
 
 
@@ -48,7 +49,7 @@ def test_robot_stats_keep_their_wire_form() -> None:
     assert list(wire) == ["robot_id", "transport", "strategy", "query_wire", "retransmission",
                           "server_retransmission", "server", "client", "queries", "remote_latencies_s",
                           "executed", "idle"]
-    assert wire["queries"] == {"local": 1, "remote": 2, "failed": 0, "cached": 1}
+    assert wire["queries"] == {"local": 1, "remote": 2, "failed": 0, "cached": 1, "failovers": 0, "hedged": 0}
     assert RobotStats.from_dict(cbor2.loads(cbor2.dumps(wire))) == stats
     assert RobotStats.from_dict(json.loads(json.dumps(wire))) == stats
     assert stats.traffic.bytes_sent == 200 and stats.traffic.retransmissions == 1
@@ -63,13 +64,42 @@ def test_team_record_round_trips_through_its_json_file() -> None:
     record = _record()
     data = json.loads(json.dumps(record.to_dict()))
     assert list(data) == ["mode", "transport", "strategy", "retransmission", "query_wire", "robots", "clusters",
-                          "tasks", "coordination_s", "completion_s", "robot_stats", "feeder_traffic"]
+                          "tasks", "coordination_s", "completion_s", "robot_stats", "feeder_traffic",
+                          "faults", "down"]
     assert data["tasks"][0]["coordination_s"] == 0.123457 and data["tasks"][0]["agreed"] is True
     assert [t["agreed"] for t in data["tasks"]] == [True, True, False]
     back = TeamRecord.from_dict(data)
     assert back.to_dict() == data
     assert back.robot_stats == record.robot_stats and back.feeder_traffic == record.feeder_traffic
     assert [t.object for t in back.disputed] == ["Canon_tv_995"]
+    # A record from before fault injection: no faults, nobody down, fates still derived.
+    old = {**data, "tasks": [{k: v for k, v in t.items() if k in OLD_TASK_KEYS} for t in data["tasks"]]}
+    del old["faults"], old["down"]
+    back = TeamRecord.from_dict(old)
+    assert (back.faults, back.down) == ([], {})
+    assert [t.fate for t in back.tasks] == ["assigned", "skipped", "failed"]
+
+
+OLD_TASK_KEYS = {"object", "cluster", "seq", "skipped", "assigned_to", "decisions", "costs", "reasons", "errors",
+                 "agreed", "coordination_s"}
+
+
+def test_a_killed_robot_shows_in_the_record_and_summary() -> None:
+    record = _record()
+    orphan = record.tasks[0]
+    orphan.orphaned = "Robot2 went down before executing it"
+    rerun = TaskRecord(object=orphan.object, cluster=1, seq=4, assigned_to="Robot1",
+                       decisions={"Robot1": "Robot1"}, epochs={"Robot1": 1}, members=["Robot1"],
+                       absent={"Robot2": "2 requests failed"}, reassigned_from=orphan.seq)
+    record = replace(record, tasks=[*record.tasks, rerun], faults=[FaultEvent("kill", "Robot2", 3.0, 1.25)],
+                     down={"Robot2": "2 requests failed"})
+    assert [t.fate for t in record.tasks] == ["reassigned", "skipped", "failed", "assigned"]
+    data = json.loads(json.dumps(record.to_dict()))
+    assert TeamRecord.from_dict(data).to_dict() == data
+    lines = summarise(record).splitlines()
+    assert lines[0].endswith("1 disagreements, 1 reassigned")
+    assert lines[1] == "assigned: Robot1 1"
+    assert lines[-1] == "kill Robot2 at 3.0 s, declared down 1.2 s later"
 
 
 def test_summary_counts_tasks_traffic_and_queries() -> None:
