@@ -228,6 +228,8 @@ def _xml_root(path: Path, size: int) -> dict[str, str]:
 
 def _turtle_prefixes(data: bytes, found: dict[str, str]) -> None:
     """``@prefix``/``PREFIX`` lines of Turtle or N3 (whole lines) into ``found``."""
+    if b"prefix" not in data.lower():
+        return  # 5x faster than the regex on data without any: most chunks of a big file
     for m in _TURTLE_PREFIX.finditer(data):
         if m.group(1):
             found.setdefault(m.group(1).decode(), m.group(2).decode())
