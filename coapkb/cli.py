@@ -142,7 +142,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kill", action="append", default=[], metavar="ROBOT@S",
                    help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
     p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
-                   help="start a killed robot again at S seconds (it does not rejoin the team yet)")
+                   help="start a killed robot again at S seconds (refused until a robot can rejoin: issue 11)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
     p.set_defaults(run=_team)

@@ -75,8 +75,8 @@ def test_fault_option_parses_and_is_checked() -> None:
     for bad in ("Robot4", "Robot4@", "@3s", "Robot4@soon", "Robot4@-1s"):
         with pytest.raises(ValueError, match="ROBOT@SECONDS"):
             Fault.parse("kill", bad)
-    with pytest.raises(ValueError, match="cannot restart Robot4 at 3s: it is not killed before"):
-        TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("restart", "Robot4", 3.0),))
+    with pytest.raises(ValueError, match="cannot restart Robot4: a restarted robot cannot rejoin"):
+        TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot4", 1.0), Fault("restart", "Robot4", 3.0)))
     with pytest.raises(ValueError, match="cannot kill Robot7"):
         TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot7", 1.0),))
 
