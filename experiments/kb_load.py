@@ -27,7 +27,6 @@ Prints a table and writes ``experiments/results/kb_load.csv``.
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import resource
@@ -39,6 +38,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from common import write_csv  # noqa: E402  (experiments/ is the script's own folder)
 
 SUFFIXES = {".owl": "RDF/XML", ".rdf": "RDF/XML", ".ttl": "Turtle", ".nt": "N-Triples"}
 
@@ -153,12 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         tps = f"{r['triples_per_s']:,}" if r["triples_per_s"] else ""
         print(f"{r['variant']:26} {r['format']:10} {r['files_mb']:>4} {r['triples'] or '':>9} {r['min_s']:>6} "
               f"{r['median_s']:>6} {tps:>10} {r['peak_rss_mb']:>7}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
+    write_csv(args.out, CSV_FIELDS, rows)
     return 0
 
 

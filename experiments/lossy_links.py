@@ -51,7 +51,7 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
 import pandas as pd  # noqa: E402
 
 from coapkb.bench.stats import percentile  # noqa: E402
-from kb_servers import prepare_link_emulation, PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
+from common import prepare_link_emulation, PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "lossy_links"
 

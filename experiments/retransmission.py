@@ -52,7 +52,7 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
 
 from coapkb.bench.row import BenchRow
 from coapkb.bench.stats import percentile
-from kb_servers import prepare_link_emulation, GRIPS, QUERY_MIX, query_plan, start_kb_server, stop_processes  # noqa: F401 (re-exported)
+from common import prepare_link_emulation, GRIPS, QUERY_MIX, query_plan, start_kb_server, stop_processes  # noqa: F401 (re-exported)
 from coapkb.transport.coap.reliability.rto import (
     PROFILES,
     SampleKind,

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import csv
 import json
 import os
 import resource
@@ -47,6 +46,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from common import write_csv  # noqa: E402  (experiments/ is the script's own folder)
 
 import aiocoap  # noqa: E402
 import aiocoap.resource  # noqa: E402
@@ -304,12 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         time_kb_load(args.load_kb)
         return 0
     rows = asyncio.run(run(args))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.out.relative_to(ROOT) if args.out.is_relative_to(ROOT) else args.out}")
+    write_csv(args.out, CSV_FIELDS, rows)
     return 0
 
 

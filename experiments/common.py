@@ -1,12 +1,13 @@
-"""What the query-level experiments share: the seed's query mix, and KB
-servers started in (and stopped from) a testbed's namespaces."""
+"""What the experiments share: the seed's query mix, KB servers started in
+(and stopped from) a testbed's namespaces, and writing a results CSV."""
 
 from __future__ import annotations
 
 import asyncio
+import csv
 import random
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -72,3 +73,13 @@ async def stop_processes(procs: Iterable[Any], grace_s: float = 10.0) -> None:
             await asyncio.wait_for(proc.wait(), grace_s)
         except TimeoutError:
             proc.kill()
+
+
+def write_csv(path: Path, fieldnames: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> None:
+    """``rows`` as a new CSV at ``path`` (its folder made if needed), and say where."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(fieldnames))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
