@@ -33,6 +33,8 @@ from .reliability.rto import TransmissionProfile
 MAX_SINGLE_BODY = 1024
 #: Block-wise transfers started over before giving up on an answer that keeps changing.
 MAX_TRANSFER_RESTARTS = 4
+#: aiocoap's ways of saying that the peer did not answer.
+_NO_ANSWER = (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError)
 
 
 class _AbandonedTryFilter(logging.Filter):
@@ -94,17 +96,21 @@ class CoapClientTransport:
                     message = await self._request_con(peer, request)
         except (TimeoutError, ExchangeTimeout):
             raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
-        except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+        except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         except aiocoap.error.Error as exc:
             raise TransportError(f"request to {peer} failed: {exc}") from None
         return response_from_message(message)
 
-    async def _request_con(self, peer: Endpoint, request: Request) -> aiocoap.Message:
-        msg = message_from_request(peer, request)
+    def _con_request(self, peer: Endpoint, request: Request, *, observe: bool = False) -> Any:
+        """An aiocoap confirmable request, timed by the CON profile if one is in use."""
+        msg = message_from_request(peer, request, observe=observe)
         if isinstance(self.reliability, RetransmissionController):
             msg.transport_tuning = self.reliability.tuning_for(peer)
-        return await self._ctx.request(msg).response
+        return self._ctx.request(msg)
+
+    async def _request_con(self, peer: Endpoint, request: Request) -> aiocoap.Message:
+        return await self._con_request(peer, request).response
 
     async def _exchange(self, peer: Endpoint, request: Request, timeout: float, *, block2: tuple[int, int] | None = None,
                         observe: bool = False) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
@@ -160,17 +166,14 @@ class CoapClientTransport:
                 first, attempt = await self._exchange(peer, request, timeout=60.0, observe=True)
             except ExchangeTimeout:
                 raise PeerUnreachable(f"no answer from {peer} to the observation") from None
-            except (aiocoap.error.NetworkError, aiocoap.error.ConRetransmitsExceeded) as exc:
+            except _NO_ANSWER as exc:
                 raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
             pending = attempt.handle
         else:
-            msg = message_from_request(peer, request, observe=True)
-            if isinstance(self.reliability, RetransmissionController):
-                msg.transport_tuning = self.reliability.tuning_for(peer)
-            pending = self._ctx.request(msg)
+            pending = self._con_request(peer, request, observe=True)
             try:
                 first = await pending.response
-            except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+            except _NO_ANSWER as exc:
                 raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         try:
             yield response_from_message(first)

@@ -22,10 +22,9 @@ import aiocoap.meta
 import aiocoap.resource
 import pytest
 
-from coapkb.transport.coap.aiocoap_adapter import ContextHooks
+from coapkb.transport.coap.aiocoap_adapter import ContextHooks, UnsupportedAiocoapVersion
 from coapkb.transport.coap.reliability.cocoa_hooks import (
     RetransmissionController,
-    UnsupportedAiocoapVersion,
 )
 from coapkb.transport.coap.reliability.rto import FixedProfile, SampleKind
 

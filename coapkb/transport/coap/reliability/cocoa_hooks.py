@@ -47,7 +47,7 @@ from __future__ import annotations
 import logging
 import random
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable, Hashable
 
@@ -56,7 +56,7 @@ import aiocoap.meta
 from aiocoap.numbers.constants import TransportTuning
 from aiocoap.numbers.types import RST
 
-from ..aiocoap_adapter import ContextHooks, UnsupportedAiocoapVersion
+from ..aiocoap_adapter import ContextHooks
 from .rto import (
     DEFAULT_REPLY_BYTES,
     AdaptiveProfile,
@@ -321,7 +321,7 @@ class RetransmissionController:
         """Route the CON timers of ``context`` through this controller (call
         once, right after creating it; again is a no-op).
 
-        Raises :class:`UnsupportedAiocoapVersion` if aiocoap is not the
+        Raises the adapter's ``UnsupportedAiocoapVersion`` if aiocoap is not the
         verified version, and ``ValueError`` if the context has no UDP
         message manager or another policy already drives its timers."""
         ContextHooks.of(context).set_con_policy(self)

@@ -232,7 +232,6 @@ class PeerPath:
         return 1
 
     def try_timeout(self, try_number: int, request_bytes: int, reply_key: Hashable, now: float) -> float:
-        s = self.settings
         base = self.rto()
         if try_number and (self.congested() or self.silent(now)):
             base *= 2 ** min(try_number, 8)
