@@ -459,12 +459,20 @@ class Team:
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
         )
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
+        decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
+        # A robot that decided in an older membership which the others have
+        # since left it out of (it went down meanwhile) took no part in the
+        # decision they made without it.
+        newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
         for robot_id in cluster:
-            if not decided(states, robot_id):
+            decision = decisions.get(robot_id)
+            if decision is None:
                 record.absent[robot_id] = watcher.down.get(robot_id, "no decision")
                 continue
-            decision = states[robot_id].last
-            assert decision is not None
+            if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
+                why = watcher.down.get(robot_id, f"left out of membership epoch {newest.epoch}")
+                record.absent[robot_id] = f"{why} (its decision in epoch {decision.epoch} is void)"
+                continue
             record.decisions[robot_id] = decision.assigned_to
             record.epochs[robot_id] = decision.epoch
             if decision.members and not record.members:
