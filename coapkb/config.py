@@ -106,6 +106,9 @@ class RobotConfig:
     link_kbps: float | None = None
     cost: CostModel = field(default_factory=CostModel)
     execution: ExecutionModel = field(default_factory=ExecutionModel)
+    #: Keep the KB as an on-disk index here (built once, opened in
+    #: milliseconds at every later start); None = load it into memory.
+    kb_index: Path | None = None
 
     @property
     def transport(self) -> str:
@@ -154,6 +157,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         data["link_kbps"] = config.link_kbps
     if config.central is not None:
         data["central"] = str(config.central)
+    if config.kb_index is not None:
+        data["kb_index"] = str(config.kb_index.resolve())
     data["start"] = asdict(config.start)
     data["cost"] = asdict(config.cost)
     data["execution"] = asdict(config.execution)
@@ -170,7 +175,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     """Validate a configuration mapping (as read from TOML)."""
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
-        "central", "query_timeout_s", "link_kbps", "cost", "execution",
+        "central", "query_timeout_s", "link_kbps", "cost", "execution", "kb_index",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -178,6 +183,9 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         raise ConfigError("robot_id: must not be empty")
     bind = _endpoint(_get(data, "bind", str), "bind")
     kb_files = tuple(_path(base_dir, p, f"kb[{i}]") for i, p in enumerate(_get(data, "kb", list, [])))
+    kb_index = data.get("kb_index")
+    if kb_index is not None and not isinstance(kb_index, str):
+        raise ConfigError(f"kb_index: expected a directory path, got {type(kb_index).__name__}")
     strategy = _get(data, "strategy", str, "compute-by-all")
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
@@ -216,6 +224,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         link_kbps=None if data.get("link_kbps") is None else float(_get(data, "link_kbps", (int, float))),
         cost=_section(data, "cost", CostModel),
         execution=_section(data, "execution", ExecutionModel),
+        kb_index=None if kb_index is None else (base_dir / kb_index),
     )
     _check_values(config)
     return config

@@ -89,7 +89,7 @@ class Robot:
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
-        kb = KnowledgeBase.load(config.kb_files) if config.kb_files else None
+        kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
         router = Router()
         if kb is not None:
             KBResources(kb).mount(router)
