@@ -12,6 +12,10 @@ files, loaded in name order):
 
 * ``KnowledgeBase.load``: the loader as a robot runs it (read, ETag hash,
   prefixes, parse and insert, triple count);
+* ``index build`` / ``index open``: ``KnowledgeBase.load(index_dir=...)``,
+  the on-disk index a robot keeps with ``kb_index``: its first start (a
+  fresh index directory each run) and every later one (the index built
+  once before the rounds); peak RSS is the process's;
 * ``Store.load bytes`` / ``Store.load path`` / ``Store.bulk_load bytes`` /
   ``Store.bulk_load path``: pyoxigraph alone, one file after another into an
   in-memory ``Store``;
@@ -33,6 +37,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -45,6 +50,8 @@ SUFFIXES = {".owl": "RDF/XML", ".rdf": "RDF/XML", ".ttl": "Turtle", ".nt": "N-Tr
 
 VARIANTS = [
     "KnowledgeBase.load",
+    "index build",
+    "index open",
     "Store.load bytes",
     "Store.load path",
     "Store.bulk_load bytes",
@@ -56,14 +63,19 @@ VARIANTS = [
 ]
 
 CSV_FIELDS = ["variant", "format", "dir", "files_mb", "triples", "runs", "min_s", "median_s", "triples_per_s",
-              "peak_rss_mb"]
+              "peak_rss_mb", "task_queries_us"]
+
+#: A task's three named queries about one product (Query_1-3), timed after a
+#: KnowledgeBase variant's load: what an on-disk index costs per task.
+TASK_QUERIES = ("object-exists", "object-location", "object-features")
+QUERY_PRODUCTS = 200
 
 
 def kb_files(directory: Path) -> list[Path]:
     return sorted(p for p in directory.iterdir() if p.suffix in SUFFIXES)
 
 
-def measure(variant: str, directory: Path) -> dict[str, float]:
+def measure(variant: str, directory: Path, index_dir: Path) -> dict[str, float]:
     """One measurement in this process; returns seconds, triples, peak RSS."""
     import pyoxigraph as ox
 
@@ -74,8 +86,16 @@ def measure(variant: str, directory: Path) -> dict[str, float]:
     lenient = variant.endswith(" lenient")
     started = time.perf_counter()
     triples = 0
+    kb = None
     if variant == "KnowledgeBase.load":
-        triples = KnowledgeBase.load(paths).triple_count
+        kb = KnowledgeBase.load(paths)
+        triples = kb.triple_count
+    elif variant == "index build":
+        with tempfile.TemporaryDirectory(dir=index_dir) as fresh:
+            triples = KnowledgeBase.load(paths, index_dir=fresh).triple_count
+    elif variant == "index open":
+        kb = KnowledgeBase.load(paths, index_dir=index_dir)
+        triples = kb.triple_count
     elif variant.startswith("Store."):
         store = ox.Store()
         method = store.bulk_load if variant.startswith("Store.bulk_load") else store.load
@@ -98,12 +118,38 @@ def measure(variant: str, directory: Path) -> dict[str, float]:
     else:
         raise ValueError(variant)
     seconds = time.perf_counter() - started
+    task_queries_us = time_task_queries(kb) if kb is not None else None
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    return {"s": seconds, "triples": triples, "peak_rss_mb": peak_kib / 1024}
+    return {"s": seconds, "triples": triples, "peak_rss_mb": peak_kib / 1024, "task_queries_us": task_queries_us}
 
 
-def run_one(variant: str, directory: Path) -> dict[str, float]:
-    out = subprocess.run([sys.executable, __file__, "--one", variant, str(directory)], check=True,
+def time_task_queries(kb: object) -> float:
+    """Microseconds for one product's three task queries (median over products)."""
+    from coapkb.kb.named_queries import named_queries_for
+    from coapkb.world.warehouse import OBJECT_NS
+
+    queries = {q.name: q for q in named_queries_for(kb.names)}  # type: ignore[attr-defined]
+    if not all(name in queries for name in TASK_QUERIES):
+        return float("nan")
+    names = kb.query(  # type: ignore[attr-defined]
+        f"PREFIX o: <{OBJECT_NS}> SELECT ?name WHERE {{ ?p o:Product_name ?name }}", row_limit=QUERY_PRODUCTS
+    ).rows
+    per_product = []
+    for (name,) in names:
+        started = time.perf_counter()
+        for query in TASK_QUERIES:
+            kb.query(queries[query].render({"name": str(name)}))  # type: ignore[attr-defined]
+        per_product.append((time.perf_counter() - started) * 1e6)
+    return statistics.median(per_product)
+
+
+def _median_us(results: list[dict[str, float]]) -> float | str:
+    times = [r["task_queries_us"] for r in results if r.get("task_queries_us") is not None]
+    return round(statistics.median(times)) if times else ""
+
+
+def run_one(variant: str, directory: Path, index_dir: Path) -> dict[str, float]:
+    out = subprocess.run([sys.executable, __file__, "--one", variant, str(directory), str(index_dir)], check=True,
                          capture_output=True, text=True, cwd=ROOT)
     return json.loads(out.stdout)
 
@@ -114,11 +160,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS, metavar="VARIANT")
     p.add_argument("--repeat", type=int, default=3, help="runs per variant and directory (minimum kept)")
     p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "kb_load.csv")
-    p.add_argument("--one", nargs=2, metavar=("VARIANT", "DIR"), help=argparse.SUPPRESS)
+    p.add_argument("--one", nargs=3, metavar=("VARIANT", "DIR", "INDEX_DIR"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one is not None:
-        print(json.dumps(measure(args.one[0], Path(args.one[1]))))
+        print(json.dumps(measure(args.one[0], Path(args.one[1]), Path(args.one[2]))))
         return 0
+    with tempfile.TemporaryDirectory(prefix="kb-index-") as index_dir:
+        return sweep(p, args, Path(index_dir))
+
+
+def sweep(p: argparse.ArgumentParser, args: argparse.Namespace, index_dir: Path) -> int:
     jobs = []
     for directory in args.dirs:
         files = kb_files(directory)
@@ -130,10 +181,12 @@ def main(argv: list[str] | None = None) -> int:
             if "bulk_load path" in variant and fmt != "RDF/XML":
                 continue  # same picture as for RDF/XML; keeps the run short
             jobs.append((variant, directory, fmt, size_mb))
+        if "index open" in args.variants:
+            run_one("index open", directory, index_dir)  # builds it: the rounds then open it
     runs: dict[tuple[str, Path], list[dict[str, float]]] = {(v, d): [] for v, d, _, _ in jobs}
     for round_no in range(args.repeat):  # interleaved: other load on the machine hits every variant alike
         for variant, directory, _, _ in jobs:
-            runs[variant, directory].append(run_one(variant, directory))
+            runs[variant, directory].append(run_one(variant, directory, index_dir))
             print(f"round {round_no + 1}: {variant:26} {directory}: {runs[variant, directory][-1]['s']:.2f} s",
                   file=sys.stderr, flush=True)
     rows = []
@@ -147,13 +200,14 @@ def main(argv: list[str] | None = None) -> int:
             "median_s": round(statistics.median(r["s"] for r in results), 2),
             "triples_per_s": round(triples / best) if triples else "",
             "peak_rss_mb": round(min(r["peak_rss_mb"] for r in results)),
+            "task_queries_us": _median_us(results),
         })
     print(f"{'variant':26} {'format':10} {'MB':>4} {'triples':>9} {'min s':>6} {'med s':>6} {'triples/s':>10} "
-          f"{'RSS MB':>7}")
+          f"{'RSS MB':>7} {'task queries us':>15}")
     for r in rows:
         tps = f"{r['triples_per_s']:,}" if r["triples_per_s"] else ""
         print(f"{r['variant']:26} {r['format']:10} {r['files_mb']:>4} {r['triples'] or '':>9} {r['min_s']:>6} "
-              f"{r['median_s']:>6} {tps:>10} {r['peak_rss_mb']:>7}")
+              f"{r['median_s']:>6} {tps:>10} {r['peak_rss_mb']:>7} {r['task_queries_us']:>15}")
     write_csv(args.out, CSV_FIELDS, rows)
     return 0
 
