@@ -34,16 +34,18 @@ def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | 
     return profile
 
 
-async def open_client(scheme: str, *, retransmission: Any = "robust") -> ClientTransport:
+async def open_client(scheme: str, *, retransmission: Any = "robust", security: Any = None) -> ClientTransport:
     """A client transport for ``scheme``.
 
     ``retransmission``: a reliability profile name (``robust``, the default,
     or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
-    or what :func:`reliability_for` returned; ZeroMQ ignores it."""
+    or what :func:`reliability_for` returned; ZeroMQ ignores it.
+    ``security``: a :class:`coapkb.security.coap.ClientSecurity` (CoAP:
+    OSCORE keyed by EDHOC), or None; ZeroMQ has no security yet."""
     if scheme == "coap":
         from .coap import CoapClientTransport
 
-        return await CoapClientTransport.create(retransmission=retransmission)
+        return await CoapClientTransport.create(retransmission=retransmission, security=security)
     if scheme == "zmq":
         from .zmq.transport import ZmqClientTransport
 
@@ -51,13 +53,16 @@ async def open_client(scheme: str, *, retransmission: Any = "robust") -> ClientT
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
 
 
-async def serve(service: Service, endpoint: Endpoint, *, retransmission: Any = "robust") -> ServerTransport:
+async def serve(
+    service: Service, endpoint: Endpoint, *, retransmission: Any = "robust", security: Any = None
+) -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
-    ``retransmission`` applies to CoAP's confirmable notifications."""
+    ``retransmission`` applies to CoAP's confirmable notifications;
+    ``security`` is a :class:`coapkb.security.coap.ServerSecurity` or None."""
     if endpoint.scheme == "coap":
         from .coap import CoapServerTransport
 
-        return await CoapServerTransport.start(service, endpoint, retransmission=retransmission)
+        return await CoapServerTransport.start(service, endpoint, retransmission=retransmission, security=security)
     if endpoint.scheme == "zmq":
         from .zmq.transport import ZmqServerTransport
 

@@ -55,21 +55,28 @@ class CoapClientTransport:
     (the layer, default) or a CON profile (``rfc7252``, ``lossy-fixed``,
     ``adaptive``) applied by a :class:`RetransmissionController`."""
 
-    def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer | RetransmissionController) -> None:
+    def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer | RetransmissionController,
+                 security: Any = None) -> None:
         self._ctx = ctx
+        #: A :class:`coapkb.security.coap.ClientSecurity` (OSCORE by EDHOC to every peer), or None.
+        self.security = security
         self._hooks = hooks
         self.reliability = reliability
         self.counters: TrafficCounters = hooks.counters
 
     @classmethod
     async def create(
-        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust"
+        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust", security: Any = None,
     ) -> "CoapClientTransport":
-        """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile."""
+        """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile.
+        ``security``: a :class:`coapkb.security.coap.ClientSecurity`, or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
             logger.addFilter(_AbandonedTryFilter())
-        ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername=logger.name)
+        # aiocoap's OSCORE request interface first, so it claims every request
+        # it holds a context for before plain UDP does.
+        transports = ["udp6"] if security is None else ["oscore", "udp6"]
+        ctx = await aiocoap.Context.create_client_context(transports=transports, loggername=logger.name)
         hooks = ContextHooks.of(ctx)
         if retransmission == "robust":
             retransmission = ReliabilityLayer()
@@ -79,7 +86,7 @@ class CoapClientTransport:
         else:
             reliability = RetransmissionController(retransmission)
             hooks.set_con_policy(reliability)
-        return cls(ctx, hooks, reliability)
+        return cls(ctx, hooks, reliability, security)
 
     def describe(self) -> dict[str, Any]:
         """Reliability profile and per-peer estimates, for the agent's record."""
@@ -90,10 +97,7 @@ class CoapClientTransport:
     async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
         try:
             async with asyncio.timeout(timeout):
-                if isinstance(self.reliability, ReliabilityLayer) and len(request.payload) <= MAX_SINGLE_BODY:
-                    message = await self._request_blockwise(peer, request, timeout)
-                else:
-                    message = await self._request_con(peer, request)
+                message = await self._secured(peer, lambda: self._request_any(peer, request, timeout))
         except (TimeoutError, ExchangeTimeout):
             raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
         except _NO_ANSWER as exc:
@@ -101,6 +105,28 @@ class CoapClientTransport:
         except aiocoap.error.Error as exc:
             raise TransportError(f"request to {peer} failed: {exc}") from None
         return response_from_message(message)
+
+    async def _request_any(self, peer: Endpoint, request: Request, timeout: float) -> aiocoap.Message:
+        if isinstance(self.reliability, ReliabilityLayer) and len(request.payload) <= MAX_SINGLE_BODY:
+            return await self._request_blockwise(peer, request, timeout)
+        return await self._request_con(peer, request)
+
+    async def _secured(self, peer: Endpoint, exchange: Any) -> Any:
+        """``exchange()`` under OSCORE when security is on: EDHOC on first
+        contact; a context the peer lost (it restarted) is re-keyed once."""
+        if self.security is None:
+            return await exchange()
+        from ...security.coap import CONTEXT_LOST
+
+        for again in (False, True):
+            await self.security.ensure(self._ctx, peer)
+            try:
+                return await exchange()
+            except CONTEXT_LOST:
+                if again:
+                    raise
+                self.security.forget(self._ctx, peer)
+        raise AssertionError("unreachable")
 
     def _con_request(self, peer: Endpoint, request: Request, *, observe: bool = False) -> Any:
         """An aiocoap confirmable request, timed by the CON profile if one is in use."""
@@ -163,15 +189,17 @@ class CoapClientTransport:
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         if isinstance(self.reliability, ReliabilityLayer):
             try:
-                first, attempt = await self._exchange(peer, request, timeout=60.0, observe=True)
+                first, attempt = await self._secured(peer, lambda: self._exchange(peer, request, timeout=60.0, observe=True))
             except ExchangeTimeout:
                 raise PeerUnreachable(f"no answer from {peer} to the observation") from None
             except _NO_ANSWER as exc:
                 raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
             pending = attempt.handle
         else:
-            pending = self._con_request(peer, request, observe=True)
             try:
+                if self.security is not None:
+                    await self.security.ensure(self._ctx, peer)
+                pending = self._con_request(peer, request, observe=True)
                 first = await pending.response
             except _NO_ANSWER as exc:
                 raise PeerUnreachable(f"no answer from {peer}: {exc}") from None

@@ -56,8 +56,10 @@ class _RateLimitFilter(logging.Filter):
 class _ServiceResource(aiocoap.resource.ObservableResource):
     """One path of a :class:`Service` as an aiocoap resource."""
 
-    def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any) -> None:
+    def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any, security: Any = None) -> None:
         super().__init__()
+        #: A :class:`coapkb.security.coap.ServerSecurity`, or None (unprotected).
+        self._security = security
         self._block1 = GapSafeBlock1Spool()
         self._block2 = BodyAwareBlock2Cache()
         self.service = service
@@ -80,6 +82,10 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         return link
 
     async def render(self, request: aiocoap.Message) -> aiocoap.Message:
+        if self._security is not None:
+            verdict = self._security.check(request, self.info.path)
+            if not verdict.allowed:  # before anything else: a refused request changes nothing
+                return message_from_response(Response.error(verdict.status, verdict.reason))
         try:
             req = request_from_message(self.info.path, request)
         except ValueError:
@@ -154,7 +160,11 @@ class CoapServerTransport:
     async def start(
         cls, service: Service, endpoint: Endpoint,
         retransmission: ReliabilityLayer | TransmissionProfile | str = "robust",
+        security: Any = None,
     ) -> "CoapServerTransport":
+        """``security``: a :class:`coapkb.security.coap.ServerSecurity`
+        (OSCORE + EDHOC, the team's policy on every resource but
+        ``/.well-known/core``), or None."""
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
         if retransmission == "robust":
@@ -175,13 +185,14 @@ class CoapServerTransport:
         )
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
-            site.add_resource(segments, _ServiceResource(service, info, tuning_for))
+            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security))
         logger = logging.getLogger("coapkb.coap.server")
         if not any(isinstance(f, _RateLimitFilter) for f in logger.filters):
             logger.addFilter(_RateLimitFilter())
         try:
             ctx = await aiocoap.Context.create_server_context(
-                site, bind=(host, endpoint.port), transports=["udp6"], loggername=logger.name
+                site if security is None else security.wrap(site), bind=(host, endpoint.port), transports=["udp6"],
+                loggername=logger.name, server_credentials=None if security is None else security.credentials,
             )
         except OSError as exc:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None

@@ -1,0 +1,289 @@
+"""OSCORE (RFC 8613) keyed by EDHOC (RFC 9528) on coapkb's CoAP transport.
+
+aiocoap 0.4.17 does OSCORE and both EDHOC roles; coapkb adds what a team
+needs around them:
+
+Client (:class:`ClientSecurity`)
+    One EDHOC run per peer, on first contact, then the OSCORE context is
+    kept (aiocoap 0.4.17's own client path re-runs EDHOC for every request:
+    ``TransportOSCORE._request`` caches the run on itself, not on the
+    credential).  Concurrent first requests share one run.  The responder's
+    credential is looked up in the team's trust list by the key id it sends
+    (so ``coapkb query`` needs no per-robot setup), and a robot checks that
+    the endpoint it asked is the teammate its configuration puts there.
+    Message 3 travels in its own confirmable exchange (RFC 9528 appendix
+    A.2's message_4 flow), not combined with the first request (RFC 9668):
+    the ``robust`` profile retries a lost request as a new OSCORE request,
+    which would lack message 3.  When a peer lost its context (restarted)
+    the request fails with an unprotected 4.01; the client forgets the
+    context and runs EDHOC again (:meth:`ClientSecurity.forget`).
+
+Server (:class:`ServerSecurity`)
+    aiocoap's :class:`~aiocoap.oscore_sitewrapper.OscoreSiteWrapper`
+    (unprotects, runs EDHOC as responder, protects answers and Observe
+    notifications), with: one identity per robot whatever Uri-Host the
+    client used; a 4.01 also to a NON request in an unknown context (aiocoap
+    drops it silently; the robust client would then wait out its whole
+    timeout instead of re-keying: RFC 8613 section 8.2 allows the answer);
+    a bound on responder contexts (aiocoap 0.4.17 has 47 connection
+    identifiers and never frees one); and the per-resource policy
+    (:mod:`.policy`) in front of every resource but ``/.well-known/core``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+from dataclasses import dataclass, field
+from typing import Any
+
+import aiocoap
+import aiocoap.error
+import cbor2
+import lakers
+from aiocoap import edhoc as aiocoap_edhoc
+from aiocoap import oscore
+from aiocoap.credentials import CredentialsMap
+from aiocoap.numbers.codes import POST
+from aiocoap.numbers.types import NON
+from aiocoap.oscore_sitewrapper import OscoreSiteWrapper
+from aiocoap.transports.oscore import OSCOREAddress
+
+from ..transport.base import Endpoint, TransportError
+from .keys import CIPHER_SUITE, EDHOC_METHOD, SecurityError, TeamIdentity, TeamMember
+from .policy import AccessPolicy, Verdict
+
+log = logging.getLogger(__name__)
+
+EDHOC_PATH = (".well-known", "edhoc")
+#: Prefix of the credentials-map labels of trusted peers; aiocoap reports
+#: the label as the authenticated claim of a context.
+_MEMBER_LABEL = ":member/"
+_OWN_LABEL = ":own"
+#: Responder contexts kept before the oldest are dropped (their peers re-key).
+MAX_RESPONDER_CONTEXTS = 40
+
+class EdhocFailed(SecurityError, TransportError):
+    """EDHOC with a peer failed: refused, not a teammate, or a bad message.
+    A transport failure too, so callers fail over as for a dead peer."""
+
+
+#: What a request over a context the peer no longer has ends in: an
+#: unprotected error answer (4.01 here, 4.00 from other servers), or one that
+#: does not decrypt.
+CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid)
+
+
+def _edhoc_credentials(identity: TeamIdentity | None, peer: TeamMember | None) -> aiocoap_edhoc.EdhocCredentials:
+    own: dict[str, Any] = {}
+    if identity is not None:
+        own = {
+            "own_cred": identity.member.aiocoap_cred(),
+            "own_cred_style": "by-key-id",
+            # By value, never through a file name aiocoap would log on error.
+            "private_key": {1: 2, -1: 1, -4: identity.private_d},
+        }
+    return aiocoap_edhoc.EdhocCredentials(
+        suite=CIPHER_SUITE, method=EDHOC_METHOD, peer_cred=None if peer is None else peer.aiocoap_cred(),
+        use_combined_edhoc=False, **own,
+    )
+
+
+@dataclass
+class HandshakeStats:
+    """One EDHOC run as the initiator saw it (CoAP payloads, both directions)."""
+
+    peer: str
+    round_trips: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    seconds: float = 0.0
+
+
+def _encode_c_r(c_r: bytes) -> bytes:
+    # RFC 9528 section 3.3.2: a one-byte identifier that is a CBOR integer
+    # is sent as is; anything else as a CBOR byte string.
+    if len(c_r) == 1 and (0 <= c_r[0] < 24 or 0x20 <= c_r[0] < 0x38):
+        return c_r
+    return cbor2.dumps(c_r)
+
+
+class ClientSecurity:
+    """A client's EDHOC-derived OSCORE contexts, one per peer, kept."""
+
+    def __init__(self, identity: TeamIdentity, expected: dict[str, str] | None = None) -> None:
+        self.identity = identity
+        #: Which member must answer at an endpoint (``host:port`` -> name),
+        #: where known; other endpoints accept any member of the trust list.
+        self.expected = dict(expected or {})
+        self._runs: dict[str, asyncio.Task[Any]] = {}
+        self.handshakes: list[HandshakeStats] = []
+        #: Members authenticated at each endpoint.
+        self.peers: dict[str, TeamMember] = {}
+
+    @staticmethod
+    def _key(peer: Endpoint) -> str:
+        return f"coap://{peer.hostport}/*"
+
+    async def ensure(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
+        """An OSCORE context for ``peer`` in ``ctx``'s client credentials
+        (EDHOC on first contact; callers racing here share one run)."""
+        key = self._key(peer)
+        if key in ctx.client_credentials:
+            return
+        run = self._runs.get(key)
+        if run is None:
+            run = asyncio.get_running_loop().create_task(self._establish(ctx, peer), name=f"edhoc {peer}")
+            self._runs[key] = run
+            run.add_done_callback(lambda t, key=key: self._runs.pop(key, None) if self._runs.get(key) is t else None)
+        # A caller's timeout must not cancel the run the others wait for.
+        await asyncio.shield(run)
+
+    def forget(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
+        """Drop ``peer``'s context: the next request runs EDHOC again."""
+        ctx.client_credentials.pop(self._key(peer), None)
+
+    async def _establish(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        stats = HandshakeStats(str(peer))
+        initiator = lakers.EdhocInitiator()
+        c_i = bytes([secrets.randbelow(24)])
+        message_1 = initiator.prepare_message_1(c_i)
+        # CoAP transport of EDHOC (RFC 9528 appendix A.2): message_1 follows CBOR true.
+        message_2 = await self._post(ctx, peer, cbor2.dumps(True) + message_1, stats)
+        try:
+            c_r, id_cred_r, ead_2 = initiator.parse_message_2(message_2)
+        except Exception as exc:  # lakers raises plain exceptions for malformed messages
+            raise EdhocFailed(f"EDHOC with {peer}: bad message_2 ({exc})") from None
+        if any(item.is_critical() for item in ead_2):
+            raise EdhocFailed(f"EDHOC with {peer}: critical EAD in message_2")
+        member = self._responder(peer, id_cred_r)
+        try:
+            initiator.verify_message_2(self.identity.private_d, self.identity.member.ccs, member.ccs)
+        except Exception:
+            raise EdhocFailed(f"EDHOC with {peer}: message_2 does not verify against {member.name}'s credential") from None
+        context = _InitiatorContext(
+            initiator, c_i, c_r, aiocoap_edhoc.OwnCredStyle.ByKeyId, logging.getLogger("coapkb.security.edhoc")
+        )
+        message_4 = await self._post(ctx, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
+        try:
+            context.complete_with_message_4(message_4)
+        except Exception:
+            raise EdhocFailed(f"EDHOC with {peer}: bad message_4") from None
+        stats.seconds = loop.time() - started
+        self.handshakes.append(stats)
+        self.peers[peer.hostport] = member
+        ctx.client_credentials[self._key(peer)] = context
+        log.debug("EDHOC with %s (%s) done in %.3f s", peer, member.name, stats.seconds)
+
+    async def _post(self, ctx: aiocoap.Context, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
+        request = aiocoap.Message(code=POST, uri=f"coap://{peer.hostport}/.well-known/edhoc", payload=payload)
+        stats.round_trips += 1
+        stats.bytes_sent += len(payload)
+        try:
+            response = await ctx.request(request).response
+        except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+            raise TransportError(f"EDHOC with {peer}: no answer ({exc})") from None
+        stats.bytes_received += len(response.payload)
+        if not response.code.is_successful():
+            detail = response.payload.decode("utf-8", "replace")[:80]
+            raise EdhocFailed(f"EDHOC with {peer} refused: {response.code} {detail}".rstrip())
+        return response.payload
+
+    def _responder(self, peer: Endpoint, id_cred_r: bytes) -> TeamMember:
+        """The trust list's member whose credential the responder named."""
+        trust = self.identity.trust
+        try:
+            parsed = cbor2.loads(id_cred_r)
+        except (ValueError, cbor2.CBORDecodeError):
+            parsed = None
+        member = None
+        if isinstance(parsed, dict) and isinstance(parsed.get(4), bytes):
+            member = trust.by_kid(parsed[4])
+        elif isinstance(parsed, dict) and isinstance(parsed.get(14), dict):
+            member = trust.by_ccs(cbor2.dumps(parsed[14], canonical=True))
+        if member is None:
+            raise EdhocFailed(f"EDHOC with {peer}: it presented a credential not in the team's trust list")
+        want = self.expected.get(peer.hostport)
+        if want is not None and member.name != want:
+            raise EdhocFailed(f"EDHOC with {peer}: expected {want}, but {member.name} answered")
+        return member
+
+
+class _InitiatorContext(aiocoap_edhoc.EdhocInitiatorContext):
+    """aiocoap's initiator context, with message_3 sent by coapkb in its own
+    exchange (never piggybacked on a request)."""
+
+    def take_message_3(self) -> bytes:
+        message_3 = self.message_3_to_include()
+        if message_3 is None:
+            raise SecurityError("EDHOC message_3 already sent")
+        return message_3
+
+    @property
+    def authenticated_claims(self) -> list[str]:
+        return []
+
+
+class _TeamSiteWrapper(OscoreSiteWrapper):
+    def __init__(self, inner_site: Any, credentials: CredentialsMap) -> None:
+        super().__init__(inner_site, credentials)
+        self.log = logging.getLogger("coapkb.security.server")
+
+    def _get_edhoc_identity(self, origin: str) -> aiocoap_edhoc.EdhocCredentials | None:
+        # One identity per robot, whatever host name the client asked for.
+        own = self.server_credentials.get(_OWN_LABEL)
+        return own if isinstance(own, aiocoap_edhoc.EdhocCredentials) else None
+
+    async def render_to_pipe(self, pipe: Any) -> None:
+        request = pipe.request
+        if request.opt.uri_path == EDHOC_PATH and request.payload[:1] == cbor2.dumps(True):
+            self._prune()
+        elif request.opt.oscore is not None and request.mtype == NON:
+            try:
+                self.server_credentials.find_oscore(oscore.verify_start(request))
+            except KeyError:
+                pipe.add_response(aiocoap.Message(code=aiocoap.UNAUTHORIZED, max_age=0,
+                                                  payload=b"Security context not found"), is_last=True)
+                return
+            except oscore.NotAProtectedMessage:
+                pass
+        await super().render_to_pipe(pipe)
+
+    def _prune(self) -> None:
+        responders = [k for k, v in self.server_credentials.items() if isinstance(v, aiocoap_edhoc.EdhocResponderContext)]
+        if len(responders) >= MAX_RESPONDER_CONTEXTS:
+            for label in responders[: len(responders) - MAX_RESPONDER_CONTEXTS + 8]:
+                del self.server_credentials[label]
+
+
+@dataclass
+class ServerSecurity:
+    """A robot's server side: its EDHOC identity, the trust list, the policy."""
+
+    identity: TeamIdentity
+    policy: AccessPolicy = field(default_factory=AccessPolicy)
+
+    def __post_init__(self) -> None:
+        self.credentials = CredentialsMap()
+        self.credentials[_OWN_LABEL] = _edhoc_credentials(self.identity, None)
+        for member in self.identity.trust.members:
+            self.credentials[_MEMBER_LABEL + member.name] = _edhoc_credentials(None, member)
+
+    def wrap(self, site: Any) -> Any:
+        return _TeamSiteWrapper(site, self.credentials)
+
+    def member_of(self, request: aiocoap.Message) -> TeamMember | None:
+        """The team member a request came from, or None if it was not protected."""
+        remote = request.remote
+        if not isinstance(remote, OSCOREAddress):
+            return None
+        for claim in getattr(remote.security_context, "authenticated_claims", ()):
+            if isinstance(claim, str) and claim.startswith(_MEMBER_LABEL):
+                return self.identity.trust.by_name(claim[len(_MEMBER_LABEL):])
+        return None
+
+    def check(self, request: aiocoap.Message, path: str) -> Verdict:
+        return self.policy.decide(self.member_of(request), request.code.name, path)

@@ -1,0 +1,244 @@
+"""A team's key material: each member's EDHOC credential and the trust list.
+
+One directory per team (``coapkb keys --team-dir DIR --robots N``):
+
+``team.json``
+    The trust list (public): every member's name, role and credential, a
+    CWT Claims Set (CCS, RFC 9528 section 3.5.2, the ``kccs`` form of
+    RFC 8392/9052) carrying a P-256 public key and a one-byte key id.  A
+    robot admits an EDHOC peer only if its credential is in this file.
+``NAME.key``
+    One member's private key as a COSE_Key (RFC 9052: kty EC2, crv P-256,
+    d), CBOR, mode 0600; the format aiocoap's ``private_key_file`` reads, so
+    ``aiocoap-client --credentials`` can use the same file.
+
+Roles decide what a member may do on a robot (:mod:`.policy`): ``robot``
+(query, observe, post decisions if it is its cluster's decider), ``feeder``
+(also post tasks), ``server`` (the central KB server of the baseline) and
+``client`` (an operator's ``coapkb query``: read only).
+
+Private keys are written once (``O_EXCL``) with mode 0600 and never logged;
+loading refuses a key file that others may read, as aiocoap does.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+import cbor2
+
+from ..errors import CoapkbError
+
+TRUST_FILE = "team.json"
+TRUST_FORMAT = "coapkb-team/1"
+ROLES = ("robot", "feeder", "server", "client")
+#: EDHOC cipher suite 2 (AES-CCM-16-64-128, SHA-256, P-256): the one lakers
+#: and aiocoap 0.4.17 implement, and the one RFC 9528 makes mandatory for
+#: constrained nodes.
+CIPHER_SUITE = 2
+#: EDHOC method 3: both sides authenticate with static Diffie-Hellman keys
+#: (the shortest messages, RFC 9528 section 3.2).
+EDHOC_METHOD = 3
+
+# COSE / CWT labels (RFC 9052, RFC 8392, RFC 8747)
+_KTY, _KID, _CRV, _X, _Y, _D = 1, 2, -1, -2, -3, -4
+_KTY_EC2, _CRV_P256 = 2, 1
+_CWT_SUB, _CWT_CNF, _CNF_COSE_KEY = 2, 8, 1
+
+
+class SecurityError(CoapkbError):
+    """Key material missing, unreadable or malformed; a request not allowed."""
+
+
+@dataclass(frozen=True)
+class TeamMember:
+    """One entry of the trust list."""
+
+    name: str
+    role: str
+    #: The credential's key id (``kid`` of its COSE_Key): EDHOC sends it by
+    #: reference as ``ID_CRED_x = {4: kid}``.
+    kid: bytes
+    #: The CCS (without the ``kccs`` wrapper), canonical CBOR: what EDHOC
+    #: authenticates (CRED_I / CRED_R).
+    ccs: bytes
+
+    def ccs_map(self) -> dict:
+        return cbor2.loads(self.ccs)
+
+    def aiocoap_cred(self) -> dict:
+        """The credential as aiocoap's ``own_cred`` / ``peer_cred``: ``{14: CCS}``."""
+        return {14: self.ccs_map()}
+
+
+@dataclass(frozen=True)
+class TeamTrust:
+    """The trust list: who is in the team."""
+
+    members: tuple[TeamMember, ...]
+
+    def by_name(self, name: str) -> TeamMember | None:
+        return next((m for m in self.members if m.name == name), None)
+
+    def by_kid(self, kid: bytes) -> TeamMember | None:
+        return next((m for m in self.members if m.kid == kid), None)
+
+    def by_ccs(self, ccs: bytes) -> TeamMember | None:
+        return next((m for m in self.members if m.ccs == ccs), None)
+
+
+@dataclass(frozen=True)
+class TeamIdentity:
+    """What one member holds: its own entry, its private key, the trust list."""
+
+    member: TeamMember
+    #: The P-256 private scalar, 32 bytes.  Never logged; ``repr`` hides it.
+    private_d: bytes
+    trust: TeamTrust
+    team_dir: Path
+
+    @property
+    def name(self) -> str:
+        return self.member.name
+
+    @property
+    def key_file(self) -> Path:
+        return self.team_dir / f"{self.member.name}.key"
+
+    def __repr__(self) -> str:
+        return f"TeamIdentity({self.member.name!r}, role={self.member.role!r}, team_dir={str(self.team_dir)!r})"
+
+
+def _public_ccs(name: str, kid: bytes, d: bytes) -> bytes:
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    public = ec.derive_private_key(int.from_bytes(d, "big"), ec.SECP256R1()).public_key().public_numbers()
+    cose_key = {_KTY: _KTY_EC2, _KID: kid, _CRV: _CRV_P256, _X: public.x.to_bytes(32, "big"), _Y: public.y.to_bytes(32, "big")}
+    return cbor2.dumps({_CWT_SUB: name, _CWT_CNF: {_CNF_COSE_KEY: cose_key}}, canonical=True)
+
+
+def _write_private(path: Path, d: bytes) -> None:
+    # Created 0600 in one step (no window where it is readable), never overwritten.
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with open(fd, "wb") as out:
+            cbor2.dump({_KTY: _KTY_EC2, _CRV: _CRV_P256, _D: d}, out)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+
+
+def generate_team(team_dir: str | Path, members: Iterable[tuple[str, str]]) -> TeamTrust:
+    """Make a team directory: a private key per ``(name, role)`` and the trust list.
+
+    Refuses a directory that already holds a team (keys are never replaced
+    in place: a robot running with the old ones would lock itself out)."""
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    team_dir = Path(team_dir)
+    members = list(members)
+    names = [n for n, _ in members]
+    if len(set(names)) != len(names):
+        raise SecurityError("team members must have distinct names")
+    if len(members) > 255:
+        raise SecurityError("at most 255 team members (one-byte key ids)")
+    for name, role in members:
+        if role not in ROLES:
+            raise SecurityError(f"{name}: role {role!r} is not one of {', '.join(ROLES)}")
+        if not name or "/" in name or name.startswith("."):
+            raise SecurityError(f"{name!r} is not a usable member name")
+    try:
+        team_dir.mkdir(parents=True, exist_ok=True)
+        os.chmod(team_dir, 0o700)
+    except OSError as exc:
+        raise SecurityError(f"cannot create team directory {team_dir}: {exc.strerror}") from None
+    if (team_dir / TRUST_FILE).exists():
+        raise SecurityError(f"{team_dir} already holds a team ({TRUST_FILE}); use a new directory")
+    entries = []
+    for index, (name, role) in enumerate(members):
+        d = ec.generate_private_key(ec.SECP256R1()).private_numbers().private_value.to_bytes(32, "big")
+        # kid 0x00..0x17 encode as one-byte CBOR ints in EDHOC's compact ID_CRED;
+        # larger ones still work, one byte longer.
+        kid = bytes([index])
+        try:
+            _write_private(team_dir / f"{name}.key", d)
+        except FileExistsError:
+            raise SecurityError(f"{team_dir / (name + '.key')} already exists; use a new directory") from None
+        except OSError as exc:
+            raise SecurityError(f"cannot write {team_dir / (name + '.key')}: {exc.strerror}") from None
+        entries.append(TeamMember(name, role, kid, _public_ccs(name, kid, d)))
+    trust = TeamTrust(tuple(entries))
+    document = {
+        "format": TRUST_FORMAT,
+        "edhoc": {"suite": CIPHER_SUITE, "method": EDHOC_METHOD},
+        "members": [{"name": m.name, "role": m.role, "kid": m.kid.hex(), "ccs": m.ccs.hex()} for m in entries],
+    }
+    (team_dir / TRUST_FILE).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    return trust
+
+
+def load_trust(team_dir: str | Path) -> TeamTrust:
+    path = Path(team_dir) / TRUST_FILE
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise SecurityError(f"cannot read the team's trust list {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise SecurityError(f"{path}: not JSON: {exc}") from None
+    if not isinstance(document, dict) or document.get("format") != TRUST_FORMAT:
+        raise SecurityError(f"{path}: not a coapkb trust list (format {TRUST_FORMAT})")
+    members = []
+    try:
+        for raw in document["members"]:
+            member = TeamMember(raw["name"], raw["role"], bytes.fromhex(raw["kid"]), bytes.fromhex(raw["ccs"]))
+            ccs = member.ccs_map()
+            if ccs[_CWT_CNF][_CNF_COSE_KEY][_KID] != member.kid or member.role not in ROLES:
+                raise ValueError(f"member {member.name}: kid or role inconsistent")
+            members.append(member)
+    except (KeyError, TypeError, ValueError, cbor2.CBORDecodeError) as exc:
+        raise SecurityError(f"{path}: malformed trust list: {exc}") from None
+    kids = [m.kid for m in members]
+    if len(set(kids)) != len(kids) or len({m.name for m in members}) != len(members):
+        raise SecurityError(f"{path}: duplicate member names or key ids")
+    return TeamTrust(tuple(members))
+
+
+def load_identity(team_dir: str | Path, name: str) -> TeamIdentity:
+    """``name``'s private key and the trust list from ``team_dir``.
+
+    Every failure is one :class:`SecurityError` line naming the file."""
+    team_dir = Path(team_dir)
+    trust = load_trust(team_dir)
+    member = trust.by_name(name)
+    if member is None:
+        raise SecurityError(f"{name} is not in the team's trust list {team_dir / TRUST_FILE}")
+    path = team_dir / f"{name}.key"
+    try:
+        mode = path.stat().st_mode
+        if mode & 0o077:
+            # As aiocoap: a private key others can read is compromised or about to be.
+            raise SecurityError(f"{path}: private key is readable by group or others (chmod 600 it)")
+        if not stat.S_ISREG(mode):
+            raise SecurityError(f"{path}: not a regular file")
+        key = cbor2.loads(path.read_bytes())
+    except OSError as exc:
+        raise SecurityError(f"cannot read private key {path}: {exc.strerror}") from None
+    except (ValueError, cbor2.CBORDecodeError):
+        raise SecurityError(f"{path}: not a CBOR COSE_Key") from None
+    if not isinstance(key, dict) or key.get(_KTY) != _KTY_EC2 or key.get(_CRV) != _CRV_P256 \
+            or not isinstance(key.get(_D), bytes) or len(key[_D]) != 32:
+        raise SecurityError(f"{path}: expected a P-256 COSE_Key with d")
+    if _public_ccs(member.name, member.kid, key[_D]) != member.ccs:
+        raise SecurityError(f"{path}: the key does not match {name}'s credential in {TRUST_FILE}")
+    return TeamIdentity(member, key[_D], trust, team_dir)
+
+
+def default_members(robots: int, extra_robots: Iterable[str] = ()) -> list[tuple[str, str]]:
+    """Robot1..RobotN, the feeder, the central server and an operator."""
+    names = [(f"Robot{i}", "robot") for i in range(1, robots + 1)] + [(n, "robot") for n in extra_robots]
+    return names + [("feeder", "feeder"), ("central", "server"), ("operator", "client")]
