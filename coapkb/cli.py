@@ -42,6 +42,7 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=("oxigraph", "rdflib"), default="oxigraph")
     p.add_argument("--index-dir", metavar="DIR",
                    help="keep the KB as an on-disk index in DIR: built once, opened in milliseconds later (oxigraph)")
+    _add_credentials(p, "central")
     p.add_argument("--row-limit", type=int, default=1000)
     p.add_argument("--time-budget", type=float, default=2.0, metavar="SECONDS")
     p.set_defaults(run=_serve)
@@ -63,7 +64,7 @@ async def _serve(args: argparse.Namespace) -> int:
     kb = KnowledgeBase.load(args.kb, backend=args.backend, index_dir=args.index_dir)
     router = Router()
     KBResources(kb, limits).mount(router)
-    server = await serve(router, endpoint)
+    server = await serve(router, endpoint, security=_server_security(args))
     print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}) on {server.endpoint}", flush=True)
     try:
         await _until_signalled()
@@ -95,6 +96,66 @@ def _endpoint(hostport: str, scheme: str):  # -> Endpoint
 
 
 # --------------------------------------------------------------------------- agent
+
+
+def _add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
+    p.add_argument("--credentials", metavar="DIR",
+                   help="team key directory (coapkb keys): OSCORE keyed by EDHOC with the team's members")
+    p.add_argument("--identity", default=identity, metavar="NAME",
+                   help=f"whose key in --credentials to use (default {identity})")
+
+
+def _client_security(args: argparse.Namespace, scheme: str):  # -> ClientSecurity | None
+    if getattr(args, "credentials", None) is None:
+        return None
+    if scheme != "coap":
+        raise UserError("--credentials: only the coap transport is secured (no CurveZMQ yet)")
+    from .security import load_identity
+    from .security.coap import ClientSecurity
+
+    return ClientSecurity(load_identity(args.credentials, args.identity))
+
+
+def _server_security(args: argparse.Namespace):  # -> ServerSecurity | None
+    if args.credentials is None:
+        return None
+    if args.transport != "coap":
+        raise UserError("--credentials: only the coap transport is secured (no CurveZMQ yet)")
+    from .security import load_identity
+    from .security.coap import ServerSecurity
+
+    # A KB server takes queries from every member; tasks and decisions are robots' business.
+    return ServerSecurity(load_identity(args.credentials, args.identity))
+
+
+def _add_keys(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("keys", help="make a team's key material: EDHOC credentials, private keys, trust list")
+    p.add_argument("--team-dir", required=True, metavar="DIR", help="a new directory (never overwritten)")
+    p.add_argument("--robots", type=int, default=3, help="Robot1..RobotN")
+    p.add_argument("--member", action="append", default=[], metavar="NAME:ROLE",
+                   help="another member (role robot, feeder, server or client); repeatable")
+    p.set_defaults(run=_keys)
+
+
+async def _keys(args: argparse.Namespace) -> int:
+    from .security import generate_team
+    from .security.keys import ROLES, default_members
+
+    if args.robots < 0:
+        raise UserError("--robots must not be negative")
+    members = default_members(args.robots)
+    for text in args.member:
+        name, sep, role = text.partition(":")
+        if not sep or role not in ROLES:
+            raise UserError(f"--member {text!r}: expected NAME:ROLE with ROLE one of {', '.join(ROLES)}")
+        members.append((name, role))
+    trust = generate_team(args.team_dir, members)
+    # Names and roles only: the keys stay in their 0600 files.
+    print(f"team of {len(trust.members)} in {args.team_dir}: "
+          + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
+    print(f"give each member its {args.team_dir}/NAME.key and {args.team_dir}/team.json; "
+          "a robot's TOML names the directory: [security] credentials = \"DIR\"")
+    return 0
 
 
 def _add_agent(sub: argparse._SubParsersAction) -> None:
@@ -148,6 +209,9 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
                    help="start a killed robot again at S seconds (refused until a robot can rejoin: issue 11)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.add_argument("--insecure", action="store_true",
+                   help="no OSCORE/EDHOC and no access policy (default: on, with throwaway team keys; coap only)")
+    p.add_argument("--credentials", metavar="DIR", help="use this team key directory (coapkb keys) instead of throwaway keys")
     p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
     p.set_defaults(run=_team)
 
@@ -155,6 +219,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the main job: 3 robots on loopback do the seed's example tasks")
     p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--insecure", action="store_true", help="no OSCORE/EDHOC (default: on, throwaway keys)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.set_defaults(run=_demo)
 
@@ -172,6 +237,7 @@ async def _demo(args: argparse.Namespace) -> int:
         robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
         strategy="compute-by-all", retransmission="robust", query_wire="compact", ontologies=None,
         time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
+        insecure=args.insecure,
     )
     return await _team(team_args)
 
@@ -191,6 +257,8 @@ async def _team(args: argparse.Namespace) -> int:
             robots=args.robots, mode=args.mode, transport=args.transport, strategy=args.strategy,
             retransmission=args.retransmission, query_wire=args.query_wire, ontologies=ontologies,
             time_scale=args.time_scale, replication=getattr(args, "replication", 2), faults=faults,
+            security=not getattr(args, "insecure", False),
+            credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)
@@ -248,6 +316,7 @@ async def _team(args: argparse.Namespace) -> int:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
+            print("security: " + ("OSCORE keyed by EDHOC, team access policy" if spec.secure else "none"), flush=True)
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
@@ -299,6 +368,7 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
     p.set_defaults(run=_query)
 
+    _add_credentials(p, "operator")
 
 def _read_query_text(arg: str | None) -> str | None:
     if arg is None:
@@ -327,7 +397,8 @@ async def _query(args: argparse.Namespace) -> int:
         raise UserError("no query: give SPARQL text (or @FILE, or -) or a /kb/q/NAME URI")
     if parts.path not in ("", "/") and not named:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
-    transport = await open_client(peer.scheme, retransmission=_retransmission_profile(args))
+    transport = await open_client(peer.scheme, retransmission=_retransmission_profile(args),
+                                  security=_client_security(args, peer.scheme))
     client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
     try:
@@ -473,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_team, _add_serve, _add_agent, _add_query, _add_bench,
+    _add_demo, _add_team, _add_serve, _add_agent, _add_query, _add_bench, _add_keys,
 ]
 
 

@@ -40,6 +40,7 @@ from typing import Any, Mapping
 from .errors import CoapkbError
 import tomli_w
 
+from .security.settings import SecurityConfig, parse_security
 from .transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from .transport.base import Endpoint
 
@@ -106,6 +107,8 @@ class RobotConfig:
     link_kbps: float | None = None
     cost: CostModel = field(default_factory=CostModel)
     execution: ExecutionModel = field(default_factory=ExecutionModel)
+    #: OSCORE keyed by EDHOC and the team's access policy (``[security]``); None = unprotected.
+    security: SecurityConfig | None = None
     #: Keep the KB as an on-disk index here (built once, opened in
     #: milliseconds at every later start); None = load it into memory.
     kb_index: Path | None = None
@@ -159,6 +162,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         data["central"] = str(config.central)
     if config.kb_index is not None:
         data["kb_index"] = str(config.kb_index.resolve())
+    if config.security is not None:
+        data["security"] = config.security.to_dict()
     data["start"] = asdict(config.start)
     data["cost"] = asdict(config.cost)
     data["execution"] = asdict(config.execution)
@@ -175,7 +180,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     """Validate a configuration mapping (as read from TOML)."""
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
-        "central", "query_timeout_s", "link_kbps", "cost", "execution", "kb_index",
+        "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -209,6 +214,10 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         team[mate_id] = Teammate(mate_id, endpoint, kbs)
     if robot_id not in team:
         raise ConfigError(f"team: must list this robot ({robot_id}) too")
+    try:
+        security = None if data.get("security") is None else parse_security(data["security"], base_dir)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     central = data.get("central")
     central_ep = _endpoint(central, "central") if central is not None else None
     config = RobotConfig(
@@ -224,6 +233,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         link_kbps=None if data.get("link_kbps") is None else float(_get(data, "link_kbps", (int, float))),
         cost=_section(data, "cost", CostModel),
         execution=_section(data, "execution", ExecutionModel),
+        security=security,
         kb_index=None if kb_index is None else (base_dir / kb_index),
     )
     _check_values(config)

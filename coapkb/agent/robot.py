@@ -24,6 +24,7 @@ from typing import Any
 import cbor2
 
 from ..kb.client import KBClient
+from ..security import AccessPolicy, SecurityError, load_identity
 from ..config import RobotConfig
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
@@ -89,13 +90,14 @@ class Robot:
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
+        client_security = robot_security(config)  # first: a bad key stops the robot before the KB loads
         kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
         router = Router()
         if kb is not None:
             KBResources(kb).mount(router)
         # One reliability layer for the client and the server's notifications.
         reliability = reliability_for(config.transport, config.retransmission, link_kbps=config.link_kbps)
-        client = await open_client(config.transport, retransmission=reliability)
+        client = await open_client(config.transport, retransmission=reliability, security=client_security)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
@@ -129,7 +131,14 @@ class Robot:
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot._mount()  # before serving: the transport publishes the resource list
         try:
-            robot.server = await serve(router, config.bind, retransmission=reliability)
+            server_security = None
+            if client_security is not None:
+                from ..security.coap import ServerSecurity
+
+                # Decisions only from whom this robot's Controller waits for.
+                deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
+                server_security = ServerSecurity(client_security.identity, AccessPolicy(deciders))
+            robot.server = await serve(router, config.bind, retransmission=reliability, security=server_security)
         except BaseException:
             await client.aclose()
             raise
@@ -224,6 +233,24 @@ class Robot:
             executed=self.executor.live.done,
             idle=self.executor.live.activity == "idle" and self.executor.live.queued == 0,
         )
+
+
+def robot_security(config: RobotConfig) -> Any:
+    """The client side of ``config``'s ``[security]`` (a
+    :class:`~coapkb.security.coap.ClientSecurity`), or None.  Reads the key
+    now, so a missing or unreadable key stops the robot at start-up."""
+    if config.security is None:
+        return None
+    if config.transport != "coap":
+        raise SecurityError(f"[security]: the {config.transport} transport has no security yet (CurveZMQ is not built); use coap")
+    from ..security.coap import ClientSecurity
+
+    identity = load_identity(config.security.credentials, config.security.identity or config.robot_id)
+    # Each teammate's endpoint must answer with that teammate's credential.
+    expected = {m.endpoint.hostport: r for r, m in config.team.items()}
+    if config.central is not None:
+        expected[config.central.hostport] = "central"
+    return ClientSecurity(identity, expected)
 
 
 async def broadcast_decision(client: ClientTransport, config: RobotConfig, message: DecisionMessage) -> None:

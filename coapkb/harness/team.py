@@ -24,7 +24,7 @@ import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import AsyncIterator, Awaitable, Callable, Sequence
+from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 
 import cbor2
 
@@ -49,6 +49,8 @@ from ..transport import open_client
 from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import ClientTransport, Endpoint, TrafficCounters, TransportError
 from .record import FaultEvent, TaskRecord, TeamRecord
+from ..security import SecurityConfig, generate_team, load_identity
+from ..security.keys import default_members
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,16 @@ class TeamSpec:
     replication: int = 2
     #: Failures injected during the run (``coapkb team --kill/--restart``).
     faults: tuple[Fault, ...] = ()
+    #: OSCORE keyed by EDHOC between every process, with the team's access
+    #: policy (issue 12), from throwaway keys made in the run's directory.
+    #: CoAP only: the ZeroMQ transport has no CurveZMQ yet, so it runs plain.
+    security: bool = True
+    #: An existing team directory (``coapkb keys``) to use instead of throwaway keys.
+    credentials: Path | None = None
+
+    @property
+    def secure(self) -> bool:
+        return self.security and self.transport == "coap"
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
@@ -235,6 +247,8 @@ class Team:
         self.central: Endpoint | None = None
         self._stderr_tails: dict[str, list[str]] = {}
         self._argv: dict[str, list[str]] = {}
+        #: The team's key directory (``coapkb keys``'s layout) when the spec is secure.
+        self.team_dir: Path | None = None
 
     # ---------------------------------------------------------------- processes
 
@@ -263,6 +277,7 @@ class Team:
                     query_timeout_s=spec.query_timeout_s,
                     link_kbps=spec.link_kbps,
                     execution=ExecutionModel(time_scale=spec.time_scale),
+                    security=None if self.team_dir is None else SecurityConfig(self.team_dir),
                 )
                 path = self.workdir / f"{robot_id}.toml"
                 path.write_text(dump_config(config), encoding="utf-8")
@@ -298,12 +313,18 @@ class Team:
         with tempfile.TemporaryDirectory(prefix="coapkb-team-") as tmp:
             team = cls(spec, Path(tmp), placement)
             try:
+                if spec.secure and spec.credentials is not None:
+                    team.team_dir = spec.credentials
+                elif spec.secure:
+                    team.team_dir = Path(tmp) / "keys"
+                    generate_team(team.team_dir, default_members(spec.robots))
                 if spec.mode == "central":
                     team.central = team.placement.endpoint("central", spec)
                     kbs = [str(spec.ontologies / f"{kb}.owl") for kb in KB_MODULES]
+                    secured = [] if team.team_dir is None else ["--credentials", str(team.team_dir), "--identity", "central"]
                     await team._spawn(
                         "central",
-                        ["serve", "--kb", *kbs, "--bind", team.central.hostport, "--transport", spec.transport],
+                        ["serve", "--kb", *kbs, "--bind", team.central.hostport, "--transport", spec.transport, *secured],
                         "serving",
                     )
                 configs = team.write_configs()
@@ -351,7 +372,7 @@ class Team:
         downloads their statistics (a benchmark reads its counters there, so
         that download is not charged to the system)."""
         spec = self.spec
-        client = await open_client(spec.transport, retransmission=spec.retransmission)
+        client = await open_client(spec.transport, retransmission=spec.retransmission, security=self.feeder_security())
         # With liveness the feeder declares a robot down when its requests
         # fail, and then waits for the survivors only.
         watcher = ObservedStates(
@@ -387,6 +408,17 @@ class Team:
             if event.robot in watcher.down_at and event.action == "kill":
                 event.detected_after_s = round(watcher.down_at[event.robot] - started - event.at_s, 3)
         return self._record(records, stats, feeder, coordination_s, completion_s, events, dict(watcher.down))
+
+    def feeder_security(self) -> Any:
+        """The feeder's OSCORE/EDHOC client side, or None for an insecure team."""
+        if self.team_dir is None:
+            return None
+        from ..security.coap import ClientSecurity
+
+        expected = {e.hostport: r for r, e in self.endpoints.items()}
+        if self.central is not None:
+            expected[self.central.hostport] = "central"
+        return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)
 
     async def _inject(self, started: float, events: list[FaultEvent]) -> None:
         """Carry out the spec's faults at their wall times after ``started``."""
