@@ -175,9 +175,12 @@ def system_spec(
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
     # replication=1: the benchmarks compare with the seed's system, one KB
     # module per robot (replicas change which queries are remote).
+    # security=False: ZeroMQ has no CurveZMQ yet, so OSCORE on the CoAP
+    # systems only would skew the comparison (docs/security.md).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
-        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, replication=1, **extra,
+        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, replication=1,
+        security=False, **extra,
     )
 
 
