@@ -1,0 +1,257 @@
+"""OSCORE keyed by EDHOC on real UDP sockets: who gets in, what they may do,
+replays, a server that lost its contexts, Block-wise and Observe."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from dataclasses import replace
+from pathlib import Path
+from typing import AsyncIterator
+
+import pytest
+
+from coapkb.security import AccessPolicy, TeamIdentity, TeamTrust, generate_team, load_identity
+from coapkb.security.coap import ClientSecurity, EdhocFailed, ServerSecurity
+from coapkb.security.keys import default_members
+from coapkb.transport import Endpoint, open_client, serve
+from coapkb.transport.base import ResourceInfo
+from coapkb.transport.messages import Method, Request, Response, Status
+from coapkb.transport.router import Router
+
+PROFILES = ("robust", "rfc7252")
+BIG = bytes(range(256)) * 12  # three Block2 blocks of 1024
+
+
+class Robot1:
+    """A server with Robot1's identity; counts what reached its resources."""
+
+    def __init__(self, team_dir: Path) -> None:
+        self.team_dir = team_dir
+        self.calls: list[tuple[str, str]] = []
+        self.state = 0
+        self.router = Router()
+        self.router.add(ResourceInfo("/tasks", methods=("GET", "POST")), self._handle)
+        self.router.add(ResourceInfo("/decisions", methods=("POST",)), self._handle)
+        self.router.add(ResourceInfo("/big"), self._handle)
+        self.router.add(ResourceInfo("/state", obs=True), self._handle)
+        self.server = None
+
+    async def _handle(self, request: Request) -> Response:
+        self.calls.append((str(request.method), request.path))
+        if request.path == "/big":
+            return Response(Status.CONTENT, BIG)
+        if request.path == "/state":
+            return Response(Status.CONTENT, str(self.state).encode())
+        return Response(Status.CHANGED if request.method == Method.POST else Status.CONTENT, b"ok")
+
+    async def start(self, port: int = 0) -> Endpoint:
+        # Robot2 decides for this robot's cluster.
+        security = ServerSecurity(load_identity(self.team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
+        self.server = await serve(self.router, Endpoint("coap", "127.0.0.1", port), security=security)
+        return self.server.endpoint
+
+    async def stop(self) -> None:
+        await self.server.aclose()
+
+
+@pytest.fixture
+def team_dir(tmp_path: Path) -> Path:
+    generate_team(tmp_path / "team", default_members(3))
+    return tmp_path / "team"
+
+
+@pytest.fixture
+async def robot1(team_dir: Path) -> AsyncIterator[tuple[Robot1, Endpoint]]:
+    robot = Robot1(team_dir)
+    endpoint = await robot.start()
+    yield robot, endpoint
+    await robot.stop()
+
+
+async def _client(identity: TeamIdentity | None, profile: str = "robust"):
+    return await open_client("coap", retransmission=profile,
+                             security=None if identity is None else ClientSecurity(identity))
+
+
+async def _ask(identity: TeamIdentity | None, peer: Endpoint, method: Method, path: str,
+               profile: str = "robust") -> Response:
+    client = await _client(identity, profile)
+    try:
+        return await client.request(peer, Request(method, path, payload=b"x" if method == Method.POST else b""),
+                                    timeout=5)
+    finally:
+        await client.aclose()
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+async def test_without_oscore_every_resource_is_4_01_and_nothing_changes(robot1, profile: str) -> None:
+    robot, peer = robot1
+    for method, path in [(Method.GET, "/tasks"), (Method.POST, "/tasks"), (Method.POST, "/decisions"),
+                         (Method.GET, "/state")]:
+        response = await _ask(None, peer, method, path, profile)
+        assert response.status == Status.UNAUTHORIZED, (method, path)
+    assert robot.calls == []
+
+
+async def test_discovery_stays_open(robot1) -> None:
+    _, peer = robot1
+    response = await _ask(None, peer, Method.GET, "/.well-known/core")
+    assert response.status == Status.CONTENT and b"</tasks>" in response.payload
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+async def test_each_role_may_do_what_the_policy_says(robot1, team_dir: Path, profile: str) -> None:
+    robot, peer = robot1
+    me = {name: load_identity(team_dir, name) for name in ("feeder", "Robot2", "Robot3", "operator")}
+    cases = [
+        ("feeder", Method.POST, "/tasks", Status.CHANGED),
+        ("Robot2", Method.POST, "/tasks", Status.FORBIDDEN),
+        ("operator", Method.POST, "/tasks", Status.FORBIDDEN),
+        ("Robot2", Method.POST, "/decisions", Status.CHANGED),  # the decider
+        ("Robot3", Method.POST, "/decisions", Status.FORBIDDEN),
+        ("feeder", Method.POST, "/decisions", Status.FORBIDDEN),
+        ("Robot3", Method.GET, "/tasks", Status.CONTENT),
+        ("operator", Method.GET, "/tasks", Status.CONTENT),
+    ]
+    for who, method, path, expected in cases:
+        response = await _ask(me[who], peer, method, path, profile)
+        assert response.status == expected, (who, method, path, response)
+    assert robot.calls == [("POST", "/tasks"), ("POST", "/decisions"), ("GET", "/tasks"), ("GET", "/tasks")]
+
+
+async def test_a_credential_not_in_the_trust_list_is_refused(robot1, team_dir: Path, tmp_path: Path) -> None:
+    """An outsider (its own valid key, not in Robot1's trust list) cannot finish EDHOC."""
+    robot, peer = robot1
+    generate_team(tmp_path / "other", default_members(3) + [("intruder", "feeder")])
+    intruder = load_identity(tmp_path / "other", "intruder")
+    ours = load_identity(team_dir, "feeder").trust
+    # It even knows our trust list (so it accepts Robot1); Robot1 does not know it.
+    outsider = replace(intruder, trust=TeamTrust(ours.members + (intruder.member,)))
+    with pytest.raises(EdhocFailed, match="refused"):
+        await _ask(outsider, peer, Method.POST, "/tasks")
+    assert robot.calls == []
+
+
+async def test_a_team_name_with_the_wrong_key_is_refused(robot1, team_dir: Path, tmp_path: Path) -> None:
+    """Claiming to be the feeder (its key id) without the feeder's private key."""
+    robot, peer = robot1
+    generate_team(tmp_path / "other", default_members(3))
+    impostor = replace(load_identity(team_dir, "feeder"), private_d=load_identity(tmp_path / "other", "feeder").private_d)
+    with pytest.raises(EdhocFailed):
+        await _ask(impostor, peer, Method.POST, "/tasks")
+    assert robot.calls == []
+
+
+async def test_a_server_with_another_key_is_not_trusted(team_dir: Path, tmp_path: Path) -> None:
+    """The client side too: a server whose credential is not the team's is refused."""
+    generate_team(tmp_path / "other", default_members(3))
+    fake = Robot1(tmp_path / "other")
+    peer = await fake.start()
+    try:
+        with pytest.raises(EdhocFailed):
+            await _ask(load_identity(team_dir, "feeder"), peer, Method.GET, "/tasks")
+    finally:
+        await fake.stop()
+
+
+class _Relay(asyncio.DatagramProtocol):
+    """A UDP relay between one client and the server that keeps every datagram the client sent."""
+
+    def __init__(self, server: tuple[str, int]) -> None:
+        self.server = server
+        self.client: tuple[str, int] | None = None
+        self.sent: list[bytes] = []
+
+    def connection_made(self, transport) -> None:  # type: ignore[override]
+        self.transport = transport
+
+    def datagram_received(self, data: bytes, addr) -> None:  # type: ignore[override]
+        if addr[:2] == self.server:
+            if self.client is not None:
+                self.transport.sendto(data, self.client)
+        else:
+            self.client = addr
+            self.sent.append(data)
+            self.transport.sendto(data, self.server)
+
+
+def _has_oscore_option(datagram: bytes) -> bool:
+    token_length = datagram[0] & 0x0F
+    return len(datagram) > 4 + token_length and datagram[4 + token_length] >> 4 == 9  # first option: 9 (OSCORE)
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+async def test_a_replayed_request_is_refused(robot1, team_dir: Path, profile: str) -> None:
+    """The exact datagram of a protected POST, sent again from another socket
+    (so CoAP's message deduplication does not catch it): OSCORE's replay
+    window refuses it (a CON gets 4.01), and the resource is not called again."""
+    robot, peer = robot1
+    loop = asyncio.get_running_loop()
+    transport, relay = await loop.create_datagram_endpoint(lambda: _Relay(("127.0.0.1", peer.port)),
+                                                           local_addr=("127.0.0.1", 0))
+    via = Endpoint("coap", "127.0.0.1", transport.get_extra_info("sockname")[1])
+    client = await _client(load_identity(team_dir, "feeder"), profile)
+    try:
+        assert (await client.request(via, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        relay.sent.clear()
+        response = await client.request(via, Request(Method.POST, "/tasks", payload=b"task 1"), timeout=5)
+        assert response.status == Status.CHANGED
+        captured = [d for d in relay.sent if _has_oscore_option(d)]
+        assert len(captured) == 1
+        assert robot.calls == [("GET", "/tasks"), ("POST", "/tasks")]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
+            attacker.settimeout(1.0)
+            attacker.sendto(captured[0], ("127.0.0.1", peer.port))
+            if profile == "rfc7252":  # CON: the server says why
+                answer, _ = await loop.run_in_executor(None, attacker.recvfrom, 2048)
+                assert answer[1] == (4 << 5) | 1, f"expected 4.01, got {answer[1] >> 5}.{answer[1] & 31:02d}"
+                assert answer.endswith(b"Replay detected")
+            else:
+                await asyncio.sleep(0.5)
+        assert robot.calls == [("GET", "/tasks"), ("POST", "/tasks")]
+    finally:
+        await client.aclose()
+        transport.close()
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+async def test_a_restarted_server_is_rekeyed(team_dir: Path, profile: str) -> None:
+    """The server loses every context (a restart on the same port): the
+    client's next request gets 4.01, it runs EDHOC again and goes on."""
+    robot = Robot1(team_dir)
+    peer = await robot.start()
+    client = await _client(load_identity(team_dir, "feeder"), profile)
+    try:
+        assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        await robot.stop()
+        await robot.start(peer.port)
+        async with asyncio.timeout(3):  # no waiting out a timeout: the 4.01 comes at once
+            response = await client.request(peer, Request(Method.POST, "/tasks", payload=b"t"), timeout=5)
+        assert response.status == Status.CHANGED
+        assert len(client.security.handshakes) == 2
+    finally:
+        await client.aclose()
+        await robot.stop()
+
+
+async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None:
+    robot, peer = robot1
+    client = await _client(load_identity(team_dir, "Robot3"))
+    try:
+        big = await client.request(peer, Request(Method.GET, "/big"), timeout=5)
+        assert big.status == Status.CONTENT and big.payload == BIG
+        seen = []
+        stream = client.observe(peer, Request(Method.GET, "/state"))
+        async with asyncio.timeout(5):
+            async for notification in stream:
+                seen.append(notification.payload)
+                if len(seen) == 3:
+                    break
+                robot.state += 1
+                robot.router.notify("/state")
+        await stream.aclose()
+        assert seen == [b"0", b"1", b"2"]
+        assert len(client.security.handshakes) == 1
+    finally:
+        await client.aclose()
