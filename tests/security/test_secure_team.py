@@ -1,0 +1,98 @@
+"""Security end to end: `coapkb keys`, a robot's start-up with bad keys, a
+team of robot processes with OSCORE on (the default), `coapkb query`."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+import cbor2
+
+from coapkb.harness.team import Team, TeamSpec
+from coapkb.security import load_identity
+from coapkb.security.coap import ClientSecurity
+from coapkb.transport import open_client
+from coapkb.transport.messages import ContentFormat, Method, Request, Status
+
+from support import ONTOLOGIES, ROOT, ServerProcess, free_udp_port
+
+
+async def _coapkb(*args: str, timeout: float = 60) -> tuple[int, str, str]:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "coapkb", *args, stdin=asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), timeout)
+    return proc.returncode or 0, out.decode(), err.decode()
+
+
+async def test_keys_command_and_a_missing_key_at_start_up(tmp_path: Path) -> None:
+    team_dir = tmp_path / "team"
+    code, out, err = await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "3")
+    assert code == 0, err
+    for name in ("Robot1", "Robot2", "Robot3", "feeder", "operator"):
+        assert (team_dir / f"{name}.key").stat().st_mode & 0o777 == 0o600
+        assert load_identity(team_dir, name).private_d.hex() not in out + err  # keys never printed
+    code, _, err = await _coapkb("keys", "--team-dir", str(team_dir))
+    assert code != 0 and err.startswith("coapkb: ") and "already holds a team" in err
+
+    port = free_udp_port()
+    (tmp_path / "robot1.toml").write_text(f"""
+robot_id = "Robot1"
+bind = "coap://127.0.0.1:{port}"
+kb = ["{ONTOLOGIES / 'Object.owl'}", "{ONTOLOGIES / 'Location.owl'}", "{ONTOLOGIES / 'Capability.owl'}"]
+[security]
+credentials = "team"
+[team.Robot1]
+endpoint = "coap://127.0.0.1:{port}"
+kbs = ["Object", "Location", "Capability"]
+""")
+    (team_dir / "Robot1.key").unlink()
+    code, out, err = await _coapkb("agent", "--config", str(tmp_path / "robot1.toml"))
+    assert code != 0 and "Traceback" not in err
+    assert err.splitlines() == [f"coapkb: error: cannot read private key {team_dir / 'Robot1.key'}: No such file or directory"]
+
+
+async def test_a_secure_team_runs_and_keeps_others_out() -> None:
+    spec = TeamSpec(robots=3, query_timeout_s=5.0)
+    assert spec.secure  # on by default
+    tasks = ["Gucci_bag_14", "Canon_tv_538", "Nonexistent_widget_1"]
+    async with asyncio.timeout(120):
+        async with Team.launch(spec) as team:
+            assert team.team_dir is not None
+            record = await team.run(tasks)
+            body = cbor2.dumps({"seq": 4, "object": "Gucci_bag_187"})
+            task = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
+            plain = await open_client("coap")
+            robot2 = await open_client("coap", security=ClientSecurity(load_identity(team.team_dir, "Robot2")))
+            try:
+                for r, endpoint in team.endpoints.items():
+                    assert (await plain.request(endpoint, task, timeout=5)).status == Status.UNAUTHORIZED, r
+                    assert (await robot2.request(endpoint, task, timeout=5)).status == Status.FORBIDDEN, r
+                    state = await robot2.request(endpoint, Request(Method.GET, "/robot/state"), timeout=5)
+                    assert state.status == Status.CONTENT
+            finally:
+                await plain.aclose()
+                await robot2.aclose()
+    assert len(record.tasks) == 3 and not record.disputed
+    assert [t.assigned_to is not None for t in record.tasks] == [True, True, False]
+    assert all(not t.errors for t in record.tasks)
+
+
+async def test_query_command_with_credentials(tmp_path: Path) -> None:
+    team_dir = tmp_path / "team"
+    assert (await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "1"))[0] == 0
+    server = await ServerProcess.start(
+        "--kb", *(str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")),
+        "--bind", f"127.0.0.1:{free_udp_port()}", "--credentials", str(team_dir),
+    )
+    try:
+        uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
+        code, out, err = await _coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        assert code == 0, err
+        assert "Gucci_bag_14" in out
+        code, out, err = await _coapkb("query", uri)
+        assert code != 0 and ("4.01" in err or "Unauthorized" in err), err
+    finally:
+        await server.stop()
