@@ -1,7 +1,8 @@
-"""Communication (the seed's Fig. 2): one interface, two transports.
+"""Communication (the seed's Fig. 2): one interface, three transports.
 
 ``open_client`` and ``serve`` pick the implementation from a scheme name
-(``coap`` or ``zmq``), so nothing above this package names a transport.
+(``coap``, ``zmq``, ``zenoh`` or ``zenoh+udp``), so nothing above this
+package names a transport.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from .base import (
     TransportError,
 )
 
-SCHEMES = ("coap", "zmq")
+SCHEMES = ("coap", "zmq", "zenoh", "zenoh+udp")
 
 
 def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | None = None) -> Any:
@@ -39,9 +40,9 @@ async def open_client(scheme: str, *, retransmission: Any = "robust", security: 
 
     ``retransmission``: a reliability profile name (``robust``, the default,
     or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
-    or what :func:`reliability_for` returned; ZeroMQ ignores it.
+    or what :func:`reliability_for` returned; ZeroMQ and Zenoh ignore it.
     ``security``: a :class:`coapkb.security.coap.ClientSecurity` (CoAP:
-    OSCORE keyed by EDHOC), or None; ZeroMQ has no security yet."""
+    OSCORE keyed by EDHOC), or None; ZeroMQ and Zenoh have no security yet."""
     if scheme == "coap":
         from .coap import CoapClientTransport
 
@@ -50,6 +51,10 @@ async def open_client(scheme: str, *, retransmission: Any = "robust", security: 
         from .zmq.transport import ZmqClientTransport
 
         return ZmqClientTransport()
+    if scheme in ("zenoh", "zenoh+udp"):
+        from .zenoh.transport import ZenohClientTransport
+
+        return ZenohClientTransport()
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
 
 
@@ -67,6 +72,10 @@ async def serve(
         from .zmq.transport import ZmqServerTransport
 
         return await ZmqServerTransport.start(service, endpoint)
+    if endpoint.scheme in ("zenoh", "zenoh+udp"):
+        from .zenoh.transport import ZenohServerTransport
+
+        return await ZenohServerTransport.start(service, endpoint)
     raise ValueError(f"unknown transport {endpoint.scheme!r} (choose from {', '.join(SCHEMES)})")
 
 

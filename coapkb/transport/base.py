@@ -3,8 +3,9 @@
 A transport moves :class:`~coapkb.transport.messages.Request` / ``Response`` pairs
 between robots.  The client side is :class:`ClientTransport`; the server side
 exposes a :class:`Service` (the robot's resources) through a
-:class:`ServerTransport`.  CoAP/UDP (``coap``) and ZeroMQ/TCP (``zmq``)
-implement both; the agent, CLI and benchmarks only see these protocols.
+:class:`ServerTransport`.  CoAP/UDP (``coap``), ZeroMQ/TCP (``zmq``) and
+Zenoh (``zenoh``, ``zenoh+udp``) implement both; the agent, CLI and
+benchmarks only see these protocols.
 """
 
 from __future__ import annotations
@@ -47,9 +48,13 @@ class PeerUnreachable(TransportError):
     """No answer from the peer within the time budget (after retransmissions)."""
 
 
+#: Endpoint schemes: CoAP/UDP, ZeroMQ/TCP, Zenoh over TCP and over UDP.
+ENDPOINT_SCHEMES = ("coap", "zmq", "zenoh", "zenoh+udp")
+
+
 @dataclass(frozen=True)
 class Endpoint:
-    """Where a robot listens: ``scheme://host:port`` (scheme ``coap`` or ``zmq``)."""
+    """Where a robot listens: ``scheme://host:port`` (a scheme of :data:`ENDPOINT_SCHEMES`)."""
 
     scheme: str
     host: str
@@ -57,13 +62,14 @@ class Endpoint:
 
     @classmethod
     def parse(cls, uri: str, default_scheme: str = "coap") -> "Endpoint":
-        """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq) or bare ``h:p``."""
+        """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq), ``zenoh://h:p``,
+        ``zenoh+udp://h:p`` or bare ``h:p``."""
         scheme, sep, rest = uri.partition("://")
         if not sep:
             scheme, rest = default_scheme, uri
         scheme = {"tcp": "zmq"}.get(scheme, scheme)
-        if scheme not in ("coap", "zmq"):
-            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use coap:// or zmq://)")
+        if scheme not in ENDPOINT_SCHEMES:
+            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in ENDPOINT_SCHEMES)})")
         rest = rest.split("/", 1)[0]
         if rest.startswith("["):  # [IPv6]:port
             host, _, port = rest[1:].partition("]:")

@@ -1,0 +1,5 @@
+"""Zenoh transport (``zenoh://`` over TCP, ``zenoh+udp://``): see :mod:`.transport`."""
+
+from .transport import ZenohClientTransport, ZenohOptions, ZenohServerTransport
+
+__all__ = ["ZenohClientTransport", "ZenohOptions", "ZenohServerTransport"]

@@ -1,0 +1,759 @@
+"""Zenoh transport: a robot's resources as a Zenoh queryable, behind coapkb's interface.
+
+The agent and the benchmarks talk to :class:`~coapkb.transport.base.ClientTransport`
+and :class:`~coapkb.transport.base.ServerTransport`; this module implements both
+over Zenoh (``eclipse-zenoh``, the Rust core behind ROS 2's rmw_zenoh), so the
+benchmark can compare CoAP and ZeroMQ against the middleware robot teams pick
+today with everything else held equal.  How messages map onto Zenoh's
+queries, replies and samples is :mod:`.mapping`.
+
+Topology: explicit endpoints, no scouting
+    A server opens a session in **peer** mode that listens on its endpoint
+    (``zenoh://h:p`` -> ``tcp/h:p``; ``zenoh+udp://`` -> ``udp/h:p``) and
+    declares one queryable, ``coapkb/**``.  A client opens one session per
+    peer, in **client** mode, connected to that peer's endpoint only, lazily
+    on first use -- like ZeroMQ's DEALER per peer -- so a query reaches
+    exactly the robot it is addressed to, and nobody routes for anybody.
+    Multicast and gossip scouting are off: the emulated network has no
+    multicast, and a team's endpoints are configured anyway.  When a query
+    finds no route (its peer went away), the client closes that session --
+    which also ends Zenoh's reconnect attempts, SYNs on the radio -- and opens
+    a new one on the next request (see :meth:`ZenohClientTransport._exchange`).
+
+Threads
+    Zenoh runs its own (Rust) threads and calls back into Python from them.
+    Every callback only copies what it got into Python values and hands them
+    to the event loop with ``call_soon_threadsafe``; everything else runs on
+    the loop.  Opening and closing sessions can block (a TCP connect on a
+    slow link), so those run on a small executor owned by the transport.
+    Its threads, and Zenoh's runtime threads on first use, start from the
+    loop's thread, so they belong to its network namespace (the benchmark's
+    feeder; see :func:`coapkb.bench.linkemu.enter_netns`).
+
+Errors
+    A peer that cannot be connected to, or that gives no answer within the
+    timeout (Zenoh ends a query without replies when its peer's session is
+    gone or when the query's own timeout passes), raises
+    :class:`PeerUnreachable`.  A query the server cannot decode gets a Zenoh
+    error reply, which the client returns as a 4.00 response.
+
+Observe
+    The client declares a subscriber on a fresh key ``coapkb-obs/<id>/<n>``,
+    then queries the resource with the observe flag and that key.  The
+    server answers with the current representation (``seq`` 0) and, after
+    each change :meth:`Service.subscribe` reports, re-runs the request and
+    publishes the answer on the client's key with the next ``seq``; changes
+    arriving while one is computed are coalesced (RFC 7641's "latest state").
+    An error answer ends the observation.  The client ends it by undeclaring
+    its subscriber and sending a deregistration; the server also ends it when
+    its publisher's matching status falls to false (the observer's session
+    closed or it undeclared).
+
+Traffic counters
+    Zenoh does not expose socket byte counts, so the counters hold what this
+    transport handed to and got from Zenoh: per request the key expression
+    with its parameters, the payload and the attachment; per reply or
+    notification the key, payload and attachment.  Not counted: Zenoh's own
+    framing (a few bytes per message, batched), its session handshake,
+    declarations, keep-alives (every 2.5 s per session by default), and
+    TCP/IP -- the benchmark's link counters see those.  TCP retransmits
+    invisibly, so ``retransmissions`` stays 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import logging
+import os
+import socket
+from collections.abc import AsyncIterator, Callable, Coroutine
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from ..base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
+from ..messages import Method, Request, Response, Status
+from .mapping import (
+    KEY_ROOT,
+    LINK_PROTOCOLS,
+    NOTIFY_ROOT,
+    MappingError,
+    Observe,
+    RequestHeader,
+    ResponseHeader,
+    encode_request_header,
+    encode_response_header,
+    encoding_for,
+    key_for_path,
+    locator,
+    parameters_text,
+    request_from_query,
+    response_from_reply,
+)
+
+__all__ = ["ZenohClientTransport", "ZenohOptions", "ZenohServerTransport", "session_config"]
+
+log = logging.getLogger(__name__)
+
+_OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """Limits shared by client and server."""
+
+    #: Server: requests handled at once; further ones wait their turn.
+    max_concurrent_requests: int = 64
+    #: Server: observations held at once (all clients).
+    max_observations: int = 256
+    #: Client: undelivered notifications kept per observation (oldest dropped first).
+    observe_queue: int = 64
+    #: Time an observe iterator waits for the first answer.
+    observe_timeout_s: float = 10.0
+    #: At most one "malformed message" warning per this many seconds.
+    malformed_log_interval_s: float = 10.0
+
+
+def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
+    """A session on explicit endpoints only: no multicast or gossip scouting."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("scouting/gossip/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return config
+
+
+def _check_scheme(endpoint: Endpoint) -> None:
+    if endpoint.scheme not in LINK_PROTOCOLS:
+        raise ValueError(f"{endpoint} is not a zenoh endpoint ({', '.join(s + '://' for s in LINK_PROTOCOLS)})")
+
+
+def _free_port(endpoint: Endpoint) -> int:
+    """A port free right now on the endpoint's host (Zenoh cannot tell which
+    port it picked for ``:0``)."""
+    kind = socket.SOCK_DGRAM if LINK_PROTOCOLS[endpoint.scheme] == "udp" else socket.SOCK_STREAM
+    family = socket.AF_INET6 if ":" in endpoint.host else socket.AF_INET
+    with socket.socket(family, kind) as s:
+        s.bind((endpoint.host, 0))
+        return int(s.getsockname()[1])
+
+
+def _bytes(z: zenoh.ZBytes | None) -> bytes | None:
+    return None if z is None else z.to_bytes()
+
+
+def _post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: Any) -> None:
+    """From a Zenoh thread to the loop; a loop that is gone has nobody to tell."""
+    with contextlib.suppress(RuntimeError):
+        loop.call_soon_threadsafe(callback, *args)
+
+
+class _RateLimitedLog:
+    """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
+
+    def __init__(self, logger: logging.Logger, interval: float) -> None:
+        self._logger = logger
+        self._limiter = RateLimiter(interval)
+
+    def warning(self, msg: str, *args: object) -> None:
+        suppressed = self._limiter.allow()
+        if suppressed is None:
+            return
+        if suppressed:
+            msg += " (%d similar warnings suppressed)"
+            args = (*args, suppressed)
+        self._logger.warning(msg, *args)
+
+
+# =========================================================================== server
+
+
+def _finish(query: zenoh.Query) -> None:
+    """End ``query`` for the querier now (Zenoh sends its final message when
+    the query is dropped, which Python's finaliser does not promise to do soon)."""
+    with contextlib.suppress(zenoh.ZError):
+        query.drop()
+
+
+@dataclass(frozen=True)
+class _Incoming:
+    """What a query carried, copied out of Zenoh's objects on its thread."""
+
+    key: str
+    parameters: str
+    payload: bytes
+    encoding: str | None
+    attachment: bytes | None
+
+    @property
+    def size(self) -> int:
+        selector = len(self.key) + (1 + len(self.parameters) if self.parameters else 0)  # key?parameters
+        return selector + len(self.payload) + len(self.attachment or b"")
+
+
+@dataclass(eq=False)
+class _Observation:
+    """One registered observer: where its notifications go, and of what."""
+
+    notify_key: str
+    request: Request
+    publisher: zenoh.Publisher
+    dirty: asyncio.Event = field(default_factory=asyncio.Event)
+    seq: int = 0
+    active: bool = True
+    #: The observer's subscriber has been seen; losing it then ends the observation.
+    matched: bool = False
+    unsubscribe: Callable[[], None] | None = None
+    listener: Any = None
+    worker: asyncio.Task[None] | None = None
+
+
+class ZenohServerTransport:
+    """Serves a :class:`Service` as the queryable ``coapkb/**`` of a peer-mode session.
+
+    Create with :meth:`start`.  Requests are handled concurrently (at most
+    ``options.max_concurrent_requests`` at once).  Queries that are not a
+    coapkb request are counted in :attr:`malformed` and get an error reply.
+    """
+
+    counters: TrafficCounters
+    endpoint: Endpoint
+
+    def __init__(
+        self,
+        service: Service,
+        endpoint: Endpoint,
+        session: zenoh.Session,
+        executor: ThreadPoolExecutor,
+        options: ZenohOptions,
+    ) -> None:
+        """Private: use :meth:`start`, which opens the session first."""
+        self.counters = TrafficCounters()
+        self.endpoint = endpoint
+        #: Queries answered with an error reply because they were not a coapkb request.
+        self.malformed = 0
+        self._service = service
+        self._session = session
+        self._executor = executor
+        self._options = options
+        self._loop = asyncio.get_running_loop()
+        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._observations: dict[str, _Observation] = {}
+        self._bad_log = _RateLimitedLog(log, options.malformed_log_interval_s)
+        self._closed = False
+        self._queryable = session.declare_queryable(f"{KEY_ROOT}/**", zenoh.handlers.Callback(self._on_query))
+
+    @classmethod
+    async def start(
+        cls, service: Service, endpoint: Endpoint, *, options: ZenohOptions | None = None
+    ) -> ZenohServerTransport:
+        """Listen on ``endpoint`` and start serving.
+
+        Port 0 picks a free port; the returned transport's :attr:`endpoint`
+        has it.  Raises :class:`TransportError` if Zenoh cannot listen there
+        (port in use, no such address)."""
+        _check_scheme(endpoint)
+        if endpoint.port == 0:
+            endpoint = Endpoint(endpoint.scheme, endpoint.host, _free_port(endpoint))
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"zenoh server {endpoint}")
+        config = session_config("peer", listen=(locator(endpoint),))
+        try:
+            session = await asyncio.get_running_loop().run_in_executor(executor, zenoh.open, config)
+        except zenoh.ZError as exc:
+            executor.shutdown(wait=False)
+            raise TransportError(f"cannot listen on {endpoint}: {exc}") from None
+        return cls(service, endpoint, session, executor, options or ZenohOptions())
+
+    @property
+    def observation_count(self) -> int:
+        return len(self._observations)
+
+    async def __aenter__(self) -> ZenohServerTransport:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Stop serving: end observations, cancel handlers, close the session.  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(zenoh.ZError):
+            self._queryable.undeclare()
+        for obs in list(self._observations.values()):
+            self._stop(obs)
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._loop.run_in_executor(self._executor, self._session.close)
+        self._executor.shutdown(wait=False)
+
+    # ------------------------------------------------------------------ receiving
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """On a Zenoh thread: copy the query out and hand it to the loop."""
+        encoding = query.encoding
+        incoming = _Incoming(
+            str(query.key_expr),
+            str(query.parameters),
+            _bytes(query.payload) or b"",
+            None if encoding is None else str(encoding),
+            _bytes(query.attachment),
+        )
+        _post(self._loop, self._accept, query, incoming)
+
+    def _accept(self, query: zenoh.Query, incoming: _Incoming) -> None:
+        if self._closed:
+            return
+        self.counters.messages_received += 1
+        self.counters.bytes_received += incoming.size
+        try:
+            request, header = request_from_query(
+                incoming.key, incoming.parameters, incoming.payload, incoming.encoding, incoming.attachment
+            )
+        except MappingError as exc:
+            self.malformed += 1
+            self._bad_log.warning("zenoh server %s: malformed query on %r: %s", self.endpoint, incoming.key[:80], exc)
+            self._reply_error(query, f"4.00 not a coapkb request: {exc}")
+            _finish(query)
+            return
+        if header.observe is Observe.DEREGISTER:
+            if (obs := self._observations.get(header.notify_key or "")) is not None:
+                self._stop(obs)
+            self._reply(query, Response(Status.DELETED))
+            _finish(query)
+            return
+        self._spawn(self._serve(query, request, header))
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+        task = asyncio.create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("zenoh server %s: handler crashed", self.endpoint, exc_info=task.exception())
+
+    # ------------------------------------------------------------------ answering
+
+    async def _serve(self, query: zenoh.Query, request: Request, header: RequestHeader) -> None:
+        try:
+            async with self._slots:
+                if header.observe is Observe.REGISTER and header.notify_key and request.method in _OBSERVABLE_METHODS:
+                    await self._register(query, request, header.notify_key)
+                else:
+                    self._reply(query, await self._call(request))
+        finally:
+            _finish(query)
+
+    async def _call(self, request: Request) -> Response:
+        """``service.handle`` that cannot take the server down."""
+        try:
+            response = await self._service.handle(request)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("Service.handle raised on %s %s (it must answer 5.xx instead)", request.method, request.path)
+            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+        if not isinstance(response, Response):
+            log.error("Service.handle returned %r for %s %s, not a Response", response, request.method, request.path)
+            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+        return response
+
+    @staticmethod
+    def _header(response: Response, seq: int | None = None) -> bytes | None:
+        return encode_response_header(ResponseHeader(response.status, response.max_age, response.etag, seq))
+
+    def _reply(self, query: zenoh.Query, response: Response, seq: int | None = None) -> None:
+        """Answer on the query's own key (it is concrete: clients send no wildcards)."""
+        attachment = self._header(response, seq)
+        key = query.key_expr
+        try:
+            query.reply(key, response.payload, encoding=encoding_for(response.content_format), attachment=attachment)
+        except zenoh.ZError as exc:  # the session is closing, or the querier's key is odd
+            log.debug("zenoh server %s: reply failed: %s", self.endpoint, exc)
+            return
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += len(str(key)) + len(response.payload) + len(attachment or b"")
+
+    def _reply_error(self, query: zenoh.Query, message: str) -> None:
+        data = message.encode("utf-8")
+        try:
+            query.reply_err(data, encoding=encoding_for(0))
+        except zenoh.ZError as exc:
+            log.debug("zenoh server %s: error reply failed: %s", self.endpoint, exc)
+            return
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += len(data)
+
+    # ------------------------------------------------------------------ observe
+
+    async def _register(self, query: zenoh.Query, request: Request, notify_key: str) -> None:
+        if (old := self._observations.get(notify_key)) is not None:  # the same key again: replace
+            self._stop(old)
+        if len(self._observations) >= self._options.max_observations:
+            # Like a CoAP server out of observer slots: answer, but without seq.
+            self._reply(query, await self._call(request))
+            return
+        try:
+            publisher = self._session.declare_publisher(notify_key, congestion_control=zenoh.CongestionControl.BLOCK)
+        except zenoh.ZError as exc:
+            log.warning("zenoh server %s: cannot publish on %r: %s", self.endpoint, notify_key[:80], exc)
+            self._reply(query, await self._call(request))
+            return
+        obs = _Observation(notify_key, request, publisher)
+        loop = self._loop
+
+        def on_change() -> None:
+            # call_soon_threadsafe: the service may change state from a thread.
+            if obs.active:
+                _post(loop, obs.dirty.set)
+
+        try:
+            obs.unsubscribe = self._service.subscribe(request.path, on_change)
+        except Exception:
+            log.exception("Service.subscribe(%r) raised; answering without observation", request.path)
+            publisher.undeclare()
+            self._reply(query, await self._call(request))
+            return
+        # Subscribed before the first GET, so a change during it is not lost.
+        self._observations[notify_key] = obs
+        obs.listener = publisher.declare_matching_listener(
+            zenoh.handlers.Callback(lambda status: _post(loop, self._matching, obs, status.matching))
+        )
+        response = await self._call(request)
+        if not obs.active:  # deregistered meanwhile
+            return
+        if not response.status.is_success:
+            self._stop(obs)
+            self._reply(query, response)
+            return
+        self._reply(query, response, seq=0)
+        obs.worker = self._spawn(self._notify_loop(obs))
+
+    def _matching(self, obs: _Observation, matching: bool) -> None:
+        if matching:
+            obs.matched = True
+        elif obs.matched:  # the observer's subscriber went away
+            log.debug("zenoh server %s: observer of %s gone", self.endpoint, obs.notify_key)
+            self._stop(obs)
+
+    async def _notify_loop(self, obs: _Observation) -> None:
+        """Publish the current state after each change, one at a time, in seq order."""
+        while obs.active:
+            await obs.dirty.wait()
+            obs.dirty.clear()
+            async with self._slots:
+                response = await self._call(obs.request)
+            if not obs.active:
+                return
+            obs.seq += 1
+            attachment = self._header(response, obs.seq)
+            try:
+                obs.publisher.put(
+                    response.payload, encoding=encoding_for(response.content_format), attachment=attachment
+                )
+            except zenoh.ZError as exc:
+                log.debug("zenoh server %s: notification to %s failed: %s", self.endpoint, obs.notify_key, exc)
+                self._stop(obs)
+                return
+            self.counters.messages_sent += 1
+            self.counters.bytes_sent += len(obs.notify_key) + len(response.payload) + len(attachment or b"")
+            if not response.status.is_success:  # RFC 7641: an error ends the observation
+                self._stop(obs)
+
+    def _stop(self, obs: _Observation) -> None:
+        if not obs.active:
+            return
+        obs.active = False
+        if self._observations.get(obs.notify_key) is obs:
+            del self._observations[obs.notify_key]
+        if obs.unsubscribe is not None:
+            try:
+                obs.unsubscribe()
+            except Exception:
+                log.exception("cancelling the subscription to %r raised", obs.request.path)
+        with contextlib.suppress(zenoh.ZError):
+            if obs.listener is not None:
+                obs.listener.undeclare()
+            obs.publisher.undeclare()
+        if obs.worker is not None and obs.worker is not asyncio.current_task():
+            obs.worker.cancel()
+
+
+# =========================================================================== client
+
+_Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
+
+
+@dataclass(frozen=True)
+class _Reply:
+    """One reply or sample, copied out of Zenoh's objects on its thread."""
+
+    ok: bool
+    key: str
+    payload: bytes
+    encoding: str | None
+    attachment: bytes | None
+
+    @property
+    def size(self) -> int:
+        return len(self.key) + len(self.payload) + len(self.attachment or b"")
+
+
+def _copy_reply(reply: zenoh.Reply) -> _Reply:
+    if (sample := reply.ok) is not None:
+        return _Reply(True, str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), _bytes(sample.attachment))
+    err = reply.err
+    assert err is not None
+    return _Reply(False, "", err.payload.to_bytes(), str(err.encoding), None)
+
+
+def _copy_sample(sample: zenoh.Sample) -> _Reply:
+    return _Reply(True, str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), _bytes(sample.attachment))
+
+
+class ZenohClientTransport:
+    """Sends requests to Zenoh peers; one client-mode session per peer, opened lazily.
+
+    Many requests may be in flight to the same peer; each is its own Zenoh
+    query, so answers come back in any order."""
+
+    counters: TrafficCounters
+
+    def __init__(self, *, options: ZenohOptions | None = None) -> None:
+        self.counters = TrafficCounters()
+        #: Replies and notifications dropped because they were not a coapkb response.
+        self.malformed = 0
+        self._options = options or ZenohOptions()
+        # Threads start on first use, from the loop's thread: see the module doc.
+        self._executor = ThreadPoolExecutor(max_workers=4, thread_name_prefix="zenoh client")
+        self._sessions: dict[Endpoint, asyncio.Future[zenoh.Session]] = {}
+        #: Sessions being closed in the background (their peer went away).
+        self._closing: set[asyncio.Future[None]] = set()
+        #: Names this client's notification keys: ``coapkb-obs/<id>/<n>``.
+        self._id = os.urandom(6).hex()
+        self._tokens = itertools.count()
+        self._bad_log = _RateLimitedLog(log, self._options.malformed_log_interval_s)
+        self._closed = False
+
+    async def __aenter__(self) -> ZenohClientTransport:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    # ------------------------------------------------------------------ sessions
+
+    async def _session(self, peer: Endpoint) -> zenoh.Session:
+        """The session to ``peer``, opened once however many wait for it.  A
+        waiter that gives up (timeout) does not abort the opening."""
+        if self._closed:
+            raise TransportError("the zenoh client transport is closed")
+        _check_scheme(peer)
+        opening = self._sessions.get(peer)
+        if opening is None or (opening.done() and (opening.cancelled() or opening.exception() is not None)):
+            config = session_config("client", connect=(locator(peer),))
+            loop = asyncio.get_running_loop()
+            opening = self._sessions[peer] = asyncio.ensure_future(loop.run_in_executor(self._executor, zenoh.open, config))
+        try:
+            return await asyncio.shield(opening)
+        except zenoh.ZError as exc:
+            raise PeerUnreachable(f"cannot reach {peer}: {str(exc).split(' at ', 1)[0]}") from None
+
+    def _closed_error(self) -> TransportError | None:
+        task = asyncio.current_task()
+        if self._closed and (task is None or not task.cancelling()):
+            return TransportError("the zenoh client transport was closed")
+        return None
+
+    def _malformed(self, peer: Endpoint, why: str) -> None:
+        self.malformed += 1
+        self._bad_log.warning("zenoh client: dropped malformed answer from %s: %s", peer, why[:200])
+
+    # ------------------------------------------------------------------ one query
+
+    def _query(
+        self, session: zenoh.Session, request: Request, header: RequestHeader, timeout: float
+    ) -> asyncio.Queue[_Reply | None]:
+        """Send ``request`` as a Zenoh query; its replies arrive in the queue,
+        then None when Zenoh ends the query (all answered, or its timeout)."""
+        key = key_for_path(request.path)
+        parameters = parameters_text(request.query)
+        selector = f"{key}?{parameters}" if parameters else key
+        attachment = encode_request_header(header)
+        loop = asyncio.get_running_loop()
+        replies: asyncio.Queue[_Reply | None] = asyncio.Queue()
+        session.get(
+            selector,
+            zenoh.handlers.Callback(
+                lambda reply: _post(loop, replies.put_nowait, _copy_reply(reply)),
+                lambda: _post(loop, replies.put_nowait, None),
+            ),
+            payload=request.payload or None,
+            encoding=encoding_for(request.content_format),
+            attachment=attachment,
+            timeout=timeout,
+        )
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += len(selector) + len(request.payload) + len(attachment or b"")
+        return replies
+
+    def _response(self, peer: Endpoint, reply: _Reply) -> _Delivery:
+        self.counters.messages_received += 1
+        self.counters.bytes_received += reply.size
+        if not reply.ok:  # the server could not read our query
+            return Response(Status.BAD_REQUEST, reply.payload, 0), None
+        try:
+            return response_from_reply(reply.payload, reply.encoding, reply.attachment)
+        except MappingError as exc:
+            self._malformed(peer, str(exc))
+            raise TransportError(f"malformed answer from {peer}: {exc}") from None
+
+    async def _exchange(self, peer: Endpoint, request: Request, header: RequestHeader, timeout: float) -> _Delivery:
+        """One query and its first reply, within ``timeout`` (connecting included).
+
+        Zenoh ends a query at once, without replies, when the session has no
+        route to a queryable: its peer is gone.  The session is then closed
+        (which also stops its reconnect attempts) and, within the time left,
+        the query goes out once more on a fresh one: a peer that came back is
+        answered at once, a dead one refuses the connection."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        try:
+            async with asyncio.timeout(timeout):
+                for attempt in range(2):
+                    session = await self._session(peer)
+                    try:
+                        replies = self._query(session, request, header, max(deadline - loop.time(), 0.001))
+                    except ValueError as exc:  # a path no key expression can carry
+                        raise TransportError(f"cannot send {request.path!r} over zenoh: {exc}") from None
+                    except zenoh.ZError as exc:
+                        raise TransportError(f"query to {peer} failed: {exc}") from None
+                    if (reply := await replies.get()) is not None:
+                        return self._response(peer, reply)
+                    self._drop_session(peer, session)
+        except TimeoutError:
+            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+        except asyncio.CancelledError:
+            if (err := self._closed_error()) is not None:
+                raise err from None
+            raise
+        raise PeerUnreachable(f"no answer from {peer}: its session is down or it serves no {KEY_ROOT}/**")
+
+    def _drop_session(self, peer: Endpoint, session: zenoh.Session) -> None:
+        """Forget ``session`` (the next request opens a new one) and close it in the background."""
+        opening = self._sessions.get(peer)
+        if opening is not None and opening.done() and not opening.cancelled() and opening.exception() is None:
+            if opening.result() is session:
+                del self._sessions[peer]
+        if not session.is_closed():
+            closing = asyncio.get_running_loop().run_in_executor(self._executor, session.close)
+            self._closing.add(closing)
+            closing.add_done_callback(self._closing.discard)
+
+    # ------------------------------------------------------------------ API
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        """Send ``request`` to ``peer`` and return its answer.
+
+        Raises :class:`PeerUnreachable` when ``peer`` cannot be connected to
+        or no answer arrives within ``timeout`` seconds, and
+        :class:`TransportError` for other failures (transport closed, a
+        malformed answer)."""
+        header = RequestHeader(request.method, request.accept, request.etags)
+        response, _ = await self._exchange(peer, request, header, timeout)
+        return response
+
+    async def observe(
+        self, peer: Endpoint, request: Request, *, timeout: float | None = None
+    ) -> AsyncIterator[Response]:
+        """The current representation, then one item per change.
+
+        ``timeout`` (default ``options.observe_timeout_s``) bounds the wait
+        for the first answer (:class:`PeerUnreachable`).  The iteration ends
+        after the first item if the server did not register the observation
+        (an error, or no slot left), and after an error notification.
+        Closing the iterator deregisters.  If the peer dies the iterator just
+        stops yielding, as with ZeroMQ.  Updates are coalesced: a slow reader
+        sees the latest states, not necessarily every one."""
+        timeout = self._options.observe_timeout_s if timeout is None else timeout
+        loop = asyncio.get_running_loop()
+        try:
+            async with asyncio.timeout(timeout):
+                session = await self._session(peer)
+        except TimeoutError:
+            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+        notify_key = f"{NOTIFY_ROOT}/{self._id}/{next(self._tokens)}"
+        notifications: asyncio.Queue[_Reply] = asyncio.Queue(maxsize=self._options.observe_queue)
+
+        def deliver(sample: _Reply) -> None:
+            if notifications.full():  # observers want the newest state
+                notifications.get_nowait()
+            notifications.put_nowait(sample)
+
+        try:
+            subscriber = session.declare_subscriber(
+                notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, deliver, _copy_sample(sample)))
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
+        registered = False
+        try:
+            header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
+            response, last = await self._exchange(peer, request, header, timeout)
+            registered = last is not None and response.status.is_success
+            yield response
+            while registered:
+                sample = await notifications.get()
+                try:
+                    response, seq = self._response(peer, sample)
+                except TransportError:
+                    continue  # counted; a garbled notification is skipped like a lost one
+                if seq is None or (last is not None and seq <= last):
+                    continue  # stale, or arrived before the registration's answer
+                last = seq
+                if not response.status.is_success:
+                    registered = False  # the server has ended it
+                yield response
+        finally:
+            with contextlib.suppress(zenoh.ZError):
+                subscriber.undeclare()
+            if registered and not self._closed:
+                self._deregister(session, request, notify_key)
+
+    def _deregister(self, session: zenoh.Session, request: Request, notify_key: str) -> None:
+        """Best effort, not awaited: the server also ends the observation when it
+        sees our subscriber gone (its publisher's matching status)."""
+        header = RequestHeader(request.method, observe=Observe.DEREGISTER, notify_key=notify_key)
+        with contextlib.suppress(zenoh.ZError, ValueError):
+            self._query(session, Request(request.method, request.path), header, 1.0)
+
+    async def aclose(self) -> None:
+        """Close every session (pending requests then fail with
+        :class:`PeerUnreachable` or :class:`TransportError`).  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        loop = asyncio.get_running_loop()
+        sessions = []
+        for opening in self._sessions.values():
+            with contextlib.suppress(Exception):
+                sessions.append(await opening)
+        self._sessions.clear()
+        for session in sessions:
+            await loop.run_in_executor(self._executor, session.close)
+        await asyncio.gather(*self._closing, return_exceptions=True)
+        self._executor.shutdown(wait=False)
