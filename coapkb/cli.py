@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from .errors import CoapkbError
 from .wire import codec
+from .transport import SCHEMES
 from .transport.messages import ContentFormat, Method
 from .world.warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
@@ -38,7 +39,7 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="serve knowledge base files as a robot's resources")
     p.add_argument("--kb", nargs="+", required=True, metavar="FILE", help="RDF files (.owl, .ttl, .nt)")
     p.add_argument("--bind", default="127.0.0.1:5683", metavar="HOST:PORT")
-    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
     p.add_argument("--backend", choices=("oxigraph", "rdflib"), default="oxigraph")
     p.add_argument("--index-dir", metavar="DIR",
                    help="keep the KB as an on-disk index in DIR: built once, opened in milliseconds later (oxigraph)")
@@ -195,7 +196,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     tasks.add_argument("--tasks-file", metavar="FILE", help="one object name per line")
     p.add_argument("--seed", type=int, default=1, help="seed for --tasks")
     p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
-    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
     p.add_argument("--retransmission", default="robust", metavar="PROFILE",
                    help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
@@ -218,7 +219,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="the main job: 3 robots on loopback do the seed's example tasks")
-    p.add_argument("--transport", choices=("coap", "zmq"), default="coap")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
     p.add_argument("--insecure", action="store_true", help="no OSCORE/EDHOC (default: on, throwaway keys)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.set_defaults(run=_demo)
@@ -352,7 +353,7 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
         "  coapkb query 'coap://127.0.0.1:5683/kb/q/object-exists?name=Gucci_bag_14'",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("uri", help="robot (coap://HOST:PORT or zmq://HOST:PORT), or a /kb/q/NAME?param=value URI")
+    p.add_argument("uri", help="robot (coap://, zmq://, zenoh:// or zenoh+udp://HOST:PORT), or a /kb/q/NAME?param=value URI")
     p.add_argument("sparql", nargs="?", help="query text; @FILE reads a file, - reads stdin")
     p.add_argument("--accept", choices=tuple(FORMAT_ACCEPT), default="cbor", help="answer format on the wire")
     p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")

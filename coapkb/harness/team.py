@@ -45,7 +45,7 @@ from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
-from ..transport import open_client
+from ..transport import SCHEMES, open_client
 from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import ClientTransport, Endpoint, TrafficCounters, TransportError
 from .record import FaultEvent, TaskRecord, TeamRecord
@@ -125,8 +125,8 @@ class TeamSpec:
             raise ValueError(f"robots must be a multiple of {CLUSTER_SIZE} (clusters of three), got {self.robots}")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.transport not in ("coap", "zmq"):
-            raise ValueError(f"transport must be coap or zmq, got {self.transport!r}")
+        if self.transport not in SCHEMES:
+            raise ValueError(f"transport must be one of {', '.join(SCHEMES)}, got {self.transport!r}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
         if self.retransmission not in PROFILE_NAMES:
@@ -227,7 +227,7 @@ class Placement:
     own network namespace behind an emulated link."""
 
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
-        kind = socket.SOCK_DGRAM if spec.transport == "coap" else socket.SOCK_STREAM
+        kind = socket.SOCK_DGRAM if spec.transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM
         return Endpoint(spec.transport, spec.host, _free_port(kind))
 
     def command(self, name: str, argv: list[str]) -> list[str]:
