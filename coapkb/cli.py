@@ -135,13 +135,19 @@ def _add_keys(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robots", type=int, default=3, help="Robot1..RobotN")
     p.add_argument("--member", action="append", default=[], metavar="NAME:ROLE",
                    help="another member (role robot, feeder, server or client); repeatable")
+    p.add_argument("--aiocoap-client", nargs=3, metavar=("IDENTITY", "PEER", "URI"),
+                   help="instead: print an aiocoap-client --credentials file (.diag) for IDENTITY to talk to "
+                        "member PEER at URI, from the existing --team-dir")
     p.set_defaults(run=_keys)
 
 
 async def _keys(args: argparse.Namespace) -> int:
     from .security import generate_team
-    from .security.keys import ROLES, default_members
+    from .security.keys import ROLES, aiocoap_client_credentials, default_members
 
+    if args.aiocoap_client:
+        sys.stdout.write(aiocoap_client_credentials(args.team_dir, *args.aiocoap_client))
+        return 0
     if args.robots < 0:
         raise UserError("--robots must not be negative")
     members = default_members(args.robots)

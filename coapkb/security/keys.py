@@ -242,3 +242,24 @@ def default_members(robots: int, extra_robots: Iterable[str] = ()) -> list[tuple
     """Robot1..RobotN, the feeder, the central server and an operator."""
     names = [(f"Robot{i}", "robot") for i in range(1, robots + 1)] + [(n, "robot") for n in extra_robots]
     return names + [("feeder", "feeder"), ("central", "server"), ("operator", "client")]
+
+
+def aiocoap_client_credentials(team_dir: str | Path, identity: str, peer: str, uri: str) -> str:
+    """A credentials file for ``aiocoap-client --credentials FILE.diag``
+    (CBOR diagnostic notation): ``identity`` talks EDHOC/OSCORE to the
+    member ``peer`` serving at ``uri``.  It names the private key file; it
+    does not contain the key."""
+    import cbor_diag
+
+    team_dir = Path(team_dir).resolve()
+    me = load_identity(team_dir, identity)  # checks the key file now, not at the first request
+    them = me.trust.by_name(peer)
+    if them is None:
+        raise SecurityError(f"{peer} is not in the team's trust list {team_dir / TRUST_FILE}")
+    entry = {
+        "edhoc-oscore": {
+            "suite": CIPHER_SUITE, "method": EDHOC_METHOD, "own_cred_style": "by-key-id",
+            "own_cred": me.member.aiocoap_cred(), "private_key_file": str(me.key_file), "peer_cred": them.aiocoap_cred(),
+        }
+    }
+    return cbor_diag.cbor2diag(cbor2.dumps({uri.rstrip("/") + "/*": entry})) + "\n"

@@ -96,3 +96,29 @@ async def test_query_command_with_credentials(tmp_path: Path) -> None:
         assert code != 0 and ("4.01" in err or "Unauthorized" in err), err
     finally:
         await server.stop()
+
+
+async def test_aiocoap_client_with_a_team_credential(tmp_path: Path) -> None:
+    """A standard client: aiocoap-client with the credentials file `coapkb keys --aiocoap-client` writes
+    (it runs EDHOC itself, with message_3 combined into its first OSCORE request, RFC 9668)."""
+    client = Path(sys.executable).parent / "aiocoap-client"
+    team_dir = tmp_path / "team"
+    assert (await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "1"))[0] == 0
+    server = await ServerProcess.start(
+        "--kb", *(str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")),
+        "--bind", f"127.0.0.1:{free_udp_port()}", "--credentials", str(team_dir),
+    )
+    try:
+        code, diag, err = await _coapkb("keys", "--team-dir", str(team_dir), "--aiocoap-client", "operator", "central",
+                                        server.uri)
+        assert code == 0, err
+        (tmp_path / "operator.diag").write_text(diag)
+        uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
+        for credentials, expected in ((["--credentials", str(tmp_path / "operator.diag")], b"Gucci_bag_14"),
+                                      ([], b"OSCORE with a team credential required")):
+            proc = await asyncio.create_subprocess_exec(str(client), *credentials, uri, stdout=asyncio.subprocess.PIPE,
+                                                        stderr=asyncio.subprocess.PIPE)
+            out, err = await asyncio.wait_for(proc.communicate(), 30)
+            assert expected in out + err, (out, err)
+    finally:
+        await server.stop()
