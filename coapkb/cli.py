@@ -321,9 +321,9 @@ async def _team(args: argparse.Namespace) -> int:
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
+            print("security: " + ("OSCORE keyed by EDHOC, team access policy" if spec.secure else "none"), flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
-            print("security: " + ("OSCORE keyed by EDHOC, team access policy" if spec.secure else "none"), flush=True)
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
@@ -373,9 +373,9 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--ack-timeout", type=float, metavar="SECONDS", help="override the profile's ACK_TIMEOUT")
     p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
+    _add_credentials(p, "operator")
     p.set_defaults(run=_query)
 
-    _add_credentials(p, "operator")
 
 def _read_query_text(arg: str | None) -> str | None:
     if arg is None:
