@@ -295,7 +295,7 @@ async def test_unreachable_kb_holder_gives_a_clear_error(transport: str, mode: s
             team.processes[victim].send_signal(signal.SIGKILL)
             await team.processes[victim].wait()
             survivors = [r for r in spec.robot_ids if r != victim]
-            client = await open_client(transport)
+            client = await open_client(transport, security=team.feeder_security())  # as the feeder (OSCORE)
             try:
                 for seq, name in enumerate(["Gucci_bag_14", "Dell_monitor_986"], start=1):
                     fed = time.monotonic()
