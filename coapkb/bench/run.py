@@ -28,13 +28,14 @@ What a row measures (see ``docs/benchmarks.md``):
     are read just before it).
 ``app_bytes``
     What the robots' and the feeder's transports counted as sent (CoAP
-    datagram payloads, ZMTP frames).  The central server keeps no counters,
+    datagram payloads, ZMTP frames; for Zenoh the key expressions, payloads
+    and attachments handed to it, without its own framing).  The central server keeps no counters,
     so its replies are missing here; ``app_bytes`` is for seeing the header
     and retransmission overhead within one row, not for comparing systems.
 ``retransmissions``
     CoAP: retransmitted confirmable messages (robots' clients, robots'
-    servers' confirmable notifications, the feeder's client).  ZeroMQ: the
-    kernel's ``TcpRetransSegs`` summed over every host's namespace
+    servers' confirmable notifications, the feeder's client).  ZeroMQ and
+    Zenoh/TCP: the kernel's ``TcpRetransSegs`` summed over every host's namespace
     (``tcp_aborts``: its ``TCPAbortOnTimeout``, connections the kernel gave
     up on -- keep-alive or ``TCP_USER_TIMEOUT`` -- which ZeroMQ then re-opens).
 ``coordination_s`` / ``completion_s``
@@ -98,7 +99,9 @@ __all__ = [
 ]
 
 #: Fixed ports: every host has its own namespace, so all can use the usual one.
-PORTS = {"coap": 5683, "zmq": 5555}
+PORTS = {"coap": 5683, "zmq": 5555, "zenoh": 7447, "zenoh+udp": 7447}
+#: Transports over TCP: their retransmissions are the kernel's (``RetransSegs``).
+TCP_TRANSPORTS = ("zmq", "zenoh")
 FEEDER = "feeder"
 CENTRAL = "central"
 
@@ -108,7 +111,7 @@ class SystemDef:
     """One system under test: how the team is organised and what goes on the wire."""
 
     mode: str  # "distributed" or "central"
-    transport: str  # "coap" or "zmq"
+    transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp"
     query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
     description: str
 
@@ -120,6 +123,9 @@ SYSTEMS: dict[str, SystemDef] = {
     "zmq-central": SystemDef("central", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, one remote KB server"),
     "seed-distributed": SystemDef("distributed", "zmq", "seed", "the seed's set-up: ZeroMQ/TCP, whole SPARQL text, SPARQL-JSON answers"),
     "seed-central": SystemDef("central", "zmq", "seed", "the seed's centralised baseline: ZeroMQ/TCP, SPARQL text, SPARQL-JSON"),
+    "zenoh-distributed": SystemDef("distributed", "zenoh", "compact", "Zenoh/TCP, named queries, compact CBOR, KB split over the robots"),
+    "zenoh-central": SystemDef("central", "zenoh", "compact", "Zenoh/TCP, named queries, compact CBOR, one remote KB server"),
+    "zenoh-udp-distributed": SystemDef("distributed", "zenoh+udp", "compact", "Zenoh over UDP unicast (no retransmission), named queries, compact CBOR, KB split"),
 }
 
 # --------------------------------------------------------------------------- systems and timeouts
@@ -185,10 +191,17 @@ def system_spec(
 
 
 def retransmission_label(system: str, profile: str) -> str:
-    """What the ``retransmission_profile`` column holds: the CoAP profile, or
-    ``tcp`` for ZeroMQ systems (TCP retransmits by itself; the CoAP profile
-    has no effect there, so it must not split the resume key)."""
-    return profile if SYSTEMS[system].transport == "coap" else "tcp"
+    """What the ``retransmission_profile`` column holds: the CoAP profile,
+    ``tcp`` for ZeroMQ and Zenoh systems (TCP retransmits by itself; the CoAP
+    profile has no effect there, so it must not split the resume key), ``none``
+    for Zenoh over UDP (its unicast UDP link does not retransmit)."""
+    return _retransmission_label(SYSTEMS[system].transport, profile)
+
+
+def _retransmission_label(transport: str, profile: str) -> str:
+    if transport in TCP_TRANSPORTS:
+        return "tcp"
+    return "none" if transport == "zenoh+udp" else profile
 
 
 # --------------------------------------------------------------------------- placement
@@ -250,7 +263,7 @@ def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_
     d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
     return BenchRow(
         system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
-        retransmission_profile=retransmission if d.transport != "zmq" else "tcp", ok=False,
+        retransmission_profile=_retransmission_label(d.transport, retransmission), ok=False,
         mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
         started_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
@@ -353,7 +366,7 @@ async def run_once(
 
 async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str]) -> BenchRow:
     """``row`` with what one team run measured: link counters and the team's record."""
-    tcp = spec.transport == "zmq"
+    tcp = spec.transport in TCP_TRANSPORTS
 
     async def reading() -> dict[str, Any]:
         counters = await testbed.acounters()

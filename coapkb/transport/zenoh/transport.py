@@ -26,9 +26,15 @@ Threads
     to the event loop with ``call_soon_threadsafe``; everything else runs on
     the loop.  Opening and closing sessions can block (a TCP connect on a
     slow link), so those run on a small executor owned by the transport.
-    Its threads, and Zenoh's runtime threads on first use, start from the
-    loop's thread, so they belong to its network namespace (the benchmark's
-    feeder; see :func:`coapkb.bench.linkemu.enter_netns`).
+    Zenoh opens a session's link on the thread that calls ``zenoh.open``,
+    and the executor's threads start from the loop's thread, so the link's
+    socket belongs to the loop thread's network namespace -- the benchmark's
+    feeder moves it there (:func:`coapkb.bench.linkemu.enter_netns`), and a
+    new transport per run follows each run's feeder namespace although
+    Zenoh's own runtime threads are started once per process
+    (``tests/bench/test_bench_zenoh.py``).  A link Zenoh re-opened by
+    itself would come from those threads: another reason the client opens
+    a fresh session instead (below).
 
 Errors
     A peer that cannot be connected to, or that gives no answer within the
