@@ -3,9 +3,9 @@ warehouse KBs in its own process, one client asking the seed's four queries.
 
 Prints a table and writes ``experiments/results/loopback_latency.csv``.
 
-    .venv/bin/python experiments/loopback_latency.py [--requests 300]
+    .venv/bin/python experiments/loopback_latency.py [--requests 300] [--transports coap,zmq,zenoh]
 
-For each transport (CoAP, ZeroMQ), wire form (named query vs the whole SPARQL
+For each transport (CoAP, ZeroMQ; Zenoh with ``--transports``), wire form (named query vs the whole SPARQL
 text by FETCH/POST) and answer format (compact CBOR, SPARQL-JSON) it
 measures the request and answer payload sizes and the round-trip latency
 (p50, p99) of sequential requests after a warm-up.
@@ -45,7 +45,7 @@ def _free_port(kind: int) -> int:
 
 
 async def _start_server(transport: str) -> tuple[asyncio.subprocess.Process, Endpoint]:
-    port = _free_port(socket.SOCK_DGRAM if transport == "coap" else socket.SOCK_STREAM)
+    port = _free_port(socket.SOCK_DGRAM if transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM)
     kbs = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "coapkb", "serve", "--kb", *kbs, "--bind", f"127.0.0.1:{port}",
@@ -115,9 +115,10 @@ async def main() -> None:
     parser.add_argument("--requests", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)
     parser.add_argument("--out", default=str(ROOT / "experiments" / "results" / "loopback_latency.csv"))
+    parser.add_argument("--transports", default="coap,zmq", help="comma-separated: coap, zmq, zenoh, zenoh+udp")
     args = parser.parse_args()
     rows = []
-    for transport in ("coap", "zmq"):
+    for transport in args.transports.split(","):
         rows += await measure(transport, args.requests, args.warmup)
     header = list(rows[0])
     print(" | ".join(header))
