@@ -288,6 +288,8 @@ async def _team(args: argparse.Namespace) -> int:
             outcome = "skipped: no such object"
         elif record.errors:
             outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
+        elif record.unavailable is not None:
+            outcome = f"cannot be done: {record.unavailable}"
         else:
             outcome = f"-> {record.assigned_to or 'nobody can'}"
         if record.reassigned_from is not None:

@@ -23,7 +23,7 @@ from ..config import RobotConfig
 from ..kb.results import SelectResult
 from ..transport.base import TransportError
 from ..world.warehouse import Layout, Position, layout_from_row, travel_distance
-from .query_handler import QueryError, QueryHandler
+from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import Assignment, RobotEnergy, TaskFacts, assign, robot_sort_key
 from .task_executor import Job, TaskExecutor
@@ -137,6 +137,11 @@ class Controller:
             task, received = await self._tasks.get()
             try:
                 message = await self._decide(task)
+            except ModuleUnavailable as exc:
+                # Not an error of this robot: every teammate without the module
+                # finds the same, and the record says why the task waits.
+                log.warning("task %d (%s): %s", task.seq, task.object, exc)
+                message = DecisionMessage(Decision(task.seq, task.object, unavailable=str(exc)))
             except (QueryError, TransportError) as exc:
                 log.error("task %d (%s): %s", task.seq, task.object, exc)
                 message = DecisionMessage(Decision(task.seq, task.object, error=str(exc)))
@@ -159,7 +164,7 @@ class Controller:
         self._publish(self.team.own)
         log.info(
             "task %d %s: %s", decision.seq, decision.object,
-            decision.error or ("skipped" if decision.skipped else f"-> {decision.assigned_to}"),
+            decision.error or decision.unavailable or ("skipped" if decision.skipped else f"-> {decision.assigned_to}"),
         )
 
     async def _decide(self, task: Task) -> DecisionMessage:

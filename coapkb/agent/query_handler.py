@@ -33,6 +33,18 @@ class QueryError(CoapkbError):
     """A query could not be answered; the message says which, where and why."""
 
 
+class ModuleUnavailable(QueryError):
+    """No holder of a KB module answers: all are known to be down or failed
+    at the transport.  A task that needs the module cannot be done until one
+    is back; the team records that and goes on with the other tasks."""
+
+    def __init__(self, module: str, why: Mapping[str, str]) -> None:
+        self.module = module
+        self.why = dict(why)
+        holders = "; ".join(f"{robot}: {reason}" for robot, reason in self.why.items())
+        super().__init__(f"no live robot holds the {module} KB ({holders})")
+
+
 @dataclass
 class QueryStats:
     local: int = 0
@@ -89,6 +101,8 @@ class QueryHandler:
         if holders[0].robot_id == self.config.robot_id and self.kb is not None:
             return None
         remote = [m for m in holders if m.robot_id != self.config.robot_id]
+        if not any(self._alive(m.robot_id) for m in remote):
+            raise ModuleUnavailable(module, {m.robot_id: "down" for m in remote})
         # sorted() is stable: the configured order stays among equals.
         return sorted(remote, key=lambda m: (not self._alive(m.robot_id), m.robot_id in self._suspects))
 
@@ -122,7 +136,7 @@ class QueryHandler:
         query = NAMED_QUERIES[name]
         waiting = list(holders)
         pending: dict[asyncio.Task[QueryResult], Teammate] = {}
-        errors: list[str] = []
+        errors: dict[str, str] = {}
 
         def ask_next() -> None:
             mate = waiting.pop(0)
@@ -151,7 +165,7 @@ class QueryHandler:
                         ) from None
                     assert isinstance(exc, TransportError), exc
                     self._suspects.add(mate.robot_id)
-                    errors.append(f"{name} to {mate.robot_id} ({mate.endpoint}) for the {query.kb} KB failed: {exc}")
+                    errors[mate.robot_id] = f"{name} to {mate.endpoint} failed: {exc}"
                     if waiting and not pending:
                         self.stats.failovers += 1
                         ask_next()
@@ -160,7 +174,7 @@ class QueryHandler:
                 task.cancel()
             await asyncio.gather(*pending, return_exceptions=True)
         self.stats.failed += 1
-        raise QueryError("; then ".join(errors))
+        raise ModuleUnavailable(query.kb, errors)
 
     async def _ask(self, mate: Teammate, name: str, params: Mapping[str, str]) -> QueryResult:
         """One remote query to one holder; raises QueryFailed or TransportError."""

@@ -51,6 +51,8 @@ class Decision:
     #: on who is in the team is visible in the record.
     epoch: int = 0
     members: tuple[str, ...] = ()
+    #: Why the task cannot be done now: a KB module it needs has no live holder.
+    unavailable: str | None = None
 
 
 @dataclass(frozen=True)
@@ -151,14 +153,15 @@ def _plan(raw: list) -> PlannedState:
 
 def _decision_array(d: Decision) -> list:
     return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons,
-            d.epoch, list(d.members)]
+            d.epoch, list(d.members), d.unavailable]
 
 
 def _decision(raw: list) -> Decision:
-    # Eight items: a robot from before membership epochs (epoch 0, members unnamed).
-    seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons, *membership = raw
-    epoch, members = membership if membership else (0, ())
+    # Eight items: a robot from before membership epochs (epoch 0, members
+    # unnamed); ten: from before "unavailable".
+    seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons, *later = raw
+    epoch, members, unavailable = (later + [0, (), None][len(later):])[:3]
     return Decision(
         seq, obj, skipped, assigned_to, dict(costs), error, coordination_s, dict(reasons), int(epoch),
-        tuple(members),
+        tuple(members), unavailable,
     )

@@ -38,6 +38,8 @@ class TaskRecord:
     reassigned_from: int | None = None
     #: Why this task went round again (its robot went down before executing it).
     orphaned: str | None = None
+    #: Why the team could not do this task: a KB module it needs had no live holder.
+    unavailable: str | None = None
 
     @property
     def agreed(self) -> bool:
@@ -48,11 +50,14 @@ class TaskRecord:
     @property
     def fate(self) -> str:
         """One word: skipped, assigned, reassigned (went round again as a later
-        task), failed (errors or disagreement) or unassigned (nobody could)."""
+        task), failed (errors or disagreement), unavailable (a KB module it
+        needs had no live holder) or unassigned (nobody could)."""
         if self.skipped:
             return "skipped"
         if not self.agreed:
             return "failed"
+        if self.unavailable is not None:
+            return "unavailable"
         if self.orphaned is not None:
             return "reassigned"
         return "assigned" if self.assigned_to else "unassigned"
@@ -75,6 +80,7 @@ class TaskRecord:
             "members": self.members,
             "reassigned_from": self.reassigned_from,
             "orphaned": self.orphaned,
+            "unavailable": self.unavailable,
             "fate": self.fate,  # derived, like "agreed"
         }
 
@@ -96,6 +102,7 @@ class TaskRecord:
             members=[str(r) for r in data.get("members") or ()],
             reassigned_from=data.get("reassigned_from"),
             orphaned=data.get("orphaned"),
+            unavailable=data.get("unavailable"),
         )
 
 

@@ -511,6 +511,8 @@ class Team:
                 record.members = list(decision.members)
             if decision.error:
                 record.errors[robot_id] = decision.error
+            if decision.unavailable and record.unavailable is None:
+                record.unavailable = decision.unavailable
             if decision.skipped:
                 record.skipped = True
             if decision.costs and not record.costs:

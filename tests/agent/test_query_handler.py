@@ -9,7 +9,7 @@ from typing import Callable
 import pytest
 from agent_helpers import config, endpoint
 
-from coapkb.agent.query_handler import QueryError, QueryHandler
+from coapkb.agent.query_handler import ModuleUnavailable, QueryError, QueryHandler
 from coapkb.kb.client import KBClient
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import SelectResult
@@ -23,9 +23,9 @@ EXISTS = {"name": "Gucci_bag_14"}
 
 
 def handler(network: MemoryNetwork, kb: KnowledgeBase | None, wire: str = "compact", cache: bool = False,
-            **changes: object) -> QueryHandler:
+            alive: Callable[[str], bool] = lambda robot_id: True, **changes: object) -> QueryHandler:
     cfg = config("Robot1", **changes)
-    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire)
+    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire, alive=alive)
 
 
 async def test_own_module_runs_locally_without_traffic(network: MemoryNetwork, kbs: dict) -> None:
@@ -78,9 +78,19 @@ async def test_nobody_holding_a_module_is_a_query_error(network: MemoryNetwork, 
 
 async def test_unreachable_teammate_is_a_query_error_naming_it(network: MemoryNetwork, kbs: dict) -> None:
     queries = handler(network, kbs["Location"])
-    with pytest.raises(QueryError, match=r"object-exists to Robot2 \(coap://robot2:5683\) for the Object KB failed"):
+    with pytest.raises(ModuleUnavailable, match=r"no live robot holds the Object KB \(Robot2: object-exists to "
+                       r"coap://robot2:5683 failed: .*nobody listens") as info:
         await queries.run("object-exists", EXISTS)
+    assert info.value.module == "Object" and list(info.value.why) == ["Robot2"]
     assert queries.stats.failed == 1 and queries.stats.remote == 0
+
+
+async def test_holders_known_down_are_not_asked(network: MemoryNetwork, kbs: dict, serve_kbs: Callable) -> None:
+    await serve_kbs("Robot2", ["Object"])  # up, but the team view has declared it down
+    queries = handler(network, kbs["Location"], alive=lambda robot_id: robot_id != "Robot2")
+    with pytest.raises(ModuleUnavailable, match=r"no live robot holds the Object KB \(Robot2: down\)"):
+        await queries.run("object-exists", EXISTS)
+    assert queries.client.transport.counters.messages_sent == 0
 
 
 async def serve_silent(network: MemoryNetwork, robot_id: str, query: str) -> None:
@@ -161,6 +171,7 @@ async def test_a_slow_holder_is_hedged_to_the_replica(network: MemoryNetwork, kb
 
 async def test_every_holder_down_names_each_failure(network: MemoryNetwork, kbs: dict) -> None:
     queries = handler(network, kbs["Location"], holders=REPLICATED)
-    with pytest.raises(QueryError, match=r"robot-specs to Robot2 .* failed: .*; then robot-specs to Robot3 "):
+    with pytest.raises(ModuleUnavailable, match=r"Capability KB \(Robot2: robot-specs to .* failed: .*; "
+                       r"Robot3: robot-specs to .* failed: "):
         await queries.run("robot-specs", {})
     assert queries.stats.failed == 1

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 
+from dataclasses import replace
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -29,6 +31,9 @@ decisions = st.builds(
     st.none() | st.text(max_size=40),
     floats,
     st.dictionaries(ids, st.text(max_size=30), max_size=3),
+    st.integers(0, 5),
+    st.lists(ids, max_size=3).map(tuple),
+    st.none() | st.text(max_size=40),
 )
 states = st.builds(RobotState, ids, plans, lives, st.none() | decisions, st.none() | plans)
 
@@ -61,7 +66,9 @@ def test_matches_the_cddl(validator: object) -> None:
                  {"Robot3": "cannot pick by gripping"}),
         PlannedState(9, 6, 414.37, 0.0, 60.6, 4),
     )
-    for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan")):
+    unavailable = replace(state, last=Decision(6, "Gucci_bag_15", unavailable="no live robot holds the Object KB"))
+    for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan"),
+                       (unavailable.encode(), "robot-state")):
         outcome = validator.validate(data, root_type=root)  # type: ignore[attr-defined]
         assert outcome.valid, [str(d) for d in outcome.diagnostics]
 
