@@ -114,11 +114,15 @@ class SystemDef:
     transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp"
     query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
     description: str
+    #: OSCORE keyed by EDHOC and the access policy (issue 12, docs/security.md).
+    security: bool = False
 
 
 SYSTEMS: dict[str, SystemDef] = {
     "coap-distributed": SystemDef("distributed", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, KB split over the robots"),
     "coap-central": SystemDef("central", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, one remote KB server"),
+    "coap-distributed-oscore": SystemDef("distributed", "coap", "compact", "coap-distributed with OSCORE keyed by EDHOC", security=True),
+    "coap-central-oscore": SystemDef("central", "coap", "compact", "coap-central with OSCORE keyed by EDHOC", security=True),
     "zmq-distributed": SystemDef("distributed", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, KB split over the robots"),
     "zmq-central": SystemDef("central", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, one remote KB server"),
     "seed-distributed": SystemDef("distributed", "zmq", "seed", "the seed's set-up: ZeroMQ/TCP, whole SPARQL text, SPARQL-JSON answers"),
@@ -181,12 +185,12 @@ def system_spec(
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
     # replication=1: the benchmarks compare with the seed's system, one KB
     # module per robot (replicas change which queries are remote).
-    # security=False: ZeroMQ has no CurveZMQ yet, so OSCORE on the CoAP
-    # systems only would skew the comparison (docs/security.md).
+    # Security only in the -oscore systems: ZeroMQ has no CurveZMQ yet, so
+    # OSCORE on the CoAP systems only would skew the comparison (docs/security.md).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
         retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, replication=1,
-        security=False, **extra,
+        security=d.security, **extra,
     )
 
 
