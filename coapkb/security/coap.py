@@ -11,10 +11,11 @@ Client (:class:`ClientSecurity`)
     credential is looked up in the team's trust list by the key id it sends
     (so ``coapkb query`` needs no per-robot setup), and a robot checks that
     the endpoint it asked is the teammate its configuration puts there.
-    Message 3 travels in its own confirmable exchange (RFC 9528 appendix
-    A.2's message_4 flow), not combined with the first request (RFC 9668):
-    the ``robust`` profile retries a lost request as a new OSCORE request,
-    which would lack message 3.  When a peer lost its context (restarted)
+    Message 3 travels in its own exchange (RFC 9528 appendix A.2's
+    message_4 flow), not combined with the first request (RFC 9668): the
+    ``robust`` profile retries a lost request as a new OSCORE request, which
+    would lack message 3.  The EDHOC messages go through the client's
+    reliability profile like any request (the robust layer's NON tries).  When a peer lost its context (restarted)
     the request fails with an unprotected 4.01; the client forgets the
     context and runs EDHOC again (:meth:`ClientSecurity.forget`).
 
@@ -38,7 +39,7 @@ import asyncio
 import logging
 import secrets
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Awaitable, Callable
 
 import aiocoap
 import aiocoap.error
@@ -103,6 +104,18 @@ class HandshakeStats:
     seconds: float = 0.0
 
 
+#: Carries one EDHOC message to a peer and returns the answer.
+Post = Callable[[Endpoint, bytes], Awaitable[aiocoap.Message]]
+
+
+def _con_post(ctx: aiocoap.Context) -> Post:
+    async def post(peer: Endpoint, payload: bytes) -> aiocoap.Message:
+        request = aiocoap.Message(code=POST, uri=f"coap://{peer.hostport}/.well-known/edhoc", payload=payload)
+        return await ctx.request(request).response
+
+    return post
+
+
 def _encode_c_r(c_r: bytes) -> bytes:
     # RFC 9528 section 3.3.2: a one-byte identifier that is a CBOR integer
     # is sent as is; anything else as a CBOR byte string.
@@ -128,15 +141,20 @@ class ClientSecurity:
     def _key(peer: Endpoint) -> str:
         return f"coap://{peer.hostport}/*"
 
-    async def ensure(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
+    async def ensure(self, ctx: aiocoap.Context, peer: Endpoint, post: Post | None = None) -> None:
         """An OSCORE context for ``peer`` in ``ctx``'s client credentials
-        (EDHOC on first contact; callers racing here share one run)."""
+        (EDHOC on first contact; callers racing here share one run).
+        ``post(peer, payload)`` carries one EDHOC message and returns the
+        answer (the client transport's, with its retries); default: one
+        aiocoap CON request."""
         key = self._key(peer)
         if key in ctx.client_credentials:
             return
         run = self._runs.get(key)
         if run is None:
-            run = asyncio.get_running_loop().create_task(self._establish(ctx, peer), name=f"edhoc {peer}")
+            run = asyncio.get_running_loop().create_task(
+                self._establish(ctx, peer, post or _con_post(ctx)), name=f"edhoc {peer}"
+            )
             self._runs[key] = run
             run.add_done_callback(lambda t, key=key: self._runs.pop(key, None) if self._runs.get(key) is t else None)
         # A caller's timeout must not cancel the run the others wait for.
@@ -146,7 +164,7 @@ class ClientSecurity:
         """Drop ``peer``'s context: the next request runs EDHOC again."""
         ctx.client_credentials.pop(self._key(peer), None)
 
-    async def _establish(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
+    async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: Post) -> None:
         loop = asyncio.get_running_loop()
         started = loop.time()
         stats = HandshakeStats(str(peer))
@@ -154,7 +172,7 @@ class ClientSecurity:
         c_i = bytes([secrets.randbelow(24)])
         message_1 = initiator.prepare_message_1(c_i)
         # CoAP transport of EDHOC (RFC 9528 appendix A.2): message_1 follows CBOR true.
-        message_2 = await self._post(ctx, peer, cbor2.dumps(True) + message_1, stats)
+        message_2 = await self._post(post, peer, cbor2.dumps(True) + message_1, stats)
         try:
             c_r, id_cred_r, ead_2 = initiator.parse_message_2(message_2)
         except Exception as exc:  # lakers raises plain exceptions for malformed messages
@@ -169,7 +187,7 @@ class ClientSecurity:
         context = _InitiatorContext(
             initiator, c_i, c_r, aiocoap_edhoc.OwnCredStyle.ByKeyId, logging.getLogger("coapkb.security.edhoc")
         )
-        message_4 = await self._post(ctx, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
+        message_4 = await self._post(post, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
         try:
             context.complete_with_message_4(message_4)
         except Exception:
@@ -180,12 +198,11 @@ class ClientSecurity:
         ctx.client_credentials[self._key(peer)] = context
         log.debug("EDHOC with %s (%s) done in %.3f s", peer, member.name, stats.seconds)
 
-    async def _post(self, ctx: aiocoap.Context, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
-        request = aiocoap.Message(code=POST, uri=f"coap://{peer.hostport}/.well-known/edhoc", payload=payload)
+    async def _post(self, post: Post, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
         stats.round_trips += 1
         stats.bytes_sent += len(payload)
         try:
-            response = await ctx.request(request).response
+            response = await post(peer, payload)
         except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
             raise TransportError(f"EDHOC with {peer}: no answer ({exc})") from None
         stats.bytes_received += len(response.payload)

@@ -17,6 +17,8 @@ from typing import Any, AsyncIterator
 
 import aiocoap
 import aiocoap.error
+from aiocoap.numbers.codes import POST
+from aiocoap.numbers.constants import Unreliable
 from aiocoap.numbers.types import NON
 from aiocoap.optiontypes import BlockOption
 
@@ -33,6 +35,8 @@ from .reliability.rto import TransmissionProfile
 MAX_SINGLE_BODY = 1024
 #: Block-wise transfers started over before giving up on an answer that keeps changing.
 MAX_TRANSFER_RESTARTS = 4
+#: Longest one EDHOC message may take with its retries (the request's own timeout usually ends it first).
+EDHOC_TIMEOUT_S = 60.0
 #: aiocoap's ways of saying that the peer did not answer.
 _NO_ANSWER = (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError)
 
@@ -40,10 +44,18 @@ _NO_ANSWER = (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError)
 class _AbandonedTryFilter(logging.Filter):
     """aiocoap warns when a request is cancelled before its token was even
     registered; the layer abandons hedge copies and retries that way as a
-    matter of course."""
+    matter of course.  Under OSCORE aiocoap's protecting task outlives an
+    abandoned try: its late answer (a warning) or its end at shutdown (an
+    error naming LibraryShutdown) is no news either."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("on_interest_end callback")
+        msg = str(record.msg)
+        if msg.startswith(("on_interest_end callback", "Response %r added after")):
+            return False
+        if msg.startswith("Discarded exception in") and record.args:
+            event = record.args[0] if isinstance(record.args, tuple) else None
+            return not isinstance(getattr(event, "exception", None), aiocoap.error.LibraryShutdown)
+        return True
 
 
 def _reply_bytes(message: aiocoap.Message) -> int:
@@ -119,7 +131,7 @@ class CoapClientTransport:
         from ...security.coap import CONTEXT_LOST
 
         for again in (False, True):
-            await self.security.ensure(self._ctx, peer)
+            await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
             try:
                 return await exchange()
             except CONTEXT_LOST:
@@ -127,6 +139,33 @@ class CoapClientTransport:
                     raise
                 self.security.forget(self._ctx, peer)
         raise AssertionError("unreachable")
+
+    async def _edhoc_post(self, peer: Endpoint, payload: bytes) -> aiocoap.Message:
+        """One EDHOC message (POST /.well-known/edhoc, RFC 9528 appendix A.2),
+        retried like any request: NON tries timed by the layer under
+        ``robust`` (aiocoap's CON would wait 2-3 s for each lost one on a
+        slow link), the CON profile's timers otherwise.  A repeated message_1
+        gets a fresh message_2 (either one completes the run); a repeated
+        message_3 the same message_4."""
+        uri = f"coap://{peer.hostport}/.well-known/edhoc"
+        if not isinstance(self.reliability, ReliabilityLayer):
+            msg = aiocoap.Message(code=POST, uri=uri, payload=payload)
+            msg.transport_tuning = self.reliability.tuning_for(peer)
+            return await self._ctx.request(msg).response
+
+        def send(try_number: int) -> Attempt[aiocoap.Message]:
+            if try_number:
+                self.counters.retransmissions += 1
+            msg = aiocoap.Message(code=POST, uri=uri, payload=payload, transport_tuning=Unreliable)
+            msg.mtype = NON
+            pending = self._ctx.request(msg, handle_blockwise=False)
+            return Attempt(pending.response, cancel=lambda: _abandon(pending), handle=pending)
+
+        answer, _ = await self.reliability.exchange(
+            peer, send, timeout=EDHOC_TIMEOUT_S, request_bytes=len(payload) + 24,
+            reply_key=("/.well-known/edhoc", None, False), reply_size=_reply_bytes,
+        )
+        return answer
 
     def _con_request(self, peer: Endpoint, request: Request, *, observe: bool = False) -> Any:
         """An aiocoap confirmable request, timed by the CON profile if one is in use."""
@@ -151,6 +190,11 @@ class CoapClientTransport:
             sent += 1
             msg = message_from_request(peer, request, observe=observe)
             msg.mtype = NON
+            if self.security is not None:
+                # OSCORE builds the outer message afresh, keeping only the
+                # tuning: without this it went CON, and aiocoap's NSTART=1
+                # held every later try behind a lost one for 2-3 s.
+                msg.transport_tuning = Unreliable
             if block2 is not None:
                 msg.opt.block2 = BlockOption.BlockwiseTuple(block2[0], False, block2[1])
             pending = self._ctx.request(msg, handle_blockwise=False)
