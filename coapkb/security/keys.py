@@ -11,6 +11,11 @@ One directory per team (``coapkb keys --team-dir DIR --robots N``):
     One member's private key as a COSE_Key (RFC 9052: kty EC2, crv P-256,
     d), CBOR, mode 0600; the format aiocoap's ``private_key_file`` reads, so
     ``aiocoap-client --credentials`` can use the same file.
+``NAME.curve``
+    The same member's CurveZMQ (RFC 26 / Curve25519) secret key, Z85, mode
+    0600, for the ZeroMQ transport; its public key is in ``team.json``.
+    (A P-256 key cannot be turned into a Curve25519 one; each member has
+    both, and the trust list binds them to one name and role.)
 
 Roles decide what a member may do on a robot (:mod:`.policy`): ``robot``
 (query, observe, post decisions if it is its cluster's decider), ``feeder``
@@ -67,6 +72,8 @@ class TeamMember:
     #: The CCS (without the ``kccs`` wrapper), canonical CBOR: what EDHOC
     #: authenticates (CRED_I / CRED_R).
     ccs: bytes
+    #: CurveZMQ public key, Z85 (40 characters); None in a team made without.
+    curve_public: str | None = None
 
     def ccs_map(self) -> dict:
         return cbor2.loads(self.ccs)
@@ -91,6 +98,9 @@ class TeamTrust:
     def by_ccs(self, ccs: bytes) -> TeamMember | None:
         return next((m for m in self.members if m.ccs == ccs), None)
 
+    def by_curve(self, public_z85: str) -> TeamMember | None:
+        return next((m for m in self.members if m.curve_public is not None and m.curve_public == public_z85), None)
+
 
 @dataclass(frozen=True)
 class TeamIdentity:
@@ -101,6 +111,8 @@ class TeamIdentity:
     private_d: bytes
     trust: TeamTrust
     team_dir: Path
+    #: The CurveZMQ secret key, Z85; None if the team has no Curve keys.
+    curve_secret: str | None = None
 
     @property
     def name(self) -> str:
@@ -159,6 +171,8 @@ def generate_team(team_dir: str | Path, members: Iterable[tuple[str, str]]) -> T
         raise SecurityError(f"cannot create team directory {team_dir}: {exc.strerror}") from None
     if (team_dir / TRUST_FILE).exists():
         raise SecurityError(f"{team_dir} already holds a team ({TRUST_FILE}); use a new directory")
+    import zmq
+
     entries = []
     for index, (name, role) in enumerate(members):
         d = ec.generate_private_key(ec.SECP256R1()).private_numbers().private_value.to_bytes(32, "big")
@@ -171,12 +185,20 @@ def generate_team(team_dir: str | Path, members: Iterable[tuple[str, str]]) -> T
             raise SecurityError(f"{team_dir / (name + '.key')} already exists; use a new directory") from None
         except OSError as exc:
             raise SecurityError(f"cannot write {team_dir / (name + '.key')}: {exc.strerror}") from None
-        entries.append(TeamMember(name, role, kid, _public_ccs(name, kid, d)))
+        curve_public, curve_secret = zmq.curve_keypair()
+        try:
+            fd = os.open(team_dir / f"{name}.curve", os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with open(fd, "wb") as out:
+                out.write(curve_secret + b"\n")
+        except OSError as exc:
+            raise SecurityError(f"cannot write {team_dir / (name + '.curve')}: {exc.strerror}") from None
+        entries.append(TeamMember(name, role, kid, _public_ccs(name, kid, d), curve_public.decode("ascii")))
     trust = TeamTrust(tuple(entries))
     document = {
         "format": TRUST_FORMAT,
         "edhoc": {"suite": CIPHER_SUITE, "method": EDHOC_METHOD},
-        "members": [{"name": m.name, "role": m.role, "kid": m.kid.hex(), "ccs": m.ccs.hex()} for m in entries],
+        "members": [{"name": m.name, "role": m.role, "kid": m.kid.hex(), "ccs": m.ccs.hex(), "curve": m.curve_public}
+                    for m in entries],
     }
     (team_dir / TRUST_FILE).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     return trust
@@ -195,7 +217,10 @@ def load_trust(team_dir: str | Path) -> TeamTrust:
     members = []
     try:
         for raw in document["members"]:
-            member = TeamMember(raw["name"], raw["role"], bytes.fromhex(raw["kid"]), bytes.fromhex(raw["ccs"]))
+            member = TeamMember(raw["name"], raw["role"], bytes.fromhex(raw["kid"]), bytes.fromhex(raw["ccs"]),
+                                raw.get("curve"))
+            if member.curve_public is not None and len(member.curve_public) != 40:
+                raise ValueError(f"member {member.name}: curve is not a Z85 public key")
             ccs = member.ccs_map()
             if ccs[_CWT_CNF][_CNF_COSE_KEY][_KID] != member.kid or member.role not in ROLES:
                 raise ValueError(f"member {member.name}: kid or role inconsistent")
@@ -235,7 +260,28 @@ def load_identity(team_dir: str | Path, name: str) -> TeamIdentity:
         raise SecurityError(f"{path}: expected a P-256 COSE_Key with d")
     if _public_ccs(member.name, member.kid, key[_D]) != member.ccs:
         raise SecurityError(f"{path}: the key does not match {name}'s credential in {TRUST_FILE}")
-    return TeamIdentity(member, key[_D], trust, team_dir)
+    return TeamIdentity(member, key[_D], trust, team_dir, _load_curve(team_dir, member))
+
+
+def _load_curve(team_dir: Path, member: TeamMember) -> str | None:
+    """The member's CurveZMQ secret key, checked against its public key."""
+    if member.curve_public is None:
+        return None
+    import zmq
+
+    path = team_dir / f"{member.name}.curve"
+    try:
+        if path.stat().st_mode & 0o077:
+            raise SecurityError(f"{path}: private key is readable by group or others (chmod 600 it)")
+        secret = path.read_bytes().strip()
+        public = zmq.curve_public(secret)
+    except OSError as exc:
+        raise SecurityError(f"cannot read private key {path}: {exc.strerror}") from None
+    except (ValueError, zmq.ZMQError):
+        raise SecurityError(f"{path}: not a Z85 Curve25519 secret key") from None
+    if public.decode("ascii") != member.curve_public:
+        raise SecurityError(f"{path}: the key does not match {member.name}'s Curve key in {TRUST_FILE}")
+    return secret.decode("ascii")
 
 
 def default_members(robots: int, extra_robots: Iterable[str] = ()) -> list[tuple[str, str]]:

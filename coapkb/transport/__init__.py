@@ -50,7 +50,7 @@ async def open_client(scheme: str, *, retransmission: Any = "robust", security: 
     if scheme == "zmq":
         from .zmq.transport import ZmqClientTransport
 
-        return ZmqClientTransport()
+        return ZmqClientTransport(security=security)
     if scheme in ("zenoh", "zenoh+udp"):
         from .zenoh.transport import ZenohClientTransport
 
@@ -63,7 +63,8 @@ async def serve(
 ) -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``retransmission`` applies to CoAP's confirmable notifications;
-    ``security`` is a :class:`coapkb.security.coap.ServerSecurity` or None."""
+    ``security`` is a :class:`coapkb.security.coap.ServerSecurity` (CoAP) or
+    :class:`coapkb.security.curve.ZmqServerSecurity` (ZeroMQ), or None."""
     if endpoint.scheme == "coap":
         from .coap import CoapServerTransport
 
@@ -71,7 +72,7 @@ async def serve(
     if endpoint.scheme == "zmq":
         from .zmq.transport import ZmqServerTransport
 
-        return await ZmqServerTransport.start(service, endpoint)
+        return await ZmqServerTransport.start(service, endpoint, security=security)
     if endpoint.scheme in ("zenoh", "zenoh+udp"):
         from .zenoh.transport import ZenohServerTransport
 

@@ -25,10 +25,12 @@ def test_keys_are_private_and_the_trust_list_public(team_dir: Path) -> None:
     assert len({m.kid for m in trust.members}) == len(trust.members)
     for m in trust.members:
         assert (team_dir / f"{m.name}.key").stat().st_mode & 0o777 == 0o600
+        assert (team_dir / f"{m.name}.curve").stat().st_mode & 0o777 == 0o600
     document = (team_dir / "team.json").read_text()
     identity = load_identity(team_dir, "Robot2")
     assert identity.private_d.hex() not in document  # no private key in the public file
-    assert identity.private_d.hex() not in repr(identity)
+    assert identity.curve_secret and identity.curve_secret not in document
+    assert identity.private_d.hex() not in repr(identity) and identity.curve_secret not in repr(identity)
     assert identity.member.role == "robot" and load_identity(team_dir, "feeder").member.role == "feeder"
 
 
@@ -43,6 +45,8 @@ def test_a_team_directory_is_never_overwritten(team_dir: Path) -> None:
     (lambda d: (d / "Robot1.key").write_bytes(b"\xff\x00garbage"), "not a CBOR COSE_Key"),
     (lambda d: os.replace(d / "Robot2.key", d / "Robot1.key"), "does not match Robot1's credential"),
     (lambda d: (d / "team.json").unlink(), "cannot read the team's trust list"),
+    (lambda d: (d / "Robot1.curve").unlink(), "cannot read private key .*Robot1.curve"),
+    (lambda d: os.replace(d / "Robot2.curve", d / "Robot1.curve"), "does not match Robot1's Curve key"),
     (lambda d: (d / "team.json").write_text(json.dumps({"format": "other"})), "not a coapkb trust list"),
 ])
 def test_bad_key_material_is_one_clear_error(team_dir: Path, damage, message: str) -> None:

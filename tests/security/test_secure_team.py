@@ -8,11 +8,13 @@ import sys
 from pathlib import Path
 
 import cbor2
+import pytest
 
 from coapkb.harness.team import Team, TeamSpec
 from coapkb.security import load_identity
 from coapkb.security.coap import ClientSecurity
-from coapkb.transport import open_client
+from coapkb.security.curve import ZmqClientSecurity
+from coapkb.transport import PeerUnreachable, open_client
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 
 from support import ONTOLOGIES, ROOT, ServerProcess, free_udp_port
@@ -54,8 +56,11 @@ kbs = ["Object", "Location", "Capability"]
     assert err.splitlines() == [f"coapkb: error: cannot read private key {team_dir / 'Robot1.key'}: No such file or directory"]
 
 
-async def test_a_secure_team_runs_and_keeps_others_out() -> None:
-    spec = TeamSpec(robots=3, query_timeout_s=5.0)
+@pytest.mark.parametrize("transport", ["coap", "zmq"])
+async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
+    """OSCORE/EDHOC over CoAP, CurveZMQ over ZeroMQ: a plain client gets 4.01
+    (CoAP) or no connection at all (ZeroMQ), a robot posting a task 4.03."""
+    spec = TeamSpec(robots=3, query_timeout_s=5.0, transport=transport)
     assert spec.secure  # on by default
     tasks = ["Gucci_bag_14", "Canon_tv_538", "Nonexistent_widget_1"]
     async with asyncio.timeout(120):
@@ -64,11 +69,18 @@ async def test_a_secure_team_runs_and_keeps_others_out() -> None:
             record = await team.run(tasks)
             body = cbor2.dumps({"seq": 4, "object": "Gucci_bag_187"})
             task = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
-            plain = await open_client("coap")
-            robot2 = await open_client("coap", security=ClientSecurity(load_identity(team.team_dir, "Robot2")))
+            expected = {e.hostport: r for r, e in team.endpoints.items()}
+            identity = load_identity(team.team_dir, "Robot2")
+            plain = await open_client(transport)
+            robot2 = await open_client(transport, security=ClientSecurity(identity, expected) if transport == "coap"
+                                       else ZmqClientSecurity(identity, expected))
             try:
                 for r, endpoint in team.endpoints.items():
-                    assert (await plain.request(endpoint, task, timeout=5)).status == Status.UNAUTHORIZED, r
+                    if transport == "coap":
+                        assert (await plain.request(endpoint, task, timeout=5)).status == Status.UNAUTHORIZED, r
+                    else:
+                        with pytest.raises(PeerUnreachable):
+                            await plain.request(endpoint, task, timeout=1.5)
                     assert (await robot2.request(endpoint, task, timeout=5)).status == Status.FORBIDDEN, r
                     state = await robot2.request(endpoint, Request(Method.GET, "/robot/state"), timeout=5)
                     assert state.status == Status.CONTENT

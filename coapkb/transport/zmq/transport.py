@@ -242,8 +242,11 @@ class ZmqServerTransport:
         context: zmq.asyncio.Context,
         owns_context: bool,
         options: ZmqOptions,
+        security: Any = None,
     ) -> None:
         """Private: use :meth:`start`, which binds the socket first."""
+        #: A :class:`coapkb.security.curve.ZmqServerSecurity` (CurveZMQ, the team's policy), or None.
+        self._security = security
         self.counters = TrafficCounters()
         self.endpoint = endpoint
         #: Messages dropped because they were not a valid request envelope.
@@ -269,6 +272,7 @@ class ZmqServerTransport:
         *,
         options: ZmqOptions | None = None,
         context: zmq.asyncio.Context | None = None,
+        security: Any = None,
     ) -> ZmqServerTransport:
         """Bind ``tcp://host:port`` and start serving.
 
@@ -290,6 +294,8 @@ class ZmqServerTransport:
             sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
             sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
             sock.setsockopt(zmq.MAXMSGSIZE, options.max_request_bytes)
+            if security is not None:
+                security.configure(sock, ctx)
             sock.bind(_tcp_uri(endpoint.host, endpoint.port or "*"))
             bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
         except zmq.ZMQError as exc:
@@ -300,7 +306,7 @@ class ZmqServerTransport:
                 raise TransportError(f"cannot listen on {endpoint}: port {endpoint.port} is already in use") from exc
             raise TransportError(f"cannot listen on {endpoint}: {exc}") from exc
         port = int(bound.rsplit(":", 1)[1])
-        return cls(service, Endpoint("zmq", endpoint.host, port), sock, ctx, context is None, options)
+        return cls(service, Endpoint("zmq", endpoint.host, port), sock, ctx, context is None, options, security)
 
     @property
     def observation_count(self) -> int:
@@ -328,6 +334,8 @@ class ZmqServerTransport:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
         self._sock.close(linger=0)
+        if self._security is not None:
+            self._security.stop()
         if self._owns_context:
             self._ctx.term()
 
@@ -336,8 +344,15 @@ class ZmqServerTransport:
     async def _receive_loop(self) -> None:
         sock = self._sock
         while True:
+            user: str | None = None
             try:
-                frames = await sock.recv_multipart()
+                if self._security is None:
+                    frames = await sock.recv_multipart()
+                else:
+                    # CURVE: the ZAP handler named the member; libzmq hands it over as frame metadata.
+                    raw = await sock.recv_multipart(copy=False)
+                    user = raw[-1].get("User-Id") if len(raw) > 1 else None
+                    frames = [frame.bytes for frame in raw]
             except zmq.ZMQError as exc:
                 if self._closed or exc.errno in (zmq.ETERM, zmq.ENOTSOCK):
                     return
@@ -358,7 +373,7 @@ class ZmqServerTransport:
                 self._deregister(identity, token)
                 continue
             await self._slots.acquire()
-            self._spawn(self._serve(identity, token, request, observe))
+            self._spawn(self._serve(identity, token, request, observe, user))
 
     def _malformed(self, identity: bytes, why: str) -> None:
         self.malformed += 1
@@ -383,9 +398,15 @@ class ZmqServerTransport:
 
     # ------------------------------------------------------------------ answering
 
-    async def _serve(self, identity: bytes, token: int, request: Request, observe: Observe) -> None:
+    async def _serve(self, identity: bytes, token: int, request: Request, observe: Observe,
+                     user: str | None = None) -> None:
         """One request; holds a concurrency slot (taken by the receive loop)."""
         try:
+            if self._security is not None:
+                verdict = self._security.check(user, request)
+                if not verdict.allowed:  # before the service: a refused request changes nothing
+                    await self._send(identity, self._encode(token, Response.error(verdict.status, verdict.reason)))
+                    return
             if observe is Observe.REGISTER and request.method in _OBSERVABLE_METHODS:
                 await self._register(identity, token, request)
             else:
@@ -611,9 +632,12 @@ class ZmqClientTransport:
         *,
         options: ZmqOptions | None = None,
         context: zmq.asyncio.Context | None = None,
+        security: Any = None,
     ) -> None:
         """A shared ``context`` is left open on :meth:`aclose`; otherwise the
-        transport owns and terminates its own."""
+        transport owns and terminates its own.  ``security``: a
+        :class:`coapkb.security.curve.ZmqClientSecurity` (CurveZMQ), or None."""
+        self._security = security
         self.counters = TrafficCounters()
         #: Messages dropped because they were not a valid response envelope.
         self.malformed = 0
@@ -648,10 +672,15 @@ class ZmqClientTransport:
             sock.setsockopt(zmq.ROUTING_ID, _new_routing_id())
             sock.setsockopt(zmq.CONNECT_TIMEOUT, self._options.connect_timeout_ms)
             sock.setsockopt(zmq.MAXMSGSIZE, self._options.max_response_bytes)
+            if self._security is not None:
+                self._security.configure(sock, peer)
             sock.connect(_tcp_uri(peer.host, peer.port))
         except zmq.ZMQError as exc:
             sock.close(linger=0)
             raise TransportError(f"cannot connect to {peer}: {exc}") from exc
+        except BaseException:
+            sock.close(linger=0)
+            raise
         link = self._links[peer] = _PeerLink(peer, sock, self)
         return link
 
