@@ -106,27 +106,42 @@ def _add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
                    help=f"whose key in --credentials to use (default {identity})")
 
 
-def _client_security(args: argparse.Namespace, scheme: str):  # -> ClientSecurity | None
+def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | ZmqClientSecurity | None
     if getattr(args, "credentials", None) is None:
         return None
-    if scheme != "coap":
-        raise UserError("--credentials: only the coap transport is secured (no CurveZMQ yet)")
     from .security import load_identity
+
+    identity = load_identity(args.credentials, args.identity)
+    if peer.scheme == "zmq":
+        from .security.curve import ZmqClientSecurity
+
+        if not args.peer:
+            raise UserError("--credentials over zmq: name the member serving there with --peer (CurveZMQ needs its key)")
+        return ZmqClientSecurity(identity, {peer.hostport: args.peer})
+    if peer.scheme != "coap":
+        raise UserError(f"--credentials: the {peer.scheme} transport has no security yet")
     from .security.coap import ClientSecurity
 
-    return ClientSecurity(load_identity(args.credentials, args.identity))
+    # EDHOC finds the responder in the trust list; --peer also insists on who it is.
+    return ClientSecurity(identity, {peer.hostport: args.peer} if args.peer else None)
 
 
-def _server_security(args: argparse.Namespace):  # -> ServerSecurity | None
+def _server_security(args: argparse.Namespace):  # -> ServerSecurity | ZmqServerSecurity | None
     if args.credentials is None:
         return None
-    if args.transport != "coap":
-        raise UserError("--credentials: only the coap transport is secured (no CurveZMQ yet)")
     from .security import load_identity
-    from .security.coap import ServerSecurity
 
     # A KB server takes queries from every member; tasks and decisions are robots' business.
-    return ServerSecurity(load_identity(args.credentials, args.identity))
+    identity = load_identity(args.credentials, args.identity)
+    if args.transport == "zmq":
+        from .security.curve import ZmqServerSecurity
+
+        return ZmqServerSecurity(identity)
+    if args.transport != "coap":
+        raise UserError(f"--credentials: the {args.transport} transport has no security yet")
+    from .security.coap import ServerSecurity
+
+    return ServerSecurity(identity)
 
 
 def _add_keys(sub: argparse._SubParsersAction) -> None:
@@ -217,7 +232,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
                    help="start a killed robot again at S seconds (refused until a robot can rejoin: issue 11)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--insecure", action="store_true",
-                   help="no OSCORE/EDHOC and no access policy (default: on, with throwaway team keys; coap only)")
+                   help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
     p.add_argument("--credentials", metavar="DIR", help="use this team key directory (coapkb keys) instead of throwaway keys")
     p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
     p.set_defaults(run=_team)
@@ -323,7 +338,8 @@ async def _team(args: argparse.Namespace) -> int:
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
-            print("security: " + ("OSCORE keyed by EDHOC, team access policy" if spec.secure else "none"), flush=True)
+            scheme = {"coap": "OSCORE keyed by EDHOC", "zmq": "CurveZMQ"}.get(spec.transport, "")
+            print("security: " + (f"{scheme}, team access policy" if spec.secure else "none"), flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
@@ -376,6 +392,7 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ack-timeout", type=float, metavar="SECONDS", help="override the profile's ACK_TIMEOUT")
     p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
     _add_credentials(p, "operator")
+    p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
     p.set_defaults(run=_query)
 
 
@@ -407,7 +424,7 @@ async def _query(args: argparse.Namespace) -> int:
     if parts.path not in ("", "/") and not named:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
     transport = await open_client(peer.scheme, retransmission=_retransmission_profile(args),
-                                  security=_client_security(args, peer.scheme))
+                                  security=_client_security(args, peer))
     client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
     try:

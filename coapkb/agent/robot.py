@@ -133,11 +133,9 @@ class Robot:
         try:
             server_security = None
             if client_security is not None:
-                from ..security.coap import ServerSecurity
-
                 # Decisions only from whom this robot's Controller waits for.
                 deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
-                server_security = ServerSecurity(client_security.identity, AccessPolicy(deciders))
+                server_security = _server_security(config, client_security.identity, AccessPolicy(deciders))
             robot.server = await serve(router, config.bind, retransmission=reliability, security=server_security)
         except BaseException:
             await client.aclose()
@@ -241,16 +239,31 @@ def robot_security(config: RobotConfig) -> Any:
     now, so a missing or unreadable key stops the robot at start-up."""
     if config.security is None:
         return None
-    if config.transport != "coap":
-        raise SecurityError(f"[security]: the {config.transport} transport has no security yet (CurveZMQ is not built); use coap")
-    from ..security.coap import ClientSecurity
-
+    if config.transport not in ("coap", "zmq"):
+        raise SecurityError(f"[security]: the {config.transport} transport has no security yet; use coap or zmq")
     identity = load_identity(config.security.credentials, config.security.identity or config.robot_id)
     # Each teammate's endpoint must answer with that teammate's credential.
     expected = {m.endpoint.hostport: r for r, m in config.team.items()}
     if config.central is not None:
         expected[config.central.hostport] = "central"
+    if config.transport == "zmq":
+        from ..security.curve import ZmqClientSecurity
+
+        return ZmqClientSecurity(identity, expected)
+    from ..security.coap import ClientSecurity
+
     return ClientSecurity(identity, expected)
+
+
+def _server_security(config: RobotConfig, identity: Any, policy: AccessPolicy) -> Any:
+    """The server side for ``config``'s transport: OSCORE/EDHOC (CoAP) or CurveZMQ (ZeroMQ)."""
+    if config.transport == "zmq":
+        from ..security.curve import ZmqServerSecurity
+
+        return ZmqServerSecurity(identity, policy)
+    from ..security.coap import ServerSecurity
+
+    return ServerSecurity(identity, policy)
 
 
 async def broadcast_decision(client: ClientTransport, config: RobotConfig, message: DecisionMessage) -> None:

@@ -109,16 +109,16 @@ class TeamSpec:
     replication: int = 2
     #: Failures injected during the run (``coapkb team --kill/--restart``).
     faults: tuple[Fault, ...] = ()
-    #: OSCORE keyed by EDHOC between every process, with the team's access
-    #: policy (issue 12), from throwaway keys made in the run's directory.
-    #: CoAP only: the ZeroMQ transport has no CurveZMQ yet, so it runs plain.
+    #: OSCORE keyed by EDHOC (CoAP) or CurveZMQ (ZeroMQ) between every
+    #: process, with the team's access policy (issue 12), from throwaway
+    #: keys made in the run's directory.  Zenoh has none yet: it runs plain.
     security: bool = True
     #: An existing team directory (``coapkb keys``) to use instead of throwaway keys.
     credentials: Path | None = None
 
     @property
     def secure(self) -> bool:
-        return self.security and self.transport == "coap"
+        return self.security and self.transport in ("coap", "zmq")
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
@@ -413,11 +413,15 @@ class Team:
         """The feeder's OSCORE/EDHOC client side, or None for an insecure team."""
         if self.team_dir is None:
             return None
-        from ..security.coap import ClientSecurity
-
         expected = {e.hostport: r for r, e in self.endpoints.items()}
         if self.central is not None:
             expected[self.central.hostport] = "central"
+        if self.spec.transport == "zmq":
+            from ..security.curve import ZmqClientSecurity
+
+            return ZmqClientSecurity(load_identity(self.team_dir, "feeder"), expected)
+        from ..security.coap import ClientSecurity
+
         return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)
 
     async def _inject(self, started: float, events: list[FaultEvent]) -> None:
