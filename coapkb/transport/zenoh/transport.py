@@ -502,6 +502,13 @@ class ZenohServerTransport:
 # =========================================================================== client
 
 _Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
+#: How much later than the caller's deadline Zenoh times a query out itself.
+_ZENOH_TIMEOUT_MARGIN_S = 0.5
+
+
+class _NoRoute(PeerUnreachable):
+    """Zenoh ended a query without a reply before its timeout: no queryable
+    reachable on that session (the peer's session is gone)."""
 
 
 @dataclass(frozen=True)
@@ -628,36 +635,49 @@ class ZenohClientTransport:
             self._malformed(peer, str(exc))
             raise TransportError(f"malformed answer from {peer}: {exc}") from None
 
-    async def _exchange(self, peer: Endpoint, request: Request, header: RequestHeader, timeout: float) -> _Delivery:
+    async def _exchange(
+        self,
+        peer: Endpoint,
+        request: Request,
+        header: RequestHeader,
+        timeout: float,
+        session: zenoh.Session | None = None,
+    ) -> _Delivery:
         """One query and its first reply, within ``timeout`` (connecting included).
 
         Zenoh ends a query at once, without replies, when the session has no
         route to a queryable: its peer is gone.  The session is then closed
         (which also stops its reconnect attempts) and, within the time left,
         the query goes out once more on a fresh one: a peer that came back is
-        answered at once, a dead one refuses the connection."""
+        answered at once, a dead one refuses the connection.  With a given
+        ``session`` (an observation's, which holds its subscriber) there is
+        no second try."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
+        attempts = 1 if session is not None else 2
         try:
             async with asyncio.timeout(timeout):
-                for attempt in range(2):
-                    session = await self._session(peer)
+                for _ in range(attempts):
+                    on = session if session is not None else await self._session(peer)
+                    # Zenoh's own timeout a little later than ours, so an early
+                    # end without replies always means "no route", never "slow".
+                    zenoh_timeout = deadline - loop.time() + _ZENOH_TIMEOUT_MARGIN_S
                     try:
-                        replies = self._query(session, request, header, max(deadline - loop.time(), 0.001))
+                        replies = self._query(on, request, header, zenoh_timeout)
                     except ValueError as exc:  # a path no key expression can carry
                         raise TransportError(f"cannot send {request.path!r} over zenoh: {exc}") from None
                     except zenoh.ZError as exc:
                         raise TransportError(f"query to {peer} failed: {exc}") from None
                     if (reply := await replies.get()) is not None:
                         return self._response(peer, reply)
-                    self._drop_session(peer, session)
+                    self._drop_session(peer, on)
         except TimeoutError:
             raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
         except asyncio.CancelledError:
             if (err := self._closed_error()) is not None:
                 raise err from None
             raise
-        raise PeerUnreachable(f"no answer from {peer}: its session is down or it serves no {KEY_ROOT}/**")
+        raise _NoRoute(f"no answer from {peer}: its session is down or it serves no {KEY_ROOT}/**")
 
     def _drop_session(self, peer: Endpoint, session: zenoh.Session) -> None:
         """Forget ``session`` (the next request opens a new one) and close it in the background."""
@@ -697,11 +717,7 @@ class ZenohClientTransport:
         sees the latest states, not necessarily every one."""
         timeout = self._options.observe_timeout_s if timeout is None else timeout
         loop = asyncio.get_running_loop()
-        try:
-            async with asyncio.timeout(timeout):
-                session = await self._session(peer)
-        except TimeoutError:
-            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+        deadline = loop.time() + timeout
         notify_key = f"{NOTIFY_ROOT}/{self._id}/{next(self._tokens)}"
         notifications: asyncio.Queue[_Reply] = asyncio.Queue(maxsize=self._options.observe_queue)
 
@@ -710,17 +726,37 @@ class ZenohClientTransport:
                 notifications.get_nowait()
             notifications.put_nowait(sample)
 
+        header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
+        session, subscriber, response, last = None, None, None, None
+        # As in _exchange: once more on a fresh session if the first had no
+        # route; the subscriber must live on the session the query goes out on.
+        for attempt in range(2):
+            try:
+                async with asyncio.timeout(max(deadline - loop.time(), 0.0)):
+                    session = await self._session(peer)
+            except TimeoutError:
+                raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+            try:
+                subscriber = session.declare_subscriber(
+                    notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, deliver, _copy_sample(sample)))
+                )
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
+            try:
+                response, last = await self._exchange(peer, request, header, max(deadline - loop.time(), 0.0), session)
+                break
+            except _NoRoute:
+                with contextlib.suppress(zenoh.ZError):
+                    subscriber.undeclare()
+                if attempt:
+                    raise
+            except BaseException:
+                with contextlib.suppress(zenoh.ZError):
+                    subscriber.undeclare()
+                raise
+        assert session is not None and subscriber is not None and response is not None
+        registered = last is not None and response.status.is_success
         try:
-            subscriber = session.declare_subscriber(
-                notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, deliver, _copy_sample(sample)))
-            )
-        except zenoh.ZError as exc:
-            raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
-        registered = False
-        try:
-            header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
-            response, last = await self._exchange(peer, request, header, timeout)
-            registered = last is not None and response.status.is_success
             yield response
             while registered:
                 sample = await notifications.get()

@@ -333,3 +333,24 @@ async def test_serve_factory_picks_zenoh(service) -> None:
         assert isinstance(srv, ZenohServerTransport)
     finally:
         await srv.aclose()
+
+
+async def test_observe_again_after_the_peer_restarts(service, client) -> None:
+    """The first observation's session lost its peer; the next observation
+    reaches the restarted peer at once (on a fresh session, without waiting
+    for Zenoh's own reconnect)."""
+    srv = await ZenohServerTransport.start(service, LOCAL)
+    peer = srv.endpoint
+    updates = client.observe(peer, Request(Method.GET, "/counter"))
+    assert (await anext(updates)).payload == b"0"
+    await updates.aclose()
+    await srv.aclose()
+    service.bump()
+    async with await ZenohServerTransport.start(service, peer):
+        start = time.monotonic()
+        again = client.observe(peer, Request(Method.GET, "/counter"), timeout=5)
+        assert (await anext(again)).payload == b"1"
+        assert time.monotonic() - start < 0.5
+        service.bump()
+        assert (await anext(again)).payload == b"2"
+        await again.aclose()
