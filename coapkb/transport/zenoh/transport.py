@@ -17,8 +17,8 @@ Topology: explicit endpoints, no scouting
     Multicast and gossip scouting are off: the emulated network has no
     multicast, and a team's endpoints are configured anyway.  When a query
     finds no route (its peer went away), the client closes that session --
-    which also ends Zenoh's reconnect attempts, SYNs on the radio -- and opens
-    a new one on the next request (see :meth:`ZenohClientTransport._exchange`).
+    which also ends Zenoh's reconnect attempts, SYNs on the radio -- and
+    tries once more on a fresh one (see :meth:`ZenohClientTransport._exchange`).
 
 Threads
     Zenoh runs its own (Rust) threads and calls back into Python from them.
@@ -37,9 +37,9 @@ Threads
     a fresh session instead (below).
 
 Errors
-    A peer that cannot be connected to, or that gives no answer within the
-    timeout (Zenoh ends a query without replies when its peer's session is
-    gone or when the query's own timeout passes), raises
+    A peer that cannot be connected to, that is not reachable on its
+    session (Zenoh ends the query at once without replies) even on a fresh
+    one, or that gives no answer within the timeout raises
     :class:`PeerUnreachable`.  A query the server cannot decode gets a Zenoh
     error reply, which the client returns as a 4.00 response.
 
