@@ -121,6 +121,9 @@ class Run:
 
 
 COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
+#: The paper matrix leaves out Zenoh over UDP: it does not retransmit, so at
+#: 2-20 % loss every run would fail, each after its whole timeout (docs/zenoh.md).
+PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport != "zenoh+udp")
 QUICK_SYSTEMS = (*COMPACT_SYSTEMS, "seed-distributed")
 PROFILES: dict[str, Profile] = {
     # A representative subset that fits in 15 minutes on 2 cores with --jobs 1
@@ -150,10 +153,10 @@ PROFILES: dict[str, Profile] = {
         note="subset: 35 kbit/s x 5 tasks x robots 3/9 x loss 2/20 % (the seed's wire at 2 % only); at 2 %: "
         "3 robots x tasks 5/20 x 35/256 kbit/s, 9 robots x 20 tasks x 35 kbit/s",
     ),
-    # The seed's whole matrix (section IV), all six systems.
+    # The seed's whole matrix (section IV), every system but Zenoh over UDP.
     "paper": Profile(
         "paper",
-        (Grid((3, 6, 9), (5, 10, 20, 40, 80), (35, 128, 256, 512), (2, 5, 10, 15, 20), tuple(SYSTEMS)),),
+        (Grid((3, 6, 9), (5, 10, 20, 40, 80), (35, 128, 256, 512), (2, 5, 10, 15, 20), PAPER_SYSTEMS),),
         note="the seed's full matrix: robots 3/6/9, tasks 5-80, 35-512 kbit/s, 2-20 % loss",
     ),
 }
