@@ -255,3 +255,25 @@ async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None
         assert len(client.security.handshakes) == 1
     finally:
         await client.aclose()
+
+
+async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path) -> None:
+    """aiocoap's OSCORE client cannot cancel an observation: the server kept
+    notifying (and the client acknowledging) every abandoned registration.
+    Now a notification meets a Reset and the server stops."""
+    robot, peer = robot1
+    client = await _client(load_identity(team_dir, "Robot3"))
+    try:
+        stream = client.observe(peer, Request(Method.GET, "/state"))
+        assert (await anext(stream)).payload == b"0"
+        await stream.aclose()
+        await asyncio.sleep(0.2)
+        sent = robot.server.counters.messages_sent
+        for _ in range(8):
+            robot.state += 1
+            robot.router.notify("/state")
+            await asyncio.sleep(0.3)
+        # A notification or two in flight meet the Reset, then none (plain CoAP: 2).
+        assert robot.server.counters.messages_sent - sent <= 3
+    finally:
+        await client.aclose()

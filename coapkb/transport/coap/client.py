@@ -45,8 +45,9 @@ class _AbandonedTryFilter(logging.Filter):
     """aiocoap warns when a request is cancelled before its token was even
     registered; the layer abandons hedge copies and retries that way as a
     matter of course.  Under OSCORE aiocoap's protecting task outlives an
-    abandoned try: its late answer (a warning) or its end at shutdown (an
-    error naming LibraryShutdown) is no news either."""
+    abandoned try: its late answer (a warning), or its end at shutdown or
+    when an abandoned observation is cancelled (an error naming
+    LibraryShutdown or ObservationCancelled) is no news either."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         msg = str(record.msg)
@@ -54,7 +55,8 @@ class _AbandonedTryFilter(logging.Filter):
             return False
         if msg.startswith("Discarded exception in") and record.args:
             event = record.args[0] if isinstance(record.args, tuple) else None
-            return not isinstance(getattr(event, "exception", None), aiocoap.error.LibraryShutdown)
+            quiet = (aiocoap.error.LibraryShutdown, aiocoap.error.ObservationCancelled)
+            return not isinstance(getattr(event, "exception", None), quiet)
         return True
 
 
@@ -85,10 +87,11 @@ class CoapClientTransport:
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
             logger.addFilter(_AbandonedTryFilter())
-        # aiocoap's OSCORE request interface first, so it claims every request
-        # it holds a context for before plain UDP does.
-        transports = ["udp6"] if security is None else ["oscore", "udp6"]
-        ctx = await aiocoap.Context.create_client_context(transports=transports, loggername=logger.name)
+        ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername=logger.name)
+        if security is not None:
+            from ...security.coap import install_oscore
+
+            install_oscore(ctx)
         hooks = ContextHooks.of(ctx)
         if retransmission == "robust":
             retransmission = ReliabilityLayer()
@@ -134,9 +137,11 @@ class CoapClientTransport:
             await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
             try:
                 return await exchange()
-            except CONTEXT_LOST:
+            except CONTEXT_LOST as exc:
                 if again:
                     raise
+                logging.getLogger("coapkb.security").warning(
+                    "%s: our OSCORE context is gone there (%s); running EDHOC again", peer, type(exc).__name__)
                 self.security.forget(self._ctx, peer)
         raise AssertionError("unreachable")
 
