@@ -10,6 +10,7 @@ Example ``robot1.toml``::
     robot_id = "Robot1"
     bind = "coap://127.0.0.1:5701"
     kb = ["ontologies/Location.owl"]
+    # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
     strategy = "compute-by-all"
     retransmission = "robust"
 
