@@ -220,9 +220,17 @@ class ObservedStates:
                         log.warning("bad state from %s: %s", robot_id, exc)
                         continue
                     backoff = 0.2
+                    self._failures[robot_id] = 0
                     await self._update(robot_id, state)
             except TransportError as exc:
                 log.debug("observing %s: %s", robot_id, exc)
+                # A lost observation of a robot seen before counts as a failed
+                # request (a dead process's port answers ICMP at once); one not
+                # up yet is only awaited.
+                if robot_id in self.states:
+                    await self._failed(robot_id, exc)
+                    if robot_id in self.down:
+                        return
             # Not up yet, or the observation ended: register again shortly.
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)

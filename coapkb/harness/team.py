@@ -496,18 +496,25 @@ class Team:
         )
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
-        # A robot that decided in an older membership which the others have
-        # since left it out of (it went down meanwhile) took no part in the
-        # decision they made without it.
+        if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
+            # Robots that differ may have decided and then died before the
+            # feeder noticed: ask each once, so the dead ones' decisions are void.
+            await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
+        # The decision is the survivors': a robot that decided and then went
+        # down executes nothing (its task, if any, goes round again), and one
+        # left out of a newer membership by the others took no part in it.
         newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
+        survivors = [r for r in decisions if r not in watcher.down]
         for robot_id in cluster:
             decision = decisions.get(robot_id)
             if decision is None:
                 record.absent[robot_id] = watcher.down.get(robot_id, "no decision")
                 continue
+            if robot_id in watcher.down and survivors:
+                record.absent[robot_id] = f"{watcher.down[robot_id]} (its decision is void)"
+                continue
             if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
-                why = watcher.down.get(robot_id, f"left out of membership epoch {newest.epoch}")
-                record.absent[robot_id] = f"{why} (its decision in epoch {decision.epoch} is void)"
+                record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
                 continue
             record.decisions[robot_id] = decision.assigned_to
             record.epochs[robot_id] = decision.epoch
