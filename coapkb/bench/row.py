@@ -80,6 +80,19 @@ class BenchRow:
     loss_model: str = key_field("random")
     #: Mean loss burst; 0 for independent loss, so it does not split the key.
     burst_len: float = key_field(0.0)
+    # The fault-injection columns (``coapkb bench --fail``).  Their defaults
+    # are what a CSV written before them means: one holder per KB module, no
+    # failure injected.
+    #: Robots of a cluster holding each KB module.
+    replication: int = key_field(1)
+    #: Robots killed and when, e.g. ``Robot2@6`` (several joined by ``+``).
+    faults: str = key_field("")
+    #: Seconds from a kill until the feeder declared the robot down (the longest, if several).
+    fault_detected_s: float | None = None
+    #: Tasks that went round again because their robot died before executing them.
+    tasks_reassigned: int | None = None
+    #: Tasks the team could not do: a KB module they need had no live holder.
+    tasks_unavailable: int | None = None
 
     def key(self) -> tuple[str, ...]:
         """The run's identity: rows with equal keys are the same run (a re-run
@@ -191,6 +204,10 @@ def format_row(row: BenchRow) -> str:
     def ms(v: float | None) -> str:
         return "-" if v is None else f"{v:.0f}"
 
-    return (f"{head}: completion {row.completion_s or 0:.1f} s, wire {row.wire_bytes or 0:,} B "
+    line = (f"{head}: completion {row.completion_s or 0:.1f} s, wire {row.wire_bytes or 0:,} B "
             f"in {row.wire_packets or 0:,} pkts, retx {row.retransmissions}, "
             f"query p50/p99 {ms(row.query_p50_ms)}/{ms(row.query_p99_ms)} ms")
+    if row.faults:
+        line += (f"; killed {row.faults}: detected after {row.fault_detected_s} s, "
+                 f"{row.tasks_reassigned} re-assigned, {row.tasks_unavailable} unavailable")
+    return line

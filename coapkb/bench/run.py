@@ -52,7 +52,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -73,6 +73,7 @@ from ..harness.team import (
     TeamError,
     TeamSpec,
     draw_tasks,
+    Fault,
 )
 from ..harness.record import TeamRecord
 from ..errors import CoapkbError
@@ -174,6 +175,8 @@ def system_spec(
     timeouts: Timeouts | None = None,
     ontologies: Path = DEFAULT_ONTOLOGIES,
     link_kbps: float | None = None,
+    replication: int = 1,
+    faults: Sequence[Fault] = (),
 ) -> TeamSpec:
     """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`)."""
     try:
@@ -183,14 +186,14 @@ def system_spec(
     extra: dict[str, Any] = {}
     if timeouts is not None:
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
-    # replication=1: the benchmarks compare with the seed's system, one KB
-    # module per robot (replicas change which queries are remote).
+    # replication=1 by default: the benchmarks compare with the seed's system,
+    # one KB module per robot (replicas change which queries are remote).
     # Security only in the -oscore systems: ZeroMQ has no CurveZMQ yet, so
     # OSCORE on the CoAP systems only would skew the comparison (docs/security.md).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
-        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps, replication=1,
-        security=d.security, **extra,
+        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps,
+        replication=replication, faults=tuple(faults), security=d.security, **extra,
     )
 
 
@@ -289,8 +292,10 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
     p50, p99 = percentile(latencies, 50), percentile(latencies, 99)
     robots_traffic = sum((s.traffic for s in stats), TrafficCounters())
     problems = [f"task {t.cluster}.{t.seq} {t.object}: {t.errors or t.decisions}" for t in record.disputed]
-    if len(record.tasks) != tasks:
-        problems.insert(0, f"{len(record.tasks)} of {tasks} tasks recorded")
+    given = [t for t in record.tasks if t.reassigned_from is None]  # re-runs of a dead robot's tasks come on top
+    if len(given) != tasks:
+        problems.insert(0, f"{len(given)} of {tasks} tasks recorded")
+    detected = [f.detected_after_s for f in record.faults if f.action == "kill"]
     row = replace(
         row,
         coordination_s=record.coordination_s,
@@ -303,6 +308,9 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
         app_bytes=record.feeder_traffic.bytes_sent + robots_traffic.bytes_sent,
         spurious_retransmissions=sum(s.spurious_retransmissions for s in stats),
         tasks_agreed=sum(1 for t in record.tasks if t.agreed),
+        fault_detected_s=max(detected) if detected and None not in detected else None,  # type: ignore[type-var]
+        tasks_reassigned=sum(t.fate == "reassigned" for t in record.tasks),
+        tasks_unavailable=sum(t.fate == "unavailable" for t in record.tasks),
         ok=not problems,
         error="; ".join(problems)[:500],
     )
@@ -325,6 +333,8 @@ async def run_once(
     jitter_ms: float = 0.0,
     loss_model: str = "random",
     burst_len: float = 3.0,
+    replication: int = 1,
+    faults: Sequence[Fault] = (),
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -334,12 +344,15 @@ async def run_once(
     gives ``ok=False`` and the reason in ``error``, so a sweep goes on.
     ``delay_ms``, ``jitter_ms``, ``loss_model`` and ``burst_len`` go into the
     robots' and the central's :class:`LinkSpec` (one-way, per sending host).
+    ``faults`` kill robots during the run (``coapkb bench --fail``), usually
+    with ``replication`` 2 so their KB modules live on.
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed)
     # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
     row = replace(row, delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
-                  burst_len=burst_len if loss_model == "burst" else 0.0)
+                  burst_len=burst_len if loss_model == "burst" else 0.0, replication=replication,
+                  faults="+".join(f"{f.robot}@{f.at_s:g}" for f in faults))
     started = time.monotonic()
     try:
         link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
@@ -347,7 +360,7 @@ async def run_once(
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
         # Robots know their radio's rate, as a real radio reports it.
         spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies,
-                           link_kbps=bandwidth_kbps)
+                           link_kbps=bandwidth_kbps, replication=replication, faults=faults)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
@@ -431,6 +444,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--retransmission", default="robust", metavar="PROFILE",
                    help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
     p.add_argument("--seed", type=int, default=None, help="task-list seed (default: 1 + rep)")
+    p.add_argument("--replication", type=int, default=1, metavar="R",
+                   help="robots of a cluster holding each KB module (default 1, as the seed; 2 with --fail)")
+    p.add_argument("--fail", action="append", default=[], metavar="ROBOT@SECONDS",
+                   help="kill ROBOT (SIGKILL) this many seconds into the run; repeatable")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
 
@@ -456,6 +473,13 @@ async def main(args: argparse.Namespace) -> int:
         raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILE_NAMES)})")
     link = {"delay_ms": args.delay, "jitter_ms": args.jitter, "loss_model": args.loss_model,
             "burst_len": args.burst_len}
+    # --fail names the option; a kill is what the team carries out.
+    faults = [Fault("kill", f.robot, f.at_s) for f in (Fault.parse("fail", text) for text in args.fail)]
+    unknown = [f.robot for f in faults if f.robot not in [f"Robot{i}" for i in range(1, args.robots + 1)]]
+    if unknown:
+        raise ValueError(f"--fail {', '.join(unknown)}: the team is Robot1 .. Robot{args.robots}")
+    if not 1 <= args.replication <= CLUSTER_SIZE:
+        raise ValueError(f"--replication must be 1 to {CLUSTER_SIZE}, got {args.replication}")
     LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss, **link)  # validates, raises ValueError
     ok, why = available()
     if not ok:
@@ -466,7 +490,8 @@ async def main(args: argparse.Namespace) -> int:
     for rep in range(args.first_rep, args.first_rep + args.reps):
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
-                                 args.retransmission, args.seed, **link)
+                                 args.retransmission, args.seed, replication=args.replication, faults=faults,
+                                 **link)
             if args.out:
                 append_rows(args.out, [row])
             if args.json:

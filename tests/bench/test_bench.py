@@ -26,6 +26,7 @@ from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
 from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
+from coapkb.harness.team import Fault
 
 
 
@@ -83,6 +84,22 @@ async def test_run_once_over_delayed_bursty_links() -> None:
     # A remote query is at least one round trip: 2 x (50 - 5) ms.
     assert row.query_p50_ms >= 90
     assert row.key() != replace(row, delay_ms=0).key()
+
+
+@pytest.mark.root
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("system", ["coap-distributed", "zmq-distributed"])
+async def test_run_once_with_a_robot_killed_on_a_slow_lossy_link(system: str) -> None:
+    """``coapkb bench --fail``: 6 robots at 35 kbit/s and 10 % loss, Robot2
+    killed 2 s in, every module on two robots: the row is ok (each task given
+    decided once, survivors agreeing) and says when the kill was detected."""
+    _require_netns()
+    row = await bench.run_once(system, 6, 20, 35, 10, rep=0, replication=2, faults=[Fault("kill", "Robot2", 2.0)])
+    assert row.ok is True, row.error
+    assert (row.replication, row.faults) == (2, "Robot2@2")
+    assert row.fault_detected_s is not None and 0 <= row.fault_detected_s < 40
+    assert row.tasks_unavailable == 0 and row.tasks_reassigned is not None
+    assert row.key() != replace(row, faults="").key()
 
 
 @pytest.mark.root
@@ -187,7 +204,8 @@ def test_a_row_parses_csv_text_and_json_values_by_field_type() -> None:
     back = BenchRow.from_dict(cells)
     assert (back.robots, back.ok, back.bandwidth_kbps) == (3, True, 35.0)
     assert bench.KEY_COLUMNS == ("system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep",
-                                 "retransmission_profile", "delay_ms", "jitter_ms", "loss_model", "burst_len")
+                                 "retransmission_profile", "delay_ms", "jitter_ms", "loss_model", "burst_len",
+                                 "replication", "faults")
 
 
 def test_the_committed_results_csv_reads_back_and_writes_the_same_cells(tmp_path: Path) -> None:
