@@ -322,19 +322,22 @@ async def _team(args: argparse.Namespace) -> int:
         bar.write("\n".join(lines), file=sys.stdout)
         sys.stdout.flush()
 
-    # SIGTERM (kill, a CI timeout) must stop the robots too, as Ctrl-C does:
-    # cancel this task so that Team.launch's clean-up runs.
+    # Ctrl-C and SIGTERM (kill, a CI timeout) stop the robots: cancel this
+    # task so that Team.launch's clean-up runs.  Ctrl-C reaches the robots
+    # too (one process group), so a failure the feeder sees meanwhile is the
+    # interrupt's doing, not the team's.
     loop = asyncio.get_running_loop()
     this_task = asyncio.current_task()
-    terminated = False
+    stopped_by: int | None = None
 
-    def on_sigterm() -> None:
-        nonlocal terminated
-        terminated = True
+    def on_signal(sig: int) -> None:
+        nonlocal stopped_by
+        stopped_by = sig
         if this_task is not None:
             this_task.cancel()
 
-    loop.add_signal_handler(signal.SIGTERM, on_sigterm)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal, sig)
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
@@ -345,16 +348,18 @@ async def _team(args: argparse.Namespace) -> int:
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
-    except TeamError as exc:
-        print(f"coapkb: team run failed: {exc}", file=sys.stderr)
-        return 1
-    except asyncio.CancelledError:
-        if not terminated:
-            raise
-        print("coapkb: terminated; robots stopped", file=sys.stderr)
-        return 128 + signal.SIGTERM
+    except (TeamError, asyncio.CancelledError) as exc:
+        if stopped_by is None:
+            if isinstance(exc, asyncio.CancelledError):
+                raise
+            print(f"coapkb: team run failed: {exc}", file=sys.stderr)
+            return 1
+        print(f"coapkb: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}; robots stopped",
+              file=sys.stderr)
+        return 128 + stopped_by
     finally:
-        loop.remove_signal_handler(signal.SIGTERM)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
     print()
     print(summarise(record))
     if args.record:
