@@ -268,7 +268,9 @@ class _WireRecorder:
     def request(self, message: aiocoap.Message, *args: Any, **kwargs: Any) -> Any:
         wire = self._ctx.request(message, *args, **kwargs)
         current = _CURRENT.get()
-        if current is not None:
+        # Only registrations: cancelling a plain request's observation made
+        # aiocoap fail its response with TypeError('invalid exception object').
+        if current is not None and message.opt.observe is not None:
             current.made.append(wire)
             if current.ended:  # abandoned before it was even sent
                 _cancel_observation(wire)
