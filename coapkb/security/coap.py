@@ -44,6 +44,7 @@ from typing import Any, Awaitable, Callable
 
 import aiocoap
 import aiocoap.error
+import aiocoap.meta
 import cbor2
 import lakers
 from aiocoap import edhoc as aiocoap_edhoc
@@ -77,6 +78,43 @@ class EdhocFailed(SecurityError, TransportError):
 #: unprotected error answer (4.01 here, 4.00 from other servers), or one that
 #: does not decrypt.
 CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid)
+
+
+#: aiocoap's OSCORE/EDHOC internals this module relies on (aiocoap 0.4.17,
+#: pinned), with their parameters; :func:`verify` checks them, as
+#: :func:`coapkb.transport.coap.aiocoap_adapter.verify` does for the rest.
+_INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
+    (OscoreSiteWrapper, "_get_edhoc_identity"): ("origin",),
+    (OscoreSiteWrapper, "render_to_pipe"): ("pipe",),
+    (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
+    (TransportOSCORE, "__init__"): ("context", "forward_context"),
+    (TransportOSCORE, "request"): ("request",),
+    (aiocoap_edhoc.EdhocInitiatorContext, "__init__"): ("initiator", "c_ours", "c_theirs", "cred_i_mode", "logger"),
+    (aiocoap_edhoc.EdhocInitiatorContext, "message_3_to_include"): (),
+    (aiocoap_edhoc.EdhocInitiatorContext, "complete_with_message_4"): ("message_4",),
+    (CredentialsMap, "find_oscore"): ("unprotected",),
+}
+
+
+def verify() -> None:
+    """Check aiocoap's version and every internal name used here; raises
+    :class:`~coapkb.transport.coap.aiocoap_adapter.UnsupportedAiocoapVersion`."""
+    import inspect
+
+    from ..transport.coap.aiocoap_adapter import SUPPORTED_AIOCOAP_VERSION, UnsupportedAiocoapVersion
+
+    if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
+        raise UnsupportedAiocoapVersion(f"coapkb.security is verified against aiocoap {SUPPORTED_AIOCOAP_VERSION}")
+    for (owner, name), params in _INTERNALS.items():
+        method = getattr(owner, name, None)
+        if method is None:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__} has no {name}")
+        found = tuple(inspect.signature(method).parameters)[1:]
+        if found != params:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+    # The replay check reads this attribute, which EDHOC contexts lack (see _TeamSiteWrapper).
+    if "echo_recovery" not in inspect.getsource(oscore.CanUnprotect.unprotect):
+        raise UnsupportedAiocoapVersion("aiocoap's OSCORE replay check changed (echo_recovery)")
 
 
 def _edhoc_credentials(identity: TeamIdentity | None, peer: TeamMember | None) -> aiocoap_edhoc.EdhocCredentials:
@@ -302,6 +340,7 @@ class _OSCORETransport(TransportOSCORE):
 def install_oscore(ctx: aiocoap.Context) -> None:
     """Put the OSCORE request interface first in ``ctx`` (so it claims every
     request it holds a context for before plain UDP does)."""
+    verify()
     ctx.request_interfaces.insert(0, _OSCORETransport(ctx))
 
 
@@ -368,6 +407,7 @@ class ServerSecurity:
     policy: AccessPolicy = field(default_factory=AccessPolicy)
 
     def __post_init__(self) -> None:
+        verify()
         self.credentials = CredentialsMap()
         self.credentials[_OWN_LABEL] = _edhoc_credentials(self.identity, None)
         for member in self.identity.trust.members:

@@ -277,3 +277,10 @@ async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path)
         assert robot.server.counters.messages_sent - sent <= 3
     finally:
         await client.aclose()
+
+
+def test_the_aiocoap_internals_used_are_there() -> None:
+    """coapkb.security relies on a few of aiocoap 0.4.17's OSCORE internals; an upgrade fails here first."""
+    from coapkb.security.coap import verify
+
+    verify()
