@@ -229,7 +229,7 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kill", action="append", default=[], metavar="ROBOT@S",
                    help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
     p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
-                   help="start a killed robot again at S seconds (refused until a robot can rejoin: issue 11)")
+                   help="start a killed robot again at S seconds; it joins the team at the next task (repeatable)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--insecure", action="store_true",
                    help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
@@ -309,6 +309,8 @@ async def _team(args: argparse.Namespace) -> int:
             outcome = f"-> {record.assigned_to or 'nobody can'}"
         if record.reassigned_from is not None:
             outcome += f" (again: task {record.reassigned_from})"
+        if record.joined:
+            outcome += f" [joined again: {', '.join(record.joined)}]"
         if record.absent:
             outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
         agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)

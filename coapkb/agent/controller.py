@@ -39,6 +39,8 @@ DEPOT = Position(1, 0)
 class Task:
     seq: int
     object: str
+    #: Robots (restarted) that are members again from this task on.
+    join: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -136,6 +138,7 @@ class Controller:
         while True:
             task, received = await self._tasks.get()
             try:
+                await self._admit(task)
                 message = await self._decide(task)
             except ModuleUnavailable as exc:
                 # Not an error of this robot: every teammate without the module
@@ -166,6 +169,15 @@ class Controller:
             "task %d %s: %s", decision.seq, decision.object,
             decision.error or decision.unavailable or ("skipped" if decision.skipped else f"-> {decision.assigned_to}"),
         )
+
+    async def _admit(self, task: Task) -> None:
+        """Joins take effect at their task, in task order, on every robot."""
+        for robot_id in task.join:
+            if robot_id == self.robot_id:
+                await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4)
+                self._publish(self.team.own)
+            else:
+                self.team.admit(robot_id)
 
     async def _decide(self, task: Task) -> DecisionMessage:
         if not self.computes:

@@ -189,19 +189,27 @@ class Robot:
         try:
             body = _decode_body(request)
             seq, name = body["seq"], body["object"]
-        except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
-            return Response.error(Status.BAD_REQUEST, 'expected {"seq": int, "object": name} in CBOR or JSON')
+            join = body.get("join", [])
+        except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
+            return Response.error(
+                Status.BAD_REQUEST, 'expected {"seq": int, "object": name[, "join": [robot, ...]]} in CBOR or JSON'
+            )
         if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
             return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
+        if not isinstance(join, list) or not all(isinstance(r, str) and r in self.config.team for r in join):
+            return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
         if seq < self._next_seq and self._accepted.get(seq) == name:
             # A repeat of a post already taken (its answer was lost and the
             # feeder asked again as a new exchange): same answer, no new task.
             return Response(Status.CHANGED)
+        if self.config.robot_id in join and not self._accepted and seq > 0:
+            # Restarted: this robot joins the team at this task (its first).
+            self._next_seq = seq
         if seq != self._next_seq:
             return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
         self._next_seq += 1
         self._accepted[seq] = name
-        self.controller.submit(Task(seq, name))
+        self.controller.submit(Task(seq, name, tuple(join)))
         return Response(Status.CHANGED)
 
     async def _post_decision(self, request: Request) -> Response:

@@ -5,15 +5,15 @@ Liveness comes from the same exchanges: while a wait makes no progress, each
 robot is asked once with a plain GET (the refresh below); a robot that fails
 :data:`FAILURES_TO_DOWN` such requests in a row, each given a timeout that
 follows the measured round trip, is declared down.  A down robot is not
-watched or asked any more (a restarted process is a new member: joining is
-not handled here)."""
+watched or asked any more until it is readmitted (:meth:`ObservedStates.readmit`):
+a restarted process is a new member, admitted at a task boundary."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
 from ..transport.messages import ContentFormat, Method, Request
@@ -146,6 +146,15 @@ class ObservedStates:
         if watcher is not None:
             watcher.cancel()
 
+    def readmit(self, robot_id: str) -> None:
+        """Count on ``robot_id`` again: a new process of it has joined.  What
+        was observed of the old one is forgotten, so the new incarnation's
+        state is taken as it comes, not as a restart."""
+        self.down.pop(robot_id, None)  # down_at stays: when the old process was found dead
+        self._failures.pop(robot_id, None)
+        self.states.pop(robot_id, None)
+        self._start_watch(robot_id)
+
     async def _failed(self, robot_id: str, exc: Exception) -> None:
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
@@ -266,7 +275,10 @@ class TeamView:
     Membership: a teammate declared down (failed liveness requests) is
     excluded from task ``k`` on, where ``k`` is the first task it did not
     publish a plan for; every survivor that saw the same plans derives the
-    same ``k``, and once excluded it stays excluded (rejoining is not done)."""
+    same ``k``.  A restarted robot is admitted again at the task the feeder
+    names in that task's post (the task stream orders joins for everyone);
+    the joiner copies the membership the others decided the previous task in
+    (:meth:`join`).  Each change, out or in, is one epoch."""
 
     def __init__(
         self,
@@ -280,8 +292,12 @@ class TeamView:
             transport, teammates, PLAN_PATH, liveness=True, liveness_floor_s=liveness_floor_s(link_kbps)
         )
         self._peers = set(teammates)
+        self._transport = transport
+        self._endpoints = dict(teammates)
         #: Teammate -> the first task it is excluded from.
         self.excluded: dict[str, int] = {}
+        #: Membership changes so far (exclusions and admissions).
+        self.epoch = 0
 
     @property
     def own(self) -> RobotState:
@@ -307,7 +323,63 @@ class TeamView:
     @property
     def membership(self) -> Membership:
         members = (self._peers - set(self.excluded)) | {self._own.robot_id}
-        return Membership(len(self.excluded), tuple(sorted(members)))
+        return Membership(self.epoch, tuple(sorted(members)))
+
+    def admit(self, robot_id: str) -> None:
+        """Teammate ``robot_id`` (restarted) is a member again from the task
+        being decided now; its new process's plans are awaited like anyone's."""
+        if robot_id not in self._peers:
+            return
+        log.warning("%s joins the team again", robot_id)
+        self.excluded.pop(robot_id, None)
+        self.epoch += 1
+        self._teammates.readmit(robot_id)
+
+    async def join(self, seq: int, timeout: float) -> None:
+        """This robot (restarted) joins at task ``seq``: it takes the
+        membership the teammates decided task ``seq - 1`` in (a new epoch: its
+        admission) and shows a plan right after ``seq - 1``, which the others
+        wait for before deciding ``seq``."""
+        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+
+        async def decided_before(robot_id: str) -> Membership | None:
+            """Observe ``robot_id``'s state until it shows its decision of ``seq - 1``."""
+            try:
+                async for response in self._transport.observe(self._endpoints[robot_id], request):
+                    state = RobotState.decode(response.payload) if response.status.is_success else None
+                    last = state.last if state is not None else None
+                    if last is not None and last.seq >= seq - 1:
+                        # None decides seq before this robot's plan for it is
+                        # out, so seq - 1 is as far as a teammate can be.
+                        return Membership(last.epoch, last.members) if last.seq == seq - 1 else None
+            except (TransportError, ValueError) as exc:
+                log.debug("catching up from %s: %s", robot_id, exc)
+            return None
+
+        membership = None
+        # Every teammate at once (some may be down): the first that shows it.
+        watches = [asyncio.create_task(decided_before(r)) for r in sorted(self._peers)]
+        try:
+            async with asyncio.timeout(timeout):
+                for first in asyncio.as_completed(watches):
+                    membership = await first
+                    if membership is not None:
+                        break
+        except TimeoutError:
+            pass
+        finally:
+            for watch in watches:
+                watch.cancel()
+            await asyncio.gather(*watches, return_exceptions=True)
+        if membership is None:
+            raise TransportError(f"no teammate showed its decision of task {seq - 1}: cannot join at task {seq}")
+        if membership.members:
+            gone = self._peers - set(membership.members)
+            self.excluded = {r: seq - 1 for r in gone}
+        self.epoch = membership.epoch + 1
+        self._own = replace(self._own, plan=replace(self._own.plan, seq=seq - 1), prev=None)
+        log.warning("joined the team at task %d (epoch %d, members %s)", seq, self.epoch,
+                    ", ".join(self.membership.members))
 
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
         """Every member's planned state right after task ``seq``; waits for
@@ -336,6 +408,7 @@ class TeamView:
             if plans[robot_id] is None:
                 log.warning("%s is down (%s): excluded from task %d on", robot_id, down[robot_id], seq + 1)
                 self.excluded[robot_id] = seq + 1
+                self.epoch += 1
         plans[self._own.robot_id] = own
         return {r: p for r, p in plans.items() if p is not None}
 

@@ -40,6 +40,8 @@ class TaskRecord:
     orphaned: str | None = None
     #: Why the team could not do this task: a KB module it needs had no live holder.
     unavailable: str | None = None
+    #: Robots (restarted) that joined the team again at this task.
+    joined: list[str] = field(default_factory=list)
 
     @property
     def agreed(self) -> bool:
@@ -81,6 +83,7 @@ class TaskRecord:
             "reassigned_from": self.reassigned_from,
             "orphaned": self.orphaned,
             "unavailable": self.unavailable,
+            "joined": self.joined,
             "fate": self.fate,  # derived, like "agreed"
         }
 
@@ -103,6 +106,7 @@ class TaskRecord:
             reassigned_from=data.get("reassigned_from"),
             orphaned=data.get("orphaned"),
             unavailable=data.get("unavailable"),
+            joined=[str(r) for r in data.get("joined") or ()],
         )
 
 

@@ -24,7 +24,7 @@ import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
+from typing import Any, AsyncIterator, Awaitable, Callable, Mapping, Sequence
 
 import cbor2
 
@@ -140,10 +140,10 @@ class TeamSpec:
                 raise ValueError(f"fault action must be one of {', '.join(FAULT_ACTIONS)}, got {fault.action!r}")
             if fault.robot not in self.robot_ids:
                 raise ValueError(f"cannot {fault.action} {fault.robot}: the team is {', '.join(self.robot_ids)}")
-            if fault.action == "restart":
-                # A restarted robot cannot rejoin yet (discovery and catch-up,
-                # issue 11), and under load the team could stall on it.
-                raise ValueError(f"cannot restart {fault.robot}: a restarted robot cannot rejoin the team yet")
+            if fault.action == "restart" and not any(
+                k.action == "kill" and k.robot == fault.robot and k.at_s < fault.at_s for k in self.faults
+            ):
+                raise ValueError(f"cannot restart {fault.robot} at {fault.at_s:g}s: it is not killed before")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")
@@ -247,6 +247,10 @@ class Team:
         self.central: Endpoint | None = None
         self._stderr_tails: dict[str, list[str]] = {}
         self._argv: dict[str, list[str]] = {}
+        #: Restarted robots, up again and waiting to join at the next task.
+        self._restarted: set[str] = set()
+        #: Robot -> the first task of its current process (0: the first one).
+        self._incarnation: dict[str, int] = {}
         #: The team's key directory (``coapkb keys``'s layout) when the spec is secure.
         self.team_dir: Path | None = None
 
@@ -430,7 +434,14 @@ class Team:
             # A schedule, not a wait for an event: the user asked for this time.
             await asyncio.sleep(max(0.0, started + fault.at_s - time.monotonic()))
             at_s = round(time.monotonic() - started, 3)
-            proc = self.processes[fault.robot]  # a kill: TeamSpec admits no other fault yet
+            if fault.action == "restart":
+                # Same configuration and port; it joins at the next task fed.
+                await self._spawn(fault.robot, self._argv[fault.robot], "robot")
+                self._restarted.add(fault.robot)
+                log.warning("restarted %s at %.1fs", fault.robot, at_s)
+                events.append(FaultEvent(fault.action, fault.robot, at_s))
+                continue
+            proc = self.processes[fault.robot]
             with contextlib.suppress(ProcessLookupError):
                 proc.send_signal(signal.SIGKILL)
             await proc.wait()
@@ -449,12 +460,17 @@ class Team:
         """Feed one cluster's share; returns its records and when its last task was decided."""
         records: list[TaskRecord] = []
         queue: list[tuple[str, int | None]] = [(name, None) for name in share]
+        #: Tasks of a robot's previous process, found when it joins again.
+        reruns: list[TaskRecord] = []
         seq = 0
         decided_at = time.monotonic()
         while queue:
             for name, reassigned_from in queue:
                 seq += 1
-                record = await self._feed_task(client, watcher, index, cluster, seq, name)
+                joining = sorted(r for r in cluster if r in self._restarted)
+                if joining:
+                    reruns += self._prepare_join(watcher, records, joining, seq)
+                record = await self._feed_task(client, watcher, index, cluster, seq, name, joining)
                 record.reassigned_from = reassigned_from
                 records.append(record)
                 if progress is not None:
@@ -470,14 +486,36 @@ class Team:
             )
             # Tasks assigned to robots that went down before executing them
             # go round again, in their order, to the survivors.
-            queue = [(r.object, r.seq) for r in _orphans(records, watcher)]
+            found = {r.seq: r for r in reruns + _orphans(records, watcher, self._incarnation)}
+            orphans = [found[s] for s in sorted(found)]
+            reruns = []
+            queue = [(r.object, r.seq) for r in orphans]
         return records, decided_at
 
+    def _prepare_join(
+        self, watcher: ObservedStates, records: list[TaskRecord], joining: list[str], seq: int
+    ) -> list[TaskRecord]:
+        """Before restarted robots join at task ``seq``: their previous
+        processes' unexecuted tasks (returned, to go round again), then count
+        on them afresh."""
+        for robot_id in joining:
+            self._restarted.discard(robot_id)
+            # A restart the feeder made itself: the old process is gone even if
+            # no failed request told yet.
+            watcher.down.setdefault(robot_id, "restarted")
+        orphans = [r for r in _orphans(records, watcher, self._incarnation) if r.assigned_to in joining]
+        for robot_id in joining:
+            self._incarnation[robot_id] = seq
+            watcher.readmit(robot_id)
+        return orphans
+
     async def _feed_task(
-        self, client: ClientTransport, watcher: ObservedStates, index: int, cluster: list[str], seq: int, name: str
+        self, client: ClientTransport, watcher: ObservedStates, index: int, cluster: list[str], seq: int, name: str,
+        joining: Sequence[str] = (),
     ) -> TaskRecord:
         fed = time.monotonic()
-        body = cbor2.dumps({"seq": seq, "object": name})
+        # The task stream orders joins: every robot admits the joiners at this task.
+        body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {})})
         request = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
@@ -494,7 +532,8 @@ class Team:
             self.spec.task_timeout_s,
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
         )
-        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed)
+        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed,
+                            joined=list(joining))
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
         if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
             # Robots that differ may have decided and then died before the
@@ -606,20 +645,24 @@ def _idle(states: States, robot_id: str) -> bool:
     return state is not None and state.live.activity == "idle" and state.live.queued == 0
 
 
-def _orphans(records: list[TaskRecord], watcher: ObservedStates) -> list[TaskRecord]:
+def _orphans(
+    records: list[TaskRecord], watcher: ObservedStates, incarnation: Mapping[str, int] | None = None
+) -> list[TaskRecord]:
     """Tasks assigned to a robot now down that it had not executed, not yet
     sent round again.  A robot executes its jobs in the order assigned, so
     its last observed ``done`` count says how many of them are finished (a
     job finished in the instant before the crash counts as not done: done
-    again rather than lost)."""
+    again rather than lost).  Only the tasks of its last process count: the
+    process before a restart had its own, handled when it joined again."""
     taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
     orphans = []
     for robot_id in watcher.down:
         state = watcher.states.get(robot_id)
         done = state.live.done if state is not None else 0
-        mine = [r for r in records if r.assigned_to == robot_id]
+        first = (incarnation or {}).get(robot_id, 0)
+        mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first]
         for record in mine[done:]:
-            if record.seq not in taken:
+            if record.seq not in taken and record.orphaned is None:  # not already going round
                 record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
                 orphans.append(record)
     return sorted(orphans, key=lambda r: r.seq)
