@@ -304,6 +304,13 @@ class _WireRecorder:
         return getattr(self._ctx, name)
 
     def request(self, message: aiocoap.Message, *args: Any, **kwargs: Any) -> Any:
+        if message.opt.observe is not None:
+            # A registration without aiocoap's block-wise wrapper (a
+            # notification fits one datagram): cancelling that wrapper's
+            # observation before the first answer failed with
+            # TypeError('invalid exception object') and left the token
+            # registered, so the peer's notifications were acknowledged for ever.
+            kwargs["handle_blockwise"] = False
         wire = self._ctx.request(message, *args, **kwargs)
         current = _CURRENT.get()
         # Only registrations: cancelling a plain request's observation made

@@ -284,3 +284,30 @@ def test_the_aiocoap_internals_used_are_there() -> None:
     from coapkb.security.coap import verify
 
     verify()
+
+
+async def test_registrations_abandoned_before_their_answer_end_too(robot1, team_dir: Path) -> None:
+    """The robust layer's registration tries that lose the race are dropped
+    before their answer comes: those observations must end as well (they
+    leaked, and the peer notified each for ever: 18 notifications here)."""
+    from coapkb.transport.coap.client import _abandon
+    from coapkb.transport.coap.mapping import message_from_request
+
+    robot, peer = robot1
+    client = await _client(load_identity(team_dir, "Robot3"))
+    try:
+        await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)  # EDHOC first
+        tries = [client._ctx.request(message_from_request(peer, Request(Method.GET, "/state"), observe=True),  # noqa: SLF001
+                                     handle_blockwise=False) for _ in range(3)]
+        await asyncio.sleep(0)
+        for pending in tries:
+            _abandon(pending)
+        await asyncio.sleep(0.3)
+        sent = robot.server.counters.messages_sent
+        for _ in range(6):
+            robot.state += 1
+            robot.router.notify("/state")
+            await asyncio.sleep(0.3)
+        assert robot.server.counters.messages_sent - sent <= 6
+    finally:
+        await client.aclose()
