@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Awaitable, Callable, Mapping
 
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
@@ -75,6 +75,7 @@ class QueryHandler:
         wire: str = "compact",
         alive: Callable[[str], bool] = lambda robot_id: True,
         hedge_floor_s: float = 1.0,
+        on_failure: Callable[[str, Exception], Awaitable[None]] | None = None,
     ) -> None:
         if wire not in QUERY_WIRES:
             raise ValueError(f"query wire {wire!r} is not one of {', '.join(QUERY_WIRES)}")
@@ -85,6 +86,9 @@ class QueryHandler:
         self.stats = QueryStats()
         #: Whether a teammate is up, as the team view knows it (failure detection).
         self._alive = alive
+        #: Told of every holder a request to which failed at the transport:
+        #: failed queries count towards failure detection like failed probes.
+        self._on_failure = on_failure
         self.hedge_floor_s = hedge_floor_s
         #: Holders whose last request failed at the transport: asked last.
         self._suspects: set[str] = set()
@@ -166,6 +170,8 @@ class QueryHandler:
                     assert isinstance(exc, TransportError), exc
                     self._suspects.add(mate.robot_id)
                     errors[mate.robot_id] = f"{name} to {mate.endpoint} failed: {exc}"
+                    if self._on_failure is not None:
+                        await self._on_failure(mate.robot_id, exc)
                     if waiting and not pending:
                         self.stats.failovers += 1
                         ask_next()

@@ -18,6 +18,7 @@ import asyncio
 import json
 import random
 import re
+import time
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -63,6 +64,10 @@ def _cbor_state(payload: bytes, accept: int | None) -> Response:
     return Response(Status.CONTENT, payload, ContentFormat.CBOR)
 
 
+#: How long one snapshot of a robot's statistics is served (``/robot/stats``).
+STATS_SNAPSHOT_S = 5.0
+
+
 class Robot:
     def __init__(
         self,
@@ -78,6 +83,8 @@ class Robot:
         self.config = config
         self.kb = kb
         self.server: ServerTransport | None = None
+        #: Content format -> (when taken, the stats answer): see _get_stats.
+        self._stats_snapshots: dict[int | None, tuple[float, Response]] = {}
         self.client = client
         self.router = router
         self.controller = controller
@@ -111,7 +118,9 @@ class Robot:
         # The compact wire caches answers for their Max-Age (the KBs are
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
-        queries = QueryHandler(config, kb, kb_client, wire=query_wire, alive=team.is_up)
+        queries = QueryHandler(
+            config, kb, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
+        )
 
         def publish_live(live: LiveState) -> None:
             team.set_own(replace(team.own, live=live))
@@ -221,7 +230,15 @@ class Robot:
         return Response(Status.CHANGED)
 
     async def _get_stats(self, request: Request) -> Response:
-        return _encode(self.stats().to_dict(), request.accept)
+        # Serving the stats counts traffic, so every fresh snapshot differs: a
+        # retried first block of a block-wise transfer on a lossy link would
+        # start a new answer each time.  One snapshot serves for a few seconds.
+        now = time.monotonic()
+        snapshot = self._stats_snapshots.get(request.accept)
+        if snapshot is None or now - snapshot[0] > STATS_SNAPSHOT_S:
+            snapshot = (now, _encode(self.stats().to_dict(), request.accept))
+            self._stats_snapshots[request.accept] = snapshot
+        return snapshot[1]
 
     def stats(self) -> RobotStats:
         """A snapshot: copies of the live counters, so later traffic does not change it."""

@@ -155,6 +155,11 @@ class ObservedStates:
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
 
+    async def record_failure(self, robot_id: str, exc: Exception) -> None:
+        """A request to ``robot_id`` made elsewhere (a query) failed at the transport."""
+        if robot_id in self._endpoints and robot_id not in self.down:
+            await self._failed(robot_id, exc)
+
     async def _failed(self, robot_id: str, exc: Exception) -> None:
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
@@ -315,6 +320,11 @@ class TeamView:
     def state_of(self, robot_id: str) -> RobotState | None:
         """The last state observed of teammate ``robot_id`` (served as ``?of=``)."""
         return self._teammates.states.get(robot_id)
+
+    async def request_failed(self, robot_id: str, exc: Exception) -> None:
+        """A query to teammate ``robot_id`` failed at the transport: a failure
+        of a request like a liveness probe's (two in a row: down)."""
+        await self._teammates.record_failure(robot_id, exc)
 
     def is_up(self, robot_id: str) -> bool:
         """False once ``robot_id`` is known to be down (for the Query Handler)."""

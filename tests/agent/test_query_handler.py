@@ -3,6 +3,8 @@ failure becomes a QueryError that names the query, the peer and the KB."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import asyncio
 from typing import Callable
 
@@ -23,9 +25,11 @@ EXISTS = {"name": "Gucci_bag_14"}
 
 
 def handler(network: MemoryNetwork, kb: KnowledgeBase | None, wire: str = "compact", cache: bool = False,
-            alive: Callable[[str], bool] = lambda robot_id: True, **changes: object) -> QueryHandler:
+            alive: Callable[[str], bool] = lambda robot_id: True, on_failure: Any = None,
+            **changes: object) -> QueryHandler:
     cfg = config("Robot1", **changes)
-    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire, alive=alive)
+    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire, alive=alive,
+                        on_failure=on_failure)
 
 
 async def test_own_module_runs_locally_without_traffic(network: MemoryNetwork, kbs: dict) -> None:
@@ -83,6 +87,18 @@ async def test_unreachable_teammate_is_a_query_error_naming_it(network: MemoryNe
         await queries.run("object-exists", EXISTS)
     assert info.value.module == "Object" and list(info.value.why) == ["Robot2"]
     assert queries.stats.failed == 1 and queries.stats.remote == 0
+
+
+async def test_failed_queries_are_reported_for_failure_detection(network: MemoryNetwork, kbs: dict) -> None:
+    failures: list[tuple[str, str]] = []
+
+    async def failed(robot_id: str, exc: Exception) -> None:
+        failures.append((robot_id, type(exc).__name__))
+
+    queries = handler(network, kbs["Location"], holders=REPLICATED, on_failure=failed)
+    with pytest.raises(ModuleUnavailable):
+        await queries.run("robot-specs", {})
+    assert sorted(failures) == [("Robot2", "PeerUnreachable"), ("Robot3", "PeerUnreachable")]
 
 
 async def test_holders_known_down_are_not_asked(network: MemoryNetwork, kbs: dict, serve_kbs: Callable) -> None:
