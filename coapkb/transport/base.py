@@ -11,6 +11,7 @@ benchmarks only see these protocols.
 from __future__ import annotations
 
 import abc
+import logging
 import time
 from dataclasses import dataclass, fields
 from typing import AsyncIterator, Callable, Mapping, Protocol
@@ -38,6 +39,23 @@ class RateLimiter:
             return None
         self._last, suppressed, self._suppressed = now, self._suppressed, 0
         return suppressed
+
+
+class RateLimitedLog:
+    """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
+
+    def __init__(self, logger: logging.Logger, interval_s: float) -> None:
+        self._logger = logger
+        self._limiter = RateLimiter(interval_s)
+
+    def warning(self, msg: str, *args: object) -> None:
+        suppressed = self._limiter.allow()
+        if suppressed is None:
+            return
+        if suppressed:
+            msg += " (%d similar warnings suppressed)"
+            args = (*args, suppressed)
+        self._logger.warning(msg, *args)
 
 
 class TransportError(CoapkbError):

@@ -82,7 +82,7 @@ from typing import Any
 
 import zenoh
 
-from ..base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
+from ..base import Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError
 from ..messages import Method, Request, Response, Status
 from .mapping import (
     KEY_ROOT,
@@ -161,23 +161,6 @@ def _post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args:
         loop.call_soon_threadsafe(callback, *args)
 
 
-class _RateLimitedLog:
-    """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
-
-    def __init__(self, logger: logging.Logger, interval: float) -> None:
-        self._logger = logger
-        self._limiter = RateLimiter(interval)
-
-    def warning(self, msg: str, *args: object) -> None:
-        suppressed = self._limiter.allow()
-        if suppressed is None:
-            return
-        if suppressed:
-            msg += " (%d similar warnings suppressed)"
-            args = (*args, suppressed)
-        self._logger.warning(msg, *args)
-
-
 # =========================================================================== server
 
 
@@ -253,7 +236,7 @@ class ZenohServerTransport:
         self._slots = asyncio.Semaphore(options.max_concurrent_requests)
         self._tasks: set[asyncio.Task[None]] = set()
         self._observations: dict[str, _Observation] = {}
-        self._bad_log = _RateLimitedLog(log, options.malformed_log_interval_s)
+        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._closed = False
         self._queryable = session.declare_queryable(f"{KEY_ROOT}/**", zenoh.handlers.Callback(self._on_query))
 
@@ -559,7 +542,7 @@ class ZenohClientTransport:
         #: Names this client's notification keys: ``coapkb-obs/<id>/<n>``.
         self._id = os.urandom(6).hex()
         self._tokens = itertools.count()
-        self._bad_log = _RateLimitedLog(log, self._options.malformed_log_interval_s)
+        self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
         self._closed = False
 
     async def __aenter__(self) -> ZenohClientTransport:

@@ -75,7 +75,7 @@ import zmq
 import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
-from ..base import Endpoint, PeerUnreachable, RateLimiter, Service, TrafficCounters, TransportError
+from ..base import Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError
 from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
@@ -153,23 +153,6 @@ class ZmqOptions:
     malformed_log_interval_s: float = 10.0
     #: Time an observe iterator waits for the first answer.
     observe_timeout_s: float = 10.0
-
-
-class _RateLimitedLog:
-    """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
-
-    def __init__(self, logger: logging.Logger, interval: float) -> None:
-        self._logger = logger
-        self._limiter = RateLimiter(interval)
-
-    def warning(self, msg: str, *args: object) -> None:
-        suppressed = self._limiter.allow()
-        if suppressed is None:
-            return
-        if suppressed:
-            msg += " (%d similar warnings suppressed)"
-            args = (*args, suppressed)
-        self._logger.warning(msg, *args)
 
 
 def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None:
@@ -259,8 +242,8 @@ class ZmqServerTransport:
         self._slots = asyncio.Semaphore(options.max_concurrent_requests)
         self._tasks: set[asyncio.Task[None]] = set()
         self._observations: dict[bytes, dict[int, _Observation]] = {}
-        self._bad_log = _RateLimitedLog(log, options.malformed_log_interval_s)
-        self._send_log = _RateLimitedLog(log, options.malformed_log_interval_s)
+        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
+        self._send_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._closed = False
         self._receiver = asyncio.create_task(self._receive_loop(), name=f"zmq server {endpoint}")
 
@@ -646,7 +629,7 @@ class ZmqClientTransport:
         self._ctx = context if context is not None else zmq.asyncio.Context()
         self._links: dict[Endpoint, _PeerLink] = {}
         self._closing_readers: set[asyncio.Task[None]] = set()
-        self._bad_log = _RateLimitedLog(log, self._options.malformed_log_interval_s)
+        self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
         self._closed = False
 
     async def __aenter__(self) -> ZmqClientTransport:
