@@ -223,8 +223,15 @@ class ObservedStates:
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         backoff = 0.2
         while True:
+            registered = time.monotonic()
+            first = True
             try:
                 async for response in self._transport.observe(endpoint, self._request):
+                    if first:
+                        # The registration is a request and its answer: a
+                        # round-trip sample before any probe is needed.
+                        self.round_trip.sample(time.monotonic() - registered)
+                        first = False
                     if not response.status.is_success:
                         log.warning("%s answered %s on %s", robot_id, response.status.dotted, self._request.path)
                         break
