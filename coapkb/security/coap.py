@@ -74,10 +74,15 @@ class EdhocFailed(SecurityError, TransportError):
     A transport failure too, so callers fail over as for a dead peer."""
 
 
+class MissingContext(aiocoap.error.Error):
+    """A secured client found no OSCORE context for a request (a concurrent
+    re-key dropped it): handled as a lost context."""
+
+
 #: What a request over a context the peer no longer has ends in: an
 #: unprotected error answer (4.01 here, 4.00 from other servers), or one that
 #: does not decrypt.
-CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid)
+CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid, MissingContext)
 
 
 #: aiocoap's OSCORE/EDHOC internals this module relies on (aiocoap 0.4.17,
@@ -195,13 +200,33 @@ class ClientSecurity:
                 self._establish(ctx, peer, post or _con_post(ctx)), name=f"edhoc {peer}"
             )
             self._runs[key] = run
-            run.add_done_callback(lambda t, key=key: self._runs.pop(key, None) if self._runs.get(key) is t else None)
+            run.add_done_callback(self._run_done(key))
         # A caller's timeout must not cancel the run the others wait for.
         await asyncio.shield(run)
 
-    def forget(self, ctx: aiocoap.Context, peer: Endpoint) -> None:
-        """Drop ``peer``'s context: the next request runs EDHOC again."""
-        ctx.client_credentials.pop(self._key(peer), None)
+    def _run_done(self, key: str) -> Callable[["asyncio.Task[Any]"], None]:
+        def done(task: "asyncio.Task[Any]") -> None:
+            if self._runs.get(key) is task:
+                del self._runs[key]
+            # Its waiters may all have given up (their timeouts, a shutdown):
+            # the outcome is theirs to see, not asyncio's to log.
+            if not task.cancelled():
+                task.exception()
+
+        return done
+
+    def context(self, ctx: aiocoap.Context, peer: Endpoint) -> Any:
+        """The OSCORE context in use for ``peer`` (None before EDHOC)."""
+        return ctx.client_credentials.get(self._key(peer))
+
+    def forget(self, ctx: aiocoap.Context, peer: Endpoint, stale: Any = None) -> None:
+        """Drop ``peer``'s context: the next request runs EDHOC again.  With
+        ``stale``, only if that is still the one in use: of several requests
+        that met the lost context at once, the first re-keys and the others
+        use its new context instead of throwing it away again."""
+        key = self._key(peer)
+        if stale is None or ctx.client_credentials.get(key) is stale:
+            ctx.client_credentials.pop(key, None)
 
     async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: Post) -> None:
         loop = asyncio.get_running_loop()
@@ -333,6 +358,17 @@ class _OSCORETransport(TransportOSCORE):
 
     def __init__(self, ctx: aiocoap.Context) -> None:
         super().__init__(ctx, _WireRecorder(ctx))
+
+    async def fill_or_recognize_remote(self, message: aiocoap.Message) -> bool:
+        """Claim every request but EDHOC's own: a secured client never sends
+        one unprotected.  (Between the client's check for a context and
+        this, a concurrent re-key may have dropped it; the request then
+        fails here, as after a lost context, and is tried again.)"""
+        if await super().fill_or_recognize_remote(message):
+            return True
+        if message.opt.uri_path == EDHOC_PATH or message.opt.oscore is not None:
+            return False  # EDHOC, or a protected (outer) message on its way to the wire
+        raise MissingContext(f"no OSCORE context for {message.get_request_uri()}")
 
     def request(self, request: Any) -> None:
         tracked = _WireRequests()

@@ -134,3 +134,19 @@ async def test_aiocoap_client_with_a_team_credential(tmp_path: Path) -> None:
             assert expected in out + err, (out, err)
     finally:
         await server.stop()
+
+
+async def test_a_restarted_robot_rejoins_a_secure_team() -> None:
+    """Robot3 is killed and started again: it has no OSCORE contexts any more,
+    its teammates' and the feeder's requests meet 4.01, they run EDHOC again
+    and the run goes on (no request may leave unprotected meanwhile: that
+    one would be refused by the robot's policy)."""
+    from coapkb.harness.team import Fault
+
+    spec = TeamSpec(robots=3, query_timeout_s=5.0,
+                    faults=(Fault("kill", "Robot3", 0.5), Fault("restart", "Robot3", 2.0)))
+    async with asyncio.timeout(120):
+        async with Team.launch(spec) as team:
+            record = await team.run(["Gucci_bag_14", "Canon_tv_538", "Dell_monitor_986", "Gucci_bag_187"] * 2)
+    assert not record.disputed
+    assert all(not t.errors for t in record.tasks), [t.errors for t in record.tasks if t.errors]

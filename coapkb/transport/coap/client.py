@@ -139,6 +139,7 @@ class CoapClientTransport:
 
         for again in (False, True):
             await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
+            used = self.security.context(self._ctx, peer)
             try:
                 return await exchange()
             except CONTEXT_LOST as exc:
@@ -146,7 +147,7 @@ class CoapClientTransport:
                     raise
                 logging.getLogger("coapkb.security").warning(
                     "%s: our OSCORE context is gone there (%s); running EDHOC again", peer, type(exc).__name__)
-                self.security.forget(self._ctx, peer)
+                self.security.forget(self._ctx, peer, stale=used)
         raise AssertionError("unreachable")
 
     async def _edhoc_post(self, peer: Endpoint, payload: bytes) -> aiocoap.Message:
