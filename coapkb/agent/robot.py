@@ -188,6 +188,16 @@ class Robot:
         # A teammate's plan as this robot observed it: survivors compare notes
         # on a robot that died (TeamView._plan_from_survivors).
         state = self.team.state_of(about)
+        at = request.query.get("at")
+        if at is not None:
+            try:
+                seq = int(at)
+            except ValueError:
+                return Response.error(Status.BAD_REQUEST, "at must be a task number")
+            if state is None or state.plan_at(seq) is None:
+                # The asker goes on without it: so must this robot.
+                await self.team.forgo(about, seq)
+                return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
         if state is None:
             return Response.error(Status.NOT_FOUND, f"no state of {about}")
         return _cbor_state(state.encode_plan(), request.accept)

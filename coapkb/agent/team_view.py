@@ -101,6 +101,8 @@ class ObservedStates:
         self.down: dict[str, str] = {}
         self.down_at: dict[str, float] = {}
         self._failures: dict[str, int] = {}
+        #: Readmitted robot -> until when its failed requests do not count.
+        self._joining: dict[str, float] = {}
         self._changed = asyncio.Condition()
         self._watchers: dict[str, asyncio.Task] = {}
 
@@ -152,6 +154,10 @@ class ObservedStates:
         state is taken as it comes, not as a restart."""
         self.down.pop(robot_id, None)  # down_at stays: when the old process was found dead
         self._failures.pop(robot_id, None)
+        # For a while, failed requests do not count: reaching the new process
+        # takes a new security handshake first (OSCORE: the first requests
+        # meet a context that is gone, and EDHOC runs again).
+        self._joining[robot_id] = time.monotonic() + FAILURES_TO_DOWN * 2 * self.round_trip.timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
 
@@ -161,6 +167,8 @@ class ObservedStates:
             await self._failed(robot_id, exc)
 
     async def _failed(self, robot_id: str, exc: Exception) -> None:
+        if time.monotonic() < self._joining.get(robot_id, 0.0):
+            return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
             await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
@@ -207,18 +215,29 @@ class ObservedStates:
                 self._start_watch(robot_id)
             return
 
-    async def hearsay(self, robot_id: str, about: str) -> RobotState | None:
+    async def hearsay(self, robot_id: str, about: str, seq: int) -> RobotState | None:
         """What robot ``robot_id`` has observed of robot ``about`` (``?of=``),
-        or None if it has nothing or does not answer."""
-        request = Request(Method.GET, self._request.path, {"of": about}, accept=ContentFormat.CBOR)
-        try:
-            response = await self._transport.request(
-                self._endpoints[robot_id], request, timeout=self.request_timeout_s
-            )
-            return RobotState.decode(response.payload) if response.status.is_success else None
-        except (TransportError, ValueError) as exc:
-            log.debug("asking %s about %s: %s", robot_id, about, exc)
-            return None
+        if it holds ``about``'s plan right after task ``seq`` (``&at=``);
+        None if it has not (it then never uses that plan: see
+        :meth:`TeamView.forgo`) or does not answer, twice."""
+        request = Request(Method.GET, self._request.path, {"of": about, "at": str(seq)}, accept=ContentFormat.CBOR)
+        for _ in range(FAILURES_TO_DOWN):
+            try:
+                response = await self._transport.request(
+                    self._endpoints[robot_id], request, timeout=self.request_timeout_s
+                )
+                return RobotState.decode(response.payload) if response.status.is_success else None
+            except TransportError as exc:
+                log.debug("asking %s about %s: %s", robot_id, about, exc)
+            except ValueError as exc:
+                log.debug("asking %s about %s: %s", robot_id, about, exc)
+                return None
+        return None
+
+    async def poke(self) -> None:
+        """Make waits look at the states again (something else they depend on changed)."""
+        async with self._changed:
+            self._changed.notify_all()
 
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         backoff = 0.2
@@ -310,6 +329,9 @@ class TeamView:
         self.excluded: dict[str, int] = {}
         #: Membership changes so far (exclusions and admissions).
         self.epoch = 0
+        #: Teammate -> the task after which this robot told another it had no
+        #: plan of it: a plan arriving later is not used, so both decide alike.
+        self._forgone: dict[str, int] = {}
 
     @property
     def own(self) -> RobotState:
@@ -333,6 +355,17 @@ class TeamView:
         of a request like a liveness probe's (two in a row: down)."""
         await self._teammates.record_failure(robot_id, exc)
 
+    async def forgo(self, robot_id: str, seq: int) -> None:
+        """Another robot asked for ``robot_id``'s plan after task ``seq`` and
+        this one had none: it will not use one arriving late either (the
+        asker excludes ``robot_id``, and so must this robot)."""
+        if robot_id in self._peers and seq < self._forgone.get(robot_id, seq + 1):
+            self._forgone[robot_id] = seq
+            await self._teammates.poke()
+
+    def _forgoes(self, robot_id: str, seq: int) -> bool:
+        return self._forgone.get(robot_id, seq + 1) <= seq
+
     def is_up(self, robot_id: str) -> bool:
         """False once ``robot_id`` is known to be down (for the Query Handler)."""
         return robot_id not in self._teammates.down
@@ -349,6 +382,7 @@ class TeamView:
             return
         log.warning("%s joins the team again", robot_id)
         self.excluded.pop(robot_id, None)
+        self._forgone.pop(robot_id, None)  # a promise about its old process
         self.epoch += 1
         self._teammates.readmit(robot_id)
 
@@ -407,7 +441,10 @@ class TeamView:
         expected = self._peers - set(self.excluded)
 
         def ready(states: States) -> bool:
-            return all(r in down or (r in states and states[r].plan_at(seq) is not None) for r in expected)
+            return all(
+                r in down or self._forgoes(r, seq) or (r in states and states[r].plan_at(seq) is not None)
+                for r in expected
+            )
 
         try:
             states = await self._teammates.wait(ready, timeout)
@@ -418,12 +455,13 @@ class TeamView:
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")
-        plans = {r: states[r].plan_at(seq) for r in expected if r in states}
+        plans = {r: states[r].plan_at(seq) for r in expected if r in states and not self._forgoes(r, seq)}
         for robot_id in sorted(expected):
-            if plans.get(robot_id) is None:
+            if plans.get(robot_id) is None and not self._forgoes(robot_id, seq):
                 plans[robot_id] = await self._plan_from_survivors(robot_id, seq)
-            if plans[robot_id] is None:
-                log.warning("%s is down (%s): excluded from task %d on", robot_id, down[robot_id], seq + 1)
+            if plans.get(robot_id) is None:
+                why = down.get(robot_id, f"a teammate had no plan of it after task {seq}")
+                log.warning("%s is down (%s): excluded from task %d on", robot_id, why, seq + 1)
                 self.excluded[robot_id] = seq + 1
                 self.epoch += 1
         plans[self._own.robot_id] = own
@@ -435,7 +473,7 @@ class TeamView:
         and not another; asking keeps "compute by all" on the same inputs:
         a survivor that has it includes the dead robot, and so do the others."""
         survivors = sorted(r for r in self._peers if r not in self._teammates.down and r not in self.excluded)
-        heard = await asyncio.gather(*(self._teammates.hearsay(r, robot_id) for r in survivors))
+        heard = await asyncio.gather(*(self._teammates.hearsay(r, robot_id, seq) for r in survivors))
         for state in heard:
             plan = state.plan_at(seq) if state is not None else None
             if plan is not None:

@@ -154,8 +154,18 @@ def test_team_rejects_a_bad_fault() -> None:
     assert result.stderr.strip() == "coapkb: error: cannot kill Robot9: the team is Robot1, Robot2, Robot3"
 
 
-def test_team_restart_is_refused_clearly() -> None:
-    """A restarted robot cannot rejoin yet: the option says so, in one line."""
-    result = coapkb("team", "--robots", "3", "--tasks", "2", "--kill", "Robot3@0.1s", "--restart", "Robot3@1s",
-                    timeout=30)
-    assert result.returncode == 2 and "cannot rejoin" in result.stderr and "Traceback" not in result.stderr, result.stderr
+def test_team_kill_and_restart() -> None:
+    """The CLI surface of a kill and a restart: the run ends by itself, without
+    a traceback, and says what was done (tests/harness/test_faults.py checks
+    the rejoin itself; a rare race at the join task can still leave a
+    disagreement there, exit 1: see the README's "Not done")."""
+    result = coapkb("team", "--robots", "3", "--tasks", "6", "--time-scale", "5", "--kill", "Robot3@0.1s",
+                    "--restart", "Robot3@1s", timeout=90)
+    assert result.returncode in (0, 1) and "Traceback" not in result.stderr, result.stderr
+    assert "kill Robot3 at 0.1 s" in result.stdout and "restart Robot3 at 1.0 s" in result.stdout, result.stdout
+
+
+def test_team_restart_needs_a_kill_before() -> None:
+    result = coapkb("team", "--robots", "3", "--tasks", "2", "--restart", "Robot3@1s")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip() == "coapkb: error: cannot restart Robot3 at 1s: it is not killed before"

@@ -267,7 +267,12 @@ class CoapClientTransport:
             _abandon(pending)
 
     async def aclose(self) -> None:
-        await self._ctx.shutdown()
+        try:
+            await self._ctx.shutdown()
+        except RuntimeError as exc:
+            # aiocoap 0.4.17 (through OSCORE) errors an observation it has
+            # already cancelled while shutting down; the context is closed anyway.
+            logging.getLogger("coapkb.coap.client").debug("closing the CoAP client: %s", exc)
         self._hooks.remove()
 
 
