@@ -74,7 +74,7 @@ class EdhocFailed(SecurityError, TransportError):
     A transport failure too, so callers fail over as for a dead peer."""
 
 
-class MissingContext(aiocoap.error.Error):
+class MissingContext(SecurityError, aiocoap.error.Error):
     """A secured client found no OSCORE context for a request (a concurrent
     re-key dropped it): handled as a lost context."""
 

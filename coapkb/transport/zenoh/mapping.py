@@ -31,6 +31,7 @@ from urllib.parse import quote, unquote
 
 import cbor2
 
+from ...errors import CoapkbError
 from ..base import Endpoint
 from ..messages import Method, Request, Response, Status
 
@@ -77,7 +78,7 @@ _FORMATS = {name: cf for cf, name in _ENCODINGS.items()}
 _OTHER_FORMAT = "zenoh/bytes;ct="
 
 
-class MappingError(ValueError):
+class MappingError(CoapkbError, ValueError):
     """Bytes or names from the network that are not a coapkb message."""
 
 
