@@ -106,17 +106,11 @@ def verify() -> None:
     :class:`~coapkb.transport.coap.aiocoap_adapter.UnsupportedAiocoapVersion`."""
     import inspect
 
-    from ..transport.coap.aiocoap_adapter import SUPPORTED_AIOCOAP_VERSION, UnsupportedAiocoapVersion
+    from ..transport.coap.aiocoap_adapter import SUPPORTED_AIOCOAP_VERSION, UnsupportedAiocoapVersion, check_methods
 
     if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
         raise UnsupportedAiocoapVersion(f"coapkb.security is verified against aiocoap {SUPPORTED_AIOCOAP_VERSION}")
-    for (owner, name), params in _INTERNALS.items():
-        method = getattr(owner, name, None)
-        if method is None:
-            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__} has no {name}")
-        found = tuple(inspect.signature(method).parameters)[1:]
-        if found != params:
-            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+    check_methods(_INTERNALS)
     # The replay check reads this attribute, which EDHOC contexts lack (see _TeamSiteWrapper).
     if "echo_recovery" not in inspect.getsource(oscore.CanUnprotect.unprotect):
         raise UnsupportedAiocoapVersion("aiocoap's OSCORE replay check changed (echo_recovery)")

@@ -50,7 +50,7 @@ import asyncio
 import inspect
 import logging
 from collections import OrderedDict
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Mapping, Protocol
 
 import aiocoap
 import aiocoap.meta
@@ -101,6 +101,18 @@ class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):
     """The installed aiocoap is not the one these hooks were verified against."""
 
 
+def check_methods(checks: Mapping[tuple[type, str], tuple[str, ...]]) -> None:
+    """Every ``owner.name`` exists and takes these parameters after ``self``;
+    raises :class:`UnsupportedAiocoapVersion` naming the first that does not."""
+    for (owner, name), params in checks.items():
+        method = getattr(owner, name, None)
+        if method is None:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__} has no {name}")
+        found = tuple(inspect.signature(method).parameters)[1:]
+        if found != params:
+            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+
+
 def verify() -> None:
     """Check the version pin and every private name this module uses.
 
@@ -118,13 +130,7 @@ def verify() -> None:
     checks[(MessageInterfaceUDP6, "datagram_msg_received")] = ("data", "ancdata", "flags", "address")
     checks[(MessageInterfaceUDP6, "_local_port")] = ()
     checks[(aiocoap.Message, "_extract_block")] = ("number", "size_exp", "max_bert_size")
-    for (owner, name), params in checks.items():
-        method = getattr(owner, name, None)
-        if method is None:
-            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__} has no {name}")
-        found = tuple(inspect.signature(method).parameters)[1:]
-        if found != params:
-            raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+    check_methods(checks)
     if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
         raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
 
