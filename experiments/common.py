@@ -1,19 +1,21 @@
 """What the experiments share: the seed's query mix, KB servers started in
-(and stopped from) a testbed's namespaces, and writing a results CSV."""
+(and stopped from) a testbed's namespaces or on loopback, and writing a results CSV."""
 
 from __future__ import annotations
 
 import asyncio
 import csv
 import random
+import socket
 import sys
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from coapkb.bench.run import PORTS  # each transport's usual port in a namespace (the bench's own)
+
 ROOT = Path(__file__).resolve().parent.parent
 KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-PORTS = {"coap": 5683, "zmq": 5555}
 GRIPS = ("gripping", "grasping", "lifting", "suction")
 #: The seed's four queries (Query_1..Query_4) as named queries, and the parameter each takes.
 QUERY_MIX: tuple[tuple[str, str], ...] = (
@@ -60,6 +62,30 @@ async def start_kb_server(tb: Any, host: str, scheme: str = "coap") -> Any:
         err = (await proc.stderr.read()).decode()[-500:] if proc.stderr else ""
         raise RuntimeError(f"server on {host} did not start: {line!r} {err}")
     return proc
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port on 127.0.0.1 that nothing uses now (UDP by default, or TCP)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def start_loopback_kb_server(transport: str) -> tuple[asyncio.subprocess.Process, Any]:
+    """``coapkb serve`` with the three warehouse KBs on a free loopback port;
+    returns the process and its endpoint."""
+    from coapkb.transport import Endpoint
+
+    port = free_port(socket.SOCK_DGRAM if transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM)
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}",
+        "--transport", transport, stdout=asyncio.subprocess.PIPE, cwd=ROOT,
+    )
+    assert proc.stdout is not None
+    line = (await proc.stdout.readline()).decode()
+    if not line.startswith("serving"):
+        raise SystemExit(f"server did not start: {line!r}")
+    return proc, Endpoint(transport, "127.0.0.1", port)
 
 
 async def stop_processes(procs: Iterable[Any], grace_s: float = 10.0) -> None:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import csv
-import socket
 import statistics
 import sys
 import time
@@ -27,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 from coapkb.transport.messages import ContentFormat, Method, Request  # noqa: E402
 from coapkb.kb.named_queries import NAMED_QUERIES  # noqa: E402
-from coapkb.transport import Endpoint, open_client  # noqa: E402
+from coapkb.transport import open_client  # noqa: E402
+from common import start_loopback_kb_server  # noqa: E402  (experiments/ is the script's own folder)
 
 QUERIES = {
     "Query_1 object-exists": ("object-exists", {"name": "Gucci_bag_14"}),
@@ -36,26 +36,6 @@ QUERIES = {
     "Query_4 robots-for-grip": ("robots-for-grip", {"grip": "gripping"}),
 }
 FORMATS = {"cbor": ContentFormat.CBOR, "json": ContentFormat.JSON}
-
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-async def _start_server(transport: str) -> tuple[asyncio.subprocess.Process, Endpoint]:
-    port = _free_port(socket.SOCK_DGRAM if transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM)
-    kbs = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", "serve", "--kb", *kbs, "--bind", f"127.0.0.1:{port}",
-        "--transport", transport, stdout=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    assert proc.stdout is not None
-    line = (await proc.stdout.readline()).decode()
-    if not line.startswith("serving"):
-        raise SystemExit(f"server did not start: {line!r}")
-    return proc, Endpoint(transport, "127.0.0.1", port)
 
 
 def _requests(name: str, params: dict[str, str], accept: int) -> dict[str, Request]:
@@ -67,7 +47,7 @@ def _requests(name: str, params: dict[str, str], accept: int) -> dict[str, Reque
 
 
 async def measure(transport: str, requests: int, warmup: int) -> list[dict]:
-    proc, peer = await _start_server(transport)
+    proc, peer = await start_loopback_kb_server(transport)
     client = await open_client(transport, retransmission="adaptive")
     rows = []
     try:

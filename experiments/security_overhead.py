@@ -33,7 +33,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from common import KB_FILES, query_plan, write_csv  # noqa: E402  (experiments/ is the script's own folder)
+from common import KB_FILES, free_port, query_plan, write_csv  # noqa: E402  (experiments/ is the script's own folder)
 
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks  # noqa: E402
 from coapkb.security import generate_team, load_identity  # noqa: E402
@@ -113,7 +113,7 @@ async def cpu_section(team_dir: Path, requests: int) -> list[dict[str, Any]]:
     plan = query_plan(requests, 1, draw_tasks(200, DEFAULT_ONTOLOGIES, seed=1))
     rows = []
     for security in (False, True):
-        port = _free_port()
+        port = free_port()
         args = [sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}"]
         if security:
             args += ["--credentials", str(team_dir)]
@@ -142,14 +142,6 @@ async def cpu_section(team_dir: Path, requests: int) -> list[dict[str, Any]]:
                      "server_cpu_us_per_req": round(cpu / requests * 1e6), "bytes_per_req": round(wire / requests, 1),
                      "seconds": round(seconds, 3)})
     return rows
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _print(rows: list[dict[str, Any]]) -> None:

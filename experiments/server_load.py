@@ -38,7 +38,6 @@ import asyncio
 import json
 import os
 import resource
-import socket
 import sys
 import time
 from dataclasses import dataclass, field
@@ -47,7 +46,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from common import write_csv  # noqa: E402  (experiments/ is the script's own folder)
+from common import free_port, write_csv  # noqa: E402  (experiments/ is the script's own folder)
 
 import aiocoap  # noqa: E402
 import aiocoap.resource  # noqa: E402
@@ -93,12 +92,6 @@ def time_kb_load(kb_dir: Path) -> None:
 
 
 # --------------------------------------------------------------------------- driver
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cpu_seconds(pid: int) -> float:
@@ -237,9 +230,9 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
     rows: list[dict[str, object]] = []
     kb = KnowledgeBase.load(KB_FILES)
     names = object_names(kb)
-    bare, bare_uri = await start_server(sys.executable, __file__, "--serve-bare", str(free_udp_port()))
+    bare, bare_uri = await start_server(sys.executable, __file__, "--serve-bare", str(free_port()))
     robot, robot_uri = await start_server(sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES,
-                                          "--bind", f"127.0.0.1:{free_udp_port()}")
+                                          "--bind", f"127.0.0.1:{free_port()}")
     try:
         for clients in args.clients:
             # alternate the two servers round by round and keep each one's

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import csv
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -32,8 +31,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.transport import Endpoint, open_client  # noqa: E402
+from coapkb.transport import open_client  # noqa: E402
 from coapkb.transport.messages import ContentFormat, Method, Request  # noqa: E402
+from common import start_loopback_kb_server  # noqa: E402  (experiments/ is the script's own folder)
 
 NAMED = Request(Method.GET, "/kb/q/object-location", {"name": "Gucci_bag_14"}, accept=ContentFormat.CBOR)
 
@@ -50,24 +50,8 @@ def lo_counters() -> tuple[int, int]:
     raise SystemExit("no lo in /proc/net/dev")
 
 
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 async def measure(transport: str, queries: int, idle_s: float) -> dict[str, object]:
-    port = _free_port(socket.SOCK_DGRAM if transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM)
-    kbs = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", "serve", "--kb", *kbs, "--bind", f"127.0.0.1:{port}",
-        "--transport", transport, stdout=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    assert proc.stdout is not None
-    line = (await proc.stdout.readline()).decode()
-    if not line.startswith("serving"):
-        raise SystemExit(f"server did not start: {line!r}")
-    peer = Endpoint(transport, "127.0.0.1", port)
+    proc, peer = await start_loopback_kb_server(transport)
     client = await open_client(transport)
     try:
         start = lo_counters()
