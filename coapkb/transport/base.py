@@ -11,13 +11,14 @@ benchmarks only see these protocols.
 from __future__ import annotations
 
 import abc
+import asyncio
 import logging
 import time
 from dataclasses import dataclass, fields
 from typing import AsyncIterator, Callable, Mapping, Protocol
 
 from ..errors import CoapkbError
-from .messages import Request, Response
+from .messages import Request, Response, Status
 
 
 class RateLimiter:
@@ -158,6 +159,22 @@ class Service(abc.ABC):
         """Call ``on_change`` whenever the resource at ``path`` changes (for Observe).
         Returns a function that cancels the subscription.  Default: never changes."""
         return lambda: None
+
+
+async def handle_safely(service: Service, request: Request, log: logging.Logger) -> Response:
+    """``service.handle(request)`` that cannot take a server down: an exception
+    or a non-Response is logged on ``log`` and answered 5.00."""
+    try:
+        response = await service.handle(request)
+    except asyncio.CancelledError:
+        raise
+    except Exception:
+        log.exception("Service.handle raised on %s %s (it must answer 5.xx instead)", request.method, request.path)
+        return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+    if not isinstance(response, Response):
+        log.error("Service.handle returned %r for %s %s, not a Response", response, request.method, request.path)
+        return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
+    return response
 
 
 class ClientTransport(Protocol):

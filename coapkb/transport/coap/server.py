@@ -19,7 +19,7 @@ import aiocoap
 import aiocoap.resource
 from aiocoap.numbers.constants import TransportTuning
 
-from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters, TransportError
+from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters, TransportError, handle_safely
 from ..messages import Response, Status
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
@@ -93,12 +93,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         sent_hash = dict(q.partition("=")[::2] for q in request.opt.uri_query).get(BODY_HASH_PARAM)
         if req.payload and sent_hash is not None and sent_hash != body_hash(req.payload):
             return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
-        try:
-            response = await self.service.handle(req)
-        except Exception:  # the service must not raise; never let a bug kill the server
-            log.exception("service failed on %s", self.info.path)
-            response = Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
-        message = message_from_response(response)
+        message = message_from_response(await handle_safely(self.service, req, log))
         # Piggybacked answers are never retransmitted, but Observe
         # notifications are CON: they follow the reliability policy's timers.
         message.transport_tuning = self._tuning_for(request)

@@ -75,7 +75,9 @@ import zmq
 import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
-from ..base import Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError
+from ..base import (
+    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
+)
 from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
@@ -399,18 +401,7 @@ class ZmqServerTransport:
             self._slots.release()
 
     async def _call(self, request: Request) -> Response:
-        """``service.handle`` that cannot take the server down."""
-        try:
-            response = await self._service.handle(request)
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("Service.handle raised on %s %s (it must answer 5.xx instead)", request.method, request.path)
-            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
-        if not isinstance(response, Response):
-            log.error("Service.handle returned %r for %s %s, not a Response", response, request.method, request.path)
-            return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error")
-        return response
+        return await handle_safely(self._service, request, log)
 
     def _encode(self, token: int, response: Response, seq: int | None = None) -> bytes:
         try:
