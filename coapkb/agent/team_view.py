@@ -227,11 +227,10 @@ class ObservedStates:
                     self._endpoints[robot_id], request, timeout=self.request_timeout_s
                 )
                 return RobotState.decode(response.payload) if response.status.is_success else None
-            except TransportError as exc:
+            except (TransportError, ValueError) as exc:
                 log.debug("asking %s about %s: %s", robot_id, about, exc)
-            except ValueError as exc:
-                log.debug("asking %s about %s: %s", robot_id, about, exc)
-                return None
+                if isinstance(exc, ValueError):  # an answer, but not a state: asking again would not help
+                    return None
         return None
 
     async def poke(self) -> None:

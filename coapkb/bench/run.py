@@ -475,11 +475,8 @@ async def main(args: argparse.Namespace) -> int:
             "burst_len": args.burst_len}
     # --fail names the option; a kill is what the team carries out.
     faults = [Fault("kill", f.robot, f.at_s) for f in (Fault.parse("fail", text) for text in args.fail)]
-    unknown = [f.robot for f in faults if f.robot not in [f"Robot{i}" for i in range(1, args.robots + 1)]]
-    if unknown:
-        raise ValueError(f"--fail {', '.join(unknown)}: the team is Robot1 .. Robot{args.robots}")
-    if not 1 <= args.replication <= CLUSTER_SIZE:
-        raise ValueError(f"--replication must be 1 to {CLUSTER_SIZE}, got {args.replication}")
+    # The team's own checks (robots named, replication), before any run starts.
+    TeamSpec(robots=args.robots, replication=args.replication, faults=tuple(faults))
     LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss, **link)  # validates, raises ValueError
     ok, why = available()
     if not ok:

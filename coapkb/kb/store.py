@@ -594,7 +594,7 @@ class _OxigraphBackend:
 _INDEX_MANIFEST = "coapkb-index.json"
 
 
-def _open_index(path: Path, files: list[_KBFile]) -> _OxigraphBackend:
+def _open_or_build_index(path: Path, files: list[_KBFile]) -> _OxigraphBackend:
     """Open the on-disk index at ``path`` read-only, building it first if
     it does not exist (robots of one host may share an index directory)."""
     manifest = path / _INDEX_MANIFEST
@@ -916,7 +916,7 @@ class KnowledgeBase:
         for f in files:
             f.hash_into(digest)
         etag = digest.digest()
-        engine = _open_index(index_dir / f"{etag.hex()}.oxigraph", files)
+        engine = _open_or_build_index(index_dir / f"{etag.hex()}.oxigraph", files)
         return cls._assemble("oxigraph", engine, files, etag)
 
     @classmethod
