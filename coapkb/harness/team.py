@@ -88,6 +88,11 @@ class Fault:
         return cls(action, robot, at_s)
 
 
+#: Each transport's protection with the team's keys (``TeamSpec.security``):
+#: the bench's ``security`` column.  A transport not named here runs plain.
+SECURITY_SCHEMES: dict[str, str] = {"coap": "oscore", "zmq": "curve"}
+
+
 @dataclass(frozen=True)
 class TeamSpec:
     robots: int = 3
@@ -111,14 +116,20 @@ class TeamSpec:
     faults: tuple[Fault, ...] = ()
     #: OSCORE keyed by EDHOC (CoAP) or CurveZMQ (ZeroMQ) between every
     #: process, with the team's access policy (issue 12), from throwaway
-    #: keys made in the run's directory.  Zenoh has none yet: it runs plain.
+    #: keys made in the run's directory.  Transports not in
+    #: :data:`SECURITY_SCHEMES` run plain.
     security: bool = True
     #: An existing team directory (``coapkb keys``) to use instead of throwaway keys.
     credentials: Path | None = None
 
     @property
     def secure(self) -> bool:
-        return self.security and self.transport in ("coap", "zmq")
+        return self.security and self.transport in SECURITY_SCHEMES
+
+    @property
+    def security_scheme(self) -> str:
+        """What protects the team's messages: a :data:`SECURITY_SCHEMES` value, or ``none``."""
+        return SECURITY_SCHEMES[self.transport] if self.secure else "none"
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
