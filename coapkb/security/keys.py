@@ -16,6 +16,10 @@ One directory per team (``coapkb keys --team-dir DIR --robots N``):
     0600, for the ZeroMQ transport; its public key is in ``team.json``.
     (A P-256 key cannot be turned into a Curve25519 one; each member has
     both, and the trust list binds them to one name and role.)
+``team-ca.pem``, ``NAME.tls.pem``, ``NAME.tls.key``
+    The team's X.509 CA certificate and the member's certificate and key
+    (mode 0600) for TLS with mutual authentication, for the Zenoh transport
+    (:mod:`.tls`); ``team.json`` pins their SHA-256.
 
 Roles decide what a member may do on a robot (:mod:`.policy`): ``robot``
 (query, observe, post decisions if it is its cluster's decider), ``feeder``
@@ -31,13 +35,16 @@ from __future__ import annotations
 import json
 import os
 import stat
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import cbor2
 
 from ..errors import CoapkbError
+
+if TYPE_CHECKING:
+    from .tls import TlsFiles
 
 TRUST_FILE = "team.json"
 TRUST_FORMAT = "coapkb-team/1"
@@ -74,6 +81,8 @@ class TeamMember:
     ccs: bytes
     #: CurveZMQ public key, Z85 (40 characters); None in a team made without.
     curve_public: str | None = None
+    #: SHA-256 (hex) of the member's X.509 certificate; None in a team made without.
+    tls_sha256: str | None = None
 
     def ccs_map(self) -> dict:
         return cbor2.loads(self.ccs)
@@ -88,6 +97,8 @@ class TeamTrust:
     """The trust list: who is in the team."""
 
     members: tuple[TeamMember, ...]
+    #: SHA-256 (hex) of the team CA's certificate; None in a team made without TLS.
+    tls_ca_sha256: str | None = None
 
     def by_name(self, name: str) -> TeamMember | None:
         return next((m for m in self.members if m.name == name), None)
@@ -121,6 +132,15 @@ class TeamIdentity:
     @property
     def key_file(self) -> Path:
         return self.team_dir / f"{self.member.name}.key"
+
+    def tls(self) -> "TlsFiles":
+        """The member's TLS certificate and key and the team CA (Zenoh's ``tls/``
+        links), checked now: one :class:`SecurityError` line if not usable."""
+        from .tls import check_tls
+
+        if self.trust.tls_ca_sha256 is None or self.member.tls_sha256 is None:
+            raise SecurityError(f"{self.team_dir}: the team has no TLS certificates (make it again with coapkb keys)")
+        return check_tls(self.team_dir, self.member.name, self.trust.tls_ca_sha256, self.member.tls_sha256)
 
     def __repr__(self) -> str:
         return f"TeamIdentity({self.member.name!r}, role={self.member.role!r}, team_dir={str(self.team_dir)!r})"
@@ -193,12 +213,17 @@ def generate_team(team_dir: str | Path, members: Iterable[tuple[str, str]]) -> T
         except OSError as exc:
             raise SecurityError(f"cannot write {team_dir / (name + '.curve')}: {exc.strerror}") from None
         entries.append(TeamMember(name, role, kid, _public_ccs(name, kid, d), curve_public.decode("ascii")))
-    trust = TeamTrust(tuple(entries))
+    from .tls import generate_tls
+
+    ca_pin, pins = generate_tls(team_dir, [m.name for m in entries])
+    entries = [replace(m, tls_sha256=pins[m.name]) for m in entries]
+    trust = TeamTrust(tuple(entries), ca_pin)
     document = {
         "format": TRUST_FORMAT,
         "edhoc": {"suite": CIPHER_SUITE, "method": EDHOC_METHOD},
-        "members": [{"name": m.name, "role": m.role, "kid": m.kid.hex(), "ccs": m.ccs.hex(), "curve": m.curve_public}
-                    for m in entries],
+        "tls": {"ca_sha256": ca_pin},
+        "members": [{"name": m.name, "role": m.role, "kid": m.kid.hex(), "ccs": m.ccs.hex(), "curve": m.curve_public,
+                     "tls_sha256": m.tls_sha256} for m in entries],
     }
     (team_dir / TRUST_FILE).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     return trust
@@ -218,7 +243,7 @@ def load_trust(team_dir: str | Path) -> TeamTrust:
     try:
         for raw in document["members"]:
             member = TeamMember(raw["name"], raw["role"], bytes.fromhex(raw["kid"]), bytes.fromhex(raw["ccs"]),
-                                raw.get("curve"))
+                                raw.get("curve"), raw.get("tls_sha256"))
             if member.curve_public is not None and len(member.curve_public) != 40:
                 raise ValueError(f"member {member.name}: curve is not a Z85 public key")
             ccs = member.ccs_map()
@@ -230,7 +255,9 @@ def load_trust(team_dir: str | Path) -> TeamTrust:
     kids = [m.kid for m in members]
     if len(set(kids)) != len(kids) or len({m.name for m in members}) != len(members):
         raise SecurityError(f"{path}: duplicate member names or key ids")
-    return TeamTrust(tuple(members))
+    tls = document.get("tls")
+    ca_pin = tls.get("ca_sha256") if isinstance(tls, dict) else None
+    return TeamTrust(tuple(members), ca_pin if isinstance(ca_pin, str) else None)
 
 
 def load_identity(team_dir: str | Path, name: str) -> TeamIdentity:

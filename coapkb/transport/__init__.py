@@ -42,7 +42,9 @@ async def open_client(scheme: str, *, retransmission: Any = "robust", security: 
     or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
     or what :func:`reliability_for` returned; ZeroMQ and Zenoh ignore it.
     ``security``: a :class:`coapkb.security.coap.ClientSecurity` (CoAP:
-    OSCORE keyed by EDHOC), or None; ZeroMQ and Zenoh have no security yet."""
+    OSCORE keyed by EDHOC), :class:`coapkb.security.curve.ZmqClientSecurity`
+    (ZeroMQ: CurveZMQ), :class:`coapkb.security.zenoh_tls.ZenohClientSecurity`
+    (Zenoh: mTLS; ``zenoh+udp`` cannot be secured), or None."""
     if scheme == "coap":
         from .coap import CoapClientTransport
 
@@ -54,7 +56,7 @@ async def open_client(scheme: str, *, retransmission: Any = "robust", security: 
     if scheme in ("zenoh", "zenoh+udp"):
         from .zenoh.transport import ZenohClientTransport
 
-        return ZenohClientTransport()
+        return ZenohClientTransport(security=security)
     raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
 
 
@@ -64,7 +66,8 @@ async def serve(
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``retransmission`` applies to CoAP's confirmable notifications;
     ``security`` is a :class:`coapkb.security.coap.ServerSecurity` (CoAP) or
-    :class:`coapkb.security.curve.ZmqServerSecurity` (ZeroMQ), or None."""
+    :class:`coapkb.security.curve.ZmqServerSecurity` (ZeroMQ) or
+    :class:`coapkb.security.zenoh_tls.ZenohServerSecurity` (Zenoh), or None."""
     if endpoint.scheme == "coap":
         from .coap import CoapServerTransport
 
@@ -76,7 +79,7 @@ async def serve(
     if endpoint.scheme in ("zenoh", "zenoh+udp"):
         from .zenoh.transport import ZenohServerTransport
 
-        return await ZenohServerTransport.start(service, endpoint)
+        return await ZenohServerTransport.start(service, endpoint, security=security)
     raise ValueError(f"unknown transport {endpoint.scheme!r} (choose from {', '.join(SCHEMES)})")
 
 

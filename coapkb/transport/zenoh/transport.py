@@ -55,6 +55,15 @@ Observe
     its publisher's matching status falls to false (the observer's session
     closed or it undeclared).
 
+Security
+    With ``security=`` (:mod:`coapkb.security.zenoh_tls`) a ``zenoh://``
+    endpoint becomes a ``tls/`` link with mutual authentication by the
+    team's certificates; the client names its session in each query's
+    ``source_info`` and the server holds the member whose certificate
+    authenticated that session to the team's access policy (refused: an
+    answer with the policy's 4.01/4.03, before the service sees it).
+    ``zenoh+udp://`` cannot be secured (Zenoh's UDP link has no TLS).
+
 Traffic counters
     Zenoh does not expose socket byte counts, so the counters hold what this
     transport handed to and got from Zenoh: per request the key expression
@@ -63,7 +72,8 @@ Traffic counters
     framing (a few bytes per message, batched), its session handshake,
     declarations, keep-alives (every 2.5 s per session by default), and
     TCP/IP -- the benchmark's link counters see those.  TCP retransmits
-    invisibly, so ``retransmissions`` stays 0.
+    invisibly, so ``retransmissions`` stays 0.  Nor TLS's records and
+    handshake, or a secured query's ``source_info`` (a session id).
 """
 
 from __future__ import annotations
@@ -153,6 +163,15 @@ def _free_port(endpoint: Endpoint) -> int:
         return int(s.getsockname()[1])
 
 
+def _secured_locator(endpoint: Endpoint, security: Any) -> str:
+    """The endpoint's locator; ``tls/`` instead of ``tcp/`` with security."""
+    if security is None:
+        return locator(endpoint)
+    from ...security.zenoh_tls import tls_locator
+
+    return tls_locator(locator(endpoint))
+
+
 def _bytes(z: zenoh.ZBytes | None) -> bytes | None:
     return None if z is None else z.to_bytes()
 
@@ -182,6 +201,8 @@ class _Incoming:
     payload: bytes
     encoding: str | None
     attachment: bytes | None
+    #: The querier's session id as it declared it (``source_info``), or None.
+    source: str | None = None
 
     @property
     def size(self) -> int:
@@ -224,8 +245,11 @@ class ZenohServerTransport:
         session: zenoh.Session,
         executor: ThreadPoolExecutor,
         options: ZenohOptions,
+        security: Any = None,
     ) -> None:
         """Private: use :meth:`start`, which opens the session first."""
+        #: A :class:`coapkb.security.zenoh_tls.ZenohServerSecurity` (mTLS, the team's policy), or None.
+        self._security = security
         self.counters = TrafficCounters()
         self.endpoint = endpoint
         #: Queries answered with an error reply because they were not a coapkb request.
@@ -244,24 +268,28 @@ class ZenohServerTransport:
 
     @classmethod
     async def start(
-        cls, service: Service, endpoint: Endpoint, *, options: ZenohOptions | None = None
+        cls, service: Service, endpoint: Endpoint, *, options: ZenohOptions | None = None, security: Any = None
     ) -> ZenohServerTransport:
         """Listen on ``endpoint`` and start serving.
 
         Port 0 picks a free port; the returned transport's :attr:`endpoint`
         has it.  Raises :class:`TransportError` if Zenoh cannot listen there
-        (port in use, no such address)."""
+        (port in use, no such address).  ``security``: a
+        :class:`coapkb.security.zenoh_tls.ZenohServerSecurity`, or None."""
         _check_scheme(endpoint)
+        _secured_locator(endpoint, security)  # zenoh+udp with security: refused before a port is taken
         if endpoint.port == 0:
             endpoint = Endpoint(endpoint.scheme, endpoint.host, _free_port(endpoint))
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"zenoh server {endpoint}")
-        config = session_config("peer", listen=(locator(endpoint),))
+        config = session_config("peer", listen=(_secured_locator(endpoint, security),))
+        if security is not None:
+            security.configure(config)
         try:
             session = await asyncio.get_running_loop().run_in_executor(executor, zenoh.open, config)
         except zenoh.ZError as exc:
             executor.shutdown(wait=False)
             raise TransportError(f"cannot listen on {endpoint}: {exc}") from None
-        return cls(service, endpoint, session, executor, options or ZenohOptions())
+        return cls(service, endpoint, session, executor, options or ZenohOptions(), security)
 
     @property
     def observation_count(self) -> int:
@@ -294,12 +322,14 @@ class ZenohServerTransport:
     def _on_query(self, query: zenoh.Query) -> None:
         """On a Zenoh thread: copy the query out and hand it to the loop."""
         encoding = query.encoding
+        source = query.source_info if self._security is not None else None
         incoming = _Incoming(
             str(query.key_expr),
             str(query.parameters),
             _bytes(query.payload) or b"",
             None if encoding is None else str(encoding),
             _bytes(query.attachment),
+            None if source is None else str(source.source_id.zid),
         )
         _post(self._loop, self._accept, query, incoming)
 
@@ -318,6 +348,15 @@ class ZenohServerTransport:
             self._reply_error(query, f"4.00 not a coapkb request: {exc}")
             _finish(query)
             return
+        if self._security is not None:
+            member = self._security.member_of(self._session, incoming.source)
+            # A deregistration only ends an observation: any member may send one.
+            verdict = self._security.check(member, request if header.observe is not Observe.DEREGISTER
+                                           else Request(Method.GET, request.path))
+            if not verdict.allowed:  # before the service: a refused request changes nothing
+                self._reply(query, Response.error(verdict.status, verdict.reason))
+                _finish(query)
+                return
         if header.observe is Observe.DEREGISTER:
             if (obs := self._observations.get(header.notify_key or "")) is not None:
                 self._stop(obs)
@@ -520,8 +559,11 @@ class ZenohClientTransport:
 
     counters: TrafficCounters
 
-    def __init__(self, *, options: ZenohOptions | None = None) -> None:
+    def __init__(self, *, options: ZenohOptions | None = None, security: Any = None) -> None:
+        """``security``: a :class:`coapkb.security.zenoh_tls.ZenohClientSecurity`
+        (mTLS with the team's certificates), or None."""
         self.counters = TrafficCounters()
+        self._security = security
         #: Replies and notifications dropped because they were not a coapkb response.
         self.malformed = 0
         self._options = options or ZenohOptions()
@@ -533,6 +575,7 @@ class ZenohClientTransport:
         #: Names this client's notification keys: ``coapkb-obs/<id>/<n>``.
         self._id = os.urandom(6).hex()
         self._tokens = itertools.count()
+        self._source_sn = itertools.count()
         self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
         self._closed = False
 
@@ -552,7 +595,9 @@ class ZenohClientTransport:
         _check_scheme(peer)
         opening = self._sessions.get(peer)
         if opening is None or (opening.done() and (opening.cancelled() or opening.exception() is not None)):
-            config = session_config("client", connect=(locator(peer),))
+            config = session_config("client", connect=(_secured_locator(peer, self._security),))
+            if self._security is not None:
+                self._security.configure(config)
             loop = asyncio.get_running_loop()
             opening = self._sessions[peer] = asyncio.ensure_future(loop.run_in_executor(self._executor, zenoh.open, config))
         try:
@@ -593,6 +638,9 @@ class ZenohClientTransport:
             encoding=encoding_for(request.content_format),
             attachment=attachment,
             timeout=timeout,
+            # Names our session, whose link's certificate the server then
+            # holds to the team's policy (coapkb.security.zenoh_tls).
+            source_info=None if self._security is None else zenoh.SourceInfo(session.id, next(self._source_sn)),
         )
         self.counters.messages_sent += 1
         self.counters.bytes_sent += len(selector) + len(request.payload) + len(attachment or b"")
