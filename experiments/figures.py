@@ -7,7 +7,10 @@ Writes PNGs into ``experiments/results/figures/`` (``--outdir`` to change).
 Each figure is drawn from whatever subset of the matrix the CSV holds; a
 figure whose data is missing is skipped with a one-line note, never an error.
 Only rows with ``ok=True`` are plotted (a failed run's bytes and times are
-those of a partial run); repetitions are averaged.
+those of a partial run).  A point is the median over the repetitions; Figs.
+6-12 draw its distribution-free interval as an error bar (Figs. 9 and 11: the
+median of the paired per-repetition differences), all from
+``experiments/stats.py`` like the report's tables.  One repetition draws no bar.
 
 The seed compares *one* stack, distributed against centralised.  We have
 three stacks ("families"): CoAP with compact answers, ZeroMQ with compact
@@ -18,7 +21,6 @@ figures are therefore drawn once per family that has the data, as panels.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
@@ -34,8 +36,12 @@ import matplotlib.pyplot as plt
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+HERE = str(Path(__file__).resolve().parent)
+if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests)
+    sys.path.insert(0, HERE)
 
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
+from stats import Estimate, median_ci  # noqa: E402  (experiments/ is the script's own folder)
 
 FAMILIES: dict[str, tuple[str, str]] = {
     # family: (distributed system, central system)
@@ -54,7 +60,8 @@ ROBOT_COLOURS = {3: "#1f77b4", 6: "#ff7f0e", 9: "#2ca02c"}
 
 @dataclass(frozen=True)
 class Point:
-    """Mean over repetitions of one system at one setting."""
+    """One system at one setting: medians over the repetitions (``wire`` and
+    ``completion`` with their intervals)."""
 
     system: str
     robots: int
@@ -66,10 +73,12 @@ class Point:
     p50_ms: float | None
     p99_ms: float | None
     n: int
+    wire: Estimate
+    completion: Estimate
 
 
 class Data:
-    """The ok rows of a CSV, averaged per (system, robots, tasks, bandwidth, loss)."""
+    """The ok rows of a CSV, per (system, robots, tasks, bandwidth, loss): medians over repetitions."""
 
     def __init__(self, rows: Sequence[BenchRow]) -> None:
         groups: dict[tuple[Any, ...], list[BenchRow]] = defaultdict(list)
@@ -79,17 +88,27 @@ class Data:
                 groups[(r.system, r.robots, r.tasks, r.bandwidth_kbps, r.loss_pct)].append(r)
         self.points: dict[tuple[Any, ...], Point] = {}
         for key, rs in groups.items():
-            p50 = [r.query_p50_ms for r in rs if r.query_p50_ms is not None]
-            p99 = [r.query_p99_ms for r in rs if r.query_p99_ms is not None]
+            wire, completion = median_ci(r.wire_bytes for r in rs), median_ci(r.completion_s for r in rs)
+            if wire is None or completion is None:  # an ok row always has both; skip a malformed one
+                continue
+            p50, p99 = median_ci(r.query_p50_ms for r in rs), median_ci(r.query_p99_ms for r in rs)
             self.points[key] = Point(
-                *key,
-                wire_bytes=statistics.fmean(r.wire_bytes for r in rs),
-                completion_s=statistics.fmean(r.completion_s for r in rs),
-                p50_ms=statistics.median(p50) if p50 else None,
-                p99_ms=statistics.median(p99) if p99 else None,
-                n=len(rs),
+                *key, wire_bytes=wire.value, completion_s=completion.value,
+                p50_ms=p50.value if p50 else None, p99_ms=p99.value if p99 else None,
+                n=len(rs), wire=wire, completion=completion,
             )
         self.rows = [r for r in rows if r.ok]
+        self._groups = groups
+
+    def difference(self, minuend: str, subtrahend: str, robots: int, tasks: int, bandwidth: float, loss: float,
+                   attr: str) -> Estimate | None:
+        """The median of ``minuend - subtrahend`` over the repetitions both ran
+        at this setting (paired by rep: the same task list), with its interval."""
+        def by_rep(system: str) -> dict[int, float]:
+            rs = self._groups.get((system, robots, tasks, float(bandwidth), float(loss)), [])
+            return {r.rep: getattr(r, attr) for r in rs if getattr(r, attr) is not None}
+        m, s = by_rep(minuend), by_rep(subtrahend)
+        return median_ci(m[rep] - s[rep] for rep in sorted(m.keys() & s.keys()))
 
     def get(self, system: str, robots: int, tasks: int, bandwidth: float, loss: float) -> Point | None:
         return self.points.get((system, robots, tasks, float(bandwidth), float(loss)))
@@ -136,13 +155,16 @@ def _kb(v: float) -> float:
     return v / 1000.0
 
 
-def _line(ax: Any, xs: list[float], ys: list[float | None], **kw: Any) -> bool:
-    pts = [(x, y) for x, y in zip(xs, ys) if y is not None]
+def _line(ax: Any, xs: list[float], ys: Sequence[Estimate | None], scale: Callable[[float], float] = float,
+          **kw: Any) -> bool:
+    """Medians joined by a line, each with its interval as an error bar (none for one run)."""
+    pts = [(x, y.map(scale)) for x, y in zip(xs, ys) if y is not None]
     if not pts:
         return False
     # Centralised systems are dashed; give them square markers so the legend tells them apart.
     kw.setdefault("marker", "s" if kw.get("linestyle") == "--" else "o")
-    ax.plot([p[0] for p in pts], [p[1] for p in pts], **kw)
+    low, high = zip(*(p[1].yerr() for p in pts))
+    ax.errorbar([p[0] for p in pts], [p[1].value for p in pts], yerr=[low, high], capsize=3, elinewidth=0.8, **kw)
     return True
 
 
@@ -162,8 +184,8 @@ def fig6(data: Data, out: Path) -> Path | str:
         for robots in data.values("robots"):
             losses = [l for l in data.values("loss") if data.get(dist, robots, tasks, bw, l) or data.get(cent, robots, tasks, bw, l)]
             for system, style in ((dist, "-"), (cent, "--")):
-                ys = [(_kb(p.wire_bytes) if (p := data.get(system, robots, tasks, bw, l)) else None) for l in losses]
-                drawn |= _line(ax, losses, ys, linestyle=style, color=ROBOT_COLOURS.get(robots),
+                ys = [(p.wire if (p := data.get(system, robots, tasks, bw, l)) else None) for l in losses]
+                drawn |= _line(ax, losses, ys, _kb, linestyle=style, color=ROBOT_COLOURS.get(robots),
                                label=f"{robots} robots, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="loss (%)", ylabel="kB on the wire", xticks=data.values("loss"))
         _legend(ax, 7)
@@ -185,8 +207,8 @@ def fig7(data: Data, out: Path) -> Path | str:
             robots = [r for r in data.values("robots") if data.get(dist, r, tasks, bw, loss)]
             if len(robots) < 2:
                 continue
-            ys = [_kb(data.get(dist, r, tasks, bw, loss).wire_bytes) for r in robots]  # type: ignore[union-attr]
-            drawn |= _line(ax, robots, ys, label=f"{bw:g} kbit/s")
+            ys = [data.get(dist, r, tasks, bw, loss).wire for r in robots]  # type: ignore[union-attr]
+            drawn |= _line(ax, robots, ys, _kb, label=f"{bw:g} kbit/s")
         ax.set(title=name, xlabel="robots", ylabel="kB on the wire", xticks=data.values("robots"))
         _legend(ax, 7)
         ax.set_ylim(bottom=0)
@@ -207,8 +229,8 @@ def fig8(data: Data, out: Path) -> Path | str:
                 tasks = [t for t in data.values("tasks") if data.get(system, 3, t, bw, loss)]
                 if len(tasks) < 2:
                     continue
-                ys = [_kb(data.get(system, 3, t, bw, loss).wire_bytes) for t in tasks]  # type: ignore[union-attr]
-                drawn |= _line(ax, tasks, ys, linestyle=style, label=f"{loss:g} % loss, {SYSTEMS[system].mode}")
+                ys = [data.get(system, 3, t, bw, loss).wire for t in tasks]  # type: ignore[union-attr]
+                drawn |= _line(ax, tasks, ys, _kb, linestyle=style, label=f"{loss:g} % loss, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="tasks", ylabel="kB on the wire", xticks=data.values("tasks"))
         _legend(ax, 7)
         ax.set_ylim(bottom=0)
@@ -226,14 +248,15 @@ def _difference_figure(data: Data, out: Path, attr: str, scale: Callable[[float]
     drawn = False
     for ax, (name, dist, cent) in zip(axes, fams):
         for robots in data.values("robots"):
-            xs, ys = [], []
+            xs: list[float] = []
+            ys: list[Estimate | None] = []
             for t in data.values("tasks"):
-                d, c = data.get(dist, robots, t, bw, loss), data.get(cent, robots, t, bw, loss)
-                if d and c:
+                diff = data.difference(cent, dist, robots, t, bw, loss, attr)
+                if diff is not None:
                     xs.append(t)
-                    ys.append(scale(getattr(c, attr) - getattr(d, attr)))
+                    ys.append(diff)
             if len(xs) >= 2:
-                drawn |= _line(ax, xs, ys, color=ROBOT_COLOURS.get(robots), label=f"{robots} robots")
+                drawn |= _line(ax, xs, ys, scale, color=ROBOT_COLOURS.get(robots), label=f"{robots} robots")
         ax.axhline(0, color="grey", linewidth=0.8)
         ax.set(title=name, xlabel="tasks", ylabel=ylabel, xticks=data.values("tasks"))
         _legend(ax, 7)
@@ -263,7 +286,7 @@ def fig10(data: Data, out: Path) -> Path | str:
                     tasks = [t for t in data.values("tasks") if data.get(system, 3, t, bw, loss)]
                     if len(tasks) < 2:
                         continue
-                    ys = [data.get(system, 3, t, bw, loss).completion_s for t in tasks]  # type: ignore[union-attr]
+                    ys = [data.get(system, 3, t, bw, loss).completion for t in tasks]  # type: ignore[union-attr]
                     drawn |= _line(ax, tasks, ys, linestyle=style, label=f"{loss:g} %, {SYSTEMS[system].mode}")
             ax.set(title=f"{name}, {bw:g} kbit/s", xlabel="tasks", ylabel="completion (s)",
                    xticks=data.values("tasks"))
@@ -295,7 +318,7 @@ def fig12(data: Data, out: Path) -> Path | str:
                     tasks = [t for t in data.values("tasks") if data.get(dist, robots, t, bw, loss)]
                     if len(tasks) < 2:
                         continue
-                    ys = [data.get(dist, robots, t, bw, loss).completion_s for t in tasks]  # type: ignore[union-attr]
+                    ys = [data.get(dist, robots, t, bw, loss).completion for t in tasks]  # type: ignore[union-attr]
                     drawn |= _line(ax, tasks, ys, linestyle=style, color=ROBOT_COLOURS.get(robots),
                                    label=f"{robots} robots, {loss:g} %")
             ax.set(title=f"{name}, {bw:g} kbit/s", xlabel="tasks", ylabel="completion (s)",

@@ -7,30 +7,37 @@ key ratios next to the seed paper's, tables, figures and notes.
 Every number is computed from the CSV; nothing is typed in by hand except the
 seed's own figures (its ~42 % byte saving).  Ratios compare two systems only
 on *paired* runs -- the same robots, tasks, bandwidth, loss and repetition
-(hence the same task list) -- and are summarised by their geometric mean and
-range, so one slow outlier cannot dominate.
+(hence the same task list, seeded by the repetition) -- and are summarised by
+the median of the per-pair ratios with a distribution-free 95 % interval and
+their range, so one slow outlier cannot dominate.  Per-cell numbers are medians
+over the repetitions with the same kind of interval (``experiments/stats.py``);
+the aggregation is pandas.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
-import math
 import os
 import platform
-import statistics
 import sys
-from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pandas as pd
+
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+HERE = str(Path(__file__).resolve().parent)
+if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests)
+    sys.path.insert(0, HERE)
 
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
+from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci  # noqa: E402  (experiments/ is the script's own folder)
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -51,49 +58,74 @@ FIGURE_TITLES = {
 }
 
 
+#: A cell of the matrix; a cell and a repetition (SETTING) make two runs a pair.
+CELL = ("robots", "tasks", "bandwidth_kbps", "loss_pct")
+
+
+def frame(rows: Sequence[BenchRow]) -> pd.DataFrame:
+    """The rows as a data frame, one column per CSV column (None as NaN)."""
+    return pd.DataFrame([r.to_dict() for r in rows], columns=list(BenchRow.__dataclass_fields__))
+
+
 @dataclass(frozen=True)
-class Ratio:
-    """A/B over paired runs: geometric mean, range, and how many pairs."""
+class Pairs:
+    """Systems ``a`` and ``b`` side by side, one line per setting (cell and
+    repetition) where both have an ok row; ``wide`` has columns ``(column, system)``."""
 
-    gmean: float
-    low: float
-    high: float
-    n: int
+    a: str
+    b: str
+    wide: pd.DataFrame
 
-    def as_factor(self) -> str:
-        return f"x{self.gmean:.2f} ({self.low:.2f}-{self.high:.2f}, n={self.n})"
+    def __len__(self) -> int:
+        return len(self.wide)
 
-    def as_saving(self) -> str:
-        """1 - A/B as a percentage: positive = A uses less."""
-        return (f"{100 * (1 - self.gmean):.0f} % ({100 * (1 - self.high):.0f} to {100 * (1 - self.low):.0f}, "
-                f"n={self.n})")
+    def values(self, column: str, system: str) -> np.ndarray:
+        return self.wide[(column, system)].to_numpy(dtype=float)
 
-
-def _setting(row: BenchRow) -> tuple[Any, ...]:
-    return tuple(getattr(row, c) for c in SETTING)
-
-
-def paired(rows: Sequence[BenchRow], a: str, b: str,
-           where: Any = None) -> list[tuple[BenchRow, BenchRow]]:
-    """(row of a, row of b) for every setting where both have an ok row (and ``where(row)`` holds)."""
-    by: dict[str, dict[tuple[Any, ...], BenchRow]] = defaultdict(dict)
-    for r in rows:
-        if r.ok and (where is None or where(r)):
-            by[r.system][_setting(r)] = r
-    return [(by[a][k], by[b][k]) for k in sorted(by[a].keys() & by[b].keys())]
+    def ratio(self, column: str) -> Estimate | None:
+        """The median of the per-pair ratios ``a/b`` of ``column`` with its interval."""
+        if not len(self):
+            return None
+        return ratio_ci(self.values(column, self.a), self.values(column, self.b))
 
 
-def ratio(pairs: Iterable[tuple[BenchRow, BenchRow]], column: str) -> Ratio | None:
-    values = [getattr(x, column) / getattr(y, column) for x, y in pairs if getattr(x, column) and getattr(y, column)]
-    if not values:
-        return None
-    return Ratio(math.exp(statistics.fmean(math.log(v) for v in values)), min(values), max(values), len(values))
+def paired(df: pd.DataFrame, a: str, b: str, where: Callable[[pd.DataFrame], Any] | None = None) -> Pairs:
+    """``a`` and ``b`` on every setting where both have an ok row and the
+    boolean mask ``where(df)`` holds.  A setting run under several profiles
+    keeps its last row, as the CSV's resume logic does."""
+    ok = df[df["ok"].astype(bool) & df["system"].isin((a, b))]
+    if where is not None:
+        ok = ok[where(ok)]
+    wide = ok.drop_duplicates([*SETTING, "system"], keep="last").set_index([*SETTING, "system"]).unstack("system")
+    present = set(wide.columns.get_level_values(1)) if not wide.empty else set()
+    if a == b or not {a, b} <= present:
+        return Pairs(a, b, pd.DataFrame())
+    both = wide[("ok", a)].notna() & wide[("ok", b)].notna()
+    return Pairs(a, b, wide[both].sort_index())
 
 
-def _fmt(r: Ratio | None, saving: bool = False) -> str:
+def ratio(pairs: Pairs, column: str) -> Estimate | None:
+    return pairs.ratio(column)
+
+
+def _fmt(r: Estimate | None, saving: bool = False) -> str:
+    """A/B as ``x0.62 [0.58, 0.66] (n=39)``; as a saving (1 - A/B) ``38 % [34, 42] (n=39)``."""
     if r is None:
         return "no paired runs"
-    return r.as_saving() if saving else r.as_factor()
+    if saving:
+        s = r.complement().map(lambda v: 100 * v)
+        interval = f" [{s.low:.0f}, {s.high:.0f}]{SHORT if s.short else ''}" if s.has_interval else ""
+        return f"{s.value:.0f} %{interval} (n={s.n})"
+    interval = f" [{r.low:.2f}, {r.high:.2f}]{SHORT if r.short else ''}" if r.has_interval else ""
+    return f"x{r.value:.2f}{interval} (n={r.n})"
+
+
+def interval_note(what: str = "Medians") -> str:
+    """The one sentence every table with intervals carries."""
+    return (f"{what} with distribution-free {CONFIDENCE:.0%} intervals `[low, high]` from order statistics "
+            f"(`experiments/stats.py`); with fewer than 6 values no such interval exists, and the range of the values "
+            f"is shown instead, marked {SHORT} (it covers the median with probability 1 - 2^(1-n): 75 % for 3 runs); "
+            "`(n=1)`: a single run, no interval.")
 
 
 def _kb(v: Any) -> str:
@@ -187,27 +219,40 @@ def section_commands(csv_path: Path, profile: str) -> list[str]:
 
 def key_ratios(rows: Sequence[BenchRow]) -> list[tuple[str, str, str, str]]:
     """(comparison, bytes, completion time, the seed's number) rows."""
+    df = frame(rows)
     out: list[tuple[str, str, str, str]] = []
     for label, dist, cent in (
         ("seed stack (ZeroMQ, SPARQL + JSON)", "seed-distributed", "seed-central"),
         ("CoAP + compact", "coap-distributed", "coap-central"),
         ("ZeroMQ + compact", "zmq-distributed", "zmq-central"),
     ):
-        pairs = paired(rows, dist, cent)
-        if pairs:
-            out.append((f"distributed vs central, {label}: saving", _fmt(ratio(pairs, "wire_bytes"), True),
-                        _fmt(ratio(pairs, "completion_s"), True), f"~{SEED_BYTE_SAVING:.0%} fewer bytes; faster"))
-    for label, a, b, seed in (
-        ("CoAP vs ZeroMQ, distributed (both compact)", "coap-distributed", "zmq-distributed", "-"),
-        ("CoAP vs ZeroMQ, central (both compact)", "coap-central", "zmq-central", "-"),
-        ("compact vs seed wire (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed", "-"),
-        ("compact vs seed wire (ZeroMQ, central)", "zmq-central", "seed-central", "-"),
-        ("coapkb (CoAP, compact, distributed) vs the seed's system", "coap-distributed", "seed-distributed", "-"),
-    ):
-        pairs = paired(rows, a, b)
-        if pairs:
-            out.append((f"{label}: A/B", _fmt(ratio(pairs, "wire_bytes")), _fmt(ratio(pairs, "completion_s")), seed))
+        pairs = paired(df, dist, cent)
+        if len(pairs):
+            out.append((f"distributed vs central, {label}: saving", _fmt(pairs.ratio("wire_bytes"), True),
+                        _fmt(pairs.ratio("completion_s"), True), f"~{SEED_BYTE_SAVING:.0%} fewer bytes; faster"))
+    for label, a, b, seed in COMPARISONS:
+        pairs = paired(df, a, b)
+        if len(pairs):
+            out.append((f"{label}: A/B", _fmt(pairs.ratio("wire_bytes")), _fmt(pairs.ratio("completion_s")), seed))
     return out
+
+
+#: Paired comparisons beyond distributed vs central: (label, A, B, the seed's number).
+COMPARISONS: tuple[tuple[str, str, str, str], ...] = (
+    ("CoAP vs ZeroMQ, distributed (both compact)", "coap-distributed", "zmq-distributed", "-"),
+    ("CoAP vs ZeroMQ, central (both compact)", "coap-central", "zmq-central", "-"),
+    ("compact vs seed wire (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed", "-"),
+    ("compact vs seed wire (ZeroMQ, central)", "zmq-central", "seed-central", "-"),
+    ("coapkb (CoAP, compact, distributed) vs the seed's system", "coap-distributed", "seed-distributed", "-"),
+)
+#: The per-cell ratio tables: (column header, A, B).
+CELL_RATIOS: tuple[tuple[str, str, str], ...] = (
+    ("CoAP dist/central", "coap-distributed", "coap-central"),
+    ("ZeroMQ dist/central", "zmq-distributed", "zmq-central"),
+    ("seed dist/central", "seed-distributed", "seed-central"),
+    ("CoAP/ZeroMQ dist", "coap-distributed", "zmq-distributed"),
+    ("CoAP/ZeroMQ central", "coap-central", "zmq-central"),
+)
 
 
 def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
@@ -215,14 +260,15 @@ def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
         "## Key ratios",
         "",
         "Paired runs only (same robots, tasks, bandwidth, loss and repetition, hence the same tasks). "
-        "\"saving\" = 1 - A/B (positive: the first system uses less); \"A/B\" = geometric mean of the "
-        "per-pair ratios, with their range and the number of pairs.",
+        "\"saving\" = 1 - A/B (positive: the first system uses less); \"A/B\" = median of the per-pair ratios "
+        f"with its {CONFIDENCE:.0%} interval and the number of pairs. " + interval_note("Ratios are medians"),
         "",
     ]
     table = key_ratios(rows)
     if not table:
         return lines + ["No paired runs: the CSV has fewer than two systems per setting."]
     lines += _md_table(("comparison", "bytes on the wire", "completion time", "seed paper"), table)
+    df = frame(rows)
 
     # The seed's headline condition, per stack and team size.
     bws, tasks, losses = _values(rows, "bandwidth_kbps"), _values(rows, "tasks"), _values(rows, "loss_pct")
@@ -235,11 +281,12 @@ def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
             for loss in losses:
                 for robots in _values(rows, "robots"):
                     want = (bw, t, loss, robots)
-                    pairs = paired(rows, dist, cent, lambda r, want=want: (  # type: ignore[misc]
-                        r.bandwidth_kbps, r.tasks, r.loss_pct, r.robots) == want)
-                    r = ratio(pairs, "wire_bytes")
+                    pairs = paired(df, dist, cent, lambda d, want=want: (  # type: ignore[misc]
+                        (d.bandwidth_kbps == want[0]) & (d.tasks == want[1]) & (d.loss_pct == want[2])
+                        & (d.robots == want[3])))
+                    r = pairs.ratio("wire_bytes")
                     if r is not None:
-                        head.append((dist.split("-")[0], robots, _g(loss), f"{100 * (1 - r.gmean):.0f} %", r.n))
+                        head.append((dist.split("-")[0], robots, _g(loss), _fmt(r, saving=True).rsplit(" (", 1)[0], r.n))
         if head:
             lines += ["", f"Distributed vs central byte saving in the seed's Fig. 6 setting ({_g(bw)} kbit/s, {t} tasks); "
                       f"the seed reports ~{SEED_BYTE_SAVING:.0%} at 2 % loss and about the same at 20 %:", ""]
@@ -249,40 +296,83 @@ def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
     by_loss = []
     for loss in losses:
         for a, b in (("coap-distributed", "zmq-distributed"), ("coap-central", "zmq-central")):
-            pairs = paired(rows, a, b, lambda r, loss=loss: r.loss_pct == loss)  # type: ignore[misc]
-            rb, rt = ratio(pairs, "wire_bytes"), ratio(pairs, "completion_s")
+            pairs = paired(df, a, b, lambda d, loss=loss: d.loss_pct == loss)  # type: ignore[misc]
+            rb, rt = pairs.ratio("wire_bytes"), pairs.ratio("completion_s")
             if rb and rt:
-                by_loss.append((_g(loss), f"{a} / {b}", f"x{rb.gmean:.2f}", f"x{rt.gmean:.2f}", rb.n))
+                by_loss.append((_g(loss), f"{a} / {b}", _fmt(rb).rsplit(" (", 1)[0], _fmt(rt).rsplit(" (", 1)[0], rb.n))
     if by_loss:
-        lines += ["", "CoAP vs ZeroMQ by loss level (A/B, geometric mean over the paired settings):", ""]
+        lines += ["", "CoAP vs ZeroMQ by loss level (A/B, median of the paired settings' ratios):", ""]
         lines += _md_table(("loss %", "A / B", "bytes", "completion time", "pairs"), by_loss)
     return lines
 
 
+def cell_estimates(df: pd.DataFrame, column: str) -> pd.DataFrame:
+    """Per cell (rows) and system (columns): the :class:`Estimate` of ``column``
+    over the ok repetitions (None where there are none), and the failed runs
+    as a second column level ``failed``."""
+    ok = df[df["ok"].astype(bool)]
+    est = ok.groupby([*CELL, "system"])[column].agg(lambda s: median_ci(s.to_numpy(dtype=float)))
+    failed = df[~df["ok"].astype(bool)].groupby([*CELL, "system"]).size()
+    both = pd.DataFrame({"estimate": est, "failed": failed})
+    both["failed"] = both["failed"].fillna(0).astype(int)
+    return both.unstack("system").sort_index()
+
+
 def section_tables(rows: Sequence[BenchRow]) -> list[str]:
     systems = _systems(rows)
-    cells: dict[tuple[Any, ...], dict[str, list[BenchRow]]] = defaultdict(lambda: defaultdict(list))
-    for r in rows:
-        cells[(r.robots, r.tasks, r.bandwidth_kbps, r.loss_pct)][r.system].append(r)
-
-    def cell(rs: list[BenchRow], column: str, fmt: Any) -> str:
-        good = [getattr(r, column) for r in rs if r.ok and getattr(r, column) is not None]
-        bad = sum(1 for r in rs if not r.ok)
-        text = fmt(statistics.fmean(good)) if good else "-"
-        return text + (f" ({bad} failed)" if bad else "")
-
-    lines = ["## Results", "", "Means over repetitions of the ok runs; \"failed\" runs are listed below.", ""]
+    df = frame(rows)
+    lines = ["## Results", "", interval_note("Medians over the repetitions of the ok runs") +
+             " \"failed\" runs are listed above.", ""]
     for title, column, fmt in (
-        ("Bytes on the wire (kB)", "wire_bytes", _kb),
-        ("Task completion time (s)", "completion_s", _s),
+        ("Bytes on the wire (kB)", "wire_bytes", lambda v: f"{v / 1000:.1f}"),
+        ("Task completion time (s)", "completion_s", lambda v: f"{v:.1f}"),
         ("Retransmissions (CoAP: retransmitted CONs; ZeroMQ: TCP RetransSegs)", "retransmissions", lambda v: f"{v:.0f}"),
         ("Remote query latency p99 (ms)", "query_p99_ms", lambda v: f"{v:.0f}"),
     ):
+        table = cell_estimates(df, column)
+
+        def cell(key: tuple[Any, ...], system: str, fmt: Callable[[float], str] = fmt) -> str:
+            est = table["estimate"].get(system, pd.Series(dtype=object)).get(key)
+            bad = table["failed"].get(system, pd.Series(dtype=float)).get(key)
+            bad = 0 if bad is None or pd.isna(bad) else int(bad)
+            text = est.format(fmt) if isinstance(est, Estimate) else "-"
+            return text + (f" ({bad} failed)" if bad else "")
+
         lines += [f"### {title}", ""]
         lines += _md_table(
             ("robots", "tasks", "kbit/s", "loss %", *systems),
-            ((k[0], k[1], _g(k[2]), _g(k[3]), *(cell(cells[k][s], column, fmt) for s in systems))
-             for k in sorted(cells)),
+            ((k[0], k[1], _g(k[2]), _g(k[3]), *(cell(k, s) for s in systems)) for k in table.index),
+        )
+        lines.append("")
+    lines += section_cell_ratios(df)
+    return lines
+
+
+def section_cell_ratios(df: pd.DataFrame) -> list[str]:
+    """Per cell, the paired ratios A/B over its repetitions, for bytes and completion time."""
+    present = set(df["system"])
+    columns = [(h, a, b) for h, a, b in CELL_RATIOS if {a, b} <= present]
+    if not columns:
+        return []
+    lines = ["### Paired ratios per cell (A/B)", "",
+             interval_note("Medians of the per-repetition ratios") + " Bytes first, then completion time.", ""]
+    for title, column in (("bytes on the wire", "wire_bytes"), ("completion time", "completion_s")):
+        per: dict[str, pd.Series] = {}
+        for header, a, b in columns:
+            pairs = paired(df, a, b)
+            if not len(pairs):
+                continue
+            per[header] = pairs.wide.groupby(level=list(CELL)).apply(
+                lambda w, a=a, b=b: ratio_ci(w[(column, a)].to_numpy(dtype=float), w[(column, b)].to_numpy(dtype=float)))
+        if not per:
+            continue
+        table = pd.DataFrame(per).sort_index()
+        lines += [f"#### {title}", ""]
+        lines += _md_table(
+            ("robots", "tasks", "kbit/s", "loss %", *table.columns),
+            ((k[0], k[1], _g(k[2]), _g(k[3]),
+              *((v.format(lambda x: f"{x:.2f}") if isinstance(v, Estimate) else "-") for v in table.loc[k]))
+             for k in table.index),
         )
         lines.append("")
     return lines
@@ -308,6 +398,7 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
         "[`docs/benchmarks.md`, \"What we found, and why\"](../../docs/benchmarks.md#what-we-found-and-why).",
         "",
     ]
+    df = frame(rows)
     for label, a, b in (
         ("Distribution (CoAP)", "coap-distributed", "coap-central"),
         ("Distribution (ZeroMQ)", "zmq-distributed", "zmq-central"),
@@ -316,20 +407,21 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
         ("CoAP over ZeroMQ (central)", "coap-central", "zmq-central"),
         ("Compact wire over the seed's (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed"),
     ):
-        pairs = paired(rows, a, b)
-        if not pairs:
+        pairs = paired(df, a, b)
+        if not len(pairs):
             continue
-        fewer = sum(1 for x, y in pairs if x.wire_bytes < y.wire_bytes)
-        faster = sum(1 for x, y in pairs if x.completion_s < y.completion_s)
-        slower = [(x, y) for x, y in pairs if x.completion_s >= y.completion_s]
-        worst = max(slower, key=lambda p: p[0].completion_s / p[1].completion_s, default=None)
+        w = pairs.wide
+        fewer = int((w[("wire_bytes", a)] < w[("wire_bytes", b)]).sum())
+        slowdown = w[("completion_s", a)] / w[("completion_s", b)]
+        faster = int((slowdown < 1).sum())
         text = (f"- **{label}**: fewer bytes in {fewer} of {len(pairs)} paired settings, "
                 f"faster in {faster} of {len(pairs)}.")
-        if worst is not None:
-            x, y = worst
-            text += (f" Largest slow-down x{x.completion_s / y.completion_s:.1f} at {x.robots} robots, "
-                     f"{x.tasks} tasks, {_g(x.bandwidth_kbps)} kbit/s, {_g(x.loss_pct)} % loss "
-                     f"({x.completion_s:.1f} s vs {y.completion_s:.1f} s).")
+        if (slowdown >= 1).any():
+            robots, tasks, bw, loss, rep = slowdown[slowdown >= 1].idxmax()
+            x, y = w.loc[(robots, tasks, bw, loss, rep), ("completion_s", a)], w.loc[(robots, tasks, bw, loss, rep), ("completion_s", b)]
+            text += (f" Largest slow-down x{x / y:.1f} at {robots} robots, "
+                     f"{tasks} tasks, {_g(bw)} kbit/s, {_g(loss)} % loss "
+                     f"({x:.1f} s vs {y:.1f} s).")
         lines.append(text)
     tcp = [r for r in rows if r.transport == "zmq" and r.tcp_aborts is not None]
     if tcp:
@@ -362,10 +454,24 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
         "- Loss is independent per packet (no bursts); each host has its own link (no shared channel).",
         "- `app_bytes` lacks the central server's replies (it keeps no counters); compare systems on `wire_bytes`.",
         "- Completion times on a 2-core machine include the robots' CPU time; byte counts do not depend on it.",
-        "- One repetition per setting in the quick profile: loss is random, so single-run times at high loss "
-        "vary by tens of percent (a few unlucky retransmission back-offs dominate). Bytes vary much less.",
+        _reps_caveat(rows),
+        "- Repetitions: a run's task list is drawn from the seed 1 + rep (column `seed`), so the systems of one "
+        "cell and repetition do the same tasks (the pair of the ratios); which packets the link drops is the "
+        "kernel's random draw, not seeded.",
     ]
     return lines
+
+
+def _reps_caveat(rows: Sequence[BenchRow]) -> str:
+    reps = frame(rows).groupby([*CELL, "system"])["rep"].nunique()
+    low, high = (int(reps.min()), int(reps.max())) if len(reps) else (0, 0)
+    count = f"{low}" if low == high else f"{low} to {high}"
+    text = f"- {count} repetition{'s' if high > 1 else ''} per cell: loss is random, so single-run times at high loss "
+    text += "vary by tens of percent (a few unlucky retransmission back-offs dominate); bytes vary much less."
+    if low < 6:
+        text += (f" Fewer than 6 repetitions cannot give a {CONFIDENCE:.0%} distribution-free interval for a "
+                 f"median: the intervals marked {SHORT} are the range of the runs.")
+    return text
 
 
 def _rel(path: Path) -> str:
