@@ -106,7 +106,7 @@ def _add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
                    help=f"whose key in --credentials to use (default {identity})")
 
 
-def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | ZmqClientSecurity | None
+def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | ZmqClientSecurity | ZenohClientSecurity | None
     if getattr(args, "credentials", None) is None:
         return None
     from .security import load_identity
@@ -118,15 +118,19 @@ def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | Zmq
         if not args.peer:
             raise UserError("--credentials over zmq: name the member serving there with --peer (CurveZMQ needs its key)")
         return ZmqClientSecurity(identity, {peer.hostport: args.peer})
+    if peer.scheme == "zenoh":
+        from .security.zenoh_tls import ZenohClientSecurity
+
+        return ZenohClientSecurity(identity)  # mTLS: any team certificate may serve there
     if peer.scheme != "coap":
-        raise UserError(f"--credentials: the {peer.scheme} transport has no security yet")
+        raise UserError(f"--credentials: the {peer.scheme} transport cannot be secured (zenoh+udp: use zenoh://, TLS)")
     from .security.coap import ClientSecurity
 
     # EDHOC finds the responder in the trust list; --peer also insists on who it is.
     return ClientSecurity(identity, {peer.hostport: args.peer} if args.peer else None)
 
 
-def _server_security(args: argparse.Namespace):  # -> ServerSecurity | ZmqServerSecurity | None
+def _server_security(args: argparse.Namespace):  # -> ServerSecurity | ZmqServerSecurity | ZenohServerSecurity | None
     if args.credentials is None:
         return None
     from .security import load_identity
@@ -137,15 +141,19 @@ def _server_security(args: argparse.Namespace):  # -> ServerSecurity | ZmqServer
         from .security.curve import ZmqServerSecurity
 
         return ZmqServerSecurity(identity)
+    if args.transport == "zenoh":
+        from .security.zenoh_tls import ZenohServerSecurity
+
+        return ZenohServerSecurity(identity)
     if args.transport != "coap":
-        raise UserError(f"--credentials: the {args.transport} transport has no security yet")
+        raise UserError(f"--credentials: the {args.transport} transport cannot be secured (zenoh+udp: use zenoh, TLS)")
     from .security.coap import ServerSecurity
 
     return ServerSecurity(identity)
 
 
 def _add_keys(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("keys", help="make a team's key material: EDHOC credentials, private keys, trust list")
+    p = sub.add_parser("keys", help="make a team's key material: EDHOC credentials, CurveZMQ keys, TLS certificates, trust list")
     p.add_argument("--team-dir", required=True, metavar="DIR", help="a new directory (never overwritten)")
     p.add_argument("--robots", type=int, default=3, help="Robot1..RobotN")
     p.add_argument("--member", action="append", default=[], metavar="NAME:ROLE",
@@ -175,7 +183,7 @@ async def _keys(args: argparse.Namespace) -> int:
     # Names and roles only: the keys stay in their 0600 files.
     print(f"team of {len(trust.members)} in {args.team_dir}: "
           + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
-    print(f"give each member its {args.team_dir}/NAME.key and {args.team_dir}/team.json; "
+    print(f"give each member its {args.team_dir}/NAME.key, NAME.curve, NAME.tls.key, NAME.tls.pem, team.json and team-ca.pem; "
           "a robot's TOML names the directory: [security] credentials = \"DIR\"")
     return 0
 

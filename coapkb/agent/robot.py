@@ -270,12 +270,13 @@ class Robot:
 
 def robot_security(config: RobotConfig) -> Any:
     """The client side of ``config``'s ``[security]`` (a
-    :class:`~coapkb.security.coap.ClientSecurity`), or None.  Reads the key
-    now, so a missing or unreadable key stops the robot at start-up."""
+    :class:`~coapkb.security.coap.ClientSecurity`, CurveZMQ's or Zenoh's mTLS
+    one), or None.  Reads the key now, so a missing or unreadable key stops
+    the robot at start-up."""
     if config.security is None:
         return None
-    if config.transport not in ("coap", "zmq"):
-        raise SecurityError(f"[security]: the {config.transport} transport has no security yet; use coap or zmq")
+    if config.transport not in ("coap", "zmq", "zenoh"):
+        raise SecurityError(f"[security]: the {config.transport} transport has no security; use coap, zmq or zenoh")
     identity = load_identity(config.security.credentials, config.security.identity or config.robot_id)
     # Each teammate's endpoint must answer with that teammate's credential.
     expected = {m.endpoint.hostport: r for r, m in config.team.items()}
@@ -285,17 +286,26 @@ def robot_security(config: RobotConfig) -> Any:
         from ..security.curve import ZmqClientSecurity
 
         return ZmqClientSecurity(identity, expected)
+    if config.transport == "zenoh":
+        from ..security.zenoh_tls import ZenohClientSecurity
+
+        # mTLS admits any team certificate: which member serves where is not checked.
+        return ZenohClientSecurity(identity)
     from ..security.coap import ClientSecurity
 
     return ClientSecurity(identity, expected)
 
 
 def _server_security(config: RobotConfig, identity: Any, policy: AccessPolicy) -> Any:
-    """The server side for ``config``'s transport: OSCORE/EDHOC (CoAP) or CurveZMQ (ZeroMQ)."""
+    """The server side for ``config``'s transport: OSCORE/EDHOC (CoAP), CurveZMQ (ZeroMQ) or mTLS (Zenoh)."""
     if config.transport == "zmq":
         from ..security.curve import ZmqServerSecurity
 
         return ZmqServerSecurity(identity, policy)
+    if config.transport == "zenoh":
+        from ..security.zenoh_tls import ZenohServerSecurity
+
+        return ZenohServerSecurity(identity, policy)
     from ..security.coap import ServerSecurity
 
     return ServerSecurity(identity, policy)

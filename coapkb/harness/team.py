@@ -89,8 +89,9 @@ class Fault:
 
 
 #: Each transport's protection with the team's keys (``TeamSpec.security``):
-#: the bench's ``security`` column.  A transport not named here runs plain.
-SECURITY_SCHEMES: dict[str, str] = {"coap": "oscore", "zmq": "curve"}
+#: the bench's ``security`` column.  A transport not named here runs plain
+#: (``zenoh+udp``: Zenoh has TLS only over TCP).
+SECURITY_SCHEMES: dict[str, str] = {"coap": "oscore", "zmq": "curve", "zenoh": "tls"}
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,7 @@ class TeamSpec:
     replication: int = 2
     #: Failures injected during the run (``coapkb team --kill/--restart``).
     faults: tuple[Fault, ...] = ()
-    #: OSCORE keyed by EDHOC (CoAP) or CurveZMQ (ZeroMQ) between every
+    #: OSCORE keyed by EDHOC (CoAP), CurveZMQ (ZeroMQ) or mTLS (Zenoh) between every
     #: process, with the team's access policy (issue 12), from throwaway
     #: keys made in the run's directory.  Transports not in
     #: :data:`SECURITY_SCHEMES` run plain.
@@ -425,7 +426,7 @@ class Team:
         return self._record(records, stats, feeder, coordination_s, completion_s, events, dict(watcher.down))
 
     def feeder_security(self) -> Any:
-        """The feeder's OSCORE/EDHOC client side, or None for an insecure team."""
+        """The feeder's OSCORE/EDHOC, CurveZMQ or mTLS client side, or None for an insecure team."""
         if self.team_dir is None:
             return None
         expected = {e.hostport: r for r, e in self.endpoints.items()}
@@ -435,6 +436,10 @@ class Team:
             from ..security.curve import ZmqClientSecurity
 
             return ZmqClientSecurity(load_identity(self.team_dir, "feeder"), expected)
+        if self.spec.transport == "zenoh":
+            from ..security.zenoh_tls import ZenohClientSecurity
+
+            return ZenohClientSecurity(load_identity(self.team_dir, "feeder"))
         from ..security.coap import ClientSecurity
 
         return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)

@@ -14,6 +14,7 @@ from coapkb.harness.team import Team, TeamSpec
 from coapkb.security import load_identity
 from coapkb.security.coap import ClientSecurity
 from coapkb.security.curve import ZmqClientSecurity
+from coapkb.security.zenoh_tls import ZenohClientSecurity
 from coapkb.transport import PeerUnreachable, open_client
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 
@@ -56,10 +57,19 @@ kbs = ["Object", "Location", "Capability"]
     assert err.splitlines() == [f"coapkb: error: cannot read private key {team_dir / 'Robot1.key'}: No such file or directory"]
 
 
-@pytest.mark.parametrize("transport", ["coap", "zmq"])
+def _client_security(transport: str, identity, expected: dict[str, str]):
+    if transport == "coap":
+        return ClientSecurity(identity, expected)
+    if transport == "zmq":
+        return ZmqClientSecurity(identity, expected)
+    return ZenohClientSecurity(identity)
+
+
+@pytest.mark.parametrize("transport", ["coap", "zmq", "zenoh"])
 async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
-    """OSCORE/EDHOC over CoAP, CurveZMQ over ZeroMQ: a plain client gets 4.01
-    (CoAP) or no connection at all (ZeroMQ), a robot posting a task 4.03."""
+    """OSCORE/EDHOC over CoAP, CurveZMQ over ZeroMQ, mTLS over Zenoh: a plain
+    client gets 4.01 (CoAP) or no connection at all (ZeroMQ, Zenoh), a robot
+    posting a task 4.03."""
     spec = TeamSpec(robots=3, query_timeout_s=5.0, transport=transport)
     assert spec.secure  # on by default
     tasks = ["Gucci_bag_14", "Canon_tv_538", "Nonexistent_widget_1"]
@@ -72,8 +82,7 @@ async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
             expected = {e.hostport: r for r, e in team.endpoints.items()}
             identity = load_identity(team.team_dir, "Robot2")
             plain = await open_client(transport)
-            robot2 = await open_client(transport, security=ClientSecurity(identity, expected) if transport == "coap"
-                                       else ZmqClientSecurity(identity, expected))
+            robot2 = await open_client(transport, security=_client_security(transport, identity, expected))
             try:
                 for r, endpoint in team.endpoints.items():
                     if transport == "coap":
