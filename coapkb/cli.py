@@ -238,6 +238,10 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
                    help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
     p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
                    help="start a killed robot again at S seconds; it joins the team at the next task (repeatable)")
+    p.add_argument("--discovery", choices=("static", "rd"), default="static",
+                   help="how robots find their teammates: static (each config lists its cluster, default) or rd "
+                        "(each config lists the robot alone; it registers in a Resource Directory the feeder "
+                        "hosts and looks its cluster up there; coap only)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--insecure", action="store_true",
                    help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
@@ -289,6 +293,7 @@ async def _team(args: argparse.Namespace) -> int:
             time_scale=args.time_scale, replication=getattr(args, "replication", 2), faults=faults,
             security=not getattr(args, "insecure", False),
             credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
+            discovery=getattr(args, "discovery", "static"),
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)

@@ -29,6 +29,18 @@ Example ``robot1.toml``::
     [team.Robot3]
     endpoint = "coap://127.0.0.1:5703"
     kbs = ["Capability"]
+
+    # Optional: find the teammates in a Resource Directory (RFC 9176) instead;
+    # the team table then needs this robot only, and other entries are the
+    # fallback when the directory does not answer (docs/discovery.md).
+    [discovery]
+    method = "rd"                       # "static" (default): the team table only
+    rd = "coap://127.0.0.1:5690"        # the directory
+    rd_identity = "feeder"              # whose team credential it must show (OSCORE)
+    cluster = "cluster1"                # registered as the sector (d=); teammates share it
+    members = 3                         # robots of the cluster, this one included
+    lifetime_s = 60                     # registration lifetime, renewed at half of it
+    wait_s = 30.0                       # how long to wait for the whole cluster
 """
 
 from __future__ import annotations
@@ -47,6 +59,7 @@ from .transport.base import Endpoint
 
 KB_MODULES = ("Object", "Location", "Capability")
 STRATEGIES = ("compute-by-all", "compute-and-communicate")
+DISCOVERY_METHODS = ("static", "rd")
 
 
 class ConfigError(CoapkbError, ValueError):
@@ -92,6 +105,31 @@ class ExecutionModel:
 
 
 @dataclass(frozen=True)
+class DiscoveryConfig:
+    """How a robot finds its teammates (``[discovery]``): ``static`` takes
+    the ``team`` table as it is; ``rd`` registers this robot in a Resource
+    Directory and looks its cluster up there (:mod:`coapkb.discovery`)."""
+
+    method: str = "static"
+    #: The Resource Directory (``rd`` only).
+    rd: Endpoint | None = None
+    #: The team member whose credential the directory must show under
+    #: OSCORE/EDHOC (the feeder hosts it in ``coapkb team``).
+    rd_identity: str = "feeder"
+    #: This robot's cluster: the directory's sector (``d=``); teammates are
+    #: the robots registered in the same one.
+    cluster: str = "team"
+    #: Robots of the cluster, this one included: discovery waits for them all.
+    members: int = 3
+    #: Registration lifetime (``lt=``, whole seconds); renewed at half of it,
+    #: so a robot that dies is gone from the directory within this time.
+    lifetime_s: int = 60
+    #: How long to wait for the whole cluster before falling back to the
+    #: robots registered so far and the ``team`` table.
+    wait_s: float = 30.0
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     robot_id: str
     bind: Endpoint
@@ -113,6 +151,8 @@ class RobotConfig:
     #: Keep the KB as an on-disk index here (built once, opened in
     #: milliseconds at every later start); None = load it into memory.
     kb_index: Path | None = None
+    #: How the teammates are found (``[discovery]``); default: the ``team`` table.
+    discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
 
     @property
     def transport(self) -> str:
@@ -168,6 +208,10 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
     data["start"] = asdict(config.start)
     data["cost"] = asdict(config.cost)
     data["execution"] = asdict(config.execution)
+    if config.discovery != DiscoveryConfig():
+        discovery = asdict(config.discovery)
+        discovery["rd"] = None if config.discovery.rd is None else str(config.discovery.rd)
+        data["discovery"] = {k: v for k, v in discovery.items() if v is not None}
     data["team"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)} for m in config.team.values()}
     return data
 
@@ -182,6 +226,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
+        "discovery",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -236,6 +281,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         execution=_section(data, "execution", ExecutionModel),
         security=security,
         kb_index=None if kb_index is None else (base_dir / kb_index),
+        discovery=_discovery(data.get("discovery", {})),
     )
     _check_values(config)
     return config
@@ -256,12 +302,47 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("cost.reserve_wh: must not be negative")
     if not 0 < c.cost.unload_at_fraction <= 1:
         raise ConfigError("cost.unload_at_fraction: must be in (0, 1]")
+    if c.discovery.method == "rd" and c.transport != "coap":
+        raise ConfigError(f"discovery.method: a Resource Directory speaks CoAP, but this robot uses {c.transport}")
     if c.central is None:
+        # With a directory the teammates, and so the holders, are found at start-up.
         missing = [kb for kb in KB_MODULES if c.holder_of(kb) is None]
-        if missing:
+        if missing and c.discovery.method == "static":
             raise ConfigError(f"team: nobody holds {', '.join(missing)} (and no central server is set)")
     elif c.central.scheme != c.bind.scheme:
         raise ConfigError(f"central: {c.central.scheme} server, but this robot uses {c.bind.scheme}")
+
+
+def _discovery(section: Any) -> DiscoveryConfig:
+    if not isinstance(section, dict):
+        raise ConfigError("discovery: expected a table")
+    _no_unknown(section, set(DiscoveryConfig.__dataclass_fields__), "discovery.")
+    method = _get(section, "method", str, "static", where="discovery")
+    if method not in DISCOVERY_METHODS:
+        raise ConfigError(f"discovery.method: {method!r} is not one of {', '.join(DISCOVERY_METHODS)}")
+    rd = None if section.get("rd") is None else _endpoint(section["rd"], "discovery.rd")
+    if method == "rd" and rd is None:
+        raise ConfigError("discovery.rd: missing (the Resource Directory's coap://HOST:PORT)")
+    if rd is not None and rd.scheme != "coap":
+        raise ConfigError(f"discovery.rd: a Resource Directory is a coap:// endpoint, got {rd}")
+    discovery = DiscoveryConfig(
+        method=method,
+        rd=rd,
+        rd_identity=_get(section, "rd_identity", str, "feeder", where="discovery"),
+        cluster=_get(section, "cluster", str, "team", where="discovery"),
+        members=_get(section, "members", int, 3, where="discovery"),
+        lifetime_s=_get(section, "lifetime_s", int, 60, where="discovery"),
+        wait_s=float(_get(section, "wait_s", (int, float), 30.0, where="discovery")),
+    )
+    if not discovery.cluster or not all(c.isalnum() or c in "-_." for c in discovery.cluster):
+        raise ConfigError(f"discovery.cluster: letters, digits, '-', '_' and '.' only, got {discovery.cluster!r}")
+    if discovery.members < 1:
+        raise ConfigError("discovery.members: must be at least 1")
+    if discovery.lifetime_s < 1:
+        raise ConfigError("discovery.lifetime_s: must be at least 1 (seconds)")
+    if discovery.wait_s <= 0:
+        raise ConfigError("discovery.wait_s: must be positive")
+    return discovery
 
 
 def _no_unknown(data: Mapping[str, Any], known: set[str], where: str) -> None:

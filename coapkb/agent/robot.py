@@ -94,9 +94,31 @@ class Robot:
         self._next_seq = 1
         #: Object of every task taken, by sequence number (a repeated post is recognised).
         self._accepted: dict[int, str] = {}
+        #: Its registration in the team's Resource Directory (``[discovery] method = "rd"``).
+        self.directory: Any = None
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
+        directory = None
+        if config.discovery.method == "rd":
+            # The teammates come from the directory; the rest of the robot is
+            # wired from the configuration they complete (and its security
+            # expects each of them at the endpoint it registered).  Imported
+            # here: it needs aiocoap, which a ZeroMQ robot never loads.
+            from ..discovery import discover
+
+            config, directory = await discover(config)
+        try:
+            robot = await cls._start(config, query_wire)
+        except BaseException:
+            if directory is not None:
+                await directory.aclose()
+            raise
+        robot.directory = directory
+        return robot
+
+    @classmethod
+    async def _start(cls, config: RobotConfig, query_wire: str) -> "Robot":
         client_security = robot_security(config)  # first: a bad key stops the robot before the KB loads
         kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
         router = Router()
@@ -167,6 +189,8 @@ class Robot:
             self._get_stats)
 
     async def aclose(self) -> None:
+        if self.directory is not None:
+            await self.directory.aclose()
         await self.controller.aclose()
         await self.executor.aclose()
         await self.team.aclose()

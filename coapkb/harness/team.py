@@ -33,7 +33,9 @@ from ..agent.query_handler import QUERY_WIRES
 from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
 from ..agent.stats import RobotStats
 from ..config import (
+    DISCOVERY_METHODS,
     KB_MODULES,
+    DiscoveryConfig,
     STRATEGIES,
     ExecutionModel,
     RobotConfig,
@@ -122,6 +124,15 @@ class TeamSpec:
     security: bool = True
     #: An existing team directory (``coapkb keys``) to use instead of throwaway keys.
     credentials: Path | None = None
+    #: How robots find their teammates: ``static`` (each config lists its
+    #: cluster) or ``rd`` (each config lists the robot alone; the feeder
+    #: hosts a Resource Directory where robots register and look the
+    #: cluster up: coapkb.discovery).  Static by default: the harness writes
+    #: every configuration itself, so its map is exact, and benchmarks do
+    #: not pay the directory's traffic.
+    discovery: str = "static"
+    #: Registration lifetime in the directory (``rd``), seconds.
+    rd_lifetime_s: int = 60
 
     @property
     def secure(self) -> bool:
@@ -145,6 +156,12 @@ class TeamSpec:
             raise ValueError(f"retransmission must be one of {', '.join(PROFILE_NAMES)}, got {self.retransmission!r}")
         if self.query_wire not in QUERY_WIRES:
             raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
+        if self.discovery not in DISCOVERY_METHODS:
+            raise ValueError(f"discovery must be one of {', '.join(DISCOVERY_METHODS)}, got {self.discovery!r}")
+        if self.discovery == "rd" and self.transport != "coap":
+            raise ValueError(f"discovery rd needs the coap transport (a Resource Directory speaks CoAP), not {self.transport}")
+        if self.rd_lifetime_s < 1:
+            raise ValueError(f"rd_lifetime_s must be at least 1, got {self.rd_lifetime_s}")
         if not 1 <= self.replication <= CLUSTER_SIZE:
             raise ValueError(f"replication must be 1 to {CLUSTER_SIZE} (robots per cluster), got {self.replication}")
         for fault in self.faults:
@@ -265,6 +282,8 @@ class Team:
         self._incarnation: dict[str, int] = {}
         #: The team's key directory (``coapkb keys``'s layout) when the spec is secure.
         self.team_dir: Path | None = None
+        #: The Resource Directory the feeder hosts (``discovery="rd"``).
+        self.directory: Any = None
 
     # ---------------------------------------------------------------- processes
 
@@ -275,17 +294,25 @@ class Team:
         for cluster in spec.clusters():
             for robot_id in cluster:
                 self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
-        for cluster in spec.clusters():
+        for cluster_no, cluster in enumerate(spec.clusters(), 1):
             team = {
                 mate: Teammate(mate, self.endpoints[mate], cluster_modules(i, spec) if spec.mode == "distributed" else ())
                 for i, mate in enumerate(cluster)
             }
+            discovery = DiscoveryConfig()
+            if self.directory is not None:
+                discovery = DiscoveryConfig(
+                    "rd", rd=self.directory.endpoint, rd_identity="feeder", cluster=f"cluster{cluster_no}",
+                    members=len(cluster), lifetime_s=spec.rd_lifetime_s, wait_s=spec.task_timeout_s,
+                )
             for robot_id in cluster:
                 config = RobotConfig(
                     robot_id=robot_id,
                     bind=self.endpoints[robot_id],
                     kb_files=tuple(spec.ontologies / f"{kb}.owl" for kb in team[robot_id].kbs),
-                    team=team,
+                    # With a directory, each robot knows only itself and finds the rest.
+                    team=team if self.directory is None else {robot_id: team[robot_id]},
+                    discovery=discovery,
                     start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
                     strategy=spec.strategy,
                     retransmission=spec.retransmission,
@@ -343,6 +370,11 @@ class Team:
                         ["serve", "--kb", *kbs, "--bind", team.central.hostport, "--transport", spec.transport, *secured],
                         "serving",
                     )
+                if spec.discovery == "rd":
+                    from ..discovery import ResourceDirectory
+
+                    identity = None if team.team_dir is None else load_identity(team.team_dir, "feeder")
+                    team.directory = await ResourceDirectory.start(Endpoint("coap", spec.host, 0), identity)
                 configs = team.write_configs()
                 # A TaskGroup cancels the other start-ups as soon as one fails.
                 try:
@@ -357,6 +389,13 @@ class Team:
                 await team.stop()
 
     async def stop(self) -> None:
+        try:
+            await self._stop_processes()
+        finally:
+            if self.directory is not None:
+                await self.directory.aclose()
+
+    async def _stop_processes(self) -> None:
         for proc in self.processes.values():
             if proc.returncode is None:
                 with contextlib.suppress(ProcessLookupError):

@@ -76,6 +76,9 @@ class Request:
     #: ETags of representations the client holds (RFC 7252 section 5.10.6):
     #: if one still matches, the answer is 2.03 Valid without a payload.
     etags: tuple[bytes, ...] = ()
+    #: The team member the request came from, as its security layer
+    #: authenticated it (OSCORE/EDHOC on a server); None if unprotected.
+    peer: str | None = None
 
 
 @dataclass(frozen=True)

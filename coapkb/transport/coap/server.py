@@ -13,6 +13,7 @@ import errno
 import ipaddress
 import logging
 import socket
+from dataclasses import replace
 from typing import Any
 
 import aiocoap
@@ -90,6 +91,9 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
             req = request_from_message(self.info.path, request)
         except ValueError:
             return message_from_response(Response.error(Status.METHOD_NOT_ALLOWED, f"{request.code} not supported"))
+        if self._security is not None:
+            member = self._security.member_of(request)  # who, for a service that cares (the RD)
+            req = replace(req, peer=None if member is None else member.name)
         sent_hash = dict(q.partition("=")[::2] for q in request.opt.uri_query).get(BODY_HASH_PARAM)
         if req.payload and sent_hash is not None and sent_hash != body_hash(req.payload):
             return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
