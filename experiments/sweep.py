@@ -3,6 +3,7 @@
 
     sudo .venv/bin/python experiments/sweep.py --profile quick          # < 15 min on 2 cores
     sudo .venv/bin/python experiments/sweep.py --profile paper --jobs 1  # the full matrix: days
+    .venv/bin/python experiments/sweep.py --profile paper --engine dask://HOST:8786  # on a Dask cluster
 
 Each run is one ``coapkb bench --json`` child process (its own testbed, its
 own namespaces), so a crash, a hang or a leaked thread in one run cannot
@@ -14,6 +15,15 @@ bandwidth, loss, rep, retransmission profile) is already in the CSV.
 Parallel runs (``--jobs 2``) share the CPU: on two cores the robots' and the
 KB server's processing time then grows, which distorts completion times (not
 byte counts).  The committed results use ``--jobs 1``.
+
+``--engine dask://HOST:PORT`` runs the same child processes as tasks on a
+Dask distributed cluster instead (docs/benchmarks.md, "Running on a
+cluster"): each task needs the worker resource ``netns`` (workers started
+with ``--resources netns=N`` run at most N runs at once, as root), returns its
+row, and this process appends the rows to the one CSV as they complete.  A
+run whose worker is lost is retried by Dask on another worker; one the
+cluster could not finish (or every run, if the scheduler goes away) is left
+out of the CSV, so the next start runs it.  No key is ever appended twice.
 """
 
 from __future__ import annotations
@@ -21,6 +31,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import hashlib
 import json
 import math
 import signal
@@ -30,7 +41,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import product
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+from urllib.parse import urlsplit
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
@@ -44,12 +56,23 @@ from coapkb.bench.run import (
     done_keys,
     format_row,
     retransmission_label,
+    security_label,
     timeouts_for,
 )
 from coapkb.bench.linkemu import available, cleanup_stale
+from coapkb.errors import CoapkbError
 from tqdm import tqdm
 
 RESULTS = ROOT / "experiments" / "results"
+#: The Dask worker resource one run holds: its own network namespaces, and a
+#: core's worth of the machine so runs on one worker do not skew each other's times.
+NETNS = "netns"
+#: How long to wait for the Dask scheduler before giving up (seconds).
+CONNECT_TIMEOUT_S = 10.0
+
+
+class EngineError(CoapkbError):
+    """The engine cannot run the sweep (bad --engine, no scheduler, unfit workers); ``str()`` is for the user."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +115,8 @@ class Run:
     jitter_ms: float = 0.0
     loss_model: str = "random"
     burst_len: float = 3.0
+    #: The team's keys protect the messages (``coapkb bench`` without ``--insecure``).
+    security: bool = True
 
     def row(self, **measured: Any) -> BenchRow:
         """This run's row: its identity (link columns as ``coapkb bench`` writes
@@ -101,19 +126,27 @@ class Run:
             loss_pct=self.loss, rep=self.rep,
             retransmission_profile=retransmission_label(self.system, self.retransmission),
             delay_ms=self.delay_ms, jitter_ms=self.jitter_ms, loss_model=self.loss_model,
-            burst_len=self.burst_len if self.loss_model == "burst" else 0.0, **measured,
+            burst_len=self.burst_len if self.loss_model == "burst" else 0.0,
+            security=security_label(self.system, self.security), **measured,
         )
 
     def key(self) -> tuple[str, ...]:
         return self.row().key()
 
+    @property
+    def seed(self) -> int:
+        """The task-list seed, ``coapkb bench``'s default for the repetition:
+        every system of a cell and repetition does the same tasks (the pair)."""
+        return 1 + self.rep
+
     def argv(self) -> list[str]:
         return [
             sys.executable, "-m", "coapkb", "bench", "--robots", str(self.robots), "--tasks", str(self.tasks),
             "--bandwidth", f"{self.bandwidth:g}", "--loss", f"{self.loss:g}", "--systems", self.system,
-            "--first-rep", str(self.rep), "--reps", "1", "--retransmission", self.retransmission, "--json",
+            "--first-rep", str(self.rep), "--reps", "1", "--seed", str(self.seed),
+            "--retransmission", self.retransmission, "--json",
             "--delay", f"{self.delay_ms:g}", "--jitter", f"{self.jitter_ms:g}", "--loss-model", self.loss_model,
-            "--burst-len", f"{self.burst_len:g}",
+            "--burst-len", f"{self.burst_len:g}", *(() if self.security else ("--insecure",)),
         ]
 
     def label(self) -> str:
@@ -163,7 +196,7 @@ PROFILES: dict[str, Profile] = {
 
 
 def plan(profile: Profile, retransmission: str, reps: int | None = None,
-         systems: Sequence[str] | None = None) -> list[Run]:
+         systems: Sequence[str] | None = None, security: bool = True) -> list[Run]:
     """Every run of the profile, in order: repetition, then setting, then system
     (so a half-finished sweep has all systems of the settings it reached)."""
     seen: set[tuple[str, ...]] = set()
@@ -182,7 +215,7 @@ def plan(profile: Profile, retransmission: str, reps: int | None = None,
                     if systems is not None and s not in systems:
                         continue
                     run = Run(s, r, t, float(b), float(loss), rep, retransmission, profile.delay_ms,
-                              profile.jitter_ms, profile.loss_model, profile.burst_len)
+                              profile.jitter_ms, profile.loss_model, profile.burst_len, security)
                     if run.key() not in seen:
                         seen.add(run.key())
                         runs.append(run)
@@ -201,10 +234,15 @@ def units(run: Run) -> int:
     return math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)) + 1
 
 
-async def _run_child(run: Run, limit_s: float) -> BenchRow:
+def limit_for(run: Run) -> float:
+    """How long a run may take before the sweep kills it (its own timeouts plus start-up and teardown)."""
+    return timeouts_for(run.bandwidth, run.loss, math.ceil(run.tasks / (run.robots // CLUSTER_SIZE))).run_s + 180
+
+
+async def _run_child(run: Run, limit_s: float, cwd: Path = ROOT) -> BenchRow:
     """One ``coapkb bench --json`` child; its row, or a failed row if it died or hung."""
     proc = await asyncio.create_subprocess_exec(
-        *run.argv(), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
+        *run.argv(), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=cwd,
         start_new_session=True,  # Ctrl-C reaches the sweep, which then stops its children itself
     )
     try:
@@ -221,6 +259,7 @@ async def _run_child(run: Run, limit_s: float) -> BenchRow:
     system = SYSTEMS[run.system]
     return run.row(
         ok=False, mode=system.mode, transport=system.transport, query_wire=system.query_wire, emulation="netns",
+        seed=run.seed,
         error=f"bench child exited {proc.returncode}: {tail or 'no output'}"[:500],
     )
 
@@ -237,54 +276,193 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
         await proc.wait()
 
 
+class Progress:
+    """Rows into the CSV as runs finish, each key at most once, with a bar on
+    a terminal's stderr and one line per run on stdout with the count,
+    elapsed time and ETA (for a log).  ``done_runs`` are the profile's runs
+    already in the CSV."""
+
+    def __init__(self, out: Path, runs: Sequence[Run], done_runs: Sequence[Run]) -> None:
+        self.out = out
+        self.total = len(runs) + len(done_runs)
+        self.done_before = len(done_runs)
+        self.finished = 0
+        self.failed = 0
+        self.lost = 0
+        self._written: set[tuple[str, ...]] = set()
+        # tqdm's ETA is the remaining units at the mean rate so far (smoothing=0):
+        # runs of one sweep are interleaved by setting, so the mean is a fair guess.
+        self.bar = tqdm(total=sum(map(units, [*done_runs, *runs])), initial=sum(map(units, done_runs)), unit="task",
+                        desc="sweep", file=sys.stderr, smoothing=0, disable=None)
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
+
+    def record(self, run: Run, row: BenchRow) -> None:
+        """Append ``row`` unless this sweep already wrote ``run``'s key (an
+        engine that delivers a run twice, e.g. after a retry, adds nothing)."""
+        if run.key() in self._written:
+            self._log(f"{run.label()}: already recorded, second result dropped")
+            return
+        append_rows(self.out, [row])
+        self._written.add(run.key())
+        self.finished += 1
+        self.failed += not row.ok
+        self.bar.update(units(run))
+        self._log(format_row(row))
+
+    def missing(self, run: Run, why: str) -> None:
+        """A run the engine could not finish: nothing is written, so the next start runs it."""
+        self.lost += 1
+        self._log(f"{run.label()}: NOT RUN ({why}); left for the next start")
+
+    def _log(self, text: str) -> None:
+        count = self.done_before + self.finished
+        times = tqdm.format_meter(**{**self.bar.format_dict, "bar_format": "{elapsed} ETA {remaining}"})
+        self.bar.write(f"[{count}/{self.total} {100 * count / self.total:3.0f}%] {times} | {text}", file=sys.stdout)
+        sys.stdout.flush()
+
+
 async def sweep(runs: list[Run], out: Path, jobs: int, done_runs: list[Run]) -> int:
-    """Run ``runs`` (``jobs`` at a time), appending each row to ``out`` as it
-    finishes.  Progress: a bar on a terminal's stderr, and one line per run on
-    stdout with the count, elapsed time and ETA (for a log).  ``done_runs``
-    are the profile's runs already in the CSV.  Returns failed runs."""
+    """Run ``runs`` on this machine (``jobs`` at a time), appending each row to
+    ``out`` as it finishes (see :class:`Progress`).  Returns failed runs."""
     queue: asyncio.Queue[Run] = asyncio.Queue()
     for r in runs:
         queue.put_nowait(r)
-    total = len(runs) + len(done_runs)
-    finished = 0
-    failed = 0
-    # tqdm's ETA is the remaining units at the mean rate so far (smoothing=0):
-    # runs of one sweep are interleaved by setting, so the mean is a fair guess.
-    bar = tqdm(total=sum(map(units, [*done_runs, *runs])), initial=sum(map(units, done_runs)), unit="task",
-               desc="sweep", file=sys.stderr, smoothing=0, disable=None)
-    log_format = "{elapsed} ETA {remaining}"
 
-    async def worker() -> None:
-        nonlocal finished, failed
+    async def worker(progress: Progress) -> None:
         while not queue.empty():
             run = queue.get_nowait()
-            t = timeouts_for(run.bandwidth, run.loss, math.ceil(run.tasks / (run.robots // CLUSTER_SIZE)))
-            row = await _run_child(run, t.run_s + 180)
-            append_rows(out, [row])
-            finished += 1
-            failed += not row.ok
-            bar.update(units(run))
-            count = len(done_runs) + finished
-            times = tqdm.format_meter(**{**bar.format_dict, "bar_format": log_format})
-            bar.write(f"[{count}/{total} {100 * count / total:3.0f}%] {times} | {format_row(row)}", file=sys.stdout)
-            sys.stdout.flush()
+            progress.record(run, await _run_child(run, limit_for(run)))
 
-    with bar:
-        await asyncio.gather(*(worker() for _ in range(max(1, jobs))))
-    return failed
+    with Progress(out, runs, done_runs) as progress:
+        await asyncio.gather(*(worker(progress) for _ in range(max(1, jobs))))
+    return progress.failed
+
+
+# --------------------------------------------------------------------------- the Dask engine
+
+
+@dataclass(frozen=True)
+class Engine:
+    """Where the runs go: this machine, or a Dask scheduler at ``address``."""
+
+    kind: Literal["local", "dask"]
+    address: str = ""
+
+    def __str__(self) -> str:
+        return "local" if self.kind == "local" else f"Dask scheduler {self.address}"
+
+
+def parse_engine(text: str) -> Engine:
+    """``local`` or ``dask://HOST:PORT`` (the scheduler's TCP address); EngineError otherwise."""
+    if text == "local":
+        return Engine("local")
+    expected = f"--engine: expected 'local' or 'dask://HOST:PORT', got {text!r}"
+    url = urlsplit(text)
+    try:
+        port = url.port
+    except ValueError:
+        raise EngineError(expected) from None
+    if url.scheme != "dask" or not url.hostname or port is None or url.path not in ("", "/") or url.query:
+        raise EngineError(expected)
+    host = f"[{url.hostname}]" if ":" in url.hostname else url.hostname
+    return Engine("dask", f"tcp://{host}:{port}")
+
+
+def run_on_worker(run: Run, limit_s: float) -> dict[str, Any]:
+    """The Dask task: ``run`` as a ``coapkb bench`` child of the worker, with
+    the worker's own Python and checkout; its row as plain data (the client
+    may run another version of the row class)."""
+    import coapkb  # the worker's checkout, not the client's path
+
+    row = asyncio.run(_run_child(run, limit_s, cwd=Path(coapkb.__file__).resolve().parent.parent))
+    return row.to_dict()
+
+
+def _prepare_worker() -> tuple[bool, str, int]:
+    """On each worker before the sweep: can it emulate links, and the stale namespaces it removed."""
+    ok, why = available()
+    return ok, why, len(cleanup_stale()) if ok else 0
+
+
+def task_key(run: Run) -> str:
+    """The run's Dask key: two clients submitting the same run share one task."""
+    return "coapkb-run-" + hashlib.sha1("\x1f".join(run.key()).encode()).hexdigest()[:20]
+
+
+async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[Run]) -> tuple[int, int]:
+    """Run ``runs`` on the Dask cluster at ``address``, one task per run holding
+    one ``netns`` resource, appending rows as they complete.  Returns (failed
+    runs, runs not run).  EngineError when the cluster cannot take the sweep."""
+    try:
+        import cloudpickle
+        from distributed import Client, as_completed
+    except ImportError:
+        raise EngineError("--engine dask:// needs Dask: .venv/bin/pip install -e '.[bench]'") from None
+    # The workers cannot import this script (it is not a package, and the test
+    # loads it under another name): ship its functions and Run by value.
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    try:
+        client = await Client(address, asynchronous=True, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        raise EngineError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    async with client:
+        workers = client.scheduler_info(n_workers=-1)["workers"]
+        slots = sum(w.get("resources", {}).get(NETNS, 0) for w in workers.values())
+        print(f"{address}: {len(workers)} workers, {slots:g} run slots (resource {NETNS})", flush=True)
+        if not slots:
+            print(f"sweep: no worker offers the resource {NETNS!r} yet; runs wait for workers started with "
+                  f"`dask worker {address} --nthreads 1 --resources {NETNS}=1` (as root)", file=sys.stderr, flush=True)
+        unfit = {w: why for w, (ok, why, _) in (await client.run(_prepare_worker)).items() if not ok}
+        if unfit:
+            raise EngineError("workers without kernel link emulation (not root?): "
+                              + "; ".join(f"{w}: {why}" for w, why in sorted(unfit.items())))
+        futures = {
+            client.submit(run_on_worker, run, limit_for(run), key=task_key(run), resources={NETNS: 1},
+                          priority=len(runs) - i): run  # the plan's order, as the local engine
+            for i, run in enumerate(runs)
+        }
+        with Progress(out, runs, done_runs) as progress:
+            async for future in as_completed(futures):
+                run = futures[future]
+                try:
+                    data = await future
+                except asyncio.CancelledError:
+                    if future.status != "cancelled":  # this sweep was cancelled (Ctrl-C), not the task
+                        raise
+                    progress.missing(run, "cancelled: scheduler lost?")
+                except Exception as exc:  # e.g. KilledWorker: the run took down every worker it was tried on
+                    progress.missing(run, f"{type(exc).__name__}: {exc}"[:200])
+                else:
+                    progress.record(run, BenchRow.from_dict(data))
+    return progress.failed, progress.lost
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", choices=tuple(PROFILES), default="quick")
-    p.add_argument("--jobs", type=int, default=1, help="runs at once (default 1; more distorts timings)")
+    p.add_argument("--jobs", type=int, default=1, help="runs at once (default 1; more distorts timings); local engine")
+    p.add_argument("--engine", default="local", metavar="local|dask://HOST:PORT",
+                   help="where runs go: this machine (default) or a Dask scheduler's workers (their --resources "
+                        f"{NETNS}=N set how many at once per worker)")
     p.add_argument("--out", type=Path, help="CSV (default experiments/results/<profile>.csv)")
     p.add_argument("--retransmission", default="robust", help="CoAP reliability profile")
     p.add_argument("--reps", type=int, help="override the profile's repetitions")
     p.add_argument("--systems", help="only these systems (comma-separated)")
+    p.add_argument("--insecure", action="store_true",
+                   help="runs without the team's keys (coapkb bench --insecure), for comparison")
     p.add_argument("--retry-failed", action="store_true", help="run again the keys whose row has ok=False")
     p.add_argument("--dry-run", action="store_true", help="list the pending runs and exit")
     args = p.parse_args(argv)
+    try:
+        engine = parse_engine(args.engine)
+    except EngineError as exc:
+        print(f"sweep: {exc}", file=sys.stderr)
+        return 2
     profile = PROFILES[args.profile]
     out = args.out or RESULTS / f"{profile.name}.csv"
     systems = None
@@ -293,12 +471,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         unknown = [s for s in systems if s not in SYSTEMS]
         if unknown:
             p.error(f"unknown systems: {', '.join(unknown)}")
-    runs = plan(profile, args.retransmission, args.reps, systems)
+    runs = plan(profile, args.retransmission, args.reps, systems, security=not args.insecure)
     todo = pending(runs, done_keys(out, include_failed=not args.retry_failed))
     waiting = set(todo)
     done_runs = [r for r in runs if r not in waiting]
     print(f"profile {profile.name}: {len(runs)} runs ({profile.note}); {len(runs) - len(todo)} already in {out}, "
-          f"{len(todo)} to go, {args.jobs} at a time", flush=True)
+          f"{len(todo)} to go, " + (f"{args.jobs} at a time" if engine.kind == "local" else f"on the {engine}"),
+          flush=True)
     if args.dry_run:
         with contextlib.suppress(BrokenPipeError):  # `... --dry-run | head`
             for r in todo:
@@ -306,22 +485,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not todo:
         return 0
-    ok, why = available()
-    if not ok:
-        print(f"sweep: no kernel link emulation here: {why}", file=sys.stderr)
-        return 2
-    removed = cleanup_stale()
-    if removed:
-        print(f"removed {len(removed)} namespaces left by crashed runs", flush=True)
+    if engine.kind == "local":  # a Dask worker checks its own machine (_prepare_worker)
+        ok, why = available()
+        if not ok:
+            print(f"sweep: no kernel link emulation here: {why}", file=sys.stderr)
+            return 2
+        removed = cleanup_stale()
+        if removed:
+            print(f"removed {len(removed)} namespaces left by crashed runs", flush=True)
     t0 = time.monotonic()
+    lost = 0
     try:
-        failed = asyncio.run(sweep(todo, out, args.jobs, done_runs))
+        if engine.kind == "local":
+            failed = asyncio.run(sweep(todo, out, args.jobs, done_runs))
+        else:
+            failed, lost = asyncio.run(sweep_dask(todo, out, engine.address, done_runs))
+    except EngineError as exc:
+        print(f"sweep: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("\ninterrupted; finished rows are kept, run again to resume", file=sys.stderr)
         return 130
-    print(f"done in {tqdm.format_interval(time.monotonic() - t0)} ({time.monotonic() - t0:.0f} s): {len(todo) - failed} ok, "
-          f"{failed} failed; rows in {out}", flush=True)
-    return 1 if failed else 0
+    print(f"done in {tqdm.format_interval(time.monotonic() - t0)} ({time.monotonic() - t0:.0f} s): "
+          f"{len(todo) - failed - lost} ok, {failed} failed"
+          + (f", {lost} not run (run again to resume)" if lost else "") + f"; rows in {out}", flush=True)
+    return 1 if failed or lost else 0
 
 
 if __name__ == "__main__":

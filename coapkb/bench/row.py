@@ -93,6 +93,10 @@ class BenchRow:
     tasks_reassigned: int | None = None
     #: Tasks the team could not do: a KB module they need had no live holder.
     tasks_unavailable: int | None = None
+    #: What protected the messages (``coapkb.harness.team.SECURITY_SCHEMES``):
+    #: ``oscore``, ``curve``, or ``none`` -- a CSV written before the column
+    #: holds unprotected runs only.
+    security: str = key_field("none")
 
     def key(self) -> tuple[str, ...]:
         """The run's identity: rows with equal keys are the same run (a re-run
@@ -197,7 +201,7 @@ def append_rows(path: str | Path, rows: Iterable[BenchRow]) -> None:
 def format_row(row: BenchRow) -> str:
     """One line of key numbers for a terminal."""
     head = (f"{row.system:<17} {row.robots}r {row.tasks:>2}t {row.bandwidth_kbps:g}k "
-            f"{row.loss_pct:g}% rep{row.rep}")
+            f"{row.loss_pct:g}% rep{row.rep} {row.security}")
     if not row.ok:
         return f"{head}: FAILED after {row.wall_s or 0:.0f} s: {row.error or 'unknown'}"
 

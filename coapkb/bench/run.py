@@ -38,6 +38,11 @@ What a row measures (see ``docs/benchmarks.md``):
     Zenoh/TCP: the kernel's ``TcpRetransSegs`` summed over every host's namespace
     (``tcp_aborts``: its ``TCPAbortOnTimeout``, connections the kernel gave
     up on -- keep-alive or ``TCP_USER_TIMEOUT`` -- which ZeroMQ then re-opens).
+``security``
+    What protected the messages, as in ``coapkb team``: ``oscore`` (CoAP,
+    OSCORE keyed by EDHOC, with the team's access policy), ``curve``
+    (ZeroMQ, CurveZMQ), or ``none`` (``--insecure``, or a transport without
+    security).  Handshakes are on the wire and counted.
 ``coordination_s`` / ``completion_s``
     From :meth:`Team.run`: feeding the first task until every cluster decided
     its last one / until every robot also finished executing.
@@ -68,6 +73,7 @@ from .linkemu import (
 from ..harness.team import (
     CLUSTER_SIZE,
     DEFAULT_ONTOLOGIES,
+    SECURITY_SCHEMES,
     Placement,
     Team,
     TeamError,
@@ -95,6 +101,7 @@ __all__ = [
     "read_rows",
     "retransmission_label",
     "run_once",
+    "security_label",
     "system_spec",
     "timeouts_for",
 ]
@@ -115,15 +122,11 @@ class SystemDef:
     transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp"
     query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
     description: str
-    #: OSCORE keyed by EDHOC and the access policy (issue 12, docs/security.md).
-    security: bool = False
 
 
 SYSTEMS: dict[str, SystemDef] = {
     "coap-distributed": SystemDef("distributed", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, KB split over the robots"),
     "coap-central": SystemDef("central", "coap", "compact", "CoAP/UDP, named queries, compact CBOR, one remote KB server"),
-    "coap-distributed-oscore": SystemDef("distributed", "coap", "compact", "coap-distributed with OSCORE keyed by EDHOC", security=True),
-    "coap-central-oscore": SystemDef("central", "coap", "compact", "coap-central with OSCORE keyed by EDHOC", security=True),
     "zmq-distributed": SystemDef("distributed", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, KB split over the robots"),
     "zmq-central": SystemDef("central", "zmq", "compact", "ZeroMQ/TCP, named queries, compact CBOR, one remote KB server"),
     "seed-distributed": SystemDef("distributed", "zmq", "seed", "the seed's set-up: ZeroMQ/TCP, whole SPARQL text, SPARQL-JSON answers"),
@@ -177,8 +180,10 @@ def system_spec(
     link_kbps: float | None = None,
     replication: int = 1,
     faults: Sequence[Fault] = (),
+    security: bool = True,
 ) -> TeamSpec:
-    """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`)."""
+    """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`), with the
+    team's keys protecting it where its transport can (``security``)."""
     try:
         d = SYSTEMS[system]
     except KeyError:
@@ -188,12 +193,11 @@ def system_spec(
         extra = {"query_timeout_s": timeouts.query_s, "task_timeout_s": timeouts.task_s}
     # replication=1 by default: the benchmarks compare with the seed's system,
     # one KB module per robot (replicas change which queries are remote).
-    # Security only in the -oscore systems: ZeroMQ has no CurveZMQ yet, so
-    # OSCORE on the CoAP systems only would skew the comparison (docs/security.md).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
         retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps,
-        replication=replication, faults=tuple(faults), security=d.security, **extra,
+        replication=replication, faults=tuple(faults),
+        security=_security_label(d, security) != "none", **extra,
     )
 
 
@@ -203,6 +207,18 @@ def retransmission_label(system: str, profile: str) -> str:
     profile has no effect there, so it must not split the resume key), ``none``
     for Zenoh over UDP (its unicast UDP link does not retransmit)."""
     return _retransmission_label(SYSTEMS[system].transport, profile)
+
+
+def security_label(system: str, on: bool) -> str:
+    """What the ``security`` column holds for ``system`` with security ``on``
+    or off: the transport's scheme (``TeamSpec.security_scheme``) or ``none``."""
+    return _security_label(SYSTEMS[system], on)
+
+
+def _security_label(d: SystemDef, on: bool) -> str:
+    # The seed's systems stay as the seed ran them, unprotected: they are the
+    # baseline its claims are checked against (docs/benchmarks.md).
+    return SECURITY_SCHEMES.get(d.transport, "none") if on and d.query_wire != "seed" else "none"
 
 
 def _retransmission_label(transport: str, profile: str) -> str:
@@ -266,9 +282,10 @@ def parse_retrans_segs(snmp: str) -> int:
 
 
 def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
-              retransmission: str, seed: int) -> BenchRow:
+              retransmission: str, seed: int, security: bool) -> BenchRow:
     d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
     return BenchRow(
+        security=_security_label(d, security),
         system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
         retransmission_profile=_retransmission_label(d.transport, retransmission), ok=False,
         mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
@@ -335,6 +352,7 @@ async def run_once(
     burst_len: float = 3.0,
     replication: int = 1,
     faults: Sequence[Fault] = (),
+    security: bool = True,
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -345,10 +363,12 @@ async def run_once(
     ``delay_ms``, ``jitter_ms``, ``loss_model`` and ``burst_len`` go into the
     robots' and the central's :class:`LinkSpec` (one-way, per sending host).
     ``faults`` kill robots during the run (``coapkb bench --fail``), usually
-    with ``replication`` 2 so their KB modules live on.
+    with ``replication`` 2 so their KB modules live on.  ``security``: the
+    team's keys protect every process's messages (OSCORE, CurveZMQ), as in
+    ``coapkb team``; off only for comparison.
     """
     seed = 1 + rep if seed is None else seed
-    row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed)
+    row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed, security)
     # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
     row = replace(row, delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
                   burst_len=burst_len if loss_model == "burst" else 0.0, replication=replication,
@@ -360,7 +380,7 @@ async def run_once(
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
         # Robots know their radio's rate, as a real radio reports it.
         spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies,
-                           link_kbps=bandwidth_kbps, replication=replication, faults=faults)
+                           link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
@@ -448,6 +468,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="robots of a cluster holding each KB module (default 1, as the seed; 2 with --fail)")
     p.add_argument("--fail", action="append", default=[], metavar="ROBOT@SECONDS",
                    help="kill ROBOT (SIGKILL) this many seconds into the run; repeatable")
+    p.add_argument("--insecure", action="store_true",
+                   help="no OSCORE/CurveZMQ, for comparison (default: the team's keys protect every message, "
+                        "as in coapkb team)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
 
@@ -488,7 +511,7 @@ async def main(args: argparse.Namespace) -> int:
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
                                  args.retransmission, args.seed, replication=args.replication, faults=faults,
-                                 **link)
+                                 security=not args.insecure, **link)
             if args.out:
                 append_rows(args.out, [row])
             if args.json:

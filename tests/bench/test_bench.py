@@ -69,6 +69,18 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
     coap, zmq = rows
     assert coap.retransmission_profile == "robust" and zmq.retransmission_profile == "tcp"
     assert coap.local_queries > 0 and zmq.local_queries == 0  # distributed answers some queries itself
+    assert (coap.security, zmq.security) == ("oscore", "curve")  # on by default, as in coapkb team
+
+
+@pytest.mark.root
+@pytest.mark.timeout(120)
+async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain() -> None:
+    _require_netns()
+    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False)
+    assert plain.ok, plain.error
+    assert plain.security == "none"
+    assert plain.key() != replace(plain, security="oscore").key()
+    assert bench.security_label("seed-distributed", True) == "none"  # the seed's baseline, as it ran
 
 
 @pytest.mark.root
@@ -205,7 +217,7 @@ def test_a_row_parses_csv_text_and_json_values_by_field_type() -> None:
     assert (back.robots, back.ok, back.bandwidth_kbps) == (3, True, 35.0)
     assert bench.KEY_COLUMNS == ("system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep",
                                  "retransmission_profile", "delay_ms", "jitter_ms", "loss_model", "burst_len",
-                                 "replication", "faults")
+                                 "replication", "faults", "security")
 
 
 def test_the_committed_results_csv_reads_back_and_writes_the_same_cells(tmp_path: Path) -> None:
@@ -237,8 +249,10 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     assert back.key() == _row(delay_ms=0, loss_model="random").key() in done_keys(path)
     assert _row(delay_ms=100).key() not in done_keys(path)
     sweep = _load("sweep")
-    plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive")
+    plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", security=False)
     assert plain.key() == back.key()
+    # Rows from before the security column were unprotected runs: not a secure run's key.
+    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive").key() != back.key()
     assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", delay_ms=300).key() != plain.key()
 
 
@@ -263,8 +277,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     assert {r.system for r in runs} >= set(sweep.QUICK_SYSTEMS)
     path = tmp_path / "quick.csv"
     first = runs[0]
-    append_rows(path, [_row(first.system, robots=first.robots, tasks=first.tasks, bandwidth_kbps=first.bandwidth,
-                            loss_pct=first.loss, rep=first.rep)])
+    append_rows(path, [first.row(ok=True)])
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
     # ZeroMQ rows do not depend on the CoAP profile: another profile re-runs only CoAP systems.
