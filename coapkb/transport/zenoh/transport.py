@@ -603,7 +603,10 @@ class ZenohClientTransport:
         try:
             return await asyncio.shield(opening)
         except zenoh.ZError as exc:
-            raise PeerUnreachable(f"cannot reach {peer}: {str(exc).split(' at ', 1)[0]}") from None
+            why = str(exc).split(' at ', 1)[0].strip()
+            if self._security is not None:  # Zenoh does not say whether the TLS handshake failed
+                why += " (over TLS: the peer must serve with a certificate of this team's CA)"
+            raise PeerUnreachable(f"cannot reach {peer}: {why}") from None
 
     def _closed_error(self) -> TransportError | None:
         task = asyncio.current_task()
