@@ -605,7 +605,7 @@ class ZenohClientTransport:
         except zenoh.ZError as exc:
             why = str(exc).split(' at ', 1)[0].strip()
             if self._security is not None:  # Zenoh does not say whether the TLS handshake failed
-                why += " (over TLS: the peer must serve with a certificate of this team's CA)"
+                why += " (over TLS with this team's certificates)"
             raise PeerUnreachable(f"cannot reach {peer}: {why}") from None
 
     def _closed_error(self) -> TransportError | None:
