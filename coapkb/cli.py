@@ -238,6 +238,11 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
                    help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
     p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
                    help="start a killed robot again at S seconds; it joins the team at the next task (repeatable)")
+    p.add_argument("--stop", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGSTOP a robot at S seconds: cut off with its state intact (repeatable)")
+    p.add_argument("--resume", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGCONT a stopped robot at S seconds; it finds itself fenced off and picks nothing "
+                        "the others took over (repeatable)")
     p.add_argument("--discovery", choices=("static", "rd"), default="static",
                    help="how robots find their teammates: static (each config lists its cluster, default) or rd "
                         "(each config lists the robot alone; it registers in a Resource Directory the feeder "
@@ -284,7 +289,7 @@ async def _team(args: argparse.Namespace) -> int:
     try:
         faults = tuple(
             Fault.parse(action, text)
-            for action in ("kill", "restart")
+            for action in ("kill", "restart", "stop", "resume")
             for text in getattr(args, action, None) or ()
         )
         spec = TeamSpec(

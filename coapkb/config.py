@@ -13,6 +13,7 @@ Example ``robot1.toml``::
     # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
     strategy = "compute-by-all"
     retransmission = "robust"
+    # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
 
     [start]                  # initial state
     aisle = 0
@@ -151,6 +152,9 @@ class RobotConfig:
     #: Keep the KB as an on-disk index here (built once, opened in
     #: milliseconds at every later start); None = load it into memory.
     kb_index: Path | None = None
+    #: The fence (coapkb.agent.lease): this robot picks only while a majority
+    #: of its cluster has granted it a lease this long, seconds; 0 = no fence.
+    lease_s: float = 3.0
     #: How the teammates are found (``[discovery]``); default: the ``team`` table.
     discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
 
@@ -196,6 +200,7 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         "strategy": config.strategy,
         "retransmission": config.retransmission,
         "query_timeout_s": config.query_timeout_s,
+        "lease_s": config.lease_s,
     }
     if config.link_kbps is not None:
         data["link_kbps"] = config.link_kbps
@@ -226,7 +231,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
-        "discovery",
+        "discovery", "lease_s",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -282,6 +287,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         security=security,
         kb_index=None if kb_index is None else (base_dir / kb_index),
         discovery=_discovery(data.get("discovery", {})),
+        lease_s=float(_get(data, "lease_s", (int, float), 3.0)),
     )
     _check_values(config)
     return config
@@ -290,6 +296,8 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
 def _check_values(c: RobotConfig) -> None:
     if c.query_timeout_s <= 0:
         raise ConfigError("query_timeout_s: must be positive")
+    if c.lease_s < 0:
+        raise ConfigError("lease_s: must not be negative (0 turns the fence off)")
     if c.link_kbps is not None and c.link_kbps <= 0:
         raise ConfigError("link_kbps: must be positive")
     if c.start.battery_wh <= 0 or c.start.payload_kg <= 0:

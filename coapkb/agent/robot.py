@@ -9,6 +9,7 @@ Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 ``/tasks``         GET     the decisions taken so far
 ``/decisions``     POST    the leader's decision ("compute and communicate")
 ``/robot/stats``   GET     traffic counters and query statistics
+``/robot/lease``   GET     ``?r=X[&check]``: does this robot grant teammate X a lease (the fence)
 =================  ======  ==================================================
 """
 
@@ -34,6 +35,7 @@ from ..transport.router import Router
 from ..transport import open_client, reliability_for, serve
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
+from .lease import LEASE_PATH, Lease
 from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
@@ -155,7 +157,15 @@ class Robot:
         async def send_decision(message: DecisionMessage) -> None:
             await broadcast_decision(client, config, message)
 
-        executor = TaskExecutor(config.execution, own.live, publish_live)
+        fence = None
+        if config.lease_s > 0:
+            lease = Lease(
+                config.robot_id, teammates, client, config.lease_s,
+                request_timeout_s=lambda: team.request_timeout_s, down=lambda: team.down,
+                on_failure=team.request_failed,
+            )
+            fence = lease.hold
+        executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence)
         controller = Controller(
             config, queries, team, executor, publish_decision, send_decision
         )
@@ -187,6 +197,7 @@ class Robot:
         add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("POST",)), self._post_decision)
         add(ResourceInfo("/robot/stats", rt="coapkb.stats", ct=(60, 50), title="traffic and query stats"),
             self._get_stats)
+        add(ResourceInfo(LEASE_PATH, rt="coapkb.lease", title="lease grants (the fence)"), self._get_lease)
 
     async def aclose(self) -> None:
         if self.directory is not None:
@@ -225,6 +236,21 @@ class Robot:
         if state is None:
             return Response.error(Status.NOT_FOUND, f"no state of {about}")
         return _cbor_state(state.encode_plan(), request.accept)
+
+    async def _get_lease(self, request: Request) -> Response:
+        """``?r=X``: does this robot grant teammate X a lease (2.05) or not
+        (4.03, why)?  ``&check``: probe X first, so a robot that stopped
+        answering is found down now (the feeder asks before re-assigning
+        X's tasks).  The requester must be X or the feeder, when known."""
+        about = request.query.get("r", "")
+        if request.peer is not None and request.peer not in (about, "feeder"):
+            return Response.error(Status.FORBIDDEN, f"{request.peer} may not ask about {about}'s lease")
+        if "check" in request.query:
+            await self.team.probe(about)
+        why = self.team.grant(about)
+        if why is not None:
+            return Response.error(Status.FORBIDDEN, why)
+        return Response(Status.CONTENT)
 
     async def _tasks(self, request: Request) -> Response:
         if request.method == Method.GET:
@@ -289,6 +315,7 @@ class Robot:
             queries=replace(queries, remote_latencies=[round(x, 6) for x in queries.remote_latencies]),
             executed=self.executor.live.done,
             idle=self.executor.live.activity == "idle" and self.executor.live.queued == 0,
+            fenced=list(self.executor.live.fenced),
         )
 
 

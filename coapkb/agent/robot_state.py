@@ -63,6 +63,11 @@ class LiveState:
     executing: str | None = None
     queued: int = 0
     done: int = 0
+    #: Tasks whose jobs this robot dropped without executing them: it lost
+    #: its lease (a majority of its cluster refused it or is unreachable),
+    #: so the team may have given them to another (TaskExecutor).
+    fenced: tuple[int, ...] = ()
+    fence_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -102,7 +107,8 @@ class RobotState:
                 _plan_array(self.plan),
                 _plan_array(self.prev),
                 [self.live.aisle, self.live.rack, ACTIVITIES.index(self.live.activity), self.live.executing,
-                 self.live.queued, self.live.done],
+                 self.live.queued, self.live.done,
+                 *([list(self.live.fenced), self.live.fence_reason or ""] if self.live.fenced else [])],
                 None if self.last is None else _decision_array(self.last),
                 *self._boot(),
             ],
@@ -128,7 +134,9 @@ class RobotState:
                 boot = int(raw[3]) if len(raw) == 4 else 0
                 return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev, boot)
             live = raw[3]
-            live_state = LiveState(live[0], live[1], ACTIVITIES[live[2]], live[3], live[4], live[5])
+            fenced = tuple(int(seq) for seq in live[6]) if len(live) > 6 else ()
+            live_state = LiveState(live[0], live[1], ACTIVITIES[live[2]], live[3], live[4], live[5], fenced,
+                                   (live[7] or None) if len(live) > 7 else None)
             boot = int(raw[5]) if len(raw) > 5 else 0
             return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot)
         except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError) as exc:

@@ -35,6 +35,8 @@ class RobotStats:
     queries: QueryStats = field(default_factory=QueryStats)
     executed: int = 0
     idle: bool = False
+    #: Tasks whose jobs this robot dropped unexecuted: it lost its lease (the fence).
+    fenced: list[int] = field(default_factory=list)
 
     @property
     def traffic(self) -> TrafficCounters:
@@ -63,6 +65,9 @@ class RobotStats:
             "remote_latencies_s": list(self.queries.remote_latencies),
             "executed": self.executed,
             "idle": self.idle,
+            # Added for the fence; only when there is something to say, so
+            # the usual form stays as it was.
+            **({"fenced": list(self.fenced)} if self.fenced else {}),
         }
 
     @classmethod
@@ -90,4 +95,5 @@ class RobotStats:
             ),
             executed=int(data.get("executed", 0)),
             idle=bool(data.get("idle", False)),
+            fenced=[int(seq) for seq in data.get("fenced") or ()],
         )

@@ -38,8 +38,12 @@ class TaskExecutor:
         start: LiveState,
         publish: Callable[[LiveState], None],
         sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
+        lease: Callable[[float], Awaitable[str | None]] | None = None,
     ) -> None:
         self.model = model
+        #: ``lease(seconds)``: None once this robot holds its lease for that
+        #: long, else why it is fenced (coapkb.agent.lease); None = no fence.
+        self._lease = lease
         #: Waits out simulated time (wall-clock seconds); a test passes a fast clock.
         self._sleep = sleep
         self.live = start
@@ -76,11 +80,30 @@ class TaskExecutor:
         # Simulated physical time: nothing to await but the clock itself.
         await self._sleep(seconds / self.model.time_scale)
 
+    def _forfeit(self, job: Job, why: str) -> None:
+        """Drop ``job`` and every queued one without executing them; the
+        live state names them, so the feeder sends them round again."""
+        dropped = [job.seq]
+        while not self._jobs.empty():
+            dropped.append(self._jobs.get_nowait().seq)
+        log.warning("fenced: dropping tasks %s unexecuted: %s", ", ".join(map(str, dropped)), why)
+        self._update(activity="idle", executing=None, queued=0, fenced=self.live.fenced + tuple(dropped),
+                     fence_reason=why)
+        self._idle.set()
+
     async def _run(self) -> None:
         while True:
             job = await self._jobs.get()
             self._update(activity="travelling", executing=job.object, queued=self._jobs.qsize())
             await self._simulate(job.to_object_m / self.model.speed_m_s)
+            if self._lease is not None:
+                # The pick is what must never happen twice: only under a
+                # lease that outlasts it (the others may have re-assigned
+                # this job while this robot was cut off).
+                why = await self._lease(self.model.pick_s / self.model.time_scale)
+                if why is not None:
+                    self._forfeit(job, why)
+                    continue
             self._update(activity="picking", aisle=float(job.aisle), rack=float(job.rack))
             await self._simulate(self.model.pick_s)
             if job.to_depot_m > 0:

@@ -370,6 +370,34 @@ class TeamView:
         return robot_id not in self._teammates.down
 
     @property
+    def down(self) -> Mapping[str, str]:
+        """Teammates declared down, and why."""
+        return self._teammates.down
+
+    @property
+    def request_timeout_s(self) -> float:
+        """A liveness request's timeout: it follows the measured round trip."""
+        return self._teammates.request_timeout_s
+
+    def grant(self, robot_id: str) -> str | None:
+        """None if this robot grants teammate ``robot_id`` a lease (it counts
+        it as up and a member), else why not.  Once refused, a process is
+        never granted again: the others may be re-assigning its tasks
+        (:mod:`coapkb.agent.lease`)."""
+        if robot_id not in self._peers:
+            return f"{robot_id} is not in this robot's cluster"
+        if robot_id in self._teammates.down:
+            return f"{self._own.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
+        if robot_id in self.excluded or robot_id in self._forgone:
+            return f"{self._own.robot_id} has left {robot_id} out of the membership"
+        return None
+
+    async def probe(self, robot_id: str) -> None:
+        """Ask teammate ``robot_id`` for its state now (two failures: down)."""
+        if robot_id in self._peers and robot_id not in self._teammates.down:
+            await self._teammates.probe(robot_id)
+
+    @property
     def membership(self) -> Membership:
         members = (self._peers - set(self.excluded)) | {self._own.robot_id}
         return Membership(self.epoch, tuple(sorted(members)))

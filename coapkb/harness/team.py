@@ -24,12 +24,13 @@ import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from typing import Any, AsyncIterator, Awaitable, Callable, Collection, Mapping, Sequence
 
 import cbor2
 
 from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
+from ..agent.lease import LEASE_PATH, lease_duration_s
 from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
 from ..agent.stats import RobotStats
 from ..config import (
@@ -44,7 +45,7 @@ from ..config import (
     dump_config,
 )
 from ..kb.store import KnowledgeBase
-from ..transport.messages import ContentFormat, Method, Request
+from ..transport.messages import ContentFormat, Method, Request, Status
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from ..transport import SCHEMES, open_client
@@ -64,14 +65,16 @@ class TeamError(CoapkbError):
     """The team could not be started or did not finish its tasks."""
 
 
-FAULT_ACTIONS = ("kill", "restart")
+FAULT_ACTIONS = ("kill", "restart", "stop", "resume")
 
 
 @dataclass(frozen=True)
 class Fault:
     """An injected failure: ``kill`` sends SIGKILL to a robot's process,
-    ``restart`` starts it again (same configuration and port), ``at_s``
-    seconds of wall time after the first task was fed."""
+    ``restart`` starts it again (same configuration and port), ``stop``
+    freezes it (SIGSTOP: a robot cut off, its state intact) and ``resume``
+    lets it go on (SIGCONT), ``at_s`` seconds of wall time after the first
+    task was fed."""
 
     action: str
     robot: str
@@ -135,6 +138,13 @@ class TeamSpec:
     rd_lifetime_s: int = 60
 
     @property
+    def lease_s(self) -> float:
+        """How long a robot's lease lasts (coapkb.agent.lease); the feeder
+        waits this long after the survivors stop granting a down robot's
+        lease before it re-feeds that robot's tasks."""
+        return lease_duration_s(liveness_floor_s(self.link_kbps))
+
+    @property
     def secure(self) -> bool:
         return self.security and self.transport in SECURITY_SCHEMES
 
@@ -173,6 +183,10 @@ class TeamSpec:
                 k.action == "kill" and k.robot == fault.robot and k.at_s < fault.at_s for k in self.faults
             ):
                 raise ValueError(f"cannot restart {fault.robot} at {fault.at_s:g}s: it is not killed before")
+            if fault.action == "resume" and not any(
+                k.action == "stop" and k.robot == fault.robot and k.at_s < fault.at_s for k in self.faults
+            ):
+                raise ValueError(f"cannot resume {fault.robot} at {fault.at_s:g}s: it is not stopped before")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")
@@ -284,6 +298,11 @@ class Team:
         self.team_dir: Path | None = None
         #: The Resource Directory the feeder hosts (``discovery="rd"``).
         self.directory: Any = None
+        #: Stopped robots let go on again: alive, though the team has them down.
+        self._resumed: set[str] = set()
+        #: Down robots whose tasks may go round again: the survivors no
+        #: longer grant them a lease, and it has run out (:meth:`_fence`).
+        self._fenced_off: set[str] = set()
 
     # ---------------------------------------------------------------- processes
 
@@ -313,6 +332,7 @@ class Team:
                     # With a directory, each robot knows only itself and finds the rest.
                     team=team if self.directory is None else {robot_id: team[robot_id]},
                     discovery=discovery,
+                    lease_s=spec.lease_s,
                     start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
                     strategy=spec.strategy,
                     retransmission=spec.retransmission,
@@ -400,6 +420,7 @@ class Team:
             if proc.returncode is None:
                 with contextlib.suppress(ProcessLookupError):
                     proc.send_signal(signal.SIGTERM)
+                    proc.send_signal(signal.SIGCONT)  # a stopped robot must run to take SIGTERM
         for name, proc in self.processes.items():
             try:
                 await asyncio.wait_for(proc.wait(), 10)
@@ -452,7 +473,10 @@ class Team:
                 records.extend(share_records)
             if finished is not None:
                 await finished()
-            stats = await self._collect_stats(client, watcher.alive)
+            # A resumed robot is down for the team but answers: its counts
+            # show what it executed (nothing the others were given).
+            resumed = [r for r in spec.robot_ids if r in self._resumed and r in watcher.down]
+            stats = await self._collect_stats(client, watcher.alive, resumed)
             feeder = replace(client.counters)  # a copy: the client still counts while closing
         finally:
             injector.cancel()
@@ -460,7 +484,7 @@ class Team:
             await watcher.aclose()
             await client.aclose()
         for event in events:
-            if event.robot in watcher.down_at and event.action == "kill":
+            if event.robot in watcher.down_at and event.action in ("kill", "stop"):
                 event.detected_after_s = round(watcher.down_at[event.robot] - started - event.at_s, 3)
         return self._record(records, stats, feeder, coordination_s, completion_s, events, dict(watcher.down))
 
@@ -497,6 +521,14 @@ class Team:
                 events.append(FaultEvent(fault.action, fault.robot, at_s))
                 continue
             proc = self.processes[fault.robot]
+            if fault.action in ("stop", "resume"):
+                with contextlib.suppress(ProcessLookupError):
+                    proc.send_signal(signal.SIGSTOP if fault.action == "stop" else signal.SIGCONT)
+                if fault.action == "resume":
+                    self._resumed.add(fault.robot)
+                log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
+                events.append(FaultEvent(fault.action, fault.robot, at_s))
+                continue
             with contextlib.suppress(ProcessLookupError):
                 proc.send_signal(signal.SIGKILL)
             await proc.wait()
@@ -540,8 +572,15 @@ class Team:
                 f"cluster {index + 1} to finish executing",
             )
             # Tasks assigned to robots that went down before executing them
-            # go round again, in their order, to the survivors.
-            found = {r.seq: r for r in reruns + _orphans(records, watcher, self._incarnation)}
+            # go round again, in their order, to the survivors: once the
+            # down robot can no longer pick them (the fence).
+            for robot_id in cluster:
+                if robot_id in watcher.down and robot_id not in self._fenced_off and _unexecuted(
+                    records, watcher, robot_id, self._incarnation
+                ):
+                    if await self._fence(client, watcher, cluster, robot_id):
+                        self._fenced_off.add(robot_id)
+            found = {r.seq: r for r in reruns + _orphans(records, watcher, self._incarnation, self._fenced_off)}
             orphans = [found[s] for s in sorted(found)]
             reruns = []
             queue = [(r.object, r.seq) for r in orphans]
@@ -556,11 +595,12 @@ class Team:
         for robot_id in joining:
             self._restarted.discard(robot_id)
             # A restart the feeder made itself: the old process is gone even if
-            # no failed request told yet.
+            # no failed request told yet (killed: it cannot pick anything).
             watcher.down.setdefault(robot_id, "restarted")
-        orphans = [r for r in _orphans(records, watcher, self._incarnation) if r.assigned_to in joining]
+        orphans = _orphans(records, watcher, self._incarnation, joining, only=joining)
         for robot_id in joining:
             self._incarnation[robot_id] = seq
+            self._fenced_off.discard(robot_id)
             watcher.readmit(robot_id)
         return orphans
 
@@ -653,12 +693,59 @@ class Team:
                 raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
             return
 
-    async def _collect_stats(self, client: ClientTransport, robots: Sequence[str]) -> dict[str, RobotStats]:
+    async def _fence(self, client: ClientTransport, watcher: ObservedStates, cluster: list[str], robot_id: str) -> bool:
+        """Before down ``robot_id``'s tasks go round again: ask every survivor
+        of its cluster whether it still grants it a lease (each probes it
+        first), then wait the lease out from the last refusal.  False if a
+        survivor still grants it (it answers them: its tasks stay its own)."""
+        if self.spec.lease_s <= 0:
+            return True
+        request = Request(Method.GET, LEASE_PATH, {"r": robot_id, "check": ""})
+
+        async def refused_at(survivor: str) -> float | None:
+            """When ``survivor`` said it no longer grants ``robot_id`` (now if it is down)."""
+            while survivor not in watcher.down:
+                try:
+                    response = await client.request(
+                        self.endpoints[survivor], request, timeout=self.spec.task_timeout_s
+                    )
+                except TransportError:
+                    await watcher.probe(survivor)
+                    continue
+                if response.status == Status.FORBIDDEN:
+                    return time.monotonic()
+                if response.status.is_success:
+                    return None
+                raise TeamError(f"{survivor} answered {response.status.dotted} about {robot_id}'s lease: {response.text()}")
+            return time.monotonic()
+
+        survivors = [r for r in cluster if r != robot_id and r not in watcher.down]
+        answers = await asyncio.gather(*(refused_at(r) for r in survivors))
+        if any(at is None for at in answers):
+            granting = [r for r, at in zip(survivors, answers) if at is None]
+            log.warning("%s still grant %s a lease: its tasks stay with it", ", ".join(granting), robot_id)
+            return False
+        # Waiting the lease out is the fence itself: any lease the robot
+        # holds was granted before the last refusal, so it ends within this.
+        last = max(answers, default=time.monotonic())
+        await asyncio.sleep(max(0.0, last + self.spec.lease_s - time.monotonic()))
+        log.warning("%s's lease has run out: its unexecuted tasks go round again", robot_id)
+        return True
+
+    async def _collect_stats(
+        self, client: ClientTransport, robots: Sequence[str], maybe: Sequence[str] = ()
+    ) -> dict[str, RobotStats]:
+        """Every robot's statistics; those of ``maybe`` if they answer."""
         request = Request(Method.GET, "/robot/stats", accept=ContentFormat.CBOR)
         stats = {}
-        for robot_id in robots:
+        for robot_id in [*robots, *maybe]:
             endpoint = self.endpoints[robot_id]
-            response = await client.request(endpoint, request, timeout=self.spec.query_timeout_s)
+            try:
+                response = await client.request(endpoint, request, timeout=self.spec.query_timeout_s)
+            except TransportError:
+                if robot_id in maybe:
+                    continue
+                raise
             stats[robot_id] = RobotStats.from_dict(cbor2.loads(response.payload))
         return stats
 
@@ -700,26 +787,58 @@ def _idle(states: States, robot_id: str) -> bool:
     return state is not None and state.live.activity == "idle" and state.live.queued == 0
 
 
-def _orphans(
-    records: list[TaskRecord], watcher: ObservedStates, incarnation: Mapping[str, int] | None = None
+def _unexecuted(
+    records: list[TaskRecord], watcher: ObservedStates, robot_id: str, incarnation: Mapping[str, int] | None = None
 ) -> list[TaskRecord]:
-    """Tasks assigned to a robot now down that it had not executed, not yet
-    sent round again.  A robot executes its jobs in the order assigned, so
-    its last observed ``done`` count says how many of them are finished (a
-    job finished in the instant before the crash counts as not done: done
-    again rather than lost).  Only the tasks of its last process count: the
-    process before a restart had its own, handled when it joined again."""
+    """The tasks assigned to ``robot_id``'s current process that it has not
+    executed (nor dropped), not yet sent round again.  A robot executes its
+    jobs in the order assigned, so its last observed ``done`` count says how
+    many of them are finished (a job finished in the instant before a crash
+    counts as not done: done again rather than lost)."""
+    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+    state = watcher.states.get(robot_id)
+    done = state.live.done if state is not None else 0
+    fenced = set(state.live.fenced) if state is not None else set()
+    first = (incarnation or {}).get(robot_id, 0)
+    mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first and r.seq not in fenced]
+    return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
+
+
+def _orphans(
+    records: list[TaskRecord], watcher: ObservedStates, incarnation: Mapping[str, int] | None = None,
+    fenced_off: Collection[str] = (),
+    only: Collection[str] | None = None,
+) -> list[TaskRecord]:
+    """Tasks to send round again: those a robot now down had not executed
+    (only once it is ``fenced_off``: it can no longer pick them), and those a
+    robot dropped because it lost its lease.  Only the tasks of a robot's
+    last process count: the process before a restart had its own, handled
+    when it joined again.  A re-run that is dropped again is not sent round
+    a third time: no robot of the cluster could hold a lease for it.
+    ``only``: these robots' tasks alone."""
     taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
     orphans = []
-    for robot_id in watcher.down:
-        state = watcher.states.get(robot_id)
-        done = state.live.done if state is not None else 0
+    for robot_id in fenced_off:
+        if robot_id not in watcher.down or (only is not None and robot_id not in only):
+            continue
+        for record in _unexecuted(records, watcher, robot_id, incarnation):
+            record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
+            orphans.append(record)
+    for robot_id, state in watcher.states.items():
+        if not state.live.fenced or (only is not None and robot_id not in only):
+            continue
         first = (incarnation or {}).get(robot_id, 0)
-        mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first]
-        for record in mine[done:]:
-            if record.seq not in taken and record.orphaned is None:  # not already going round
-                record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
-                orphans.append(record)
+        for record in records:
+            if record.assigned_to != robot_id or record.seq < first or record.seq not in state.live.fenced:
+                continue
+            if record.seq in taken or record.orphaned is not None or record.unavailable is not None:
+                continue
+            why = f"{robot_id} dropped it unexecuted: {state.live.fence_reason}"
+            if record.reassigned_from is not None:
+                record.unavailable = why
+                continue
+            record.orphaned = why
+            orphans.append(record)
     return sorted(orphans, key=lambda r: r.seq)
 
 

@@ -1,0 +1,153 @@
+"""The fence for a robot that was only cut off (issue 11): it picks only
+while it holds a lease from a majority of its cluster.
+
+A robot that was stopped (SIGSTOP, a long GC pause, a radio shadow) or cut
+off by a partition is declared down by the others, which then give its
+unexecuted tasks to survivors.  When it comes back, its Task Executor still
+holds those jobs.  The lease keeps the two from overlapping:
+
+* **Holder.**  Before each pick the robot needs a lease covering the pick: a
+  round of ``GET /robot/lease?r=ME`` to its teammates, sent at ``t``, with
+  grants from a majority of the cluster (itself counted) makes it valid
+  until ``t + lease_s`` on its own monotonic clock, which runs on while the
+  process is stopped.  So after a stop longer than the lease it must ask
+  again before picking anything.
+* **Granter.**  A teammate grants only a robot it counts as up and as a
+  member (not declared down, not excluded, not given up on).  Once it has
+  declared the robot down it never grants that process again (a restarted
+  robot is a new process, admitted at a task boundary).
+* **Re-assigner.**  The feeder re-feeds a down robot's tasks only after every
+  survivor of its cluster has said it no longer grants it (``GET
+  /robot/lease?r=X&check``: the survivor first probes X itself), and
+  ``lease_s`` has passed since the last such answer.  Any lease the robot
+  holds was granted before that answer, was sent earlier still, and so has
+  run out: the robot cannot pick a re-assigned task's object while a
+  survivor does.
+* **Refused.**  A robot refused by so many teammates (or finding them down
+  itself) that no majority can grant it drops its jobs without executing
+  them and says so in its live state (``fenced``): the feeder sends those
+  tasks round again.
+
+A robot whose teammates are all down can no longer pick at all: it cannot
+tell "they died" from "I am cut off", and a cut-off robot picking what the
+others re-assigned is exactly what the fence prevents.  The team's record
+then says which tasks could not be done and why.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import Awaitable, Callable, Mapping
+
+from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.messages import Method, Request, Status
+
+log = logging.getLogger(__name__)
+
+LEASE_PATH = "/robot/lease"
+
+
+def lease_duration_s(liveness_floor_s: float) -> float:
+    """A lease three liveness floors long (3 s on loopback, 15 s on a slow
+    radio link): several renewals' round trips fit, and the feeder's wait
+    before re-assigning stays within a few failure-detection times."""
+    return 3 * liveness_floor_s
+
+
+class Lease:
+    """This robot's lease, renewed on demand from its ``teammates``
+    (the cluster's other robots, by id)."""
+
+    def __init__(
+        self,
+        robot_id: str,
+        teammates: Mapping[str, Endpoint],
+        transport: ClientTransport,
+        duration_s: float,
+        *,
+        request_timeout_s: Callable[[], float],
+        down: Callable[[], Mapping[str, str]],
+        on_failure: Callable[[str, Exception], Awaitable[None]] | None = None,
+    ) -> None:
+        self.robot_id = robot_id
+        self._teammates = dict(teammates)
+        self._transport = transport
+        self.duration_s = duration_s
+        self._request_timeout_s = request_timeout_s
+        self._down = down
+        self._on_failure = on_failure
+        #: Grants needed from teammates: with this robot, a majority of the cluster.
+        self.needed = (len(self._teammates) + 1) // 2
+        self._until = float("-inf")
+        self._request = Request(Method.GET, LEASE_PATH, {"r": robot_id})
+        self.renewals = 0
+
+    @property
+    def valid_until(self) -> float:
+        return self._until
+
+    async def hold(self, for_s: float) -> str | None:
+        """None once the lease covers the next ``for_s`` seconds (renewed if
+        needed; waits while no majority answers either way); else why this
+        robot is fenced."""
+        for_s = min(for_s, self.duration_s / 2)
+        backoff = 0.2
+        while time.monotonic() + for_s >= self._until:
+            if self.needed == 0:
+                return None  # a cluster of one: nobody else could take its tasks
+            sent = time.monotonic()
+            refused = await self._round()
+            if refused is None:
+                self._until = sent + self.duration_s
+                self.renewals += 1
+                continue
+            if refused:
+                return refused
+            # Neither a majority nor a refusal: cut off, or the others are
+            # slow.  Ask again shortly (never pick meanwhile).
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, 2.0)
+        return None
+
+    async def _round(self) -> str | None:
+        """One renewal round: None if granted; a reason if a majority can no
+        longer grant; "" if undecided."""
+        down = self._down()
+        verdicts: dict[str, str] = {r: f"down ({why})" for r, why in down.items() if r in self._teammates}
+        asked = [r for r in self._teammates if r not in verdicts]
+        timeout = self._request_timeout_s()
+        pending = {asyncio.ensure_future(self._ask(r, timeout)): r for r in asked}
+        granted = 0
+        try:
+            for next_done in asyncio.as_completed(pending):
+                robot_id, verdict = await next_done
+                if verdict is None:
+                    granted += 1
+                    if granted >= self.needed:
+                        return None
+                else:
+                    verdicts[robot_id] = verdict
+        finally:
+            for future in pending:
+                future.cancel()
+            await asyncio.gather(*pending, return_exceptions=True)
+        refusals = {r: v for r, v in verdicts.items() if not v.startswith("no answer")}
+        if len(self._teammates) - len(refusals) < self.needed:
+            return "no lease from a majority of the cluster (" + "; ".join(
+                f"{r}: {v}" for r, v in sorted(verdicts.items())) + ")"
+        return ""
+
+    async def _ask(self, robot_id: str, timeout: float) -> tuple[str, str | None]:
+        try:
+            response = await self._transport.request(self._teammates[robot_id], self._request, timeout=timeout)
+        except TransportError as exc:
+            if self._on_failure is not None:
+                await self._on_failure(robot_id, exc)  # counts towards failure detection
+            return robot_id, f"no answer: {exc}"
+        if response.status.is_success:
+            return robot_id, None
+        if response.status == Status.FORBIDDEN:
+            return robot_id, f"refused: {response.text()}"
+        return robot_id, f"no answer: {response.status.dotted} {response.text()}"
