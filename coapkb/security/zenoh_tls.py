@@ -16,17 +16,27 @@ and CurveZMQ on ZeroMQ, so a secured benchmark compares like with like.
   and EDHOC do check it): any team member could answer at a teammate's
   address.
 
-Authorisation per resource (:class:`~.policy.AccessPolicy`): Zenoh reports
-a link's certificate common name (``Link.auth_identifier``), but not which
-link a query came in on.  The client therefore sends its session id in the
-query's ``source_info``, and the server takes the member to be the one whose
-certificate authenticated the link from that session.  That binds a query to
-a certificate as far as the querier tells the truth about its session id: an
-outsider cannot get in at all (mTLS), a member's unmodified client is held to
-its role, but a member that rewrote its Zenoh client could claim a connected
-teammate's session id and so its role.  OSCORE binds each request to the
-sender's key; on Zenoh the per-resource policy is this weaker, session-level
-check, which docs/security.md states.
+Authorisation per resource (:class:`~.policy.AccessPolicy`), in two layers:
+
+1. **Zenoh's access control**, keyed by the certificate's common name: a
+   query on ``coapkb/tasks`` from anyone but the feeder, or on
+   ``coapkb/decisions`` from anyone but a robot, is dropped by Zenoh itself
+   (the querier gets no reply: its client reports the peer unreachable).
+   This is bound to the TLS certificate, so no member can get round it; but
+   it sees key expressions, not coapkb's methods (they travel in the
+   attachment), so it also keeps other members from *reading* ``/tasks``,
+   stricter than the table in :mod:`.policy`.  The server refuses keys that
+   are not the canonical form of their path (a wildcard, a re-encoded
+   segment), which would otherwise reach ``/tasks`` under another key.
+2. **The team's policy, per request**: Zenoh reports a link's certificate
+   name (``Link.auth_identifier``) but not which link a query came in on, so
+   the client sends its session id in the query's ``source_info`` and the
+   server takes the member whose certificate authenticated that session.
+   This binds a query to a certificate only as far as the querier tells the
+   truth about its session id: a member that rewrote its Zenoh client could
+   claim a connected teammate's id, so "only the *deciding* robot posts
+   decisions" holds against unmodified clients, while layer 1 still keeps
+   non-robots out.  OSCORE binds every request to the sender's key.
 """
 
 from __future__ import annotations
@@ -37,6 +47,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from ..transport.messages import Request
+from ..transport.zenoh.mapping import key_for_path
 from .keys import SecurityError, TeamIdentity, TeamMember
 from .policy import AccessPolicy, Verdict
 from .tls import TlsFiles
@@ -76,6 +87,24 @@ class ZenohServerSecurity:
         _common(config, self.files)
         _insert(config, "listen_private_key", str(self.files.key))
         _insert(config, "listen_certificate", str(self.files.cert))
+        config.insert_json5("access_control", json.dumps(self.access_control()))
+
+    def access_control(self) -> dict[str, object]:
+        """Zenoh's ``access_control``: ``/tasks`` only for the feeder's
+        certificate, ``/decisions`` only for robots' (module doc, layer 1)."""
+        members = self.identity.trust.members
+        only = {"/tasks": {"feeder"}, "/decisions": {"robot"}}
+        rules, subjects, policies = [], [], []
+        for index, (path, roles) in enumerate(only.items()):
+            others = [m.name for m in members if m.role not in roles]
+            if not others:
+                continue
+            rules.append({"id": f"r{index}", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
+                          "key_exprs": [key_for_path(path)]})
+            subjects.append({"id": f"s{index}", "cert_common_names": others})
+            policies.append({"rules": [f"r{index}"], "subjects": [f"s{index}"]})
+        return {"enabled": True, "default_permission": "allow", "rules": rules, "subjects": subjects,
+                "policies": policies}
 
     def member_of(self, session: zenoh.Session, source_zid: str | None) -> TeamMember | None:
         """The member whose certificate authenticated the links of session ``source_zid``."""

@@ -41,6 +41,7 @@ async def robot1(team_dir: Path):
     router = Router()
     router.add(ResourceInfo("/tasks", methods=("GET", "POST")), handle)
     router.add(ResourceInfo("/decisions", methods=("POST",)), handle)
+    router.add(ResourceInfo("/robot/state", methods=("GET",)), handle)
     security = ZenohServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
     server = await serve(router, Endpoint("zenoh", "127.0.0.1", 0), security=security)
     yield server, calls
@@ -61,24 +62,34 @@ def _member(team_dir: Path, name: str) -> ZenohClientSecurity:
 
 
 async def test_members_get_what_their_role_allows(robot1, team_dir: Path) -> None:
+    """/tasks only for the feeder's certificate and /decisions only for robots'
+    (Zenoh's access control drops the query: no answer at all), then the
+    team's policy per request (the deciding robot)."""
     server, calls = robot1
+    dropped = None
     cases = [
         ("feeder", Method.POST, "/tasks", Status.CHANGED),
-        ("Robot2", Method.POST, "/tasks", Status.FORBIDDEN),
+        ("Robot2", Method.POST, "/tasks", dropped),
+        ("operator", Method.GET, "/tasks", dropped),  # stricter than over CoAP: Zenoh's ACL cannot tell GET from POST
         ("Robot2", Method.POST, "/decisions", Status.CHANGED),
         ("Robot3", Method.POST, "/decisions", Status.FORBIDDEN),
-        ("operator", Method.GET, "/tasks", Status.CONTENT),
+        ("feeder", Method.POST, "/decisions", dropped),
+        ("operator", Method.GET, "/robot/state", Status.CONTENT),
     ]
     for who, method, path, expected in cases:
-        assert (await _ask(_member(team_dir, who), server.endpoint, method, path)).status == expected, (who, path)
-    assert calls == [("POST", "/tasks"), ("POST", "/decisions"), ("GET", "/tasks")]
+        if expected is dropped:
+            with pytest.raises(PeerUnreachable, match=f"access control refuses {path}"):
+                await _ask(_member(team_dir, who), server.endpoint, method, path, timeout=3)
+        else:
+            assert (await _ask(_member(team_dir, who), server.endpoint, method, path)).status == expected, (who, path)
+    assert calls == [("POST", "/tasks"), ("POST", "/decisions"), ("GET", "/robot/state")]
 
 
 async def test_observe_over_tls(robot1, team_dir: Path) -> None:
     server, _ = robot1
     client = await open_client("zenoh", security=_member(team_dir, "Robot2"))
     try:
-        async with contextlib.aclosing(client.observe(server.endpoint, Request(Method.GET, "/tasks"), timeout=5)) as stream:
+        async with contextlib.aclosing(client.observe(server.endpoint, Request(Method.GET, "/robot/state"), timeout=5)) as stream:
             first = await anext(stream)
         assert first.status == Status.CONTENT
     finally:
@@ -99,30 +110,34 @@ async def test_no_certificate_or_another_teams_never_gets_through(robot1, team_d
     assert (await _ask(_member(team_dir, "feeder"), server.endpoint, Method.POST, "/tasks")).status == Status.CHANGED
 
 
-async def test_a_query_that_names_no_session_is_unauthorised(robot1, team_dir: Path) -> None:
-    """mTLS let it in, but the server cannot tell which member asks: 4.01, nothing changes."""
+async def test_a_query_that_names_no_session_or_dodges_the_acl_is_refused(robot1, team_dir: Path) -> None:
+    """mTLS let it in, but the server cannot tell which member asks: 4.01;
+    Robot2 reaching /tasks by a key Zenoh's ACL does not name: 4.00; nothing changes."""
     import zenoh
 
     from coapkb.transport.zenoh.transport import session_config
 
     server, calls = robot1
-    security = _member(team_dir, "feeder")
-    config = session_config("client", connect=(f"tls/{server.endpoint.hostport}",))
-    security.configure(config)
 
-    def post_anonymously() -> list:
+    def post(who: str, key: str) -> list:
         # A task post as the transport sends it, but without source_info; in a
         # thread, since Zenoh's blocking API would stall the server's loop.
+        config = session_config("client", connect=(f"tls/{server.endpoint.hostport}",))
+        _member(team_dir, who).configure(config)
         session = zenoh.open(config)
         try:
             attachment = encode_request_header(RequestHeader(Method.POST))
-            return list(session.get("coapkb/tasks", payload=b"x", attachment=attachment, timeout=5))
+            return list(session.get(key, payload=b"x", attachment=attachment, timeout=5))
         finally:
             session.close()
 
-    replies = await asyncio.to_thread(post_anonymously)
+    replies = await asyncio.to_thread(post, "feeder", "coapkb/tasks")
     assert len(replies) == 1 and replies[0].ok is not None
     assert decode_response_header(replies[0].ok.attachment.to_bytes()).status == Status.UNAUTHORIZED
+    for key in ("coapkb/%74asks", "coapkb/*", "coapkb/**"):
+        replies = await asyncio.to_thread(post, "Robot2", key)
+        assert len(replies) == 1 and replies[0].err is not None, key
+        assert replies[0].err.payload.to_bytes().startswith(b"4.00 not the canonical key"), key
     assert calls == []
 
 

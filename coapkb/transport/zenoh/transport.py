@@ -61,7 +61,10 @@ Security
     team's certificates; the client names its session in each query's
     ``source_info`` and the server holds the member whose certificate
     authenticated that session to the team's access policy (refused: an
-    answer with the policy's 4.01/4.03, before the service sees it).
+    answer with the policy's 4.01/4.03, before the service sees it); the
+    server's Zenoh access control drops queries on ``/tasks`` and
+    ``/decisions`` from certificates whose role may not post there, and a
+    key that is not its path's canonical form gets 4.00.
     ``zenoh+udp://`` cannot be secured (Zenoh's UDP link has no TLS).
 
 Traffic counters
@@ -170,6 +173,13 @@ def _secured_locator(endpoint: Endpoint, security: Any) -> str:
     from ...security.zenoh_tls import tls_locator
 
     return tls_locator(locator(endpoint))
+
+
+def _canonical(key: str, path: str) -> bool:
+    try:
+        return key_for_path(path) == key
+    except ValueError:
+        return False
 
 
 def _bytes(z: zenoh.ZBytes | None) -> bytes | None:
@@ -349,6 +359,12 @@ class ZenohServerTransport:
             _finish(query)
             return
         if self._security is not None:
+            if not _canonical(incoming.key, request.path):
+                # Zenoh's access control matches key expressions: a wildcard or a
+                # re-encoded segment would reach /tasks past it.
+                self._reply_error(query, "4.00 not the canonical key of its path")  # no key to reply on
+                _finish(query)
+                return
             member = self._security.member_of(self._session, incoming.source)
             # A deregistration only ends an observation: any member may send one.
             verdict = self._security.check(member, request if header.observe is not Observe.DEREGISTER
@@ -702,6 +718,9 @@ class ZenohClientTransport:
             if (err := self._closed_error()) is not None:
                 raise err from None
             raise
+        if self._security is not None:  # a query Zenoh's access control drops ends the same way
+            raise _NoRoute(f"no answer from {peer}: its session is down, it serves no {KEY_ROOT}/**, "
+                           f"or its access control refuses {request.path} to this member")
         raise _NoRoute(f"no answer from {peer}: its session is down or it serves no {KEY_ROOT}/**")
 
     def _drop_session(self, peer: Endpoint, session: zenoh.Session) -> None:
