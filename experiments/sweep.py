@@ -37,8 +37,9 @@ import math
 import signal
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from itertools import product
 from pathlib import Path
 from typing import Any, Literal
@@ -290,9 +291,13 @@ class Progress:
         self.failed = 0
         self.lost = 0
         self._written: set[tuple[str, ...]] = set()
-        # tqdm's ETA is the remaining units at the mean rate so far (smoothing=0):
+        # The ETA is the remaining units at the mean rate so far (tqdm's smoothing=0):
         # runs of one sweep are interleaved by setting, so the mean is a fair guess.
-        self.bar = tqdm(total=sum(map(units, [*done_runs, *runs])), initial=sum(map(units, done_runs)), unit="task",
+        # The log line counts for itself: a tqdm without a terminal (a log) keeps no time.
+        self.units_total = sum(map(units, [*done_runs, *runs]))
+        self.units_before = self.units_done = sum(map(units, done_runs))
+        self.t0 = time.monotonic()
+        self.bar = tqdm(total=self.units_total, initial=self.units_before, unit="task",
                         desc="sweep", file=sys.stderr, smoothing=0, disable=None)
 
     def __enter__(self) -> "Progress":
@@ -312,6 +317,7 @@ class Progress:
         self.finished += 1
         self.failed += not row.ok
         self.bar.update(units(run))
+        self.units_done += units(run)
         self._log(format_row(row))
 
     def missing(self, run: Run, why: str) -> None:
@@ -321,7 +327,10 @@ class Progress:
 
     def _log(self, text: str) -> None:
         count = self.done_before + self.finished
-        times = tqdm.format_meter(**{**self.bar.format_dict, "bar_format": "{elapsed} ETA {remaining}"})
+        elapsed = time.monotonic() - self.t0
+        rate = (self.units_done - self.units_before) / elapsed if elapsed > 0 else 0.0
+        eta = tqdm.format_interval((self.units_total - self.units_done) / rate) if rate > 0 else "?"
+        times = f"{tqdm.format_interval(elapsed)} ETA {eta}"
         self.bar.write(f"[{count}/{self.total} {100 * count / self.total:3.0f}%] {times} | {text}", file=sys.stdout)
         sys.stdout.flush()
 
@@ -389,6 +398,24 @@ def _prepare_worker() -> tuple[bool, str, int]:
     return ok, why, len(cleanup_stale()) if ok else 0
 
 
+class _Shipped:
+    """A call that travels to the workers *by value*: Dask pickles tasks with
+    plain pickle, which would name this script's module (the workers cannot
+    import a script, nor the name the tests load it under), so the call
+    pickles as its cloudpickle bytes and arrives as the bare call."""
+
+    def __init__(self, call: Callable[[], Any]) -> None:
+        self.call = call
+
+    def __call__(self) -> Any:
+        return self.call()
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        import cloudpickle
+
+        return cloudpickle.loads, (cloudpickle.dumps(self.call),)
+
+
 def task_key(run: Run) -> str:
     """The run's Dask key: two clients submitting the same run share one task."""
     return "coapkb-run-" + hashlib.sha1("\x1f".join(run.key()).encode()).hexdigest()[:20]
@@ -404,26 +431,26 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
     except ImportError:
         raise EngineError("--engine dask:// needs Dask: .venv/bin/pip install -e '.[bench]'") from None
     # The workers cannot import this script (it is not a package, and the test
-    # loads it under another name): ship its functions and Run by value.
+    # loads it under another name): cloudpickle ships its functions and Run by value.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     try:
         client = await Client(address, asynchronous=True, timeout=CONNECT_TIMEOUT_S)
     except (OSError, TimeoutError) as exc:
         raise EngineError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
     async with client:
-        workers = client.scheduler_info(n_workers=-1)["workers"]
+        workers = (await client.scheduler.identity(n_workers=-1))["workers"]
         slots = sum(w.get("resources", {}).get(NETNS, 0) for w in workers.values())
         print(f"{address}: {len(workers)} workers, {slots:g} run slots (resource {NETNS})", flush=True)
         if not slots:
             print(f"sweep: no worker offers the resource {NETNS!r} yet; runs wait for workers started with "
                   f"`dask worker {address} --nthreads 1 --resources {NETNS}=1` (as root)", file=sys.stderr, flush=True)
-        unfit = {w: why for w, (ok, why, _) in (await client.run(_prepare_worker)).items() if not ok}
+        unfit = {w: why for w, (ok, why, _) in (await client.run(_Shipped(_prepare_worker))).items() if not ok}
         if unfit:
             raise EngineError("workers without kernel link emulation (not root?): "
                               + "; ".join(f"{w}: {why}" for w, why in sorted(unfit.items())))
         futures = {
-            client.submit(run_on_worker, run, limit_for(run), key=task_key(run), resources={NETNS: 1},
-                          priority=len(runs) - i): run  # the plan's order, as the local engine
+            client.submit(_Shipped(partial(run_on_worker, run, limit_for(run))), key=task_key(run),
+                          resources={NETNS: 1}, priority=len(runs) - i): run  # the plan's order, as locally
             for i, run in enumerate(runs)
         }
         with Progress(out, runs, done_runs) as progress:

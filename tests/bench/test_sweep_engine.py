@@ -1,0 +1,104 @@
+"""experiments/sweep.py --engine: parsing, the one-line errors, the row
+de-duplication, and a tiny matrix through a local Dask cluster of two workers
+(root: real runs in network namespaces; a skip on a laptop, a failure in CI)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+from support import ROOT, require
+
+from coapkb.bench.linkemu import available
+from coapkb.bench.run import read_rows
+
+
+def _load(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+sweep = _load("sweep")
+
+
+def test_engine_urls() -> None:
+    assert sweep.parse_engine("local") == sweep.Engine("local")
+    assert sweep.parse_engine("dask://10.0.0.5:8786").address == "tcp://10.0.0.5:8786"
+    assert sweep.parse_engine("dask://[::1]:8786/").address == "tcp://[::1]:8786"
+    for bad in ("dask", "dask://host", "dask://host:notaport", "dask://host:1/path", "ray://host:1", "tcp://h:1", ""):
+        with pytest.raises(sweep.EngineError, match="expected 'local' or 'dask://HOST:PORT'"):
+            sweep.parse_engine(bad)
+
+
+def test_a_bad_engine_or_no_scheduler_is_one_line_and_exit_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert sweep.main(["--engine", "dask://nowhere", "--dry-run"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "sweep: --engine: expected 'local' or 'dask://HOST:PORT', got 'dask://nowhere'"]
+    monkeypatch.setattr(sweep, "CONNECT_TIMEOUT_S", 1.0)
+    port = _free_port()  # nobody listens there
+    out = tmp_path / "s.csv"
+    assert sweep.main(["--engine", f"dask://127.0.0.1:{port}", "--out", str(out), "--systems", "coap-distributed"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"sweep: cannot reach the Dask scheduler at tcp://127.0.0.1:{port}")
+    assert not out.exists()
+
+
+def test_progress_appends_a_key_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    runs = sweep.plan(sweep.PROFILES["quick"], "adaptive")[:2]
+    out = tmp_path / "s.csv"
+    with sweep.Progress(out, runs, []) as progress:
+        for run in (runs[0], runs[0], runs[1]):  # an engine that delivers runs[0] twice
+            progress.record(run, run.row(ok=True, seed=run.seed))
+    assert [r.key() for r in read_rows(out, latest_only=False)] == [runs[0].key(), runs[1].key()]
+    assert [r.seed for r in read_rows(out)] == [1, 1]  # seeded by the repetition: 1 + rep
+    assert "already recorded" in capsys.readouterr().out
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.root
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_tiny_matrix_through_a_local_dask_cluster_of_two_workers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """2 repetitions of 3 robots, 2 tasks, 512 kbit/s, 2 % loss, coap-distributed:
+    one run on each worker (each holds one netns slot), rows streamed into one
+    CSV; a second start finds nothing to do."""
+    ok, why = available()
+    require(ok, why)
+    from distributed import LocalCluster
+
+    tiny = sweep.Profile("tiny", (sweep.Grid((3,), (2,), (512,), (2,), ("coap-distributed",)),), reps=2, note="test")
+    monkeypatch.setitem(sweep.PROFILES, "tiny", tiny)
+    out = tmp_path / "tiny.csv"
+    with LocalCluster(n_workers=2, processes=True, threads_per_worker=1, resources={sweep.NETNS: 1},
+                      dashboard_address=None, host="127.0.0.1") as cluster:
+        engine = cluster.scheduler_address.replace("tcp://", "dask://")
+        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out), "--retransmission", "adaptive"]
+        assert sweep.main(argv) == 0
+        text = capsys.readouterr().out
+        assert "2 workers, 2 run slots" in text and "[2/2 100%]" in text and " ETA " in text
+        rows = read_rows(out, latest_only=False)
+        assert sorted(r.rep for r in rows) == [0, 1] and all(r.ok for r in rows), [r.error for r in rows]
+        assert sorted(r.seed for r in rows) == [1, 2]
+        assert {r.key() for r in rows} == {run.key() for run in sweep.plan(tiny, "adaptive")}
+        # Resume: every key is in the CSV, nothing is submitted or appended.
+        assert sweep.main(argv) == 0
+        assert "0 to go" in capsys.readouterr().out
+        assert len(read_rows(out, latest_only=False)) == 2
