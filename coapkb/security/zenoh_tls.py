@@ -28,6 +28,10 @@ Authorisation per resource (:class:`~.policy.AccessPolicy`), in two layers:
    stricter than the table in :mod:`.policy`.  The server refuses keys that
    are not the canonical form of their path (a wildcard, a re-encoded
    segment), which would otherwise reach ``/tasks`` under another key.
+   Nor may a member's session publish, declare a queryable or send replies
+   into this robot's session: Zenoh routes for a peer's clients, so a
+   member could otherwise answer queries meant for this robot, or forge
+   notifications on another observer's key.
 2. **The team's policy, per request**: Zenoh reports a link's certificate
    name (``Link.auth_identifier``) but not which link a query came in on, so
    the client sends its session id in the query's ``source_info`` and the
@@ -91,7 +95,8 @@ class ZenohServerSecurity:
 
     def access_control(self) -> dict[str, object]:
         """Zenoh's ``access_control``: ``/tasks`` only for the feeder's
-        certificate, ``/decisions`` only for robots' (module doc, layer 1)."""
+        certificate, ``/decisions`` only for robots' (module doc, layer 1),
+        and no member's session may publish, serve or answer through this one."""
         members = self.identity.trust.members
         only = {"/tasks": {"feeder"}, "/decisions": {"robot"}}
         rules, subjects, policies = [], [], []
@@ -103,6 +108,14 @@ class ZenohServerSecurity:
                           "key_exprs": [key_for_path(path)]})
             subjects.append({"id": f"s{index}", "cert_common_names": others})
             policies.append({"rules": [f"r{index}"], "subjects": [f"s{index}"]})
+        # A client session only asks (and subscribes to its notifications). A
+        # peer routes for its clients, so without this a member's session could
+        # declare a queryable and answer, first, the queries others send to this
+        # robot, or publish forged notifications on an observer's key.
+        rules.append({"id": "ask-only", "messages": ["put", "delete", "declare_queryable", "reply"],
+                      "flows": ["ingress"], "permission": "deny", "key_exprs": ["**"]})
+        subjects.append({"id": "members", "cert_common_names": [m.name for m in members]})
+        policies.append({"rules": ["ask-only"], "subjects": ["members"]})
         return {"enabled": True, "default_permission": "allow", "rules": rules, "subjects": subjects,
                 "policies": policies}
 

@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import json
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -210,3 +211,41 @@ async def test_serve_and_query_over_tls_from_the_command_line(tmp_path: Path) ->
                                    "--transport", "zenoh", "--credentials", str(team_dir))
     assert code != 0 and err.splitlines() == [
         f"coapkb: error: cannot read private key {team_dir / 'central.tls.key'}: No such file or directory"]
+
+
+async def test_a_member_cannot_answer_or_notify_in_the_robots_name(robot1, team_dir: Path) -> None:
+    """Zenoh routes between a peer's clients: Robot3's session declares a
+    queryable on coapkb/** and publishes on an observer's notification key;
+    Robot1's access control keeps both out, so Robot2 gets Robot1's answer
+    and only Robot1's notifications."""
+    import zenoh
+
+    from coapkb.transport.zenoh.transport import session_config
+
+    server, _ = robot1
+
+    def open_as(who: str) -> zenoh.Session:
+        config = session_config("client", connect=(f"tls/{server.endpoint.hostport}",))
+        _member(team_dir, who).configure(config)
+        return zenoh.open(config)
+
+    def attack() -> tuple[list[bytes], list[bytes]]:
+        victim, rogue = open_as("Robot2"), open_as("Robot3")
+        try:
+            forged = rogue.declare_queryable("coapkb/**", lambda q: q.reply(q.key_expr, b"forged"))
+            seen: list[bytes] = []
+            sub = victim.declare_subscriber("coapkb-obs/victim/0", lambda s: seen.append(s.payload.to_bytes()))
+            time.sleep(0.3)  # declarations reach the server (nothing to wait on: the point is that nothing arrives)
+            replies = victim.get("coapkb/robot/state", timeout=3, source_info=zenoh.SourceInfo(victim.id, 0))
+            answers = [r.ok.payload.to_bytes() for r in replies if r.ok]
+            rogue.put("coapkb-obs/victim/0", b"forged")
+            time.sleep(0.3)
+            forged.undeclare()
+            sub.undeclare()
+            return answers, seen
+        finally:
+            victim.close()
+            rogue.close()
+
+    answers, seen = await asyncio.to_thread(attack)
+    assert answers == [b"ok"] and seen == []
