@@ -91,27 +91,39 @@ class TaskExecutor:
                      fence_reason=why)
         self._idle.set()
 
+    async def _leased(self, job: Job, for_s: float) -> bool:
+        """True while this robot holds its lease for ``for_s`` more seconds;
+        else ``job`` and the queued ones are dropped (:meth:`_forfeit`)."""
+        if self._lease is None:
+            return True
+        why = await self._lease(for_s)
+        if why is not None:
+            self._forfeit(job, why)
+        return why is None
+
     async def _run(self) -> None:
         while True:
             job = await self._jobs.get()
             self._update(activity="travelling", executing=job.object, queued=self._jobs.qsize())
             await self._simulate(job.to_object_m / self.model.speed_m_s)
-            if self._lease is not None:
-                # The pick is what must never happen twice: only under a
-                # lease that outlasts it (the others may have re-assigned
-                # this job while this robot was cut off).
-                why = await self._lease(self.model.pick_s / self.model.time_scale)
-                if why is not None:
-                    self._forfeit(job, why)
-                    continue
+            # The pick is what must never happen twice: it starts only under a
+            # lease that outlasts it, and counts only if the lease still holds
+            # when it is over (this robot may have been frozen meanwhile, and
+            # the others may have re-assigned the job: then it is put back).
+            if not await self._leased(job, self.model.pick_s / self.model.time_scale):
+                continue
             self._update(activity="picking", aisle=float(job.aisle), rack=float(job.rack))
             await self._simulate(self.model.pick_s)
+            if not await self._leased(job, 0.0):
+                continue
+            # Done once picked: the count the feeder reads says what nobody may pick again.
+            self._update(done=self.live.done + 1)
+            log.info("done: %s (task %d)", job.object, job.seq)
             if job.to_depot_m > 0:
                 self._update(activity="unloading")
                 await self._simulate(job.to_depot_m / self.model.speed_m_s)
                 self._update(aisle=float(job.depot[0]), rack=float(job.depot[1]))
             idle = self._jobs.empty()
-            self._update(activity="idle" if idle else "travelling", executing=None, done=self.live.done + 1)
-            log.info("done: %s (task %d)", job.object, job.seq)
+            self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:
                 self._idle.set()

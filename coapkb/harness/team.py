@@ -32,6 +32,7 @@ from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.lease import LEASE_PATH, lease_duration_s
 from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
+from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
 from ..config import (
     DISCOVERY_METHODS,
@@ -507,6 +508,15 @@ class Team:
 
         return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)
 
+    def pause(self, robot_id: str, stop: bool = True) -> None:
+        """Freeze robot ``robot_id``'s process (SIGSTOP: cut off, its state
+        intact) or let it go on (SIGCONT); a resumed robot's statistics go
+        into the record if it answers."""
+        with contextlib.suppress(ProcessLookupError):
+            self.processes[robot_id].send_signal(signal.SIGSTOP if stop else signal.SIGCONT)
+        if not stop:
+            self._resumed.add(robot_id)
+
     async def _inject(self, started: float, events: list[FaultEvent]) -> None:
         """Carry out the spec's faults at their wall times after ``started``."""
         for fault in sorted(self.spec.faults, key=lambda f: f.at_s):
@@ -522,10 +532,7 @@ class Team:
                 continue
             proc = self.processes[fault.robot]
             if fault.action in ("stop", "resume"):
-                with contextlib.suppress(ProcessLookupError):
-                    proc.send_signal(signal.SIGSTOP if fault.action == "stop" else signal.SIGCONT)
-                if fault.action == "resume":
-                    self._resumed.add(fault.robot)
+                self.pause(fault.robot, fault.action == "stop")
                 log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
                 events.append(FaultEvent(fault.action, fault.robot, at_s))
                 continue
@@ -729,6 +736,17 @@ class Team:
         # holds was granted before the last refusal, so it ends within this.
         last = max(answers, default=time.monotonic())
         await asyncio.sleep(max(0.0, last + self.spec.lease_s - time.monotonic()))
+        # From now on the robot can pick nothing: if it answers (it was only
+        # cut off), its state is final and says what it did pick.
+        with contextlib.suppress(TransportError, ValueError):
+            response = await client.request(
+                self.endpoints[robot_id], Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR),
+                timeout=watcher.request_timeout_s,
+            )
+            state = RobotState.decode(response.payload)
+            known = watcher.states.get(robot_id)
+            if response.status.is_success and known is not None and state.boot == known.boot:
+                watcher.states[robot_id] = state
         log.warning("%s's lease has run out: its unexecuted tasks go round again", robot_id)
         return True
 

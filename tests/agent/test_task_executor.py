@@ -47,7 +47,9 @@ async def test_a_job_drives_picks_and_ends_idle_at_the_object() -> None:
     executor, published, clock = await _run([_job(1, to_object_m=30.0)])
     # 30 m at 2 m/s = 15 s, then a 4 s pick; time runs 10x faster than the wall clock.
     assert clock.waits == pytest.approx([1.5, 0.4])
-    assert [s.activity for s in published] == ["idle", "travelling", "picking", "idle"]
+    # Done counts once the pick is over (then, at the object, idle).
+    assert [(s.activity, s.done) for s in published] == [
+        ("idle", 0), ("travelling", 0), ("picking", 0), ("picking", 1), ("idle", 1)]
     assert published[0].queued == 1 and published[1].executing == "Thing_1"
     assert (executor.live.aisle, executor.live.rack, executor.live.done) == (3.0, 7.0, 1)
     assert executor.live.executing is None and executor.live.queued == 0
@@ -71,3 +73,46 @@ async def test_queued_jobs_run_in_order_without_going_idle_between() -> None:
 async def test_wait_idle_returns_at_once_with_nothing_to_do() -> None:
     executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), lambda live: None)
     await asyncio.wait_for(executor.wait_idle(), 0.1)
+
+
+class Fence:
+    """A lease that holds for the first ``grants`` asks, then is refused."""
+
+    def __init__(self, grants: int) -> None:
+        self.grants = grants
+        self.asked: list[float] = []
+
+    async def hold(self, for_s: float) -> str | None:
+        self.asked.append(for_s)
+        return None if len(self.asked) <= self.grants else "no lease from a majority of the cluster (Robot2: refused)"
+
+
+async def _run_fenced(jobs: list[Job], fence: Fence) -> tuple[TaskExecutor, list[LiveState]]:
+    published: list[LiveState] = []
+    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=FastClock().sleep, lease=fence.hold)
+    executor.start()
+    try:
+        for job in jobs:
+            executor.submit(job)
+        await asyncio.wait_for(executor.wait_idle(), 1)
+    finally:
+        await executor.aclose()
+    return executor, published
+
+
+async def test_a_pick_needs_the_lease_before_and_after_it() -> None:
+    executor, published = await _run_fenced([_job(1, 2.0), _job(2, 4.0)], Fence(grants=4))
+    assert executor.live.done == 2 and not executor.live.fenced
+    assert "picking" in [s.activity for s in published]
+
+
+async def test_a_refused_lease_drops_the_job_and_the_queue_unpicked() -> None:
+    # Granted before the first pick, refused when it is over (frozen past its lease meanwhile).
+    executor, published = await _run_fenced([_job(1, 2.0), _job(2, 4.0), _job(3, 6.0)], Fence(grants=1))
+    assert executor.live.done == 0
+    assert executor.live.fenced == (1, 2, 3) and "Robot2: refused" in (executor.live.fence_reason or "")
+    assert (executor.live.activity, executor.live.queued, executor.live.executing) == ("idle", 0, None)
+    # A job given after the fence is dropped too (the lease is asked again, and refused).
+    fence = Fence(grants=0)
+    executor, published = await _run_fenced([_job(4, 2.0)], fence)
+    assert executor.live.fenced == (4,) and "picking" not in [s.activity for s in published]

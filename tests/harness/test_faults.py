@@ -8,8 +8,12 @@ import asyncio
 
 import pytest
 
-from coapkb.harness.record import TeamRecord
+from coapkb.agent.robot_state import RobotState
+from coapkb.agent.team_view import STATE_PATH
+from coapkb.harness.record import TaskRecord, TeamRecord
 from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tasks, split_tasks
+from coapkb.transport import open_client
+from coapkb.transport.messages import ContentFormat, Method, Request
 
 from support import ROOT
 
@@ -145,6 +149,10 @@ def test_fault_option_parses_and_is_checked() -> None:
         TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot4", 4.0), Fault("restart", "Robot4", 3.0)))
     with pytest.raises(ValueError, match="cannot kill Robot7"):
         TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot7", 1.0),))
+    assert Fault.parse("stop", "Robot2@1.5s") == Fault("stop", "Robot2", 1.5)
+    TeamSpec(robots=3, ontologies=ONTOLOGIES, faults=(Fault("stop", "Robot2", 1.0), Fault("resume", "Robot2", 3.0)))
+    with pytest.raises(ValueError, match="cannot resume Robot2 at 3s: it is not stopped before"):
+        TeamSpec(robots=3, ontologies=ONTOLOGIES, faults=(Fault("resume", "Robot2", 3.0),))
 
 
 def test_replication_puts_every_module_on_r_robots_of_a_cluster() -> None:
@@ -157,3 +165,51 @@ def test_replication_puts_every_module_on_r_robots_of_a_cluster() -> None:
     assert cluster_modules(0, TeamSpec(ontologies=ONTOLOGIES, replication=1)) == ("Location",)
     with pytest.raises(ValueError, match="replication"):
         TeamSpec(ontologies=ONTOLOGIES, replication=4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["coap", "zmq"])
+async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
+    # Robot2 is frozen (SIGSTOP) right after it was given a task, so it holds
+    # that job unexecuted; the survivors declare it down, its tasks go round
+    # again once its lease has run out, and only then does it go on (SIGCONT),
+    # still holding the jobs: it must pick none of them.
+    tasks = draw_tasks(8, ONTOLOGIES, seed=3)
+    spec = TeamSpec(robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=10.0)
+    async with asyncio.timeout(120):
+        async with Team.launch(spec) as team:
+            stopped, resumed = asyncio.Event(), asyncio.Event()
+
+            def progress(record: TaskRecord) -> None:
+                if not stopped.is_set() and record.assigned_to == VICTIM:
+                    team.pause(VICTIM)
+                    stopped.set()
+                elif stopped.is_set() and not resumed.is_set() and record.reassigned_from is not None:
+                    team.pause(VICTIM, stop=False)  # its tasks are the survivors' now
+                    resumed.set()
+
+            async def settled() -> None:
+                # The resumed robot has met its fence (or had nothing left to do).
+                client = await open_client(transport, security=team.feeder_security())
+                request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+                try:
+                    async for answer in client.observe(team.endpoints[VICTIM], request):
+                        live = RobotState.decode(answer.payload).live
+                        if live.activity == "idle" and live.queued == 0:
+                            return
+                finally:
+                    await client.aclose()
+
+            record = await team.run(tasks, progress, settled)
+    assert stopped.is_set() and resumed.is_set(), [t.fate for t in record.tasks]
+    assert set(record.down) == {VICTIM}
+    check_fates(record, tasks, spec)
+    # Every task picked exactly once: by the robot it finally went to; the
+    # comeback robot dropped the jobs it held, unpicked (a task the others
+    # gave it after it froze never reached it).
+    victim = record.robot_stats[VICTIM]
+    moved = sorted(t.seq for t in record.tasks if t.fate == "reassigned")
+    assert victim.fenced and set(victim.fenced) <= set(moved), (victim.fenced, moved)
+    assigned = [t for t in record.tasks if t.fate == "assigned"]
+    assert sum(s.executed for s in record.robot_stats.values()) == len(assigned)
+    assert TeamRecord.from_dict(record.to_dict()).to_dict() == record.to_dict()
