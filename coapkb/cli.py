@@ -361,7 +361,8 @@ async def _team(args: argparse.Namespace) -> int:
     try:
         async with Team.launch(spec) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
-            scheme = {"coap": "OSCORE keyed by EDHOC", "zmq": "CurveZMQ"}.get(spec.transport, "")
+            scheme = {"coap": "OSCORE keyed by EDHOC", "zmq": "CurveZMQ", "zenoh": "mutual TLS with team certificates"}[
+                spec.transport] if spec.secure else ""
             print("security: " + (f"{scheme}, team access policy" if spec.secure else "none"), flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
