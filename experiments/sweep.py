@@ -33,6 +33,7 @@ import asyncio
 import contextlib
 import hashlib
 import json
+import logging
 import math
 import signal
 import sys
@@ -461,9 +462,14 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
                 except asyncio.CancelledError:
                     if future.status != "cancelled":  # this sweep was cancelled (Ctrl-C), not the task
                         raise
-                    progress.missing(run, "cancelled: scheduler lost?")
-                except Exception as exc:  # e.g. KilledWorker: the run took down every worker it was tried on
-                    progress.missing(run, f"{type(exc).__name__}: {exc}"[:200])
+                    progress.missing(run, "cancelled")
+                except Exception as exc:  # KilledWorker (it took down every worker it was tried on), a lost scheduler
+                    if client.status != "running" or "connection-lost" in str(exc):
+                        # The scheduler is gone: every other future fails the same way, and the
+                        # client's reconnection attempt would log a traceback when we close it.
+                        logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
+                    first_line = (str(exc).strip().splitlines() or [""])[0]
+                    progress.missing(run, f"{type(exc).__name__}: {first_line}"[:200])
                 else:
                     progress.record(run, BenchRow.from_dict(data))
     return progress.failed, progress.lost
