@@ -112,15 +112,17 @@ async def test_both_holders_of_a_module_killed(transport: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("transport", ["coap", "zmq"])
-async def test_killed_robot_restarts_and_joins_again(transport: str) -> None:
+@pytest.mark.parametrize(("transport", "discovery"), [("coap", "static"), ("zmq", "static"), ("coap", "rd")])
+async def test_killed_robot_restarts_and_joins_again(transport: str, discovery: str) -> None:
     # Robot2 is killed while its tasks are queued, started again, and joins
     # at the next task fed: its old tasks go round again, the team takes it
-    # back in a new epoch that every robot names, and it works again.
+    # back in a new epoch that every robot names, and it works again.  With
+    # a directory, the new process finds its teammates there (its
+    # configuration lists it alone).
     tasks = draw_tasks(20, ONTOLOGIES, seed=3)
     spec = TeamSpec(
         robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=20.0,
-        faults=(Fault("kill", VICTIM, 0.5), Fault("restart", VICTIM, 2.0)),
+        faults=(Fault("kill", VICTIM, 0.5), Fault("restart", VICTIM, 2.0)), discovery=discovery,
     )
     async with asyncio.timeout(120):
         async with Team.launch(spec) as team:

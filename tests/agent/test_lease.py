@@ -1,0 +1,110 @@
+"""The lease (the fence of issue 11): how many grants a robot needs, when a
+round is a refusal and when only undecided, that the lease runs from the
+round's send time, and who a teammate grants."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import AsyncIterator
+
+from coapkb.agent.lease import LEASE_PATH, Lease, lease_duration_s
+from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
+from coapkb.agent.team_view import TeamView
+from coapkb.transport.base import Endpoint, PeerUnreachable
+from coapkb.transport.messages import Request, Response, Status
+
+MATES = {"Robot1": Endpoint("coap", "127.0.0.1", 1), "Robot3": Endpoint("coap", "127.0.0.1", 3)}
+
+
+class Scripted:
+    """A client whose peers answer as told: "grant", "refuse" or "silent"."""
+
+    def __init__(self, answers: dict[int, str], delay_s: float = 0.0) -> None:
+        self.answers = answers
+        self.delay_s = delay_s
+        self.asked: list[tuple[int, Request]] = []
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        self.asked.append((peer.port, request))
+        await asyncio.sleep(self.delay_s)
+        answer = self.answers[peer.port]
+        if answer == "silent":
+            raise PeerUnreachable(f"no answer from {peer}")
+        if answer == "refuse":
+            return Response.error(Status.FORBIDDEN, "Robot1 has Robot2 down")
+        return Response(Status.CONTENT)
+
+    def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        raise NotImplementedError
+
+    async def aclose(self) -> None:
+        pass
+
+
+def _lease(client: Scripted, down: dict[str, str] | None = None, failures: list[str] | None = None) -> Lease:
+    async def failed(robot_id: str, exc: Exception) -> None:
+        (failures if failures is not None else []).append(robot_id)
+
+    return Lease("Robot2", MATES, client, 3.0, request_timeout_s=lambda: 1.0, down=lambda: down or {},
+                 on_failure=failed)
+
+
+async def test_one_grant_of_two_teammates_is_a_majority_of_three() -> None:
+    client = Scripted({1: "refuse", 3: "grant"})
+    lease = _lease(client)
+    assert lease.needed == 1
+    sent = time.monotonic()
+    assert await lease.hold(0.1) is None
+    # Valid from the round's send time, not from the answer.
+    assert sent <= lease.valid_until - 3.0 <= time.monotonic()
+    assert all(r.path == LEASE_PATH and r.query == {"r": "Robot2"} for _, r in client.asked)
+    # Held: no new round while it covers what is asked.
+    asked = len(client.asked)
+    assert await lease.hold(0.1) is None and len(client.asked) == asked
+
+
+async def test_refused_by_all_is_fenced_with_the_reasons() -> None:
+    why = await _lease(Scripted({1: "refuse", 3: "refuse"})).hold(0.1)
+    assert why is not None and "no lease from a majority" in why and "Robot1: refused" in why
+    # A teammate this robot has down counts as a refusal; one that does not
+    # answer is reported to failure detection.
+    failures: list[str] = []
+    why = await _lease(Scripted({1: "silent", 3: "refuse"}), down={"Robot1": "2 requests failed"},
+                       failures=failures).hold(0.1)
+    assert why is not None and "Robot1: down" in why and not failures
+
+
+async def test_no_answers_wait_and_never_grant() -> None:
+    failures: list[str] = []
+    client = Scripted({1: "silent", 3: "silent"})
+    lease = _lease(client, failures=failures)
+    try:
+        async with asyncio.timeout(0.5):
+            await lease.hold(0.1)
+        raise AssertionError("a silent cluster granted a lease")
+    except TimeoutError:
+        pass
+    assert len(client.asked) >= 4 and set(failures) == {"Robot1", "Robot3"}
+    assert lease.valid_until == float("-inf")
+
+
+async def test_a_cluster_of_one_needs_nobody() -> None:
+    lease = Lease("Robot1", {}, Scripted({}), 3.0, request_timeout_s=lambda: 1.0, down=dict)
+    assert lease.needed == 0 and await lease.hold(1.0) is None
+
+
+def test_lease_length_follows_the_liveness_floor() -> None:
+    assert lease_duration_s(1.0) == 3.0 and lease_duration_s(5.0) == 15.0
+
+
+async def test_a_teammate_grants_only_a_member_it_has_up() -> None:
+    own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0), LiveState(1.0, 0.0))
+    team = TeamView(own, {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)},
+                    Scripted({}))
+    assert team.grant("Robot2") is None
+    assert "not in this robot's cluster" in (team.grant("Robot9") or "")
+    team.excluded["Robot3"] = 5
+    assert "left Robot3 out" in (team.grant("Robot3") or "")
+    await team._teammates.declare_down("Robot2", "2 requests failed in a row")
+    assert "Robot1 has Robot2 down" in (team.grant("Robot2") or "")
