@@ -49,14 +49,10 @@ def key_file(team_dir: Path, name: str) -> Path:
 def fingerprint(pem: bytes) -> str:
     """SHA-256 of the certificate's DER, hex: what ``team.json`` pins."""
     from cryptography import x509
-
-    return hashlib.sha256(x509.load_pem_x509_certificate(pem).public_bytes(_der())).hexdigest()
-
-
-def _der():  # -> serialization.Encoding.DER
     from cryptography.hazmat.primitives import serialization
 
-    return serialization.Encoding.DER
+    der = x509.load_pem_x509_certificate(pem).public_bytes(serialization.Encoding.DER)
+    return hashlib.sha256(der).hexdigest()
 
 
 def generate_tls(team_dir: Path, names: Iterable[str]) -> tuple[str, dict[str, str]]:

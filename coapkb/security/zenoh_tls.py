@@ -99,7 +99,9 @@ class ZenohServerSecurity:
         and no member's session may publish, serve or answer through this one."""
         members = self.identity.trust.members
         only = {"/tasks": {"feeder"}, "/decisions": {"robot"}}
-        rules, subjects, policies = [], [], []
+        rules: list[dict[str, object]] = []
+        subjects: list[dict[str, object]] = []
+        policies: list[dict[str, object]] = []
         for index, (path, roles) in enumerate(only.items()):
             others = [m.name for m in members if m.role not in roles]
             if not others:
