@@ -37,7 +37,7 @@ if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests
     sys.path.insert(0, HERE)
 
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
-from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci  # noqa: E402  (experiments/ is the script's own folder)
+from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci  # noqa: E402  (experiments/ is this folder)
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -206,6 +206,8 @@ def section_commands(csv_path: Path, profile: str) -> list[str]:
         "```sh",
         "make venv                                                   # once",
         f"sudo .venv/bin/python experiments/sweep.py --profile {profile}      # resumable; --jobs N runs N at once",
+        "# or on a Dask cluster (docs/benchmarks.md, \"Running on a cluster\"):",
+        f".venv/bin/python experiments/sweep.py --profile {profile} --engine dask://HOST:8786",
         f".venv/bin/python experiments/figures.py {rel}",
         f".venv/bin/python experiments/report.py {rel}",
         "# one run by hand:",
@@ -286,7 +288,8 @@ def section_ratios(rows: Sequence[BenchRow]) -> list[str]:
                         & (d.robots == want[3])))
                     r = pairs.ratio("wire_bytes")
                     if r is not None:
-                        head.append((dist.split("-")[0], robots, _g(loss), _fmt(r, saving=True).rsplit(" (", 1)[0], r.n))
+                        saving = _fmt(r, saving=True).rsplit(" (", 1)[0]  # the pairs have their own column
+                        head.append((dist.split("-")[0], robots, _g(loss), saving, r.n))
         if head:
             lines += ["", f"Distributed vs central byte saving in the seed's Fig. 6 setting ({_g(bw)} kbit/s, {t} tasks); "
                       f"the seed reports ~{SEED_BYTE_SAVING:.0%} at 2 % loss and about the same at 20 %:", ""]
@@ -363,7 +366,8 @@ def section_cell_ratios(df: pd.DataFrame) -> list[str]:
             if not len(pairs):
                 continue
             per[header] = pairs.wide.groupby(level=list(CELL)).apply(
-                lambda w, a=a, b=b: ratio_ci(w[(column, a)].to_numpy(dtype=float), w[(column, b)].to_numpy(dtype=float)))
+                lambda w, a=a, b=b: ratio_ci(w[(column, a)].to_numpy(dtype=float),
+                                             w[(column, b)].to_numpy(dtype=float)))
         if not per:
             continue
         table = pd.DataFrame(per).sort_index()
@@ -418,7 +422,8 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
                 f"faster in {faster} of {len(pairs)}.")
         if (slowdown >= 1).any():
             robots, tasks, bw, loss, rep = slowdown[slowdown >= 1].idxmax()
-            x, y = w.loc[(robots, tasks, bw, loss, rep), ("completion_s", a)], w.loc[(robots, tasks, bw, loss, rep), ("completion_s", b)]
+            pair = w.loc[(robots, tasks, bw, loss, rep), "completion_s"]
+            x, y = pair[a], pair[b]
             text += (f" Largest slow-down x{x / y:.1f} at {robots} robots, "
                      f"{tasks} tasks, {_g(bw)} kbit/s, {_g(loss)} % loss "
                      f"({x:.1f} s vs {y:.1f} s).")

@@ -71,7 +71,8 @@ class Estimate:
         :data:`SHORT` mark when the interval covers less than the confidence."""
         if not self.has_interval:
             return f"{fmt(self.value)} (n={self.n})"
-        return f"{fmt(self.value)} [{fmt(self.low)}, {fmt(self.high)}]{SHORT if self.short else ''}"  # type: ignore[arg-type]
+        mark = SHORT if self.short else ""
+        return f"{fmt(self.value)} [{fmt(self.low)}, {fmt(self.high)}]{mark}"  # type: ignore[arg-type]
 
 
 def _clean(values: Iterable[float | None]) -> np.ndarray:
