@@ -82,13 +82,15 @@ def test_a_tiny_matrix_through_a_local_dask_cluster_of_two_workers(
     CSV; a second start finds nothing to do."""
     ok, why = available()
     require(ok, why)
-    from distributed import LocalCluster
+    from distributed import Client, LocalCluster
 
     tiny = sweep.Profile("tiny", (sweep.Grid((3,), (2,), (512,), (2,), ("coap-distributed",)),), reps=2, note="test")
     monkeypatch.setitem(sweep.PROFILES, "tiny", tiny)
     out = tmp_path / "tiny.csv"
     with LocalCluster(n_workers=2, processes=True, threads_per_worker=1, resources={sweep.NETNS: 1},
                       dashboard_address=None, host="127.0.0.1") as cluster:
+        with Client(cluster) as client:  # both registered before the sweep counts its slots
+            client.wait_for_workers(2, timeout=60)
         engine = cluster.scheduler_address.replace("tcp://", "dask://")
         argv = ["--profile", "tiny", "--engine", engine, "--out", str(out), "--retransmission", "adaptive"]
         assert sweep.main(argv) == 0
