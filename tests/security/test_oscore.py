@@ -15,7 +15,7 @@ from coapkb.security import AccessPolicy, TeamIdentity, TeamTrust, generate_team
 from coapkb.security.coap import ClientSecurity, EdhocFailed, ServerSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, open_client, serve
-from coapkb.transport.base import ResourceInfo
+from coapkb.transport.base import PeerUnreachable, ResourceInfo
 from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
 
@@ -232,6 +232,32 @@ async def test_a_restarted_server_is_rekeyed(team_dir: Path, profile: str) -> No
         assert len(client.security.handshakes) == 2
     finally:
         await client.aclose()
+        await robot.stop()
+
+
+async def test_a_restarted_server_that_gave_our_key_id_away_is_rekeyed(team_dir: Path) -> None:
+    """The restarted server hands the connection identifier our old context
+    used to another client (it picks the lowest free one, as before), so our
+    requests no longer decrypt there and the NON tries go unanswered.  The
+    unanswered request drops our context; the next one runs EDHOC again.
+    Before, every later request timed out too and the joiner stayed "down"."""
+    robot = Robot1(team_dir)
+    peer = await robot.start()
+    stale = await _client(load_identity(team_dir, "Robot2"), "robust")
+    other = await _client(load_identity(team_dir, "Robot3"), "robust")
+    try:
+        assert (await stale.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        await robot.stop()
+        await robot.start(peer.port)
+        assert (await other.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        assert stale.security.context(stale._ctx, peer).sender_id == other.security.context(other._ctx, peer).sender_id
+        with pytest.raises(PeerUnreachable):
+            await stale.request(peer, Request(Method.GET, "/tasks"), timeout=1)
+        assert (await stale.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        assert len(stale.security.handshakes) == 2
+    finally:
+        await stale.aclose()
+        await other.aclose()
         await robot.stop()
 
 
