@@ -444,8 +444,13 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
         print(f"{address}: {len(workers)} workers, {slots:g} run slots (resource {NETNS})", flush=True)
         if not slots:
             print(f"sweep: no worker offers the resource {NETNS!r} yet; runs wait for workers started with "
-                  f"`dask worker {address} --nthreads 1 --resources {NETNS}=1` (as root)", file=sys.stderr, flush=True)
-        unfit = {w: why for w, (ok, why, _) in (await client.run(_Shipped(_prepare_worker))).items() if not ok}
+                  f"`dask worker {address} --nthreads 1 --resources {NETNS}=1` (as root)",
+                  file=sys.stderr, flush=True)
+        checked = await client.run(_Shipped(_prepare_worker))
+        unfit = {w: why for w, (ok, why, _) in checked.items() if not ok}
+        removed = sum(n for _, _, n in checked.values())
+        if removed:
+            print(f"workers removed {removed} namespaces left by crashed runs", flush=True)
         if unfit:
             raise EngineError("workers without kernel link emulation (not root?): "
                               + "; ".join(f"{w}: {why}" for w, why in sorted(unfit.items())))
@@ -463,7 +468,7 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
                     if future.status != "cancelled":  # this sweep was cancelled (Ctrl-C), not the task
                         raise
                     progress.missing(run, "cancelled")
-                except Exception as exc:  # KilledWorker (it took down every worker it was tried on), a lost scheduler
+                except Exception as exc:  # KilledWorker (it killed every worker it was tried on), a lost scheduler
                     if client.status != "running" or "connection-lost" in str(exc):
                         # The scheduler is gone: every other future fails the same way, and the
                         # client's reconnection attempt would log a traceback when we close it.
