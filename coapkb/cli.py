@@ -121,7 +121,8 @@ def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | Zmq
     if peer.scheme == "zenoh":
         from .security.zenoh_tls import ZenohClientSecurity
 
-        return ZenohClientSecurity(identity)  # mTLS: any team certificate may serve there
+        # Any team certificate may serve there; --peer also insists on who it is.
+        return ZenohClientSecurity(identity, {peer.hostport: args.peer} if args.peer else None)
     if peer.scheme != "coap":
         raise UserError(f"--credentials: the {peer.scheme} transport cannot be secured (zenoh+udp: use zenoh://, TLS)")
     from .security.coap import ClientSecurity

@@ -340,8 +340,7 @@ def robot_security(config: RobotConfig) -> Any:
     if config.transport == "zenoh":
         from ..security.zenoh_tls import ZenohClientSecurity
 
-        # mTLS admits any team certificate: which member serves where is not checked.
-        return ZenohClientSecurity(identity)
+        return ZenohClientSecurity(identity, expected)
     from ..security.coap import ClientSecurity
 
     return ClientSecurity(identity, expected)

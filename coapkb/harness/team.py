@@ -503,7 +503,7 @@ class Team:
         if self.spec.transport == "zenoh":
             from ..security.zenoh_tls import ZenohClientSecurity
 
-            return ZenohClientSecurity(load_identity(self.team_dir, "feeder"))
+            return ZenohClientSecurity(load_identity(self.team_dir, "feeder"), expected)
         from ..security.coap import ClientSecurity
 
         return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)

@@ -12,9 +12,10 @@ and CurveZMQ on ZeroMQ, so a secured benchmark compares like with like.
   all: the handshake fails and the client reports the peer unreachable.
 * Host names are not checked (``verify_name_on_connect`` false): a
   certificate names a member, not a host, and robots are addressed by IP.
-  Which member serves an endpoint is therefore not checked either (CurveZMQ
-  and EDHOC do check it): any team member could answer at a teammate's
-  address.
+  Instead, as with CurveZMQ and EDHOC, the client checks *which* member
+  serves an endpoint: once a session is open, its link's certificate name
+  (``Link.auth_identifier``) must be the member its configuration puts at
+  that endpoint, or the session is closed and the peer is unreachable.
 
 Authorisation per resource (:class:`~.policy.AccessPolicy`), in two layers:
 
@@ -50,6 +51,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from ..transport.base import Endpoint, PeerUnreachable
 from ..transport.messages import Request
 from ..transport.zenoh.mapping import key_for_path
 from .keys import SecurityError, TeamIdentity, TeamMember
@@ -141,6 +143,9 @@ class ZenohServerSecurity:
 @dataclass
 class ZenohClientSecurity:
     identity: TeamIdentity
+    #: Which member serves at an endpoint (``host:port`` -> name); an endpoint
+    #: not named here may be served by any member.
+    expected: dict[str, str] | None = None
 
     def __post_init__(self) -> None:
         self.files = self.identity.tls()
@@ -150,3 +155,14 @@ class ZenohClientSecurity:
         _common(config, self.files)
         _insert(config, "connect_private_key", str(self.files.key))
         _insert(config, "connect_certificate", str(self.files.cert))
+
+    def check_peer(self, session: zenoh.Session, peer: Endpoint) -> None:
+        """Raise :class:`PeerUnreachable` unless the member expected at ``peer``
+        is the one whose certificate the session's link authenticated."""
+        name = (self.expected or {}).get(peer.hostport)
+        if name is None:
+            return
+        names = {link.auth_identifier for link in session.info.links()}
+        if names != {name}:
+            found = ", ".join(sorted(n or "no certificate" for n in names)) or "no link"
+            raise PeerUnreachable(f"{peer} presented {found}'s certificate, not {name}'s")

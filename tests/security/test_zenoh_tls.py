@@ -249,3 +249,17 @@ async def test_a_member_cannot_answer_or_notify_in_the_robots_name(robot1, team_
 
     answers, seen = await asyncio.to_thread(attack)
     assert answers == [b"ok"] and seen == []
+
+
+async def test_the_client_checks_which_member_serves_an_endpoint(robot1, team_dir: Path) -> None:
+    """As with EDHOC and CurveZMQ: the certificate at an endpoint must be the
+    member the client's configuration puts there."""
+    server, calls = robot1
+    peer = server.endpoint
+    identity = load_identity(team_dir, "feeder")
+    right = ZenohClientSecurity(identity, {peer.hostport: "Robot1"})
+    assert (await _ask(right, peer, Method.POST, "/tasks")).status == Status.CHANGED
+    wrong = ZenohClientSecurity(identity, {peer.hostport: "Robot2"})
+    with pytest.raises(PeerUnreachable, match="presented Robot1's certificate, not Robot2's"):
+        await _ask(wrong, peer, Method.POST, "/tasks")
+    assert calls == [("POST", "/tasks")]

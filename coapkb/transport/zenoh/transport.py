@@ -615,7 +615,9 @@ class ZenohClientTransport:
             if self._security is not None:
                 self._security.configure(config)
             loop = asyncio.get_running_loop()
-            opening = self._sessions[peer] = asyncio.ensure_future(loop.run_in_executor(self._executor, zenoh.open, config))
+            opening = self._sessions[peer] = asyncio.ensure_future(
+                loop.run_in_executor(self._executor, self._open, config, peer)
+            )
         try:
             return await asyncio.shield(opening)
         except zenoh.ZError as exc:
@@ -623,6 +625,18 @@ class ZenohClientTransport:
             if self._security is not None:  # Zenoh does not say whether the TLS handshake failed
                 why += " (over TLS with this team's certificates)"
             raise PeerUnreachable(f"cannot reach {peer}: {why}") from None
+
+    def _open(self, config: zenoh.Config, peer: Endpoint) -> zenoh.Session:
+        """On the executor: open a session to ``peer`` and, with security,
+        check that the member expected there is the one that answered."""
+        session = zenoh.open(config)
+        if self._security is not None:
+            try:
+                self._security.check_peer(session, peer)
+            except BaseException:
+                session.close()
+                raise
+        return session
 
     def _closed_error(self) -> TransportError | None:
         task = asyncio.current_task()
