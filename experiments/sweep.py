@@ -155,14 +155,16 @@ class Run:
         return f"{self.system} {self.robots}r {self.tasks}t {self.bandwidth:g}k {self.loss:g}% rep{self.rep}"
 
 
-COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
+#: The systems on the compact wire (named queries, CBOR answers), Zenoh over TCP included (issue 13).
+COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central",
+                   "zenoh-distributed", "zenoh-central")
 #: The paper matrix leaves out Zenoh over UDP: it does not retransmit, so at
 #: 2-20 % loss every run would fail, each after its whole timeout (docs/zenoh.md).
 PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport != "zenoh+udp")
 QUICK_SYSTEMS = (*COMPACT_SYSTEMS, "seed-distributed")
 PROFILES: dict[str, Profile] = {
-    # A representative subset that fits in 15 minutes on 2 cores with --jobs 1
-    # (measured: see docs/benchmarks.md).  Two things cost time at 20 % loss:
+    # A representative subset, 3 repetitions of every cell (about 25 minutes
+    # a repetition on 2 cores with --jobs 1: see docs/benchmarks.md).  Two things cost time at 20 % loss:
     # CoAP's retransmission timeouts (10-25 s per task and cluster, 5-20x a 2 %
     # run) and ZeroMQ connections the kernel gives up on, which leave a query
     # hanging until its 115 s timeout -- mostly on the seed's wire (bigger
@@ -185,6 +187,7 @@ PROFILES: dict[str, Profile] = {
             # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
             Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
         ),
+        reps=3,
         note="subset: 35 kbit/s x 5 tasks x robots 3/9 x loss 2/20 % (the seed's wire at 2 % only); at 2 %: "
         "3 robots x tasks 5/20 x 35/256 kbit/s, 9 robots x 20 tasks x 35 kbit/s",
     ),
@@ -192,6 +195,7 @@ PROFILES: dict[str, Profile] = {
     "paper": Profile(
         "paper",
         (Grid((3, 6, 9), (5, 10, 20, 40, 80), (35, 128, 256, 512), (2, 5, 10, 15, 20), PAPER_SYSTEMS),),
+        reps=3,
         note="the seed's full matrix: robots 3/6/9, tasks 5-80, 35-512 kbit/s, 2-20 % loss",
     ),
 }
