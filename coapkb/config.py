@@ -36,7 +36,7 @@ Example ``robot1.toml``::
     # fallback when the directory does not answer (docs/discovery.md).
     [discovery]
     method = "rd"                       # "static" (default): the team table only
-    rd = "coap://127.0.0.1:5690"        # the directory
+    rd = "coap://127.0.0.1:5690"        # the directory; leave out to find it by multicast
     rd_identity = "feeder"              # whose team credential it must show (OSCORE)
     cluster = "cluster1"                # registered as the sector (d=); teammates share it
     members = 3                         # robots of the cluster, this one included
@@ -112,8 +112,12 @@ class DiscoveryConfig:
     Directory and looks its cluster up there (:mod:`coapkb.discovery`)."""
 
     method: str = "static"
-    #: The Resource Directory (``rd`` only).
+    #: The Resource Directory (``rd`` only); None = find it by multicast
+    #: (``GET /.well-known/core?rt=core.rd*`` to All-CoAP-Nodes on the
+    #: interface of ``bind``).
     rd: Endpoint | None = None
+    #: The UDP port multicast discovery asks on (CoAP's own by default).
+    multicast_port: int = 5683
     #: The team member whose credential the directory must show under
     #: OSCORE/EDHOC (the feeder hosts it in ``coapkb team``).
     rd_identity: str = "feeder"
@@ -329,8 +333,6 @@ def _discovery(section: Any) -> DiscoveryConfig:
     if method not in DISCOVERY_METHODS:
         raise ConfigError(f"discovery.method: {method!r} is not one of {', '.join(DISCOVERY_METHODS)}")
     rd = None if section.get("rd") is None else _endpoint(section["rd"], "discovery.rd")
-    if method == "rd" and rd is None:
-        raise ConfigError("discovery.rd: missing (the Resource Directory's coap://HOST:PORT)")
     if rd is not None and rd.scheme != "coap":
         raise ConfigError(f"discovery.rd: a Resource Directory is a coap:// endpoint, got {rd}")
     discovery = DiscoveryConfig(
@@ -341,7 +343,10 @@ def _discovery(section: Any) -> DiscoveryConfig:
         members=_get(section, "members", int, 3, where="discovery"),
         lifetime_s=_get(section, "lifetime_s", int, 60, where="discovery"),
         wait_s=float(_get(section, "wait_s", (int, float), 30.0, where="discovery")),
+        multicast_port=_get(section, "multicast_port", int, 5683, where="discovery"),
     )
+    if not 0 < discovery.multicast_port < 65536:
+        raise ConfigError("discovery.multicast_port: must be a UDP port (1-65535)")
     if not discovery.cluster or not all(c.isalnum() or c in "-_." for c in discovery.cluster):
         raise ConfigError(f"discovery.cluster: letters, digits, '-', '_' and '.' only, got {discovery.cluster!r}")
     if discovery.members < 1:

@@ -25,6 +25,7 @@ from ..transport import open_client, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH
+from .multicast import find_directory
 
 log = logging.getLogger(__name__)
 
@@ -191,10 +192,21 @@ class DirectoryClient:
                 log.warning("renewing the registration at %s: %s", self.rd, exc)
 
 
-async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient]:
+async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient | None]:
     """``config`` with the teammates the directory shows (over the ``team``
     table's entries of the same names; the table's others stay, as the
-    fallback), and the registration, renewing from now on."""
+    fallback), and the registration, renewing from now on.  Without a
+    configured directory it is looked for by multicast first; if none
+    answers, the team table is all there is (and no registration)."""
+    if config.discovery.rd is None:
+        rd = await find_directory(
+            config.bind.host, port=config.discovery.multicast_port, timeout=min(config.discovery.wait_s, 3.0)
+        )
+        if rd is None:
+            log.warning("no Resource Directory answered multicast discovery: using the team table")
+            return config, None
+        log.info("found the Resource Directory at %s by multicast", rd)
+        config = replace(config, discovery=replace(config.discovery, rd=rd))
     directory = await DirectoryClient.open(config)
     try:
         found = await directory.find_team()
@@ -206,7 +218,7 @@ async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient]:
             if missing:
                 shown = ", ".join(f"{m.robot_id} ({'+'.join(m.kbs) or '-'})" for m in team.values())
                 raise DiscoveryError(f"nobody in {config.discovery.cluster} holds {', '.join(missing)}: {shown}")
-        log.warning("discovered %s: %s", config.discovery.cluster,
+        log.info("discovered %s: %s", config.discovery.cluster,
                     ", ".join(f"{m.robot_id} {m.endpoint} {'+'.join(m.kbs)}" for m in team.values()))
         directory.start_renewing()
     except BaseException:

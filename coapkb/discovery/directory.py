@@ -123,6 +123,13 @@ class DirectoryService:
             return Response.error(Status.BAD_REQUEST, f"not a registration: {exc}")
         except Exception as exc:  # the link-format parser's own errors
             return Response.error(Status.BAD_REQUEST, f"not link-format: {exc}")
+        known = self._rd._by_key.get((ep, request.query.get("d")))
+        if known is not None and known.base == base and str(known.links) == str(links):
+            # A renewal: the same registration again restarts its lifetime
+            # and changes nothing a lookup shows, so no observer is notified.
+            known.lt = lifetime
+            known.refresh_timeout()
+            return Response(Status.CHANGED)
         params = {k: [v] for k, v in request.query.items()}
         params["lt"] = [str(lifetime)]
         try:
@@ -155,18 +162,24 @@ class ResourceDirectory:
     :class:`~coapkb.security.coap.ServerSecurity` (whose policy is made a
     :class:`DirectoryPolicy`) or None."""
 
-    def __init__(self, service: DirectoryService, server: ServerTransport) -> None:
+    def __init__(self, service: DirectoryService, server: ServerTransport, announcer: Any = None) -> None:
         self.service = service
         self.server = server
+        #: Answers multicast discovery of this directory (or None).
+        self.announcer = announcer
 
     @property
     def endpoint(self) -> Endpoint:
         return self.server.endpoint
 
     @classmethod
-    async def start(cls, bind: Endpoint, identity: Any = None) -> "ResourceDirectory":
+    async def start(
+        cls, bind: Endpoint, identity: Any = None, multicast_port: int | None = None
+    ) -> "ResourceDirectory":
         """Serve on ``bind`` (port 0: any); ``identity``: the host's
-        :class:`~coapkb.security.TeamIdentity` (OSCORE/EDHOC), or None."""
+        :class:`~coapkb.security.TeamIdentity` (OSCORE/EDHOC), or None;
+        ``multicast_port``: also answer multicast discovery there, on
+        ``bind``'s interface."""
         security = None
         if identity is not None:
             from ..security.coap import ServerSecurity
@@ -174,8 +187,19 @@ class ResourceDirectory:
             security = ServerSecurity(identity, DirectoryPolicy())
         service = DirectoryService(authenticated=security is not None)
         server = await serve(service.router, bind, security=security)
-        return cls(service, server)
+        announcer = None
+        if multicast_port is not None:
+            from .multicast import MulticastAnnouncer
+
+            try:
+                announcer = await MulticastAnnouncer.start(server.endpoint, bind.host, multicast_port)
+            except BaseException:
+                await server.aclose()
+                raise
+        return cls(service, server, announcer)
 
     async def aclose(self) -> None:
+        if self.announcer is not None:
+            self.announcer.close()
         self.service.close()
         await self.server.aclose()

@@ -83,7 +83,9 @@ async def test_only_a_robot_registers_and_only_itself(team_dir: Path) -> None:
         await rd.aclose()
 
 
-def _robot_config(robot_id: str, port: int, kbs: tuple[str, ...], rd: Endpoint, **discovery: object) -> RobotConfig:
+def _robot_config(
+    robot_id: str, port: int, kbs: tuple[str, ...], rd: Endpoint | None, **discovery: object
+) -> RobotConfig:
     return RobotConfig(
         robot_id=robot_id, bind=Endpoint("coap", "127.0.0.1", port), kb_files=(),
         team={robot_id: Teammate(robot_id, Endpoint("coap", "127.0.0.1", port), kbs)},
@@ -144,7 +146,7 @@ def test_discovery_section_is_checked(tmp_path: Path) -> None:
         parse_config(base)
     for bad, match in (
         ({"method": "dns"}, "discovery.method: 'dns' is not one of static, rd"),
-        ({"method": "rd"}, "discovery.rd: missing"),
+        ({"method": "rd", "multicast_port": 0}, "discovery.multicast_port: must be a UDP port"),
         ({"method": "rd", "rd": "zmq://127.0.0.1:5690"}, "discovery.rd: a Resource Directory is a coap://"),
         ({"method": "rd", "rd": "coap://h:1", "lifetime_s": 0}, "discovery.lifetime_s: must be at least 1"),
         ({"method": "rd", "rd": "coap://h:1", "cluster": "a b"}, "discovery.cluster"),
@@ -155,6 +157,35 @@ def test_discovery_section_is_checked(tmp_path: Path) -> None:
     zmq = {**base, "bind": "zmq://127.0.0.1:5701", "team": {"Robot1": {"endpoint": "zmq://127.0.0.1:5701"}}}
     with pytest.raises(ConfigError, match="a Resource Directory speaks CoAP"):
         parse_config({**zmq, "discovery": {"method": "rd", "rd": "coap://127.0.0.1:5690"}})
+
+
+async def test_robots_find_the_directory_by_multicast() -> None:
+    # On loopback multicast works (IP_MULTICAST_IF 127.0.0.1): robots that
+    # know neither teammates nor the directory's address find both.  A
+    # port of its own, so parallel runs on this host do not answer.
+    port = free_udp_port()
+    rd = await ResourceDirectory.start(Endpoint("coap", "127.0.0.1", 0), multicast_port=port)
+    holdings = {"Robot1": ("Location",), "Robot2": ("Object",), "Robot3": ("Capability",)}
+    configs = [_robot_config(r, 5810 + i, kbs, None, multicast_port=port) for i, (r, kbs) in enumerate(holdings.items())]
+    found = []
+    try:
+        started = time.monotonic()
+        found = await asyncio.gather(*(discover(c) for c in configs))
+        elapsed = time.monotonic() - started
+        for config, directory in found:
+            assert directory is not None and directory.rd == rd.endpoint
+            assert {r: m.kbs for r, m in config.team.items()} == holdings
+        assert elapsed < 3, elapsed
+    finally:
+        for _, directory in found:
+            if directory is not None:
+                await directory.aclose()
+        await rd.aclose()
+    # Nobody answers: the team table, at once after the wait.
+    lone = _robot_config("Robot1", 5810, ("Location",), None, multicast_port=free_udp_port(), wait_s=0.6)
+    started = time.monotonic()
+    assert await discover(lone) == (lone, None)
+    assert time.monotonic() - started < 2
 
 
 def test_registration_names_the_modules() -> None:
