@@ -41,8 +41,9 @@ What a row measures (see ``docs/benchmarks.md``):
 ``security``
     What protected the messages, as in ``coapkb team``: ``oscore`` (CoAP,
     OSCORE keyed by EDHOC, with the team's access policy), ``curve``
-    (ZeroMQ, CurveZMQ), or ``none`` (``--insecure``, or a transport without
-    security).  Handshakes are on the wire and counted.
+    (ZeroMQ, CurveZMQ), ``tls`` (Zenoh/TCP, mutual TLS), or ``none``
+    (``--insecure``, Zenoh over UDP, the seed's systems).  Handshakes are on
+    the wire and counted.
 ``coordination_s`` / ``completion_s``
     From :meth:`Team.run`: feeding the first task until every cluster decided
     its last one / until every robot also finished executing.
@@ -469,7 +470,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fail", action="append", default=[], metavar="ROBOT@SECONDS",
                    help="kill ROBOT (SIGKILL) this many seconds into the run; repeatable")
     p.add_argument("--insecure", action="store_true",
-                   help="no OSCORE/CurveZMQ, for comparison (default: the team's keys protect every message, "
+                   help="no OSCORE, CurveZMQ or TLS, for comparison (default: the team's keys protect every message, "
                         "as in coapkb team)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")

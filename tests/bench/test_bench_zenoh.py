@@ -23,6 +23,7 @@ async def test_zenoh_runs_one_after_another_in_one_process() -> None:
         assert row.ok is True, row.error
         assert row.tasks_agreed == 2 and row.transport == "zenoh"
         assert row.retransmission_profile == "tcp" and row.tcp_aborts is not None
+        assert row.security == "tls"  # mutual TLS from the team's keys, on by default
         # Zenoh's framing, keep-alives, TCP/IP headers and ACKs: the wire is heavier than what it was handed.
         assert row.wire_bytes > row.app_bytes > 0
         assert row.feeder_wire_bytes > 0 and row.remote_queries > 0
