@@ -230,4 +230,8 @@ def summarise(record: TeamRecord) -> str:
     for event in record.faults:
         detected = "" if event.detected_after_s is None else f", declared down {event.detected_after_s:.1f} s later"
         lines.append(f"{event.action} {event.robot} at {event.at_s:.1f} s{detected}")
+    for robot_id, robot in sorted(record.robot_stats.items(), key=lambda x: robot_sort_key(x[0])):
+        if robot.fenced:
+            lines.append(f"{robot_id} dropped task(s) {', '.join(map(str, robot.fenced))} unpicked: "
+                         "it had lost its lease (fenced)")
     return "\n".join(lines)

@@ -587,6 +587,8 @@ class Team:
                 ):
                     if await self._fence(client, watcher, cluster, robot_id):
                         self._fenced_off.add(robot_id)
+                    else:
+                        await self._settle(client, robot_id)
             found = {r.seq: r for r in reruns + _orphans(records, watcher, self._incarnation, self._fenced_off)}
             orphans = [found[s] for s in sorted(found)]
             reruns = []
@@ -699,6 +701,18 @@ class Team:
                     return
                 raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
             return
+
+    async def _settle(self, client: ClientTransport, robot_id: str) -> None:
+        """Wait until ``robot_id`` (down for the feeder, but its teammates
+        still grant it: it came back) has executed what it holds, so its
+        statistics in the record are final."""
+        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+        with contextlib.suppress(TransportError, ValueError, TimeoutError):
+            async with asyncio.timeout(self.spec.task_timeout_s * 4):
+                async for response in client.observe(self.endpoints[robot_id], request):
+                    live = RobotState.decode(response.payload).live
+                    if live.activity == "idle" and live.queued == 0:
+                        return
 
     async def _fence(self, client: ClientTransport, watcher: ObservedStates, cluster: list[str], robot_id: str) -> bool:
         """Before down ``robot_id``'s tasks go round again: ask every survivor
