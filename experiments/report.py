@@ -227,6 +227,7 @@ def key_ratios(rows: Sequence[BenchRow]) -> list[tuple[str, str, str, str]]:
         ("seed stack (ZeroMQ, SPARQL + JSON)", "seed-distributed", "seed-central"),
         ("CoAP + compact", "coap-distributed", "coap-central"),
         ("ZeroMQ + compact", "zmq-distributed", "zmq-central"),
+        ("Zenoh + compact", "zenoh-distributed", "zenoh-central"),
     ):
         pairs = paired(df, dist, cent)
         if len(pairs):
@@ -243,6 +244,9 @@ def key_ratios(rows: Sequence[BenchRow]) -> list[tuple[str, str, str, str]]:
 COMPARISONS: tuple[tuple[str, str, str, str], ...] = (
     ("CoAP vs ZeroMQ, distributed (both compact)", "coap-distributed", "zmq-distributed", "-"),
     ("CoAP vs ZeroMQ, central (both compact)", "coap-central", "zmq-central", "-"),
+    ("CoAP vs Zenoh, distributed (both compact)", "coap-distributed", "zenoh-distributed", "-"),
+    ("CoAP vs Zenoh, central (both compact)", "coap-central", "zenoh-central", "-"),
+    ("Zenoh vs ZeroMQ, distributed (both compact)", "zenoh-distributed", "zmq-distributed", "-"),
     ("compact vs seed wire (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed", "-"),
     ("compact vs seed wire (ZeroMQ, central)", "zmq-central", "seed-central", "-"),
     ("coapkb (CoAP, compact, distributed) vs the seed's system", "coap-distributed", "seed-distributed", "-"),
@@ -254,6 +258,8 @@ CELL_RATIOS: tuple[tuple[str, str, str], ...] = (
     ("seed dist/central", "seed-distributed", "seed-central"),
     ("CoAP/ZeroMQ dist", "coap-distributed", "zmq-distributed"),
     ("CoAP/ZeroMQ central", "coap-central", "zmq-central"),
+    ("CoAP/Zenoh dist", "coap-distributed", "zenoh-distributed"),
+    ("CoAP/Zenoh central", "coap-central", "zenoh-central"),
 )
 
 
@@ -410,6 +416,10 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
         ("CoAP over ZeroMQ (distributed)", "coap-distributed", "zmq-distributed"),
         ("CoAP over ZeroMQ (central)", "coap-central", "zmq-central"),
         ("Compact wire over the seed's (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed"),
+        ("Distribution (Zenoh)", "zenoh-distributed", "zenoh-central"),
+        ("CoAP over Zenoh (distributed)", "coap-distributed", "zenoh-distributed"),
+        ("CoAP over Zenoh (central)", "coap-central", "zenoh-central"),
+        ("Zenoh over ZeroMQ (distributed)", "zenoh-distributed", "zmq-distributed"),
     ):
         pairs = paired(df, a, b)
         if not len(pairs):
@@ -428,12 +438,14 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
                      f"{tasks} tasks, {_g(bw)} kbit/s, {_g(loss)} % loss "
                      f"({x:.1f} s vs {y:.1f} s).")
         lines.append(text)
-    tcp = [r for r in rows if r.transport == "zmq" and r.tcp_aborts is not None]
-    if tcp:
+    for transport, name in (("zmq", "ZeroMQ"), ("zenoh", "Zenoh")):
+        tcp = [r for r in rows if r.transport == transport and r.tcp_aborts is not None]
+        if not tcp:
+            continue
         aborted = [r for r in tcp if r.tcp_aborts > 0]
         lines.append(
-            f"- **ZeroMQ connections given up by the kernel** (`tcp_aborts` > 0): {len(aborted)} of {len(tcp)} "
-            f"ZeroMQ runs; {sum(1 for r in aborted if not r.ok)} of those failed, against "
+            f"- **{name} connections given up by the kernel** (`tcp_aborts` > 0): {len(aborted)} of {len(tcp)} "
+            f"{name} runs; {sum(1 for r in aborted if not r.ok)} of those failed, against "
             f"{sum(1 for r in tcp if not r.tcp_aborts and not r.ok)} failures among the others."
         )
     failed = [r for r in rows if not r.ok]
