@@ -94,6 +94,7 @@ _INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
     (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
     (TransportOSCORE, "__init__"): ("context", "forward_context"),
     (TransportOSCORE, "request"): ("request",),
+    (TransportOSCORE, "_request"): ("request",),
     (aiocoap_edhoc.EdhocInitiatorContext, "__init__"): ("initiator", "c_ours", "c_theirs", "cred_i_mode", "logger"),
     (aiocoap_edhoc.EdhocInitiatorContext, "message_3_to_include"): (),
     (aiocoap_edhoc.EdhocInitiatorContext, "complete_with_message_4"): ("message_4",),
@@ -300,7 +301,15 @@ class _WireRequests:
     def end(self) -> None:
         self.ended = True
         for wire in self.made:
-            _cancel_observation(wire)
+            _end_wire_request(wire)
+
+
+def _end_wire_request(wire: Any) -> None:
+    if wire.request_observes:
+        _cancel_observation(wire)
+    elif not wire.response.done():
+        # Frees the token; the OSCORE task waiting on it ends (_OSCORETransport._request).
+        wire.response.cancel()
 
 
 def _cancel_observation(wire: Any) -> None:
@@ -331,13 +340,15 @@ class _WireRecorder:
             # registered, so the peer's notifications were acknowledged for ever.
             kwargs["handle_blockwise"] = False
         wire = self._ctx.request(message, *args, **kwargs)
+        # Registrations get their observation cancelled; plain requests their
+        # response (cancelling a plain request's observation made aiocoap
+        # fail its response with TypeError('invalid exception object')).
+        wire.request_observes = message.opt.observe is not None
         current = _CURRENT.get()
-        # Only registrations: cancelling a plain request's observation made
-        # aiocoap fail its response with TypeError('invalid exception object').
-        if current is not None and message.opt.observe is not None:
+        if current is not None:
             current.made.append(wire)
             if current.ended:  # abandoned before it was even sent
-                _cancel_observation(wire)
+                _end_wire_request(wire)
         return wire
 
 
@@ -363,6 +374,17 @@ class _OSCORETransport(TransportOSCORE):
         if message.opt.uri_path == EDHOC_PATH or message.opt.oscore is not None:
             return False  # EDHOC, or a protected (outer) message on its way to the wire
         raise MissingContext(f"no OSCORE context for {message.get_request_uri()}")
+
+    async def _request(self, request: Any) -> None:
+        tracked = _CURRENT.get()  # set around the task's creation in request()
+        try:
+            await super()._request(request)
+        except asyncio.CancelledError:
+            if tracked is None or not tracked.ended:
+                raise
+            # Its wire request was ended because the requester gave up (a NON
+            # try the robust layer abandoned): nobody waits for an outcome,
+            # and an error added to the ended request would only be logged.
 
     def request(self, request: Any) -> None:
         tracked = _WireRequests()

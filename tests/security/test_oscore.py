@@ -261,6 +261,34 @@ async def test_a_restarted_server_that_gave_our_key_id_away_is_rekeyed(team_dir:
         await robot.stop()
 
 
+async def test_abandoned_tries_leave_no_task_or_token_behind(team_dir: Path) -> None:
+    """Every NON try the robust layer gives up ends its OSCORE task and frees
+    its token (aiocoap kept both until the context shut down: a slow leak
+    for a robot that runs for days)."""
+    from coapkb.security.coap import _OSCORETransport
+
+    robot = Robot1(team_dir)
+    peer = await robot.start()
+    client = await _client(load_identity(team_dir, "Robot2"), "robust")
+    silent = None
+    try:
+        assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        await robot.stop()
+        # The same port now reads and drops everything: every try goes unanswered.
+        silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        silent.bind((peer.host, peer.port))
+        with pytest.raises(PeerUnreachable):  # several NON tries, each its own OSCORE request
+            await client.request(peer, Request(Method.GET, "/tasks"), timeout=2)
+        (oscore,) = [i for i in client._ctx.request_interfaces if isinstance(i, _OSCORETransport)]
+        async with asyncio.timeout(2):  # they end at once; before, they never did
+            await asyncio.gather(*list(oscore._tasks), return_exceptions=True)
+        assert not oscore._tasks
+    finally:
+        await client.aclose()
+        if silent is not None:
+            silent.close()
+
+
 async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None:
     robot, peer = robot1
     client = await _client(load_identity(team_dir, "Robot3"))
