@@ -38,6 +38,7 @@ if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests
 
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
 from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci  # noqa: E402  (experiments/ is this folder)
+import matrix_time  # noqa: E402
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -491,6 +492,187 @@ def _reps_caveat(rows: Sequence[BenchRow]) -> str:
     return text
 
 
+# --------------------------------------------------------------------------- the paper matrix's duration
+
+#: The machine counts the duration table shows.
+MACHINES = (1, 4, 16, 64)
+CONCURRENCY_CSV = ROOT / "experiments" / "results" / "concurrency.csv"
+
+
+def _duration(seconds: float) -> str:
+    """``3.2 h``, ``2.1 d (51 h)``, ``12 min``."""
+    hours = seconds / 3600
+    if hours >= 48:
+        return f"{hours / 24:.1f} d ({hours:.0f} h)"
+    if hours >= 1:
+        return f"{hours:.1f} h"
+    return f"{seconds / 60:.0f} min"
+
+
+def two_at_once_ratio(path: Path = CONCURRENCY_CSV) -> tuple[float, str]:
+    """``(wall of a list run two at once / one at a time, where it comes from)``,
+    from ``experiments/concurrency.py``'s CSV; 0.5 (ideal) without it."""
+    try:
+        walls = pd.read_csv(path).groupby("jobs")["list_wall_s"].first()
+        return float(walls[2] / walls[1]), f"`{_rel(path)}`: {walls[1]:.1f} s one at a time, {walls[2]:.1f} s two at once"
+    except (OSError, KeyError, ValueError, pd.errors.ParserError):
+        return 0.5, "no concurrency measurement found: ideal halving assumed"
+
+
+@dataclass(frozen=True)
+class PaperTime:
+    """The paper profile's predicted duration from the measured rows' wall times."""
+
+    model: matrix_time.TimeModel
+    time: matrix_time.MatrixTime
+    runs: int
+    #: Measured rows with a wall time, and failed ones among them.
+    fitted: int
+    failed: int
+    unmeasured_wall: int
+    in_sample_error: float
+    held_out_error: float
+    #: Held-out predicted sum over measured sum.
+    held_out_bias: float
+    #: Mean runs at once in the measured sweep, and what that is taken as (1 or 2).
+    concurrency: float
+    measured_at: int
+    ratio2: float
+    ratio2_source: str
+    one_at_once_s: float
+    two_at_once_s: float
+    #: Share of the plan's predicted time in cells the data has, and beyond the measured ranges.
+    measured_share: float
+    beyond_share: float
+    #: Per axis beyond the measured range, its share of the predicted time (a run can be beyond on two).
+    beyond_axes: dict[str, float]
+
+    def makespans(self) -> pd.DataFrame:
+        """Rows: machines; columns: one and two runs at once per machine."""
+        n = np.asarray(MACHINES, dtype=float)
+        return pd.DataFrame({"1 at once": np.maximum(self.one_at_once_s / n, self.time.longest_s),
+                             "2 at once": np.maximum(self.two_at_once_s / n, self.time.longest_s)},
+                            index=pd.Index(MACHINES, name="machines"))
+
+    def line(self) -> str:
+        m = self.makespans()
+        return (f"paper matrix ({self.runs} runs): {_duration(self.one_at_once_s)} on one machine one run at a time, "
+                f"{_duration(self.two_at_once_s)} two at once; "
+                + ", ".join(f"{n} machines {_duration(m.loc[n, '2 at once'])}" for n in MACHINES[1:])
+                + f" (held-out cell error {self.held_out_error:.0%}, {self.beyond_share:.0%} of the time extrapolated)")
+
+
+def paper_time(rows: Sequence[BenchRow], profile: str = "paper") -> PaperTime | None:
+    """The model fitted to ``rows`` and applied to every run of ``profile``
+    (``sweep.plan``, the default ``robust`` CoAP profile); None without wall times."""
+    import sweep  # experiments/sweep.py: the plan and each run's kill limit
+
+    df = frame(rows)
+    walls = df[df["wall_s"].notna() & (df["wall_s"] > 0)]
+    if walls.empty:
+        return None
+    runs = sweep.plan(sweep.PROFILES[profile], "robust")
+    plan = pd.DataFrame({"system": [r.system for r in runs], "robots": [r.robots for r in runs],
+                         "tasks": [r.tasks for r in runs], "bandwidth_kbps": [r.bandwidth for r in runs],
+                         "loss_pct": [r.loss for r in runs]})
+    cap = np.array([sweep.limit_for(r) for r in runs])
+    model = matrix_time.fit(walls)
+    time = matrix_time.matrix_time(model, plan, cap)
+    held = matrix_time.held_out_predictions(walls)
+    measured = walls.loc[held.index, "wall_s"].to_numpy(dtype=float)
+    conc = matrix_time.concurrency(walls)
+    at = 2 if conc >= 1.5 else 1
+    ratio2, source = two_at_once_ratio()
+    # The predictions are walls as measured: at `at` runs at once.
+    one = time.total_s if at == 1 else time.total_s / 2 / ratio2
+    two = time.total_s * ratio2 if at == 1 else time.total_s / 2
+    pred = pd.Series(model.predict(plan, cap))
+    cells = set(map(tuple, walls[list(CELL)].astype(float).itertuples(index=False)))
+    in_data = pd.Series([c in cells for c in map(tuple, plan[list(CELL)].astype(float).itertuples(index=False))])
+    beyond_masks = {
+        "tasks > " + _g(walls["tasks"].max()): plan["tasks"] > walls["tasks"].max(),
+        "bandwidth > " + _g(walls["bandwidth_kbps"].max()) + " kbit/s": plan["bandwidth_kbps"] > walls["bandwidth_kbps"].max(),
+        "bandwidth < " + _g(walls["bandwidth_kbps"].min()) + " kbit/s": plan["bandwidth_kbps"] < walls["bandwidth_kbps"].min(),
+        "loss > " + _g(walls["loss_pct"].max()) + " %": plan["loss_pct"] > walls["loss_pct"].max(),
+        "robots > " + _g(walls["robots"].max()): plan["robots"] > walls["robots"].max(),
+    }
+    beyond = pd.concat(beyond_masks, axis=1)
+    axes = {name: float(pred[mask].sum() / pred.sum()) for name, mask in beyond_masks.items() if mask.any()}
+    return PaperTime(
+        model=model, time=time, runs=len(plan), fitted=len(walls), failed=int((~walls["ok"].astype(bool)).sum()),
+        unmeasured_wall=len(df) - len(walls),
+        in_sample_error=float(np.median(matrix_time.abs_errors(model, walls))),
+        held_out_error=float(np.median(np.abs(held.to_numpy() - measured) / measured)),
+        held_out_bias=float(held.sum() / measured.sum()), concurrency=conc, measured_at=at,
+        ratio2=ratio2, ratio2_source=source, one_at_once_s=one, two_at_once_s=two,
+        measured_share=float(pred[in_data].sum() / pred.sum()),
+        beyond_share=float(pred[beyond.any(axis=1)].sum() / pred.sum()), beyond_axes=axes,
+    )
+
+
+def section_matrix_time(rows: Sequence[BenchRow], profile: str = "paper") -> list[str]:
+    """How long the ``paper`` profile takes, on one machine and on N, from these runs' wall times."""
+    lines = ["## How long the paper matrix takes", ""]
+    est = paper_time(rows, profile)
+    if est is None:
+        return lines + ["No run in this CSV has a wall time (`wall_s`): nothing to estimate from."]
+    coef = est.model.coef
+    lines += [
+        f"Predicted from the {est.fitted} runs of this CSV with a wall time (`wall_s`: a run's whole time, set-up "
+        f"and teardown included; failed runs count too, a failed run costs its time: {est.failed} here"
+        + (f"; {est.unmeasured_wall} runs without a wall time are left out" if est.unmeasured_wall else "")
+        + f"), applied to all {est.runs} runs of the `{profile}` profile (`sweep.plan`, {len(est.time.by_system)} "
+        "systems, every repetition). The model (`experiments/matrix_time.py`), per system, least squares:",
+        "",
+        "    wall = setup + per_robot x (robots - 3)",
+        "         + k x (per_task + serial x (35 / kbit/s - 1) + per_loss x (loss % - 2)),  k = ceil(tasks / (robots // 3))",
+        "",
+        "`k` is the tasks one cluster does in sequence; `serial` scales with 1/bandwidth (serialisation), so 128 kbit/s "
+        "is interpolated between 35 and 256 and 512 lies just beyond 256; time is linear in loss between the measured "
+        "levels and in robots (6 between 3 and 9). A coefficient a system's own runs cannot determine (its runs do "
+        "not vary that axis) is taken from the pooled fit of all systems (one setup each, the rest shared); a system "
+        "with no runs gets the pooled values, and a coefficient no run determines even pooled (e.g. `per_robot` when all "
+        "runs have 3 robots) is 0. No run is predicted below 1 s or above the "
+        "sweep's kill limit for it (`sweep.limit_for`).",
+        "",
+        f"**Uncertainty.** Median absolute error of the fit on its own runs: {est.in_sample_error:.0%}; on a cell "
+        f"(robots, tasks, bandwidth, loss) left out of the fit and predicted: **{est.held_out_error:.0%}**, and the "
+        f"left-out predictions sum to x{est.held_out_bias:.2f} the measured time. Only "
+        f"{est.measured_share:.0%} of the predicted time is in cells this CSV measured; "
+        f"**{est.beyond_share:.0%} is extrapolated beyond the measured ranges** ("
+        + ("; ".join(f"{name}: {share:.0%}" for name, share in est.beyond_axes.items()) or "none") + "), "
+        "and the rest (the 5-15 % loss levels, 128 kbit/s, 6 robots, and measured levels in combinations "
+        "not measured, e.g. 20 % loss at 256 kbit/s or 20 tasks) is interpolated along straight lines "
+        "through few points. Read the totals as the order of magnitude, not to the hour: high loss "
+        "times are skewed by a few long back-offs and ZeroMQ hangs up to a query timeout.",
+        "",
+        f"**Runs at once.** The measured runs ran {est.concurrency:.1f} at a time on average (sum of their wall "
+        f"times over the sweep's span), so their times are taken as {est.measured_at} at once. Two at once on a "
+        f"2-core machine takes x{est.ratio2:.2f} the wall time of one at a time ({est.ratio2_source}; "
+        "docs/benchmarks.md, \"Running on a cluster\").",
+        "",
+        f"On N such machines: the ideal division of the work, never below the longest single run "
+        f"({_duration(est.time.longest_s)}).",
+        "",
+    ]
+    spans = est.makespans()
+    lines += _md_table(("machines", "one run at a time", "two at once (the tested setting)"),
+                       ((n, _duration(spans.loc[n, "1 at once"]), _duration(spans.loc[n, "2 at once"]))
+                        for n in spans.index))
+    lines += ["", "Per system (predicted run time summed over its runs, as measured, and the fitted coefficients in "
+              "seconds; \"borrowed\": from the pooled fit):", ""]
+    share = est.time.by_system / est.time.total_s
+    lines += _md_table(
+        ("system", "runs", "run time", "share", *matrix_time.FEATURES, "borrowed"),
+        ((f"`{s}`", est.time.runs_by_system[s], _duration(est.time.by_system[s]), f"{share[s]:.0%}",
+          *((f"{coef.loc[s, f]:.2f}" if s in coef.index else f"({est.model.pooled[f]:.2f})")
+            for f in matrix_time.FEATURES),
+          ", ".join(est.model.borrowed.get(s, ())) if s in coef.index else "all (no runs)")
+         for s in est.time.by_system.sort_values(ascending=False).index),
+    )
+    return lines
+
+
 def _rel(path: Path) -> str:
     try:
         return str(path.resolve().relative_to(ROOT))
@@ -516,6 +698,7 @@ def build_report(rows: Sequence[BenchRow], csv_path: Path, figdir: Path, report_
         section_ratios(rows),
         section_notes(rows),
         section_tables(rows),
+        section_matrix_time(rows),
         section_figures(figdir, report_path.parent),
     ):
         lines += section + [""]
@@ -537,6 +720,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     figdir = args.figures or args.csv.parent / "figures"
     out.write_text(build_report(rows, args.csv, figdir, out, args.profile), encoding="utf-8")
     print(f"report written to {out}")
+    estimate = paper_time(rows)
+    if estimate is not None:
+        print(estimate.line())
     return 0
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
+import pandas as pd
 import pytest
 from support import ROOT
 
@@ -108,6 +109,9 @@ def test_report_and_figures_on_the_quick_csv(tmp_path: Path, reps: int) -> None:
     assert report.main([str(path), "--out", str(out), "--figures", str(tmp_path / "figs")]) == 0
     text = out.read_text()
     assert "### Paired ratios per cell (A/B)" in text
+    # The paper matrix's duration, from the runs' wall times (the 1-rep CSV has no security column).
+    assert "## How long the paper matrix takes" in text and "| 64 | " in text
+    assert "7200 runs of the `paper` profile" in text
     if reps == 1:
         assert "| 3 | 5 | 35 | 2 | 28.2 (n=1) |" in text  # coap-distributed's bytes, no interval
     else:
@@ -129,3 +133,84 @@ def test_figures_draw_the_interval_as_an_error_bar(tmp_path: Path) -> None:
     assert p.n == 3 and p.wire.has_interval and p.wire_bytes == p.wire.value
     d = data.difference("coap-central", "coap-distributed", 3, 5, 35, 2, "wire_bytes")
     assert d.n == 3 and d.low < d.value < d.high
+
+
+# --------------------------------------------------------------------------- how long a matrix takes
+
+matrix_time = _load("matrix_time")
+
+#: Known coefficients (setup, per_robot, per_task, serial, per_loss), seconds.
+TRUE = {"a": (4.0, 1.5, 0.5, 0.3, 0.6), "b": (9.0, 0.5, 1.2, 0.8, 0.1)}
+
+
+def _synthetic(systems: dict[str, tuple[float, ...]], losses: tuple[float, ...] = (2, 20)) -> pd.DataFrame:
+    from itertools import product
+
+    grid = pd.DataFrame(list(product(systems, (3, 9), (5, 20), (35.0, 256.0), losses)),
+                        columns=["system", "robots", "tasks", "bandwidth_kbps", "loss_pct"])
+    coef = np.array([systems[s] for s in grid["system"]])
+    grid["wall_s"] = np.einsum("ij,ij->i", matrix_time.design(grid), coef)
+    grid["ok"] = True
+    grid["started_at"] = ""
+    return grid
+
+
+def test_tasks_per_cluster_is_the_sequence_one_cluster_does() -> None:
+    assert list(matrix_time.tasks_per_cluster([5, 20, 5, 80, 10], [3, 3, 9, 6, 6])) == [5, 20, 2, 40, 5]
+
+
+def test_the_model_recovers_known_setup_and_per_task_times() -> None:
+    rows = _synthetic(TRUE)
+    rows.loc[rows.index[::5], "ok"] = False  # failed runs cost their time like the others
+    model = matrix_time.fit(rows)
+    for system, values in TRUE.items():
+        assert model.coef.loc[system].to_numpy() == pytest.approx(values, abs=1e-9)
+        assert model.borrowed[system] == ()
+    assert np.median(matrix_time.abs_errors(model, rows)) == pytest.approx(0, abs=1e-9)
+    # A cell left out is predicted from the others: exact for an exactly linear truth.
+    held = matrix_time.held_out_predictions(rows)
+    assert held.sort_index().to_numpy() == pytest.approx(rows["wall_s"].to_numpy(), rel=1e-9)
+    # 6 robots, 80 tasks, 128 kbit/s, 10 % loss: the straight lines through the measured points.
+    cell = pd.DataFrame({"system": ["a"], "robots": [6], "tasks": [80], "bandwidth_kbps": [128.0], "loss_pct": [10.0]})
+    s, r, t, ser, loss = TRUE["a"]
+    assert model.predict(cell)[0] == pytest.approx(s + 3 * r + 40 * (t + ser * (35 / 128 - 1) + loss * 8))
+
+
+def test_what_a_system_cannot_determine_comes_from_the_pooled_fit() -> None:
+    same_slopes = {"a": (4.0, 1.0, 0.5, 0.8, 0.6), "b": (9.0, 1.0, 0.5, 0.8, 0.6)}
+    rows = pd.concat([_synthetic(same_slopes), _synthetic({"c": (2.0, 1.0, 0.5, 0.8, 0.6)}, losses=(2,))],
+                     ignore_index=True)
+    model = matrix_time.fit(rows)
+    assert model.borrowed["c"] == ("per_loss",)
+    assert model.coef.loc["c"].to_numpy() == pytest.approx((2.0, 1.0, 0.5, 0.8, 0.6), abs=1e-9)
+    assert model.pooled["per_loss"] == pytest.approx(0.6)
+    # A system with no runs gets the pooled values and the mean setup ((4 + 9 + 2) / 3).
+    unseen = pd.DataFrame({"system": ["z"], "robots": [3], "tasks": [5], "bandwidth_kbps": [35.0], "loss_pct": [2.0]})
+    assert model.predict(unseen)[0] == pytest.approx(5 + 5 * 0.5)
+    # Never below the shortest measured run, never above a cap.
+    assert model.predict(unseen, cap_s=np.array([3.0]))[0] == 3.0
+
+
+def test_a_plan_total_is_the_sum_and_machines_never_beat_the_longest_run() -> None:
+    model = matrix_time.fit(_synthetic(TRUE))
+    plan = _synthetic(TRUE).drop(columns="wall_s")
+    plan = pd.concat([plan, plan.assign(tasks=80, loss_pct=10.0)], ignore_index=True)
+    pred = model.predict(plan)
+    t = matrix_time.matrix_time(model, plan)
+    assert t.total_s == pytest.approx(pred.sum()) and t.longest_s == pytest.approx(pred.max())
+    assert t.by_system.sum() == pytest.approx(t.total_s)
+    assert t.runs_by_system.to_dict() == {"a": 32, "b": 32}
+    assert t.makespan(1) == pytest.approx(t.total_s)
+    assert t.makespan(4) == pytest.approx(t.total_s / 4)
+    assert t.makespan(2, slots=2) == pytest.approx(t.total_s / 4)
+    spans = t.makespan(np.array([1, 4, 16, 64, 10_000]), slots=2)
+    assert np.all(np.diff(spans) <= 0) and np.all(spans >= t.longest_s)
+    assert spans[-1] == pytest.approx(t.longest_s)
+
+
+def test_concurrency_is_the_runs_wall_time_over_the_sweeps_span() -> None:
+    rows = pd.DataFrame({"wall_s": [10.0, 10.0, 10.0, 10.0],
+                         "started_at": ["2026-01-01T00:00:00+00:00", "2026-01-01T00:00:00+00:00",
+                                        "2026-01-01T00:00:10+00:00", "2026-01-01T00:00:10+00:00"]})
+    assert matrix_time.concurrency(rows) == pytest.approx(2.0)
+    assert matrix_time.concurrency(rows.assign(started_at="")) == 1.0
