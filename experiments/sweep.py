@@ -162,34 +162,47 @@ COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-c
 #: 2-20 % loss every run would fail, each after its whole timeout (docs/zenoh.md).
 PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport != "zenoh+udp")
 QUICK_SYSTEMS = (*COMPACT_SYSTEMS, "seed-distributed")
+#: The quick profile's cells.  Two things cost time at 20 % loss: CoAP's
+#: retransmission timeouts and TCP connections the kernel gives up on, which
+#: leave a query hanging until its timeout -- mostly on the seed's wire
+#: (bigger messages).  So 20 % loss is sampled only in the seed's headline
+#: setting (35 kbit/s, 5 tasks) and only for the compact systems; the seed's
+#: wire, the bandwidth and the task-count axes are covered at 2 % loss.
+QUICK_GRIDS = (
+    # Fig. 6/7: bytes vs loss and team size at 35 kbit/s, 5 tasks (the seed's headline setting).
+    Grid((3, 9), (5,), (35,), (2, 20), COMPACT_SYSTEMS),
+    Grid((3, 9), (5,), (35,), (2,), ("seed-distributed",)),
+    # The seed's own centralised baseline, for its ~42 % claim on its own stack.
+    Grid((3,), (5,), (35,), (2,), ("seed-central",)),
+    # Fig. 8-10: tasks 5 and 20 at both bandwidths, 2 % loss.
+    Grid((3,), (5, 20), (35, 256), (2,), QUICK_SYSTEMS),
+    # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
+    Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
+)
 PROFILES: dict[str, Profile] = {
-    # A representative subset, 3 repetitions of every cell (about 25 minutes
-    # a repetition on 2 cores with --jobs 1: see docs/benchmarks.md).  Two things cost time at 20 % loss:
-    # CoAP's retransmission timeouts (10-25 s per task and cluster, 5-20x a 2 %
-    # run) and ZeroMQ connections the kernel gives up on, which leave a query
-    # hanging until its 115 s timeout -- mostly on the seed's wire (bigger
-    # messages), in 4 of 5 seed-* runs at 35 kbit/s and 20 %.  So 20 % loss
-    # is sampled only in the seed's headline setting (35 kbit/s, 5 tasks) and
-    # only for the four compact systems; the seed's wire, the bandwidth and
-    # the task-count axes are covered at 2 % loss.  Earlier versions with
-    # 256 kbit/s at 20 % and with the seed's systems at 20 % took 16m54s and
-    # 15m37s.
+    # A representative subset, 3 repetitions of every cell: 165 runs, 22
+    # minutes on 2 cores two at a time (docs/benchmarks.md).
     "quick": Profile(
         "quick",
-        (
-            # Fig. 6/7: bytes vs loss and team size at 35 kbit/s, 5 tasks (the seed's headline setting).
-            Grid((3, 9), (5,), (35,), (2, 20), COMPACT_SYSTEMS),
-            Grid((3, 9), (5,), (35,), (2,), ("seed-distributed",)),
-            # The seed's own centralised baseline, for its ~42 % claim on its own stack.
-            Grid((3,), (5,), (35,), (2,), ("seed-central",)),
-            # Fig. 8-10: tasks 5 and 20 at both bandwidths, 2 % loss.
-            Grid((3,), (5, 20), (35, 256), (2,), QUICK_SYSTEMS),
-            # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
-            Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
-        ),
+        QUICK_GRIDS,
         reps=3,
         note="subset: 35 kbit/s x 5 tasks x robots 3/9 x loss 2/20 % (the seed's wire at 2 % only); at 2 %: "
         "3 robots x tasks 5/20 x 35/256 kbit/s, 9 robots x 20 tasks x 35 kbit/s",
+    ),
+    # The part of the paper matrix this 2-core machine ran in one session
+    # (about an hour two at a time): the quick cells, the seed's loss axis
+    # (Fig. 6/7) whole for every team size, and its bandwidth axis whole at
+    # 10 tasks.  Its CSV starts from the quick profile's rows (same keys).
+    "slice": Profile(
+        "slice",
+        (
+            *QUICK_GRIDS,
+            Grid((3, 6, 9), (5,), (35,), (2, 5, 10, 15, 20), COMPACT_SYSTEMS),
+            Grid((3,), (10,), (35, 128, 256, 512), (2,), QUICK_SYSTEMS),
+        ),
+        reps=3,
+        note="the quick cells; 35 kbit/s x 5 tasks x robots 3/6/9 x loss 2/5/10/15/20 % (compact systems); "
+        "3 robots x 10 tasks x 35/128/256/512 kbit/s at 2 % (with the seed's wire)",
     ),
     # The seed's whole matrix (section IV), every system but Zenoh over UDP.
     "paper": Profile(
