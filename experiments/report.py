@@ -406,7 +406,9 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
         "## Where each choice wins or loses (from this data)",
         "",
         "Why (packet traces, kernel counters, the failure modes): "
-        "[`docs/benchmarks.md`, \"What we found, and why\"](../../docs/benchmarks.md#what-we-found-and-why).",
+        "[`docs/benchmarks.md`, \"What we found, and why\"](../../docs/benchmarks.md#what-we-found-and-why); "
+        "for Zenoh, [`docs/zenoh.md`, \"Where each wins and loses, and why\"]"
+        "(../../docs/zenoh.md#where-each-wins-and-loses-and-why).",
         "",
     ]
     df = frame(rows)
