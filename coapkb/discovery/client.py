@@ -192,6 +192,15 @@ class DirectoryClient:
                 log.warning("renewing the registration at %s: %s", self.rd, exc)
 
 
+def _check_holders(config: RobotConfig) -> None:
+    """Every KB module has a holder in the team found (or a central server is set)."""
+    if config.central is None:
+        missing = [kb for kb in KB_MODULES if config.holder_of(kb) is None]
+        if missing:
+            shown = ", ".join(f"{m.robot_id} ({'+'.join(m.kbs) or '-'})" for m in config.team.values())
+            raise DiscoveryError(f"nobody in {config.discovery.cluster} holds {', '.join(missing)}: {shown}")
+
+
 async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient | None]:
     """``config`` with the teammates the directory shows (over the ``team``
     table's entries of the same names; the table's others stay, as the
@@ -204,6 +213,7 @@ async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient | 
         )
         if rd is None:
             log.warning("no Resource Directory answered multicast discovery: using the team table")
+            _check_holders(config)
             return config, None
         log.info("found the Resource Directory at %s by multicast", rd)
         config = replace(config, discovery=replace(config.discovery, rd=rd))
@@ -213,11 +223,7 @@ async def discover(config: RobotConfig) -> tuple[RobotConfig, DirectoryClient | 
         me = config.team[config.robot_id]
         team = {**config.team, **found, config.robot_id: me}
         discovered = replace(config, team=team)
-        if discovered.central is None:
-            missing = [kb for kb in KB_MODULES if discovered.holder_of(kb) is None]
-            if missing:
-                shown = ", ".join(f"{m.robot_id} ({'+'.join(m.kbs) or '-'})" for m in team.values())
-                raise DiscoveryError(f"nobody in {config.discovery.cluster} holds {', '.join(missing)}: {shown}")
+        _check_holders(discovered)
         log.info("discovered %s: %s", config.discovery.cluster,
                     ", ".join(f"{m.robot_id} {m.endpoint} {'+'.join(m.kbs)}" for m in team.values()))
         directory.start_renewing()

@@ -181,11 +181,15 @@ async def test_robots_find_the_directory_by_multicast() -> None:
             if directory is not None:
                 await directory.aclose()
         await rd.aclose()
-    # Nobody answers: the team table, at once after the wait.
+    # Nobody answers: the team table, at once after the wait (and it must do).
     lone = _robot_config("Robot1", 5810, ("Location",), None, multicast_port=free_udp_port(), wait_s=0.6)
     started = time.monotonic()
-    assert await discover(lone) == (lone, None)
+    with pytest.raises(DiscoveryError, match="nobody in c1 holds Object, Capability: Robot1 [(]Location[)]"):
+        await discover(lone)
     assert time.monotonic() - started < 2
+    full = replace(lone, team={**lone.team, "Robot2": Teammate(
+        "Robot2", Endpoint("coap", "127.0.0.1", 5811), ("Object", "Capability"))})
+    assert await discover(full) == (full, None)
 
 
 def test_registration_names_the_modules() -> None:

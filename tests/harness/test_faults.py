@@ -72,7 +72,8 @@ async def test_one_robot_killed_mid_run(transport: str, robots: int) -> None:
         robots=robots, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0,
         faults=(Fault("kill", VICTIM, 0.1),),
     )
-    async with asyncio.timeout(40):
+    # (The fence adds a lease period and one state read before a dead robot's tasks go round again.)
+    async with asyncio.timeout(60):
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
     assert set(record.down) == {VICTIM}
