@@ -169,3 +169,30 @@ def test_team_restart_needs_a_kill_before() -> None:
     result = coapkb("team", "--robots", "3", "--tasks", "2", "--restart", "Robot3@1s")
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip() == "coapkb: error: cannot restart Robot3 at 1s: it is not killed before"
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--resume", "Robot2@3s"], "cannot resume Robot2 at 3s: it is not stopped before"),
+        (["--stop", "Robot2"], "--stop expects ROBOT@SECONDS, like Robot4@12s, got 'Robot2'"),
+        (["--discovery", "rd", "--transport", "zmq"],
+         "discovery rd needs the coap transport (a Resource Directory speaks CoAP), not zmq"),
+    ],
+    ids=["resume-without-stop", "stop-without-time", "rd-over-zmq"],
+)
+def test_team_stop_resume_and_discovery_mistakes(args: list[str], message: str) -> None:
+    result = coapkb("team", "--robots", "3", "--tasks", "2", *args, timeout=30)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip() == f"coapkb: error: {message}"
+
+
+@pytest.mark.slow
+def test_team_stop_and_resume_and_discovery() -> None:
+    """The CLI surface of --stop/--resume with --discovery rd: the run ends by
+    itself and names both faults (tests/harness/test_faults.py checks the fence)."""
+    result = coapkb("team", "--robots", "3", "--tasks", "6", "--time-scale", "10", "--discovery", "rd",
+                    "--stop", "Robot2@0.3s", "--resume", "Robot2@6s", timeout=120)
+    assert result.returncode in (0, 1) and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert re.search(r"^stop Robot2 at 0\.3 s, declared down \d+\.\d s later$", result.stdout, re.M), result.stdout
+    assert "resume Robot2 at 6.0 s" in result.stdout, result.stdout
