@@ -392,6 +392,9 @@ class Team:
                         "serving",
                     )
                 if spec.discovery == "rd":
+                    if type(team.placement) is not Placement:
+                        # The feeder's directory listens on the feeder's host only.
+                        raise TeamError("discovery rd runs on loopback only, not behind emulated links")
                     from ..discovery import ResourceDirectory
 
                     identity = None if team.team_dir is None else load_identity(team.team_dir, "feeder")
