@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import os
 import shutil
 import socket
 import sys
 from decimal import Decimal
 from pathlib import Path
+from types import ModuleType
 from typing import AsyncIterator
 
 import pytest
@@ -108,3 +110,13 @@ async def kb_server() -> AsyncIterator[ServerProcess]:
     )
     yield server
     await server.stop()
+
+
+def load_experiment(name: str) -> ModuleType:
+    """``experiments/NAME.py`` as a module (the experiments are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module

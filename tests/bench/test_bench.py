@@ -9,18 +9,15 @@ small synthetic CSV.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import socket
-import sys
 from pathlib import Path
 from dataclasses import replace
-from types import ModuleType
 from typing import Any
 
 import pytest
-from support import ROOT, require
+from support import ROOT, load_experiment, require
 
 from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
@@ -30,13 +27,6 @@ from coapkb.harness.team import Fault
 
 
 
-def _load(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _require_netns() -> None:
@@ -248,7 +238,7 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     assert (back.delay_ms, back.jitter_ms, back.loss_model, back.burst_len) == (0.0, 0.0, "random", 0.0)
     assert back.key() == _row(delay_ms=0, loss_model="random").key() in done_keys(path)
     assert _row(delay_ms=100).key() not in done_keys(path)
-    sweep = _load("sweep")
+    sweep = load_experiment("sweep")
     plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", security=False)
     assert plain.key() == back.key()
     # Rows from before the security column were unprotected runs: not a secure run's key.
@@ -270,7 +260,7 @@ def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
 
 
 def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> None:
-    sweep = _load("sweep")
+    sweep = load_experiment("sweep")
     quick = sweep.PROFILES["quick"]
     runs = sweep.plan(quick, "adaptive")
     assert len(runs) == len({r.key() for r in runs})
@@ -295,7 +285,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
 async def test_sweep_appends_each_row_and_prints_count_and_eta(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    sweep = _load("sweep")
+    sweep = load_experiment("sweep")
     runs = sweep.plan(sweep.PROFILES["quick"], "adaptive")[:3]
 
     async def child(run: Any, limit_s: float) -> dict[str, Any]:  # no root, no namespaces: the row only
@@ -330,7 +320,7 @@ def _synthetic(path: Path) -> None:
 
 
 def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
-    figures = _load("figures")
+    figures = load_experiment("figures")
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     outdir = tmp_path / "figs"
@@ -347,7 +337,7 @@ def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
 
 
 def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
-    report = _load("report")
+    report = load_experiment("report")
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     out = tmp_path / "report.md"

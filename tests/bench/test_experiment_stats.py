@@ -4,16 +4,13 @@ ratios, and the report and figures built on them for 1 and 3 repetitions."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from math import comb
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pandas as pd
 import pytest
-from support import ROOT
+from support import load_experiment
 
 from coapkb.bench.run import append_rows, read_rows
 
@@ -22,16 +19,9 @@ from coapkb.bench.run import append_rows, read_rows
 QUICK = Path(__file__).parent / "data" / "quick-1rep.csv"
 
 
-def _load(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
-stats = _load("stats")
+stats = load_experiment("stats")
 
 
 def test_median_rank_matches_the_binomial_tables() -> None:
@@ -102,7 +92,7 @@ def _three_reps(path: Path) -> None:
 
 @pytest.mark.parametrize("reps", [1, 3])
 def test_report_and_figures_on_the_quick_csv(tmp_path: Path, reps: int) -> None:
-    report, figures = _load("report"), _load("figures")
+    report, figures = load_experiment("report"), load_experiment("figures")
     path = QUICK
     if reps == 3:
         path = tmp_path / "three.csv"
@@ -127,7 +117,7 @@ def test_report_and_figures_on_the_quick_csv(tmp_path: Path, reps: int) -> None:
 
 
 def test_figures_draw_the_interval_as_an_error_bar(tmp_path: Path) -> None:
-    figures = _load("figures")
+    figures = load_experiment("figures")
     path = tmp_path / "three.csv"
     _three_reps(path)
     data = figures.Data(read_rows(path))
@@ -139,7 +129,7 @@ def test_figures_draw_the_interval_as_an_error_bar(tmp_path: Path) -> None:
 
 # --------------------------------------------------------------------------- how long a matrix takes
 
-matrix_time = _load("matrix_time")
+matrix_time = load_experiment("matrix_time")
 
 #: Known coefficients (setup, per_robot, per_task, serial, per_loss), seconds.
 TRUE = {"a": (4.0, 1.5, 0.5, 0.3, 0.6), "b": (9.0, 0.5, 1.2, 0.8, 0.1)}

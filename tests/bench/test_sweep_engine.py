@@ -4,28 +4,18 @@ de-duplication, and a tiny matrix through a local Dask cluster of two workers
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
-from support import ROOT, require
+from support import load_experiment, require
 
 from coapkb.bench.linkemu import available
 from coapkb.bench.run import read_rows
 
 
-def _load(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
-sweep = _load("sweep")
+sweep = load_experiment("sweep")
 
 
 def test_engine_urls() -> None:
