@@ -13,12 +13,6 @@ from coapkb.security import SecurityError, generate_team, load_identity, load_tr
 from coapkb.security.keys import default_members
 
 
-@pytest.fixture
-def team_dir(tmp_path: Path) -> Path:
-    generate_team(tmp_path / "team", default_members(3))
-    return tmp_path / "team"
-
-
 def test_keys_are_private_and_the_trust_list_public(team_dir: Path) -> None:
     trust = load_trust(team_dir)
     assert [m.name for m in trust.members] == ["Robot1", "Robot2", "Robot3", "feeder", "central", "operator"]

@@ -56,12 +56,6 @@ class Robot1:
 
 
 @pytest.fixture
-def team_dir(tmp_path: Path) -> Path:
-    generate_team(tmp_path / "team", default_members(3))
-    return tmp_path / "team"
-
-
-@pytest.fixture
 async def robot1(team_dir: Path) -> AsyncIterator[tuple[Robot1, Endpoint]]:
     robot = Robot1(team_dir)
     endpoint = await robot.start()

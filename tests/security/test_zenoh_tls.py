@@ -26,12 +26,6 @@ from support import ONTOLOGIES, ROOT, ServerProcess, free_tcp_port
 
 
 @pytest.fixture
-def team_dir(tmp_path: Path) -> Path:
-    generate_team(tmp_path / "team", default_members(3))
-    return tmp_path / "team"
-
-
-@pytest.fixture
 async def robot1(team_dir: Path):
     calls: list[tuple[str, str]] = []
 
