@@ -88,6 +88,7 @@ import json
 import logging
 import os
 import socket
+import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -533,6 +534,9 @@ class ZenohServerTransport:
 _Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
 #: How much later than the caller's deadline Zenoh times a query out itself.
 _ZENOH_TIMEOUT_MARGIN_S = 0.5
+#: Connection attempts of one client session, and the first back-off between them.
+OPEN_ATTEMPTS = 3
+OPEN_BACKOFF_S = 0.5
 
 
 class _NoRoute(PeerUnreachable):
@@ -611,12 +615,9 @@ class ZenohClientTransport:
         _check_scheme(peer)
         opening = self._sessions.get(peer)
         if opening is None or (opening.done() and (opening.cancelled() or opening.exception() is not None)):
-            config = session_config("client", connect=(_secured_locator(peer, self._security),))
-            if self._security is not None:
-                self._security.configure(config)
             loop = asyncio.get_running_loop()
             opening = self._sessions[peer] = asyncio.ensure_future(
-                loop.run_in_executor(self._executor, self._open, config, peer)
+                loop.run_in_executor(self._executor, self._open, peer)
             )
         try:
             return await asyncio.shield(opening)
@@ -626,10 +627,30 @@ class ZenohClientTransport:
                 why += " (over TLS with this team's certificates)"
             raise PeerUnreachable(f"cannot reach {peer}: {why}") from None
 
-    def _open(self, config: zenoh.Config, peer: Endpoint) -> zenoh.Session:
+    def _config(self, peer: Endpoint) -> zenoh.Config:
+        config = session_config("client", connect=(_secured_locator(peer, self._security),))
+        if self._security is not None:
+            self._security.configure(config)
+        return config
+
+    def _open(self, peer: Endpoint) -> zenoh.Session:
         """On the executor: open a session to ``peer`` and, with security,
-        check that the member expected there is the one that answered."""
-        session = zenoh.open(config)
+        check that the member expected there is the one that answered.
+
+        A client session makes one connection attempt.  On a slow lossy link
+        the TLS and Zenoh handshakes of that attempt can fail (a robot's first
+        query then failed, and with it its first task: traced in a bench run
+        at 35 kbit/s and 15 % loss), so it is tried :data:`OPEN_ATTEMPTS` times,
+        backing off; a refused connection (a dead peer) fails at once each
+        time, so finding a dead robot takes only the back-off longer."""
+        for attempt in range(OPEN_ATTEMPTS):
+            try:
+                session = zenoh.open(self._config(peer))
+                break
+            except zenoh.ZError:
+                if attempt == OPEN_ATTEMPTS - 1 or self._closed:
+                    raise
+                time.sleep(OPEN_BACKOFF_S * 2**attempt)  # on an executor thread: a back-off, not a wait
         if self._security is not None:
             try:
                 self._security.check_peer(session, peer)
