@@ -114,13 +114,9 @@ class CoapClientTransport:
     # ------------------------------------------------------------ requests
 
     async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
-        used = None if self.security is None else self.security.context(self._ctx, peer)
         try:
-            async with asyncio.timeout(timeout):
-                message = await self._secured(peer, lambda: self._request_any(peer, request, timeout))
+            message = await self._secured(peer, lambda: self._request_any(peer, request, timeout), timeout)
         except (TimeoutError, ExchangeTimeout):
-            if used is not None:  # see _secured: silence may mean a lost context
-                self.security.forget(self._ctx, peer, stale=used)
             raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
@@ -133,33 +129,39 @@ class CoapClientTransport:
             return await self._request_blockwise(peer, request, timeout)
         return await self._request_con(peer, request)
 
-    async def _secured(self, peer: Endpoint, exchange: Any) -> Any:
-        """``exchange()`` under OSCORE when security is on: EDHOC on first
-        contact; a context the peer lost (it restarted) is re-keyed once, at
-        once when the peer says so, at the next request when it was silent."""
+    async def _secured(self, peer: Endpoint, exchange: Any, timeout: float | None = None) -> Any:
+        """``exchange()`` under OSCORE when security is on, all within
+        ``timeout``: EDHOC on first contact; a context the peer lost (it
+        restarted) is re-keyed once, at once when the peer says so, at the
+        next request when it was silent."""
         if self.security is None:
-            return await exchange()
+            async with asyncio.timeout(timeout):
+                return await exchange()
         from ...security.coap import CONTEXT_LOST
 
-        for again in (False, True):
-            await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
-            used = self.security.context(self._ctx, peer)
-            try:
-                return await exchange()
-            except CONTEXT_LOST as exc:
-                if again:
-                    raise
-                logging.getLogger("coapkb.security").warning(
-                    "%s: our OSCORE context is gone there (%s); running EDHOC again", peer, type(exc).__name__)
+        used = None
+        try:
+            async with asyncio.timeout(timeout):
+                for again in (False, True):
+                    await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
+                    used = self.security.context(self._ctx, peer)
+                    try:
+                        return await exchange()
+                    except CONTEXT_LOST as exc:
+                        if again:
+                            raise
+                        logging.getLogger("coapkb.security").warning(
+                            "%s: our OSCORE context is gone there (%s); running EDHOC again", peer, type(exc).__name__)
+                        self.security.forget(self._ctx, peer, stale=used)
+        except (TimeoutError, ExchangeTimeout, *_NO_ANSWER):
+            # A peer that restarted may have handed our old key id to another
+            # client; our requests then fail to decrypt there and a NON one
+            # goes unanswered (RFC 8613 lets the server stay silent).  So the
+            # next request after an unanswered one re-keys instead of
+            # repeating the silence until the peer is declared down.
+            if used is not None:
                 self.security.forget(self._ctx, peer, stale=used)
-            except (TimeoutError, ExchangeTimeout, *_NO_ANSWER):
-                # A peer that restarted may have handed our old key id to
-                # another client; our requests then fail to decrypt there and
-                # a NON one goes unanswered (RFC 8613 lets the server stay
-                # silent).  So the next request after an unanswered one re-keys
-                # instead of repeating the silence until the peer is declared down.
-                self.security.forget(self._ctx, peer, stale=used)
-                raise
+            raise
         raise AssertionError("unreachable")
 
     async def _edhoc_post(self, peer: Endpoint, payload: bytes) -> aiocoap.Message:
