@@ -198,7 +198,7 @@ def system_spec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
         retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps,
         replication=replication, faults=tuple(faults),
-        security=_security_label(d, security) != "none", **extra,
+        security=_protected(d, security), **extra,
     )
 
 
@@ -217,9 +217,13 @@ def security_label(system: str, on: bool) -> str:
 
 
 def _security_label(d: SystemDef, on: bool) -> str:
+    return SECURITY_SCHEMES[d.transport] if _protected(d, on) else "none"
+
+
+def _protected(d: SystemDef, on: bool) -> bool:
     # The seed's systems stay as the seed ran them, unprotected: they are the
     # baseline its claims are checked against (docs/benchmarks.md).
-    return SECURITY_SCHEMES.get(d.transport, "none") if on and d.query_wire != "seed" else "none"
+    return on and d.query_wire != "seed" and d.transport in SECURITY_SCHEMES
 
 
 def _retransmission_label(transport: str, profile: str) -> str:
