@@ -8,10 +8,11 @@ import os
 import shutil
 import socket
 import sys
+import time
 from decimal import Decimal
 from pathlib import Path
 from types import ModuleType
-from typing import AsyncIterator
+from typing import AsyncIterator, NamedTuple
 
 import pytest
 
@@ -120,3 +121,29 @@ def load_experiment(name: str) -> ModuleType:
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+class CliResult(NamedTuple):
+    """What one ``coapkb`` command did."""
+
+    code: int
+    stdout: str
+    stderr: str
+    seconds: float
+
+
+async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> CliResult:
+    """``python -m coapkb ARGS`` in a subprocess, as a user runs it (killed after ``timeout``)."""
+    started = time.monotonic()
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "coapkb", *args,
+        stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
+    )
+    try:
+        out, err = await asyncio.wait_for(proc.communicate(stdin.encode() if stdin is not None else None), timeout)
+    except asyncio.TimeoutError:
+        proc.kill()
+        await proc.wait()
+        raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None
+    return CliResult(proc.returncode or 0, out.decode(), err.decode(), time.monotonic() - started)

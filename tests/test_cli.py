@@ -13,9 +13,6 @@ import io
 import json
 import re
 import socket
-import sys
-import time
-from dataclasses import dataclass
 from decimal import Decimal
 from pathlib import Path
 from typing import AsyncIterator
@@ -23,36 +20,12 @@ from typing import AsyncIterator
 import pytest
 import pytest_asyncio
 
-from support import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, ROOT, ServerProcess, free_udp_port
+from support import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, CliResult, ServerProcess, coapkb, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
 
-@dataclass
-class Result:
-    code: int
-    stdout: str
-    stderr: str
-    seconds: float
-
-
-async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> Result:
-    started = time.monotonic()
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", *args,
-        stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    try:
-        out, err = await asyncio.wait_for(proc.communicate(stdin.encode() if stdin is not None else None), timeout)
-    except asyncio.TimeoutError:
-        proc.kill()
-        await proc.wait()
-        raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None
-    return Result(proc.returncode or 0, out.decode(), err.decode(), time.monotonic() - started)
-
-
-def assert_user_error(result: Result, *fragments: str) -> str:
+def assert_user_error(result: CliResult, *fragments: str) -> str:
     """One ``coapkb: ...`` line on stderr, non-zero exit, no traceback; returns the line."""
     assert "Traceback" not in result.stdout + result.stderr, result.stderr
     assert result.code != 0, result

@@ -18,26 +18,17 @@ from coapkb.security.zenoh_tls import ZenohClientSecurity
 from coapkb.transport import PeerUnreachable, open_client
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 
-from support import ONTOLOGIES, ROOT, ServerProcess, free_udp_port
-
-
-async def _coapkb(*args: str, timeout: float = 60) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", *args, stdin=asyncio.subprocess.DEVNULL,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), timeout)
-    return proc.returncode or 0, out.decode(), err.decode()
+from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 
 async def test_keys_command_and_a_missing_key_at_start_up(tmp_path: Path) -> None:
     team_dir = tmp_path / "team"
-    code, out, err = await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "3")
+    code, out, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "3")
     assert code == 0, err
     for name in ("Robot1", "Robot2", "Robot3", "feeder", "operator"):
         assert (team_dir / f"{name}.key").stat().st_mode & 0o777 == 0o600
         assert load_identity(team_dir, name).private_d.hex() not in out + err  # keys never printed
-    code, _, err = await _coapkb("keys", "--team-dir", str(team_dir))
+    code, _, err, _ = await coapkb("keys", "--team-dir", str(team_dir))
     assert code != 0 and err.startswith("coapkb: ") and "already holds a team" in err
 
     port = free_udp_port()
@@ -52,7 +43,7 @@ endpoint = "coap://127.0.0.1:{port}"
 kbs = ["Object", "Location", "Capability"]
 """)
     (team_dir / "Robot1.key").unlink()
-    code, out, err = await _coapkb("agent", "--config", str(tmp_path / "robot1.toml"))
+    code, out, err, _ = await coapkb("agent", "--config", str(tmp_path / "robot1.toml"))
     assert code != 0 and "Traceback" not in err
     assert err.splitlines() == [f"coapkb: error: cannot read private key {team_dir / 'Robot1.key'}: No such file or directory"]
 
@@ -107,17 +98,17 @@ async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
 
 async def test_query_command_with_credentials(tmp_path: Path) -> None:
     team_dir = tmp_path / "team"
-    assert (await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "1"))[0] == 0
+    assert (await coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")).code == 0
     server = await ServerProcess.start(
         "--kb", *(str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")),
         "--bind", f"127.0.0.1:{free_udp_port()}", "--credentials", str(team_dir),
     )
     try:
         uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
-        code, out, err = await _coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0, err
         assert "Gucci_bag_14" in out
-        code, out, err = await _coapkb("query", uri)
+        code, out, err, _ = await coapkb("query", uri)
         assert code != 0 and ("4.01" in err or "Unauthorized" in err), err
     finally:
         await server.stop()
@@ -128,13 +119,13 @@ async def test_aiocoap_client_with_a_team_credential(tmp_path: Path) -> None:
     (it runs EDHOC itself, with message_3 combined into its first OSCORE request, RFC 9668)."""
     client = Path(sys.executable).parent / "aiocoap-client"
     team_dir = tmp_path / "team"
-    assert (await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "1"))[0] == 0
+    assert (await coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")).code == 0
     server = await ServerProcess.start(
         "--kb", *(str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")),
         "--bind", f"127.0.0.1:{free_udp_port()}", "--credentials", str(team_dir),
     )
     try:
-        code, diag, err = await _coapkb("keys", "--team-dir", str(team_dir), "--aiocoap-client", "operator", "central",
+        code, diag, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--aiocoap-client", "operator", "central",
                                         server.uri)
         assert code == 0, err
         (tmp_path / "operator.diag").write_text(diag)

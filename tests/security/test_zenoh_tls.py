@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.zenoh.mapping import RequestHeader, decode_response_header, encode_request_header
 
-from support import ONTOLOGIES, ROOT, ServerProcess, free_tcp_port
+from support import ONTOLOGIES, ServerProcess, coapkb, free_tcp_port
 
 
 @pytest.fixture
@@ -171,18 +170,9 @@ def test_no_key_in_the_public_files(team_dir: Path) -> None:
     assert not list(team_dir.glob("*ca*.key"))  # the CA's key is never written
 
 
-async def _coapkb(*args: str, timeout: float = 60) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", *args, stdin=asyncio.subprocess.DEVNULL,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), timeout)
-    return proc.returncode or 0, out.decode(), err.decode()
-
-
 async def test_serve_and_query_over_tls_from_the_command_line(tmp_path: Path) -> None:
     team_dir = tmp_path / "team"
-    code, out, err = await _coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")
+    code, out, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")
     assert code == 0, err
     assert "PRIVATE KEY" not in out + err  # the TLS keys stay in their files
     kbs = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
@@ -191,17 +181,17 @@ async def test_serve_and_query_over_tls_from_the_command_line(tmp_path: Path) ->
     try:
         uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
         assert uri.startswith("zenoh://")
-        code, out, err = await _coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0 and "Gucci_bag_14" in out, err
-        code, out, err = await _coapkb("query", uri, "--timeout", "3")
+        code, out, err, _ = await coapkb("query", uri, "--timeout", "3")
         assert code != 0 and "Traceback" not in err and "cannot reach" in err, err
         # Still serving the team after a stranger's attempt.
-        code, out, err = await _coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0 and "Gucci_bag_14" in out, err
     finally:
         await server.stop()
     (team_dir / "central.tls.key").unlink()
-    code, out, err = await _coapkb("serve", "--kb", *kbs, "--bind", f"127.0.0.1:{free_tcp_port()}",
+    code, out, err, _ = await coapkb("serve", "--kb", *kbs, "--bind", f"127.0.0.1:{free_tcp_port()}",
                                    "--transport", "zenoh", "--credentials", str(team_dir))
     assert code != 0 and err.splitlines() == [
         f"coapkb: error: cannot read private key {team_dir / 'central.tls.key'}: No such file or directory"]
