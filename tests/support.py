@@ -16,6 +16,10 @@ from typing import AsyncIterator, NamedTuple
 
 import pytest
 
+from coapkb.transport.base import ResourceInfo
+from coapkb.transport.messages import Method, Request, Response, Status
+from coapkb.transport.router import Router
+
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"
 IN_CI = bool(os.environ.get("CI"))
@@ -147,3 +151,20 @@ async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> C
         await proc.wait()
         raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None
     return CliResult(proc.returncode or 0, out.decode(), err.decode(), time.monotonic() - started)
+
+
+def recording_router(*paths: str) -> tuple[Router, list[tuple[str, str]]]:
+    """A robot's /tasks and /decisions (and ``paths``, GET only) that answer
+    "ok" and record each ``(method, path)`` that got through the policy."""
+    calls: list[tuple[str, str]] = []
+
+    async def handle(request: Request) -> Response:
+        calls.append((str(request.method), request.path))
+        return Response(Status.CHANGED if request.method == Method.POST else Status.CONTENT, b"ok")
+
+    router = Router()
+    router.add(ResourceInfo("/tasks", methods=("GET", "POST")), handle)
+    router.add(ResourceInfo("/decisions", methods=("POST",)), handle)
+    for path in paths:
+        router.add(ResourceInfo(path, methods=("GET",)), handle)
+    return router, calls

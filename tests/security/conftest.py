@@ -15,3 +15,4 @@ def team_dir(tmp_path: Path) -> Path:
     """A team of three robots (and feeder, central, operator): ``coapkb keys``'s files."""
     generate_team(tmp_path / "team", default_members(3))
     return tmp_path / "team"
+

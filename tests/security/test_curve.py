@@ -12,22 +12,14 @@ from coapkb.security import AccessPolicy, TeamTrust, generate_team, load_identit
 from coapkb.security.curve import ZmqClientSecurity, ZmqServerSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, PeerUnreachable, open_client, serve
-from coapkb.transport.base import ResourceInfo
 from coapkb.transport.messages import Method, Request, Response, Status
-from coapkb.transport.router import Router
+
+from support import recording_router
 
 
 @pytest.fixture
 async def robot1(team_dir: Path):
-    calls: list[tuple[str, str]] = []
-
-    async def handle(request: Request) -> Response:
-        calls.append((str(request.method), request.path))
-        return Response(Status.CHANGED if request.method == Method.POST else Status.CONTENT, b"ok")
-
-    router = Router()
-    router.add(ResourceInfo("/tasks", methods=("GET", "POST")), handle)
-    router.add(ResourceInfo("/decisions", methods=("POST",)), handle)
+    router, calls = recording_router()
     security = ZmqServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
     server = await serve(router, Endpoint("zmq", "127.0.0.1", 0), security=security)
     yield server.endpoint, calls

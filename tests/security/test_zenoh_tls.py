@@ -16,26 +16,16 @@ from coapkb.security import AccessPolicy, SecurityError, generate_team, load_ide
 from coapkb.security.keys import default_members
 from coapkb.security.zenoh_tls import ZenohClientSecurity, ZenohServerSecurity
 from coapkb.transport import Endpoint, PeerUnreachable, open_client, serve
-from coapkb.transport.base import ResourceInfo
 from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.zenoh.mapping import RequestHeader, decode_response_header, encode_request_header
 
-from support import ONTOLOGIES, ServerProcess, coapkb, free_tcp_port
+from support import ONTOLOGIES, ServerProcess, coapkb, free_tcp_port, recording_router
 
 
 @pytest.fixture
 async def robot1(team_dir: Path):
-    calls: list[tuple[str, str]] = []
-
-    async def handle(request: Request) -> Response:
-        calls.append((str(request.method), request.path))
-        return Response(Status.CHANGED if request.method == Method.POST else Status.CONTENT, b"ok")
-
-    router = Router()
-    router.add(ResourceInfo("/tasks", methods=("GET", "POST")), handle)
-    router.add(ResourceInfo("/decisions", methods=("POST",)), handle)
-    router.add(ResourceInfo("/robot/state", methods=("GET",)), handle)
+    router, calls = recording_router("/robot/state")
     security = ZenohServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
     server = await serve(router, Endpoint("zenoh", "127.0.0.1", 0), security=security)
     yield server, calls
