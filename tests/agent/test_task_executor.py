@@ -4,6 +4,7 @@ timed by the execution model and published as live state (a fast clock: no waiti
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
 
 import pytest
 
@@ -29,10 +30,11 @@ def _job(seq: int, to_object_m: float, to_depot_m: float = 0.0) -> Job:
     return Job(seq, f"Thing_{seq}", aisle=3, rack=7, to_object_m=to_object_m, to_depot_m=to_depot_m, depot=(1, 0))
 
 
-async def _run(jobs: list[Job]) -> tuple[TaskExecutor, list[LiveState], FastClock]:
+async def _run(jobs: list[Job], lease: Callable[[float], Awaitable[str | None]] | None = None,
+               ) -> tuple[TaskExecutor, list[LiveState], FastClock]:
     published: list[LiveState] = []
     clock = FastClock()
-    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=clock.sleep)
+    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=clock.sleep, lease=lease)
     executor.start()
     try:
         for job in jobs:
@@ -87,32 +89,19 @@ class Fence:
         return None if len(self.asked) <= self.grants else "no lease from a majority of the cluster (Robot2: refused)"
 
 
-async def _run_fenced(jobs: list[Job], fence: Fence) -> tuple[TaskExecutor, list[LiveState]]:
-    published: list[LiveState] = []
-    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=FastClock().sleep, lease=fence.hold)
-    executor.start()
-    try:
-        for job in jobs:
-            executor.submit(job)
-        await asyncio.wait_for(executor.wait_idle(), 1)
-    finally:
-        await executor.aclose()
-    return executor, published
-
-
 async def test_a_pick_needs_the_lease_before_and_after_it() -> None:
-    executor, published = await _run_fenced([_job(1, 2.0), _job(2, 4.0)], Fence(grants=4))
+    executor, published, _ = await _run([_job(1, 2.0), _job(2, 4.0)], Fence(grants=4).hold)
     assert executor.live.done == 2 and not executor.live.fenced
     assert "picking" in [s.activity for s in published]
 
 
 async def test_a_refused_lease_drops_the_job_and_the_queue_unpicked() -> None:
     # Granted before the first pick, refused when it is over (frozen past its lease meanwhile).
-    executor, published = await _run_fenced([_job(1, 2.0), _job(2, 4.0), _job(3, 6.0)], Fence(grants=1))
+    executor, published, _ = await _run([_job(1, 2.0), _job(2, 4.0), _job(3, 6.0)], Fence(grants=1).hold)
     assert executor.live.done == 0
     assert executor.live.fenced == (1, 2, 3) and "Robot2: refused" in (executor.live.fence_reason or "")
     assert (executor.live.activity, executor.live.queued, executor.live.executing) == ("idle", 0, None)
     # A job given after the fence is dropped too (the lease is asked again, and refused).
     fence = Fence(grants=0)
-    executor, published = await _run_fenced([_job(4, 2.0)], fence)
+    executor, published, _ = await _run([_job(4, 2.0)], fence.hold)
     assert executor.live.fenced == (4,) and "picking" not in [s.activity for s in published]

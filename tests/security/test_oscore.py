@@ -305,6 +305,16 @@ async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None
         await client.aclose()
 
 
+async def _messages_sent_over_changes(robot: Robot1, changes: int) -> int:
+    """The messages the robot sends while its /state changes ``changes`` times, 0.3 s apart."""
+    sent = robot.server.counters.messages_sent
+    for _ in range(changes):
+        robot.state += 1
+        robot.router.notify("/state")
+        await asyncio.sleep(0.3)
+    return robot.server.counters.messages_sent - sent
+
+
 async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path) -> None:
     """aiocoap's OSCORE client cannot cancel an observation: the server kept
     notifying (and the client acknowledging) every abandoned registration.
@@ -316,13 +326,8 @@ async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path)
         assert (await anext(stream)).payload == b"0"
         await stream.aclose()
         await asyncio.sleep(0.2)
-        sent = robot.server.counters.messages_sent
-        for _ in range(8):
-            robot.state += 1
-            robot.router.notify("/state")
-            await asyncio.sleep(0.3)
         # A notification or two in flight meet the Reset, then none (plain CoAP: 2).
-        assert robot.server.counters.messages_sent - sent <= 3
+        assert await _messages_sent_over_changes(robot, 8) <= 3
     finally:
         await client.aclose()
 
@@ -351,11 +356,6 @@ async def test_registrations_abandoned_before_their_answer_end_too(robot1, team_
         for pending in tries:
             _abandon(pending)
         await asyncio.sleep(0.3)
-        sent = robot.server.counters.messages_sent
-        for _ in range(6):
-            robot.state += 1
-            robot.router.notify("/state")
-            await asyncio.sleep(0.3)
-        assert robot.server.counters.messages_sent - sent <= 6
+        assert await _messages_sent_over_changes(robot, 6) <= 6
     finally:
         await client.aclose()
