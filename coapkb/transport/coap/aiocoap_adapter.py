@@ -15,6 +15,14 @@ process keep stock behaviour), by :class:`ContextHooks`:
 * the UDP message interface's ``send`` and ``datagram_msg_received``:
   traffic counters, and dropping datagrams whose string options are not
   UTF-8 (aiocoap 0.4.17 lets that UnicodeDecodeError escape);
+* the UDP message interface's ``error_received``, during a send: with
+  ``IP_RECVERR`` on, an ICMP error from one peer (say, port unreachable from
+  a dead robot) also sets the socket's pending error, and Linux reports it
+  from the *next* ``sendmsg``, whoever that goes to.  aiocoap blames the
+  peer being sent to and fails its requests, and the datagram is not sent:
+  a dead robot made a live one look dead.  The error is still queued for
+  the right peer on the error queue, so here the send is simply tried
+  again; only an error the retry repeats is the destination's own;
 * the MessageManager's ``dispatch_message`` / ``dispatch_error``: a
   response or ICMP error for a request the caller already abandoned raises
   InvalidStateError inside aiocoap's socket callback; it is dropped;
@@ -128,6 +136,7 @@ def verify() -> None:
 
     checks[(MessageInterfaceUDP6, "send")] = ("message",)
     checks[(MessageInterfaceUDP6, "datagram_msg_received")] = ("data", "ancdata", "flags", "address")
+    checks[(MessageInterfaceUDP6, "error_received")] = ("exc",)
     checks[(MessageInterfaceUDP6, "_local_port")] = ()
     checks[(aiocoap.Message, "_extract_block")] = ("number", "size_exp", "max_bert_size")
     check_methods(checks)
@@ -237,6 +246,8 @@ class ContextHooks:
         self.superseded_notifications = 0
         #: Told the size of every datagram this context sends (a link-queue model, say).
         self.on_datagram: Callable[[int], None] | None = None
+        #: While a send is under way: the errors its sendmsg raised (else None).
+        self._send_errors: list[OSError] | None = None
 
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
@@ -283,6 +294,7 @@ class ContextHooks:
             self._patch(self.ctx, "log", _PipeSafeLogger(self.ctx.log))
         self._patch(self.interface, "send", self._send)
         self._patch(self.interface, "datagram_msg_received", self._datagram_received)
+        self._patch(self.interface, "error_received", self._error_received)
         self._patch(self.mm, "send_message", self._send_message)
         self._patch(self.mm, "dispatch_message", self._dispatch_message)
         self._patch(self.mm, "dispatch_error", self._dispatch_error)
@@ -297,7 +309,19 @@ class ContextHooks:
     # ------------------------------------------------------------ socket: counters
 
     def _send(self, message: aiocoap.Message) -> None:
-        self._original(self.interface, "send")(message)
+        send = self._original(self.interface, "send")
+        self._send_errors = errors = []
+        try:
+            send(message)
+            if errors:  # most likely another peer's stale ICMP error, now cleared: once more
+                log.debug("send to %s failed (%s); sending again", message.remote, errors[-1])
+                errors.clear()
+                send(message)
+        finally:
+            self._send_errors = None
+        if errors:  # failed twice: the destination's own (no route, say), as aiocoap would report it
+            self.mm.dispatch_error(errors[-1], message.remote)
+            return
         counters = self.counters
         size = len(message.encode())
         counters.messages_sent += 1
@@ -312,6 +336,12 @@ class ContextHooks:
                 self._recent_con[key] = None
                 if len(self._recent_con) > 4096:
                     self._recent_con.popitem(last=False)
+
+    def _error_received(self, exc: OSError) -> None:
+        if self._send_errors is not None:  # raised by our sendmsg: _send decides
+            self._send_errors.append(exc)
+        else:
+            self._original(self.interface, "error_received")(exc)
 
     def _datagram_received(self, data: bytes, ancdata: Any, flags: int, address: Any) -> None:
         self.counters.messages_received += 1

@@ -3,6 +3,8 @@ in this test, when aiocoap changes under it."""
 
 from __future__ import annotations
 
+import asyncio
+
 import aiocoap
 import aiocoap.meta
 import pytest
@@ -57,3 +59,48 @@ def test_the_pipe_logger_takes_aiocoaps_exception_keyword(caplog: pytest.LogCapt
     with caplog.at_level(logging.ERROR, logger="coapkb.test.pipe"):
         log.error("Discarded exception in %r", "event", exception=RuntimeError("late"))
     assert "late" in caplog.text
+
+
+async def test_a_dead_peers_icmp_error_does_not_fail_the_next_send_to_a_live_one() -> None:
+    """Linux reports one peer's ICMP "port unreachable" from the socket's next
+    sendmsg, whoever it goes to; unhooked aiocoap blamed the live peer and
+    dropped its datagram (a dead robot made a live teammate look dead)."""
+    import socket
+
+    from aiocoap import GET, NON, Message
+
+    from tests.support import free_udp_port
+
+    live = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    live.bind(("127.0.0.1", 0))
+    live.setblocking(False)
+    dead_port = free_udp_port()
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+    try:
+        hooks = ContextHooks.of(ctx)
+        remotes = []
+        for port in (dead_port, live.getsockname()[1]):
+            probe = Message(code=GET, mtype=NON, uri=f"coap://127.0.0.1:{port}/x")
+            remotes.append(await hooks.interface.determine_remote(probe))
+        errors: list[tuple[Exception, object]] = []
+        reported = asyncio.get_running_loop().create_future()
+        original = hooks.mm.dispatch_error
+
+        def record(error: Exception, remote: object) -> None:
+            errors.append((error, remote))
+            if not reported.done():
+                reported.set_result(None)
+            original(error, remote)
+
+        hooks.mm.dispatch_error = record
+        for mid, remote in enumerate(remotes * 2):  # dead, live, dead, live; the loop never runs in between
+            message = Message(code=GET, mtype=NON, mid=mid + 1, uri_path=("x",))
+            message.token, message.remote = b"t", remote
+            hooks.interface.send(message)
+        await asyncio.wait_for(reported, 2)  # the loop read the error queue
+        assert len(live.recv(64)) > 0 and len(live.recv(64)) > 0  # both datagrams reached the live peer
+        assert errors and all(remote == remotes[0] for _, remote in errors), errors
+        assert hooks.counters.messages_sent == 4
+    finally:
+        await ctx.shutdown()
+        live.close()
