@@ -80,7 +80,7 @@ async def test_a_dead_peers_icmp_error_does_not_fail_the_next_send_to_a_live_one
         hooks = ContextHooks.of(ctx)
         remotes = []
         for port in (dead_port, live.getsockname()[1]):
-            probe = Message(code=GET, mtype=NON, uri=f"coap://127.0.0.1:{port}/x")
+            probe = Message(code=GET, uri=f"coap://127.0.0.1:{port}/x")
             remotes.append(await hooks.interface.determine_remote(probe))
         errors: list[tuple[Exception, object]] = []
         reported = asyncio.get_running_loop().create_future()
@@ -94,8 +94,8 @@ async def test_a_dead_peers_icmp_error_does_not_fail_the_next_send_to_a_live_one
 
         hooks.mm.dispatch_error = record
         for mid, remote in enumerate(remotes * 2):  # dead, live, dead, live; the loop never runs in between
-            message = Message(code=GET, mtype=NON, mid=mid + 1, uri_path=("x",))
-            message.token, message.remote = b"t", remote
+            message = Message(code=GET, uri_path=("x",))
+            message.mtype, message.mid, message.token, message.remote = NON, mid + 1, b"t", remote
             hooks.interface.send(message)
         await asyncio.wait_for(reported, 2)  # the loop read the error queue
         assert len(live.recv(64)) > 0 and len(live.recv(64)) > 0  # both datagrams reached the live peer
