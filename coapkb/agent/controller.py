@@ -7,8 +7,14 @@ Then the Task Assigner runs on the teammates' planned states, observed
 through ``/robot/state``, and the winner's Task Executor gets the job.
 
 Strategies: "compute-by-all" (every robot queries and computes the same
-assignment, no further message) and "compute-and-communicate" (the team's
-first robot computes and sends the decision to the others).
+assignment, no further message) and "compute-and-communicate" (the first
+robot of the membership, the leader, computes and sends the decision to the
+others).  A follower whose leader is declared down while it waits decides
+that task itself, as under compute-by-all: the assignment is a function of
+the planned states after the previous task, which every survivor holds
+alike, so it matches the decision the leader may have sent some of them.
+The dead leader leaves the membership as under compute-by-all, and the next
+robot of it leads from then on.
 """
 
 from __future__ import annotations
@@ -103,7 +109,9 @@ class Controller:
 
     @property
     def leader(self) -> str:
-        return min(self.config.team, key=robot_sort_key)
+        """The robot that decides for the others ("compute and communicate"):
+        the first of the current membership."""
+        return min(self.team.membership.members, key=robot_sort_key)
 
     @property
     def computes(self) -> bool:
@@ -191,14 +199,23 @@ class Controller:
         return message
 
     async def _await_decision(self, task: Task) -> DecisionMessage:
+        """The leader's decision on ``task``; if the leader is declared down
+        first, this robot's own (see the module's docstring)."""
+        leader = self.leader
         future = self._decisions.setdefault(task.seq, asyncio.get_running_loop().create_future())
+        leader_down = asyncio.create_task(self.team.until_down(leader), name=f"leader {leader} down")
         try:
             async with asyncio.timeout(self.config.query_timeout_s * 4):
-                return await future
+                await asyncio.wait((future, leader_down), return_when=asyncio.FIRST_COMPLETED)
         except TimeoutError:
-            raise QueryError(f"no decision from {self.leader} for task {task.seq}") from None
+            raise QueryError(f"no decision from {leader} for task {task.seq}") from None
         finally:
+            leader_down.cancel()
             self._decisions.pop(task.seq, None)
+        if future.done():
+            return future.result()
+        log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
+        return await self._compute(task)
 
     async def layout(self) -> Layout:
         if self._layout is None:

@@ -21,7 +21,7 @@ import random
 import re
 import time
 from dataclasses import asdict, replace
-from typing import Any
+from typing import Any, Iterable
 
 import cbor2
 
@@ -155,7 +155,9 @@ class Robot:
             router.notify(STATE_PATH)
 
         async def send_decision(message: DecisionMessage) -> None:
-            await broadcast_decision(client, config, message)
+            # Not to teammates known down: each would hold the decision up by a timeout.
+            members = [r for r in team.membership.members if r != config.robot_id and team.is_up(r)]
+            await broadcast_decision(client, config, message, members)
 
         fence = None
         if config.lease_s > 0:
@@ -361,11 +363,13 @@ def _server_security(config: RobotConfig, identity: Any, policy: AccessPolicy) -
     return ServerSecurity(identity, policy)
 
 
-async def broadcast_decision(client: ClientTransport, config: RobotConfig, message: DecisionMessage) -> None:
-    """Send the leader's decision to every teammate, concurrently."""
+async def broadcast_decision(
+    client: ClientTransport, config: RobotConfig, message: DecisionMessage, recipients: Iterable[str]
+) -> None:
+    """Send the leader's decision to ``recipients`` (teammates), concurrently."""
     payload = cbor2.dumps(message.to_dict())
     request = Request(Method.POST, "/decisions", payload=payload, content_format=ContentFormat.CBOR)
-    peers = [m.endpoint for r, m in config.team.items() if r != config.robot_id]
+    peers = [config.team[r].endpoint for r in recipients]
     results = await asyncio.gather(
         *(client.request(p, request, timeout=config.query_timeout_s) for p in peers), return_exceptions=True
     )

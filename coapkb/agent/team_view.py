@@ -274,8 +274,8 @@ class ObservedStates:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float) -> States:
-        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s."""
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | None) -> States:
+        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit)."""
         async with asyncio.timeout(timeout):
             while True:
                 try:
@@ -396,6 +396,12 @@ class TeamView:
         """Ask teammate ``robot_id`` for its state now (two failures: down)."""
         if robot_id in self._peers and robot_id not in self._teammates.down:
             await self._teammates.probe(robot_id)
+
+    async def until_down(self, robot_id: str) -> str:
+        """Wait until teammate ``robot_id`` is declared down (the stalled wait
+        asks it, as any wait does); returns why."""
+        await self._teammates.wait(lambda _: robot_id in self._teammates.down, None)
+        return self._teammates.down[robot_id]
 
     @property
     def membership(self) -> Membership:

@@ -87,6 +87,29 @@ async def test_one_robot_killed_mid_run(transport: str, robots: int) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", ["coap", "zmq"])
+async def test_compute_and_communicate_survives_its_leader(transport: str) -> None:
+    """Robot1, the leader deciding for its cluster, is killed: its followers
+    decide the task they were waiting on themselves, alike, and Robot2 leads
+    from the next membership on; every task's fate is recorded once."""
+    tasks = draw_tasks(20, ONTOLOGIES, seed=3)
+    leader = "Robot1"
+    spec = TeamSpec(
+        robots=3, transport=transport, strategy="compute-and-communicate", query_timeout_s=5.0,
+        task_timeout_s=30.0, faults=(Fault("kill", leader, 0.3),),
+    )
+    async with asyncio.timeout(60):
+        async with Team.launch(spec) as team:
+            record = await team.run(tasks)
+    assert set(record.down) == {leader}
+    check_fates(record, tasks, spec, frozenset({leader}))
+    after = [t for t in record.tasks if leader not in t.members and t.members]
+    assert after and all(t.fate != "error" and not t.errors for t in after), after
+    # Robot2 led: Robot3 asked no query once Robot2 was the first member.
+    assert record.robot_stats["Robot2"].queries.remote + record.robot_stats["Robot2"].queries.local > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["coap", "zmq"])
 async def test_both_holders_of_a_module_killed(transport: str) -> None:
     # Robot1 and Robot2 hold the Object KB (replication 2 of three): the
     # survivor says which tasks need it and why, and does the others.
