@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The seed paper's experiment matrix, system by system, into one CSV.
 
-    sudo .venv/bin/python experiments/sweep.py --profile quick          # < 15 min on 2 cores
+    sudo .venv/bin/python experiments/sweep.py --profile quick --jobs 2  # ~45 min on 2 cores
     sudo .venv/bin/python experiments/sweep.py --profile paper --jobs 1  # the full matrix: days
     .venv/bin/python experiments/sweep.py --profile paper --engine dask://HOST:8786  # on a Dask cluster
 
@@ -13,8 +13,9 @@ and started again skips every run whose key (system, robots, tasks,
 bandwidth, loss, rep, retransmission profile) is already in the CSV.
 
 Parallel runs (``--jobs 2``) share the CPU: on two cores the robots' and the
-KB server's processing time then grows, which distorts completion times (not
-byte counts).  The committed results use ``--jobs 1``.
+KB server's processing time then grows.  ``experiments/concurrency.py``
+measured two at a time on two cores within the one-at-a-time spread, so the
+committed results ran two at a time (docs/benchmarks.md).
 
 ``--engine dask://HOST:PORT`` runs the same child processes as tasks on a
 Dask distributed cluster instead (docs/benchmarks.md, "Running on a
@@ -180,29 +181,34 @@ QUICK_GRIDS = (
     Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
 )
 PROFILES: dict[str, Profile] = {
-    # A representative subset, 3 repetitions of every cell: 165 runs, 22
+    # A representative subset, 6 repetitions of every cell (the fewest with
+    # a distribution-free 95 % interval for a median): 330 runs, about 45
     # minutes on 2 cores two at a time (docs/benchmarks.md).
     "quick": Profile(
         "quick",
         QUICK_GRIDS,
-        reps=3,
+        reps=6,
         note="subset: 35 kbit/s x 5 tasks x robots 3/9 x loss 2/20 % (the seed's wire at 2 % only); at 2 %: "
         "3 robots x tasks 5/20 x 35/256 kbit/s, 9 robots x 20 tasks x 35 kbit/s",
     ),
-    # The part of the paper matrix this 2-core machine ran in one session
-    # (about an hour two at a time): the quick cells, the seed's loss axis
-    # (Fig. 6/7) whole for every team size, and its bandwidth axis whole at
-    # 10 tasks.  Its CSV starts from the quick profile's rows (same keys).
+    # The part of the paper matrix this 2-core machine ran in two sessions
+    # (about three hours two at a time): the quick cells, the seed's loss
+    # axis (Fig. 6/7) whole for every team size, its bandwidth axis whole at
+    # 10 tasks, and its task axis whole at 3 robots.  6 repetitions: the
+    # fewest with a distribution-free 95 % interval for a median.  Its CSV
+    # starts from the quick profile's rows (same keys).
     "slice": Profile(
         "slice",
         (
             *QUICK_GRIDS,
             Grid((3, 6, 9), (5,), (35,), (2, 5, 10, 15, 20), COMPACT_SYSTEMS),
             Grid((3,), (10,), (35, 128, 256, 512), (2,), QUICK_SYSTEMS),
+            Grid((3,), (40, 80), (35,), (2,), QUICK_SYSTEMS),
         ),
-        reps=3,
+        reps=6,
         note="the quick cells; 35 kbit/s x 5 tasks x robots 3/6/9 x loss 2/5/10/15/20 % (compact systems); "
-        "3 robots x 10 tasks x 35/128/256/512 kbit/s at 2 % (with the seed's wire)",
+        "3 robots x 10 tasks x 35/128/256/512 kbit/s at 2 % (with the seed's wire); "
+        "3 robots x 40/80 tasks x 35 kbit/s at 2 % (with the seed's wire)",
     ),
     # The seed's whole matrix (section IV), every system but Zenoh over UDP.
     "paper": Profile(
@@ -416,6 +422,29 @@ def _prepare_worker() -> tuple[bool, str, int]:
     return ok, why, len(cleanup_stale()) if ok else 0
 
 
+def _link_emulation_gate() -> Any:
+    """A Dask worker plugin for workers that join after the sweep started
+    (those present are checked by :func:`_prepare_worker`, and the sweep
+    stops if one is unfit): a worker that cannot emulate links gives up its
+    ``netns`` slots, so no run lands there, and logs why."""
+    from distributed import WorkerPlugin
+
+    class LinkEmulationGate(WorkerPlugin):
+        name = "coapkb-link-emulation"
+
+        async def setup(self, worker: Any) -> None:
+            ok, why, removed = _prepare_worker()
+            log = logging.getLogger("coapkb.sweep")
+            if ok:
+                if removed:
+                    log.warning("removed %d namespaces left by crashed runs", removed)
+                return
+            log.error("this worker takes no sweep runs: %s", why)
+            await worker.set_resources(**{NETNS: 0})
+
+    return LinkEmulationGate()
+
+
 class _Shipped:
     """A call that travels to the workers *by value*: Dask pickles tasks with
     plain pickle, which would name this script's module (the workers cannot
@@ -471,6 +500,7 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
         if unfit:
             raise EngineError("workers without kernel link emulation (not root?): "
                               + "; ".join(f"{w}: {why}" for w, why in sorted(unfit.items())))
+        await client.register_plugin(_link_emulation_gate())
         futures = {
             client.submit(_Shipped(partial(run_on_worker, run, limit_for(run))), key=task_key(run),
                           resources={NETNS: 1}, priority=len(runs) - i): run  # the plan's order, as locally

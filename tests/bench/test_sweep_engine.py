@@ -4,16 +4,19 @@ de-duplication, and a tiny matrix through a local Dask cluster of two workers
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
 from support import load_experiment, require
 
 from coapkb.bench.linkemu import available
 from coapkb.bench.run import read_rows
-
-
-
 
 sweep = load_experiment("sweep")
 
@@ -94,3 +97,63 @@ def test_a_tiny_matrix_through_a_local_dask_cluster_of_two_workers(
         assert sweep.main(argv) == 0
         assert "0 to go" in capsys.readouterr().out
         assert len(read_rows(out, latest_only=False)) == 2
+
+
+@pytest.mark.root
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_worker_that_joins_without_link_emulation_takes_no_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker started mid-sweep without the capabilities for namespaces
+    (root, but CAP_SYS_ADMIN and CAP_NET_ADMIN dropped) gives up its netns
+    slot: every run still lands on the fit worker, and all succeed."""
+    ok, why = available()
+    require(ok, why)
+    setpriv = shutil.which("setpriv")
+    require(setpriv is not None, "setpriv (util-linux) not installed")
+    from distributed import Client, LocalCluster
+
+    tiny = sweep.Profile("tiny", (sweep.Grid((3,), (2,), (512,), (2,), ("coap-distributed",)),), reps=3, note="test")
+    monkeypatch.setitem(sweep.PROFILES, "tiny", tiny)
+    out = tmp_path / "tiny.csv"
+    with LocalCluster(n_workers=1, processes=True, threads_per_worker=1, resources={sweep.NETNS: 1},
+                      dashboard_address=None, host="127.0.0.1") as cluster:
+        engine = cluster.scheduler_address.replace("tcp://", "dask://")
+        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out), "--retransmission", "adaptive"]
+        with ThreadPoolExecutor(1) as pool, Client(cluster) as client:
+            client.wait_for_workers(1, timeout=60)
+            swept = pool.submit(sweep.main, argv)
+            deadline = time.monotonic() + 60
+            while "coapkb-link-emulation" not in client.run_on_scheduler(_worker_plugins):
+                assert time.monotonic() < deadline and not swept.done(), "the sweep registered no gate"
+                time.sleep(0.05)
+            unfit = subprocess.Popen(
+                [setpriv, "--bounding-set", "-sys_admin,-net_admin", sys.executable, "-m", "distributed.cli.dask_worker",
+                 cluster.scheduler_address, "--nthreads", "1", "--resources", f"{sweep.NETNS}=1",
+                 "--no-dashboard", "--no-nanny", "--name", "unfit"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )
+            try:
+                client.wait_for_workers(2, timeout=60)
+                deadline = time.monotonic() + 60
+                while _slots(client, "unfit") != 0:
+                    assert time.monotonic() < deadline, "the unfit worker kept its netns slot"
+                    time.sleep(0.05)
+                assert swept.result(timeout=180) == 0
+            finally:
+                unfit.terminate()
+                unfit.wait(timeout=30)
+    rows = read_rows(out, latest_only=False)
+    assert sorted(r.rep for r in rows) == [0, 1, 2] and all(r.ok for r in rows), [r.error for r in rows]
+
+
+def _worker_plugins(dask_scheduler: Any) -> list[str]:
+    return list(dask_scheduler.worker_plugins)
+
+
+def _slots(client: Any, name: str) -> float | None:
+    for worker in client.scheduler_info(n_workers=-1)["workers"].values():
+        if worker.get("name") == name:
+            return worker.get("resources", {}).get(sweep.NETNS)
+    return None
