@@ -567,6 +567,8 @@ class Team:
                 joining = sorted(r for r in cluster if r in self._restarted)
                 if joining:
                     reruns += self._prepare_join(watcher, records, joining, seq)
+                if records:
+                    await self._take_back(client, watcher, cluster, records)
                 record = await self._feed_task(client, watcher, index, cluster, seq, name, joining)
                 record.reassigned_from = reassigned_from
                 records.append(record)
@@ -616,14 +618,46 @@ class Team:
             watcher.readmit(robot_id)
         return orphans
 
+    async def _take_back(
+        self, client: ClientTransport, watcher: ObservedStates, cluster: list[str], records: Sequence[TaskRecord]
+    ) -> None:
+        """Feed again a robot the feeder has down but its teammates still
+        count as a member (their last decision names it): it was only slow
+        or cut off, and under "compute by all" they wait for its plan after
+        every task.  It is asked once; if it answers with the same process (a
+        new one joins instead, at a task boundary), it is given the tasks it
+        missed, in order, and fed from now on like the others."""
+        last = records[-1]
+        for robot_id in cluster:
+            if (robot_id not in watcher.down or robot_id not in last.members or robot_id in self._fenced_off
+                    or robot_id in self._restarted):
+                continue
+            try:
+                response = await client.request(
+                    self.endpoints[robot_id], Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR),
+                    timeout=watcher.request_timeout_s,
+                )
+                state = RobotState.decode(response.payload) if response.status.is_success else None
+            except (TransportError, ValueError):
+                continue
+            known = watcher.states.get(robot_id)
+            if state is None or known is None or state.boot != known.boot:
+                continue
+            seen = state.last.seq if state.last is not None else 0
+            missed = [r for r in records if r.seq > seen]
+            log.warning("%s answers again and its teammates still count it: fed again from task %d",
+                        robot_id, seen + 1)
+            watcher.readmit(robot_id)
+            for record in missed:  # the robot takes tasks strictly in order
+                await self._post_task(client, watcher, robot_id, _task_post(record.seq, record.object, record.joined),
+                                      record.seq, record.object)
+
     async def _feed_task(
         self, client: ClientTransport, watcher: ObservedStates, index: int, cluster: list[str], seq: int, name: str,
         joining: Sequence[str] = (),
     ) -> TaskRecord:
         fed = time.monotonic()
-        # The task stream orders joins: every robot admits the joiners at this task.
-        body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {})})
-        request = Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
+        request = _task_post(seq, name, joining)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
             raise TeamError(f"every robot of cluster {index + 1} is down: {watcher.down}")
@@ -875,6 +909,13 @@ def _orphans(
             record.orphaned = why
             orphans.append(record)
     return sorted(orphans, key=lambda r: r.seq)
+
+
+def _task_post(seq: int, name: str, joining: Sequence[str] = ()) -> Request:
+    """The POST of task ``seq``.  The task stream orders joins: every robot
+    admits the joiners at this task."""
+    body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {})})
+    return Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
 
 
 async def _wait_for(

@@ -239,3 +239,34 @@ async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
     assigned = [t for t in record.tasks if t.fate == "assigned"]
     assert sum(s.executed for s in record.robot_stats.values()) == len(assigned)
     assert TeamRecord.from_dict(record.to_dict()).to_dict() == record.to_dict()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["coap", "zmq"])
+async def test_a_robot_back_before_its_teammates_noticed_is_fed_again(transport: str) -> None:
+    """Robot2 freezes right after deciding a task; the feeder finds it down
+    when it posts the next, which the teammates decide without waiting for
+    it (they hold its plan), and it comes back before they ever noticed.
+    The teammates still count it, so the feeder gives it the task it missed
+    and feeds it again: before, they waited for its plans after tasks it was
+    never given and recorded an error for every later task."""
+    tasks = draw_tasks(8, ONTOLOGIES, seed=3)
+    spec = TeamSpec(robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=10.0)
+    async with asyncio.timeout(120):
+        async with Team.launch(spec) as team:
+            stopped, resumed = asyncio.Event(), asyncio.Event()
+
+            def progress(record: TaskRecord) -> None:
+                if record.seq == 2 and not stopped.is_set():
+                    team.pause(VICTIM)
+                    stopped.set()
+                elif stopped.is_set() and not resumed.is_set() and VICTIM in record.absent:
+                    team.pause(VICTIM, stop=False)
+                    resumed.set()
+
+            record = await team.run(tasks, progress)
+    assert stopped.is_set() and resumed.is_set(), [t.absent for t in record.tasks]
+    assert VICTIM not in record.down, record.down
+    check_fates(record, tasks, spec, fates=("assigned", "skipped"), new_epoch=False)
+    assert all(VICTIM in t.members for t in record.tasks), [t.members for t in record.tasks]
+    assert TeamRecord.from_dict(record.to_dict()).to_dict() == record.to_dict()
