@@ -628,6 +628,11 @@ class Team:
         new one joins instead, at a task boundary), it is given the tasks it
         missed, in order, and fed from now on like the others."""
         last = records[-1]
+        # A dead robot is asked at each task boundary until its teammates
+        # leave it out (a task or two): a few round trips, not a liveness
+        # timeout, since silence here only means "not back yet".
+        srtt = watcher.round_trip.srtt
+        timeout = watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
         for robot_id in cluster:
             if (robot_id not in watcher.down or robot_id not in last.members or robot_id in self._fenced_off
                     or robot_id in self._restarted):
@@ -635,7 +640,7 @@ class Team:
             try:
                 response = await client.request(
                     self.endpoints[robot_id], Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR),
-                    timeout=watcher.request_timeout_s,
+                    timeout=timeout,
                 )
                 state = RobotState.decode(response.payload) if response.status.is_success else None
             except (TransportError, ValueError):
