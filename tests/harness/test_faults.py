@@ -193,6 +193,13 @@ def test_replication_puts_every_module_on_r_robots_of_a_cluster() -> None:
         TeamSpec(ontologies=ONTOLOGIES, replication=4)
 
 
+def _pause_case(transport: str) -> tuple[list[str], TeamSpec]:
+    """8 tasks for 3 robots, executed at 10x real time: long enough for a
+    robot to be stopped and resumed mid-run."""
+    tasks = draw_tasks(8, ONTOLOGIES, seed=3)
+    return tasks, TeamSpec(robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=10.0)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", ["coap", "zmq"])
 async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
@@ -200,8 +207,7 @@ async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
     # that job unexecuted; the survivors declare it down, its tasks go round
     # again once its lease has run out, and only then does it go on (SIGCONT),
     # still holding the jobs: it must pick none of them.
-    tasks = draw_tasks(8, ONTOLOGIES, seed=3)
-    spec = TeamSpec(robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=10.0)
+    tasks, spec = _pause_case(transport)
     async with asyncio.timeout(120):
         async with Team.launch(spec) as team:
             stopped, resumed = asyncio.Event(), asyncio.Event()
@@ -250,8 +256,7 @@ async def test_a_robot_back_before_its_teammates_noticed_is_fed_again(transport:
     The teammates still count it, so the feeder gives it the task it missed
     and feeds it again: before, they waited for its plans after tasks it was
     never given and recorded an error for every later task."""
-    tasks = draw_tasks(8, ONTOLOGIES, seed=3)
-    spec = TeamSpec(robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=10.0)
+    tasks, spec = _pause_case(transport)
     async with asyncio.timeout(120):
         async with Team.launch(spec) as team:
             stopped, resumed = asyncio.Event(), asyncio.Event()
