@@ -142,6 +142,8 @@ def verify() -> None:
     check_methods(checks)
     if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
         raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
+    if f'getChild("{BLOCKWISE_LOGGER}")' not in inspect.getsource(aiocoap.protocol.BlockwiseRequest.__init__):
+        raise UnsupportedAiocoapVersion("aiocoap's block-wise requester logs elsewhere")
 
 
 # --------------------------------------------------------------------- small accessors
@@ -184,8 +186,31 @@ class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
             msg = f"{msg}: {exception!r}"
         return msg, kwargs
 
-    def getChild(self, suffix: str) -> logging.Logger:  # noqa: N802 -- aiocoap calls it
-        return self.logger.getChild(suffix)
+    def getChild(self, suffix: str) -> Any:  # noqa: N802 -- aiocoap calls it
+        child = self.logger.getChild(suffix)
+        return _BlockwiseRunnerLog(child) if suffix == BLOCKWISE_LOGGER else child
+
+
+#: The child logger aiocoap 0.4.17's block-wise requester logs to (checked by verify()).
+BLOCKWISE_LOGGER = "blockwise-requester"
+
+
+class _BlockwiseRunnerLog(logging.LoggerAdapter):  # type: ignore[type-arg]
+    """The block-wise requester's logger, without one false alarm.
+
+    When the caller cancels a block-wise request, aiocoap 0.4.17 cancels its
+    runner from a done-callback, which runs one loop turn late.  A runner
+    whose last block arrived in that turn sets the result of the cancelled
+    future and logs the InvalidStateError as an error with a traceback.
+    Nobody waits for that result, so it is logged at debug level here."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        super().__init__(logger, {})
+
+    def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
+        if level >= logging.ERROR and isinstance(kwargs.get("exc_info"), asyncio.InvalidStateError):
+            level = logging.DEBUG
+        super().log(level, msg, *args, **kwargs)
 
 
 # --------------------------------------------------------------------- CON retransmission policy

@@ -104,3 +104,23 @@ async def test_a_dead_peers_icmp_error_does_not_fail_the_next_send_to_a_live_one
     finally:
         await ctx.shutdown()
         live.close()
+
+
+async def test_a_cancelled_blockwise_result_is_not_logged_as_an_error(caplog: pytest.LogCaptureFixture) -> None:
+    """aiocoap's block-wise runner may set the result of a request its caller
+    already cancelled; the InvalidStateError it then logs is not an error."""
+    import logging
+
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.test.client")
+    try:
+        ContextHooks.of(ctx)
+        log = ctx.log.getChild(aiocoap_adapter.BLOCKWISE_LOGGER)
+        with caplog.at_level(logging.DEBUG, logger="coapkb.test.client"):
+            log.error("Exception in BlockwiseRequest runner: %s", "invalid state",
+                      exc_info=asyncio.InvalidStateError("invalid state"))
+            log.error("something else went wrong", exc_info=RuntimeError("boom"))
+        levels = {r.getMessage(): r.levelno for r in caplog.records}
+        assert levels == {"Exception in BlockwiseRequest runner: invalid state": logging.DEBUG,
+                          "something else went wrong": logging.ERROR}
+    finally:
+        await ctx.shutdown()
