@@ -41,7 +41,9 @@ Liveness
 
 Observe
     A request carrying the envelope's observe flag registers ``(client
-    identity, token)`` through :meth:`Service.subscribe`.  Each change re-runs
+    identity, token)`` in the server's
+    :class:`~coapkb.transport.observation.ObservationRegistry`, which
+    subscribes through :meth:`Service.subscribe`.  Each change re-runs
     the request through :meth:`Service.handle` and pushes the answer with the
     next ``seq``.  Changes that arrive while an update is being computed are
     coalesced (an observer gets the latest state, not every intermediate one,
@@ -67,8 +69,8 @@ import errno
 import itertools
 import logging
 import os
-from collections.abc import AsyncIterator, Callable, Coroutine
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator, Coroutine
+from dataclasses import dataclass
 from typing import Any
 
 import zmq
@@ -78,6 +80,7 @@ from ..messages import Method, Request, Response, Status
 from ..base import (
     Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
 )
+from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
 from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
@@ -192,20 +195,6 @@ def _tcp_uri(host: str, port: int | str) -> str:
 # =========================================================================== server
 
 
-@dataclass(eq=False)
-class _Observation:
-    """One registered observer: who, under which token, of what."""
-
-    identity: bytes
-    token: int
-    request: Request
-    dirty: asyncio.Event = field(default_factory=asyncio.Event)
-    seq: int = 0
-    active: bool = True
-    unsubscribe: Callable[[], None] | None = None
-    worker: asyncio.Task[None] | None = None
-
-
 class ZmqServerTransport:
     """Serves a :class:`Service` on a ZeroMQ ROUTER socket.
 
@@ -243,7 +232,10 @@ class ZmqServerTransport:
         self._options = options
         self._slots = asyncio.Semaphore(options.max_concurrent_requests)
         self._tasks: set[asyncio.Task[None]] = set()
-        self._observations: dict[bytes, dict[int, _Observation]] = {}
+        #: Observations by client identity and token.
+        self._observations = ObservationRegistry(
+            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations_per_client, log=log
+        )
         self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._send_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._closed = False
@@ -296,7 +288,7 @@ class ZmqServerTransport:
     @property
     def observation_count(self) -> int:
         """Observations currently registered (all clients)."""
-        return sum(len(per) for per in self._observations.values())
+        return len(self._observations)
 
     async def __aenter__(self) -> ZmqServerTransport:
         return self
@@ -311,9 +303,7 @@ class ZmqServerTransport:
             return
         self._closed = True
         self._receiver.cancel()
-        for per in list(self._observations.values()):
-            for obs in list(per.values()):
-                self._stop(obs)
+        self._observations.stop_all()
         tasks = [self._receiver, *self._tasks]
         for task in tasks:
             task.cancel()
@@ -355,7 +345,7 @@ class ZmqServerTransport:
                 self._malformed(identity, str(exc))
                 continue
             if observe is Observe.DEREGISTER:
-                self._deregister(identity, token)
+                self._observations.deregister(identity, token)
                 continue
             await self._slots.acquire()
             self._spawn(self._serve(identity, token, request, observe, user))
@@ -428,7 +418,7 @@ class ZmqServerTransport:
         except zmq.ZMQError as exc:
             if exc.errno == zmq.EHOSTUNREACH:
                 log.debug("zmq server %s: peer %s is gone", self.endpoint, identity.hex())
-                self._forget_client(identity)
+                self._observations.forget_client(identity)
             elif not self._closed:
                 self._send_log.warning("zmq server %s: send to %s failed: %s", self.endpoint, identity.hex(), exc)
             return False
@@ -439,89 +429,36 @@ class ZmqServerTransport:
     # ------------------------------------------------------------------ observe
 
     async def _register(self, identity: bytes, token: int, request: Request) -> None:
-        per = self._observations.get(identity, {})
-        if (old := per.get(token)) is not None:  # token reused: the new one replaces it
-            self._stop(old)
-            per = self._observations.get(identity, {})
-        if len(per) >= self._options.max_observations_per_client:
-            # Like a CoAP server out of observer slots: answer, but without seq.
-            response = await self._call(request)
-            await self._send(identity, self._encode(token, response))
-            return
+        push = _Push(self, identity, token)
+        await self._observations.register(identity, token, request, push.send, lambda gone: push)
 
-        obs = _Observation(identity, token, request)
-        loop = asyncio.get_running_loop()
 
-        def on_change() -> None:
-            # call_soon_threadsafe: the service may change state from a thread.
-            if obs.active:
-                loop.call_soon_threadsafe(obs.dirty.set)
+@dataclass(frozen=True)
+class _Push:
+    """The way to one observer: messages to its identity, under its token.
 
-        try:
-            obs.unsubscribe = self._service.subscribe(request.path, on_change)
-        except Exception:
-            log.exception("Service.subscribe(%r) raised; answering without observation", request.path)
-            response = await self._call(request)
-            await self._send(identity, self._encode(token, response))
-            return
-        # Subscribed before the first GET, so a change during it is not lost.
-        self._observations.setdefault(identity, {})[token] = obs
-        response = await self._call(request)
-        if not obs.active:  # deregistered (or the client left) meanwhile
-            return
-        if not response.status.is_success:
-            self._stop(obs)
-            await self._send(identity, self._encode(token, response))
-            return
-        if await self._send(identity, self._encode(token, response, seq=0)) and obs.active:
-            obs.worker = self._spawn(self._notify_loop(obs))
-        else:
-            self._stop(obs)
+    A peer that is gone is found out by the send itself, which forgets it
+    with all its observations (``ROUTER_MANDATORY``)."""
 
-    async def _notify_loop(self, obs: _Observation) -> None:
-        """Push the current state after each change, one at a time, in seq order."""
-        while obs.active:
-            await obs.dirty.wait()
-            obs.dirty.clear()
-            async with self._slots:
-                response = await self._call(obs.request)
-            if not obs.active:
-                return
-            obs.seq += 1
-            await self._send(obs.identity, self._encode(obs.token, response, seq=obs.seq))
-            if not response.status.is_success:  # RFC 7641: an error ends the observation
-                self._stop(obs)
+    server: ZmqServerTransport
+    identity: bytes
+    token: int
 
-    def _deregister(self, identity: bytes, token: int) -> None:
-        obs = self._observations.get(identity, {}).get(token)
-        if obs is not None:
-            self._stop(obs)
+    async def send(self, response: Response, seq: int | None) -> bool:
+        """Queue one answer; False if it could not be (see :meth:`ZmqServerTransport._send`)."""
+        return await self.server._send(self.identity, self.server._encode(self.token, response, seq=seq))
 
-    def _forget_client(self, identity: bytes) -> None:
-        for obs in list(self._observations.get(identity, {}).values()):
-            self._stop(obs)
+    async def notify(self, response: Response, seq: int) -> bool:
+        # A notification that could not be queued is dropped like a lost
+        # datagram; a peer that is gone has already been forgotten.
+        await self.send(response, seq)
+        return True
 
-    def _stop(self, obs: _Observation) -> None:
-        if not obs.active:
-            return
-        obs.active = False
-        per = self._observations.get(obs.identity)
-        if per is not None and per.get(obs.token) is obs:
-            del per[obs.token]
-            if not per:
-                del self._observations[obs.identity]
-        if obs.unsubscribe is not None:
-            try:
-                obs.unsubscribe()
-            except Exception:
-                log.exception("cancelling the subscription to %r raised", obs.request.path)
-        if obs.worker is not None and obs.worker is not asyncio.current_task():
-            obs.worker.cancel()
+    def close(self) -> None:
+        """Nothing to release: the socket is the server's."""
 
 
 # =========================================================================== client
-
-_Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
 
 
 def _new_routing_id() -> bytes:
@@ -536,8 +473,8 @@ class _PeerLink:
     def __init__(self, peer: Endpoint, sock: zmq.asyncio.Socket, client: ZmqClientTransport) -> None:
         self.peer = peer
         self.sock = sock
-        self.pending: dict[int, asyncio.Future[_Delivery]] = {}
-        self.observers: dict[int, asyncio.Queue[_Delivery | TransportError]] = {}
+        self.pending: dict[int, asyncio.Future[Delivery]] = {}
+        self.observers: dict[int, asyncio.Queue[Delivery | TransportError]] = {}
         #: Requests and observe set-ups currently using the socket.
         self.users = 0
         self.closed = False
@@ -580,16 +517,9 @@ class _PeerLink:
                 if not fut.done():
                     fut.set_result((response, seq))
             elif (queue := self.observers.get(token)) is not None:
-                _put_latest(queue, (response, seq))
+                put_latest(queue, (response, seq))
             else:
                 log.debug("zmq client: late answer for token %d from %s dropped", token, self.peer)
-
-
-def _put_latest(queue: asyncio.Queue[Any], item: Any) -> None:
-    """Enqueue, dropping the oldest item if full: observers want the newest state."""
-    if queue.full():
-        queue.get_nowait()
-    queue.put_nowait(item)
 
 
 class ZmqClientTransport:
@@ -699,7 +629,7 @@ class ZmqClientTransport:
         link = self._link(peer)
         token = link.new_token()
         data = encode_request(request, token=token)
-        fut: asyncio.Future[_Delivery] = asyncio.get_running_loop().create_future()
+        fut: asyncio.Future[Delivery] = asyncio.get_running_loop().create_future()
         link.pending[token] = fut
         link.users += 1
         got_out = False
@@ -740,10 +670,11 @@ class ZmqClientTransport:
         timeout = self._options.observe_timeout_s if timeout is None else timeout
         link = self._link(peer)
         token = link.new_token()
-        queue: asyncio.Queue[_Delivery | TransportError] = asyncio.Queue(maxsize=self._options.observe_queue)
+        queue: asyncio.Queue[Delivery | TransportError] = asyncio.Queue(maxsize=self._options.observe_queue)
         link.observers[token] = queue
         link.users += 1
-        got_out = registered = False
+        got_out = False
+        state: ObserverState | None = None
         try:
             try:
                 async with asyncio.timeout(timeout):
@@ -767,24 +698,19 @@ class ZmqClientTransport:
             if isinstance(item, TransportError):
                 raise item
             response, seq = item
-            registered = seq is not None and response.status.is_success
+            state = ObserverState(response, seq)
             yield response
-            last = seq
-            while registered:
+            while state.registered:
                 item = await queue.get()
                 if isinstance(item, TransportError):
-                    registered = False
+                    state.registered = False
                     raise item
                 response, seq = item
-                if seq is None or (last is not None and seq <= last):
-                    continue  # not an update of this observation / stale
-                last = seq
-                if not response.status.is_success:
-                    registered = False  # the server has ended it
-                yield response
+                if state.accept(response, seq):
+                    yield response
         finally:
             link.observers.pop(token, None)
-            if registered and not link.closed:
+            if state is not None and state.registered and not link.closed:
                 await self._deregister(link, token, request)
 
     async def _deregister(self, link: _PeerLink, token: int, request: Request) -> None:
@@ -813,7 +739,7 @@ class ZmqClientTransport:
                 if not fut.done():
                     fut.set_exception(closed)
             for queue in link.observers.values():
-                _put_latest(queue, closed)
+                put_latest(queue, closed)
             link.close()
             readers.append(link.reader)
         self._links.clear()
