@@ -33,10 +33,9 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from .base import Service, handle_safely
-from .messages import Method, Request, Response
+from .messages import Request, Response
 
 __all__ = [
-    "OBSERVABLE_METHODS",
     "Answer",
     "Delivery",
     "Notifier",
@@ -45,9 +44,6 @@ __all__ = [
     "ObserverState",
     "put_latest",
 ]
-
-#: Requests a client may observe; others are answered once.
-OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
 
 #: A response and its ``seq`` (None: not part of an observation).
 Delivery = tuple[Response, int | None]

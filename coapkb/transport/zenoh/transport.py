@@ -46,7 +46,8 @@ Errors
 Observe
     The client declares a subscriber on a fresh key ``coapkb-obs/<id>/<n>``,
     then queries the resource with the observe flag and that key.  The
-    server answers with the current representation (``seq`` 0) and, after
+    server (its :class:`~coapkb.transport.observation.ObservationRegistry`)
+    answers with the current representation (``seq`` 0) and, after
     each change :meth:`Service.subscribe` reports, re-runs the request and
     publishes the answer on the client's key with the next ``seq``; changes
     arriving while one is computed are coalesced (RFC 7641's "latest state").
@@ -91,7 +92,7 @@ import socket
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
@@ -100,6 +101,7 @@ from ..base import (
     Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
 )
 from ..messages import Method, Request, Response, Status
+from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
 from .mapping import (
     KEY_ROOT,
     LINK_PROTOCOLS,
@@ -221,23 +223,6 @@ class _Incoming:
         return selector + len(self.payload) + len(self.attachment or b"")
 
 
-@dataclass(eq=False)
-class _Observation:
-    """One registered observer: where its notifications go, and of what."""
-
-    notify_key: str
-    request: Request
-    publisher: zenoh.Publisher
-    dirty: asyncio.Event = field(default_factory=asyncio.Event)
-    seq: int = 0
-    active: bool = True
-    #: The observer's subscriber has been seen; losing it then ends the observation.
-    matched: bool = False
-    unsubscribe: Callable[[], None] | None = None
-    listener: Any = None
-    worker: asyncio.Task[None] | None = None
-
-
 class ZenohServerTransport:
     """Serves a :class:`Service` as the queryable ``coapkb/**`` of a peer-mode session.
 
@@ -272,7 +257,11 @@ class ZenohServerTransport:
         self._loop = asyncio.get_running_loop()
         self._slots = asyncio.Semaphore(options.max_concurrent_requests)
         self._tasks: set[asyncio.Task[None]] = set()
-        self._observations: dict[str, _Observation] = {}
+        #: Observations by notification key; they are not told apart by client,
+        #: so ``max_observations`` holds for the server.
+        self._observations = ObservationRegistry(
+            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations, log=log
+        )
         self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._closed = False
         self._queryable = session.declare_queryable(f"{KEY_ROOT}/**", zenoh.handlers.Callback(self._on_query))
@@ -319,8 +308,7 @@ class ZenohServerTransport:
         self._closed = True
         with contextlib.suppress(zenoh.ZError):
             self._queryable.undeclare()
-        for obs in list(self._observations.values()):
-            self._stop(obs)
+        self._observations.stop_all()
         tasks = list(self._tasks)
         for task in tasks:
             task.cancel()
@@ -375,8 +363,7 @@ class ZenohServerTransport:
                 _finish(query)
                 return
         if header.observe is Observe.DEREGISTER:
-            if (obs := self._observations.get(header.notify_key or "")) is not None:
-                self._stop(obs)
+            self._observations.deregister(None, header.notify_key or "")
             self._reply(query, Response(Status.DELETED))
             _finish(query)
             return
@@ -437,101 +424,78 @@ class ZenohServerTransport:
     # ------------------------------------------------------------------ observe
 
     async def _register(self, query: zenoh.Query, request: Request, notify_key: str) -> None:
-        if (old := self._observations.get(notify_key)) is not None:  # the same key again: replace
-            self._stop(old)
-        if len(self._observations) >= self._options.max_observations:
-            # Like a CoAP server out of observer slots: answer, but without seq.
-            self._reply(query, await self._call(request))
-            return
+        async def answer(response: Response, seq: int | None) -> bool:
+            # The first answer rides on the query, not on the observer's key: whether
+            # notifications reach the observer is for the publisher's matching status to tell.
+            self._reply(query, response, seq)
+            return True
+
+        await self._observations.register(
+            None, notify_key, request, answer, lambda gone: self._publication(notify_key, gone)
+        )
+
+    def _publication(self, notify_key: str, gone: Callable[[], None]) -> _Publication | None:
+        """A publisher on ``notify_key``, or None if Zenoh refuses one."""
+        publisher = None
         try:
             publisher = self._session.declare_publisher(notify_key, congestion_control=zenoh.CongestionControl.BLOCK)
+            return _Publication(self, notify_key, publisher, gone)
         except zenoh.ZError as exc:
             log.warning("zenoh server %s: cannot publish on %r: %s", self.endpoint, notify_key[:80], exc)
-            self._reply(query, await self._call(request))
-            return
-        obs = _Observation(notify_key, request, publisher)
-        loop = self._loop
+            if publisher is not None:
+                with contextlib.suppress(zenoh.ZError):
+                    publisher.undeclare()
+            return None
 
-        def on_change() -> None:
-            # call_soon_threadsafe: the service may change state from a thread.
-            if obs.active:
-                _post(loop, obs.dirty.set)
 
-        try:
-            obs.unsubscribe = self._service.subscribe(request.path, on_change)
-        except Exception:
-            log.exception("Service.subscribe(%r) raised; answering without observation", request.path)
-            publisher.undeclare()
-            self._reply(query, await self._call(request))
-            return
-        # Subscribed before the first GET, so a change during it is not lost.
-        self._observations[notify_key] = obs
-        obs.listener = publisher.declare_matching_listener(
-            zenoh.handlers.Callback(lambda status: _post(loop, self._matching, obs, status.matching))
+class _Publication:
+    """The way to one observer: a publisher on its notification key.
+
+    Its matching status tells when the observer's subscriber is gone (its
+    session closed, or it undeclared): then ``gone`` ends the observation."""
+
+    def __init__(
+        self, server: ZenohServerTransport, notify_key: str, publisher: zenoh.Publisher, gone: Callable[[], None]
+    ) -> None:
+        self._server = server
+        self._notify_key = notify_key
+        self._publisher = publisher
+        self._gone = gone
+        #: The observer's subscriber has been seen; losing it then ends the observation.
+        self._matched = False
+        loop = server._loop
+        self._listener = publisher.declare_matching_listener(
+            zenoh.handlers.Callback(lambda status: _post(loop, self._matching, status.matching))
         )
-        response = await self._call(request)
-        if not obs.active:  # deregistered meanwhile
-            return
-        if not response.status.is_success:
-            self._stop(obs)
-            self._reply(query, response)
-            return
-        self._reply(query, response, seq=0)
-        obs.worker = self._spawn(self._notify_loop(obs))
 
-    def _matching(self, obs: _Observation, matching: bool) -> None:
+    def _matching(self, matching: bool) -> None:
         if matching:
-            obs.matched = True
-        elif obs.matched:  # the observer's subscriber went away
-            log.debug("zenoh server %s: observer of %s gone", self.endpoint, obs.notify_key)
-            self._stop(obs)
+            self._matched = True
+        elif self._matched:  # the observer's subscriber went away
+            log.debug("zenoh server %s: observer of %s gone", self._server.endpoint, self._notify_key)
+            self._gone()
 
-    async def _notify_loop(self, obs: _Observation) -> None:
-        """Publish the current state after each change, one at a time, in seq order."""
-        while obs.active:
-            await obs.dirty.wait()
-            obs.dirty.clear()
-            async with self._slots:
-                response = await self._call(obs.request)
-            if not obs.active:
-                return
-            obs.seq += 1
-            attachment = self._header(response, obs.seq)
-            try:
-                obs.publisher.put(
-                    response.payload, encoding=encoding_for(response.content_format), attachment=attachment
-                )
-            except zenoh.ZError as exc:
-                log.debug("zenoh server %s: notification to %s failed: %s", self.endpoint, obs.notify_key, exc)
-                self._stop(obs)
-                return
-            self.counters.messages_sent += 1
-            self.counters.bytes_sent += len(obs.notify_key) + len(response.payload) + len(attachment or b"")
-            if not response.status.is_success:  # RFC 7641: an error ends the observation
-                self._stop(obs)
+    async def notify(self, response: Response, seq: int) -> bool:
+        attachment = self._server._header(response, seq)
+        try:
+            self._publisher.put(response.payload, encoding=encoding_for(response.content_format), attachment=attachment)
+        except zenoh.ZError as exc:
+            log.debug("zenoh server %s: notification to %s failed: %s", self._server.endpoint, self._notify_key, exc)
+            return False
+        counters = self._server.counters
+        counters.messages_sent += 1
+        counters.bytes_sent += len(self._notify_key) + len(response.payload) + len(attachment or b"")
+        return True
 
-    def _stop(self, obs: _Observation) -> None:
-        if not obs.active:
-            return
-        obs.active = False
-        if self._observations.get(obs.notify_key) is obs:
-            del self._observations[obs.notify_key]
-        if obs.unsubscribe is not None:
-            try:
-                obs.unsubscribe()
-            except Exception:
-                log.exception("cancelling the subscription to %r raised", obs.request.path)
+    def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):
-            if obs.listener is not None:
-                obs.listener.undeclare()
-            obs.publisher.undeclare()
-        if obs.worker is not None and obs.worker is not asyncio.current_task():
-            obs.worker.cancel()
+            self._listener.undeclare()
+        with contextlib.suppress(zenoh.ZError):
+            self._publisher.undeclare()
 
 
 # =========================================================================== client
 
-_Delivery = tuple[Response, int | None]  # a response and its seq (None: not an observation)
 #: How much later than the caller's deadline Zenoh times a query out itself.
 _ZENOH_TIMEOUT_MARGIN_S = 0.5
 #: Connection attempts of one client session, and the first back-off between them.
@@ -700,7 +664,7 @@ class ZenohClientTransport:
         self.counters.bytes_sent += len(selector) + len(request.payload) + len(attachment or b"")
         return replies
 
-    def _response(self, peer: Endpoint, reply: _Reply) -> _Delivery:
+    def _response(self, peer: Endpoint, reply: _Reply) -> Delivery:
         self.counters.messages_received += 1
         self.counters.bytes_received += reply.size
         if not reply.ok:  # the server could not read our query
@@ -718,7 +682,7 @@ class ZenohClientTransport:
         header: RequestHeader,
         timeout: float,
         session: zenoh.Session | None = None,
-    ) -> _Delivery:
+    ) -> Delivery:
         """One query and its first reply, within ``timeout`` (connecting included).
 
         Zenoh ends a query at once, without replies, when the session has no
@@ -800,13 +764,8 @@ class ZenohClientTransport:
         notify_key = f"{NOTIFY_ROOT}/{self._id}/{next(self._tokens)}"
         notifications: asyncio.Queue[_Reply] = asyncio.Queue(maxsize=self._options.observe_queue)
 
-        def deliver(sample: _Reply) -> None:
-            if notifications.full():  # observers want the newest state
-                notifications.get_nowait()
-            notifications.put_nowait(sample)
-
         header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
-        session, subscriber, response, last = None, None, None, None
+        session, subscriber, response, seq = None, None, None, None
         # As in _exchange: once more on a fresh session if the first had no
         # route; the subscriber must live on the session the query goes out on.
         for attempt in range(2):
@@ -817,12 +776,12 @@ class ZenohClientTransport:
                 raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
             try:
                 subscriber = session.declare_subscriber(
-                    notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, deliver, _copy_sample(sample)))
+                    notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, put_latest, notifications, _copy_sample(sample)))
                 )
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
             try:
-                response, last = await self._exchange(peer, request, header, max(deadline - loop.time(), 0.0), session)
+                response, seq = await self._exchange(peer, request, header, max(deadline - loop.time(), 0.0), session)
                 break
             except _NoRoute:
                 with contextlib.suppress(zenoh.ZError):
@@ -834,25 +793,22 @@ class ZenohClientTransport:
                     subscriber.undeclare()
                 raise
         assert session is not None and subscriber is not None and response is not None
-        registered = last is not None and response.status.is_success
+        state = ObserverState(response, seq)
         try:
             yield response
-            while registered:
+            while state.registered:
                 sample = await notifications.get()
                 try:
                     response, seq = self._response(peer, sample)
                 except TransportError:
                     continue  # counted; a garbled notification is skipped like a lost one
-                if seq is None or (last is not None and seq <= last):
-                    continue  # stale, or arrived before the registration's answer
-                last = seq
-                if not response.status.is_success:
-                    registered = False  # the server has ended it
-                yield response
+                # A notification that arrived before the registration's answer is stale.
+                if state.accept(response, seq):
+                    yield response
         finally:
             with contextlib.suppress(zenoh.ZError):
                 subscriber.undeclare()
-            if registered and not self._closed:
+            if state.registered and not self._closed:
                 self._deregister(session, request, notify_key)
 
     def _deregister(self, session: zenoh.Session, request: Request, notify_key: str) -> None:
