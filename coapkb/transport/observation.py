@@ -39,7 +39,6 @@ __all__ = [
     "Answer",
     "Delivery",
     "Notifier",
-    "Observation",
     "ObservationRegistry",
     "ObserverState",
     "put_latest",
@@ -49,7 +48,8 @@ __all__ = [
 Delivery = tuple[Response, int | None]
 
 #: Sends the answer to a registration on the transport: the response and its
-#: ``seq`` (0: registered, None: not).  Returns False if it did not get out.
+#: ``seq`` (0: registered, None: not).  False if it did not get out (the
+#: observation is then not started).
 Answer = Callable[[Response, int | None], Awaitable[bool]]
 
 
@@ -66,7 +66,7 @@ class Notifier(Protocol):
 
 
 @dataclass(eq=False)
-class Observation:
+class _Observation:
     """One registered observer: whose, under which key, of what."""
 
     client: Hashable
@@ -107,7 +107,7 @@ class ObservationRegistry:
         self._spawn = spawn
         self._limit = limit
         self._log = log
-        self._by_client: dict[Hashable, dict[Hashable, Observation]] = {}
+        self._by_client: dict[Hashable, dict[Hashable, _Observation]] = {}
 
     def __len__(self) -> int:
         """Observations currently registered (all clients)."""
@@ -138,7 +138,7 @@ class ObservationRegistry:
             # Like a CoAP server out of observer slots: answer, but without seq.
             await answer(await self._call(request), None)
             return
-        obs = Observation(client, key, request)
+        obs = _Observation(client, key, request)
         obs.notifier = open_notifier(lambda: self._stop(obs))
         if obs.notifier is None:
             await answer(await self._call(request), None)
@@ -173,7 +173,7 @@ class ObservationRegistry:
         else:
             self._stop(obs)
 
-    async def _notify_loop(self, obs: Observation) -> None:
+    async def _notify_loop(self, obs: _Observation) -> None:
         """Send the current state after each change, one at a time, in seq order."""
         assert obs.notifier is not None
         while obs.active:
@@ -206,7 +206,7 @@ class ObservationRegistry:
             for obs in list(per.values()):
                 self._stop(obs)
 
-    def _stop(self, obs: Observation) -> None:
+    def _stop(self, obs: _Observation) -> None:
         if not obs.active:
             return
         obs.active = False
