@@ -228,8 +228,6 @@ def _add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
     p.add_argument("--transport", choices=SCHEMES, default="coap")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
-    p.add_argument("--retransmission", default="robust", metavar="PROFILE",
-                   help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
     p.add_argument("--query-wire", choices=("compact", "seed"), default="compact")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
     p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
@@ -275,7 +273,7 @@ async def _demo(args: argparse.Namespace) -> int:
     print("the cheapest capable robot gets the task; all robots must agree.\n")
     team_args = argparse.Namespace(
         robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
-        strategy="compute-by-all", retransmission="robust", query_wire="compact", ontologies=None,
+        strategy="compute-by-all", query_wire="compact", ontologies=None,
         time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
         insecure=args.insecure,
     )
@@ -295,7 +293,7 @@ async def _team(args: argparse.Namespace) -> int:
         )
         spec = TeamSpec(
             robots=args.robots, mode=args.mode, transport=args.transport, strategy=args.strategy,
-            retransmission=args.retransmission, query_wire=args.query_wire, ontologies=ontologies,
+            query_wire=args.query_wire, ontologies=ontologies,
             time_scale=args.time_scale, replication=getattr(args, "replication", 2), faults=faults,
             security=not getattr(args, "insecure", False),
             credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
@@ -410,14 +408,6 @@ def _add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")
     p.add_argument("--method", choices=("fetch", "post", "get"), default="fetch")
     p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
-    p.add_argument(
-        "--retransmission",
-        default="robust",
-        metavar="PROFILE",
-        help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive",
-    )
-    p.add_argument("--ack-timeout", type=float, metavar="SECONDS", help="override the profile's ACK_TIMEOUT")
-    p.add_argument("--max-retransmit", type=int, metavar="N", help="override the profile's MAX_RETRANSMIT")
     _add_credentials(p, "operator")
     p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
     p.set_defaults(run=_query)
@@ -450,8 +440,7 @@ async def _query(args: argparse.Namespace) -> int:
         raise UserError("no query: give SPARQL text (or @FILE, or -) or a /kb/q/NAME URI")
     if parts.path not in ("", "/") and not named:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
-    transport = await open_client(peer.scheme, retransmission=_retransmission_profile(args),
-                                  security=_client_security(args, peer))
+    transport = await open_client(peer.scheme, security=_client_security(args, peer))
     client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
     try:
@@ -469,36 +458,6 @@ async def _query(args: argparse.Namespace) -> int:
         await transport.aclose()
     sys.stdout.write(render(result, args.format))
     return 0
-
-
-def _retransmission_profile(args: argparse.Namespace):  # -> TransmissionProfile | "robust"
-    from .transport.coap.reliability import ROBUST
-    from .transport.coap.reliability.rto import PROFILES
-
-    import dataclasses
-
-    if args.retransmission == ROBUST:
-        if args.max_retransmit is not None or args.ack_timeout is not None:
-            raise UserError("--ack-timeout and --max-retransmit apply to the CON profiles (rfc7252, lossy-fixed, adaptive)")
-        return ROBUST
-    profile = PROFILES.get(args.retransmission)
-    if profile is None:
-        raise UserError(f"unknown retransmission profile {args.retransmission!r} (choose from robust, {', '.join(PROFILES)})")
-    changes: dict = {}
-    if args.max_retransmit is not None:
-        if args.max_retransmit < 0:
-            raise UserError("--max-retransmit must be at least 0")
-        changes["max_retransmit"] = args.max_retransmit
-    if args.ack_timeout is not None:
-        if not hasattr(profile, "ack_timeout"):
-            raise UserError("--ack-timeout applies to fixed profiles (rfc7252, lossy-fixed), not adaptive")
-        if not args.ack_timeout > 0:
-            raise UserError("--ack-timeout must be positive")
-        changes["ack_timeout"] = args.ack_timeout
-    try:
-        return dataclasses.replace(profile, **changes) if changes else profile
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- bench

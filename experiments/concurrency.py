@@ -54,7 +54,7 @@ def main() -> int:
         return 2
     cleanup_stale()
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
-    runs = [sweep.Run(s, args.robots, args.tasks, args.bandwidth, args.loss, rep, "robust")
+    runs = [sweep.Run(s, args.robots, args.tasks, args.bandwidth, args.loss, rep)
             for rep in range(args.reps) for s in systems]
     frames = []
     for jobs in (int(j) for j in args.levels.split(",")):

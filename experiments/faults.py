@@ -74,7 +74,7 @@ async def run_matrix(args: argparse.Namespace, runs_csv: Path) -> None:
                 for system in SYSTEMS:
                     faults = [Fault("kill", victim, args.kill_at) for victim in variant.victims]
                     key = BenchRow(system=system, robots=robots, tasks=args.tasks, bandwidth_kbps=args.bandwidth,
-                                   loss_pct=args.loss, rep=rep, retransmission_profile=retransmission_label(system, "robust"),
+                                   loss_pct=args.loss, rep=rep, retransmission_profile=retransmission_label(system),
                                    replication=variant.replication,
                                    faults="+".join(f"{f.robot}@{f.at_s:g}" for f in faults)).key()
                     if key in done:

@@ -48,7 +48,7 @@ def _requests(name: str, params: dict[str, str], accept: int) -> dict[str, Reque
 
 async def measure(transport: str, requests: int, warmup: int) -> list[dict]:
     proc, peer = await start_loopback_kb_server(transport)
-    client = await open_client(transport, retransmission="adaptive")
+    client = await open_client(transport)
     rows = []
     try:
         for label, (name, params) in QUERIES.items():

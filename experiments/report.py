@@ -578,7 +578,7 @@ def paper_time(rows: Sequence[BenchRow], profile: str = "paper") -> PaperTime | 
     walls = df[df["wall_s"].notna() & (df["wall_s"] > 0)]
     if walls.empty:
         return None
-    runs = sweep.plan(sweep.PROFILES[profile], "robust")
+    runs = sweep.plan(sweep.PROFILES[profile])
     plan = pd.DataFrame({"system": [r.system for r in runs], "robots": [r.robots for r in runs],
                          "tasks": [r.tasks for r in runs], "bandwidth_kbps": [r.bandwidth for r in runs],
                          "loss_pct": [r.loss for r in runs]})

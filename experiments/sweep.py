@@ -113,7 +113,6 @@ class Run:
     bandwidth: float
     loss: float
     rep: int
-    retransmission: str
     delay_ms: float = 0.0
     jitter_ms: float = 0.0
     loss_model: str = "random"
@@ -127,7 +126,7 @@ class Run:
         return BenchRow(
             system=self.system, robots=self.robots, tasks=self.tasks, bandwidth_kbps=self.bandwidth,
             loss_pct=self.loss, rep=self.rep,
-            retransmission_profile=retransmission_label(self.system, self.retransmission),
+            retransmission_profile=retransmission_label(self.system),
             delay_ms=self.delay_ms, jitter_ms=self.jitter_ms, loss_model=self.loss_model,
             burst_len=self.burst_len if self.loss_model == "burst" else 0.0,
             security=security_label(self.system, self.security), **measured,
@@ -147,7 +146,7 @@ class Run:
             sys.executable, "-m", "coapkb", "bench", "--robots", str(self.robots), "--tasks", str(self.tasks),
             "--bandwidth", f"{self.bandwidth:g}", "--loss", f"{self.loss:g}", "--systems", self.system,
             "--first-rep", str(self.rep), "--reps", "1", "--seed", str(self.seed),
-            "--retransmission", self.retransmission, "--json",
+            "--json",
             "--delay", f"{self.delay_ms:g}", "--jitter", f"{self.jitter_ms:g}", "--loss-model", self.loss_model,
             "--burst-len", f"{self.burst_len:g}", *(() if self.security else ("--insecure",)),
         ]
@@ -220,7 +219,7 @@ PROFILES: dict[str, Profile] = {
 }
 
 
-def plan(profile: Profile, retransmission: str, reps: int | None = None,
+def plan(profile: Profile, reps: int | None = None,
          systems: Sequence[str] | None = None, security: bool = True) -> list[Run]:
     """Every run of the profile, in order: repetition, then setting, then system
     (so a half-finished sweep has all systems of the settings it reached)."""
@@ -239,7 +238,7 @@ def plan(profile: Profile, retransmission: str, reps: int | None = None,
                 for s in g.systems:
                     if systems is not None and s not in systems:
                         continue
-                    run = Run(s, r, t, float(b), float(loss), rep, retransmission, profile.delay_ms,
+                    run = Run(s, r, t, float(b), float(loss), rep, profile.delay_ms,
                               profile.jitter_ms, profile.loss_model, profile.burst_len, security)
                     if run.key() not in seen:
                         seen.add(run.key())
@@ -535,7 +534,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="where runs go: this machine (default) or a Dask scheduler's workers (their --resources "
                         f"{NETNS}=N set how many at once per worker)")
     p.add_argument("--out", type=Path, help="CSV (default experiments/results/<profile>.csv)")
-    p.add_argument("--retransmission", default="robust", help="CoAP reliability profile")
     p.add_argument("--reps", type=int, help="override the profile's repetitions")
     p.add_argument("--systems", help="only these systems (comma-separated)")
     p.add_argument("--insecure", action="store_true",
@@ -556,7 +554,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         unknown = [s for s in systems if s not in SYSTEMS]
         if unknown:
             p.error(f"unknown systems: {', '.join(unknown)}")
-    runs = plan(profile, args.retransmission, args.reps, systems, security=not args.insecure)
+    runs = plan(profile, args.reps, systems, security=not args.insecure)
     todo = pending(runs, done_keys(out, include_failed=not args.retry_failed))
     waiting = set(todo)
     done_runs = [r for r in runs if r not in waiting]

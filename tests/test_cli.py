@@ -147,7 +147,6 @@ QUERY_MISTAKES = [
     (["query", "coap://127.0.0.1:5683/kb/other", "ASK {}"], ["/kb/other"]),
     (["query", "coap://127.0.0.1:5683"], ["no query"]),
     (["query", "coap://127.0.0.1:5683/kb/q/object-exists?name=x", "ASK {}"], ["not both"]),
-    (["query", "coap://127.0.0.1:5683", "ASK {}", "--retransmission", "nope"], ["nope", "rfc7252"]),
     (["query", "coap://127.0.0.1:5683", "@/nonexistent/q.rq"], ["/nonexistent/q.rq"]),
 ]
 

@@ -29,7 +29,7 @@ robot_id = "Robot1"
 bind = "coap://127.0.0.1:5701"
 kb = ["{ontologies}/Location.owl"]
 strategy = "compute-and-communicate"
-retransmission = "rfc7252"
+retransmission = "robust"
 query_timeout_s = 3
 
 [start]
@@ -83,7 +83,7 @@ def test_valid_toml_round_trip(tmp_path: Path) -> None:
     assert config.transport == "coap"
     assert config.kb_files == (ONTOLOGIES / "Location.owl",)
     assert config.strategy == "compute-and-communicate"
-    assert config.retransmission == "rfc7252"
+    assert config.retransmission == "robust"
     assert config.query_timeout_s == 3.0 and isinstance(config.query_timeout_s, float)
     assert config.central is None
     assert config.start == StartState(aisle=2, rack=7, battery_wh=500.0, payload_kg=35.5)
@@ -133,7 +133,7 @@ def test_zmq_and_central_mode() -> None:
 @pytest.mark.parametrize("central", [False, True])
 def test_dump_config_is_read_back_as_the_same_config(tmp_path: Path, central: bool) -> None:
     data = base()
-    data.update(strategy="compute-and-communicate", retransmission="lossy-fixed", query_timeout_s=7.5,
+    data.update(strategy="compute-and-communicate", retransmission="robust", query_timeout_s=7.5,
                 start={"aisle": 3, "rack": 9, "battery_wh": 312.5, "payload_kg": 31.4},
                 cost={"reserve_wh": 12.0}, execution={"time_scale": 50.0, "pick_s": 2.0})
     if central:

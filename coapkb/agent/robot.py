@@ -127,7 +127,7 @@ class Robot:
         if kb is not None:
             KBResources(kb).mount(router)
         # One reliability layer for the client and the server's notifications.
-        reliability = reliability_for(config.transport, config.retransmission, link_kbps=config.link_kbps)
+        reliability = reliability_for(config.transport, link_kbps=config.link_kbps)
         client = await open_client(config.transport, retransmission=reliability, security=client_security)
         start = config.start
         own = RobotState(

@@ -18,6 +18,7 @@ from typing import Callable, Mapping
 
 from ..transport.messages import ContentFormat, Method, Request
 from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.rtt import RttEstimator
 from .robot_state import PlannedState, RobotState
 
 log = logging.getLogger(__name__)
@@ -41,29 +42,14 @@ def liveness_floor_s(link_kbps: float | None) -> float:
     return 1.0 if link_kbps is None else 5.0
 
 
-@dataclass
-class RoundTrip:
-    """Smoothed round trip of the liveness requests (RFC 6298's estimator)."""
-
-    #: No liveness timeout is shorter than this, seconds (a robot busy with a
-    #: query answers late on a loaded machine; loopback round trips are ~1 ms).
-    floor_s: float = 1.0
-    srtt: float | None = None
-    rttvar: float = 0.0
-
-    def sample(self, rtt: float) -> None:
-        if self.srtt is None:
-            self.srtt, self.rttvar = rtt, rtt / 2
-        else:
-            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
-            self.srtt = 0.875 * self.srtt + 0.125 * rtt
-
-    @property
-    def timeout_s(self) -> float:
-        """How long one liveness request may take before it counts as failed."""
-        if self.srtt is None:
-            return 2 * self.floor_s
-        return max(self.floor_s, 4 * (self.srtt + 4 * self.rttvar))
+def liveness_timeout_s(round_trip: RttEstimator, floor_s: float) -> float:
+    """How long one liveness request may take before it counts as failed:
+    four smoothed round trips with their variation, never under ``floor_s``
+    (a robot busy with a query answers late on a loaded machine; loopback
+    round trips are ~1 ms); twice the floor before any sample."""
+    if round_trip.srtt is None:
+        return 2 * floor_s
+    return max(floor_s, 4 * (round_trip.srtt + 4 * round_trip.rttvar))
 
 
 class ObservedStates:
@@ -94,7 +80,9 @@ class ObservedStates:
         #: With liveness, stalled waits refresh (and so probe) after a few
         #: round trips instead of ``refresh_s``, and failures declare robots down.
         self.liveness = liveness
-        self.round_trip = RoundTrip(floor_s=liveness_floor_s)
+        #: The liveness requests' round trip (RFC 6298).
+        self.round_trip = RttEstimator()
+        self._liveness_floor_s = liveness_floor_s
         self.states: States = {}
         self.refreshes = 0
         #: Robots declared down: robot id -> why, and when (monotonic seconds).
@@ -124,12 +112,16 @@ class ObservedStates:
         await asyncio.gather(*self._watchers.values(), return_exceptions=True)
 
     @property
+    def liveness_timeout_s(self) -> float:
+        return liveness_timeout_s(self.round_trip, self._liveness_floor_s)
+
+    @property
     def refresh_s(self) -> float:
-        return min(self._refresh_s, self.round_trip.timeout_s) if self.liveness else self._refresh_s
+        return min(self._refresh_s, self.liveness_timeout_s) if self.liveness else self._refresh_s
 
     @property
     def request_timeout_s(self) -> float:
-        return self.round_trip.timeout_s if self.liveness else self._request_timeout_s
+        return self.liveness_timeout_s if self.liveness else self._request_timeout_s
 
     @property
     def alive(self) -> list[str]:
@@ -157,7 +149,7 @@ class ObservedStates:
         # For a while, failed requests do not count: reaching the new process
         # takes a new security handshake first (OSCORE: the first requests
         # meet a context that is gone, and EDHOC runs again).
-        self._joining[robot_id] = time.monotonic() + FAILURES_TO_DOWN * 2 * self.round_trip.timeout_s
+        self._joining[robot_id] = time.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
 
@@ -207,7 +199,7 @@ class ObservedStates:
             except ValueError as exc:
                 log.debug("refreshing %s: %s", robot_id, exc)
                 return
-            self.round_trip.sample(time.monotonic() - started)
+            self.round_trip.on_sample(time.monotonic() - started)
             self._failures[robot_id] = 0
             if state is not None and state != self.states.get(robot_id):
                 log.info("observation of %s missed a change; registering again", robot_id)
@@ -248,7 +240,7 @@ class ObservedStates:
                     if first:
                         # The registration is a request and its answer: a
                         # round-trip sample before any probe is needed.
-                        self.round_trip.sample(time.monotonic() - registered)
+                        self.round_trip.on_sample(time.monotonic() - registered)
                         first = False
                     if not response.status.is_success:
                         log.warning("%s answered %s on %s", robot_id, response.status.dotted, self._request.path)

@@ -42,7 +42,7 @@ class BenchRow:
     bandwidth_kbps: float = key_field()
     loss_pct: float = key_field()
     rep: int = key_field()
-    #: The CoAP profile, or ``tcp`` for ZeroMQ systems (see ``retransmission_label``).
+    #: ``robust`` for CoAP (older results: the retired CON profiles), ``tcp`` for ZeroMQ (see ``retransmission_label``).
     retransmission_profile: str = key_field()
     ok: bool = False
     coordination_s: float | None = None

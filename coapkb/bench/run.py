@@ -87,6 +87,7 @@ from ..errors import CoapkbError
 from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
 from .stats import percentile
 from ..transport.base import Endpoint, TrafficCounters
+from ..transport.coap.reliability import ROBUST
 
 __all__ = [
     "COLUMNS",
@@ -175,7 +176,6 @@ def system_spec(
     system: str,
     robots: int,
     *,
-    retransmission: str = "robust",
     timeouts: Timeouts | None = None,
     ontologies: Path = DEFAULT_ONTOLOGIES,
     link_kbps: float | None = None,
@@ -196,18 +196,18 @@ def system_spec(
     # one KB module per robot (replicas change which queries are remote).
     return TeamSpec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
-        retransmission=retransmission, ontologies=ontologies, link_kbps=link_kbps,
+        ontologies=ontologies, link_kbps=link_kbps,
         replication=replication, faults=tuple(faults),
         security=_protected(d, security), **extra,
     )
 
 
-def retransmission_label(system: str, profile: str) -> str:
-    """What the ``retransmission_profile`` column holds: the CoAP profile,
-    ``tcp`` for ZeroMQ and Zenoh systems (TCP retransmits by itself; the CoAP
-    profile has no effect there, so it must not split the resume key), ``none``
+def retransmission_label(system: str) -> str:
+    """What the ``retransmission_profile`` column holds: ``robust`` (the CoAP
+    reliability layer; older results also hold the retired CON profiles),
+    ``tcp`` for ZeroMQ and Zenoh systems (TCP retransmits by itself), ``none``
     for Zenoh over UDP (its unicast UDP link does not retransmit)."""
-    return _retransmission_label(SYSTEMS[system].transport, profile)
+    return _retransmission_label(SYSTEMS[system].transport)
 
 
 def security_label(system: str, on: bool) -> str:
@@ -226,10 +226,10 @@ def _protected(d: SystemDef, on: bool) -> bool:
     return on and d.query_wire != "seed" and d.transport in SECURITY_SCHEMES
 
 
-def _retransmission_label(transport: str, profile: str) -> str:
+def _retransmission_label(transport: str) -> str:
     if transport in TCP_TRANSPORTS:
         return "tcp"
-    return "none" if transport == "zenoh+udp" else profile
+    return "none" if transport == "zenoh+udp" else ROBUST
 
 
 # --------------------------------------------------------------------------- placement
@@ -287,12 +287,12 @@ def parse_retrans_segs(snmp: str) -> int:
 
 
 def _base_row(system: str, robots: int, tasks: int, bandwidth_kbps: float, loss_pct: float, rep: int,
-              retransmission: str, seed: int, security: bool) -> BenchRow:
+              seed: int, security: bool) -> BenchRow:
     d = SYSTEMS.get(system, SystemDef("", "", "", ""))  # unknown: reported by run_once as a failed row
     return BenchRow(
         security=_security_label(d, security),
         system=system, robots=robots, tasks=tasks, bandwidth_kbps=bandwidth_kbps, loss_pct=loss_pct, rep=rep,
-        retransmission_profile=_retransmission_label(d.transport, retransmission), ok=False,
+        retransmission_profile=_retransmission_label(d.transport), ok=False,
         mode=d.mode, transport=d.transport, query_wire=d.query_wire, seed=seed, emulation="netns",
         started_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
@@ -346,7 +346,6 @@ async def run_once(
     bandwidth_kbps: float,
     loss_pct: float,
     rep: int = 0,
-    retransmission: str = "robust",
     seed: int | None = None,
     *,
     ontologies: Path = DEFAULT_ONTOLOGIES,
@@ -373,7 +372,7 @@ async def run_once(
     ``coapkb team``; off only for comparison.
     """
     seed = 1 + rep if seed is None else seed
-    row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, retransmission, seed, security)
+    row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, seed, security)
     # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
     row = replace(row, delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
                   burst_len=burst_len if loss_model == "burst" else 0.0, replication=replication,
@@ -384,7 +383,7 @@ async def run_once(
                         loss_model=loss_model, burst_len=burst_len)
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
         # Robots know their radio's rate, as a real radio reports it.
-        spec = system_spec(system, robots, retransmission=retransmission, timeouts=limits, ontologies=ontologies,
+        spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
                            link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
@@ -466,8 +465,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma-separated, from: {', '.join(SYSTEMS)}")
     p.add_argument("--reps", type=int, default=1, help="repetitions (rep numbers first-rep .. first-rep+reps-1)")
     p.add_argument("--first-rep", type=int, default=0, help="number of the first repetition")
-    p.add_argument("--retransmission", default="robust", metavar="PROFILE",
-                   help="CoAP reliability profile: robust (default), rfc7252, lossy-fixed or adaptive")
     p.add_argument("--seed", type=int, default=None, help="task-list seed (default: 1 + rep)")
     p.add_argument("--replication", type=int, default=1, metavar="R",
                    help="robots of a cluster holding each KB module (default 1, as the seed; 2 with --fail)")
@@ -490,15 +487,11 @@ def parse_systems(text: str) -> list[str]:
 
 async def main(args: argparse.Namespace) -> int:
     """``coapkb bench``: exit 0 if every run was ok, 1 if one failed, 2 if none could start."""
-    from ..transport.coap.reliability import PROFILE_NAMES
-
     systems = parse_systems(args.systems)
     if args.robots < CLUSTER_SIZE or args.robots % CLUSTER_SIZE:
         raise ValueError(f"--robots must be a multiple of {CLUSTER_SIZE}, got {args.robots}")
     if args.tasks < 1 or args.reps < 1:
         raise ValueError("--tasks and --reps must be at least 1")
-    if args.retransmission not in PROFILE_NAMES:
-        raise ValueError(f"unknown retransmission profile {args.retransmission!r} (choose from {', '.join(PROFILE_NAMES)})")
     link = {"delay_ms": args.delay, "jitter_ms": args.jitter, "loss_model": args.loss_model,
             "burst_len": args.burst_len}
     # --fail names the option; a kill is what the team carries out.
@@ -515,7 +508,7 @@ async def main(args: argparse.Namespace) -> int:
     for rep in range(args.first_rep, args.first_rep + args.reps):
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
-                                 args.retransmission, args.seed, replication=args.replication, faults=faults,
+                                 args.seed, replication=args.replication, faults=faults,
                                  security=not args.insecure, **link)
             if args.out:
                 append_rows(args.out, [row])

@@ -83,7 +83,7 @@ class DirectoryClient:
             assert config.discovery.rd is not None
             security = ClientSecurity(identity, {config.discovery.rd.hostport: config.discovery.rd_identity})
             trust = identity.trust
-        reliability = reliability_for("coap", config.retransmission, link_kbps=config.link_kbps)
+        reliability = reliability_for("coap", link_kbps=config.link_kbps)
         client = await open_client("coap", retransmission=reliability, security=security)
         return cls(config, client, trust)
 

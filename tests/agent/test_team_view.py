@@ -56,7 +56,8 @@ async def test_a_stale_observation_is_refreshed_and_registered_again() -> None:
 
 from agent_helpers import endpoint  # noqa: E402
 
-from coapkb.agent.team_view import RoundTrip, TeamView  # noqa: E402
+from coapkb.agent.team_view import TeamView, liveness_timeout_s  # noqa: E402
+from coapkb.transport.rtt import RttEstimator  # noqa: E402
 from coapkb.transport.base import ResourceInfo  # noqa: E402
 from coapkb.transport.memory import MemoryNetwork  # noqa: E402
 from coapkb.transport.router import Router  # noqa: E402
@@ -121,11 +122,11 @@ async def test_a_dead_teammates_last_plan_comes_from_a_survivor() -> None:
 
 
 def test_liveness_timeout_follows_the_round_trip() -> None:
-    rtt = RoundTrip(floor_s=1.0)
-    assert rtt.timeout_s == 2.0  # no sample yet: twice the floor
+    rtt = RttEstimator()
+    assert liveness_timeout_s(rtt, floor_s=1.0) == 2.0  # no sample yet: twice the floor
     for _ in range(20):
-        rtt.sample(0.002)
-    assert rtt.timeout_s == 1.0  # loopback: the floor
+        rtt.on_sample(0.002)
+    assert liveness_timeout_s(rtt, floor_s=1.0) == 1.0  # loopback: the floor
     for _ in range(50):
-        rtt.sample(0.8)
-    assert 3.2 <= rtt.timeout_s < 6  # a slow link: four smoothed round trips and more
+        rtt.on_sample(0.8)
+    assert 3.2 <= liveness_timeout_s(rtt, floor_s=1.0) < 6  # a slow link: four smoothed round trips and more

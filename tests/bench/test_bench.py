@@ -178,7 +178,7 @@ def test_parse_retrans_segs_and_percentile() -> None:
 
 def _row(system: str = "coap-distributed", **kw: Any) -> BenchRow:
     row = BenchRow(system=system, robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=2.0, rep=0,
-                   retransmission_profile=bench.retransmission_label(system, "adaptive"), ok=True,
+                   retransmission_profile=bench.retransmission_label(system), ok=True,
                    coordination_s=1.5, completion_s=2.0, wire_bytes=1000, wire_packets=10, retransmissions=0,
                    query_p50_ms=5.0, query_p99_ms=50.0, mode=SYSTEMS[system].mode,
                    transport=SYSTEMS[system].transport, query_wire=SYSTEMS[system].query_wire, app_bytes=500)
@@ -195,7 +195,7 @@ def test_csv_append_writes_one_header_and_reads_back_typed(tmp_path: Path) -> No
     assert [r.system for r in rows] == ["coap-distributed", "zmq-central"]
     assert rows[0].ok is True and rows[1].ok is False and rows[1].error == "timed out, badly"
     assert isinstance(rows[0].wire_bytes, int) and rows[0].bandwidth_kbps == 35.0
-    assert rows[0].retransmission_profile == "adaptive" and rows[1].retransmission_profile == "tcp"
+    assert rows[0].retransmission_profile == "robust" and rows[1].retransmission_profile == "tcp"
 
 
 def test_a_row_parses_csv_text_and_json_values_by_field_type() -> None:
@@ -239,11 +239,11 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     assert back.key() == _row(delay_ms=0, loss_model="random").key() in done_keys(path)
     assert _row(delay_ms=100).key() not in done_keys(path)
     sweep = load_experiment("sweep")
-    plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", security=False)
+    plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, security=False)
     assert plain.key() == back.key()
     # Rows from before the security column were unprotected runs: not a secure run's key.
-    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive").key() != back.key()
-    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, "adaptive", delay_ms=300).key() != plain.key()
+    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0).key() != back.key()
+    assert sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, delay_ms=300).key() != plain.key()
 
 
 def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
@@ -262,7 +262,7 @@ def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
 def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> None:
     sweep = load_experiment("sweep")
     quick = sweep.PROFILES["quick"]
-    runs = sweep.plan(quick, "adaptive")
+    runs = sweep.plan(quick)
     assert len(runs) == len({r.key() for r in runs})
     assert {r.system for r in runs} >= set(sweep.QUICK_SYSTEMS)
     path = tmp_path / "quick.csv"
@@ -270,15 +270,12 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     append_rows(path, [first.row(ok=True)])
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
-    # ZeroMQ rows do not depend on the CoAP profile: another profile re-runs only CoAP systems.
-    other = sweep.pending(sweep.plan(quick, "lossy-fixed"), {r.key() for r in runs})
-    assert other and all(SYSTEMS[r.system].transport == "coap" for r in other)
-    paper = sweep.plan(sweep.PROFILES["paper"], "adaptive")
+    paper = sweep.plan(sweep.PROFILES["paper"])
     assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 1) * 3  # 3 reps
     # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
-    short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0, "adaptive") for r, t in ((3, 5), (3, 80)))
+    short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0) for r, t in ((3, 5), (3, 80)))
     assert (sweep.units(short), sweep.units(long)) == (6, 81)
-    assert sweep.units(sweep.Run("coap-distributed", 9, 80, 35.0, 2.0, 0, "adaptive")) == 28
+    assert sweep.units(sweep.Run("coap-distributed", 9, 80, 35.0, 2.0, 0)) == 28
 
 
 
@@ -286,7 +283,7 @@ async def test_sweep_appends_each_row_and_prints_count_and_eta(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     sweep = load_experiment("sweep")
-    runs = sweep.plan(sweep.PROFILES["quick"], "adaptive")[:3]
+    runs = sweep.plan(sweep.PROFILES["quick"])[:3]
 
     async def child(run: Any, limit_s: float) -> dict[str, Any]:  # no root, no namespaces: the row only
         return _row(run.system, robots=run.robots, tasks=run.tasks, bandwidth_kbps=run.bandwidth,

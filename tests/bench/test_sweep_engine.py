@@ -46,7 +46,7 @@ def test_a_bad_engine_or_no_scheduler_is_one_line_and_exit_2(
 
 
 def test_progress_appends_a_key_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    runs = sweep.plan(sweep.PROFILES["quick"], "adaptive")[:2]
+    runs = sweep.plan(sweep.PROFILES["quick"])[:2]
     out = tmp_path / "s.csv"
     with sweep.Progress(out, runs, []) as progress:
         for run in (runs[0], runs[0], runs[1]):  # an engine that delivers runs[0] twice
@@ -85,14 +85,14 @@ def test_a_tiny_matrix_through_a_local_dask_cluster_of_two_workers(
         with Client(cluster) as client:  # both registered before the sweep counts its slots
             client.wait_for_workers(2, timeout=60)
         engine = cluster.scheduler_address.replace("tcp://", "dask://")
-        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out), "--retransmission", "adaptive"]
+        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out)]
         assert sweep.main(argv) == 0
         text = capsys.readouterr().out
         assert "2 workers, 2 run slots" in text and "[2/2 100%]" in text and " ETA " in text
         rows = read_rows(out, latest_only=False)
         assert sorted(r.rep for r in rows) == [0, 1] and all(r.ok for r in rows), [r.error for r in rows]
         assert sorted(r.seed for r in rows) == [1, 2]
-        assert {r.key() for r in rows} == {run.key() for run in sweep.plan(tiny, "adaptive")}
+        assert {r.key() for r in rows} == {run.key() for run in sweep.plan(tiny)}
         # Resume: every key is in the CSV, nothing is submitted or appended.
         assert sweep.main(argv) == 0
         assert "0 to go" in capsys.readouterr().out
@@ -120,7 +120,7 @@ def test_a_worker_that_joins_without_link_emulation_takes_no_runs(
     with LocalCluster(n_workers=1, processes=True, threads_per_worker=1, resources={sweep.NETNS: 1},
                       dashboard_address=None, host="127.0.0.1") as cluster:
         engine = cluster.scheduler_address.replace("tcp://", "dask://")
-        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out), "--retransmission", "adaptive"]
+        argv = ["--profile", "tiny", "--engine", engine, "--out", str(out)]
         with ThreadPoolExecutor(1) as pool, Client(cluster) as client:
             client.wait_for_workers(1, timeout=60)
             swept = pool.submit(sweep.main, argv)

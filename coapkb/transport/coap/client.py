@@ -1,12 +1,10 @@
 """The CoAP client of a robot (and of ``coapkb query``).
 
-With the ``robust`` profile every request goes through the
-:class:`~.reliability.ReliabilityLayer`: each try a NON request with a
-fresh token, Block2 answers fetched block by block, each block its own
-exchange (a lost block costs one retry of that block, not a restart).
-Requests whose body needs Block1 (over 1024 bytes: long SPARQL text) and
-every request under the older profiles use aiocoap's confirmable
-exchanges, with the profile's timers.
+Every request goes through the :class:`~.reliability.ReliabilityLayer`:
+each try a NON request with a fresh token, Block2 answers fetched block by
+block, each block its own exchange (a lost block costs one retry of that
+block, not a restart).  Requests whose body needs Block1 (over 1024 bytes:
+long SPARQL text) use aiocoap's confirmable exchanges, with its timers.
 """
 
 from __future__ import annotations
@@ -26,10 +24,8 @@ from ..base import Endpoint, PeerUnreachable, TrafficCounters, TransportError
 from ..messages import Request, Response
 from .aiocoap_adapter import ContextHooks
 from .mapping import message_from_request, response_from_message
-from .reliability import ReliabilityLayer
-from .reliability.cocoa_hooks import RetransmissionController
+from .reliability import ReliabilityLayer, make_reliability
 from .reliability.layer import Attempt, ExchangeTimeout
-from .reliability.rto import TransmissionProfile
 
 #: Largest body sent in one datagram (aiocoap's default block size).
 MAX_SINGLE_BODY = 1024
@@ -69,11 +65,9 @@ def _reply_bytes(message: aiocoap.Message) -> int:
 
 
 class CoapClientTransport:
-    """Sends requests over CoAP/UDP with a reliability profile: ``robust``
-    (the layer, default) or a CON profile (``rfc7252``, ``lossy-fixed``,
-    ``adaptive``) applied by a :class:`RetransmissionController`."""
+    """Sends requests over CoAP/UDP, retried by a :class:`ReliabilityLayer`."""
 
-    def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer | RetransmissionController,
+    def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer,
                  security: Any = None) -> None:
         self._ctx = ctx
         #: A :class:`coapkb.security.coap.ClientSecurity` (OSCORE by EDHOC to every peer), or None.
@@ -84,9 +78,9 @@ class CoapClientTransport:
 
     @classmethod
     async def create(
-        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust", security: Any = None,
+        cls, retransmission: ReliabilityLayer | str = "robust", security: Any = None,
     ) -> "CoapClientTransport":
-        """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile.
+        """``retransmission``: a layer (shared with the robot's server), or ``robust`` for one of its own.
         ``security``: a :class:`coapkb.security.coap.ClientSecurity`, or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
@@ -97,18 +91,12 @@ class CoapClientTransport:
 
             install_oscore(ctx)
         hooks = ContextHooks.of(ctx)
-        if retransmission == "robust":
-            retransmission = ReliabilityLayer()
-        if isinstance(retransmission, ReliabilityLayer):
-            reliability: ReliabilityLayer | RetransmissionController = retransmission
-            hooks.on_datagram = retransmission.on_datagram
-        else:
-            reliability = RetransmissionController(retransmission)
-            hooks.set_con_policy(reliability)
+        reliability = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)
+        hooks.on_datagram = reliability.on_datagram
         return cls(ctx, hooks, reliability, security)
 
     def describe(self) -> dict[str, Any]:
-        """Reliability profile and per-peer estimates, for the agent's record."""
+        """The layer's settings and per-peer estimates, for the agent's record."""
         return self.reliability.as_dict()
 
     # ------------------------------------------------------------ requests
@@ -125,7 +113,7 @@ class CoapClientTransport:
         return response_from_message(message)
 
     async def _request_any(self, peer: Endpoint, request: Request, timeout: float) -> aiocoap.Message:
-        if isinstance(self.reliability, ReliabilityLayer) and len(request.payload) <= MAX_SINGLE_BODY:
+        if len(request.payload) <= MAX_SINGLE_BODY:
             return await self._request_blockwise(peer, request, timeout)
         return await self._request_con(peer, request)
 
@@ -166,16 +154,11 @@ class CoapClientTransport:
 
     async def _edhoc_post(self, peer: Endpoint, payload: bytes) -> aiocoap.Message:
         """One EDHOC message (POST /.well-known/edhoc, RFC 9528 appendix A.2),
-        retried like any request: NON tries timed by the layer under
-        ``robust`` (aiocoap's CON would wait 2-3 s for each lost one on a
-        slow link), the CON profile's timers otherwise.  A repeated message_1
+        retried like any request: NON tries timed by the layer (aiocoap's
+        CON would wait 2-3 s for each lost one on a slow link).  A repeated message_1
         gets a fresh message_2 (either one completes the run); a repeated
         message_3 the same message_4."""
         uri = f"coap://{peer.hostport}/.well-known/edhoc"
-        if not isinstance(self.reliability, ReliabilityLayer):
-            msg = aiocoap.Message(code=POST, uri=uri, payload=payload)
-            msg.transport_tuning = self.reliability.tuning_for(peer)
-            return await self._ctx.request(msg).response
 
         def send(try_number: int) -> Attempt[aiocoap.Message]:
             if try_number:
@@ -191,20 +174,12 @@ class CoapClientTransport:
         )
         return answer
 
-    def _con_request(self, peer: Endpoint, request: Request, *, observe: bool = False) -> Any:
-        """An aiocoap confirmable request, timed by the CON profile if one is in use."""
-        msg = message_from_request(peer, request, observe=observe)
-        if isinstance(self.reliability, RetransmissionController):
-            msg.transport_tuning = self.reliability.tuning_for(peer)
-        return self._ctx.request(msg)
-
     async def _request_con(self, peer: Endpoint, request: Request) -> aiocoap.Message:
-        return await self._con_request(peer, request).response
+        """An aiocoap confirmable request (block-wise for a large body)."""
+        return await self._ctx.request(message_from_request(peer, request)).response
 
     async def _exchange(self, peer: Endpoint, request: Request, timeout: float, *, block2: tuple[int, int] | None = None,
                         observe: bool = False) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
-        assert isinstance(self.reliability, ReliabilityLayer)
-
         sent = 0
 
         def send(try_number: int) -> Attempt[aiocoap.Message]:
@@ -255,22 +230,13 @@ class CoapClientTransport:
         raise TransportError(f"the answer from {peer} kept changing during its block-wise transfer")
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
-        if isinstance(self.reliability, ReliabilityLayer):
-            try:
-                first, attempt = await self._secured(peer, lambda: self._exchange(peer, request, timeout=60.0, observe=True))
-            except ExchangeTimeout:
-                raise PeerUnreachable(f"no answer from {peer} to the observation") from None
-            except _NO_ANSWER as exc:
-                raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
-            pending = attempt.handle
-        else:
-            try:
-                if self.security is not None:
-                    await self.security.ensure(self._ctx, peer)
-                pending = self._con_request(peer, request, observe=True)
-                first = await pending.response
-            except _NO_ANSWER as exc:
-                raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
+        try:
+            first, attempt = await self._secured(peer, lambda: self._exchange(peer, request, timeout=60.0, observe=True))
+        except ExchangeTimeout:
+            raise PeerUnreachable(f"no answer from {peer} to the observation") from None
+        except _NO_ANSWER as exc:
+            raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
+        pending = attempt.handle
         try:
             yield response_from_message(first)
             if pending.observation is None:

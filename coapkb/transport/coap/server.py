@@ -25,10 +25,8 @@ from ..messages import Response, Status
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
 from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
-from .reliability import ReliabilityLayer
-from .reliability.cocoa_hooks import RetransmissionController
+from .reliability import ReliabilityLayer, make_reliability
 from .reliability.notifications import NotificationPolicy, NotificationTuning
-from .reliability.rto import TransmissionProfile
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +97,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
             return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
         message = message_from_response(await handle_safely(self.service, req, log))
         # Piggybacked answers are never retransmitted, but Observe
-        # notifications are CON: they follow the reliability policy's timers.
+        # notifications are CON: they follow the notification policy's timers.
         message.transport_tuning = self._tuning_for(request)
         return message
 
@@ -145,10 +143,9 @@ class CoapServerTransport:
 
     ``retransmission`` times the server's confirmable messages (Observe
     notifications): a :class:`ReliabilityLayer` shared with the robot's
-    client (its path estimates), or a CON profile name (its own per-peer
-    estimates)."""
+    client (its path estimates), or ``robust`` for one of its own."""
 
-    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: Any) -> None:
+    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy) -> None:
         self._ctx = ctx
         self._hooks = hooks
         self.endpoint = endpoint
@@ -158,7 +155,7 @@ class CoapServerTransport:
     @classmethod
     async def start(
         cls, service: Service, endpoint: Endpoint,
-        retransmission: ReliabilityLayer | TransmissionProfile | str = "robust",
+        retransmission: ReliabilityLayer | str = "robust",
         security: Any = None,
     ) -> "CoapServerTransport":
         """``security``: a :class:`coapkb.security.coap.ServerSecurity`
@@ -166,17 +163,12 @@ class CoapServerTransport:
         ``/.well-known/core``), or None."""
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
-        if retransmission == "robust":
-            retransmission = ReliabilityLayer()
-        if isinstance(retransmission, ReliabilityLayer):
-            policy: Any = NotificationPolicy(retransmission)
-            notification, answer = NotificationTuning(), TransportTuning()
-            # Only an observation's answers are CON; an answer to a NON try is
-            # NON (the client's layer repeats the try if it is lost).
-            tuning_for: Any = lambda request: notification if request.opt.observe == 0 else answer  # noqa: E731
-        else:
-            policy = RetransmissionController(retransmission)
-            tuning_for = lambda request: policy.tuning_for(request.remote.hostinfo, reliability=None)  # noqa: E731
+        layer = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)
+        policy = NotificationPolicy(layer)
+        notification, answer = NotificationTuning(), TransportTuning()
+        # Only an observation's answers are CON; an answer to a NON try is
+        # NON (the client's layer repeats the try if it is lost).
+        tuning_for: Any = lambda request: notification if request.opt.observe == 0 else answer  # noqa: E731
         site = aiocoap.resource.Site()
         site.add_resource(
             [".well-known", "core"],
@@ -197,14 +189,11 @@ class CoapServerTransport:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
         hooks = ContextHooks.of(ctx)
         hooks.set_con_policy(policy)
-        if isinstance(retransmission, ReliabilityLayer):
-            hooks.on_datagram = retransmission.on_datagram
+        hooks.on_datagram = layer.on_datagram
         return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
 
     def describe(self) -> dict[str, Any]:
-        if isinstance(self.policy, NotificationPolicy):
-            return {"profile": {"name": "robust"}, "notifications": "timed from the client's path estimates"}
-        return self.policy.as_dict()
+        return {"profile": {"name": "robust"}, "notifications": "timed from the client's path estimates"}
 
     async def aclose(self) -> None:
         await self._ctx.shutdown()

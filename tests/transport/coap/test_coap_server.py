@@ -113,11 +113,10 @@ async def _drain(srv: ServerProcess) -> None:
         srv.log.extend(chunk)  # type: ignore[attr-defined]
 
 
-@pytest_asyncio.fixture(scope="module", loop_scope="module", params=["robust", "rfc7252"])
-async def transport(request: pytest.FixtureRequest) -> AsyncIterator[ClientTransport]:
-    """The server must answer the same through the reliability layer (NON
-    tries, block by block) and through plain confirmable exchanges."""
-    t = await open_client("coap", retransmission=request.param)
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def transport() -> AsyncIterator[ClientTransport]:
+    """A client through the reliability layer (NON tries, block by block)."""
+    t = await open_client("coap")
     yield t
     await t.aclose()
 
@@ -588,7 +587,7 @@ async def test_garbage_datagrams() -> None:
     """200 broken datagrams: the server survives, keeps answering, logs little."""
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}")
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
         peer = Endpoint.parse(srv.uri)
@@ -657,7 +656,7 @@ async def test_block1_gap_is_408_without_a_traceback() -> None:
 async def test_row_limit_marks_truncated() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--row-limit", "5")
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
         peer = Endpoint.parse(srv.uri)
@@ -694,7 +693,7 @@ async def _stop_quickly(srv: ServerProcess, grace: float) -> tuple[int, float]:
 async def test_time_budget_is_503_with_max_age() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
         peer = Endpoint.parse(srv.uri)
@@ -717,7 +716,7 @@ async def test_time_budget_is_503_with_max_age() -> None:
 async def test_server_stops_promptly_after_a_runaway_query() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         response = await call(transport, Endpoint.parse(srv.uri), fetch(COSTLY), timeout=10)
         assert response.status == Status.SERVICE_UNAVAILABLE
@@ -730,7 +729,7 @@ async def test_server_stops_promptly_after_a_runaway_query() -> None:
 async def test_runaway_queries_do_not_starve_the_robot() -> None:
     port = free_udp_port()
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         peer = Endpoint.parse(srv.uri)
         # one more than the default executor's workers; different texts so nothing is shared

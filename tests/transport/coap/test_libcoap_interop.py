@@ -91,7 +91,7 @@ def query_file(tmp_path: Path, text: str, name: str = "query.rq") -> str:
 
 async def aiocoap_payload(base: str, request: Request) -> bytes:
     """The same request through coapkb's own (aiocoap) client, for comparison."""
-    transport = await open_client("coap", retransmission="rfc7252")
+    transport = await open_client("coap")
     try:
         response = await transport.request(Endpoint.parse(base), request, timeout=10)
     finally:

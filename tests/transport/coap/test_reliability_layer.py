@@ -28,9 +28,10 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, PeerUnreachable, ResourceInfo, open_client, serve
 from coapkb.transport.coap import CoapClientTransport
 from coapkb.transport.coap.reliability import ReliabilityLayer, ReliabilitySettings
-from coapkb.transport.coap.reliability.estimator import LossEstimator, RttEstimator, airtime
+from coapkb.transport.coap.reliability.estimator import LossEstimator, airtime
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
+from coapkb.transport.rtt import RttEstimator
 
 ONTOLOGIES = Path(__file__).resolve().parents[3] / "ontologies"
 KB_FILES = [ONTOLOGIES / f"{n}.owl" for n in ("Object", "Location", "Capability")]

@@ -1,36 +1,30 @@
 """Reliability for CoAP over lossy links: how and when a request is retried.
 
-* :mod:`.layer`: the default for robots (``robust``): every try a fresh
-  exchange, RFC 6298 timeouts over unambiguous samples, a window of
-  exchanges in flight per peer, hedged copies when the path loses much.
-  :mod:`.notifications` times the server's CON notifications from it.
-* :mod:`.rto` and :mod:`.cocoa_hooks`: the earlier profiles, kept for
-  comparison: ``rfc7252`` (RFC 7252's defaults), ``lossy-fixed`` (short
-  fixed timeouts, capped backoff) and ``adaptive`` (CoCoA-style RTO per peer,
-  on aiocoap's CON retransmission).
+:mod:`.layer` (``robust``): every try a fresh exchange, RFC 6298 timeouts
+over unambiguous samples, a window of exchanges in flight per peer, hedged
+copies when the path loses much.  :mod:`.notifications` times the server's
+CON notifications from it.  The CON profiles it was measured against
+(``rfc7252``, ``lossy-fixed``, CoCoA ``adaptive``) were retired; their
+measurements stay in ``experiments/results/`` (docs/retransmission.md).
 """
 
 from __future__ import annotations
 
 from .layer import ReliabilityLayer, ReliabilitySettings
-from .rto import PROFILES as CON_PROFILES
 
-#: The layer's profile name.
+#: The layer's name, as configurations and records state it.
 ROBUST = "robust"
-#: Every selectable reliability profile; the first is the default.
-PROFILE_NAMES: tuple[str, ...] = (ROBUST, *CON_PROFILES)
+#: Every name a configuration may give (the layer is the only one).
+PROFILE_NAMES: tuple[str, ...] = (ROBUST,)
 DEFAULT_PROFILE = ROBUST
 
 
-def make_reliability(profile: str, *, link_kbps: float | None = None) -> "ReliabilityLayer | str":
-    """What to hand to a CoAP client and server of one robot: one shared
-    layer for ``robust`` (so the server's notifications use the client's
-    estimates), else the profile's name."""
-    if profile == ROBUST:
-        return ReliabilityLayer(ReliabilitySettings(link_kbps=link_kbps))
-    if profile not in CON_PROFILES:
+def make_reliability(profile: str = ROBUST, *, link_kbps: float | None = None) -> ReliabilityLayer:
+    """The layer for one robot's CoAP client and server: shared, so the
+    server's notifications use the client's estimates."""
+    if profile != ROBUST:
         raise ValueError(f"unknown reliability profile {profile!r} (choose from {', '.join(PROFILE_NAMES)})")
-    return profile
+    return ReliabilityLayer(ReliabilitySettings(link_kbps=link_kbps))
 
 
 __all__ = ["PROFILE_NAMES", "DEFAULT_PROFILE", "ROBUST", "ReliabilityLayer", "ReliabilitySettings", "make_reliability"]

@@ -2,12 +2,10 @@
 
 Pure arithmetic, no I/O: the layer (:mod:`.layer`) measures, these keep score.
 
-* :class:`RttEstimator` is RFC 6298's SRTT/RTTVAR, over samples with the
-  link's serialisation time (airtime) taken out when the link rate is known.
-  What remains is the part of the round trip that does not depend on the
-  message size (propagation, queueing, the peer's processing), so one
-  estimate serves a 20-byte request with a 1 KB answer and a 2.03 Valid
-  alike: the timeout adds back the airtime of *this* exchange.
+* The round trip itself is :class:`coapkb.transport.rtt.RttEstimator`
+  (RFC 6298), shared with the agents' liveness requests.
+* :func:`airtime` and :class:`UplinkQueue`: how long bytes take on the
+  robot's link, so a timeout covers the airtime of *this* exchange.
 * :class:`LossEstimator` is the share of attempts that went unanswered
   (request or answer lost), an exponentially weighted average.
 """
@@ -26,40 +24,6 @@ def airtime(nbytes: float, link_bps: float | None) -> float:
     if not link_bps:
         return 0.0
     return (nbytes + IP_UDP_OVERHEAD) * 8.0 / link_bps
-
-
-@dataclass
-class RttEstimator:
-    """RFC 6298 section 2 over clean samples (alpha 1/8, beta 1/4)."""
-
-    alpha: float = 0.125
-    beta: float = 0.25
-    srtt: float | None = None
-    rttvar: float = 0.0
-    min_rtt: float | None = None
-    samples: int = 0
-
-    def on_sample(self, rtt: float) -> None:
-        rtt = max(rtt, 0.0)
-        if self.srtt is None:
-            self.srtt, self.rttvar = rtt, rtt / 2
-        else:
-            self.rttvar = (1 - self.beta) * self.rttvar + self.beta * abs(self.srtt - rtt)
-            self.srtt = (1 - self.alpha) * self.srtt + self.alpha * rtt
-        self.min_rtt = rtt if self.min_rtt is None else min(self.min_rtt, rtt)
-        self.samples += 1
-
-    def rto(self, *, k: float, granularity: float, floor: float, ceiling: float, initial: float) -> float:
-        """SRTT + max(G, K*RTTVAR), within [floor, ceiling]; ``initial`` before any sample."""
-        if self.srtt is None:
-            return initial
-        return min(ceiling, max(floor, self.srtt + max(granularity, k * self.rttvar)))
-
-    def queueing(self) -> float:
-        """How far the smoothed RTT sits above the smallest one seen: queueing delay."""
-        if self.srtt is None or self.min_rtt is None:
-            return 0.0
-        return self.srtt - self.min_rtt
 
 
 @dataclass

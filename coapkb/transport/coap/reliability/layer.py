@@ -57,7 +57,8 @@ from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, field
 from typing import Any, Awaitable, Callable, Generic, Hashable, TypeVar
 
-from .estimator import LossEstimator, RttEstimator, UplinkQueue, airtime
+from ...rtt import RttEstimator
+from .estimator import LossEstimator, UplinkQueue, airtime
 
 log = logging.getLogger(__name__)
 
