@@ -668,7 +668,7 @@ def test_json_errors_say_what_is_wrong(data: bytes, message: str) -> None:
 
 
 # --------------------------------------------------------------------------
-# Size targets (perf-anchors section 3)
+# Size targets (docs/performance.md section 3)
 
 
 def test_twenty_row_warehouse_answer_fits_one_datagram() -> None:
