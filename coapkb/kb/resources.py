@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import cbor2
 
 from ..wire import codec
-from .store import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
+from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout
+from .store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .answer_cache import AnswerCache
 from .named_queries import NamedQuery, named_queries_for
