@@ -25,7 +25,7 @@ from .errors import CoapkbError
 from .wire import codec
 from .transport import SCHEMES
 from .transport.messages import ContentFormat, Method
-from .world.warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
+from .world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
 
 class UserError(CoapkbError):

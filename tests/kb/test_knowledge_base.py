@@ -21,7 +21,9 @@ from coapkb.kb.errors import (
 from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
-from coapkb.world.warehouse import OBJECT_NS, WarehouseSpec, build_graphs
+from coapkb.world import OBJECT_NS
+from coapkb.world.generator import WarehouseSpec
+from coapkb.world.ontologies import build_graphs
 
 from support import ROOT
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]
