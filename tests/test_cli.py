@@ -191,6 +191,11 @@ async def test_query_server_errors_shown(uri: str) -> None:
     ])
 
 
+async def test_query_misspelled_name_lists_the_named_queries(uri: str) -> None:
+    result = await coapkb("query", f"{uri}/kb/q/object-locaton?name=Gucci_bag_14")
+    assert_user_error(result, "4.04", "/kb/q/object-locaton", "object-location", "object-exists", "warehouse-layout")
+
+
 # --------------------------------------------------------------------------- serve mistakes
 
 
