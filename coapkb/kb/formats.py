@@ -28,7 +28,6 @@ _SUFFIX_FORMATS = {
     ".json-ld": "json-ld",
 }
 
-#: rdflib format name -> pyoxigraph's native parser; others go through rdflib.
 _TURTLE_PREFIX = re.compile(
     rb"^[ \t]*(?:@prefix|PREFIX)[ \t]+([A-Za-z][A-Za-z0-9_.-]*)?:[ \t]*<([^>\s]*)>", re.MULTILINE | re.IGNORECASE
 )

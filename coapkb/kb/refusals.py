@@ -58,6 +58,8 @@ def _update_operations(text: str) -> tuple[str, ...] | None:
 
 
 def refuse_or_syntax(text: str, error: QuerySyntaxError) -> KBError:
+    """For a text that failed to parse as a query: :class:`UpdateRefused`
+    if it is SPARQL Update, else the backend's syntax ``error``."""
     ops = _update_operations(text)
     return UpdateRefused(ops) if ops else error
 
