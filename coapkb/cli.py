@@ -25,7 +25,7 @@ from .errors import CoapkbError
 from .wire import codec
 from .transport import SCHEMES
 from .transport.messages import ContentFormat, Method
-from .world.warehouse import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
+from .world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
 
 class UserError(CoapkbError):
@@ -428,6 +428,7 @@ def _read_query_text(arg: str | None) -> str | None:
 
 async def _query(args: argparse.Namespace) -> int:
     from .kb.client import KBClient, QueryFailed
+    from .kb.results import GraphResult
     from .transport import TransportError, open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
@@ -457,6 +458,11 @@ async def _query(args: argparse.Namespace) -> int:
     finally:
         await transport.aclose()
     sys.stdout.write(render(result, args.format))
+    if args.format == "csv" and getattr(result, "truncated", False):
+        # The table's footer and SPARQL-JSON's "truncated" say so; CSV has no room for it.
+        shown = len(result.triples if isinstance(result, GraphResult) else result.rows)  # type: ignore[union-attr]
+        print(f"coapkb: {peer} truncated the answer at its row limit: the CSV holds its first {shown} rows",
+              file=sys.stderr)
     return 0
 
 

@@ -126,7 +126,7 @@ def measure(variant: str, directory: Path, index_dir: Path) -> dict[str, float]:
 def time_task_queries(kb: object) -> float:
     """Microseconds for one product's three task queries (median over products)."""
     from coapkb.kb.named_queries import named_queries_for
-    from coapkb.world.warehouse import OBJECT_NS
+    from coapkb.world import OBJECT_NS
 
     queries = {q.name: q for q in named_queries_for(kb.names)}  # type: ignore[attr-defined]
     if not all(name in queries for name in TASK_QUERIES):

@@ -124,6 +124,20 @@ async def test_query_csv(uri: str) -> None:
     assert rows[1][0] == "http://www.tcs.org/2018/Capability#Robot1"
 
 
+async def test_query_csv_says_when_the_server_truncated(uri: str) -> None:
+    """CSV has no room for "more results exist" (the table's footer and
+    SPARQL-JSON's "truncated" say it): one line on stderr does."""
+    everything = await coapkb("query", uri, "SELECT ?s WHERE { ?s ?p ?o }", "--format", "csv")
+    assert everything.code == 0, everything.stderr
+    rows = list(csv.reader(io.StringIO(everything.stdout, newline="")))
+    assert rows[0] == ["s"] and len(rows) == 1 + 1000  # the server's default row limit
+    [line] = everything.stderr.splitlines()
+    assert line.startswith("coapkb: ") and "truncated" in line and "1000 rows" in line, line
+    few = await coapkb("query", uri, "SELECT ?s WHERE { ?s ?p ?o } LIMIT 3", "--format", "csv")
+    assert (few.code, few.stderr) == (0, "")
+    assert len(list(csv.reader(io.StringIO(few.stdout, newline="")))) == 1 + 3
+
+
 async def test_query_over_zmq_matches(tmp_path: Path) -> None:
     from support import free_tcp_port
 
@@ -188,6 +202,11 @@ async def test_query_server_errors_shown(uri: str) -> None:
         (["query", f"{uri}/kb/q/object-exists?name=x%22%20%7D"], ["4.00", "name"]),
         (["query", f"{uri}/kb/q/nope?x=1"], ["4.04"]),
     ])
+
+
+async def test_query_misspelled_name_lists_the_named_queries(uri: str) -> None:
+    result = await coapkb("query", f"{uri}/kb/q/object-locaton?name=Gucci_bag_14")
+    assert_user_error(result, "4.04", "/kb/q/object-locaton", "object-location", "object-exists", "warehouse-layout")
 
 
 # --------------------------------------------------------------------------- serve mistakes

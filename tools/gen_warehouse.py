@@ -5,9 +5,10 @@
     python tools/gen_warehouse.py --products 100000 --format ttl --out /tmp/kb100k-ttl
 
 Output is deterministic: the same arguments give byte-identical files.  The
-logic lives in :mod:`coapkb.world.warehouse`; this is only its command line.
-``--format ttl`` or ``nt`` writes the same graphs as Turtle or N-Triples
-(``Object.ttl``, ...), converted from the RDF/XML with pyoxigraph.
+logic lives in :mod:`coapkb.world.generator` and :mod:`coapkb.world.ontologies`;
+this is only its command line.  ``--format ttl`` or ``nt`` writes the same
+graphs as Turtle or N-Triples (``Object.ttl``, ...), converted from the
+RDF/XML with pyoxigraph.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from coapkb.world.warehouse import WarehouseSpec, generate, write_ontologies
+from coapkb.world.generator import WarehouseSpec, generate
+from coapkb.world.ontologies import write_ontologies
 
 SUFFIXES = {"ttl": ".ttl", "nt": ".nt"}
 

@@ -28,7 +28,7 @@ from typing import Awaitable, Callable, Mapping
 from ..config import RobotConfig
 from ..kb.results import SelectResult
 from ..transport.base import TransportError
-from ..world.warehouse import Layout, Position, layout_from_row, travel_distance
+from ..world import Layout, Position, layout_from_row, travel_distance
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import Assignment, RobotEnergy, TaskFacts, assign, robot_sort_key

@@ -17,7 +17,8 @@ from typing import Awaitable, Callable, Mapping
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
 from ..config import RobotConfig, Teammate
-from ..kb.store import KBError, KnowledgeBase
+from ..kb.errors import KBError
+from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.results import QueryResult

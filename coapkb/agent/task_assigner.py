@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
 from ..config import CostModel
-from ..world.warehouse import Position
+from ..world import Position
 from .robot_state import PlannedState
 
 Distance = Callable[[Position, Position], float]

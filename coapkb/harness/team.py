@@ -50,7 +50,7 @@ from ..transport.messages import ContentFormat, Method, Request, Status
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from ..transport import SCHEMES, open_client
-from ..world.warehouse import CLUSTER_SIZE, OBJECT_NS
+from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import ClientTransport, Endpoint, TrafficCounters, TransportError
 from .record import FaultEvent, TaskRecord, TeamRecord
 from ..security import SecurityConfig, generate_team, load_identity

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import cbor2
 
 from ..wire import codec
-from .store import KBError, KnowledgeBase, QueryRefused, QuerySyntaxError, QueryTimeout
+from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout
+from .store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .answer_cache import AnswerCache
 from .named_queries import NamedQuery, named_queries_for
@@ -148,10 +149,10 @@ class KBResources:
         return await self.answer(text, request.accept, request.etags)
 
     async def named_query(self, request: Request) -> Response:
+        # Mounted once per named query: an unknown name is the router's 4.04,
+        # which lists the names there are.
         name = request.path.rsplit("/", 1)[1]
-        query = self.named.get(name)
-        if query is None:
-            return Response.error(Status.NOT_FOUND, f"no named query {name!r}; see /.well-known/core?rt=coapkb.q")
+        query = self.named[name]
         try:
             text = query.render(request.query)
         except ValueError as exc:

@@ -32,7 +32,7 @@ class Router(Service):
     async def handle(self, request: Request) -> Response:
         route = self._routes.get(request.path)
         if route is None:
-            return Response.error(Status.NOT_FOUND, f"no resource at {request.path}")
+            return Response.error(Status.NOT_FOUND, self._not_found(request.path))
         info, handler = route
         if request.method not in info.methods:
             allowed = ", ".join(info.methods)
@@ -44,6 +44,16 @@ class Router(Service):
         except Exception:  # a bug must cost one request, never the server
             log.exception("handler for %s failed", request.path)
             return Response.error(Status.INTERNAL_SERVER_ERROR, "internal error while handling the request")
+
+    def _not_found(self, path: str) -> str:
+        """Why ``path`` has no answer, naming the resources beside it: a
+        misspelled ``/kb/q/<name>`` learns the names of the named queries."""
+        parent = path.rpartition("/")[0] + "/"
+        siblings = sorted(
+            p[len(parent) :] for p in self._routes if p.startswith(parent) and "/" not in p[len(parent) :]
+        )
+        known = f"; {parent} has: {', '.join(siblings)}" if siblings else ""
+        return f"no resource at {path}{known}"
 
     def subscribe(self, path: str, on_change: Callable[[], None]) -> Callable[[], None]:
         listeners = self._listeners.setdefault(path, [])

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from coapkb.agent.robot_state import PlannedState
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign, plan_for, robot_sort_key
 from coapkb.config import CostModel
-from coapkb.world.warehouse import Layout, Position, travel_distance
+from coapkb.world import Layout, Position, travel_distance
 
 # 3 aisles of 10 racks; racks are 1.2 m, aisles 3.5 m apart, 2 m margins:
 # rack r of any aisle is at y = 2 + (r - 0.5) * 1.2; the aisle is 2*2 + 10*1.2 = 16 m long.

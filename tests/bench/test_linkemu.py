@@ -398,14 +398,14 @@ def test_cleanup_stale_removes_dead_runs_only(netns: None, fake_namespaces: list
 @pytest.mark.root
 def test_partial_setup_failure_leaves_nothing(netns: None, monkeypatch: pytest.MonkeyPatch) -> None:
     """A failure half-way through setup (here: loading the nft table) removes what was built."""
-    real_run = linkemu.testbed._run
+    real_run = linkemu.topology._run
 
     def failing_run(argv, **kwargs):  # type: ignore[no-untyped-def]
         if "nft" in argv and "-f" in argv:
             raise linkemu.LinkEmulationError("injected failure")
         return real_run(argv, **kwargs)
 
-    monkeypatch.setattr(linkemu.testbed, "_run", failing_run)
+    monkeypatch.setattr(linkemu.topology, "_run", failing_run)
     tb = Testbed(["a", "b", "c"], LinkSpec(rate_kbit=128))
     with pytest.raises(linkemu.LinkEmulationError, match="injected"):
         with tb:
@@ -621,11 +621,11 @@ def test_set_link_moves_a_host_in_and_out_of_the_delay_line(netns: None) -> None
             return subprocess.run(["ip", "netns", "exec", tb.bridge_netns, "nft", "list", "chain", "bridge",
                                    "coapkb", f"loss_h{tb['a'].index}"], capture_output=True, text=True).stdout
 
-        assert "NFQUEUE" not in forward_rules() and tb._delay_line is None
+        assert "NFQUEUE" not in forward_rules() and tb._links.delay_line is None
         tb.set_link("a", LinkSpec(rate_kbit=35, delay_ms=20, loss_pct=5, loss_model="burst", burst_len=2))
         assert f"--physdev-in {tb['a'].port} -j NFQUEUE --queue-num {tb['a'].index}" in forward_rules()
         assert "numgen" not in loss_chain()  # burst loss is the delay line's
-        line = tb._delay_line
+        line = tb._links.delay_line
         assert line is not None and line.pid is not None
         tb.set_link("a", LinkSpec(rate_kbit=35, loss_pct=5))
         assert "NFQUEUE" not in forward_rules() and "numgen" in loss_chain()
@@ -644,7 +644,7 @@ def test_delay_line_does_not_outlive_a_killed_owner(netns: None) -> None:
         "from coapkb.bench.linkemu import Testbed, LinkSpec\n"
         "tb = Testbed(['a', 'b'], LinkSpec(delay_ms=100))\n"
         "tb.setup()\n"
-        "print(tb.run_id, tb._delay_line.pid, flush=True)\n"
+        "print(tb.run_id, tb._links.delay_line.pid, flush=True)\n"
         "time.sleep(60)\n"
     )
     p = subprocess.Popen([PY, "-c", script], stdout=subprocess.PIPE, text=True)

@@ -32,7 +32,7 @@ from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
 from coapkb.transport import open_client
-from coapkb.world.warehouse import layout_from_row, travel_distance
+from coapkb.world import layout_from_row, travel_distance
 
 from support import ROOT
 ONTOLOGIES = ROOT / "ontologies"

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from coapkb.config import parse_config
-from coapkb.kb.store import KBLoadError, KnowledgeBase
+from coapkb.kb.errors import KBLoadError
+from coapkb.kb.store import KnowledgeBase
 
 from support import ROOT
 

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from coapkb.kb import store as kb_store
-from coapkb.kb.store import BACKENDS, KBLoadError, KnowledgeBase
+from coapkb.kb import formats, oxigraph_backend
+from coapkb.kb.errors import KBLoadError
+from coapkb.kb.store import BACKENDS, KnowledgeBase
 
 RDF = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
 HEAD = f'<?xml version="1.0"?>\n<rdf:RDF xmlns:rdf="{RDF}" xmlns:ex="http://ex.org/">\n'
@@ -74,13 +75,13 @@ def test_first_bad_file_is_named(tmp_path: Path) -> None:
 
 def test_file_changed_while_loading_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = write(tmp_path, "A.owl", GOOD)
-    real_load = kb_store._OxigraphBackend.load
+    real_load = oxigraph_backend.OxigraphBackend.load
 
     def load_then_edit(self: object, p: Path, fmt: str) -> None:
         real_load(self, p, fmt)  # type: ignore[arg-type]
         p.write_text(GOOD.replace("http://ex.org/o", "http://ex.org/other"))
 
-    monkeypatch.setattr(kb_store._OxigraphBackend, "load", load_then_edit)
+    monkeypatch.setattr(oxigraph_backend.OxigraphBackend, "load", load_then_edit)
     with pytest.raises(KBLoadError, match="changed while it was being loaded"):
         KnowledgeBase.load([path])
 
@@ -94,7 +95,7 @@ def test_etag_is_the_content_hash(tmp_path: Path) -> None:
 
 
 def test_turtle_prefixes_across_chunks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(kb_store, "_CHUNK", 7)  # every prefix line split between reads
+    monkeypatch.setattr(formats, "_CHUNK", 7)  # every prefix line split between reads
     text = "@prefix ex: <http://ex.org/> .\nex:a ex:p ex:o .\nPREFIX late: <http://late.org/>\nlate:a ex:p ex:o .\n"
     kb = KnowledgeBase.load([write(tmp_path, "T.ttl", text)])
     assert kb.prefixes == {"ex": "http://ex.org/", "late": "http://late.org/"}
@@ -103,13 +104,13 @@ def test_turtle_prefixes_across_chunks(tmp_path: Path, monkeypatch: pytest.Monke
 
 def test_files_after_a_bad_one_are_not_parsed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     parsed: list[str] = []
-    real_load = kb_store._OxigraphBackend.load
+    real_load = oxigraph_backend.OxigraphBackend.load
 
     def spy(self: object, p: Path, fmt: str) -> None:
         parsed.append(p.name)
         real_load(self, p, fmt)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(kb_store._OxigraphBackend, "load", spy)
+    monkeypatch.setattr(oxigraph_backend.OxigraphBackend, "load", spy)
     bad = write(tmp_path, "Bad.ttl", "<urn:a> <urn:b> .\n")
     good = write(tmp_path, "Good.owl", GOOD)
     with pytest.raises(KBLoadError, match=r"Bad\.ttl"):

@@ -9,20 +9,21 @@ import pytest
 from rdflib import BNode, Literal, URIRef
 from rdflib import namespace as rdfns
 
-from coapkb.kb.store import (
-    BACKENDS,
+from coapkb.kb.errors import (
     FeatureRefused,
     KBError,
     KBLoadError,
-    KnowledgeBase,
     QueryRefused,
     QuerySyntaxError,
     QueryTimeout,
     UpdateRefused,
 )
+from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
-from coapkb.world.warehouse import OBJECT_NS, WarehouseSpec, build_graphs
+from coapkb.world import OBJECT_NS
+from coapkb.world.generator import WarehouseSpec
+from coapkb.world.ontologies import build_graphs
 
 from support import ROOT
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]

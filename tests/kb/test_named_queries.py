@@ -9,16 +9,9 @@ from rdflib import Literal, URIRef
 
 from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.kb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
-from coapkb.world.warehouse import (
-    CAPABILITY_NS,
-    GRIP_TYPES,
-    LOCATION_NS,
-    OBJECT_NS,
-    Position,
-    WarehouseSpec,
-    generate,
-    layout_from_row,
-)
+from coapkb.world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS, Position, layout_from_row
+from coapkb.world.generator import WarehouseSpec, generate
+from coapkb.world.vocabulary import GRIP_TYPES
 
 from support import ROOT
 WAREHOUSE = generate(WarehouseSpec())  # what ontologies/ was generated from (checked in test_warehouse)

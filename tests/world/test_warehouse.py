@@ -12,25 +12,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rdflib.namespace import OWL, RDF, RDFS
 
-from coapkb.world.warehouse import (
+from coapkb.world import (
     CAPABILITY_NS,
-    GRIP_COMPONENT,
-    GRIP_TYPES,
     LOCATION_NS,
     OBJECT_NS,
     ONTOLOGIES,
-    PRODUCT_CLASSES,
     Layout,
     Position,
-    WarehouseSpec,
-    build_graphs,
-    cluster_grip_coverage,
-    generate,
     layout_from_row,
-    ontology_bytes,
     travel_distance,
-    write_ontologies,
 )
+from coapkb.world.generator import WarehouseSpec, cluster_grip_coverage, generate
+from coapkb.world.ontologies import build_graphs, ontology_bytes, write_ontologies
+from coapkb.world.vocabulary import GRIP_COMPONENT, GRIP_TYPES, PRODUCT_CLASSES
 
 from support import ROOT
 SMALL = WarehouseSpec(products=200, aisles=4, racks_per_aisle=6, bins_per_rack=3, seed=3)

@@ -47,9 +47,13 @@ counted and shaped in real frames.
 
 The package's modules, by concern: :mod:`.spec` (``LinkSpec``,
 ``LinkCounters``, validation), :mod:`.netns` (namespace commands,
-``available``, ``cleanup_stale``, ``enter_netns``), :mod:`.shaping` (tbf, nftables and
-iptables rule text), :mod:`.delayline` (NFQUEUE delay line), :mod:`.testbed` (``Testbed``: build, change, count,
-tear down) and :mod:`.relay` (``UdpRelay``).
+``available``, ``cleanup_stale``, ``enter_netns``), :mod:`.shaping` (tbf,
+nftables and iptables rule text), :mod:`.delayline` (NFQUEUE delay line),
+:mod:`.hosts` (``Host``: names, addresses), :mod:`.topology` (namespaces,
+bridge, veth pairs), :mod:`.link_control` (a live link's shapers, loss rule
+and delay line), :mod:`.counters` (reading the kernel's counters),
+:mod:`.testbed` (``Testbed``: set up, change, run processes, tear down) and
+:mod:`.relay` (``UdpRelay``).
 
 Everything here needs root (``CAP_NET_ADMIN``) and the Debian packages
 ``iproute2`` (``ip``, ``tc``, ``bridge``) and ``nftables`` (``nft``), plus
@@ -71,7 +75,8 @@ from .spec import (
     LinkEmulationError,
     LinkSpec,
 )
-from .testbed import Host, Testbed
+from .hosts import Host
+from .testbed import Testbed
 
 __all__ = [
     "ETH_FRAME_MAX",

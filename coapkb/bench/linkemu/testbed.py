@@ -1,58 +1,33 @@
-"""The testbed: namespaces, bridge, shapers and loss rules for a set of hosts."""
+"""The testbed: namespaces, bridge, shapers and loss rules for a set of hosts.
+
+This module is its lifecycle (set up, change, tear down, even on SIGTERM)
+and the processes run in its hosts; the parts are :mod:`.hosts` (names and
+addresses), :mod:`.topology` (namespaces and wiring), :mod:`.link_control`
+(shapers, loss rules, delay line) and :mod:`.counters`.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import atexit
-import ipaddress
-import json
 import os
 import re
 import secrets
-import shutil
 import signal
 import subprocess
 import threading
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from types import FrameType, TracebackType
 from typing import Any
 
-from .netns import DEFAULT_PREFIX, _delete_netns, _kill_netns_processes, _list_netns, _run
-from .delayline import DelayLine, QueueStats
-from .shaping import ETH_HEADER, NFT_TABLE, loss_rule, nft_table, queue_rule, tc_lines
+from .counters import read_counters
+from .hosts import Host, check_host_names, links_per_host, plan_hosts
+from .link_control import LinkControl, require_delay_tools
+from .netns import DEFAULT_PREFIX, _delete_netns, _kill_netns_processes, _list_netns
 from .spec import LinkCounters, LinkEmulationError, LinkSpec
+from .topology import add_netns, wire_hosts
 
-__all__ = ["Host", "Testbed"]
-
-_HOST_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")
-_V6_DEFAULT = "/proc/sys/net/ipv6/conf/default/disable_ipv6"
-_IFNAMSIZ = 15  # Linux interface names: at most 15 characters.
-_HOST_IF = "eth0"
-_BRIDGE_IF = "br0"
-
-
-@dataclass(frozen=True)
-class Host:
-    """One emulated host: its namespace, address and interfaces."""
-
-    name: str
-    index: int  # 1-based; also the last octet(s) of the address in the default subnet
-    address: str
-    prefixlen: int
-    netns: str
-    mac: str
-    port: str  # its bridge port, in the bridge namespace
-
-    @property
-    def interface(self) -> str:
-        """Name of the host's link interface inside its namespace."""
-        return _HOST_IF
-
-
-# --------------------------------------------------------------------------
-# The testbed
-# --------------------------------------------------------------------------
+__all__ = ["Testbed"]
 
 
 def _sigterm_to_exit(signum: int, frame: FrameType | None) -> None:
@@ -98,71 +73,22 @@ class Testbed:
         kill_grace_s: float = 2.0,
     ) -> None:
         names = list(hosts)
-        if not names:
-            raise ValueError("Testbed needs at least one host")
-        for name in names:
-            if not isinstance(name, str) or not _HOST_NAME_RE.match(name):
-                raise ValueError(
-                    f"host name {name!r} must be 1-32 characters of letters, digits, '_' or '-', "
-                    "starting with a letter or digit"
-                )
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"duplicate host names: {', '.join(dupes)}")
+        check_host_names(names)
         if not re.match(r"^[a-z]{1,8}$", prefix):
             raise ValueError(f"prefix must be 1-8 lowercase letters (the pid follows it), got {prefix!r}")
-
-        if links is None:
-            links = LinkSpec()
-        if isinstance(links, LinkSpec):
-            specs = {n: links for n in names}
-        else:
-            unknown = sorted(set(links) - set(names))
-            missing = [n for n in names if n not in links]
-            if unknown or missing:
-                raise ValueError(
-                    f"links must give a LinkSpec for exactly the hosts; missing: {missing or '-'}, "
-                    f"unknown: {unknown or '-'}"
-                )
-            specs = {}
-            for n in names:
-                if not isinstance(links[n], LinkSpec):
-                    raise ValueError(f"links[{n!r}] must be a LinkSpec, got {links[n]!r}")
-                specs[n] = links[n]
-
-        net = ipaddress.ip_network(subnet)
-        if not isinstance(net, ipaddress.IPv4Network):
-            raise ValueError(f"subnet must be IPv4, got {subnet!r}")
-        if net.num_addresses - 2 < len(names):
-            raise ValueError(f"subnet {subnet} has room for {net.num_addresses - 2} hosts, need {len(names)}")
-        if len(names) > 0xFFFF:
-            raise ValueError("at most 65535 hosts")
+        specs = links_per_host(names, links)
 
         self.run_id = f"{prefix}{os.getpid()}-{secrets.token_hex(2)}"
         self.bridge_netns = self.run_id
         self._kill_grace_s = kill_grace_s
-        self._links: dict[str, LinkSpec] = specs
-        addresses = net.hosts()
-        self._hosts: dict[str, Host] = {}
-        for i, name in enumerate(names, start=1):
-            port = f"p-{name}" if len(name) + 2 <= _IFNAMSIZ else f"p{i}"
-            self._hosts[name] = Host(
-                name=name,
-                index=i,
-                address=str(next(addresses)),
-                prefixlen=net.prefixlen,
-                netns=f"{self.run_id}-{name}",
-                mac=f"02:00:00:00:{i >> 8:02x}:{i & 0xFF:02x}",
-                port=port,
-            )
+        self._hosts: dict[str, Host] = plan_hosts(names, subnet, self.run_id)
+        self._links = LinkControl(self.bridge_netns, self._hosts, specs)
         self._created: list[str] = []
         self._popen: list[subprocess.Popen[Any]] = []
         self._aproc: list[asyncio.subprocess.Process] = []
         self._state = "new"  # new -> up -> closed
         self._prev_sigterm: Any = None
         self._installed_sigterm = False
-        self._delay_line: DelayLine | None = None  # started when a link first needs it
-        self._queued: set[str] = set()  # hosts whose packets go to the delay line
         self._owner_pid = os.getpid()
 
     # ---- lookup -----------------------------------------------------------
@@ -188,7 +114,7 @@ class Testbed:
     def link(self, name: str) -> LinkSpec:
         """The link spec currently applied to ``name``."""
         self.host(name)
-        return self._links[name]
+        return self._links.spec(name)
 
     @property
     def namespaces(self) -> list[str]:
@@ -253,110 +179,14 @@ class Testbed:
             if signal.getsignal(signal.SIGTERM) in (_sigterm_to_exit, signal.SIG_IGN):
                 signal.signal(signal.SIGTERM, self._prev_sigterm)
 
-    def _add_netns(self, ns: str) -> None:
-        _run(["ip", "netns", "add", ns])
-        self._created.append(ns)
-        # New interfaces in this namespace get IPv6 off (no RS/MLD/DAD noise on
-        # the link); `lo` exists already and keeps ::1.
-        # (Written with sh rather than sysctl(8): procps is not always installed.)
-        _run(["ip", "netns", "exec", ns, "sh", "-c", f"[ ! -e {_V6_DEFAULT} ] || echo 1 > {_V6_DEFAULT}"])
-
     def _build(self) -> None:
-        self._require_delay_tools(self._links.values())
-        br = self.bridge_netns
-        self._add_netns(br)
+        require_delay_tools(self._links.spec(name) for name in self._hosts)
+        add_netns(self.bridge_netns, self._created)
         hosts = list(self._hosts.values())
         for h in hosts:
-            self._add_netns(h.netns)
-
-        # Bridge namespace: the bridge and one veth pair per host, created
-        # here with the peer end placed straight into the host's namespace.
-        lines = [f"link add {_BRIDGE_IF} type bridge stp_state 0 mcast_snooping 0", f"link set {_BRIDGE_IF} up"]
-        for h in hosts:
-            lines.append(
-                f"link add {h.port} address 02:00:00:01:{h.index >> 8:02x}:{h.index & 0xFF:02x} "
-                f"type veth peer name {_HOST_IF} netns {h.netns} address {h.mac}"
-            )
-            lines.append(f"link set {h.port} master {_BRIDGE_IF} up")
-        _run(["ip", "-n", br, "-batch", "-"], input="\n".join(lines) + "\n")
-        # Static forwarding: every host's MAC is known, so the bridge never
-        # floods unicast into other hosts' (shaped) downlinks.
-        blines = []
-        for h in hosts:
-            blines.append(f"link set dev {h.port} learning off flood off")
-            blines.append(f"fdb add {h.mac} dev {h.port} master static")
-        _run(["bridge", "-n", br, "-batch", "-"], input="\n".join(blines) + "\n")
-
-        # Host namespaces: lo up, address, static ARP for every other host.
-        for h in hosts:
-            lines = [
-                "link set lo up",
-                f"link set {_HOST_IF} gso_max_segs 1",
-                f"addr add {h.address}/{h.prefixlen} dev {_HOST_IF}",
-                f"link set {_HOST_IF} up",
-            ]
-            lines += [
-                f"neigh replace {o.address} lladdr {o.mac} dev {_HOST_IF} nud permanent"
-                for o in hosts
-                if o is not h
-            ]
-            _run(["ip", "-n", h.netns, "-batch", "-"], input="\n".join(lines) + "\n")
-
-        # Loss: one chain and one named counter per sending host.
-        specs = {h.index: self._links[h.name] for h in hosts}
-        _run(["ip", "netns", "exec", br, "nft", "-f", "-"], input=nft_table(hosts, specs))
-
-        for h in hosts:
-            self._apply_shaping(h, self._links[h.name], fresh=True)
-        for h in hosts:
-            self._apply_delay(h, self._links[h.name])
-
-    def _apply_shaping(self, h: Host, spec: LinkSpec, *, fresh: bool) -> None:
-        """(Re)install uplink and downlink qdiscs for ``h``."""
-        for ns, dev in ((h.netns, _HOST_IF), (self.bridge_netns, h.port)):
-            if not fresh:
-                # Deleting a root that is not there (noqueue) fails harmlessly.
-                _run(["tc", "-n", ns, "qdisc", "del", "dev", dev, "root"], check=False)
-            lines = tc_lines(dev, spec)
-            if not lines:
-                continue
-            _run(["tc", "-n", ns, "-batch", "-"], input="\n".join(lines) + "\n")
-
-    @staticmethod
-    def _require_delay_tools(specs: Iterable[LinkSpec]) -> None:
-        """Refuse delay, jitter and burst loss up front (before touching any
-        link) when ``iptables`` is missing: it puts packets in the delay line's queue."""
-        if any(s.needs_delay_line for s in specs) and shutil.which("iptables") is None:
-            raise LinkEmulationError(
-                "delay, jitter and burst loss need iptables (its NFQUEUE target feeds the delay line); "
-                "install the Debian package iptables"
-            )
-
-    def _ensure_delay_line(self) -> DelayLine:
-        if self._delay_line is None:
-            # br_netfilter hands bridged IPv4 packets to iptables' FORWARD
-            # chain; on by default in a new namespace, but say so.
-            knob = "/proc/sys/net/bridge/bridge-nf-call-iptables"
-            _run(["ip", "netns", "exec", self.bridge_netns, "sh", "-c", f"echo 1 > {knob}"])
-            line = DelayLine(self.bridge_netns, [h.index for h in self._hosts.values()])
-            self._delay_line = line  # before start: close() must stop a half-started one too
-            line.start()
-        return self._delay_line
-
-    def _apply_delay(self, h: Host, spec: LinkSpec) -> None:
-        """Route ``h``'s packets through the delay line if ``spec`` needs it, or stop doing so.
-
-        The queue is configured before packets are sent to it; packets held at
-        a change keep the release time they were given."""
-        iptables = ["ip", "netns", "exec", self.bridge_netns, "iptables", "-w"]
-        if spec.needs_delay_line:
-            self._ensure_delay_line().configure(h.index, spec)
-            if h.name not in self._queued:
-                _run([*iptables, "-A", "FORWARD", *queue_rule(h.port, h.index)])
-                self._queued.add(h.name)
-        elif h.name in self._queued:
-            _run([*iptables, "-D", "FORWARD", *queue_rule(h.port, h.index)])
-            self._queued.discard(h.name)
+            add_netns(h.netns, self._created)
+        wire_hosts(self.bridge_netns, hosts, {h.index: self._links.spec(h.name) for h in hosts})
+        self._links.install()
 
     def set_link(self, name: str, spec: LinkSpec) -> None:
         """Change ``name``'s link in place (between runs; counters keep counting).
@@ -368,15 +198,7 @@ class Testbed:
             raise ValueError(f"spec must be a LinkSpec, got {spec!r}")
         h = self.host(name)
         self._require_up()
-        self._require_delay_tools([spec])
-        self._apply_shaping(h, spec, fresh=False)
-        rule = loss_rule(h.index, spec)
-        script = f"flush chain bridge {NFT_TABLE} loss_h{h.index}\n"
-        if rule:
-            script += f"add rule bridge {NFT_TABLE} loss_h{h.index} {rule}\n"
-        _run(["ip", "netns", "exec", self.bridge_netns, "nft", "-f", "-"], input=script)
-        self._apply_delay(h, spec)
-        self._links[name] = spec
+        self._links.set_link(h, spec)
 
     def _require_up(self) -> None:
         if self._state != "up":
@@ -408,10 +230,7 @@ class Testbed:
                         ap.terminate()
                     except ProcessLookupError:
                         pass
-            if self._delay_line is not None:
-                # Closing its control pipe stops it; what it still holds is dropped.
-                self._delay_line.close()
-                self._delay_line = None
+            self._links.close()
             mine = self._owned_namespaces()
             survivors = _kill_netns_processes(mine, self._kill_grace_s)
             for p in self._popen:
@@ -505,41 +324,7 @@ class Testbed:
     def counters(self) -> dict[str, LinkCounters]:
         """Per-host link counters since setup (subtract two readings for a run)."""
         self._require_up()
-        cp = _run(["ip", "netns", "exec", self.bridge_netns, "nft", "-j", "list", "counters",
-                   "table", "bridge", NFT_TABLE])
-        dropped: dict[str, tuple[int, int]] = {}
-        for item in json.loads(cp.stdout).get("nftables", []):
-            c = item.get("counter")
-            if c:
-                dropped[c["name"]] = (int(c["packets"]), int(c["bytes"]))
-        down_drops: dict[str, int] = {}
-        cp = _run(["tc", "-n", self.bridge_netns, "-s", "-j", "qdisc", "show"])
-        for q in json.loads(cp.stdout or "[]"):
-            if q.get("root"):
-                down_drops[q.get("dev", "")] = int(q.get("drops", 0))
-        # Burst losses and kernel-queue overflows of the delay line; a delay
-        # line that died raises here rather than leaving silent gaps.
-        delayed = self._delay_line.stats() if self._delay_line is not None else {}
-        out: dict[str, LinkCounters] = {}
-        for h in self._hosts.values():
-            cp = _run(["ip", "-n", h.netns, "-s", "-j", "link", "show", "dev", _HOST_IF])
-            stats = json.loads(cp.stdout)[0]["stats64"]
-            cp = _run(["tc", "-n", h.netns, "-s", "-j", "qdisc", "show", "dev", _HOST_IF])
-            up_drops = sum(int(q.get("drops", 0)) for q in json.loads(cp.stdout or "[]") if q.get("root"))
-            dp, db = dropped.get(f"dropped_h{h.index}", (0, 0))
-            dl = delayed.get(h.index, QueueStats())
-            out[h.name] = LinkCounters(
-                tx_bytes=int(stats["tx"]["bytes"]),
-                tx_packets=int(stats["tx"]["packets"]),
-                rx_bytes=int(stats["rx"]["bytes"]),
-                rx_packets=int(stats["rx"]["packets"]),
-                dropped=dp + dl.dropped,
-                # The bridge hook sees frames with the Ethernet header already
-                # pulled; add it back so dropped_bytes compares with tx_bytes.
-                dropped_bytes=db + dp * ETH_HEADER + dl.dropped_bytes,
-                queue_drops=up_drops + down_drops.get(h.port, 0) + dl.kernel_drops,
-            )
-        return out
+        return read_counters(self.bridge_netns, self._hosts.values(), self._links.delay_stats)
 
     async def acounters(self) -> dict[str, LinkCounters]:
         """:meth:`counters` off the event loop (it runs a few short commands per host)."""

@@ -106,6 +106,25 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
             await super().add_observation(request, serverobservation)
 
 
+class _UnknownPaths(aiocoap.resource.Resource, aiocoap.resource.PathCapable):
+    """The paths under ``parent`` that no resource has.  The service answers
+    them, so its 4.04 says what exists there (the named queries beside a
+    misspelled one); aiocoap's own 4.04 carries no diagnostic."""
+
+    def __init__(self, service: Service, parent: str) -> None:
+        super().__init__()
+        self.service = service
+        self.parent = parent
+
+    async def render(self, request: aiocoap.Message) -> aiocoap.Message:
+        path = self.parent + "/" + "/".join(request.opt.uri_path)
+        try:
+            req = request_from_message(path, request)
+        except ValueError:
+            return message_from_response(Response.error(Status.METHOD_NOT_ALLOWED, f"{request.code} not supported"))
+        return message_from_response(await handle_safely(self.service, req, log))
+
+
 def _check_port_free(host: str, port: int) -> None:
     """Fail clearly if another process already serves CoAP on (host, port).
 
@@ -174,9 +193,13 @@ class CoapServerTransport:
             [".well-known", "core"],
             aiocoap.resource.WKCResource(site.get_resources_as_linkheader, impl_info=None),
         )
+        parents: set[tuple[str, ...]] = set()
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
             site.add_resource(segments, _ServiceResource(service, info, tuning_for, security))
+            parents.add(tuple(segments[:-1]))
+        for parent in sorted(parents - {()}):
+            site.add_resource(list(parent), _UnknownPaths(service, "/" + "/".join(parent)))
         logger = logging.getLogger("coapkb.coap.server")
         if not any(isinstance(f, _RateLimitFilter) for f in logger.filters):
             logger.addFilter(_RateLimitFilter())

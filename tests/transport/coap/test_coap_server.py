@@ -400,8 +400,10 @@ async def test_other_bad_bodies_are_400(
 async def test_unknown_named_query_is_404(
     transport: ClientTransport, client: KBClient, peer: Endpoint, server: ServerProcess
 ) -> None:
-    # (aiocoap's Site answers this one: an empty 4.04, no diagnostic)
-    await expect_error(transport, peer, Request(Method.GET, "/kb/q/drop-everything", {"name": "x"}), Status.NOT_FOUND)
+    response = await expect_error(
+        transport, peer, Request(Method.GET, "/kb/q/drop-everything", {"name": "x"}), Status.NOT_FOUND
+    )
+    assert "object-location" in response.text()  # the diagnostic lists the named queries
     with pytest.raises(QueryFailed, match=r"4\.04"):
         await client.named(peer, "nope")
     await assert_healthy(client, peer, server)

@@ -1,0 +1,37 @@
+"""The limits every query runs under: a row limit and an optional time budget."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+from .errors import QueryTimeout
+from .results import Term
+
+
+class Deadline:
+    """Checks a monotonic deadline between results."""
+
+    __slots__ = ("budget", "end")
+
+    def __init__(self, budget_s: float | None) -> None:
+        self.budget = budget_s
+        self.end = None if budget_s is None else time.monotonic() + budget_s
+
+    def check(self, rows: int) -> None:
+        if self.end is not None and time.monotonic() > self.end:
+            raise QueryTimeout(self.budget or 0.0, rows)
+
+
+def take(items: Iterable[Term | tuple], limit: int, deadline: Deadline) -> tuple[list, bool]:
+    """Up to ``limit`` items, and whether more existed; checks the deadline
+    after every item (one ``next()`` on a lazy result = evaluating up to the
+    next solution)."""
+    out: list = []
+    for item in items:
+        if len(out) == limit:
+            return out, True
+        out.append(item)
+        deadline.check(len(out))
+    return out, False
+
