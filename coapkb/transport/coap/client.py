@@ -30,6 +30,7 @@ from .reliability import ReliabilityLayer
 from .reliability.cocoa_hooks import RetransmissionController
 from .reliability.layer import Attempt, ExchangeTimeout
 from .reliability.rto import TransmissionProfile
+from .security import CoapClientSecurity
 
 #: Largest body sent in one datagram (aiocoap's default block size).
 MAX_SINGLE_BODY = 1024
@@ -74,9 +75,9 @@ class CoapClientTransport:
     ``adaptive``) applied by a :class:`RetransmissionController`."""
 
     def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer | RetransmissionController,
-                 security: Any = None) -> None:
+                 security: CoapClientSecurity | None = None) -> None:
         self._ctx = ctx
-        #: A :class:`coapkb.security.coap.ClientSecurity` (OSCORE by EDHOC to every peer), or None.
+        #: Protects every request (OSCORE by EDHOC to every peer), or None.
         self.security = security
         self._hooks = hooks
         self.reliability = reliability
@@ -84,18 +85,17 @@ class CoapClientTransport:
 
     @classmethod
     async def create(
-        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust", security: Any = None,
+        cls, retransmission: ReliabilityLayer | TransmissionProfile | str = "robust",
+        security: CoapClientSecurity | None = None,
     ) -> "CoapClientTransport":
         """``retransmission``: a layer (shared with the robot's server), ``robust``, or a CON profile.
-        ``security``: a :class:`coapkb.security.coap.ClientSecurity`, or None (unprotected)."""
+        ``security``: OSCORE keyed by EDHOC (:mod:`coapkb.security.coap`), or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
             logger.addFilter(_AbandonedTryFilter())
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername=logger.name)
         if security is not None:
-            from ...security.coap import install_oscore
-
-            install_oscore(ctx)
+            security.install(ctx)
         hooks = ContextHooks.of(ctx)
         if retransmission == "robust":
             retransmission = ReliabilityLayer()
@@ -137,8 +137,6 @@ class CoapClientTransport:
         if self.security is None:
             async with asyncio.timeout(timeout):
                 return await exchange()
-        from ...security.coap import CONTEXT_LOST
-
         used = None
         try:
             async with asyncio.timeout(timeout):
@@ -147,7 +145,7 @@ class CoapClientTransport:
                     used = self.security.context(self._ctx, peer)
                     try:
                         return await exchange()
-                    except CONTEXT_LOST as exc:
+                    except self.security.context_lost as exc:
                         if again:
                             raise
                         logging.getLogger("coapkb.security").warning(
