@@ -28,9 +28,11 @@ Server (:class:`ServerSecurity`)
     timeout instead of re-keying: RFC 8613 section 8.2 allows the answer);
     a bound on responder contexts (aiocoap 0.4.17 has 47 connection
     identifiers and never frees one); a replay refused with 4.01 (aiocoap
-    0.4.17's EDHOC contexts fail its replay check with an AttributeError);
-    and the per-resource policy
-    (:mod:`.policy`) in front of every resource but ``/.well-known/core``.
+    0.4.17's EDHOC contexts fail its replay check with an AttributeError).
+    It names the member behind each request's context
+    (:meth:`ServerSecurity.sender`) and carries the team's rules
+    (:mod:`.policy`), which the transport holds every resource but
+    ``/.well-known/core`` to.
 """
 
 from __future__ import annotations
