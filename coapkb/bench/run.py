@@ -86,7 +86,7 @@ from ..errors import CoapkbError
 from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
 from .stats import percentile
 from ..transport.base import Endpoint, TrafficCounters
-from ..transport.registry import transport_for
+from ..transport.registry import find, transport_for
 
 __all__ = [
     "COLUMNS",
@@ -213,18 +213,27 @@ def security_label(system: str, on: bool) -> str:
 
 
 def _security_label(d: SystemDef, on: bool) -> str:
-    mechanism = transport_for(d.transport).security
-    return mechanism if mechanism is not None and _protected(d, on) else "none"
+    return _mechanism(d, on) or "none"
 
 
 def _protected(d: SystemDef, on: bool) -> bool:
+    return _mechanism(d, on) is not None
+
+
+def _mechanism(d: SystemDef, on: bool) -> str | None:
+    """What protects system ``d``'s messages with security ``on``, or None."""
     # The seed's systems stay as the seed ran them, unprotected: they are the
     # baseline its claims are checked against (docs/benchmarks.md).
-    return on and d.query_wire != "seed" and transport_for(d.transport).security is not None
+    transport = find(d.transport)  # None for an unknown system: reported as a failed row
+    if not on or d.query_wire == "seed" or transport is None:
+        return None
+    return transport.security
 
 
 def _retransmission_label(scheme: str, profile: str) -> str:
-    transport = transport_for(scheme)
+    transport = find(scheme)
+    if transport is None:  # an unknown system: reported as a failed row
+        return profile
     if transport.retransmits_itself:
         return "tcp"
     return "none" if transport.reliability is None else profile

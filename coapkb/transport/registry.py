@@ -130,6 +130,11 @@ SCHEMES: tuple[str, ...] = tuple(t.scheme for t in REGISTERED)
 _BY_SCHEME = {name: t for t in REGISTERED for name in (t.scheme, *t.aliases)}
 
 
+def find(scheme: str) -> TransportInfo | None:
+    """The transport registered for ``scheme`` (or one of its aliases), None if there is none."""
+    return _BY_SCHEME.get(scheme)
+
+
 def transport_for(scheme: str) -> TransportInfo:
     """The transport registered for ``scheme`` (or one of its aliases)."""
     found = _BY_SCHEME.get(scheme)
