@@ -38,8 +38,6 @@ class TransportInfo:
     """One registered transport."""
 
     scheme: str
-    #: What it is, for help texts.
-    summary: str
     #: Datagrams (UDP); else a byte stream (TCP), which retransmits by itself.
     datagram: bool
     #: The port it usually listens on.
@@ -115,14 +113,17 @@ async def _zenoh_server(service: Service, endpoint: Endpoint, retransmission: ob
 # ----------------------------------------------------------------- the registrations
 
 REGISTERED: tuple[TransportInfo, ...] = (
-    TransportInfo("coap", "CoAP over UDP (aiocoap)", datagram=True, default_port=5683, open_client=_coap_client, serve=_coap_server,
+    # CoAP over UDP (aiocoap), the primary transport.
+    TransportInfo("coap", datagram=True, default_port=5683, open_client=_coap_client, serve=_coap_server,
                   reliability=_coap_reliability, security="oscore", resource_directory=True),
-    TransportInfo("zmq", "ZeroMQ over TCP", datagram=False, default_port=5555, open_client=_zmq_client, serve=_zmq_server,
+    # ZeroMQ over TCP, the seed's transport.
+    TransportInfo("zmq", datagram=False, default_port=5555, open_client=_zmq_client, serve=_zmq_server,
                   security="curve", aliases=("tcp",)),
-    TransportInfo("zenoh", "Zenoh over TCP", datagram=False, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
+    # Zenoh over TCP.
+    TransportInfo("zenoh", datagram=False, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
                   security="tls"),
     # Zenoh's UDP link has no TLS (and no DTLS link exists in Zenoh 1.x).
-    TransportInfo("zenoh+udp", "Zenoh over UDP", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server),
+    TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server),
 )
 
 #: The registered schemes, in registration order.
