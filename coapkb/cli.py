@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from .errors import CoapkbError
 from .wire import codec
-from .transport import SCHEMES
+from .transport import SCHEMES, ClientSecurity, Endpoint, ServerSecurity
 from .transport.messages import ContentFormat, Method
 from .world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
@@ -87,9 +87,7 @@ async def _until_signalled() -> None:
             loop.remove_signal_handler(sig)
 
 
-def _endpoint(hostport: str, scheme: str):  # -> Endpoint
-    from .transport import Endpoint
-
+def _endpoint(hostport: str, scheme: str) -> Endpoint:
     try:
         return Endpoint.parse(hostport, default_scheme=scheme)
     except ValueError as exc:
@@ -106,51 +104,27 @@ def _add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
                    help=f"whose key in --credentials to use (default {identity})")
 
 
-def _client_security(args: argparse.Namespace, peer):  # -> ClientSecurity | ZmqClientSecurity | ZenohClientSecurity | None
+def _client_security(args: argparse.Namespace, peer: Endpoint) -> ClientSecurity | None:
     if getattr(args, "credentials", None) is None:
         return None
-    from .security import load_identity
+    from .security import load_identity, mechanism_for
 
-    identity = load_identity(args.credentials, args.identity)
-    if peer.scheme == "zmq":
-        from .security.curve import ZmqClientSecurity
-
-        if not args.peer:
-            raise UserError("--credentials over zmq: name the member serving there with --peer (CurveZMQ needs its key)")
-        return ZmqClientSecurity(identity, {peer.hostport: args.peer})
-    if peer.scheme == "zenoh":
-        from .security.zenoh_tls import ZenohClientSecurity
-
-        # Any team certificate may serve there; --peer also insists on who it is.
-        return ZenohClientSecurity(identity, {peer.hostport: args.peer} if args.peer else None)
-    if peer.scheme != "coap":
-        raise UserError(f"--credentials: the {peer.scheme} transport cannot be secured (zenoh+udp: use zenoh://, TLS)")
-    from .security.coap import ClientSecurity
-
-    # EDHOC finds the responder in the trust list; --peer also insists on who it is.
-    return ClientSecurity(identity, {peer.hostport: args.peer} if args.peer else None)
+    mechanism = mechanism_for(peer.scheme)
+    if mechanism.needs_server_name and not args.peer:
+        raise UserError(f"--credentials over {peer.scheme}: name the member serving there with --peer "
+                        f"({mechanism.title} needs its key)")
+    # Otherwise the handshake finds who serves there; --peer also insists on who it is.
+    return mechanism.client(load_identity(args.credentials, args.identity),
+                            {peer.hostport: args.peer} if args.peer else None)
 
 
-def _server_security(args: argparse.Namespace):  # -> ServerSecurity | ZmqServerSecurity | ZenohServerSecurity | None
+def _server_security(args: argparse.Namespace) -> ServerSecurity | None:
     if args.credentials is None:
         return None
-    from .security import load_identity
+    from .security import load_identity, server_security
 
     # A KB server takes queries from every member; tasks and decisions are robots' business.
-    identity = load_identity(args.credentials, args.identity)
-    if args.transport == "zmq":
-        from .security.curve import ZmqServerSecurity
-
-        return ZmqServerSecurity(identity)
-    if args.transport == "zenoh":
-        from .security.zenoh_tls import ZenohServerSecurity
-
-        return ZenohServerSecurity(identity)
-    if args.transport != "coap":
-        raise UserError(f"--credentials: the {args.transport} transport cannot be secured (zenoh+udp: use zenoh, TLS)")
-    from .security.coap import ServerSecurity
-
-    return ServerSecurity(identity)
+    return server_security(args.transport, load_identity(args.credentials, args.identity))
 
 
 def _add_keys(sub: argparse._SubParsersAction) -> None:

@@ -57,6 +57,7 @@ import tomli_w
 from .security.settings import SecurityConfig, parse_security
 from .transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from .transport.base import Endpoint
+from .transport.registry import transport_for
 
 KB_MODULES = ("Object", "Location", "Capability")
 STRATEGIES = ("compute-by-all", "compute-and-communicate")
@@ -314,7 +315,7 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("cost.reserve_wh: must not be negative")
     if not 0 < c.cost.unload_at_fraction <= 1:
         raise ConfigError("cost.unload_at_fraction: must be in (0, 1]")
-    if c.discovery.method == "rd" and c.transport != "coap":
+    if c.discovery.method == "rd" and not transport_for(c.transport).resource_directory:
         raise ConfigError(f"discovery.method: a Resource Directory speaks CoAP, but this robot uses {c.transport}")
     if c.central is None:
         # With a directory the teammates, and so the holders, are found at start-up.
@@ -333,7 +334,7 @@ def _discovery(section: Any) -> DiscoveryConfig:
     if method not in DISCOVERY_METHODS:
         raise ConfigError(f"discovery.method: {method!r} is not one of {', '.join(DISCOVERY_METHODS)}")
     rd = None if section.get("rd") is None else _endpoint(section["rd"], "discovery.rd")
-    if rd is not None and rd.scheme != "coap":
+    if rd is not None and not transport_for(rd.scheme).resource_directory:
         raise ConfigError(f"discovery.rd: a Resource Directory is a coap:// endpoint, got {rd}")
     discovery = DiscoveryConfig(
         method=method,

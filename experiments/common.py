@@ -12,7 +12,10 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from coapkb.bench.run import PORTS  # each transport's usual port in a namespace (the bench's own)
+from coapkb.transport.registry import REGISTERED, transport_for
+
+#: Each transport's usual port (every host of a testbed has its own namespace).
+PORTS = {t.scheme: t.default_port for t in REGISTERED}
 
 ROOT = Path(__file__).resolve().parent.parent
 KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
@@ -76,7 +79,7 @@ async def start_loopback_kb_server(transport: str) -> tuple[asyncio.subprocess.P
     returns the process and its endpoint."""
     from coapkb.transport import Endpoint
 
-    port = free_port(socket.SOCK_DGRAM if transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM)
+    port = free_port(socket.SOCK_DGRAM if transport_for(transport).datagram else socket.SOCK_STREAM)
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}",
         "--transport", transport, stdout=asyncio.subprocess.PIPE, cwd=ROOT,

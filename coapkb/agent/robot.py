@@ -26,13 +26,13 @@ from typing import Any, Iterable
 import cbor2
 
 from ..kb.client import KBClient
-from ..security import AccessPolicy, SecurityError, load_identity
+from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..config import RobotConfig
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
-from ..transport import open_client, reliability_for, serve
+from ..transport import ClientSecurity, open_client, reliability_for, serve
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
 from .lease import LEASE_PATH, Lease
@@ -121,7 +121,8 @@ class Robot:
 
     @classmethod
     async def _start(cls, config: RobotConfig, query_wire: str) -> "Robot":
-        client_security = robot_security(config)  # first: a bad key stops the robot before the KB loads
+        secured = robot_security(config)  # first: a bad key stops the robot before the KB loads
+        client_security = None if secured is None else secured[1]
         kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
         router = Router()
         if kb is not None:
@@ -174,12 +175,12 @@ class Robot:
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot._mount()  # before serving: the transport publishes the resource list
         try:
-            server_security = None
-            if client_security is not None:
+            server_side = None
+            if secured is not None:
                 # Decisions only from whom this robot's Controller waits for.
                 deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
-                server_security = _server_security(config, client_security.identity, AccessPolicy(deciders))
-            robot.server = await serve(router, config.bind, retransmission=reliability, security=server_security)
+                server_side = server_security(config.transport, secured[0], AccessPolicy(deciders))
+            robot.server = await serve(router, config.bind, retransmission=reliability, security=server_side)
         except BaseException:
             await client.aclose()
             raise
@@ -321,46 +322,19 @@ class Robot:
         )
 
 
-def robot_security(config: RobotConfig) -> Any:
-    """The client side of ``config``'s ``[security]`` (a
-    :class:`~coapkb.security.coap.ClientSecurity`, CurveZMQ's or Zenoh's mTLS
-    one), or None.  Reads the key now, so a missing or unreadable key stops
-    the robot at start-up."""
+def robot_security(config: RobotConfig) -> tuple[TeamIdentity, ClientSecurity] | None:
+    """The member ``config``'s ``[security]`` names and its client side over
+    the robot's transport, or None.  Reads the key now, so a missing or
+    unreadable key stops the robot at start-up."""
     if config.security is None:
         return None
-    if config.transport not in ("coap", "zmq", "zenoh"):
-        raise SecurityError(f"[security]: the {config.transport} transport has no security; use coap, zmq or zenoh")
+    mechanism = mechanism_for(config.transport)  # a transport that cannot be secured: before the key
     identity = load_identity(config.security.credentials, config.security.identity or config.robot_id)
     # Each teammate's endpoint must answer with that teammate's credential.
     expected = {m.endpoint.hostport: r for r, m in config.team.items()}
     if config.central is not None:
         expected[config.central.hostport] = "central"
-    if config.transport == "zmq":
-        from ..security.curve import ZmqClientSecurity
-
-        return ZmqClientSecurity(identity, expected)
-    if config.transport == "zenoh":
-        from ..security.zenoh_tls import ZenohClientSecurity
-
-        return ZenohClientSecurity(identity, expected)
-    from ..security.coap import ClientSecurity
-
-    return ClientSecurity(identity, expected)
-
-
-def _server_security(config: RobotConfig, identity: Any, policy: AccessPolicy) -> Any:
-    """The server side for ``config``'s transport: OSCORE/EDHOC (CoAP), CurveZMQ (ZeroMQ) or mTLS (Zenoh)."""
-    if config.transport == "zmq":
-        from ..security.curve import ZmqServerSecurity
-
-        return ZmqServerSecurity(identity, policy)
-    if config.transport == "zenoh":
-        from ..security.zenoh_tls import ZenohServerSecurity
-
-        return ZenohServerSecurity(identity, policy)
-    from ..security.coap import ServerSecurity
-
-    return ServerSecurity(identity, policy)
+    return identity, mechanism.client(identity, expected)
 
 
 async def broadcast_decision(

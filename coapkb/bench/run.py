@@ -74,7 +74,6 @@ from .linkemu import (
 from ..harness.team import (
     CLUSTER_SIZE,
     DEFAULT_ONTOLOGIES,
-    SECURITY_SCHEMES,
     Placement,
     Team,
     TeamError,
@@ -88,6 +87,7 @@ from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_
 from .stats import percentile
 from ..transport.base import Endpoint, TrafficCounters
 from ..transport.coap.reliability import ROBUST
+from ..transport.registry import find, transport_for
 
 __all__ = [
     "COLUMNS",
@@ -108,10 +108,6 @@ __all__ = [
     "timeouts_for",
 ]
 
-#: Fixed ports: every host has its own namespace, so all can use the usual one.
-PORTS = {"coap": 5683, "zmq": 5555, "zenoh": 7447, "zenoh+udp": 7447}
-#: Transports over TCP: their retransmissions are the kernel's (``RetransSegs``).
-TCP_TRANSPORTS = ("zmq", "zenoh")
 FEEDER = "feeder"
 CENTRAL = "central"
 
@@ -217,19 +213,30 @@ def security_label(system: str, on: bool) -> str:
 
 
 def _security_label(d: SystemDef, on: bool) -> str:
-    return SECURITY_SCHEMES[d.transport] if _protected(d, on) else "none"
+    return _mechanism(d, on) or "none"
 
 
 def _protected(d: SystemDef, on: bool) -> bool:
+    return _mechanism(d, on) is not None
+
+
+def _mechanism(d: SystemDef, on: bool) -> str | None:
+    """What protects system ``d``'s messages with security ``on``, or None."""
     # The seed's systems stay as the seed ran them, unprotected: they are the
     # baseline its claims are checked against (docs/benchmarks.md).
-    return on and d.query_wire != "seed" and d.transport in SECURITY_SCHEMES
+    transport = find(d.transport)  # None for an unknown system: reported as a failed row
+    if not on or d.query_wire == "seed" or transport is None:
+        return None
+    return transport.security
 
 
-def _retransmission_label(transport: str) -> str:
-    if transport in TCP_TRANSPORTS:
+def _retransmission_label(scheme: str) -> str:
+    transport = find(scheme)
+    if transport is None:  # an unknown system: reported as a failed row
+        return ROBUST
+    if transport.retransmits_itself:
         return "tcp"
-    return "none" if transport == "zenoh+udp" else ROBUST
+    return "none" if transport.reliability is None else ROBUST
 
 
 # --------------------------------------------------------------------------- placement
@@ -246,7 +253,8 @@ class NetnsPlacement(Placement):
         self.testbed = testbed
 
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
-        return Endpoint(spec.transport, self.testbed.address(name), PORTS[spec.transport])
+        # Every host has its own namespace, so all can use the transport's usual port.
+        return Endpoint(spec.transport, self.testbed.address(name), transport_for(spec.transport).default_port)
 
     def command(self, name: str, argv: list[str]) -> list[str]:
         return self.testbed.exec_args(name, argv)
@@ -407,7 +415,7 @@ async def run_once(
 
 async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str]) -> BenchRow:
     """``row`` with what one team run measured: link counters and the team's record."""
-    tcp = spec.transport in TCP_TRANSPORTS
+    tcp = transport_for(spec.transport).retransmits_itself  # the kernel's retransmissions (RetransSegs)
 
     async def reading() -> dict[str, Any]:
         counters = await testbed.acounters()

@@ -28,9 +28,11 @@ Server (:class:`ServerSecurity`)
     timeout instead of re-keying: RFC 8613 section 8.2 allows the answer);
     a bound on responder contexts (aiocoap 0.4.17 has 47 connection
     identifiers and never frees one); a replay refused with 4.01 (aiocoap
-    0.4.17's EDHOC contexts fail its replay check with an AttributeError);
-    and the per-resource policy
-    (:mod:`.policy`) in front of every resource but ``/.well-known/core``.
+    0.4.17's EDHOC contexts fail its replay check with an AttributeError).
+    It names the member behind each request's context
+    (:meth:`ServerSecurity.sender`) and carries the team's rules
+    (:mod:`.policy`), which the transport holds every resource but
+    ``/.well-known/core`` to.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ import contextvars
 import logging
 import secrets
 from dataclasses import dataclass, field
-from typing import Any, Awaitable, Callable
+from typing import Any, Callable
 
 import aiocoap
 import aiocoap.error
@@ -56,8 +58,9 @@ from aiocoap.oscore_sitewrapper import OscoreSiteWrapper
 from aiocoap.transports.oscore import OSCOREAddress, TransportOSCORE
 
 from ..transport.base import Endpoint, TransportError
+from ..transport.coap.security import HandshakePost
 from .keys import CIPHER_SUITE, EDHOC_METHOD, SecurityError, TeamIdentity, TeamMember
-from .policy import AccessPolicy, Verdict
+from .policy import AccessPolicy, TeamRules
 
 log = logging.getLogger(__name__)
 
@@ -143,11 +146,7 @@ class HandshakeStats:
     seconds: float = 0.0
 
 
-#: Carries one EDHOC message to a peer and returns the answer.
-Post = Callable[[Endpoint, bytes], Awaitable[aiocoap.Message]]
-
-
-def _con_post(ctx: aiocoap.Context) -> Post:
+def _con_post(ctx: aiocoap.Context) -> HandshakePost:
     async def post(peer: Endpoint, payload: bytes) -> aiocoap.Message:
         request = aiocoap.Message(code=POST, uri=f"coap://{peer.hostport}/.well-known/edhoc", payload=payload)
         return await ctx.request(request).response
@@ -164,7 +163,10 @@ def _encode_c_r(c_r: bytes) -> bytes:
 
 
 class ClientSecurity:
-    """A client's EDHOC-derived OSCORE contexts, one per peer, kept."""
+    """A client's EDHOC-derived OSCORE contexts, one per peer, kept (the
+    CoAP transport's :class:`~coapkb.transport.coap.security.CoapClientSecurity`)."""
+
+    context_lost = CONTEXT_LOST
 
     def __init__(self, identity: TeamIdentity, expected: dict[str, str] | None = None) -> None:
         self.identity = identity
@@ -180,7 +182,10 @@ class ClientSecurity:
     def _key(peer: Endpoint) -> str:
         return f"coap://{peer.hostport}/*"
 
-    async def ensure(self, ctx: aiocoap.Context, peer: Endpoint, post: Post | None = None) -> None:
+    def install(self, ctx: aiocoap.Context) -> None:
+        install_oscore(ctx)
+
+    async def ensure(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost | None = None) -> None:
         """An OSCORE context for ``peer`` in ``ctx``'s client credentials
         (EDHOC on first contact; callers racing here share one run).
         ``post(peer, payload)`` carries one EDHOC message and returns the
@@ -223,7 +228,7 @@ class ClientSecurity:
         if stale is None or ctx.client_credentials.get(key) is stale:
             ctx.client_credentials.pop(key, None)
 
-    async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: Post) -> None:
+    async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost) -> None:
         loop = asyncio.get_running_loop()
         started = loop.time()
         stats = HandshakeStats(str(peer))
@@ -257,7 +262,7 @@ class ClientSecurity:
         ctx.client_credentials[self._key(peer)] = context
         log.debug("EDHOC with %s (%s) done in %.3f s", peer, member.name, stats.seconds)
 
-    async def _post(self, post: Post, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
+    async def _post(self, post: HandshakePost, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
         stats.round_trips += 1
         stats.bytes_sent += len(payload)
         try:
@@ -460,13 +465,15 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
 
 @dataclass
 class ServerSecurity:
-    """A robot's server side: its EDHOC identity, the trust list, the policy."""
+    """A robot's server side: its EDHOC identity, the trust list, the policy
+    (the CoAP transport's :class:`~coapkb.transport.coap.security.CoapServerSecurity`)."""
 
     identity: TeamIdentity
     policy: AccessPolicy = field(default_factory=AccessPolicy)
 
     def __post_init__(self) -> None:
         verify()
+        self.rules = TeamRules(self.identity.trust, self.policy)
         self.credentials = CredentialsMap()
         self.credentials[_OWN_LABEL] = _edhoc_credentials(self.identity, None)
         for member in self.identity.trust.members:
@@ -475,15 +482,13 @@ class ServerSecurity:
     def wrap(self, site: Any) -> Any:
         return _TeamSiteWrapper(site, self.credentials)
 
-    def member_of(self, request: aiocoap.Message) -> TeamMember | None:
+    def sender(self, request: aiocoap.Message) -> str | None:
         """The team member a request came from, or None if it was not protected."""
         remote = request.remote
         if not isinstance(remote, OSCOREAddress):
             return None
         for claim in getattr(remote.security_context, "authenticated_claims", ()):
             if isinstance(claim, str) and claim.startswith(_MEMBER_LABEL):
-                return self.identity.trust.by_name(claim[len(_MEMBER_LABEL):])
+                member = self.identity.trust.by_name(claim[len(_MEMBER_LABEL):])
+                return None if member is None else member.name
         return None
-
-    def check(self, request: aiocoap.Message, path: str) -> Verdict:
-        return self.policy.decide(self.member_of(request), request.code.name, path)

@@ -5,9 +5,9 @@ CoAP-vs-ZeroMQ comparison stays fair.
 * The server's ROUTER is a CURVE server with its member's Curve key; a ZAP
   handler (pyzmq's asyncio authenticator) admits a connection only if the
   client's public key is in the trust list, and names the member as the
-  connection's User-Id.  The transport asks :meth:`ZmqServerSecurity.check`
-  per request (no connection, or a key not in the list, never gets that far:
-  the handshake fails and the client's request times out).
+  connection's User-Id, which the transport reports as the request's sender
+  (no connection, or a key not in the list, never gets that far: the
+  handshake fails and the client's request times out).
 * A client's DEALER to a peer is a CURVE client with its own key and the
   peer's public key (the member its configuration puts at that endpoint).
 """
@@ -15,16 +15,14 @@ CoAP-vs-ZeroMQ comparison stays fair.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import zmq
 import zmq.asyncio
 from zmq.auth.asyncio import AsyncioAuthenticator
 
 from ..transport.base import Endpoint
-from ..transport.messages import Request
-from .keys import SecurityError, TeamIdentity, TeamMember
-from .policy import AccessPolicy, Verdict
+from .keys import SecurityError, TeamIdentity
+from .policy import AccessPolicy, TeamRules
 
 ZAP_DOMAIN = "coapkb"
 
@@ -53,6 +51,7 @@ class ZmqServerSecurity:
     def __post_init__(self) -> None:
         self._public, self._secret = _curve_keys(self.identity)
         self._auth: _TeamAuthenticator | None = None
+        self.rules = TeamRules(self.identity.trust, self.policy)
 
     def callback(self, domain: str, key: bytes) -> bool:
         """ZAP: admit a client whose Curve public key (Z85) is a member's."""
@@ -69,11 +68,9 @@ class ZmqServerSecurity:
         sock.curve_server = True
         sock.zap_domain = ZAP_DOMAIN.encode("ascii")
 
-    def member_of(self, user_id: str | None) -> TeamMember | None:
-        return None if not user_id else self.identity.trust.by_name(user_id)
-
-    def check(self, user_id: str | None, request: Request) -> Verdict:
-        return self.policy.decide(self.member_of(user_id), str(request.method.value), request.path)
+    def sender(self, user_id: str | None) -> str | None:
+        member = None if not user_id else self.identity.trust.by_name(user_id)
+        return None if member is None else member.name
 
     def stop(self) -> None:
         if self._auth is not None:
@@ -90,7 +87,7 @@ class ZmqClientSecurity:
     def __post_init__(self) -> None:
         self._public, self._secret = _curve_keys(self.identity)
 
-    def configure(self, sock: Any, peer: Endpoint) -> None:
+    def configure(self, sock: zmq.asyncio.Socket, peer: Endpoint) -> None:
         """Make ``sock`` (not yet connected) a CURVE client of ``peer``."""
         name = self.expected.get(peer.hostport)
         if name is None:

@@ -1,8 +1,9 @@
-"""Who may do what on a robot: the authorisation policy (pure, no I/O).
+"""Who may do what on a robot: the team's one access table (pure, no I/O).
 
-The peer is the team member whose EDHOC credential keyed the OSCORE
-context the request arrived in (RFC 8613 section 3 binds a context to one
-peer; EDHOC authenticated that peer's credential against the trust list).
+The peer is the team member whose credential its transport's security
+authenticated (OSCORE: the EDHOC credential that keyed the context the
+request arrived in, RFC 8613 section 3; CurveZMQ: the client's Curve key;
+mTLS: the certificate of the querier's session).
 
 =========================================  ==================================
 request                                    allowed for
@@ -16,7 +17,10 @@ POST ``/decisions``                        the robot(s) deciding for this
 anything else                              nobody (4.03)
 =========================================  ==================================
 
-No OSCORE (or a context of no team member) is 4.01 Unauthorized; a member
+The rows that admit by role (:data:`ROLE_RULES`) are also what Zenoh's own
+access control enforces by certificate (:mod:`.zenoh_tls`).
+
+No credential (or one of no team member) is 4.01 Unauthorized; a member
 asking for something its role does not allow is 4.03 Forbidden (RFC 7252
 section 5.9.2.1/.4: the client is known but not permitted).
 """
@@ -26,12 +30,32 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Collection
 
-from ..transport.messages import Status
-from .keys import TeamMember
+from ..transport.messages import Response, Status
+from .keys import TeamMember, TeamTrust
 
 #: POSTs that only read (SPARQL by POST, RFC 8132's alternative to FETCH).
 READ_ONLY_POSTS = frozenset({"/kb/sparql"})
 READ_METHODS = frozenset({"GET", "FETCH"})
+
+
+@dataclass(frozen=True)
+class RoleRule:
+    """``method`` on ``path`` only for members of ``roles`` (and, with
+    ``deciders_only``, only for the ones deciding for this robot now)."""
+
+    method: str
+    path: str
+    roles: frozenset[str]
+    refusal: str
+    deciders_only: bool = False
+
+
+#: The writes a role may make; every other write is nobody's.
+ROLE_RULES: tuple[RoleRule, ...] = (
+    RoleRule("POST", "/tasks", frozenset({"feeder"}), "only the feeder posts tasks"),
+    RoleRule("POST", "/decisions", frozenset({"robot"}), "only the cluster's deciding robot posts decisions",
+             deciders_only=True),
+)
 
 
 @dataclass(frozen=True)
@@ -55,12 +79,30 @@ class AccessPolicy:
             return Verdict(False, Status.UNAUTHORIZED, "OSCORE with a team credential required")
         if method in READ_METHODS or (method == "POST" and path in READ_ONLY_POSTS):
             return ALLOW
-        if method == "POST" and path == "/tasks":
-            if member.role == "feeder":
-                return ALLOW
-            return Verdict(False, Status.FORBIDDEN, "only the feeder posts tasks")
-        if method == "POST" and path == "/decisions":
-            if member.role == "robot" and member.name in self.deciders():
-                return ALLOW
-            return Verdict(False, Status.FORBIDDEN, "only the cluster's deciding robot posts decisions")
+        for rule in ROLE_RULES:
+            if rule.method == method and rule.path == path:
+                if member.role in rule.roles and (not rule.deciders_only or member.name in self.deciders()):
+                    return ALLOW
+                return Verdict(False, Status.FORBIDDEN, rule.refusal)
         return Verdict(False, Status.FORBIDDEN, f"{method} {path} is not allowed to anyone")
+
+
+@dataclass(frozen=True)
+class TeamRules:
+    """The transport's :class:`~coapkb.transport.security.AccessRules`: a
+    sender's name to its member in ``trust``, held to ``policy``."""
+
+    trust: TeamTrust
+    policy: AccessPolicy
+    #: Why a request with no member's credential is refused, if the
+    #: transport's mechanism says it better than the policy.
+    unauthenticated: str | None = None
+
+    def refusal(self, sender: str | None, method: str, path: str) -> Response | None:
+        member = None if sender is None else self.trust.by_name(sender)
+        verdict = self.policy.decide(member, method, path)
+        if verdict.allowed:
+            return None
+        assert verdict.status is not None
+        reason = self.unauthenticated if member is None and self.unauthenticated else verdict.reason
+        return Response.error(verdict.status, reason)

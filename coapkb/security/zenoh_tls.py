@@ -19,9 +19,11 @@ and CurveZMQ on ZeroMQ, so a secured benchmark compares like with like.
 
 Authorisation per resource (:class:`~.policy.AccessPolicy`), in two layers:
 
-1. **Zenoh's access control**, keyed by the certificate's common name: a
-   query on ``coapkb/tasks`` from anyone but the feeder, or on
-   ``coapkb/decisions`` from anyone but a robot, is dropped by Zenoh itself
+1. **Zenoh's access control**, keyed by the certificate's common name, from
+   the rows of the team's access table that admit by role
+   (:data:`~.policy.ROLE_RULES`): a query on ``coapkb/tasks`` from anyone
+   but the feeder, or on ``coapkb/decisions`` from anyone but a robot, is
+   dropped by Zenoh itself
    (the querier gets no reply: its client reports the peer unreachable).
    This is bound to the TLS certificate, so no member can get round it; but
    it sees key expressions, not coapkb's methods (they travel in the
@@ -52,10 +54,9 @@ from dataclasses import dataclass, field
 import zenoh
 
 from ..transport.base import Endpoint, PeerUnreachable
-from ..transport.messages import Request
 from ..transport.zenoh.mapping import key_for_path
-from .keys import SecurityError, TeamIdentity, TeamMember
-from .policy import AccessPolicy, Verdict
+from .keys import SecurityError, TeamIdentity
+from .policy import ROLE_RULES, AccessPolicy, TeamRules
 from .tls import TlsFiles
 
 _TLS = "transport/link/tls/"
@@ -87,6 +88,12 @@ class ZenohServerSecurity:
 
     def __post_init__(self) -> None:
         self.files = self.identity.tls()  # one clear line now if a file is missing
+        self.rules = TeamRules(self.identity.trust, self.policy,
+                               unauthenticated="a Zenoh session over mTLS with a team certificate required")
+
+    @staticmethod
+    def locator(plain: str) -> str:
+        return tls_locator(plain)
 
     def configure(self, config: zenoh.Config) -> None:
         """Make a (listening) session's config present our certificate and demand the client's."""
@@ -100,16 +107,16 @@ class ZenohServerSecurity:
         certificate, ``/decisions`` only for robots' (module doc, layer 1),
         and no member's session may publish, serve or answer through this one."""
         members = self.identity.trust.members
-        only = {"/tasks": {"feeder"}, "/decisions": {"robot"}}
         rules: list[dict[str, object]] = []
         subjects: list[dict[str, object]] = []
         policies: list[dict[str, object]] = []
-        for index, (path, roles) in enumerate(only.items()):
-            others = [m.name for m in members if m.role not in roles]
+        # By key expression: Zenoh's access control cannot tell a rule's method from another.
+        for index, rule in enumerate(ROLE_RULES):
+            others = [m.name for m in members if m.role not in rule.roles]
             if not others:
                 continue
             rules.append({"id": f"r{index}", "messages": ["query"], "flows": ["ingress"], "permission": "deny",
-                          "key_exprs": [key_for_path(path)]})
+                          "key_exprs": [key_for_path(rule.path)]})
             subjects.append({"id": f"s{index}", "cert_common_names": others})
             policies.append({"rules": [f"r{index}"], "subjects": [f"s{index}"]})
         # A client session only asks (and subscribes to its notifications). A
@@ -123,7 +130,7 @@ class ZenohServerSecurity:
         return {"enabled": True, "default_permission": "allow", "rules": rules, "subjects": subjects,
                 "policies": policies}
 
-    def member_of(self, session: zenoh.Session, source_zid: str | None) -> TeamMember | None:
+    def sender(self, session: zenoh.Session, source_zid: str | None) -> str | None:
         """The member whose certificate authenticated the links of session ``source_zid``."""
         if not source_zid:
             return None
@@ -131,13 +138,8 @@ class ZenohServerSecurity:
         if len(names) != 1:  # no such session, or links with different certificates
             return None
         name = names.pop()
-        return None if not name else self.identity.trust.by_name(name)
-
-    def check(self, member: TeamMember | None, request: Request) -> Verdict:
-        verdict = self.policy.decide(member, str(request.method.value), request.path)
-        if member is None and not verdict.allowed:
-            return Verdict(False, verdict.status, "a Zenoh session over mTLS with a team certificate required")
-        return verdict
+        member = None if not name else self.identity.trust.by_name(name)
+        return None if member is None else member.name
 
 
 @dataclass
@@ -149,6 +151,10 @@ class ZenohClientSecurity:
 
     def __post_init__(self) -> None:
         self.files = self.identity.tls()
+
+    @staticmethod
+    def locator(plain: str) -> str:
+        return tls_locator(plain)
 
     def configure(self, config: zenoh.Config) -> None:
         """Make a (connecting) session's config present our certificate and check the server's."""

@@ -1,13 +1,12 @@
-"""Communication (the seed's Fig. 2): one interface, three transports.
+"""Communication (the seed's Fig. 2): one interface, several transports.
 
-``open_client`` and ``serve`` pick the implementation from a scheme name
-(``coap``, ``zmq``, ``zenoh`` or ``zenoh+udp``), so nothing above this
-package names a transport.
+``open_client`` and ``serve`` pick the implementation the
+:mod:`.registry` holds for a scheme (``coap``, ``zmq``, ``zenoh`` or
+``zenoh+udp``), so nothing above this package names a transport.  Security
+plugs in from above through the seams of :mod:`.security`.
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 from .base import (
     ClientTransport,
@@ -19,71 +18,47 @@ from .base import (
     TrafficCounters,
     TransportError,
 )
+from .registry import SCHEMES, TransportInfo, secured_schemes, transport_for
+from .security import ClientSecurity, GuardedService, ServerSecurity
 
-SCHEMES = ("coap", "zmq", "zenoh", "zenoh+udp")
 
-
-def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | None = None) -> Any:
+def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | None = None) -> object:
     """What a robot hands to both :func:`open_client` and :func:`serve` as
     ``retransmission``: for CoAP's ``robust`` profile one shared layer (its
     server's notifications then use its client's path estimates), else the
     profile name.  TCP retransmits by itself: ZeroMQ ignores it."""
-    if scheme == "coap":
-        from .coap.reliability import make_reliability
-
-        return make_reliability(profile, link_kbps=link_kbps)
-    return profile
+    make = transport_for(scheme).reliability
+    return profile if make is None else make(profile, link_kbps)
 
 
-async def open_client(scheme: str, *, retransmission: Any = "robust", security: Any = None) -> ClientTransport:
+async def open_client(scheme: str, *, retransmission: object = "robust",
+                      security: ClientSecurity | None = None) -> ClientTransport:
     """A client transport for ``scheme``.
 
     ``retransmission``: a reliability profile name (``robust``, the default,
     or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
     or what :func:`reliability_for` returned; ZeroMQ and Zenoh ignore it.
-    ``security``: a :class:`coapkb.security.coap.ClientSecurity` (CoAP:
-    OSCORE keyed by EDHOC), :class:`coapkb.security.curve.ZmqClientSecurity`
-    (ZeroMQ: CurveZMQ), :class:`coapkb.security.zenoh_tls.ZenohClientSecurity`
-    (Zenoh: mTLS; ``zenoh+udp`` cannot be secured), or None."""
-    if scheme == "coap":
-        from .coap import CoapClientTransport
-
-        return await CoapClientTransport.create(retransmission=retransmission, security=security)
-    if scheme == "zmq":
-        from .zmq.transport import ZmqClientTransport
-
-        return ZmqClientTransport(security=security)
-    if scheme in ("zenoh", "zenoh+udp"):
-        from .zenoh.transport import ZenohClientTransport
-
-        return ZenohClientTransport(security=security)
-    raise ValueError(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
+    ``security``: the client side of the transport's security mechanism
+    (:func:`coapkb.security.client_security`), or None."""
+    return await transport_for(scheme).open_client(retransmission, security)
 
 
 async def serve(
-    service: Service, endpoint: Endpoint, *, retransmission: Any = "robust", security: Any = None
+    service: Service, endpoint: Endpoint, *, retransmission: object = "robust", security: ServerSecurity | None = None
 ) -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``retransmission`` applies to CoAP's confirmable notifications;
-    ``security`` is a :class:`coapkb.security.coap.ServerSecurity` (CoAP) or
-    :class:`coapkb.security.curve.ZmqServerSecurity` (ZeroMQ) or
-    :class:`coapkb.security.zenoh_tls.ZenohServerSecurity` (Zenoh), or None."""
-    if endpoint.scheme == "coap":
-        from .coap import CoapServerTransport
-
-        return await CoapServerTransport.start(service, endpoint, retransmission=retransmission, security=security)
-    if endpoint.scheme == "zmq":
-        from .zmq.transport import ZmqServerTransport
-
-        return await ZmqServerTransport.start(service, endpoint, security=security)
-    if endpoint.scheme in ("zenoh", "zenoh+udp"):
-        from .zenoh.transport import ZenohServerTransport
-
-        return await ZenohServerTransport.start(service, endpoint, security=security)
-    raise ValueError(f"unknown transport {endpoint.scheme!r} (choose from {', '.join(SCHEMES)})")
+    ``security`` is the server side of the transport's security mechanism
+    (:func:`coapkb.security.server_security`), or None.  With security every
+    request is held to its access rules before the service sees it."""
+    serves = transport_for(endpoint.scheme).serve
+    if security is not None:
+        service = GuardedService(service, security.rules)
+    return await serves(service, endpoint, retransmission, security)
 
 
 __all__ = [
+    "SCHEMES",
     "ClientTransport",
     "Endpoint",
     "PeerUnreachable",
@@ -92,7 +67,10 @@ __all__ = [
     "Service",
     "TrafficCounters",
     "TransportError",
+    "TransportInfo",
     "open_client",
     "reliability_for",
+    "secured_schemes",
     "serve",
+    "transport_for",
 ]

@@ -67,13 +67,9 @@ class PeerUnreachable(TransportError):
     """No answer from the peer within the time budget (after retransmissions)."""
 
 
-#: Endpoint schemes: CoAP/UDP, ZeroMQ/TCP, Zenoh over TCP and over UDP.
-ENDPOINT_SCHEMES = ("coap", "zmq", "zenoh", "zenoh+udp")
-
-
 @dataclass(frozen=True)
 class Endpoint:
-    """Where a robot listens: ``scheme://host:port`` (a scheme of :data:`ENDPOINT_SCHEMES`)."""
+    """Where a robot listens: ``scheme://host:port`` (a scheme of :mod:`.registry`)."""
 
     scheme: str
     host: str
@@ -86,9 +82,11 @@ class Endpoint:
         scheme, sep, rest = uri.partition("://")
         if not sep:
             scheme, rest = default_scheme, uri
-        scheme = {"tcp": "zmq"}.get(scheme, scheme)
-        if scheme not in ENDPOINT_SCHEMES:
-            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in ENDPOINT_SCHEMES)})")
+        from .registry import SCHEMES, canonical_scheme
+
+        scheme = canonical_scheme(scheme)
+        if scheme not in SCHEMES:
+            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in SCHEMES)})")
         rest = rest.split("/", 1)[0]
         if rest.startswith("["):  # [IPv6]:port
             host, _, port = rest[1:].partition("]:")
@@ -159,6 +157,14 @@ class Service(abc.ABC):
         """Call ``on_change`` whenever the resource at ``path`` changes (for Observe).
         Returns a function that cancels the subscription.  Default: never changes."""
         return lambda: None
+
+    def admit(self, sender: str | None, method: str, path: str) -> Response | None:
+        """The answer refusing ``method`` on ``path`` to ``sender`` (the team
+        member the transport's security authenticated, None if none), or None
+        to serve it.  Every transport asks before anything else, so a refused
+        request changes nothing.  Default: everything is served (access rules
+        come from :class:`~coapkb.transport.security.GuardedService`)."""
+        return None
 
 
 async def handle_safely(service: Service, request: Request, log: logging.Logger) -> Response:

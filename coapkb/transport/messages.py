@@ -76,8 +76,9 @@ class Request:
     #: ETags of representations the client holds (RFC 7252 section 5.10.6):
     #: if one still matches, the answer is 2.03 Valid without a payload.
     etags: tuple[bytes, ...] = ()
-    #: The team member the request came from, as its security layer
-    #: authenticated it (OSCORE/EDHOC on a server); None if unprotected.
+    #: The team member the request came from, as the server's security layer
+    #: authenticated it (OSCORE/EDHOC, CurveZMQ, mTLS): a claim set below the
+    #: request interface, never read from the wire.  None if unprotected.
     peer: str | None = None
 
 

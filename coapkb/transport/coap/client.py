@@ -26,6 +26,7 @@ from .aiocoap_adapter import ContextHooks
 from .mapping import message_from_request, response_from_message
 from .reliability import ReliabilityLayer, make_reliability
 from .reliability.layer import Attempt, ExchangeTimeout
+from .security import CoapClientSecurity
 
 #: Largest body sent in one datagram (aiocoap's default block size).
 MAX_SINGLE_BODY = 1024
@@ -68,9 +69,9 @@ class CoapClientTransport:
     """Sends requests over CoAP/UDP, retried by a :class:`ReliabilityLayer`."""
 
     def __init__(self, ctx: aiocoap.Context, hooks: ContextHooks, reliability: ReliabilityLayer,
-                 security: Any = None) -> None:
+                 security: CoapClientSecurity | None = None) -> None:
         self._ctx = ctx
-        #: A :class:`coapkb.security.coap.ClientSecurity` (OSCORE by EDHOC to every peer), or None.
+        #: Protects every request (OSCORE by EDHOC to every peer), or None.
         self.security = security
         self._hooks = hooks
         self.reliability = reliability
@@ -78,18 +79,16 @@ class CoapClientTransport:
 
     @classmethod
     async def create(
-        cls, retransmission: ReliabilityLayer | str = "robust", security: Any = None,
+        cls, retransmission: ReliabilityLayer | str = "robust", security: CoapClientSecurity | None = None,
     ) -> "CoapClientTransport":
         """``retransmission``: a layer (shared with the robot's server), or ``robust`` for one of its own.
-        ``security``: a :class:`coapkb.security.coap.ClientSecurity`, or None (unprotected)."""
+        ``security``: OSCORE keyed by EDHOC, or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
             logger.addFilter(_AbandonedTryFilter())
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername=logger.name)
         if security is not None:
-            from ...security.coap import install_oscore
-
-            install_oscore(ctx)
+            security.install(ctx)
         hooks = ContextHooks.of(ctx)
         reliability = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)
         hooks.on_datagram = reliability.on_datagram
@@ -125,8 +124,6 @@ class CoapClientTransport:
         if self.security is None:
             async with asyncio.timeout(timeout):
                 return await exchange()
-        from ...security.coap import CONTEXT_LOST
-
         used = None
         try:
             async with asyncio.timeout(timeout):
@@ -135,7 +132,7 @@ class CoapClientTransport:
                     used = self.security.context(self._ctx, peer)
                     try:
                         return await exchange()
-                    except CONTEXT_LOST as exc:
+                    except self.security.context_lost as exc:
                         if again:
                             raise
                         logging.getLogger("coapkb.security").warning(

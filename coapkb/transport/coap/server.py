@@ -27,6 +27,7 @@ from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
 from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
 from .reliability import ReliabilityLayer, make_reliability
 from .reliability.notifications import NotificationPolicy, NotificationTuning
+from .security import CoapServerSecurity
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +56,10 @@ class _RateLimitFilter(logging.Filter):
 class _ServiceResource(aiocoap.resource.ObservableResource):
     """One path of a :class:`Service` as an aiocoap resource."""
 
-    def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any, security: Any = None) -> None:
+    def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any,
+                 security: CoapServerSecurity | None = None) -> None:
         super().__init__()
-        #: A :class:`coapkb.security.coap.ServerSecurity`, or None (unprotected).
+        #: Tells who sent a request (OSCORE/EDHOC), or None (unprotected).
         self._security = security
         self._block1 = GapSafeBlock1Spool()
         self._block2 = BodyAwareBlock2Cache()
@@ -81,17 +83,15 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         return link
 
     async def render(self, request: aiocoap.Message) -> aiocoap.Message:
-        if self._security is not None:
-            verdict = self._security.check(request, self.info.path)
-            if not verdict.allowed:  # before anything else: a refused request changes nothing
-                return message_from_response(Response.error(verdict.status, verdict.reason))
+        sender = None if self._security is None else self._security.sender(request)
+        refused = self.service.admit(sender, request.code.name, self.info.path)
+        if refused is not None:  # before anything else: a refused request changes nothing
+            return message_from_response(refused)
         try:
             req = request_from_message(self.info.path, request)
         except ValueError:
             return message_from_response(Response.error(Status.METHOD_NOT_ALLOWED, f"{request.code} not supported"))
-        if self._security is not None:
-            member = self._security.member_of(request)  # who, for a service that cares (the RD)
-            req = replace(req, peer=None if member is None else member.name)
+        req = replace(req, peer=sender)  # who, for a service that cares (the RD, the lease)
         sent_hash = dict(q.partition("=")[::2] for q in request.opt.uri_query).get(BODY_HASH_PARAM)
         if req.payload and sent_hash is not None and sent_hash != body_hash(req.payload):
             return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
@@ -175,11 +175,11 @@ class CoapServerTransport:
     async def start(
         cls, service: Service, endpoint: Endpoint,
         retransmission: ReliabilityLayer | str = "robust",
-        security: Any = None,
+        security: CoapServerSecurity | None = None,
     ) -> "CoapServerTransport":
-        """``security``: a :class:`coapkb.security.coap.ServerSecurity`
-        (OSCORE + EDHOC, the team's policy on every resource but
-        ``/.well-known/core``), or None."""
+        """``security``: OSCORE + EDHOC (:mod:`coapkb.security.coap`) on every
+        resource but ``/.well-known/core``, or None; ``service`` carries the
+        access rules (:meth:`Service.admit`)."""
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
         layer = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)

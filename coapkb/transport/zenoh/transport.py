@@ -57,7 +57,7 @@ Observe
     closed or it undeclared).
 
 Security
-    With ``security=`` (:mod:`coapkb.security.zenoh_tls`) a ``zenoh://``
+    With ``security=`` (mTLS, :mod:`.security`) a ``zenoh://``
     endpoint becomes a ``tls/`` link with mutual authentication by the
     team's certificates; the client names its session in each query's
     ``source_info`` and the server holds the member whose certificate
@@ -92,7 +92,7 @@ import socket
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import zenoh
@@ -119,6 +119,7 @@ from .mapping import (
     request_from_query,
     response_from_reply,
 )
+from .security import ZenohClientSecurity, ZenohServerSecurity
 
 __all__ = ["ZenohClientTransport", "ZenohOptions", "ZenohServerTransport", "session_config"]
 
@@ -169,13 +170,11 @@ def _free_port(endpoint: Endpoint) -> int:
         return int(s.getsockname()[1])
 
 
-def _secured_locator(endpoint: Endpoint, security: Any) -> str:
-    """The endpoint's locator; ``tls/`` instead of ``tcp/`` with security."""
+def _secured_locator(endpoint: Endpoint, security: ZenohClientSecurity | ZenohServerSecurity | None) -> str:
+    """The endpoint's locator; the secured link's (``tls/`` for ``tcp/``) with security."""
     if security is None:
         return locator(endpoint)
-    from ...security.zenoh_tls import tls_locator
-
-    return tls_locator(locator(endpoint))
+    return security.locator(locator(endpoint))
 
 
 def _canonical(key: str, path: str) -> bool:
@@ -241,10 +240,10 @@ class ZenohServerTransport:
         session: zenoh.Session,
         executor: ThreadPoolExecutor,
         options: ZenohOptions,
-        security: Any = None,
+        security: ZenohServerSecurity | None = None,
     ) -> None:
         """Private: use :meth:`start`, which opens the session first."""
-        #: A :class:`coapkb.security.zenoh_tls.ZenohServerSecurity` (mTLS, the team's policy), or None.
+        #: Authenticates clients (mTLS), or None.
         self._security = security
         self.counters = TrafficCounters()
         self.endpoint = endpoint
@@ -268,14 +267,15 @@ class ZenohServerTransport:
 
     @classmethod
     async def start(
-        cls, service: Service, endpoint: Endpoint, *, options: ZenohOptions | None = None, security: Any = None
+        cls, service: Service, endpoint: Endpoint, *, options: ZenohOptions | None = None,
+        security: ZenohServerSecurity | None = None,
     ) -> ZenohServerTransport:
         """Listen on ``endpoint`` and start serving.
 
         Port 0 picks a free port; the returned transport's :attr:`endpoint`
         has it.  Raises :class:`TransportError` if Zenoh cannot listen there
-        (port in use, no such address).  ``security``: a
-        :class:`coapkb.security.zenoh_tls.ZenohServerSecurity`, or None."""
+        (port in use, no such address).  ``security``: mTLS
+        (:mod:`coapkb.security.zenoh_tls`), or None."""
         _check_scheme(endpoint)
         _secured_locator(endpoint, security)  # zenoh+udp with security: refused before a port is taken
         if endpoint.port == 0:
@@ -347,6 +347,7 @@ class ZenohServerTransport:
             self._reply_error(query, f"4.00 not a coapkb request: {exc}")
             _finish(query)
             return
+        sender = None
         if self._security is not None:
             if not _canonical(incoming.key, request.path):
                 # Zenoh's access control matches key expressions: a wildcard or a
@@ -354,14 +355,15 @@ class ZenohServerTransport:
                 self._reply_error(query, "4.00 not the canonical key of its path")  # no key to reply on
                 _finish(query)
                 return
-            member = self._security.member_of(self._session, incoming.source)
-            # A deregistration only ends an observation: any member may send one.
-            verdict = self._security.check(member, request if header.observe is not Observe.DEREGISTER
-                                           else Request(Method.GET, request.path))
-            if not verdict.allowed:  # before the service: a refused request changes nothing
-                self._reply(query, Response.error(verdict.status, verdict.reason))
-                _finish(query)
-                return
+            sender = self._security.sender(self._session, incoming.source)
+        # A deregistration only ends an observation: any member may send one.
+        method = Method.GET if header.observe is Observe.DEREGISTER else request.method
+        refused = self._service.admit(sender, str(method.value), request.path)
+        if refused is not None:  # before the service: a refused request changes nothing
+            self._reply(query, refused)
+            _finish(query)
+            return
+        request = replace(request, peer=sender)
         if header.observe is Observe.DEREGISTER:
             self._observations.deregister(None, header.notify_key or "")
             self._reply(query, Response(Status.DELETED))
@@ -543,9 +545,9 @@ class ZenohClientTransport:
 
     counters: TrafficCounters
 
-    def __init__(self, *, options: ZenohOptions | None = None, security: Any = None) -> None:
-        """``security``: a :class:`coapkb.security.zenoh_tls.ZenohClientSecurity`
-        (mTLS with the team's certificates), or None."""
+    def __init__(self, *, options: ZenohOptions | None = None, security: ZenohClientSecurity | None = None) -> None:
+        """``security``: mTLS with the team's certificates
+        (:mod:`coapkb.security.zenoh_tls`), or None."""
         self.counters = TrafficCounters()
         self._security = security
         #: Replies and notifications dropped because they were not a coapkb response.

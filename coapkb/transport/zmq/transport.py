@@ -70,7 +70,7 @@ import itertools
 import logging
 import os
 from collections.abc import AsyncIterator, Coroutine
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import zmq
@@ -81,6 +81,7 @@ from ..base import (
     Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
 )
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
+from .security import ZmqClientSecurity, ZmqServerSecurity
 from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
@@ -216,10 +217,10 @@ class ZmqServerTransport:
         context: zmq.asyncio.Context,
         owns_context: bool,
         options: ZmqOptions,
-        security: Any = None,
+        security: ZmqServerSecurity | None = None,
     ) -> None:
         """Private: use :meth:`start`, which binds the socket first."""
-        #: A :class:`coapkb.security.curve.ZmqServerSecurity` (CurveZMQ, the team's policy), or None.
+        #: Authenticates clients (CurveZMQ), or None.
         self._security = security
         self.counters = TrafficCounters()
         self.endpoint = endpoint
@@ -249,7 +250,7 @@ class ZmqServerTransport:
         *,
         options: ZmqOptions | None = None,
         context: zmq.asyncio.Context | None = None,
-        security: Any = None,
+        security: ZmqServerSecurity | None = None,
     ) -> ZmqServerTransport:
         """Bind ``tcp://host:port`` and start serving.
 
@@ -377,11 +378,12 @@ class ZmqServerTransport:
                      user: str | None = None) -> None:
         """One request; holds a concurrency slot (taken by the receive loop)."""
         try:
-            if self._security is not None:
-                verdict = self._security.check(user, request)
-                if not verdict.allowed:  # before the service: a refused request changes nothing
-                    await self._send(identity, self._encode(token, Response.error(verdict.status, verdict.reason)))
-                    return
+            sender = None if self._security is None else self._security.sender(user)
+            refused = self._service.admit(sender, str(request.method.value), request.path)
+            if refused is not None:  # before the service: a refused request changes nothing
+                await self._send(identity, self._encode(token, refused))
+                return
+            request = replace(request, peer=sender)
             if observe is Observe.REGISTER and request.method in _OBSERVABLE_METHODS:
                 await self._register(identity, token, request)
             else:
@@ -536,11 +538,11 @@ class ZmqClientTransport:
         *,
         options: ZmqOptions | None = None,
         context: zmq.asyncio.Context | None = None,
-        security: Any = None,
+        security: ZmqClientSecurity | None = None,
     ) -> None:
         """A shared ``context`` is left open on :meth:`aclose`; otherwise the
-        transport owns and terminates its own.  ``security``: a
-        :class:`coapkb.security.curve.ZmqClientSecurity` (CurveZMQ), or None."""
+        transport owns and terminates its own.  ``security``: CurveZMQ
+        (:mod:`coapkb.security.curve`), or None."""
         self._security = security
         self.counters = TrafficCounters()
         #: Messages dropped because they were not a valid response envelope.

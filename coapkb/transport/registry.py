@@ -1,0 +1,155 @@
+"""Which transports there are, and what each provides.
+
+Every transport registers here once: its URI scheme, how to open its
+client and start its server, its reliability layer (CoAP's, shared by a
+robot's client and server; a TCP transport needs none), the security
+mechanism that protects it, and what it can carry besides coapkb's own
+resources.  Everything above this package asks the registry instead of
+comparing scheme names, so adding a transport is one folder plus one
+entry in :data:`REGISTERED`.
+
+The factories import their transport when called: choosing ZeroMQ never
+loads aiocoap or Zenoh, and ``import coapkb.transport`` loads none of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Awaitable, Callable
+
+if TYPE_CHECKING:
+    from .base import ClientTransport, Endpoint, ServerTransport, Service
+    from .security import ClientSecurity, ServerSecurity
+
+#: ``open_client``'s signature for one transport: (retransmission, security).
+ClientFactory = Callable[[object, "ClientSecurity | None"], Awaitable["ClientTransport"]]
+#: ``serve``'s signature for one transport: (service, endpoint, retransmission, security).
+ServerFactory = Callable[["Service", "Endpoint", object, "ServerSecurity | None"], Awaitable["ServerTransport"]]
+#: The reliability a robot's client and server share: (profile name, link rate in kbit/s).
+ReliabilityFactory = Callable[[str, "float | None"], object]
+
+
+class UnknownTransport(ValueError):
+    """A scheme no transport registered."""
+
+
+@dataclass(frozen=True)
+class TransportInfo:
+    """One registered transport."""
+
+    scheme: str
+    #: Datagrams (UDP); else a byte stream (TCP), which retransmits by itself.
+    datagram: bool
+    #: The port it usually listens on.
+    default_port: int
+    open_client: ClientFactory
+    serve: ServerFactory
+    #: Builds the reliability layer a robot hands to both its client and its
+    #: server; None: the transport has none of its own to share.
+    reliability: ReliabilityFactory | None = None
+    #: The security mechanism protecting it (a name :mod:`coapkb.security`
+    #: implements: ``oscore``, ``curve``, ``tls``); None: it cannot be secured.
+    security: str | None = None
+    #: Speaks the CoRE Resource Directory (RFC 9176, a CoAP interface).
+    resource_directory: bool = False
+    #: Other spellings of the scheme accepted in URIs.
+    aliases: tuple[str, ...] = ()
+
+    @property
+    def retransmits_itself(self) -> bool:
+        """The transport below (TCP) retransmits: coapkb's profiles do not apply."""
+        return not self.datagram
+
+
+# ----------------------------------------------------------------- the factories
+
+
+async def _coap_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+    from .coap import CoapClientTransport
+
+    return await CoapClientTransport.create(retransmission=retransmission, security=security)
+
+
+async def _coap_server(service: Service, endpoint: Endpoint, retransmission: object,
+                       security: ServerSecurity | None) -> ServerTransport:
+    from .coap import CoapServerTransport
+
+    return await CoapServerTransport.start(service, endpoint, retransmission=retransmission,
+                                           security=security)
+
+
+def _coap_reliability(profile: str, link_kbps: float | None) -> object:
+    from .coap.reliability import make_reliability
+
+    return make_reliability(profile, link_kbps=link_kbps)
+
+
+async def _zmq_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+    from .zmq.transport import ZmqClientTransport
+
+    return ZmqClientTransport(security=security)
+
+
+async def _zmq_server(service: Service, endpoint: Endpoint, retransmission: object,
+                      security: ServerSecurity | None) -> ServerTransport:
+    from .zmq.transport import ZmqServerTransport
+
+    return await ZmqServerTransport.start(service, endpoint, security=security)
+
+
+async def _zenoh_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+    from .zenoh.transport import ZenohClientTransport
+
+    return ZenohClientTransport(security=security)
+
+
+async def _zenoh_server(service: Service, endpoint: Endpoint, retransmission: object,
+                        security: ServerSecurity | None) -> ServerTransport:
+    from .zenoh.transport import ZenohServerTransport
+
+    return await ZenohServerTransport.start(service, endpoint, security=security)
+
+
+# ----------------------------------------------------------------- the registrations
+
+REGISTERED: tuple[TransportInfo, ...] = (
+    # CoAP over UDP (aiocoap), the primary transport.
+    TransportInfo("coap", datagram=True, default_port=5683, open_client=_coap_client, serve=_coap_server,
+                  reliability=_coap_reliability, security="oscore", resource_directory=True),
+    # ZeroMQ over TCP, the seed's transport.
+    TransportInfo("zmq", datagram=False, default_port=5555, open_client=_zmq_client, serve=_zmq_server,
+                  security="curve", aliases=("tcp",)),
+    # Zenoh over TCP.
+    TransportInfo("zenoh", datagram=False, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
+                  security="tls"),
+    # Zenoh's UDP link has no TLS (and no DTLS link exists in Zenoh 1.x).
+    TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server),
+)
+
+#: The registered schemes, in registration order.
+SCHEMES: tuple[str, ...] = tuple(t.scheme for t in REGISTERED)
+_BY_SCHEME = {name: t for t in REGISTERED for name in (t.scheme, *t.aliases)}
+
+
+def find(scheme: str) -> TransportInfo | None:
+    """The transport registered for ``scheme`` (or one of its aliases), None if there is none."""
+    return _BY_SCHEME.get(scheme)
+
+
+def transport_for(scheme: str) -> TransportInfo:
+    """The transport registered for ``scheme`` (or one of its aliases)."""
+    found = _BY_SCHEME.get(scheme)
+    if found is None:
+        raise UnknownTransport(f"unknown transport {scheme!r} (choose from {', '.join(SCHEMES)})")
+    return found
+
+
+def canonical_scheme(scheme: str) -> str:
+    """``scheme`` as registered (an alias such as ``tcp`` becomes ``zmq``); an unknown one unchanged."""
+    found = _BY_SCHEME.get(scheme)
+    return scheme if found is None else found.scheme
+
+
+def secured_schemes() -> tuple[str, ...]:
+    """The schemes a security mechanism protects."""
+    return tuple(t.scheme for t in REGISTERED if t.security is not None)

@@ -1,0 +1,44 @@
+"""The registry of transports: what each one registered, and what asks it."""
+
+from __future__ import annotations
+
+import pytest
+
+from coapkb.security import SecurityError, mechanism_for
+from coapkb.security.mechanisms import MECHANISMS
+from coapkb.transport import Endpoint, reliability_for
+from coapkb.transport.registry import REGISTERED, SCHEMES, UnknownTransport, find, secured_schemes, transport_for
+
+
+def test_every_registered_scheme_is_an_endpoint_scheme() -> None:
+    for t in REGISTERED:
+        assert Endpoint.parse(f"{t.scheme}://127.0.0.1:{t.default_port}") == Endpoint(t.scheme, "127.0.0.1", t.default_port)
+        for alias in t.aliases:
+            assert Endpoint.parse(f"{alias}://127.0.0.1:1").scheme == t.scheme
+    assert Endpoint.parse("tcp://127.0.0.1:1").scheme == "zmq"
+    with pytest.raises(ValueError, match="unsupported scheme"):
+        Endpoint.parse("carrier-pigeon://127.0.0.1:1")
+
+
+def test_lookups() -> None:
+    assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp")
+    assert transport_for("tcp") is transport_for("zmq") is find("zmq")
+    assert find("carrier-pigeon") is None
+    with pytest.raises(UnknownTransport, match="choose from coap, zmq, zenoh, zenoh\\+udp"):
+        transport_for("carrier-pigeon")
+    assert [t.scheme for t in REGISTERED if t.datagram] == ["coap", "zenoh+udp"]
+    assert [t.scheme for t in REGISTERED if t.resource_directory] == ["coap"]
+
+
+def test_only_coap_shares_a_reliability_layer() -> None:
+    assert reliability_for("zmq", "robust") == "robust"
+    assert reliability_for("zenoh+udp", "robust") == "robust"
+    assert reliability_for("coap", "robust") != "robust"  # the layer itself
+
+
+def test_each_secured_transport_has_its_mechanism() -> None:
+    assert secured_schemes() == ("coap", "zmq", "zenoh")
+    assert {transport_for(s).security for s in secured_schemes()} == set(MECHANISMS)
+    assert mechanism_for("zmq").needs_server_name and not mechanism_for("coap").needs_server_name
+    with pytest.raises(SecurityError, match="the zenoh\\+udp transport cannot be secured"):
+        mechanism_for("zenoh+udp")
