@@ -1,9 +1,9 @@
 """Tests of the kernel link emulator itself (coapkb.bench.linkemu).
 
 The namespace tests need root, iproute2 and nftables.  They skip with the
-reason from ``linkemu.available()`` when those are missing -- except under CI
-(environment variable ``CI`` set), where a missing emulator is a failure, so
-CI cannot go green without having run them.
+reason from ``linkemu.available()`` when those are missing -- except in CI
+(``support.require``), where a missing emulator is a failure, so CI cannot go
+green without having run them.
 
 Traffic comes from tiny Python UDP sender/receiver scripts started inside the
 namespaces with ``ip netns exec``.  Everything is sent only to addresses of
@@ -26,6 +26,8 @@ import pytest
 
 from coapkb.bench import linkemu
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, UdpRelay, available, cleanup_stale
+
+from support import require
 
 PY = sys.executable
 PORT = 47000
@@ -89,10 +91,7 @@ print(json.dumps({"sent": sent}), flush=True)
 def netns() -> None:
     """Skip (or, under CI, fail) when namespace emulation cannot run here."""
     ok, reason = available()
-    if not ok:
-        if os.environ.get("CI"):
-            pytest.fail(f"CI must run the link-emulation tests, but: {reason}", pytrace=False)
-        pytest.skip(reason)
+    require(ok, f"no kernel link emulation: {reason}")
 
 
 def _start_receiver(tb: Testbed, host: str, *, idle: float = 1.0, deadline: float = 20.0) -> subprocess.Popen[str]:

@@ -41,6 +41,8 @@ from coapkb.wire.zmq_envelope import (
     encode_response,
 )
 
+from support import require
+
 LOCAL = Endpoint("zmq", "127.0.0.1", 0)
 
 
@@ -310,8 +312,8 @@ def _has_ipv6_loopback() -> bool:
         return False
 
 
-@pytest.mark.skipif(not _has_ipv6_loopback(), reason="no IPv6 loopback")
 async def test_ipv6_endpoint(service, client) -> None:
+    require(_has_ipv6_loopback(), "no IPv6 loopback")
     async with await ZmqServerTransport.start(service, Endpoint("zmq", "::1", 0)) as srv:
         assert str(srv.endpoint).startswith("zmq://[::1]:")
         ok = await client.request(srv.endpoint, Request(Method.GET, "/echo", payload=b"v6"), timeout=2)
