@@ -8,7 +8,6 @@ import os
 import shutil
 import socket
 import sys
-import time
 from decimal import Decimal
 from pathlib import Path
 from types import ModuleType
@@ -152,12 +151,10 @@ class CliResult(NamedTuple):
     code: int
     stdout: str
     stderr: str
-    seconds: float
 
 
 async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> CliResult:
     """``python -m coapkb ARGS`` in a subprocess, as a user runs it (killed after ``timeout``)."""
-    started = time.monotonic()
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "coapkb", *args,
         stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
@@ -169,7 +166,7 @@ async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> C
         proc.kill()
         await proc.wait()
         raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None
-    return CliResult(proc.returncode or 0, out.decode(), err.decode(), time.monotonic() - started)
+    return CliResult(proc.returncode or 0, out.decode(), err.decode())
 
 
 def recording_router(*paths: str) -> tuple[Router, list[tuple[str, str]]]:
