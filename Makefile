@@ -25,8 +25,12 @@ system-deps:
 demo: venv
 	$(VENV)/bin/coapkb demo
 
+# Coverage is reported, not enforced: the total line (robots run as processes included,
+# [tool.coverage] in pyproject.toml) and coverage.xml for tools; printed even when a test fails.
 test: venv system-deps
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --cov --cov-report=xml:coverage.xml; status=$$?; \
+	  echo "coverage: $$($(PY) -m coverage report --format=total)% of coapkb's lines run by the tests (coverage.xml)"; \
+	  exit $$status
 
 clean:
-	rm -rf $(VENV) .pytest_cache build *.egg-info
+	rm -rf $(VENV) .pytest_cache build *.egg-info .coverage .coverage.* coverage.xml

@@ -189,10 +189,9 @@ async def test_query_unreachable_peer() -> None:
             coapkb("query", f"coap://127.0.0.1:{closed}", "ASK {}", "--timeout", "2"),
             coapkb("query", f"coap://127.0.0.1:{port}", "ASK {}", "--timeout", "2"),
         )
-    assert_user_error(to_closed, str(closed))
-    assert to_closed.seconds < 6  # (generous: a cold Python start on a loaded CI machine)
-    assert_user_error(to_silent, str(port), "2s")
-    assert 2 <= to_silent.seconds < 6
+    # A closed port fails on the ICMP error it sends back, not at the timeout; a silent one at the timeout.
+    assert "within" not in assert_user_error(to_closed, str(closed))
+    assert_user_error(to_silent, str(port), "within 2s")
 
 
 async def test_query_server_errors_shown(uri: str) -> None:

@@ -40,12 +40,18 @@ def kb() -> KnowledgeBase:
     return KnowledgeBase.load(KB_FILES)
 
 
+#: A threshold no run of these queries reaches, even on a loaded machine: the tests check
+#: the switch between thread and inline, not the speed (experiments/kb_load.py reports the
+#: first run's time against the default threshold).
+CHEAP = QueryLimits(inline_below_s=1.0)
+
+
 async def test_cheap_named_query_runs_inline_after_its_first_run(kb: KnowledgeBase, monkeypatch: pytest.MonkeyPatch) -> None:
-    resources = KBResources(kb)
+    resources = KBResources(kb, CHEAP)
     threads = ThreadCount(monkeypatch)
     first = await resources.named_query(named("Gucci_bag_14"))
     assert first.status == Status.CONTENT and threads.started == 1
-    assert resources.slowest_run["object-exists"] < QueryLimits().inline_below_s
+    assert "object-exists" in resources.slowest_run
     names = ["Gucci_bag_1", "Gucci_bag_2", "Gucci_bag_3", "no_such_thing"]
     answers = [await resources.named_query(named(n)) for n in names]
     assert threads.started == 1  # every later (different) question ran inline
@@ -57,7 +63,7 @@ async def test_cheap_named_query_runs_inline_after_its_first_run(kb: KnowledgeBa
 async def test_free_sparql_and_slow_or_timed_out_queries_keep_their_thread(
     kb: KnowledgeBase, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    resources = KBResources(kb)
+    resources = KBResources(kb, CHEAP)
     threads = ThreadCount(monkeypatch)
     text = "ASK { ?s ?p ?o }"
     for accept in (ContentFormat.CBOR, ContentFormat.JSON):

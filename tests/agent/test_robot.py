@@ -1,0 +1,136 @@
+"""A whole robot (coapkb.agent.robot.Robot) in this process: its KB, CoAP
+server and workflow modules on loopback with real sockets, asked through its
+resources as a teammate or the feeder would."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import AsyncIterator
+
+import cbor2
+import pytest
+import pytest_asyncio
+
+from coapkb.agent.robot import Robot
+from coapkb.agent.robot_state import RobotState
+from coapkb.config import ExecutionModel, RobotConfig, StartState, Teammate
+from coapkb.transport import open_client
+from coapkb.transport.base import ClientTransport, Endpoint
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+
+from support import KB_FILES, free_udp_port
+
+#: How long a test waits for the robot to get somewhere (generous: a loaded machine).
+PATIENCE_S = 30.0
+
+
+def solo_config(port: int) -> RobotConfig:
+    """Robot1 alone, holding all three KB modules: every task is decided here."""
+    bind = Endpoint("coap", "127.0.0.1", port)
+    return RobotConfig(
+        robot_id="Robot1", bind=bind, kb_files=tuple(KB_FILES),  # type: ignore[arg-type]
+        team={"Robot1": Teammate("Robot1", bind, ("Location", "Object", "Capability"))},
+        start=StartState(aisle=1, rack=1), query_timeout_s=PATIENCE_S, lease_s=0,
+        execution=ExecutionModel(time_scale=1e6),
+    )
+
+
+class Asker:
+    """A client of one robot's resources."""
+
+    def __init__(self, client: ClientTransport, robot: Endpoint) -> None:
+        self.client, self.robot = client, robot
+
+    async def __call__(self, method: Method, path: str, payload: bytes = b"", **kw: object) -> Response:
+        request = Request(method, path, payload=payload, **kw)  # type: ignore[arg-type]
+        return await self.client.request(self.robot, request, timeout=PATIENCE_S)
+
+    async def post_task(self, seq: int, name: str) -> Response:
+        body = json.dumps({"seq": seq, "object": name}).encode()
+        return await self(Method.POST, "/tasks", body, content_format=ContentFormat.JSON)
+
+    async def decisions(self, count: int) -> list[dict]:
+        """``GET /tasks`` until it lists ``count`` decisions."""
+        async with asyncio.timeout(PATIENCE_S):
+            while True:
+                answer = await self(Method.GET, "/tasks", accept=ContentFormat.JSON)
+                assert answer.status == Status.CONTENT, answer
+                log = json.loads(answer.payload)
+                if len(log) >= count:
+                    return log
+                await asyncio.sleep(0.05)  # the robot has no event to wait on over the network: ask again
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def ask() -> AsyncIterator[Asker]:
+    robot = await Robot.start(solo_config(free_udp_port()))
+    client = await open_client("coap")
+    try:
+        yield Asker(client, robot.config.bind)
+    finally:
+        await client.aclose()
+        await robot.aclose()
+
+
+pytestmark = pytest.mark.asyncio(loop_scope="module")
+
+
+async def test_state_and_plan_in_cbor_and_json(ask: Asker) -> None:
+    state = await ask(Method.GET, "/robot/state")
+    assert state.status == Status.CONTENT and state.content_format == ContentFormat.CBOR
+    assert RobotState.decode(state.payload).robot_id == "Robot1"
+    as_json = await ask(Method.GET, "/robot/state", accept=ContentFormat.JSON)
+    assert json.loads(as_json.payload)["robot_id"] == "Robot1"
+    plan = RobotState.decode((await ask(Method.GET, "/robot/plan")).payload)
+    assert plan.robot_id == "Robot1" and plan.plan.seq >= 0
+
+
+async def test_unknown_teammate_or_format_is_a_clear_4xx(ask: Asker) -> None:
+    nobody = await ask(Method.GET, "/robot/plan", query={"of": "Robot9"})
+    assert nobody.status == Status.NOT_FOUND and "Robot9" in nobody.text()
+    bad_at = await ask(Method.GET, "/robot/plan", query={"of": "Robot9", "at": "soon"})
+    assert bad_at.status == Status.BAD_REQUEST and "task number" in bad_at.text()
+    text = await ask(Method.GET, "/robot/state", accept=ContentFormat.TEXT)
+    assert text.status == Status.NOT_ACCEPTABLE and "cbor" in text.text()
+
+
+@pytest.mark.parametrize(
+    ("payload", "content_format", "says"),
+    [
+        (b"\xff not cbor", None, "expected"),
+        (b"{not json", ContentFormat.JSON, "expected"),
+        (json.dumps({"seq": 1}).encode(), ContentFormat.JSON, "expected"),
+        (json.dumps({"seq": "one", "object": "Gucci_bag_14"}).encode(), ContentFormat.JSON, "integer"),
+        (cbor2.dumps({"seq": 1, "object": "no spaces please"}), None, "local name"),
+        (cbor2.dumps({"seq": 1, "object": "Gucci_bag_14", "join": ["Robot9"]}), None, "join"),
+    ],
+)
+async def test_a_bad_task_body_is_400_with_what_was_expected(
+    ask: Asker, payload: bytes, content_format: int | None, says: str
+) -> None:
+    answer = await ask(Method.POST, "/tasks", payload, content_format=content_format)
+    assert answer.status == Status.BAD_REQUEST and says in answer.text(), answer
+
+
+async def test_a_bad_decision_is_400(ask: Asker) -> None:
+    answer = await ask(Method.POST, "/decisions", cbor2.dumps({"seq": "x"}))
+    assert answer.status == Status.BAD_REQUEST and "not a decision" in answer.text()
+
+
+async def test_tasks_in_order_are_decided_and_shown_in_stats(ask: Asker) -> None:
+    assert (await ask.post_task(1, "Gucci_bag_14")).status == Status.CHANGED
+    assert (await ask.post_task(1, "Gucci_bag_14")).status == Status.CHANGED  # a repeat: same answer
+    skipped = await ask.post_task(3, "Gucci_bag_1")
+    assert skipped.status == Status.CONFLICT and "expected task 2" in skipped.text()
+    assert (await ask.post_task(2, "Nonexistent_widget_1")).status == Status.CHANGED
+    first, second = await ask.decisions(2)
+    assert (first["seq"], first["object"], first["assigned_to"], first["error"]) == (1, "Gucci_bag_14", "Robot1", None)
+    assert (second["seq"], second["skipped"]) == (2, True)
+    stats = await ask(Method.GET, "/robot/stats", accept=ContentFormat.JSON)
+    assert stats.status == Status.CONTENT
+    figures = json.loads(stats.payload)
+    assert figures["robot_id"] == "Robot1" and figures["transport"] == "coap"
+    assert figures["server"]["messages_received"] > 0
+    cbor_stats = await ask(Method.GET, "/robot/stats")
+    assert cbor2.loads(cbor_stats.payload)["robot_id"] == "Robot1"
