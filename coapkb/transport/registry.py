@@ -17,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Awaitable, Callable
 
+from ..errors import CoapkbError
+
 if TYPE_CHECKING:
     from .base import ClientTransport, Endpoint, ServerTransport, Service
     from .security import ClientSecurity, ServerSecurity
@@ -29,7 +31,7 @@ ServerFactory = Callable[["Service", "Endpoint", object, "ServerSecurity | None"
 ReliabilityFactory = Callable[[str, "float | None"], object]
 
 
-class UnknownTransport(ValueError):
+class UnknownTransport(CoapkbError, ValueError):
     """A scheme no transport registered."""
 
 
