@@ -1,4 +1,4 @@
-"""What OSCORE keyed by EDHOC costs (issue 12), on loopback.
+"""What OSCORE keyed by EDHOC costs, on loopback.
 
     .venv/bin/python experiments/security_overhead.py [--tasks 20] [--reps 3] [--requests 2000]
 

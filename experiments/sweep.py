@@ -155,7 +155,7 @@ class Run:
         return f"{self.system} {self.robots}r {self.tasks}t {self.bandwidth:g}k {self.loss:g}% rep{self.rep}"
 
 
-#: The systems on the compact wire (named queries, CBOR answers), Zenoh over TCP included (issue 13).
+#: The systems on the compact wire (named queries, CBOR answers), Zenoh over TCP included.
 COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central",
                    "zenoh-distributed", "zenoh-central")
 #: The paper matrix leaves out Zenoh over UDP: it does not retransmit, so at

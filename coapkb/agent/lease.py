@@ -1,4 +1,4 @@
-"""The fence for a robot that was only cut off (issue 11): it picks only
+"""The fence for a robot that was only cut off: it picks only
 while it holds a lease from a majority of its cluster.
 
 A robot that was stopped (SIGSTOP, a long GC pause, a radio shadow) or cut

@@ -35,7 +35,7 @@ class BenchRow:
     ``None`` is an empty cell: a measure the run did not get (it failed, or
     the column does not apply to its transport)."""
 
-    # The brief's minimum.
+    # The run's key (which system, team, link, repetition and retransmission), then its measures.
     system: str = key_field()
     robots: int = key_field()
     tasks: int = key_field()

@@ -1,4 +1,4 @@
-"""Discovery without a static map (issue 11): a Resource Directory (RFC
+"""Discovery without a static map: a Resource Directory (RFC
 9176) where robots register their endpoint and KB modules, and look up their
 cluster (docs/discovery.md).
 

@@ -1,6 +1,6 @@
-"""The lease (the fence of issue 11): how many grants a robot needs, when a
-round is a refusal and when only undecided, that the lease runs from the
-round's send time, and who a teammate grants."""
+"""The lease (the fence for a robot that was only cut off): how many
+grants a robot needs, when a round is a refusal and when only undecided,
+that the lease runs from the round's send time, and who a teammate grants."""
 
 from __future__ import annotations
 

@@ -52,7 +52,7 @@ async def test_a_stale_observation_is_refreshed_and_registered_again() -> None:
         await states.aclose()
 
 
-# --------------------------------------------------------------------------- membership (issue 11)
+# --------------------------------------------------------------------------- membership
 
 from agent_helpers import endpoint  # noqa: E402
 

@@ -2,7 +2,7 @@
 
 Robots are real OS processes on loopback.  The transports carry the very same
 messages, so who gets which task must not depend on which one carries them:
-Zenoh (issue 13) against CoAP and ZeroMQ, distributed and centralised.
+Zenoh against CoAP and ZeroMQ, distributed and centralised.
 """
 
 from __future__ import annotations

@@ -548,7 +548,7 @@ def test_response_codec_round_trip(response: Response, token: int, seq: int | No
 
 def test_observe_flag_is_bool_compatible() -> None:
     data = encode_request(Request(Method.GET, "/counter"), token=3, observe=True)
-    assert decode_request(data)[2] == True  # noqa: E712 - the brief's bool contract
+    assert decode_request(data)[2] == True  # noqa: E712 - the flag compares equal to True, as a bool does
     assert not decode_request(encode_request(Request(Method.GET, "/counter"), token=3))[2]
 
 
