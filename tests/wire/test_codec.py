@@ -185,7 +185,7 @@ COLOURS = ["silver", "grey", "brown", "red", "navy", "blue", "purple", "gold", "
 
 
 def warehouse_row(i: int) -> tuple[URIRef, Literal, Literal, Literal, Literal, Literal, URIRef]:
-    """A product row like coapkb.world.warehouse's (names average 17 characters there)."""
+    """A product row like coapkb.world.generator's (names average 17 characters there)."""
     name = f"{BRAND_KINDS[i % len(BRAND_KINDS)]}_{37 * i + 14}"
     return (
         URIRef(OBJ + name),
