@@ -1,4 +1,4 @@
-"""Property and example tests of the result codecs (coapkb/codec.py).
+"""Property and example tests of the result codecs (coapkb/wire/codec.py).
 
 * Round trips are exact, down to lexical form, datatype and language tag
   (rdflib's ``==`` compares language tags case-insensitively, so
