@@ -283,8 +283,9 @@ async def _demo(args: argparse.Namespace) -> int:
 
 
 async def _team(args: argparse.Namespace) -> int:
-    from .harness.record import TaskRecord, summarise
-    from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
+    from .feeder import FeederError, TaskRecord, read_tasks_file
+    from .harness.record import summarise
+    from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamSpec, draw_tasks
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
@@ -309,7 +310,7 @@ async def _team(args: argparse.Namespace) -> int:
             if args.tasks < 1:
                 raise UserError("--tasks must be at least 1")
             tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
-    except ValueError as exc:  # TeamSpec's checks; a TeamError (tasks file) reaches main as it is
+    except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
     if not tasks:
         raise UserError("no tasks to run")
@@ -370,7 +371,7 @@ async def _team(args: argparse.Namespace) -> int:
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
-    except (TeamError, asyncio.CancelledError) as exc:
+    except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
         if stopped_by is None:
             if isinstance(exc, asyncio.CancelledError):
                 raise
