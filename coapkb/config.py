@@ -77,7 +77,12 @@ class Teammate:
 
 @dataclass(frozen=True)
 class StartState:
-    aisle: int = 0
+    """Where a robot starts and what it carries.  The default position is
+    the depot (aisle 1, rack 0: the front end of the first aisle), which
+    every warehouse has; aisles are numbered from 1, and rack 0 and
+    ``racks_per_aisle + 1`` are an aisle's ends on the cross-aisles."""
+
+    aisle: int = 1
     rack: int = 0
     battery_wh: float = 400.0
     payload_kg: float = 40.0
@@ -306,8 +311,11 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("link_kbps: must be positive")
     if c.start.battery_wh <= 0 or c.start.payload_kg <= 0:
         raise ConfigError("start: battery_wh and payload_kg must be positive")
-    if c.start.aisle < 0 or c.start.rack < 0:
-        raise ConfigError("start: aisle and rack must be non-negative")
+    if c.start.aisle < 1 or c.start.rack < 0:
+        raise ConfigError(
+            f"start: aisle {c.start.aisle}, rack {c.start.rack} is outside the warehouse "
+            "(aisles are numbered from 1, racks from 0; leave [start] out to start at the depot, aisle 1, rack 0)"
+        )
     if c.execution.speed_m_s <= 0 or c.execution.time_scale <= 0 or c.execution.pick_s < 0:
         raise ConfigError("execution: speed_m_s and time_scale must be positive, pick_s non-negative")
     if c.cost.reserve_wh < 0:

@@ -9,15 +9,16 @@ import asyncio
 import contextlib
 import time
 from dataclasses import dataclass, replace
-from typing import AsyncIterator, Callable, Sequence
+from typing import AsyncIterator, Callable, Mapping, Sequence
 
 import cbor2
 
+from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
 from ..agent.team_view import ObservedStates, States
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
-from .channel import Channel, FeederSettings, Roster
+from .channel import STATE_REQUEST, Channel, FeederSettings, Roster
 from .membership import Membership
 from .orphans import idle
 from .record import TaskRecord
@@ -61,6 +62,36 @@ class Feeder:
     def traffic(self) -> TrafficCounters:
         """A copy of the feeder's own transport counters."""
         return replace(self.channel.client.counters)
+
+    async def check_ready(self, timeout: float, hints: Mapping[str, str] | None = None) -> None:
+        """Ask every robot once for its state: each must answer, and have
+        taken no task yet (a robot's task stream starts at 1).  ``hints``:
+        robot -> what to do about one that does not answer, added to the error."""
+        channel = self.channel
+
+        async def ask(robot_id: str) -> str | None:
+            """Why ``robot_id`` cannot be fed, or None."""
+            endpoint = channel.endpoint(robot_id)
+            try:
+                response = await channel.client.request(endpoint, STATE_REQUEST, timeout=timeout)
+            except TransportError as exc:
+                hint = f"; {hints[robot_id]}" if hints and robot_id in hints else ""
+                return f"{robot_id} does not answer at {endpoint} ({exc}){hint}"
+            try:
+                state = RobotState.decode(response.payload) if response.status.is_success else None
+            except ValueError:
+                state = None
+            if state is None:
+                return f"{robot_id} at {endpoint} answered {response.status.dotted}, not its state"
+            if state.plan.seq > 0 or state.last is not None:
+                taken = max(state.plan.seq, state.last.seq if state.last is not None else 0)
+                return f"{robot_id} has already taken tasks (up to task {taken}): restart the robots to feed them a new list"
+            return None
+
+        # Every robot asked to the end: one line names them all, and no request is left behind.
+        problems = [p for p in await asyncio.gather(*(ask(r) for r in channel.roster.robot_ids)) if p]
+        if problems:
+            raise FeederError("; ".join(problems))
 
     async def feed(
         self,

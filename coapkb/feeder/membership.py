@@ -12,10 +12,9 @@ from typing import Sequence
 
 from ..agent.lease import LEASE_PATH
 from ..agent.robot_state import RobotState
-from ..agent.team_view import STATE_PATH
 from ..transport.base import TransportError
-from ..transport.messages import ContentFormat, Method, Request, Status
-from .channel import Channel
+from ..transport.messages import Method, Request, Status
+from .channel import STATE_REQUEST, Channel
 from .orphans import orphans, unexecuted
 from .record import TaskRecord
 from .tasks import FeederError, task_post
@@ -113,10 +112,9 @@ class Membership:
         still grant it: it came back) has executed what it holds, so its
         statistics in the record are final."""
         channel = self.channel
-        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
         with contextlib.suppress(TransportError, ValueError, TimeoutError):
             async with asyncio.timeout(channel.settings.task_timeout_s * 4):
-                async for response in channel.client.observe(channel.endpoint(robot_id), request):
+                async for response in channel.client.observe(channel.endpoint(robot_id), STATE_REQUEST):
                     live = RobotState.decode(response.payload).live
                     if live.activity == "idle" and live.queued == 0:
                         return
