@@ -5,7 +5,7 @@ Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 =================  ======  ==================================================
 ``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
 ``/robot/plan``    GET     planned state only, for teammates; observable
-``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON)
+``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON; :mod:`coapkb.feeder.tasks`)
 ``/tasks``         GET     the decisions taken so far
 ``/decisions``     POST    the leader's decision ("compute and communicate")
 ``/robot/stats``   GET     traffic counters and query statistics

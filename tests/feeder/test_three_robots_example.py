@@ -27,6 +27,8 @@ from support import ROOT
 EXAMPLE = ROOT / "examples" / "three-robots"
 ROBOTS = ("Robot1", "Robot2", "Robot3")
 KEYS_COMMAND = "coapkb keys --team-dir examples/three-robots/keys"
+#: What ``coapkb demo`` assigns the same tasks to (its robots start at their homes in the KBs too).
+DEMO_ASSIGNMENTS = ["Robot2", "Robot1", "Robot2", "Robot1", "Robot1"]
 TASK_LINE = re.compile(r"^\[cluster 1\] task +(\d+) (\S+) +-> (Robot[123]) \(\d+ ms\)$")
 
 
@@ -120,6 +122,8 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     tasks = read_tasks_file(EXAMPLE / "tasks.txt")
     lines = [m for m in map(TASK_LINE.match, result.stdout.splitlines()) if m]
     assert [(int(m[1]), m[2]) for m in lines] == list(enumerate(tasks, 1)), result.stdout
+    # The robots of `coapkb demo`, with the same homes and KBs: the same assignments.
+    assert [m[3] for m in lines] == DEMO_ASSIGNMENTS, result.stdout
     assert f"{len(tasks)} task(s): {len(tasks)} assigned, 0 disagreement(s)" in result.stdout
 
     # A second list needs fresh robots: the first one's task numbers are taken.
