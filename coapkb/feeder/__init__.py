@@ -9,7 +9,7 @@ unexecuted tasks go round again once it is fenced off (:mod:`.membership`).
 
 Used by the harness (:mod:`coapkb.harness.team`), which also starts the
 robots, and by ``coapkb feed`` for robots started by hand
-(:mod:`.hand_started`).  Security, discovery and the robots' access policy
+(:mod:`.team_folder`).  Security, discovery and the robots' access policy
 know the feeder by its member name, :data:`~.security.FEEDER_IDENTITY`.
 """
 

@@ -16,6 +16,9 @@ from ..transport.coap.reliability import DEFAULT_PROFILE
 from ..transport.messages import ContentFormat, Method, Request
 from .tasks import FeederError
 
+#: A robot's state, asked once (the watcher observes it all along).
+STATE_REQUEST = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+
 
 @dataclass(frozen=True)
 class Roster:
@@ -32,6 +35,8 @@ class Roster:
 
 @dataclass(frozen=True)
 class FeederSettings:
+    """How the feeder talks to the team and how long it waits."""
+
     transport: str
     retransmission: str = DEFAULT_PROFILE
     #: Wall-clock limit for one task's coordination before the run is declared stuck.
@@ -44,12 +49,6 @@ class FeederSettings:
     #: The robots' link rate (kbit/s), when known: sets the liveness floor.
     link_kbps: float | None = None
 
-
-STATE_REQUEST = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
-
-
-def wait_timeout(timeout: float, what: str) -> FeederError:
-    return FeederError(f"timed out after {timeout:g}s waiting for {what}")
 
 
 @dataclass
@@ -84,10 +83,11 @@ class Channel:
         return self.roster.endpoints[robot_id]
 
     async def wait_for(self, predicate: Callable[[States], bool], timeout: float, what: str) -> States:
+        """The robots' states once ``predicate`` holds; a FeederError naming ``what`` after ``timeout``."""
         try:
             return await self.watcher.wait(predicate, timeout)
         except TimeoutError:
-            raise wait_timeout(timeout, what) from None
+            raise FeederError(f"timed out after {timeout:g}s waiting for {what}") from None
 
     async def state(self, robot_id: str, timeout: float) -> RobotState | None:
         """``robot_id``'s state asked once; None if it does not answer with one."""
