@@ -412,8 +412,8 @@ def _add_feed(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tasks-file", required=True, metavar="FILE", help="one object name per line")
     p.add_argument("--timeout", type=float, default=120.0, metavar="SECONDS",
                    help="how long one task's decisions may take (default 120)")
-    p.add_argument("--answer-timeout", type=float, default=5.0, metavar="SECONDS",
-                   help="how long each robot has to answer before feeding starts (default 5)")
+    p.add_argument("--answer-timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long each robot has to answer before feeding starts (default 10)")
     p.add_argument("--costs", action="store_true", help="also print every robot's cost for each task")
     p.set_defaults(run=_feed)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import re
+import select
 import shutil
 import subprocess
 import sys
@@ -64,18 +65,20 @@ def workdir(tmp_path: Path) -> Path:
 def robots(workdir: Path) -> Iterator[dict[str, subprocess.Popen[str]]]:
     """The three robots, started as the README says (once their keys exist); always stopped."""
     processes: dict[str, subprocess.Popen[str]] = {}
+    logs = {r: workdir / f"{r}.stderr" for r in ROBOTS}  # a file, not a pipe nobody reads
     try:
         for robot_id in ROBOTS:
-            processes[robot_id] = subprocess.Popen(
-                [sys.executable, "-m", "coapkb", "agent", "--config", f"examples/three-robots/{robot_id}.toml"],
-                cwd=workdir, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            )
+            with logs[robot_id].open("w") as log:
+                processes[robot_id] = subprocess.Popen(
+                    [sys.executable, "-m", "coapkb", "agent", "--config", f"examples/three-robots/{robot_id}.toml"],
+                    cwd=workdir, env=_env(), stdout=subprocess.PIPE, stderr=log, text=True,
+                )
         for robot_id, proc in processes.items():
             assert proc.stdout is not None
-            line = proc.stdout.readline()  # "robot RobotN ready on ...", or nothing if it failed
+            ready, _, _ = select.select([proc.stdout], [], [], 90)
+            line = proc.stdout.readline() if ready else ""  # "robot RobotN ready on ...", or nothing if it failed
             if not line.startswith(f"robot {robot_id} ready"):
-                proc.wait(10)
-                pytest.fail(f"{robot_id} did not start: {line}{proc.stderr.read() if proc.stderr else ''}")
+                pytest.fail(f"{robot_id} did not start: {line or logs[robot_id].read_text() or 'no ready line'}")
         yield processes
     finally:
         for proc in processes.values():
