@@ -39,6 +39,11 @@ class FeedOutcome:
     completion_s: float
 
 
+def _last_task(state: RobotState) -> int:
+    """The number of the last task ``state``'s robot took and decided (0: none)."""
+    return max(state.plan.seq, state.last.seq if state.last is not None else 0)
+
+
 class Feeder:
     """The team's task source.  Open with :meth:`open` (an async context
     manager), then :meth:`feed`."""
@@ -46,6 +51,8 @@ class Feeder:
     def __init__(self, channel: Channel) -> None:
         self.channel = channel
         self.membership = Membership(channel)
+        #: Cluster index -> its first task's number (1, unless robots took an earlier feeder's tasks).
+        self._first_seq: dict[int, int] = {}
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -64,13 +71,15 @@ class Feeder:
         return replace(self.channel.client.counters)
 
     async def check_ready(self, timeout: float, hints: Mapping[str, str] | None = None) -> None:
-        """Ask every robot once for its state: each must answer, and have
-        taken no task yet (a robot's task stream starts at 1).  ``hints``:
-        robot -> what to do about one that does not answer, added to the error."""
+        """Ask every robot once for its state before feeding: each must
+        answer, be done with earlier tasks (another feeder's), and have taken
+        the same tasks as the rest of its cluster; this feeder's tasks follow
+        on from theirs.  ``hints``: robot -> what to do about one that does
+        not answer, added to the error."""
         channel = self.channel
 
-        async def ask(robot_id: str) -> str | None:
-            """Why ``robot_id`` cannot be fed, or None."""
+        async def ask(robot_id: str) -> RobotState | str:
+            """``robot_id``'s state, or why it cannot be fed."""
             endpoint = channel.endpoint(robot_id)
             try:
                 response = await channel.client.request(endpoint, STATE_REQUEST, timeout=timeout)
@@ -83,15 +92,25 @@ class Feeder:
                 state = None
             if state is None:
                 return f"{robot_id} at {endpoint} answered {response.status.dotted}, not its state"
-            if state.plan.seq > 0 or state.last is not None:
-                taken = max(state.plan.seq, state.last.seq if state.last is not None else 0)
-                return f"{robot_id} has already taken tasks (up to task {taken}): restart the robots to feed them a new list"
-            return None
+            if state.live.activity != "idle" or state.live.queued:
+                return f"{robot_id} is still executing earlier tasks: feed it once it is idle"
+            return state
 
         # Every robot asked to the end: one line names them all, and no request is left behind.
-        problems = [p for p in await asyncio.gather(*(ask(r) for r in channel.roster.robot_ids)) if p]
+        robots = channel.roster.robot_ids
+        answers = await asyncio.gather(*(ask(r) for r in robots))
+        problems = [a for a in answers if isinstance(a, str)]
         if problems:
             raise FeederError("; ".join(problems))
+        states = {r: a for r, a in zip(robots, answers) if isinstance(a, RobotState)}
+        for index, cluster in enumerate(channel.roster.clusters):
+            taken = {r: _last_task(states[r]) for r in cluster}
+            if len(set(taken.values())) > 1:
+                raise FeederError(f"the robots of cluster {index + 1} have taken different tasks "
+                                  f"({', '.join(f'{r}: up to {n}' for r, n in taken.items())}): restart them")
+            self._first_seq[index] = max(taken.values(), default=0) + 1
+        for robot_id, state in states.items():
+            self.membership.set_done_before(robot_id, state.live.done)
 
     async def feed(
         self,
@@ -142,7 +161,7 @@ class Feeder:
         queue: list[tuple[str, int | None]] = [(name, None) for name in share]
         #: Tasks of a robot's previous process, found when it joins again.
         reruns: list[TaskRecord] = []
-        seq = 0
+        seq = self._first_seq.get(index, 1) - 1
         decided_at = time.monotonic()
         while queue:
             for name, reassigned_from in queue:

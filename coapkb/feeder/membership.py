@@ -32,6 +32,13 @@ class Membership:
         #: Down robots whose tasks may go round again: the survivors no
         #: longer grant them a lease, and it has run out (:meth:`fence`).
         self._fenced_off: set[str] = set()
+        #: Robot -> jobs its process had done before this feeder's first task
+        #: (an earlier feeder's): not among this feeder's records.
+        self._done_before: dict[str, int] = {}
+
+    def set_done_before(self, robot_id: str, done: int) -> None:
+        """``robot_id`` had done ``done`` jobs, all of them an earlier feeder's."""
+        self._done_before[robot_id] = done
 
     def rejoin(self, robot_id: str) -> None:
         """``robot_id`` runs again as a new process (same endpoint): it joins
@@ -51,16 +58,18 @@ class Membership:
             # A restart the feeder was told of: the old process is gone even if
             # no failed request told yet (killed: it cannot pick anything).
             watcher.down.setdefault(robot_id, "restarted")
-        found = orphans(records, watcher, self._incarnation, joining, only=joining)
+        found = orphans(records, watcher, self._incarnation, joining, only=joining, done_before=self._done_before)
         for robot_id in joining:
             self._incarnation[robot_id] = seq
+            self._done_before.pop(robot_id, None)  # a new process: its count starts at 0
             self._fenced_off.discard(robot_id)
             watcher.readmit(robot_id)
         return found
 
     def orphans(self, records: list[TaskRecord]) -> list[TaskRecord]:
         """The cluster's tasks to send round again now (see :func:`~coapkb.feeder.orphans.orphans`)."""
-        return orphans(records, self.channel.watcher, self._incarnation, self._fenced_off)
+        return orphans(records, self.channel.watcher, self._incarnation, self._fenced_off,
+                       done_before=self._done_before)
 
     async def take_back(self, cluster: Sequence[str], records: Sequence[TaskRecord]) -> None:
         """Feed again a robot the feeder has down but its teammates still
@@ -100,7 +109,7 @@ class Membership:
         watcher = self.channel.watcher
         for robot_id in cluster:
             if robot_id in watcher.down and robot_id not in self._fenced_off and unexecuted(
-                records, watcher, robot_id, self._incarnation
+                records, watcher, robot_id, self._incarnation, self._done_before
             ):
                 if await self.fence(cluster, robot_id):
                     self._fenced_off.add(robot_id)

@@ -479,6 +479,18 @@ class Team:
         if not stop:
             self._resumed.add(robot_id)
 
+    async def kill(self, robot_id: str) -> None:
+        """SIGKILL robot ``robot_id``'s process and wait until it is gone."""
+        proc = self.processes[robot_id]
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGKILL)
+        await proc.wait()
+
+    async def restart(self, robot_id: str) -> None:
+        """Start robot ``robot_id`` again, same configuration and port, once
+        it has said it is ready (its old process must be gone)."""
+        await self._spawn(robot_id, self._argv[robot_id], "robot")
+
     async def _inject(self, feeder: Feeder, started: float, events: list[FaultEvent]) -> None:
         """Carry out the spec's faults at their wall times after ``started``."""
         for fault in sorted(self.spec.faults, key=lambda f: f.at_s):
@@ -486,22 +498,15 @@ class Team:
             await asyncio.sleep(max(0.0, started + fault.at_s - time.monotonic()))
             at_s = round(time.monotonic() - started, 3)
             if fault.action == "restart":
-                # Same configuration and port; it joins at the next task fed.
-                await self._spawn(fault.robot, self._argv[fault.robot], "robot")
-                feeder.membership.rejoin(fault.robot)
+                await self.restart(fault.robot)
+                feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
                 log.warning("restarted %s at %.1fs", fault.robot, at_s)
-                events.append(FaultEvent(fault.action, fault.robot, at_s))
-                continue
-            proc = self.processes[fault.robot]
-            if fault.action in ("stop", "resume"):
+            elif fault.action in ("stop", "resume"):
                 self.pause(fault.robot, fault.action == "stop")
                 log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
-                events.append(FaultEvent(fault.action, fault.robot, at_s))
-                continue
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGKILL)
-            await proc.wait()
-            log.warning("killed %s at %.1fs", fault.robot, at_s)
+            else:
+                await self.kill(fault.robot)
+                log.warning("killed %s at %.1fs", fault.robot, at_s)
             events.append(FaultEvent(fault.action, fault.robot, at_s))
 
     def _record(

@@ -136,8 +136,10 @@ async def test_a_robot_that_does_not_answer_is_named_before_any_task() -> None:
 @pytest.mark.slow
 async def test_the_feeder_feeds_a_secure_team_in_order() -> None:
     """Three robots (processes, OSCORE): every task decided by all, in order,
-    each robot's executions counted; a fed team is not fresh any more."""
+    each robot's executions counted; a second feeder goes on where the
+    first one stopped."""
     tasks = ["Gucci_bag_14", "Nonexistent_widget_1", "Canon_tv_538", "Zara_jacket_396"]
+    more = ["Gucci_bag_187", "Ikea_cookware_set_442"]
     async with asyncio.timeout(180):
         async with Team.launch(TeamSpec(robots=3)) as team:
             assert team.feeder_security() is not None
@@ -145,13 +147,30 @@ async def test_the_feeder_feeds_a_secure_team_in_order() -> None:
             async with Feeder.open(team.roster(), team.feeder_settings(), team.feeder_security()) as feeder:
                 await feeder.check_ready(10.0)
                 outcome = await feeder.feed(tasks, seen.append)
-                stats = await feeder.collect_stats(team.spec.robot_ids)
-                with pytest.raises(FeederError, match="Robot1 has already taken tasks \\(up to task 4\\)"):
-                    await feeder.check_ready(10.0)
                 assert feeder.traffic.messages_sent > 0
+            async with Feeder.open(team.roster(), team.feeder_settings(), team.feeder_security()) as feeder:
+                await feeder.check_ready(10.0)
+                then = await feeder.feed(more)
+                stats = await feeder.collect_stats(team.spec.robot_ids)
     assert seen == outcome.tasks
     assert [(t.seq, t.object) for t in outcome.tasks] == list(enumerate(tasks, 1))
     assert [t.fate for t in outcome.tasks] == ["assigned", "skipped", "assigned", "assigned"]
-    assert all(t.agreed and set(t.decisions) == set(team.spec.robot_ids) for t in outcome.tasks)
+    assert all(t.agreed and set(t.decisions) == set(team.spec.robot_ids) for t in outcome.tasks + then.tasks)
     assert 0 < outcome.coordination_s <= outcome.completion_s
-    assert sum(s.executed for s in stats.values()) == 3
+    assert [(t.seq, t.object, t.fate) for t in then.tasks] == [(5, more[0], "assigned"), (6, more[1], "assigned")]
+    assert sum(s.executed for s in stats.values()) == 5
+
+
+async def test_robots_of_a_cluster_at_different_tasks_are_refused() -> None:
+    """Robot2 restarted by hand after a feed: its teammates took tasks it never saw."""
+    async with asyncio.timeout(120):
+        async with Team.launch(TeamSpec(robots=3, security=False)) as team:
+            async with Feeder.open(team.roster(), team.feeder_settings()) as feeder:
+                await feeder.check_ready(10.0)
+                await feeder.feed(["Gucci_bag_14"])
+            await team.kill("Robot2")
+            await team.restart("Robot2")
+            async with Feeder.open(team.roster(), team.feeder_settings()) as feeder:
+                with pytest.raises(FeederError, match=r"cluster 1 have taken different tasks "
+                                                      r"\(Robot1: up to 1, Robot2: up to 0, Robot3: up to 1\)"):
+                    await feeder.check_ready(10.0)

@@ -129,6 +129,8 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     assert [m[3] for m in lines] == DEMO_ASSIGNMENTS, result.stdout
     assert f"{len(tasks)} task(s): {len(tasks)} assigned, 0 disagreement(s)" in result.stdout
 
-    # A second list needs fresh robots: the first one's task numbers are taken.
-    again = one_error_line(run(workdir, *feed))
-    assert "already taken tasks (up to task 5)" in again
+    # Fed again, the robots go on with tasks 6 to 10, from where the first list left them.
+    again = run(workdir, *feed)
+    assert again.returncode == 0, again.stdout + again.stderr
+    lines = [m for m in map(TASK_LINE.match, again.stdout.splitlines()) if m]
+    assert [(int(m[1]), m[2]) for m in lines] == list(enumerate(tasks, 6)), again.stdout
