@@ -23,11 +23,14 @@ log = logging.getLogger(__name__)
 
 
 class Membership:
+    """The feeder's view of which process of each robot it feeds, shared by
+    the clusters' feeding loops."""
+
     def __init__(self, channel: Channel) -> None:
         self.channel = channel
         #: Restarted robots, up again and waiting to join at the next task.
         self._restarted: set[str] = set()
-        #: Robot -> the first task of its current process (0: the first one).
+        #: Robot -> the first task of its current process (0: every task of this feeder).
         self._incarnation: dict[str, int] = {}
         #: Down robots whose tasks may go round again: the survivors no
         #: longer grant them a lease, and it has run out (:meth:`fence`).
