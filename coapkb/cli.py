@@ -255,8 +255,9 @@ async def _demo(args: argparse.Namespace) -> int:
 
 
 async def _team(args: argparse.Namespace) -> int:
-    from .harness.record import TaskRecord, summarise
-    from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
+    from .feeder import FeederError, TaskRecord, read_tasks_file
+    from .harness.record import summarise
+    from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamSpec, draw_tasks
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
@@ -281,7 +282,7 @@ async def _team(args: argparse.Namespace) -> int:
             if args.tasks < 1:
                 raise UserError("--tasks must be at least 1")
             tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
-    except ValueError as exc:  # TeamSpec's checks; a TeamError (tasks file) reaches main as it is
+    except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
     if not tasks:
         raise UserError("no tasks to run")
@@ -290,29 +291,7 @@ async def _team(args: argparse.Namespace) -> int:
         bar.update()
         if args.quiet:
             return
-        if record.skipped:
-            outcome = "skipped: no such object"
-        elif record.errors:
-            outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
-        elif record.unavailable is not None:
-            outcome = f"cannot be done: {record.unavailable}"
-        else:
-            outcome = f"-> {record.assigned_to or 'nobody can'}"
-        if record.reassigned_from is not None:
-            outcome += f" (again: task {record.reassigned_from})"
-        if record.joined:
-            outcome += f" [joined again: {', '.join(record.joined)}]"
-        if record.absent:
-            outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
-        agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
-        lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
-                 f"({record.coordination_s * 1000:.0f} ms){agreed}"]
-        if getattr(args, "verbose_costs", False) and record.costs:
-            costs = ", ".join(
-                f"{r}: {record.reasons.get(r, '-') if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items()
-            )
-            lines.append(f"      costs: {costs}")
-        bar.write("\n".join(lines), file=sys.stdout)
+        bar.write(_task_lines(record, getattr(args, "verbose_costs", False)), file=sys.stdout)
         sys.stdout.flush()
 
     # Ctrl-C and SIGTERM (kill, a CI timeout) stop the robots: cancel this
@@ -342,7 +321,7 @@ async def _team(args: argparse.Namespace) -> int:
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
-    except (TeamError, asyncio.CancelledError) as exc:
+    except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
         if stopped_by is None:
             if isinstance(exc, asyncio.CancelledError):
                 raise
@@ -360,6 +339,78 @@ async def _team(args: argparse.Namespace) -> int:
         Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
     return 1 if record.disputed else 0
+
+
+def _task_lines(record, costs: bool = False) -> str:  # record: TaskRecord
+    """What the feeder saw of one task, as ``coapkb team`` and ``coapkb feed``
+    print it; ``costs``: a second line with every robot's cost."""
+    if record.skipped:
+        outcome = "skipped: no such object"
+    elif record.errors:
+        outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
+    elif record.unavailable is not None:
+        outcome = f"cannot be done: {record.unavailable}"
+    else:
+        outcome = f"-> {record.assigned_to or 'nobody can'}"
+    if record.reassigned_from is not None:
+        outcome += f" (again: task {record.reassigned_from})"
+    if record.joined:
+        outcome += f" [joined again: {', '.join(record.joined)}]"
+    if record.absent:
+        outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
+    agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
+    lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
+             f"({record.coordination_s * 1000:.0f} ms){agreed}"]
+    if costs and record.costs:
+        text = ", ".join(
+            f"{r}: {record.reasons.get(r, '-') if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items()
+        )
+        lines.append(f"      costs: {text}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- feed
+
+
+def _add_feed(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "feed",
+        help="feed tasks to robots started by hand (coapkb agent --config DIR/RobotN.toml), as the team's feeder",
+        description="Reads the robots' TOML files in --team (their endpoints, clusters and key directory), "
+        "checks that every robot answers, posts the tasks in order and prints what each robot decided. "
+        "Example: examples/three-robots/README.md",
+    )
+    p.add_argument("--team", required=True, metavar="DIR", help="the folder holding the robots' TOML files")
+    p.add_argument("--tasks-file", required=True, metavar="FILE", help="one object name per line")
+    p.add_argument("--timeout", type=float, default=120.0, metavar="SECONDS",
+                   help="how long one task's decisions may take (default 120)")
+    p.add_argument("--answer-timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long each robot has to answer before feeding starts (default 10)")
+    p.add_argument("--costs", action="store_true", help="also print every robot's cost for each task")
+    p.set_defaults(run=_feed)
+
+
+async def _feed(args: argparse.Namespace) -> int:
+    from .feeder import Feeder, read_tasks_file
+    from .feeder.team_folder import read_team_folder
+
+    if not args.timeout > 0 or not args.answer_timeout > 0:
+        raise UserError("--timeout and --answer-timeout must be positive")
+    team = read_team_folder(args.team, task_timeout_s=args.timeout)
+    tasks = read_tasks_file(args.tasks_file)
+    if not tasks:
+        raise UserError(f"no tasks in {args.tasks_file}")
+    security = team.security()
+    print(f"feeding {len(tasks)} task(s) to {', '.join(f'{r} {e}' for r, e in team.roster.endpoints.items())}"
+          + ("" if security is None else f" (keys: {team.credentials})"), flush=True)
+    async with Feeder.open(team.roster, team.settings, security) as feeder:
+        await feeder.check_ready(args.answer_timeout, {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
+        outcome = await feeder.feed(tasks, lambda record: print(_task_lines(record, args.costs), flush=True))
+    assigned = sum(1 for t in outcome.tasks if t.fate == "assigned")
+    disputed = [t for t in outcome.tasks if not t.agreed]
+    print(f"{len(outcome.tasks)} task(s): {assigned} assigned, {len(disputed)} disagreement(s); "
+          f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s")
+    return 1 if disputed else 0
 
 
 # --------------------------------------------------------------------------- query
@@ -536,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_demo, _add_team, _add_serve, _add_agent, _add_query, _add_bench, _add_keys,
+    _add_demo, _add_team, _add_feed, _add_serve, _add_agent, _add_query, _add_bench, _add_keys,
 ]
 
 

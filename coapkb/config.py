@@ -5,31 +5,36 @@ holds the robot-vs-KB map of the team, so the Query Handler knows where each
 knowledge base lives.  Every field is validated; a mistake is reported as a
 :class:`ConfigError` naming the field.
 
-Example ``robot1.toml``::
+Example ``Robot1.toml`` (``examples/three-robots/`` holds a whole team of
+three; relative paths, ``kb`` and ``[security] credentials``, resolve
+against the folder of the TOML file, not the working directory)::
 
     robot_id = "Robot1"
-    bind = "coap://127.0.0.1:5701"
-    kb = ["ontologies/Location.owl"]
+    bind = "coap://127.0.0.1:5721"
+    kb = ["../../ontologies/Location.owl", "../../ontologies/Object.owl"]
     # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
     strategy = "compute-by-all"
     retransmission = "robust"
     # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
 
-    [start]                  # initial state
-    aisle = 0
-    rack = 0
-    battery_wh = 400.0
-    payload_kg = 40.0
+    [start]                  # initial state; left out: the depot (aisle 1, rack 0)
+    aisle = 9                # aisles are numbered from 1; racks 0..R+1 (0, R+1: the cross-aisles)
+    rack = 6                 # checked at start-up against the Location KB (if held here)
+    battery_wh = 556.0
+    payload_kg = 60.6
+
+    [security]               # optional: OSCORE keyed by EDHOC, the team's access policy
+    credentials = "keys"     # made by: coapkb keys --team-dir DIR/keys
 
     [team.Robot1]            # every teammate, this robot included
-    endpoint = "coap://127.0.0.1:5701"
-    kbs = ["Location"]
+    endpoint = "coap://127.0.0.1:5721"
+    kbs = ["Location", "Object"]
     [team.Robot2]
-    endpoint = "coap://127.0.0.1:5702"
-    kbs = ["Object"]
+    endpoint = "coap://127.0.0.1:5722"
+    kbs = ["Object", "Capability"]
     [team.Robot3]
-    endpoint = "coap://127.0.0.1:5703"
-    kbs = ["Capability"]
+    endpoint = "coap://127.0.0.1:5723"
+    kbs = ["Capability", "Location"]
 
     # Optional: find the teammates in a Resource Directory (RFC 9176) instead;
     # the team table then needs this robot only, and other entries are the
@@ -78,7 +83,12 @@ class Teammate:
 
 @dataclass(frozen=True)
 class StartState:
-    aisle: int = 0
+    """Where a robot starts and what it carries.  The default position is
+    the depot (aisle 1, rack 0: the front end of the first aisle), which
+    every warehouse has; aisles are numbered from 1, and rack 0 and
+    ``racks_per_aisle + 1`` are an aisle's ends on the cross-aisles."""
+
+    aisle: int = 1
     rack: int = 0
     battery_wh: float = 400.0
     payload_kg: float = 40.0
@@ -307,8 +317,11 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("link_kbps: must be positive")
     if c.start.battery_wh <= 0 or c.start.payload_kg <= 0:
         raise ConfigError("start: battery_wh and payload_kg must be positive")
-    if c.start.aisle < 0 or c.start.rack < 0:
-        raise ConfigError("start: aisle and rack must be non-negative")
+    if c.start.aisle < 1 or c.start.rack < 0:
+        raise ConfigError(
+            f"start: aisle {c.start.aisle}, rack {c.start.rack} is outside the warehouse "
+            "(aisles are numbered from 1, racks from 0; leave [start] out to start at the depot, aisle 1, rack 0)"
+        )
     if c.execution.speed_m_s <= 0 or c.execution.time_scale <= 0 or c.execution.pick_s < 0:
         raise ConfigError("execution: speed_m_s and time_scale must be positive, pick_s non-negative")
     if c.cost.reserve_wh < 0:

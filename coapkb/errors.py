@@ -13,7 +13,8 @@ class                      raised by                                   also a
 ``TransportError``         :mod:`coapkb.transport` (``PeerUnreachable``)
 ``CodecError``             :mod:`coapkb.wire.codec`                     ``ValueError``
 ``WireError``              :mod:`coapkb.wire.zmq_envelope`              ``ValueError``
-``TeamError``              :mod:`coapkb.harness.team`
+``FeederError``            :mod:`coapkb.feeder` (tasks file, feeding)
+``TeamError``              :mod:`coapkb.harness.team`                   ``FeederError``
 ``LinkEmulationError``     :mod:`coapkb.bench.linkemu`                  ``RuntimeError``
 ``UserError``              :mod:`coapkb.cli`
 =========================  ==========================================  ========================

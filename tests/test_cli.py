@@ -270,6 +270,21 @@ async def test_agent_mistakes(tmp_path: Path) -> None:
     ])
 
 
+async def test_agent_refuses_a_start_outside_the_warehouse(tmp_path: Path) -> None:
+    """Aisle 0 is refused as the file is read; an aisle past the Location
+    KB's last, at start-up, by a robot holding that KB; keys not made yet
+    name the command that makes them."""
+    config = VALID_CONFIG.format(kb=ONTOLOGIES / "Location.owl", strategy="compute-by-all")
+    (tmp_path / "aisle0.toml").write_text(config + "\n[start]\naisle = 0\n")
+    (tmp_path / "far.toml").write_text(config + "\n[start]\naisle = 99\nrack = 3\n")
+    (tmp_path / "keys.toml").write_text(config + '\n[security]\ncredentials = "keys"\n')
+    await check_mistakes([
+        (["agent", "--config", str(tmp_path / "aisle0.toml")], ["start: aisle 0", "outside the warehouse"]),
+        (["agent", "--config", str(tmp_path / "far.toml")], ["start: aisle 99, rack 3", "aisles 1..10"]),
+        (["agent", "--config", str(tmp_path / "keys.toml")], [f"coapkb keys --team-dir {tmp_path / 'keys'}"]),
+    ])
+
+
 async def test_team_mistakes() -> None:
     await check_mistakes([
         (["team", "--robots", "4", "--tasks", "1"], ["multiple of 3"]),

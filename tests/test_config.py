@@ -117,6 +117,11 @@ def test_defaults() -> None:
     assert config.execution == ExecutionModel()
 
 
+def test_without_start_a_robot_starts_at_the_depot() -> None:
+    """Aisle 1, rack 0: the front end of the first aisle, in every warehouse."""
+    assert parse_config(base()).start == StartState(aisle=1, rack=0, battery_wh=400.0, payload_kg=40.0)
+
+
 def test_zmq_and_central_mode() -> None:
     data = base()
     data["bind"] = "zmq://127.0.0.1:6001"
@@ -187,6 +192,8 @@ BAD = [
     ("unknown start field", "start.altitude", 3, "start.altitude"),
     ("start not a table", "start", 3, "start"),
     ("negative battery", "start.battery_wh", -1.0, "start"),
+    ("aisle 0 (aisles are numbered from 1)", "start.aisle", 0, "start: aisle 0"),
+    ("negative rack", "start.rack", -1, "start: aisle"),
     ("cost.reserve_wh string", "cost.reserve_wh", "20", "cost.reserve_wh"),
     ("cost.unload_at_fraction out of range", "cost.unload_at_fraction", 1.5, "cost.unload_at_fraction"),
     ("negative reserve", "cost.reserve_wh", -1.0, "cost.reserve_wh"),

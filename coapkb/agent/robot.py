@@ -5,7 +5,7 @@ Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 =================  ======  ==================================================
 ``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
 ``/robot/plan``    GET     planned state only, for teammates; observable
-``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON)
+``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON; :mod:`coapkb.feeder.tasks`)
 ``/tasks``         GET     the decisions taken so far
 ``/decisions``     POST    the leader's decision ("compute and communicate")
 ``/robot/stats``   GET     traffic counters and query statistics
@@ -27,7 +27,8 @@ import cbor2
 
 from ..kb.client import KBClient
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
-from ..config import RobotConfig
+from ..config import ConfigError, RobotConfig
+from ..kb.named_queries import NAMED_QUERIES
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
@@ -41,6 +42,7 @@ from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_executor import TaskExecutor
 from .team_view import PLAN_PATH, STATE_PATH, TeamView
+from ..world import Position, layout_from_row
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 
@@ -64,6 +66,25 @@ def _cbor_state(payload: bytes, accept: int | None) -> Response:
     if accept not in (None, ContentFormat.CBOR):
         return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
     return Response(Status.CONTENT, payload, ContentFormat.CBOR)
+
+
+def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
+    """Refuse a start position outside the warehouse, checked against the
+    Location KB's geometry when this robot holds that KB (without it the
+    geometry is a teammate's to tell, at the first task; configuration
+    loading already refuses aisle 0 and negative racks)."""
+    if kb is None:
+        return
+    rows = kb.query(NAMED_QUERIES["warehouse-layout"].render({})).as_dicts()  # type: ignore[union-attr]
+    if not rows:
+        return  # not the Location KB
+    layout = layout_from_row(rows[0])
+    start = Position(config.start.aisle, config.start.rack)
+    if not layout.contains(start):
+        raise ConfigError(
+            f"start: aisle {start.aisle}, rack {start.rack} is outside the warehouse "
+            f"(aisles 1..{layout.aisles}, racks 0..{layout.racks_per_aisle + 1} in the Location KB)"
+        )
 
 
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).
@@ -124,6 +145,7 @@ class Robot:
         secured = robot_security(config)  # first: a bad key stops the robot before the KB loads
         client_security = None if secured is None else secured[1]
         kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
+        check_start(config, kb)
         router = Router()
         if kb is not None:
             KBResources(kb).mount(router)

@@ -1,13 +1,13 @@
-"""A whole team on one machine: robots as separate OS processes, a task feeder,
-and the record of what happened.
+"""A whole team on one machine: robots as separate OS processes, faults
+injected into them, fed by the feeder (:mod:`coapkb.feeder`) in this
+process, and the record of what happened (:mod:`.record`).
 
 As in the seed's section V, robots form clusters of three; in the distributed
 mode the robots of a cluster hold the Location, Object and Capability KBs
 (Robot1, Robot2, Robot3 of the seed's Fig. 4), and in the centralised
-baseline one server holds all three.  The task list is split into contiguous
-shares, one per cluster, fed in parallel; within a cluster tasks are fed one
-at a time (the seed's "sequentially triggered from an external source"): the
-next goes out once every robot of the cluster has decided the previous one.
+baseline one server holds all three.  The harness writes every robot's
+configuration, starts and stops the processes, kills, stops and restarts
+them on schedule, and tells the feeder when a restarted robot is back.
 """
 
 from __future__ import annotations
@@ -22,17 +22,13 @@ import socket
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, AsyncIterator, Awaitable, Callable, Collection, Mapping, Sequence
+from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 
-import cbor2
-
-from ..errors import CoapkbError
 from ..agent.query_handler import QUERY_WIRES
-from ..agent.lease import LEASE_PATH, lease_duration_s
-from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
-from ..agent.robot_state import RobotState
+from ..agent.lease import lease_duration_s
+from ..agent.team_view import liveness_floor_s
 from ..agent.stats import RobotStats
 from ..config import (
     DISCOVERY_METHODS,
@@ -45,14 +41,14 @@ from ..config import (
     Teammate,
     dump_config,
 )
+from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, TaskRecord, feeder_security
 from ..kb.store import KnowledgeBase
-from ..transport.messages import ContentFormat, Method, Request, Status
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
-from ..transport import SCHEMES, open_client
+from ..transport import SCHEMES
 from ..world import CLUSTER_SIZE, OBJECT_NS
-from ..transport.base import ClientTransport, Endpoint, TrafficCounters, TransportError
-from .record import FaultEvent, TaskRecord, TeamRecord
+from ..transport.base import Endpoint, TrafficCounters
+from .record import FaultEvent, TeamRecord
 from ..security import SecurityConfig, generate_team, load_identity
 from ..security.keys import default_members
 
@@ -62,8 +58,9 @@ MODES = ("distributed", "central")
 DEFAULT_ONTOLOGIES = Path(__file__).resolve().parents[2] / "ontologies"
 
 
-class TeamError(CoapkbError):
-    """The team could not be started or did not finish its tasks."""
+class TeamError(FeederError):
+    """The team could not be started or did not finish its tasks (the
+    feeder's own failures are :class:`~coapkb.feeder.FeederError`)."""
 
 
 FAULT_ACTIONS = ("kill", "restart", "stop", "resume")
@@ -217,22 +214,6 @@ def draw_tasks(
     return [rng.choice(names) for _ in range(n)]
 
 
-def read_tasks_file(path: str | Path) -> list[str]:
-    """One product name per line; blank lines and ``#`` comments ignored."""
-    try:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
-    except OSError as exc:
-        raise TeamError(f"cannot read tasks file {path}: {exc.strerror}") from None
-    tasks = [line.split("#", 1)[0].strip() for line in lines]
-    return [t for t in tasks if t]
-
-
-def split_tasks(tasks: Sequence[str], clusters: int) -> list[list[str]]:
-    """Contiguous, near-equal shares, in order (the seed splits N tasks into equal sets)."""
-    bounds = [round(i * len(tasks) / clusters) for i in range(clusters + 1)]
-    return [list(tasks[bounds[i] : bounds[i + 1]]) for i in range(clusters)]
-
-
 def _free_port(kind: int) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
@@ -280,7 +261,8 @@ class Placement:
 
 
 class Team:
-    """Start with :meth:`launch` (an async context manager), then :meth:`run`."""
+    """The team's processes: started with :meth:`launch` (an async context
+    manager), fed with :meth:`run`, faults injected on the spec's schedule."""
 
     def __init__(self, spec: TeamSpec, workdir: Path, placement: Placement | None = None) -> None:
         self.spec = spec
@@ -291,19 +273,12 @@ class Team:
         self.central: Endpoint | None = None
         self._stderr_tails: dict[str, list[str]] = {}
         self._argv: dict[str, list[str]] = {}
-        #: Restarted robots, up again and waiting to join at the next task.
-        self._restarted: set[str] = set()
-        #: Robot -> the first task of its current process (0: the first one).
-        self._incarnation: dict[str, int] = {}
         #: The team's key directory (``coapkb keys``'s layout) when the spec is secure.
         self.team_dir: Path | None = None
         #: The Resource Directory the feeder hosts (``discovery="rd"``).
         self.directory: Any = None
         #: Stopped robots let go on again: alive, though the team has them down.
         self._resumed: set[str] = set()
-        #: Down robots whose tasks may go round again: the survivors no
-        #: longer grant them a lease, and it has run out (:meth:`_fence`).
-        self._fenced_off: set[str] = set()
 
     # ---------------------------------------------------------------- processes
 
@@ -440,6 +415,17 @@ class Team:
 
     # ---------------------------------------------------------------- feeding
 
+    def roster(self) -> Roster:
+        """The team as the feeder knows it: the robots' endpoints and clusters."""
+        return Roster({r: self.endpoints[r] for r in self.spec.robot_ids}, self.spec.clusters())
+
+    def feeder_settings(self) -> FeederSettings:
+        spec = self.spec
+        return FeederSettings(
+            transport=spec.transport, retransmission=spec.retransmission, task_timeout_s=spec.task_timeout_s,
+            query_timeout_s=spec.query_timeout_s, lease_s=spec.lease_s, link_kbps=spec.link_kbps,
+        )
+
     async def run(
         self,
         tasks: Sequence[str],
@@ -452,64 +438,37 @@ class Team:
         downloads their statistics (a benchmark reads its counters there, so
         that download is not charged to the system)."""
         spec = self.spec
-        client = await open_client(spec.transport, retransmission=spec.retransmission, security=self.feeder_security())
-        # With liveness the feeder declares a robot down when its requests
-        # fail, and then waits for the survivors only.
-        watcher = ObservedStates(
-            client, self.endpoints, STATE_PATH, liveness=True, liveness_floor_s=liveness_floor_s(spec.link_kbps)
-        )
-        watcher.start()
-        started = time.monotonic()
-        records: list[TaskRecord] = []
         events: list[FaultEvent] = []
-        injector = asyncio.create_task(self._inject(started, events), name="faults")
-        try:
-            shares = split_tasks(tasks, len(spec.clusters()))
-            per_cluster = await asyncio.gather(
-                *(
-                    self._feed_cluster(client, watcher, index, cluster, share, progress)
-                    for index, (cluster, share) in enumerate(zip(spec.clusters(), shares))
-                )
-            )
-            coordination_s = max(decided_at for _, decided_at in per_cluster) - started
-            completion_s = time.monotonic() - started
-            for share_records, _ in per_cluster:
-                records.extend(share_records)
-            if finished is not None:
-                await finished()
-            # A resumed robot is down for the team but answers: its counts
-            # show what it executed (nothing the others were given).
-            resumed = [r for r in spec.robot_ids if r in self._resumed and r in watcher.down]
-            stats = await self._collect_stats(client, watcher.alive, resumed)
-            feeder = replace(client.counters)  # a copy: the client still counts while closing
-        finally:
-            injector.cancel()
-            await asyncio.gather(injector, return_exceptions=True)
-            await watcher.aclose()
-            await client.aclose()
+        async with Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
+            started = time.monotonic()
+            injector = asyncio.create_task(self._inject(feeder, started, events), name="faults")
+            try:
+                outcome = await feeder.feed(tasks, progress, started)
+                if finished is not None:
+                    await finished()
+                watcher = feeder.watcher
+                # A resumed robot is down for the team but answers: its counts
+                # show what it executed (nothing the others were given).
+                resumed = [r for r in spec.robot_ids if r in self._resumed and r in watcher.down]
+                stats = await feeder.collect_stats(watcher.alive, resumed)
+                traffic = feeder.traffic  # a copy: the client still counts while closing
+            finally:
+                injector.cancel()
+                await asyncio.gather(injector, return_exceptions=True)
+            down, down_at = dict(watcher.down), dict(watcher.down_at)
         for event in events:
-            if event.robot in watcher.down_at and event.action in ("kill", "stop"):
-                event.detected_after_s = round(watcher.down_at[event.robot] - started - event.at_s, 3)
-        return self._record(records, stats, feeder, coordination_s, completion_s, events, dict(watcher.down))
+            if event.robot in down_at and event.action in ("kill", "stop"):
+                event.detected_after_s = round(down_at[event.robot] - started - event.at_s, 3)
+        return self._record(outcome, stats, traffic, events, down)
 
     def feeder_security(self) -> Any:
-        """The feeder's OSCORE/EDHOC, CurveZMQ or mTLS client side, or None for an insecure team."""
-        if self.team_dir is None:
-            return None
+        """The feeder's client side for this team (None for an insecure team)."""
         expected = {e.hostport: r for r, e in self.endpoints.items()}
         if self.central is not None:
             expected[self.central.hostport] = "central"
-        if self.spec.transport == "zmq":
-            from ..security.curve import ZmqClientSecurity
+        return feeder_security(self.spec.transport, self.team_dir, expected)
 
-            return ZmqClientSecurity(load_identity(self.team_dir, "feeder"), expected)
-        if self.spec.transport == "zenoh":
-            from ..security.zenoh_tls import ZenohClientSecurity
-
-            return ZenohClientSecurity(load_identity(self.team_dir, "feeder"), expected)
-        from ..security.coap import ClientSecurity
-
-        return ClientSecurity(load_identity(self.team_dir, "feeder"), expected)
+    # ---------------------------------------------------------------- faults
 
     def pause(self, robot_id: str, stop: bool = True) -> None:
         """Freeze robot ``robot_id``'s process (SIGSTOP: cut off, its state
@@ -520,322 +479,45 @@ class Team:
         if not stop:
             self._resumed.add(robot_id)
 
-    async def _inject(self, started: float, events: list[FaultEvent]) -> None:
+    async def kill(self, robot_id: str) -> None:
+        """SIGKILL robot ``robot_id``'s process and wait until it is gone."""
+        proc = self.processes[robot_id]
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGKILL)
+        await proc.wait()
+
+    async def restart(self, robot_id: str) -> None:
+        """Start robot ``robot_id`` again, same configuration and port, once
+        it has said it is ready (its old process must be gone)."""
+        await self._spawn(robot_id, self._argv[robot_id], "robot")
+
+    async def _inject(self, feeder: Feeder, started: float, events: list[FaultEvent]) -> None:
         """Carry out the spec's faults at their wall times after ``started``."""
         for fault in sorted(self.spec.faults, key=lambda f: f.at_s):
             # A schedule, not a wait for an event: the user asked for this time.
             await asyncio.sleep(max(0.0, started + fault.at_s - time.monotonic()))
             at_s = round(time.monotonic() - started, 3)
             if fault.action == "restart":
-                # Same configuration and port; it joins at the next task fed.
-                await self._spawn(fault.robot, self._argv[fault.robot], "robot")
-                self._restarted.add(fault.robot)
+                await self.restart(fault.robot)
+                feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
                 log.warning("restarted %s at %.1fs", fault.robot, at_s)
-                events.append(FaultEvent(fault.action, fault.robot, at_s))
-                continue
-            proc = self.processes[fault.robot]
-            if fault.action in ("stop", "resume"):
+            elif fault.action in ("stop", "resume"):
                 self.pause(fault.robot, fault.action == "stop")
                 log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
-                events.append(FaultEvent(fault.action, fault.robot, at_s))
-                continue
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGKILL)
-            await proc.wait()
-            log.warning("killed %s at %.1fs", fault.robot, at_s)
+            else:
+                await self.kill(fault.robot)
+                log.warning("killed %s at %.1fs", fault.robot, at_s)
             events.append(FaultEvent(fault.action, fault.robot, at_s))
-
-    async def _feed_cluster(
-        self,
-        client: ClientTransport,
-        watcher: ObservedStates,
-        index: int,
-        cluster: list[str],
-        share: list[str],
-        progress: Callable[[TaskRecord], None] | None,
-    ) -> tuple[list[TaskRecord], float]:
-        """Feed one cluster's share; returns its records and when its last task was decided."""
-        records: list[TaskRecord] = []
-        queue: list[tuple[str, int | None]] = [(name, None) for name in share]
-        #: Tasks of a robot's previous process, found when it joins again.
-        reruns: list[TaskRecord] = []
-        seq = 0
-        decided_at = time.monotonic()
-        while queue:
-            for name, reassigned_from in queue:
-                seq += 1
-                joining = sorted(r for r in cluster if r in self._restarted)
-                if joining:
-                    reruns += self._prepare_join(watcher, records, joining, seq)
-                if records:
-                    await self._take_back(client, watcher, cluster, records)
-                record = await self._feed_task(client, watcher, index, cluster, seq, name, joining)
-                record.reassigned_from = reassigned_from
-                records.append(record)
-                if progress is not None:
-                    progress(record)
-            decided_at = time.monotonic()
-            # Until the cluster's survivors have executed everything: a robot
-            # that dies meanwhile is found by the stalled wait's liveness requests.
-            await _wait_for(
-                watcher,
-                lambda s: all(r in watcher.down or _idle(s, r) for r in cluster),
-                self.spec.task_timeout_s * 4,
-                f"cluster {index + 1} to finish executing",
-            )
-            # Tasks assigned to robots that went down before executing them
-            # go round again, in their order, to the survivors: once the
-            # down robot can no longer pick them (the fence).
-            for robot_id in cluster:
-                if robot_id in watcher.down and robot_id not in self._fenced_off and _unexecuted(
-                    records, watcher, robot_id, self._incarnation
-                ):
-                    if await self._fence(client, watcher, cluster, robot_id):
-                        self._fenced_off.add(robot_id)
-                    else:
-                        await self._settle(client, robot_id)
-            found = {r.seq: r for r in reruns + _orphans(records, watcher, self._incarnation, self._fenced_off)}
-            orphans = [found[s] for s in sorted(found)]
-            reruns = []
-            queue = [(r.object, r.seq) for r in orphans]
-        return records, decided_at
-
-    def _prepare_join(
-        self, watcher: ObservedStates, records: list[TaskRecord], joining: list[str], seq: int
-    ) -> list[TaskRecord]:
-        """Before restarted robots join at task ``seq``: their previous
-        processes' unexecuted tasks (returned, to go round again), then count
-        on them afresh."""
-        for robot_id in joining:
-            self._restarted.discard(robot_id)
-            # A restart the feeder made itself: the old process is gone even if
-            # no failed request told yet (killed: it cannot pick anything).
-            watcher.down.setdefault(robot_id, "restarted")
-        orphans = _orphans(records, watcher, self._incarnation, joining, only=joining)
-        for robot_id in joining:
-            self._incarnation[robot_id] = seq
-            self._fenced_off.discard(robot_id)
-            watcher.readmit(robot_id)
-        return orphans
-
-    async def _take_back(
-        self, client: ClientTransport, watcher: ObservedStates, cluster: list[str], records: Sequence[TaskRecord]
-    ) -> None:
-        """Feed again a robot the feeder has down but its teammates still
-        count as a member (their last decision names it): it was only slow
-        or cut off, and under "compute by all" they wait for its plan after
-        every task.  It is asked once; if it answers with the same process (a
-        new one joins instead, at a task boundary), it is given the tasks it
-        missed, in order, and fed from now on like the others."""
-        last = records[-1]
-        # A dead robot is asked at each task boundary until its teammates
-        # leave it out (a task or two): a few round trips, not a liveness
-        # timeout, since silence here only means "not back yet".
-        srtt = watcher.round_trip.srtt
-        timeout = watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
-        for robot_id in cluster:
-            if (robot_id not in watcher.down or robot_id not in last.members or robot_id in self._fenced_off
-                    or robot_id in self._restarted):
-                continue
-            try:
-                response = await client.request(
-                    self.endpoints[robot_id], Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR),
-                    timeout=timeout,
-                )
-                state = RobotState.decode(response.payload) if response.status.is_success else None
-            except (TransportError, ValueError):
-                continue
-            known = watcher.states.get(robot_id)
-            if state is None or known is None or state.boot != known.boot:
-                continue
-            seen = state.last.seq if state.last is not None else 0
-            missed = [r for r in records if r.seq > seen]
-            log.warning("%s answers again and its teammates still count it: fed again from task %d",
-                        robot_id, seen + 1)
-            watcher.readmit(robot_id)
-            for record in missed:  # the robot takes tasks strictly in order
-                await self._post_task(client, watcher, robot_id, _task_post(record.seq, record.object, record.joined),
-                                      record.seq, record.object)
-
-    async def _feed_task(
-        self, client: ClientTransport, watcher: ObservedStates, index: int, cluster: list[str], seq: int, name: str,
-        joining: Sequence[str] = (),
-    ) -> TaskRecord:
-        fed = time.monotonic()
-        request = _task_post(seq, name, joining)
-        live = [r for r in cluster if r not in watcher.down]
-        if not live:
-            raise TeamError(f"every robot of cluster {index + 1} is down: {watcher.down}")
-        await asyncio.gather(*(self._post_task(client, watcher, r, request, seq, name) for r in live))
-
-        def decided(states: States, robot_id: str) -> bool:
-            last = states[robot_id].last if robot_id in states else None
-            return last is not None and last.seq >= seq
-
-        states = await _wait_for(
-            watcher,
-            lambda s: all(r in watcher.down or decided(s, r) for r in cluster),
-            self.spec.task_timeout_s,
-            f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
-        )
-        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed,
-                            joined=list(joining))
-        decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
-        if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
-            # Robots that differ may have decided and then died before the
-            # feeder noticed: ask each once, so the dead ones' decisions are void.
-            await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
-        # The decision is the survivors': a robot that decided and then went
-        # down executes nothing (its task, if any, goes round again), and one
-        # left out of a newer membership by the others took no part in it.
-        newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
-        survivors = [r for r in decisions if r not in watcher.down]
-        for robot_id in cluster:
-            decision = decisions.get(robot_id)
-            if decision is None:
-                record.absent[robot_id] = watcher.down.get(robot_id, "no decision")
-                continue
-            if robot_id in watcher.down and survivors:
-                record.absent[robot_id] = f"{watcher.down[robot_id]} (its decision is void)"
-                continue
-            if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
-                record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
-                continue
-            record.decisions[robot_id] = decision.assigned_to
-            record.epochs[robot_id] = decision.epoch
-            if decision.members and not record.members:
-                record.members = list(decision.members)
-            if decision.error:
-                record.errors[robot_id] = decision.error
-            if decision.unavailable and record.unavailable is None:
-                record.unavailable = decision.unavailable
-            if decision.skipped:
-                record.skipped = True
-            if decision.costs and not record.costs:
-                record.costs = dict(decision.costs)
-                record.reasons = dict(decision.reasons)
-        assigned = {d for d in record.decisions.values() if d is not None}
-        record.assigned_to = assigned.pop() if len(assigned) == 1 else None
-        return record
-
-    async def _post_task(
-        self, client: ClientTransport, watcher: ObservedStates, robot_id: str, request: Request, seq: int, name: str
-    ) -> None:
-        """POST a task to one robot; if it does not answer, ask the watcher
-        whether it is down (then the task goes to the survivors only) or
-        post again (a robot recognises a repeated post)."""
-        deadline = time.monotonic() + self.spec.task_timeout_s
-        while True:
-            try:
-                response = await client.request(
-                    self.endpoints[robot_id], request, timeout=max(watcher.request_timeout_s, 1.0)
-                )
-            except TransportError as exc:
-                await watcher.probe(robot_id)
-                if robot_id in watcher.down:
-                    return
-                if time.monotonic() > deadline:
-                    raise TeamError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
-                continue
-            if not response.status.is_success:
-                await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
-                if robot_id in watcher.down:
-                    return
-                raise TeamError(f"{robot_id} refused task {seq} ({name}): {response}")
-            return
-
-    async def _settle(self, client: ClientTransport, robot_id: str) -> None:
-        """Wait until ``robot_id`` (down for the feeder, but its teammates
-        still grant it: it came back) has executed what it holds, so its
-        statistics in the record are final."""
-        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
-        with contextlib.suppress(TransportError, ValueError, TimeoutError):
-            async with asyncio.timeout(self.spec.task_timeout_s * 4):
-                async for response in client.observe(self.endpoints[robot_id], request):
-                    live = RobotState.decode(response.payload).live
-                    if live.activity == "idle" and live.queued == 0:
-                        return
-
-    async def _fence(self, client: ClientTransport, watcher: ObservedStates, cluster: list[str], robot_id: str) -> bool:
-        """Before down ``robot_id``'s tasks go round again: ask every survivor
-        of its cluster whether it still grants it a lease (each probes it
-        first), then wait the lease out from the last refusal.  False if a
-        survivor still grants it (it answers them: its tasks stay its own)."""
-        if self.spec.lease_s <= 0:
-            return True
-        request = Request(Method.GET, LEASE_PATH, {"r": robot_id, "check": ""})
-
-        async def refused_at(survivor: str) -> float | None:
-            """When ``survivor`` said it no longer grants ``robot_id`` (now if it is down)."""
-            while survivor not in watcher.down:
-                try:
-                    response = await client.request(
-                        self.endpoints[survivor], request, timeout=self.spec.task_timeout_s
-                    )
-                except TransportError:
-                    await watcher.probe(survivor)
-                    continue
-                if response.status == Status.FORBIDDEN:
-                    return time.monotonic()
-                if response.status.is_success:
-                    return None
-                raise TeamError(f"{survivor} answered {response.status.dotted} about {robot_id}'s lease: {response.text()}")
-            return time.monotonic()
-
-        survivors = [r for r in cluster if r != robot_id and r not in watcher.down]
-        answers = await asyncio.gather(*(refused_at(r) for r in survivors))
-        if any(at is None for at in answers):
-            granting = [r for r, at in zip(survivors, answers) if at is None]
-            log.warning("%s still grant %s a lease: its tasks stay with it", ", ".join(granting), robot_id)
-            return False
-        # Waiting the lease out is the fence itself: any lease the robot
-        # holds was granted before the last refusal, so it ends within this.
-        last = max(answers, default=time.monotonic())
-        await asyncio.sleep(max(0.0, last + self.spec.lease_s - time.monotonic()))
-        # From now on the robot can pick nothing: if it answers (it was only
-        # cut off), its state is final and says what it did pick.
-        with contextlib.suppress(TransportError, ValueError):
-            response = await client.request(
-                self.endpoints[robot_id], Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR),
-                timeout=watcher.request_timeout_s,
-            )
-            state = RobotState.decode(response.payload)
-            known = watcher.states.get(robot_id)
-            if response.status.is_success and known is not None and state.boot == known.boot:
-                watcher.states[robot_id] = state
-        log.warning("%s's lease has run out: its unexecuted tasks go round again", robot_id)
-        return True
-
-    async def _collect_stats(
-        self, client: ClientTransport, robots: Sequence[str], maybe: Sequence[str] = ()
-    ) -> dict[str, RobotStats]:
-        """Every robot's statistics; those of ``maybe`` if they answer."""
-        request = Request(Method.GET, "/robot/stats", accept=ContentFormat.CBOR)
-        stats = {}
-        for robot_id in [*robots, *maybe]:
-            endpoint = self.endpoints[robot_id]
-            try:
-                response = await client.request(endpoint, request, timeout=self.spec.query_timeout_s)
-            except TransportError:
-                if robot_id in maybe:
-                    continue
-                raise
-            stats[robot_id] = RobotStats.from_dict(cbor2.loads(response.payload))
-        return stats
 
     def _record(
         self,
-        records: list[TaskRecord],
+        outcome: FeedOutcome,
         stats: dict[str, RobotStats],
         feeder: TrafficCounters,
-        coordination_s: float,
-        completion_s: float,
-        faults: list[FaultEvent] | None = None,
-        down: dict[str, str] | None = None,
+        faults: list[FaultEvent],
+        down: dict[str, str],
     ) -> TeamRecord:
         spec = self.spec
-        # Restore the order given: cluster shares are contiguous.
-        records.sort(key=lambda r: (r.cluster, r.seq))
         return TeamRecord(
             mode=spec.mode,
             transport=spec.transport,
@@ -844,92 +526,16 @@ class Team:
             query_wire=spec.query_wire,
             robots=spec.robot_ids,
             clusters=spec.clusters(),
-            tasks=records,
+            tasks=outcome.tasks,
             # Rounded as the JSON record has always been, so the benchmark row
             # made from this record holds the same numbers as before.
-            coordination_s=round(coordination_s, 6),
-            completion_s=round(completion_s, 6),
+            coordination_s=round(outcome.coordination_s, 6),
+            completion_s=round(outcome.completion_s, 6),
             robot_stats=stats,
             feeder_traffic=feeder,
-            faults=list(faults or []),
-            down=dict(down or {}),
+            faults=faults,
+            down=down,
         )
-
-
-def _idle(states: States, robot_id: str) -> bool:
-    state = states.get(robot_id)
-    return state is not None and state.live.activity == "idle" and state.live.queued == 0
-
-
-def _unexecuted(
-    records: list[TaskRecord], watcher: ObservedStates, robot_id: str, incarnation: Mapping[str, int] | None = None
-) -> list[TaskRecord]:
-    """The tasks assigned to ``robot_id``'s current process that it has not
-    executed (nor dropped), not yet sent round again.  A robot executes its
-    jobs in the order assigned, so its last observed ``done`` count says how
-    many of them are finished (a job finished in the instant before a crash
-    counts as not done: done again rather than lost)."""
-    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
-    state = watcher.states.get(robot_id)
-    done = state.live.done if state is not None else 0
-    fenced = set(state.live.fenced) if state is not None else set()
-    first = (incarnation or {}).get(robot_id, 0)
-    mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first and r.seq not in fenced]
-    return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
-
-
-def _orphans(
-    records: list[TaskRecord], watcher: ObservedStates, incarnation: Mapping[str, int] | None = None,
-    fenced_off: Collection[str] = (),
-    only: Collection[str] | None = None,
-) -> list[TaskRecord]:
-    """Tasks to send round again: those a robot now down had not executed
-    (only once it is ``fenced_off``: it can no longer pick them), and those a
-    robot dropped because it lost its lease.  Only the tasks of a robot's
-    last process count: the process before a restart had its own, handled
-    when it joined again.  A re-run that is dropped again is not sent round
-    a third time: no robot of the cluster could hold a lease for it.
-    ``only``: these robots' tasks alone."""
-    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
-    orphans = []
-    for robot_id in fenced_off:
-        if robot_id not in watcher.down or (only is not None and robot_id not in only):
-            continue
-        for record in _unexecuted(records, watcher, robot_id, incarnation):
-            record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
-            orphans.append(record)
-    for robot_id, state in watcher.states.items():
-        if not state.live.fenced or (only is not None and robot_id not in only):
-            continue
-        first = (incarnation or {}).get(robot_id, 0)
-        for record in records:
-            if record.assigned_to != robot_id or record.seq < first or record.seq not in state.live.fenced:
-                continue
-            if record.seq in taken or record.orphaned is not None or record.unavailable is not None:
-                continue
-            why = f"{robot_id} dropped it unexecuted: {state.live.fence_reason}"
-            if record.reassigned_from is not None:
-                record.unavailable = why
-                continue
-            record.orphaned = why
-            orphans.append(record)
-    return sorted(orphans, key=lambda r: r.seq)
-
-
-def _task_post(seq: int, name: str, joining: Sequence[str] = ()) -> Request:
-    """The POST of task ``seq``.  The task stream orders joins: every robot
-    admits the joiners at this task."""
-    body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {})})
-    return Request(Method.POST, "/tasks", payload=body, content_format=ContentFormat.CBOR)
-
-
-async def _wait_for(
-    watcher: ObservedStates, predicate: Callable[[States], bool], timeout: float, what: str
-) -> States:
-    try:
-        return await watcher.wait(predicate, timeout)
-    except TimeoutError:
-        raise TeamError(f"timed out after {timeout:g}s waiting for {what}") from None
 
 
 async def _drain(stream: asyncio.StreamReader, tail: list[str], keep: int = 20) -> None:

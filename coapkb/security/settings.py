@@ -44,7 +44,9 @@ def parse_security(data: Any, base_dir: Path) -> SecurityConfig:
         raise ValueError("security.credentials: expected the team directory's path")
     path = Path(raw) if Path(raw).is_absolute() else base_dir / raw
     if not (path / TRUST_FILE).is_file():
-        raise ValueError(f"security.credentials: no {TRUST_FILE} in {path} (make one with coapkb keys)")
+        raise ValueError(
+            f"security.credentials: no {TRUST_FILE} in {path}; make the team's keys with: coapkb keys --team-dir {path}"
+        )
     identity = data.get("identity")
     if identity is not None and (not isinstance(identity, str) or not identity):
         raise ValueError("security.identity: expected a member name")

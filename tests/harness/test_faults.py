@@ -10,8 +10,9 @@ import pytest
 
 from coapkb.agent.robot_state import RobotState
 from coapkb.agent.team_view import STATE_PATH
-from coapkb.harness.record import TaskRecord, TeamRecord
-from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tasks, split_tasks
+from coapkb.feeder import TaskRecord, split_tasks
+from coapkb.harness.record import TeamRecord
+from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tasks
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
 

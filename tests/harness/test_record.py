@@ -9,7 +9,8 @@ import cbor2
 
 from coapkb.agent.query_handler import QueryStats
 from coapkb.agent.stats import RobotStats
-from coapkb.harness.record import FaultEvent, TaskRecord, TeamRecord, summarise
+from coapkb.feeder import TaskRecord
+from coapkb.harness.record import FaultEvent, TeamRecord, summarise
 from coapkb.transport.base import TrafficCounters
 
 

@@ -30,7 +30,8 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import ContentFormat, Method, Request
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.harness.record import TeamRecord
-from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts, split_tasks
+from coapkb.feeder import split_tasks
+from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts
 from coapkb.transport import open_client
 from coapkb.world import layout_from_row, travel_distance
 

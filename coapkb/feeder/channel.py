@@ -1,0 +1,123 @@
+"""The feeder's line to its team: one client transport and a watcher of
+every robot's state, and the requests every part of the feeder makes."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass
+from typing import AsyncIterator, Callable, Mapping, Sequence
+
+from ..agent.robot_state import RobotState
+from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
+from ..transport import open_client
+from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.coap.reliability import DEFAULT_PROFILE
+from ..transport.messages import ContentFormat, Method, Request
+from .tasks import FeederError
+
+#: A robot's state, asked once (the watcher observes it all along).
+STATE_REQUEST = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+
+
+@dataclass(frozen=True)
+class Roster:
+    """Who is on the team and where: every robot's endpoint, and the
+    clusters (robots that share a task stream) in feeding order."""
+
+    endpoints: Mapping[str, Endpoint]
+    clusters: Sequence[Sequence[str]]
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return [r for cluster in self.clusters for r in cluster]
+
+
+@dataclass(frozen=True)
+class FeederSettings:
+    """How the feeder talks to the team and how long it waits."""
+
+    transport: str
+    retransmission: str = DEFAULT_PROFILE
+    #: Wall-clock limit for one task's coordination before the run is declared stuck.
+    task_timeout_s: float = 120.0
+    #: How long a robot's statistics may take to download.
+    query_timeout_s: float = 10.0
+    #: The robots' lease (coapkb.agent.lease): a down robot's tasks go round
+    #: again once the survivors refused it a lease this long ago; 0 = no fence.
+    lease_s: float = 0.0
+    #: The robots' link rate (kbit/s), when known: sets the liveness floor.
+    link_kbps: float | None = None
+
+
+
+@dataclass
+class Channel:
+    """Open with :meth:`open`; shared by the feeding loop and the membership."""
+
+    client: ClientTransport
+    watcher: ObservedStates
+    roster: Roster
+    settings: FeederSettings
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None) -> AsyncIterator["Channel"]:
+        """A client and a watcher (with liveness: the feeder declares a robot
+        down when its requests fail, and then waits for the survivors only)."""
+        client = await open_client(settings.transport, retransmission=settings.retransmission, security=security)
+        try:
+            watcher = ObservedStates(
+                client, roster.endpoints, STATE_PATH, liveness=True,
+                liveness_floor_s=liveness_floor_s(settings.link_kbps),
+            )
+            watcher.start()
+            try:
+                yield cls(client, watcher, roster, settings)
+            finally:
+                await watcher.aclose()
+        finally:
+            await client.aclose()
+
+    def endpoint(self, robot_id: str) -> Endpoint:
+        return self.roster.endpoints[robot_id]
+
+    async def wait_for(self, predicate: Callable[[States], bool], timeout: float, what: str) -> States:
+        """The robots' states once ``predicate`` holds; a FeederError naming ``what`` after ``timeout``."""
+        try:
+            return await self.watcher.wait(predicate, timeout)
+        except TimeoutError:
+            raise FeederError(f"timed out after {timeout:g}s waiting for {what}") from None
+
+    async def state(self, robot_id: str, timeout: float) -> RobotState | None:
+        """``robot_id``'s state asked once; None if it does not answer with one."""
+        try:
+            response = await self.client.request(self.endpoint(robot_id), STATE_REQUEST, timeout=timeout)
+            return RobotState.decode(response.payload) if response.status.is_success else None
+        except (TransportError, ValueError):
+            return None
+
+    async def post_task(self, robot_id: str, request: Request, seq: int, name: str) -> None:
+        """POST a task to one robot; if it does not answer, ask the watcher
+        whether it is down (then the task goes to the survivors only) or
+        post again (a robot recognises a repeated post)."""
+        watcher = self.watcher
+        deadline = time.monotonic() + self.settings.task_timeout_s
+        while True:
+            try:
+                response = await self.client.request(
+                    self.endpoint(robot_id), request, timeout=max(watcher.request_timeout_s, 1.0)
+                )
+            except TransportError as exc:
+                await watcher.probe(robot_id)
+                if robot_id in watcher.down:
+                    return
+                if time.monotonic() > deadline:
+                    raise FeederError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
+                continue
+            if not response.status.is_success:
+                await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
+                if robot_id in watcher.down:
+                    return
+                raise FeederError(f"{robot_id} refused task {seq} ({name}): {response}")
+            return

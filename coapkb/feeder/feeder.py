@@ -1,0 +1,254 @@
+"""The feeding loop: the task list split into contiguous shares, one per
+cluster, fed in parallel; within a cluster tasks go out one at a time (the
+seed's "sequentially triggered from an external source"): the next once
+every robot of the cluster has decided the previous one."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from dataclasses import dataclass, replace
+from typing import AsyncIterator, Callable, Mapping, Sequence
+
+import cbor2
+
+from ..agent.robot_state import RobotState
+from ..agent.stats import RobotStats
+from ..agent.team_view import ObservedStates, States
+from ..transport.base import TrafficCounters, TransportError
+from ..transport.messages import ContentFormat, Method, Request
+from .channel import STATE_REQUEST, Channel, FeederSettings, Roster
+from .membership import Membership
+from .orphans import idle
+from .record import TaskRecord
+from .tasks import FeederError, split_tasks, task_post
+
+STATS_PATH = "/robot/stats"
+
+
+@dataclass(frozen=True)
+class FeedOutcome:
+    """What feeding a task list gave: a record per task (re-runs included),
+    in the order given, and how long it took."""
+
+    tasks: list[TaskRecord]
+    #: Feeding the first task until every cluster decided its last one, seconds.
+    coordination_s: float
+    #: Until every robot also finished executing, seconds.
+    completion_s: float
+
+
+def _last_task(state: RobotState) -> int:
+    """The number of the last task ``state``'s robot took and decided (0: none)."""
+    return max(state.plan.seq, state.last.seq if state.last is not None else 0)
+
+
+class Feeder:
+    """The team's task source.  Open with :meth:`open` (an async context
+    manager), then :meth:`feed`."""
+
+    def __init__(self, channel: Channel) -> None:
+        self.channel = channel
+        self.membership = Membership(channel)
+        #: Cluster index -> its first task's number (1, unless robots took an earlier feeder's tasks).
+        self._first_seq: dict[int, int] = {}
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None) -> AsyncIterator["Feeder"]:
+        async with Channel.open(roster, settings, security) as channel:
+            yield cls(channel)
+
+    @property
+    def watcher(self) -> ObservedStates:
+        """Every robot's observed state, and those the feeder has down."""
+        return self.channel.watcher
+
+    @property
+    def traffic(self) -> TrafficCounters:
+        """A copy of the feeder's own transport counters."""
+        return replace(self.channel.client.counters)
+
+    async def check_ready(self, timeout: float, hints: Mapping[str, str] | None = None) -> None:
+        """Ask every robot once for its state before feeding: each must
+        answer, be done with earlier tasks (another feeder's), and have taken
+        the same tasks as the rest of its cluster; this feeder's tasks follow
+        on from theirs.  ``hints``: robot -> what to do about one that does
+        not answer, added to the error."""
+        channel = self.channel
+
+        async def ask(robot_id: str) -> RobotState | str:
+            """``robot_id``'s state, or why it cannot be fed."""
+            endpoint = channel.endpoint(robot_id)
+            try:
+                response = await channel.client.request(endpoint, STATE_REQUEST, timeout=timeout)
+            except TransportError as exc:
+                hint = f"; {hints[robot_id]}" if hints and robot_id in hints else ""
+                return f"{robot_id} does not answer at {endpoint} ({exc}){hint}"
+            try:
+                state = RobotState.decode(response.payload) if response.status.is_success else None
+            except ValueError:
+                state = None
+            if state is None:
+                return f"{robot_id} at {endpoint} answered {response.status.dotted}, not its state"
+            if state.live.activity != "idle" or state.live.queued:
+                return f"{robot_id} is still executing earlier tasks: feed it once it is idle"
+            return state
+
+        # Every robot asked to the end: one line names them all, and no request is left behind.
+        robots = channel.roster.robot_ids
+        answers = await asyncio.gather(*(ask(r) for r in robots))
+        problems = [a for a in answers if isinstance(a, str)]
+        if problems:
+            raise FeederError("; ".join(problems))
+        states = {r: a for r, a in zip(robots, answers) if isinstance(a, RobotState)}
+        for index, cluster in enumerate(channel.roster.clusters):
+            taken = {r: _last_task(states[r]) for r in cluster}
+            if len(set(taken.values())) > 1:
+                raise FeederError(f"the robots of cluster {index + 1} have taken different tasks "
+                                  f"({', '.join(f'{r}: up to {n}' for r, n in taken.items())}): restart them")
+            self._first_seq[index] = max(taken.values(), default=0) + 1
+        for robot_id, state in states.items():
+            self.membership.set_done_before(robot_id, state.live.done)
+
+    async def feed(
+        self,
+        tasks: Sequence[str],
+        progress: Callable[[TaskRecord], None] | None = None,
+        started: float | None = None,
+    ) -> FeedOutcome:
+        """Feed ``tasks`` and wait until every robot has executed what it took;
+        ``progress`` is called with each task's record once it is decided.
+        ``started``: the run's start (monotonic), if not now."""
+        started = time.monotonic() if started is None else started
+        clusters = self.channel.roster.clusters
+        shares = split_tasks(tasks, len(clusters))
+        per_cluster = await asyncio.gather(
+            *(self._feed_cluster(index, list(cluster), share, progress)
+              for index, (cluster, share) in enumerate(zip(clusters, shares)))
+        )
+        coordination_s = max(decided_at for _, decided_at in per_cluster) - started
+        completion_s = time.monotonic() - started
+        records = [record for share_records, _ in per_cluster for record in share_records]
+        # Restore the order given: cluster shares are contiguous.
+        records.sort(key=lambda r: (r.cluster, r.seq))
+        return FeedOutcome(records, coordination_s, completion_s)
+
+    async def collect_stats(self, robots: Sequence[str], maybe: Sequence[str] = ()) -> dict[str, RobotStats]:
+        """Every robot's statistics; those of ``maybe`` if they answer."""
+        channel = self.channel
+        request = Request(Method.GET, STATS_PATH, accept=ContentFormat.CBOR)
+        stats = {}
+        for robot_id in [*robots, *maybe]:
+            try:
+                response = await channel.client.request(
+                    channel.endpoint(robot_id), request, timeout=channel.settings.query_timeout_s
+                )
+            except TransportError:
+                if robot_id in maybe:
+                    continue
+                raise
+            stats[robot_id] = RobotStats.from_dict(cbor2.loads(response.payload))
+        return stats
+
+    async def _feed_cluster(
+        self, index: int, cluster: list[str], share: list[str], progress: Callable[[TaskRecord], None] | None
+    ) -> tuple[list[TaskRecord], float]:
+        """Feed one cluster's share; returns its records and when its last task was decided."""
+        channel, membership, watcher = self.channel, self.membership, self.channel.watcher
+        records: list[TaskRecord] = []
+        queue: list[tuple[str, int | None]] = [(name, None) for name in share]
+        #: Tasks of a robot's previous process, found when it joins again.
+        reruns: list[TaskRecord] = []
+        seq = self._first_seq.get(index, 1) - 1
+        decided_at = time.monotonic()
+        while queue:
+            for name, reassigned_from in queue:
+                seq += 1
+                joining = membership.joining(cluster)
+                if joining:
+                    reruns += membership.prepare_join(records, joining, seq)
+                if records:
+                    await membership.take_back(cluster, records)
+                record = await self._feed_task(index, cluster, seq, name, joining)
+                record.reassigned_from = reassigned_from
+                records.append(record)
+                if progress is not None:
+                    progress(record)
+            decided_at = time.monotonic()
+            # Until the cluster's survivors have executed everything: a robot
+            # that dies meanwhile is found by the stalled wait's liveness requests.
+            await channel.wait_for(
+                lambda s: all(r in watcher.down or idle(s, r) for r in cluster),
+                channel.settings.task_timeout_s * 4,
+                f"cluster {index + 1} to finish executing",
+            )
+            # Tasks assigned to robots that went down before executing them
+            # go round again, in their order, to the survivors: once the
+            # down robot can no longer pick them (the fence).
+            await membership.recover(cluster, records)
+            found = {r.seq: r for r in reruns + membership.orphans(records)}
+            reruns = []
+            queue = [(found[s].object, s) for s in sorted(found)]
+        return records, decided_at
+
+    async def _feed_task(
+        self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = ()
+    ) -> TaskRecord:
+        channel, watcher = self.channel, self.channel.watcher
+        fed = time.monotonic()
+        request = task_post(seq, name, joining)
+        live = [r for r in cluster if r not in watcher.down]
+        if not live:
+            raise FeederError(f"every robot of cluster {index + 1} is down: {watcher.down}")
+        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live))
+
+        def decided(states: States, robot_id: str) -> bool:
+            last = states[robot_id].last if robot_id in states else None
+            return last is not None and last.seq >= seq
+
+        states = await channel.wait_for(
+            lambda s: all(r in watcher.down or decided(s, r) for r in cluster),
+            channel.settings.task_timeout_s,
+            f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
+        )
+        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed,
+                            joined=list(joining))
+        decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
+        if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
+            # Robots that differ may have decided and then died before the
+            # feeder noticed: ask each once, so the dead ones' decisions are void.
+            await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
+        # The decision is the survivors': a robot that decided and then went
+        # down executes nothing (its task, if any, goes round again), and one
+        # left out of a newer membership by the others took no part in it.
+        newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
+        survivors = [r for r in decisions if r not in watcher.down]
+        for robot_id in cluster:
+            decision = decisions.get(robot_id)
+            if decision is None:
+                record.absent[robot_id] = watcher.down.get(robot_id, "no decision")
+                continue
+            if robot_id in watcher.down and survivors:
+                record.absent[robot_id] = f"{watcher.down[robot_id]} (its decision is void)"
+                continue
+            if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
+                record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
+                continue
+            record.decisions[robot_id] = decision.assigned_to
+            record.epochs[robot_id] = decision.epoch
+            if decision.members and not record.members:
+                record.members = list(decision.members)
+            if decision.error:
+                record.errors[robot_id] = decision.error
+            if decision.unavailable and record.unavailable is None:
+                record.unavailable = decision.unavailable
+            if decision.skipped:
+                record.skipped = True
+            if decision.costs and not record.costs:
+                record.costs = dict(decision.costs)
+                record.reasons = dict(decision.reasons)
+        assigned = {d for d in record.decisions.values() if d is not None}
+        record.assigned_to = assigned.pop() if len(assigned) == 1 else None
+        return record

@@ -1,0 +1,181 @@
+"""Who the feeder counts on, robot by robot: restarted robots joining at a
+task boundary, robots back before their teammates noticed (taken back),
+and down robots fenced off before their tasks go round again."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from typing import Sequence
+
+from ..agent.lease import LEASE_PATH
+from ..agent.robot_state import RobotState
+from ..transport.base import TransportError
+from ..transport.messages import Method, Request, Status
+from .channel import STATE_REQUEST, Channel
+from .orphans import orphans, unexecuted
+from .record import TaskRecord
+from .tasks import FeederError, task_post
+
+log = logging.getLogger(__name__)
+
+
+class Membership:
+    """The feeder's view of which process of each robot it feeds, shared by
+    the clusters' feeding loops."""
+
+    def __init__(self, channel: Channel) -> None:
+        self.channel = channel
+        #: Restarted robots, up again and waiting to join at the next task.
+        self._restarted: set[str] = set()
+        #: Robot -> the first task of its current process (0: every task of this feeder).
+        self._incarnation: dict[str, int] = {}
+        #: Down robots whose tasks may go round again: the survivors no
+        #: longer grant them a lease, and it has run out (:meth:`fence`).
+        self._fenced_off: set[str] = set()
+        #: Robot -> jobs its process had done before this feeder's first task
+        #: (an earlier feeder's): not among this feeder's records.
+        self._done_before: dict[str, int] = {}
+
+    def set_done_before(self, robot_id: str, done: int) -> None:
+        """``robot_id`` had done ``done`` jobs, all of them an earlier feeder's."""
+        self._done_before[robot_id] = done
+
+    def rejoin(self, robot_id: str) -> None:
+        """``robot_id`` runs again as a new process (same endpoint): it joins
+        the team at the next task fed to its cluster."""
+        self._restarted.add(robot_id)
+
+    def joining(self, cluster: Sequence[str]) -> list[str]:
+        return sorted(r for r in cluster if r in self._restarted)
+
+    def prepare_join(self, records: list[TaskRecord], joining: list[str], seq: int) -> list[TaskRecord]:
+        """Before restarted robots join at task ``seq``: their previous
+        processes' unexecuted tasks (returned, to go round again), then count
+        on them afresh."""
+        watcher = self.channel.watcher
+        for robot_id in joining:
+            self._restarted.discard(robot_id)
+            # A restart the feeder was told of: the old process is gone even if
+            # no failed request told yet (killed: it cannot pick anything).
+            watcher.down.setdefault(robot_id, "restarted")
+        found = orphans(records, watcher, self._incarnation, joining, only=joining, done_before=self._done_before)
+        for robot_id in joining:
+            self._incarnation[robot_id] = seq
+            self._done_before.pop(robot_id, None)  # a new process: its count starts at 0
+            self._fenced_off.discard(robot_id)
+            watcher.readmit(robot_id)
+        return found
+
+    def orphans(self, records: list[TaskRecord]) -> list[TaskRecord]:
+        """The cluster's tasks to send round again now (see :func:`~coapkb.feeder.orphans.orphans`)."""
+        return orphans(records, self.channel.watcher, self._incarnation, self._fenced_off,
+                       done_before=self._done_before)
+
+    async def take_back(self, cluster: Sequence[str], records: Sequence[TaskRecord]) -> None:
+        """Feed again a robot the feeder has down but its teammates still
+        count as a member (their last decision names it): it was only slow
+        or cut off, and under "compute by all" they wait for its plan after
+        every task.  It is asked once; if it answers with the same process (a
+        new one joins instead, at a task boundary), it is given the tasks it
+        missed, in order, and fed from now on like the others."""
+        watcher = self.channel.watcher
+        last = records[-1]
+        # A dead robot is asked at each task boundary until its teammates
+        # leave it out (a task or two): a few round trips, not a liveness
+        # timeout, since silence here only means "not back yet".
+        srtt = watcher.round_trip.srtt
+        timeout = watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
+        for robot_id in cluster:
+            if (robot_id not in watcher.down or robot_id not in last.members or robot_id in self._fenced_off
+                    or robot_id in self._restarted):
+                continue
+            state = await self.channel.state(robot_id, timeout)
+            known = watcher.states.get(robot_id)
+            if state is None or known is None or state.boot != known.boot:
+                continue
+            seen = state.last.seq if state.last is not None else 0
+            missed = [r for r in records if r.seq > seen]
+            log.warning("%s answers again and its teammates still count it: fed again from task %d",
+                        robot_id, seen + 1)
+            watcher.readmit(robot_id)
+            for record in missed:  # the robot takes tasks strictly in order
+                await self.channel.post_task(robot_id, task_post(record.seq, record.object, record.joined),
+                                             record.seq, record.object)
+
+    async def recover(self, cluster: Sequence[str], records: list[TaskRecord]) -> None:
+        """Once the cluster's survivors are idle: fence off every down robot
+        that holds unexecuted tasks (so they may go round again), or, if its
+        teammates still grant it (it came back), wait until it has done them."""
+        watcher = self.channel.watcher
+        for robot_id in cluster:
+            if robot_id in watcher.down and robot_id not in self._fenced_off and unexecuted(
+                records, watcher, robot_id, self._incarnation, self._done_before
+            ):
+                if await self.fence(cluster, robot_id):
+                    self._fenced_off.add(robot_id)
+                else:
+                    await self.settle(robot_id)
+
+    async def settle(self, robot_id: str) -> None:
+        """Wait until ``robot_id`` (down for the feeder, but its teammates
+        still grant it: it came back) has executed what it holds, so its
+        statistics in the record are final."""
+        channel = self.channel
+        with contextlib.suppress(TransportError, ValueError, TimeoutError):
+            async with asyncio.timeout(channel.settings.task_timeout_s * 4):
+                async for response in channel.client.observe(channel.endpoint(robot_id), STATE_REQUEST):
+                    live = RobotState.decode(response.payload).live
+                    if live.activity == "idle" and live.queued == 0:
+                        return
+
+    async def fence(self, cluster: Sequence[str], robot_id: str) -> bool:
+        """Before down ``robot_id``'s tasks go round again: ask every survivor
+        of its cluster whether it still grants it a lease (each probes it
+        first), then wait the lease out from the last refusal.  False if a
+        survivor still grants it (it answers them: its tasks stay its own)."""
+        channel, watcher = self.channel, self.channel.watcher
+        lease_s = channel.settings.lease_s
+        if lease_s <= 0:
+            return True
+        request = Request(Method.GET, LEASE_PATH, {"r": robot_id, "check": ""})
+
+        async def refused_at(survivor: str) -> float | None:
+            """When ``survivor`` said it no longer grants ``robot_id`` (now if it is down)."""
+            while survivor not in watcher.down:
+                try:
+                    response = await channel.client.request(
+                        channel.endpoint(survivor), request, timeout=channel.settings.task_timeout_s
+                    )
+                except TransportError:
+                    await watcher.probe(survivor)
+                    continue
+                if response.status == Status.FORBIDDEN:
+                    return time.monotonic()
+                if response.status.is_success:
+                    return None
+                raise FeederError(
+                    f"{survivor} answered {response.status.dotted} about {robot_id}'s lease: {response.text()}"
+                )
+            return time.monotonic()
+
+        survivors = [r for r in cluster if r != robot_id and r not in watcher.down]
+        answers = await asyncio.gather(*(refused_at(r) for r in survivors))
+        if any(at is None for at in answers):
+            granting = [r for r, at in zip(survivors, answers) if at is None]
+            log.warning("%s still grant %s a lease: its tasks stay with it", ", ".join(granting), robot_id)
+            return False
+        # Waiting the lease out is the fence itself: any lease the robot
+        # holds was granted before the last refusal, so it ends within this.
+        last = max(answers, default=time.monotonic())
+        await asyncio.sleep(max(0.0, last + lease_s - time.monotonic()))
+        # From now on the robot can pick nothing: if it answers (it was only
+        # cut off), its state is final and says what it did pick.
+        state = await channel.state(robot_id, watcher.request_timeout_s)
+        known = watcher.states.get(robot_id)
+        if state is not None and known is not None and state.boot == known.boot:
+            watcher.states[robot_id] = state
+        log.warning("%s's lease has run out: its unexecuted tasks go round again", robot_id)
+        return True

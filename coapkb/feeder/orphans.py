@@ -1,0 +1,71 @@
+"""Which tasks go round again: those a robot took and can no longer do."""
+
+from __future__ import annotations
+
+from typing import Collection, Mapping
+
+from ..agent.team_view import ObservedStates, States
+from .record import TaskRecord
+
+
+def idle(states: States, robot_id: str) -> bool:
+    state = states.get(robot_id)
+    return state is not None and state.live.activity == "idle" and state.live.queued == 0
+
+
+def unexecuted(
+    records: list[TaskRecord], watcher: ObservedStates, robot_id: str, incarnation: Mapping[str, int] | None = None,
+    done_before: Mapping[str, int] | None = None,
+) -> list[TaskRecord]:
+    """The tasks assigned to ``robot_id``'s current process that it has not
+    executed (nor dropped), not yet sent round again.  A robot executes its
+    jobs in the order assigned, so its last observed ``done`` count, less the
+    jobs it had done before these records began (``done_before``), says how
+    many of them are finished (a job finished in the instant before a crash
+    counts as not done: done again rather than lost)."""
+    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+    state = watcher.states.get(robot_id)
+    done = state.live.done - (done_before or {}).get(robot_id, 0) if state is not None else 0
+    fenced = set(state.live.fenced) if state is not None else set()
+    first = (incarnation or {}).get(robot_id, 0)
+    mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first and r.seq not in fenced]
+    return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
+
+
+def orphans(
+    records: list[TaskRecord], watcher: ObservedStates, incarnation: Mapping[str, int] | None = None,
+    fenced_off: Collection[str] = (),
+    only: Collection[str] | None = None,
+    done_before: Mapping[str, int] | None = None,
+) -> list[TaskRecord]:
+    """Tasks to send round again: those a robot now down had not executed
+    (only once it is ``fenced_off``: it can no longer pick them), and those a
+    robot dropped because it lost its lease.  Only the tasks of a robot's
+    last process count: the process before a restart had its own, handled
+    when it joined again.  A re-run that is dropped again is not sent round
+    a third time: no robot of the cluster could hold a lease for it.
+    ``only``: these robots' tasks alone; ``done_before``: see :func:`unexecuted`."""
+    taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+    found = []
+    for robot_id in fenced_off:
+        if robot_id not in watcher.down or (only is not None and robot_id not in only):
+            continue
+        for record in unexecuted(records, watcher, robot_id, incarnation, done_before):
+            record.orphaned = f"{robot_id} went down before executing it: {watcher.down[robot_id]}"
+            found.append(record)
+    for robot_id, state in watcher.states.items():
+        if not state.live.fenced or (only is not None and robot_id not in only):
+            continue
+        first = (incarnation or {}).get(robot_id, 0)
+        for record in records:
+            if record.assigned_to != robot_id or record.seq < first or record.seq not in state.live.fenced:
+                continue
+            if record.seq in taken or record.orphaned is not None or record.unavailable is not None:
+                continue
+            why = f"{robot_id} dropped it unexecuted: {state.live.fence_reason}"
+            if record.reassigned_from is not None:
+                record.unavailable = why
+                continue
+            record.orphaned = why
+            found.append(record)
+    return sorted(found, key=lambda r: r.seq)

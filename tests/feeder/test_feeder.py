@@ -1,0 +1,176 @@
+"""The feeder as a component: its task stream, the team it reads from a
+folder of TOML files, and feeding real robots (separate processes on
+loopback, started by the harness) through :class:`~coapkb.feeder.Feeder`."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import tomllib
+from pathlib import Path
+
+import cbor2
+import pytest
+import tomli_w
+
+from coapkb.config import ConfigError
+from coapkb.feeder import (
+    Feeder,
+    FeederError,
+    FeederSettings,
+    Roster,
+    TaskRecord,
+    read_tasks_file,
+    split_tasks,
+    task_post,
+)
+from coapkb.feeder.team_folder import read_team_folder
+from coapkb.harness.team import Team, TeamSpec
+from coapkb.transport.base import Endpoint
+from coapkb.transport.messages import ContentFormat, Method
+
+from support import ROOT
+
+EXAMPLE = ROOT / "examples" / "three-robots"
+
+
+# --------------------------------------------------------------------------- the task stream
+
+
+def test_a_task_post_is_the_documented_body() -> None:
+    post = task_post(3, "Gucci_bag_14")
+    assert (post.method, post.path, post.content_format) == (Method.POST, "/tasks", ContentFormat.CBOR)
+    assert cbor2.loads(post.payload) == {"seq": 3, "object": "Gucci_bag_14"}
+    assert cbor2.loads(task_post(7, "Bosch_rug_837", ["Robot2"]).payload) == {
+        "seq": 7, "object": "Bosch_rug_837", "join": ["Robot2"]}
+
+
+def test_tasks_file_ignores_comments_and_blank_lines(tmp_path: Path) -> None:
+    path = tmp_path / "tasks.txt"
+    path.write_text("# header\nGucci_bag_14\n\n  Canon_tv_538   # a comment\n", encoding="utf-8")
+    assert read_tasks_file(path) == ["Gucci_bag_14", "Canon_tv_538"]
+    with pytest.raises(FeederError, match="cannot read tasks file"):
+        read_tasks_file(tmp_path / "missing.txt")
+    (tmp_path / "binary").write_bytes(b"\xff\xfe\x00junk")
+    with pytest.raises(FeederError, match="not UTF-8"):
+        read_tasks_file(tmp_path / "binary")
+
+
+def test_tasks_are_shared_in_contiguous_near_equal_parts() -> None:
+    assert split_tasks(list("abcdefg"), 3) == [["a", "b"], ["c", "d", "e"], ["f", "g"]]
+    assert split_tasks(["a"], 2) == [[], ["a"]]
+
+
+# --------------------------------------------------------------------------- the team from its TOML files
+
+
+def _insecure_copy(tmp_path: Path, change: dict[str, dict] | None = None) -> Path:
+    """The example's robots without [security] (no keys needed), kb paths
+    absolute; ``change``: robot -> top-level fields to replace."""
+    folder = tmp_path / "team"
+    folder.mkdir()
+    for path in sorted(EXAMPLE.glob("*.toml")):
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data.pop("security")
+        data["kb"] = [str((EXAMPLE / kb).resolve()) for kb in data["kb"]]
+        data.update((change or {}).get(data["robot_id"], {}))
+        (folder / path.name).write_text(tomli_w.dumps(data), encoding="utf-8")
+    return folder
+
+
+def test_the_team_is_read_from_its_robots_files(tmp_path: Path) -> None:
+    team = read_team_folder(_insecure_copy(tmp_path))
+    assert team.roster.clusters == [["Robot1", "Robot2", "Robot3"]]
+    assert team.roster.endpoints == {f"Robot{i}": Endpoint("coap", "127.0.0.1", 5720 + i) for i in (1, 2, 3)}
+    assert team.settings.transport == "coap" and team.settings.lease_s == 3.0
+    assert team.credentials is None and team.security() is None
+    assert team.start_command("Robot2") == f"coapkb agent --config {tmp_path / 'team' / 'Robot2.toml'}"
+
+
+def test_the_example_needs_its_keys_first() -> None:
+    if (EXAMPLE / "keys").exists():
+        pytest.skip("keys made in the example folder")
+    with pytest.raises(ConfigError, match="coapkb keys --team-dir .*examples/three-robots/keys"):
+        read_team_folder(EXAMPLE)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"Robot2": {"team": {"Robot2": {"endpoint": "coap://127.0.0.1:5722"},
+                          "Robot1": {"endpoint": "coap://127.0.0.1:5799"}}}}, "expects Robot1 at coap://127.0.0.1:5799"),
+    ({"Robot3": {"team": {"Robot3": {"endpoint": "coap://127.0.0.1:5723"},
+                          "Robot4": {"endpoint": "coap://127.0.0.1:5724"}}}}, "lists Robot4 in its team"),
+    ({"Robot3": {"robot_id": "Robot1", "bind": "coap://127.0.0.1:5721"}}, "are both Robot1"),
+])
+def test_a_team_that_does_not_add_up_is_one_error(tmp_path: Path, change: dict, message: str) -> None:
+    for robot in change.values():  # the team tables above need KBs for every module: hold them all
+        if "team" in robot:
+            for mate in robot["team"].values():
+                mate["kbs"] = ["Location", "Object", "Capability"]
+    with pytest.raises(FeederError, match=message):
+        read_team_folder(_insecure_copy(tmp_path, change))
+
+
+def test_a_folder_without_robots_is_one_error(tmp_path: Path) -> None:
+    with pytest.raises(FeederError, match="no such team folder"):
+        read_team_folder(tmp_path / "nowhere")
+    with pytest.raises(FeederError, match=r"no robot configuration \(\*\.toml\)"):
+        read_team_folder(tmp_path)
+
+
+# --------------------------------------------------------------------------- feeding real robots
+
+
+def _silent_endpoint() -> Endpoint:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # closed again: nobody listens there
+        s.bind(("127.0.0.1", 0))
+        return Endpoint("coap", "127.0.0.1", s.getsockname()[1])
+
+
+async def test_a_robot_that_does_not_answer_is_named_before_any_task() -> None:
+    roster = Roster({"Robot1": _silent_endpoint()}, [["Robot1"]])
+    async with Feeder.open(roster, FeederSettings("coap")) as feeder:
+        with pytest.raises(FeederError, match=r"Robot1 does not answer at coap://127\.0\.0\.1:\d+ .*; start it"):
+            await feeder.check_ready(2.0, {"Robot1": "start it"})
+
+
+@pytest.mark.slow
+async def test_the_feeder_feeds_a_secure_team_in_order() -> None:
+    """Three robots (processes, OSCORE): every task decided by all, in order,
+    each robot's executions counted; a second feeder goes on where the
+    first one stopped."""
+    tasks = ["Gucci_bag_14", "Nonexistent_widget_1", "Canon_tv_538", "Zara_jacket_396"]
+    more = ["Gucci_bag_187", "Ikea_cookware_set_442"]
+    async with asyncio.timeout(180):
+        async with Team.launch(TeamSpec(robots=3)) as team:
+            assert team.feeder_security() is not None
+            seen: list[TaskRecord] = []
+            async with Feeder.open(team.roster(), team.feeder_settings(), team.feeder_security()) as feeder:
+                await feeder.check_ready(10.0)
+                outcome = await feeder.feed(tasks, seen.append)
+                assert feeder.traffic.messages_sent > 0
+            async with Feeder.open(team.roster(), team.feeder_settings(), team.feeder_security()) as feeder:
+                await feeder.check_ready(10.0)
+                then = await feeder.feed(more)
+                stats = await feeder.collect_stats(team.spec.robot_ids)
+    assert seen == outcome.tasks
+    assert [(t.seq, t.object) for t in outcome.tasks] == list(enumerate(tasks, 1))
+    assert [t.fate for t in outcome.tasks] == ["assigned", "skipped", "assigned", "assigned"]
+    assert all(t.agreed and set(t.decisions) == set(team.spec.robot_ids) for t in outcome.tasks + then.tasks)
+    assert 0 < outcome.coordination_s <= outcome.completion_s
+    assert [(t.seq, t.object, t.fate) for t in then.tasks] == [(5, more[0], "assigned"), (6, more[1], "assigned")]
+    assert sum(s.executed for s in stats.values()) == 5
+
+
+async def test_robots_of_a_cluster_at_different_tasks_are_refused() -> None:
+    """Robot2 restarted by hand after a feed: its teammates took tasks it never saw."""
+    async with asyncio.timeout(120):
+        async with Team.launch(TeamSpec(robots=3, security=False)) as team:
+            async with Feeder.open(team.roster(), team.feeder_settings()) as feeder:
+                await feeder.check_ready(10.0)
+                await feeder.feed(["Gucci_bag_14"])
+            await team.kill("Robot2")
+            await team.restart("Robot2")
+            async with Feeder.open(team.roster(), team.feeder_settings()) as feeder:
+                with pytest.raises(FeederError, match=r"cluster 1 have taken different tasks "
+                                                      r"\(Robot1: up to 1, Robot2: up to 0, Robot3: up to 1\)"):
+                    await feeder.check_ready(10.0)
