@@ -93,8 +93,8 @@ class BenchRow:
     tasks_reassigned: int | None = None
     #: Tasks the team could not do: a KB module they need had no live holder.
     tasks_unavailable: int | None = None
-    #: What protected the messages (``coapkb.harness.team.SECURITY_SCHEMES``):
-    #: ``oscore``, ``curve``, or ``none`` -- a CSV written before the column
+    #: What protected the messages (the transport registry's mechanism name):
+    #: ``oscore``, ``curve``, ``tls``, or ``none`` -- a CSV written before the column
     #: holds unprotected runs only.
     security: str = key_field("none")
 

@@ -3,28 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
-from ..security import load_identity
+from ..security import client_security, load_identity
+from ..transport import ClientSecurity
 
 #: The member name the feeder's key has in a team directory (``coapkb keys``).
 FEEDER_IDENTITY = "feeder"
 
 
-def feeder_security(transport: str, team_dir: Path | None, expected: Mapping[str, str]) -> Any:
-    """The feeder's OSCORE/EDHOC, CurveZMQ or mTLS client side over
-    ``transport`` with its key from ``team_dir``, or None for an insecure
-    team.  ``expected``: HOST:PORT -> the member that must answer there."""
+def feeder_security(transport: str, team_dir: Path | None, expected: Mapping[str, str]) -> ClientSecurity | None:
+    """The feeder's client side of ``transport``'s security (OSCORE/EDHOC,
+    CurveZMQ or mTLS) with its key from ``team_dir``, or None for an
+    insecure team.  ``expected``: HOST:PORT -> the member that must answer there."""
     if team_dir is None:
         return None
-    if transport == "zmq":
-        from ..security.curve import ZmqClientSecurity
-
-        return ZmqClientSecurity(load_identity(team_dir, FEEDER_IDENTITY), dict(expected))
-    if transport == "zenoh":
-        from ..security.zenoh_tls import ZenohClientSecurity
-
-        return ZenohClientSecurity(load_identity(team_dir, FEEDER_IDENTITY), dict(expected))
-    from ..security.coap import ClientSecurity
-
-    return ClientSecurity(load_identity(team_dir, FEEDER_IDENTITY), dict(expected))
+    return client_security(transport, load_identity(team_dir, FEEDER_IDENTITY), dict(expected))

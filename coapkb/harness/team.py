@@ -45,7 +45,7 @@ from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, T
 from ..kb.store import KnowledgeBase
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
-from ..transport import SCHEMES
+from ..transport import SCHEMES, transport_for
 from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import Endpoint, TrafficCounters
 from .record import FaultEvent, TeamRecord
@@ -91,10 +91,6 @@ class Fault:
         return cls(action, robot, at_s)
 
 
-#: Each transport's protection with the team's keys (``TeamSpec.security``):
-#: the bench's ``security`` column.  A transport not named here runs plain
-#: (``zenoh+udp``: Zenoh has TLS only over TCP).
-SECURITY_SCHEMES: dict[str, str] = {"coap": "oscore", "zmq": "curve", "zenoh": "tls"}
 
 
 @dataclass(frozen=True)
@@ -119,9 +115,9 @@ class TeamSpec:
     #: Failures injected during the run (``coapkb team --kill/--restart``).
     faults: tuple[Fault, ...] = ()
     #: OSCORE keyed by EDHOC (CoAP), CurveZMQ (ZeroMQ) or mTLS (Zenoh) between every
-    #: process, with the team's access policy (issue 12), from throwaway
-    #: keys made in the run's directory.  Transports not in
-    #: :data:`SECURITY_SCHEMES` run plain.
+    #: process, with the team's access policy, from throwaway keys made in
+    #: the run's directory.  A transport the registry knows no security for
+    #: (``zenoh+udp``) runs plain.
     security: bool = True
     #: An existing team directory (``coapkb keys``) to use instead of throwaway keys.
     credentials: Path | None = None
@@ -144,12 +140,12 @@ class TeamSpec:
 
     @property
     def secure(self) -> bool:
-        return self.security and self.transport in SECURITY_SCHEMES
+        return self.security and transport_for(self.transport).security is not None
 
     @property
     def security_scheme(self) -> str:
-        """What protects the team's messages: a :data:`SECURITY_SCHEMES` value, or ``none``."""
-        return SECURITY_SCHEMES[self.transport] if self.secure else "none"
+        """What protects the team's messages (the registry's mechanism name: ``oscore``, ``curve``, ``tls``), or ``none``."""
+        return transport_for(self.transport).security if self.secure else "none"  # type: ignore[return-value]
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
@@ -166,7 +162,7 @@ class TeamSpec:
             raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
         if self.discovery not in DISCOVERY_METHODS:
             raise ValueError(f"discovery must be one of {', '.join(DISCOVERY_METHODS)}, got {self.discovery!r}")
-        if self.discovery == "rd" and self.transport != "coap":
+        if self.discovery == "rd" and not transport_for(self.transport).resource_directory:
             raise ValueError(f"discovery rd needs the coap transport (a Resource Directory speaks CoAP), not {self.transport}")
         if self.rd_lifetime_s < 1:
             raise ValueError(f"rd_lifetime_s must be at least 1, got {self.rd_lifetime_s}")
@@ -252,7 +248,7 @@ class Placement:
     own network namespace behind an emulated link."""
 
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
-        kind = socket.SOCK_DGRAM if spec.transport in ("coap", "zenoh+udp") else socket.SOCK_STREAM
+        kind = socket.SOCK_DGRAM if transport_for(spec.transport).datagram else socket.SOCK_STREAM
         return Endpoint(spec.transport, spec.host, _free_port(kind))
 
     def command(self, name: str, argv: list[str]) -> list[str]:

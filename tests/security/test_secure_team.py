@@ -23,12 +23,12 @@ from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 async def test_keys_command_and_a_missing_key_at_start_up(tmp_path: Path) -> None:
     team_dir = tmp_path / "team"
-    code, out, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "3")
+    code, out, err = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "3")
     assert code == 0, err
     for name in ("Robot1", "Robot2", "Robot3", "feeder", "operator"):
         assert (team_dir / f"{name}.key").stat().st_mode & 0o777 == 0o600
         assert load_identity(team_dir, name).private_d.hex() not in out + err  # keys never printed
-    code, _, err, _ = await coapkb("keys", "--team-dir", str(team_dir))
+    code, _, err = await coapkb("keys", "--team-dir", str(team_dir))
     assert code != 0 and err.startswith("coapkb: ") and "already holds a team" in err
 
     port = free_udp_port()
@@ -43,7 +43,7 @@ endpoint = "coap://127.0.0.1:{port}"
 kbs = ["Object", "Location", "Capability"]
 """)
     (team_dir / "Robot1.key").unlink()
-    code, out, err, _ = await coapkb("agent", "--config", str(tmp_path / "robot1.toml"))
+    code, out, err = await coapkb("agent", "--config", str(tmp_path / "robot1.toml"))
     assert code != 0 and "Traceback" not in err
     assert err.splitlines() == [f"coapkb: error: cannot read private key {team_dir / 'Robot1.key'}: No such file or directory"]
 
@@ -105,10 +105,10 @@ async def test_query_command_with_credentials(tmp_path: Path) -> None:
     )
     try:
         uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
-        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0, err
         assert "Gucci_bag_14" in out
-        code, out, err, _ = await coapkb("query", uri)
+        code, out, err = await coapkb("query", uri)
         assert code != 0 and ("4.01" in err or "Unauthorized" in err), err
     finally:
         await server.stop()
@@ -125,7 +125,7 @@ async def test_aiocoap_client_with_a_team_credential(tmp_path: Path) -> None:
         "--bind", f"127.0.0.1:{free_udp_port()}", "--credentials", str(team_dir),
     )
     try:
-        code, diag, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--aiocoap-client", "operator", "central",
+        code, diag, err = await coapkb("keys", "--team-dir", str(team_dir), "--aiocoap-client", "operator", "central",
                                         server.uri)
         assert code == 0, err
         (tmp_path / "operator.diag").write_text(diag)

@@ -162,7 +162,7 @@ def test_no_key_in_the_public_files(team_dir: Path) -> None:
 
 async def test_serve_and_query_over_tls_from_the_command_line(tmp_path: Path) -> None:
     team_dir = tmp_path / "team"
-    code, out, err, _ = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")
+    code, out, err = await coapkb("keys", "--team-dir", str(team_dir), "--robots", "1")
     assert code == 0, err
     assert "PRIVATE KEY" not in out + err  # the TLS keys stay in their files
     kbs = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
@@ -171,17 +171,17 @@ async def test_serve_and_query_over_tls_from_the_command_line(tmp_path: Path) ->
     try:
         uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
         assert uri.startswith("zenoh://")
-        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0 and "Gucci_bag_14" in out, err
-        code, out, err, _ = await coapkb("query", uri, "--timeout", "3")
+        code, out, err = await coapkb("query", uri, "--timeout", "3")
         assert code != 0 and "Traceback" not in err and "cannot reach" in err, err
         # Still serving the team after a stranger's attempt.
-        code, out, err, _ = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
+        code, out, err = await coapkb("query", uri, "--credentials", str(team_dir), "--format", "json")
         assert code == 0 and "Gucci_bag_14" in out, err
     finally:
         await server.stop()
     (team_dir / "central.tls.key").unlink()
-    code, out, err, _ = await coapkb("serve", "--kb", *kbs, "--bind", f"127.0.0.1:{free_tcp_port()}",
+    code, out, err = await coapkb("serve", "--kb", *kbs, "--bind", f"127.0.0.1:{free_tcp_port()}",
                                    "--transport", "zenoh", "--credentials", str(team_dir))
     assert code != 0 and err.splitlines() == [
         f"coapkb: error: cannot read private key {team_dir / 'central.tls.key'}: No such file or directory"]
