@@ -213,11 +213,24 @@ def _location_ontology(wh: Warehouse) -> _Ontology:
                 ),
             )
         )
+    for number, dock in enumerate(spec.docks, 1):
+        individuals.append(
+            (
+                f"Dock_{number}",
+                ("ChargingDock",),
+                (
+                    ("Location_name", _s(f"Dock_{number}")),
+                    ("Part_Of", _iri(wname)),
+                    ("Aisle_no", _i(dock.aisle)),
+                    ("Rack_no", _i(dock.rack)),
+                ),
+            )
+        )
     return _Ontology(
         name="Location",
         comment=(
-            "The warehouse map: aisles, racks, bins, where each product is stored and where each robot "
-            "starts (seed paper Sec. III-B).  Geometry: aisle a's centre line is at x=(a-1)*Aisle_spacing_m; "
+            "The warehouse map: aisles, racks, bins, where each product is stored, where each robot "
+            "starts (seed paper Sec. III-B) and where robots charge.  Geometry: aisle a's centre line is at x=(a-1)*Aisle_spacing_m; "
             "rack r's pick point at y=Cross_aisle_margin_m+(r-0.5)*Rack_length_m; the front cross-aisle is at "
             "y=0 and the back one at y=Aisle_length_m; rack 0 and rack Racks_per_aisle+1 denote an aisle's "
             "junctions with the front and back cross-aisles."
@@ -231,6 +244,11 @@ def _location_ontology(wh: Warehouse) -> _Ontology:
             ("Bin", "Location", "A shelf level of a rack."),
             ("StoredItem", None, "A product as stored inventory (same local name as in Object.owl)."),
             ("Robot", None, "A robot of the team and its initial position."),
+            (
+                "ChargingDock",
+                "Location",
+                "Where a robot charges its battery: a cross-aisle junction (Rack_no 0 or Racks_per_aisle+1).",
+            ),
         ),
         object_properties=(
             ("Available_At", "StoredItem", "Location", "The warehouse an item is stored in."),
