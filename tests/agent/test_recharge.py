@@ -67,6 +67,7 @@ def test_a_team_with_small_batteries_recharges_and_leaves_no_task_unassigned(tmp
         assert record.tasks[charge.seq - 1].assigned_to == robot_id
     # The winner's cost of a task with a charge holds the time at the dock: dearer than any other pick.
     charged_seqs = {charge.seq for _, charge in recharges}
-    plain = max(t.costs[t.assigned_to] for t in record.tasks if t.seq not in charged_seqs)  # type: ignore[index]
-    assert all(record.tasks[s - 1].costs[record.tasks[s - 1].assigned_to] > plain for s in charged_seqs)  # type: ignore[index]
+    winners_cost = {t.seq: t.costs[t.assigned_to] for t in record.tasks if t.assigned_to}
+    plain = max(cost for seq, cost in winners_cost.items() if seq not in charged_seqs)
+    assert all(winners_cost[seq] > plain for seq in charged_seqs)
     assert "recharged at a dock: " in result.stdout
