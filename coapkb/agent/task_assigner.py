@@ -120,27 +120,27 @@ class _Route:
 
 
 def _route(
-    start: Position, load_kg: float, task: TaskFacts, capacity: float, energy: RobotEnergy, distance: Distance,
+    start: Position, load_kg: float, task: TaskFacts, payload_kg: float, energy: RobotEnergy, distance: Distance,
     depot: Position, cost: CostModel,
 ) -> _Route:
     target = Position(task.aisle, task.rack)
     to_object = distance(start, target)
-    wh = energy.travel(to_object, load_kg, capacity) + energy.per_pick
+    wh = energy.travel(to_object, load_kg, payload_kg) + energy.per_pick
     load = load_kg + task.weight_kg
-    if load >= cost.unload_at_fraction * capacity:  # full enough: unload at the depot
+    if load >= cost.unload_at_fraction * payload_kg:  # full enough: unload at the depot
         to_depot = distance(target, depot)
-        return _Route(wh + energy.travel(to_depot, load, capacity), to_object, to_depot, depot, 0.0)
+        return _Route(wh + energy.travel(to_depot, load, payload_kg), to_object, to_depot, depot, 0.0)
     return _Route(wh, to_object, 0.0, target, load)
 
 
 def _to_nearest_dock_wh(
-    place: Position, load_kg: float, capacity: float, energy: RobotEnergy, docks: Sequence[Position],
+    place: Position, load_kg: float, payload_kg: float, energy: RobotEnergy, docks: Sequence[Position],
     distance: Distance,
 ) -> float:
     """Energy to reach the nearest dock from ``place``; 0 without docks."""
     if not docks:
         return 0.0
-    return energy.travel(min(distance(place, dock) for dock in docks), load_kg, capacity)
+    return energy.travel(min(distance(place, dock) for dock in docks), load_kg, payload_kg)
 
 
 def plan_for(
@@ -157,45 +157,45 @@ def plan_for(
 
     ``docks``: the charging docks; none means no robot can charge, and a
     task that would take a battery below the reserve is refused."""
-    capacity = task.capable.get(robot_id)
-    if capacity is None:
+    payload_kg = task.capable.get(robot_id)
+    if payload_kg is None:
         return f"cannot pick by {task.grip}"
     if energy is None:
         return "no energy figures in the Capability KB"
-    if state.load_kg + task.weight_kg > capacity + 1e-9:
-        return f"payload left {capacity - state.load_kg:.2f} kg < {task.weight_kg:.2f} kg"
+    if state.load_kg + task.weight_kg > payload_kg + 1e-9:
+        return f"payload left {payload_kg - state.load_kg:.2f} kg < {task.weight_kg:.2f} kg"
     here = Position(state.aisle, state.rack)
 
     def ends_above_reserve(battery_wh: float, route: _Route) -> bool:
-        left = battery_wh - route.wh - _to_nearest_dock_wh(route.end, route.end_load_kg, capacity, energy, docks,
+        left = battery_wh - route.wh - _to_nearest_dock_wh(route.end, route.end_load_kg, payload_kg, energy, docks,
                                                            distance)
         return left >= cost.reserve_wh
 
     def plan(cost_wh: float, battery_wh: float, route: _Route, charge: ChargeStop | None = None) -> Plan:
         after = replace(state, aisle=route.end.aisle, rack=route.end.rack, battery_wh=battery_wh - route.wh,
-                        load_kg=route.end_load_kg, payload_kg=capacity)
+                        load_kg=route.end_load_kg, payload_kg=payload_kg)
         return Plan(robot_id, cost_wh, after, route.to_object_m, route.to_depot_m, charge)
 
-    direct = _route(here, state.load_kg, task, capacity, energy, distance, depot, cost)
+    direct = _route(here, state.load_kg, task, payload_kg, energy, distance, depot, cost)
     if ends_above_reserve(state.battery_wh, direct):
         return plan(direct.wh, state.battery_wh, direct)
     refusal = f"battery {state.battery_wh:.1f} Wh would fall below the {cost.reserve_wh:.1f} Wh reserve"
-    full = energy.capacity_wh
-    if not docks or full is None:
+    if not docks or energy.capacity_wh is None:
         return refusal
     best: Plan | None = None
     for dock in docks:  # the cheapest dock to charge at; ties go to the first in the KB's order
         to_dock = distance(here, dock)
-        arrive_wh = state.battery_wh - energy.travel(to_dock, state.load_kg, capacity)
+        arrive_wh = state.battery_wh - energy.travel(to_dock, state.load_kg, payload_kg)
         if arrive_wh < cost.reserve_wh:
             continue
-        route = _route(dock, state.load_kg, task, capacity, energy, distance, depot, cost)
-        if not ends_above_reserve(full, route):
+        full_wh = max(energy.capacity_wh, arrive_wh)  # a charge never empties a battery started above it
+        route = _route(dock, state.load_kg, task, payload_kg, energy, distance, depot, cost)
+        if not ends_above_reserve(full_wh, route):
             continue
-        charge_s = max(full - arrive_wh, 0.0) / cost.charge_w * 3600.0
+        charge_s = (full_wh - arrive_wh) / cost.charge_w * 3600.0
         cost_wh = (state.battery_wh - arrive_wh) + route.wh + charge_s * cost.charge_time_wh_per_s
         if best is None or round(cost_wh, 6) < round(best.cost_wh, 6):
-            best = plan(cost_wh, full, route, ChargeStop(dock, to_dock, arrive_wh, full, charge_s))
+            best = plan(cost_wh, full_wh, route, ChargeStop(dock, to_dock, arrive_wh, full_wh, charge_s))
     if best is None:
         return f"{refusal}, and no charging dock it can reach gives enough"
     return best
