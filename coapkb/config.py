@@ -104,6 +104,12 @@ class CostModel:
     #: After a pick that loads the robot to this fraction of its payload, it
     #: carries everything to the depot and unloads (part of that task's cost).
     unload_at_fraction: float = 0.75
+    #: Power a charging dock delivers, W: charging E Wh takes E / charge_w hours.
+    charge_w: float = 500.0
+    #: What a second at a dock adds to a task's cost, Wh: about the energy a
+    #: working robot spends per second (1.5 m/s at 0.03 Wh/m), so a robot
+    #: that must charge first takes a task only when that beats one that need not.
+    charge_time_wh_per_s: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -328,6 +334,10 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError("cost.reserve_wh: must not be negative")
     if not 0 < c.cost.unload_at_fraction <= 1:
         raise ConfigError("cost.unload_at_fraction: must be in (0, 1]")
+    if not c.cost.charge_w > 0:
+        raise ConfigError("cost.charge_w: must be positive")
+    if c.cost.charge_time_wh_per_s < 0:
+        raise ConfigError("cost.charge_time_wh_per_s: must not be negative")
     if c.discovery.method == "rd" and not transport_for(c.transport).resource_directory:
         raise ConfigError(f"discovery.method: a Resource Directory speaks CoAP, but this robot uses {c.transport}")
     if c.central is None:

@@ -31,7 +31,7 @@ from ..transport.base import TransportError
 from ..world import Layout, Position, layout_from_row, travel_distance
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
-from .task_assigner import Assignment, RobotEnergy, TaskFacts, assign, robot_sort_key
+from .task_assigner import Assignment, ChargeStop, RobotEnergy, TaskFacts, assign, robot_sort_key
 from .task_executor import Job, TaskExecutor
 from .team_view import TeamView
 
@@ -70,8 +70,15 @@ class DecisionMessage:
         return cls(
             decision=Decision(**raw["decision"]),
             after=PlannedState(**raw["after"]) if raw.get("after") else None,
-            job=Job(**{**job, "depot": tuple(job["depot"])}) if job else None,
+            job=_job(job) if job else None,
         )
+
+
+def _job(raw: Mapping) -> Job:
+    charge = raw.get("charge")
+    if charge is not None:
+        charge = ChargeStop(**{**charge, "dock": Position(**charge["dock"])})
+    return Job(**{**raw, "depot": tuple(raw["depot"]), "charge": charge})
 
 
 def _first(result: object, name: str) -> list[dict]:
@@ -100,6 +107,7 @@ class Controller:
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
         self._layout: Layout | None = None
         self._energy: dict[str, RobotEnergy] | None = None
+        self._docks: tuple[Position, ...] | None = None
         self.log: list[Decision] = []
         self._runner: asyncio.Task | None = None
 
@@ -225,12 +233,22 @@ class Controller:
             self._layout = layout_from_row(rows[0])
         return self._layout
 
+    async def docks(self) -> tuple[Position, ...]:
+        """The charging docks, asked once of the Location KB (in its order:
+        the tie-break between equally good docks)."""
+        if self._docks is None:
+            rows = _first(await self.queries.run("charging-docks", {}), "charging-docks")
+            self._docks = tuple(Position(int(r["aisle_no"]), int(r["rack_no"])) for r in rows)
+        return self._docks
+
     async def energy(self) -> dict[str, RobotEnergy]:
         """Every teammate's energy figures, asked once of the Capability KB."""
         if self._energy is None:
             rows = _first(await self.queries.run("robot-specs", {}), "robot-specs")
             self._energy = {
-                str(r["robo_id"]): RobotEnergy(float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]))
+                str(r["robo_id"]): RobotEnergy(
+                    float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]), float(r["battery"])
+                )
                 for r in rows
                 if str(r["robo_id"]) in self.config.team
             }
@@ -276,10 +294,10 @@ class Controller:
         facts = await self.gather(task)
         if facts is None:
             return DecisionMessage(Decision(task.seq, task.object, skipped=True))
-        layout, energy = await self.layout(), await self.energy()
+        layout, energy, docks = await self.layout(), await self.energy(), await self.docks()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
         result: Assignment = assign(
-            facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost
+            facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost, docks
         )
         decision = Decision(
             task.seq, task.object, assigned_to=result.assigned_to, costs=result.costs, reasons=result.reasons
@@ -289,7 +307,7 @@ class Controller:
         plan = result.plan
         job = Job(
             task.seq, task.object, facts.aisle, facts.rack, plan.to_object_m, plan.to_depot_m,
-            (DEPOT.aisle, DEPOT.rack),
+            (DEPOT.aisle, DEPOT.rack), plan.charge,
         )
         return DecisionMessage(decision, plan.after, job)
 

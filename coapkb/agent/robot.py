@@ -341,6 +341,7 @@ class Robot:
             executed=self.executor.live.done,
             idle=self.executor.live.activity == "idle" and self.executor.live.queued == 0,
             fenced=list(self.executor.live.fenced),
+            recharges=list(self.executor.recharges),
         )
 
 

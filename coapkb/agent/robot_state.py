@@ -59,7 +59,7 @@ class Decision:
 class LiveState:
     aisle: float
     rack: float
-    activity: str = "idle"  # idle | travelling | picking | unloading
+    activity: str = "idle"  # idle | travelling | picking | unloading | charging
     executing: str | None = None
     queued: int = 0
     done: int = 0
@@ -143,7 +143,7 @@ class RobotState:
             raise ValueError(f"not a robot state: {exc}") from None
 
 
-ACTIVITIES = ("idle", "travelling", "picking", "unloading")
+ACTIVITIES = ("idle", "travelling", "picking", "unloading", "charging")
 
 
 def _plan_array(plan: PlannedState | None) -> list | None:

@@ -15,6 +15,26 @@ from .query_handler import QueryStats
 
 
 @dataclass(frozen=True, slots=True)
+class Recharge:
+    """One charge a robot made before task ``seq``: at the dock (aisle, rack),
+    from ``arrive_wh`` up to ``full_wh``."""
+
+    seq: int
+    dock: tuple[int, int]
+    arrive_wh: float
+    full_wh: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"seq": self.seq, "dock": list(self.dock), "arrive_wh": round(self.arrive_wh, 6),
+                "full_wh": round(self.full_wh, 6)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "Recharge":
+        aisle, rack = data["dock"]
+        return cls(int(data["seq"]), (int(aisle), int(rack)), float(data["arrive_wh"]), float(data["full_wh"]))
+
+
+@dataclass(frozen=True, slots=True)
 class RobotStats:
     """One robot's traffic counters and query statistics at one moment."""
 
@@ -37,6 +57,8 @@ class RobotStats:
     idle: bool = False
     #: Tasks whose jobs this robot dropped unexecuted: it lost its lease (the fence).
     fenced: list[int] = field(default_factory=list)
+    #: The charges it made at a dock, in order.
+    recharges: list[Recharge] = field(default_factory=list)
 
     @property
     def traffic(self) -> TrafficCounters:
@@ -65,9 +87,10 @@ class RobotStats:
             "remote_latencies_s": list(self.queries.remote_latencies),
             "executed": self.executed,
             "idle": self.idle,
-            # Added for the fence; only when there is something to say, so
-            # the usual form stays as it was.
+            # Added for the fence and for charging; only when there is
+            # something to say, so the usual form stays as it was.
             **({"fenced": list(self.fenced)} if self.fenced else {}),
+            **({"recharges": [r.to_dict() for r in self.recharges]} if self.recharges else {}),
         }
 
     @classmethod
@@ -96,4 +119,5 @@ class RobotStats:
             executed=int(data.get("executed", 0)),
             idle=bool(data.get("idle", False)),
             fenced=[int(seq) for seq in data.get("fenced") or ()],
+            recharges=[Recharge.from_dict(r) for r in data.get("recharges") or ()],
         )

@@ -2,7 +2,8 @@
 
 Motion is simulated (the seed left path planning and localisation out of
 scope too): the robot drives its planned route at the configured speed,
-picks, and unloads at the depot when the plan says so.  Time runs
+picks, and unloads at the depot when the plan says so; when the plan
+charges first, it drives to the dock and charges before all that.  Time runs
 ``time_scale`` times faster than the wall clock.  Progress is published
 through the live part of ``/robot/state``.
 """
@@ -16,6 +17,8 @@ from typing import Awaitable, Callable
 
 from ..config import ExecutionModel
 from .robot_state import LiveState
+from .stats import Recharge
+from .task_assigner import ChargeStop
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +32,8 @@ class Job:
     to_object_m: float
     to_depot_m: float
     depot: tuple[int, int]
+    #: Drive to a dock and charge before the task (then ``to_object_m`` is from the dock).
+    charge: ChargeStop | None = None
 
 
 class TaskExecutor:
@@ -52,6 +57,8 @@ class TaskExecutor:
         self._idle = asyncio.Event()
         self._idle.set()
         self._task: asyncio.Task | None = None
+        #: The charges made so far, in order (for the robot's statistics).
+        self.recharges: list[Recharge] = []
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name="task-executor")
@@ -101,10 +108,21 @@ class TaskExecutor:
             self._forfeit(job, why)
         return why is None
 
+    async def _charge(self, job: Job, stop: ChargeStop) -> None:
+        await self._simulate(stop.to_dock_m / self.model.speed_m_s)
+        self._update(activity="charging", aisle=float(stop.dock.aisle), rack=float(stop.dock.rack))
+        await self._simulate(stop.charge_s)
+        self.recharges.append(Recharge(job.seq, (stop.dock.aisle, stop.dock.rack), stop.arrive_wh, stop.full_wh))
+        log.info("charged at (%d, %d): %.1f -> %.1f Wh (task %d)", stop.dock.aisle, stop.dock.rack,
+                 stop.arrive_wh, stop.full_wh, job.seq)
+        self._update(activity="travelling")
+
     async def _run(self) -> None:
         while True:
             job = await self._jobs.get()
             self._update(activity="travelling", executing=job.object, queued=self._jobs.qsize())
+            if job.charge is not None:
+                await self._charge(job, job.charge)
             await self._simulate(job.to_object_m / self.model.speed_m_s)
             # The pick is what must never happen twice: it starts only under a
             # lease that outlasts it, and counts only if the lease still holds

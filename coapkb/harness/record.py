@@ -138,6 +138,10 @@ def summarise(record: TeamRecord) -> str:
         f"received {traffic.bytes_received:,} B; "
         f"queries: {local} local, {remote} remote, {cached} answered from the cache",
     ]
+    charged = sorted(((r, len(robot.recharges)) for r, robot in record.robot_stats.items() if robot.recharges),
+                     key=lambda x: robot_sort_key(x[0]))
+    if charged:
+        lines.append("recharged at a dock: " + ", ".join(f"{r} {n}x" for r, n in charged))
     for event in record.faults:
         detected = "" if event.detected_after_s is None else f", declared down {event.detected_after_s:.1f} s later"
         lines.append(f"{event.action} {event.robot} at {event.at_s:.1f} s{detected}")

@@ -211,6 +211,20 @@ WHERE {
 }""",
         description="Warehouse geometry constants (metres) for travel-distance costs",
     ),
+    NamedQuery(
+        name="charging-docks",
+        kb="Location",
+        params=(),
+        template=_LOC + """SELECT ?dock ?name ?aisle_no ?rack_no
+WHERE {
+  ?dock a ns_1:ChargingDock .
+  ?dock ns_1:Location_name ?name .
+  ?dock ns_1:Aisle_no ?aisle_no .
+  ?dock ns_1:Rack_no ?rack_no .
+}
+ORDER BY ?name""",
+        description="The charging docks and their places on the aisle graph (aisle, rack 0 or last+1)",
+    ),
 )
 
 #: Every named query, by name.  Read-only by convention: build your own dict

@@ -47,14 +47,30 @@ class WarehouseSpec:
     aisle_spacing_m: float = 3.5
     cross_aisle_margin_m: float = 2.0
     warehouse_name: str = "Warehouse_A"
+    #: Range the robots' battery capacities are drawn from, Wh.
+    battery_wh: tuple[float, float] = (400.0, 900.0)
 
     def __post_init__(self) -> None:
         for name in ("products", "aisles", "racks_per_aisle", "bins_per_rack", "robots"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not 0 < self.battery_wh[0] <= self.battery_wh[1]:
+            raise ValueError(f"battery_wh must be a range of positive capacities, got {self.battery_wh}")
         if not self.warehouse_name.isidentifier():
             raise ValueError(f"warehouse_name must be a plain identifier, got {self.warehouse_name!r}")
         _ = self.layout  # validates the geometry
+
+    @property
+    def docks(self) -> tuple[Position, ...]:
+        """The charging docks: one per robot cluster (at most one per aisle),
+        on the back cross-aisle -- the wall opposite the depot, out of the
+        pick and unload traffic -- spread evenly along it.  Dock ``i`` of
+        ``n`` is at the back end of aisle ``1 + (2i + 1) * aisles // 2n``
+        (10 aisles, 3 docks: aisles 2, 6 and 9).  Derived from the spec
+        alone, so adding them draws nothing from the seeded generator."""
+        n = min(-(-self.robots // CLUSTER_SIZE), self.aisles)
+        back = self.racks_per_aisle + 1
+        return tuple(Position(1 + (2 * i + 1) * self.aisles // (2 * n), back) for i in range(n))
 
     @property
     def layout(self) -> Layout:
@@ -320,7 +336,7 @@ def _make_robot(rng: random.Random, spec: WarehouseSpec, number: int, grips: tup
     e_empty = rng.uniform(0.030, 0.050) if heavy else rng.uniform(0.015, 0.030)
     e_loaded = e_empty * rng.uniform(1.3, 1.8)
     e_pick = rng.uniform(1.0, 2.5) if heavy else rng.uniform(0.3, 1.0)
-    battery = rng.uniform(400, 900)
+    battery = rng.uniform(*spec.battery_wh)
     home = Position(rng.randint(1, spec.aisles), rng.randint(0, spec.racks_per_aisle + 1))
     return RobotSpec(
         robot_id=f"Robot{number}",

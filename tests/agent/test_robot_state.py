@@ -67,8 +67,9 @@ def test_matches_the_cddl(validator: object) -> None:
         PlannedState(9, 6, 414.37, 0.0, 60.6, 4),
     )
     unavailable = replace(state, last=Decision(6, "Gucci_bag_15", unavailable="no live robot holds the Object KB"))
+    charging = replace(state, live=LiveState(2.0, 26.0, "charging", "Gucci_bag_14", 1, 4))
     for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan"),
-                       (unavailable.encode(), "robot-state")):
+                       (unavailable.encode(), "robot-state"), (charging.encode(), "robot-state")):
         outcome = validator.validate(data, root_type=root)  # type: ignore[attr-defined]
         assert outcome.valid, [str(d) for d in outcome.diagnostics]
 

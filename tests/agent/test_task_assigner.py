@@ -262,3 +262,74 @@ def test_winner_is_cheapest_capable_and_fits(scenario) -> None:
         assert states[r].battery_wh - finite[r] >= cost.reserve_wh - 1e-5
     # Deterministic.
     assert assign(facts, dict(reversed(list(states.items()))), energy, distance, DEPOT, cost) == result
+
+
+# --------------------------------------------------------------------------- charging
+
+DOCK = Position(3, 11)  # the back end of aisle 3
+CHARGING = RobotEnergy(per_m_empty=0.1, per_m_full=0.3, per_pick=0.5, capacity_wh=100.0)
+
+
+def test_a_short_battery_drives_to_a_dock_and_charges_first() -> None:
+    # Straight to (1, 5) costs 1.24 Wh (test_exact_cost_same_aisle_no_unload) and leaves the
+    # robot 15.6 m from the dock (7 m across + 8.6 m by the back cross-aisle) with 5 kg of
+    # 20: 0.15 Wh/m, 2.34 Wh.  23 - 1.24 - 2.34 = 19.42 Wh < the 20 Wh reserve: charge first.
+    result = assign(task(weight=5.0), {"Robot1": state(battery=23.0)}, {"Robot1": CHARGING}, distance, DEPOT,
+                    COST, (DOCK,))
+    plan = result.plan
+    assert result.assigned_to == "Robot1" and plan is not None and plan.charge is not None
+    # To the dock: 7 m across + 16 m up aisle 3, empty: 2.3 Wh, arriving with 20.7 Wh.
+    assert plan.charge.dock == DOCK and plan.charge.to_dock_m == pytest.approx(23.0)
+    assert plan.charge.arrive_wh == pytest.approx(20.7) and plan.charge.full_wh == 100.0
+    # 79.3 Wh at 500 W: 570.96 s at the dock, 0.05 Wh each.
+    assert plan.charge.charge_s == pytest.approx(79.3 / 500 * 3600)
+    # Then from the dock to (1, 5), 15.6 m empty (1.56 Wh), and the pick (0.5 Wh).
+    assert plan.to_object_m == pytest.approx(15.6)
+    assert result.costs == {"Robot1": pytest.approx(2.3 + 2.06 + 570.96 * 0.05)}
+    assert plan.after.battery_wh == pytest.approx(100.0 - 2.06)
+    assert (plan.after.aisle, plan.after.rack, plan.after.load_kg) == (1, 5, pytest.approx(5.0))
+
+
+def test_enough_battery_for_the_task_and_the_dock_goes_straight() -> None:
+    # 24 - 1.24 - 2.34 = 20.42 Wh >= 20: no detour, the cost of before.
+    result = assign(task(weight=5.0), {"Robot1": state(battery=24.0)}, {"Robot1": CHARGING}, distance, DEPOT,
+                    COST, (DOCK,))
+    assert result.plan is not None and result.plan.charge is None
+    assert result.costs == {"Robot1": pytest.approx(1.24)}
+
+
+def test_a_robot_that_need_not_charge_wins_over_a_nearer_one_that_must() -> None:
+    states = {"Robot1": state(battery=23.0), "Robot2": state(aisle=3, rack=10, battery=500.0)}
+    capable = {"Robot1": 20.0, "Robot2": 20.0}
+    result = assign(task(weight=5.0, capable=capable), states, {r: CHARGING for r in states}, distance, DEPOT,
+                    COST, (DOCK,))
+    assert result.assigned_to == "Robot2" and result.plan is not None and result.plan.charge is None
+    assert result.costs["Robot1"] == pytest.approx(2.3 + 2.06 + 570.96 * 0.05)
+
+
+def test_the_cheapest_dock_is_chosen_and_charging_time_follows_the_rate() -> None:
+    # 21 - 1.24 - 1.11 (7.4 m back to the nearest dock, loaded) < 20: charge first.  The
+    # (3, 11) dock is out of reach above the reserve (it would arrive with 18.7 Wh); the
+    # one at the front end of aisle 1 is where the robot stands: no detour at all.
+    docks = (DOCK, Position(1, 0))
+    fast = CostModel(reserve_wh=20.0, unload_at_fraction=0.75, charge_w=1000.0, charge_time_wh_per_s=0.01)
+    plan = assign(task(weight=5.0), {"Robot1": state(battery=21.0)}, {"Robot1": CHARGING}, distance, DEPOT,
+                  fast, docks).plan
+    assert plan is not None and plan.charge is not None and plan.charge.dock == Position(1, 0)
+    assert plan.charge.to_dock_m == 0 and plan.charge.charge_s == pytest.approx(79.0 / 1000 * 3600)
+    assert plan.cost_wh == pytest.approx(1.24 + 284.4 * 0.01)
+
+
+def test_no_dock_or_no_capacity_means_refusal_as_before() -> None:
+    for energy, docks in ((CHARGING, ()), (ENERGY, (DOCK,))):
+        result = assign(task(weight=5.0), {"Robot1": state(battery=21.0)}, {"Robot1": energy}, distance, DEPOT,
+                        COST, docks)
+        assert result.assigned_to is None
+        assert result.reasons["Robot1"].startswith("battery 21.0 Wh would fall below the 20.0 Wh reserve")
+
+
+def test_a_battery_that_reaches_no_dock_above_the_reserve_is_refused() -> None:
+    # 22 Wh, 2.3 Wh to the dock: it would arrive with 19.7 Wh, under the reserve.
+    result = assign(task(weight=5.0), {"Robot1": state(battery=22.0)}, {"Robot1": CHARGING}, distance, DEPOT,
+                    COST, (DOCK,))
+    assert result.assigned_to is None and "no charging dock" in result.reasons["Robot1"]

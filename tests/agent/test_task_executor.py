@@ -9,7 +9,10 @@ from collections.abc import Awaitable, Callable
 import pytest
 
 from coapkb.agent.robot_state import LiveState
+from coapkb.agent.stats import Recharge
+from coapkb.agent.task_assigner import ChargeStop
 from coapkb.agent.task_executor import Job, TaskExecutor
+from coapkb.world import Position
 from coapkb.config import ExecutionModel
 
 MODEL = ExecutionModel(speed_m_s=2.0, pick_s=4.0, time_scale=10.0)
@@ -105,3 +108,17 @@ async def test_a_refused_lease_drops_the_job_and_the_queue_unpicked() -> None:
     fence = Fence(grants=0)
     executor, published, _ = await _run([_job(4, 2.0)], fence.hold)
     assert executor.live.fenced == (4,) and "picking" not in [s.activity for s in published]
+
+
+async def test_a_charge_stop_drives_to_the_dock_charges_then_does_the_task() -> None:
+    stop = ChargeStop(Position(3, 11), to_dock_m=20.0, arrive_wh=25.0, full_wh=400.0, charge_s=600.0)
+    job = Job(1, "Thing_1", aisle=3, rack=7, to_object_m=10.0, to_depot_m=0.0, depot=(1, 0), charge=stop)
+    executor, published, clock = await _run([job])
+    # 20 m to the dock at 2 m/s, 600 s charging, 10 m to the object, a 4 s pick; all 10x faster.
+    assert clock.waits == pytest.approx([1.0, 60.0, 0.5, 0.4])
+    activities = [s.activity for s in published]
+    assert activities.index("charging") < activities.index("picking")
+    charging = next(s for s in published if s.activity == "charging")
+    assert (charging.aisle, charging.rack) == (3.0, 11.0)
+    assert executor.recharges == [Recharge(1, (3, 11), 25.0, 400.0)]
+    assert (executor.live.aisle, executor.live.rack, executor.live.done) == (3.0, 7.0, 1)

@@ -103,6 +103,15 @@ def test_layout_from_the_kb(team: dict[str, KnowledgeBase]) -> None:
     assert row["aisle_length_m"].toPython() == Decimal(str(layout.aisle_length_m)).normalize()
 
 
+def test_charging_docks_from_the_kb(team: dict[str, KnowledgeBase]) -> None:
+    docks = ask(team, "charging-docks")
+    assert [(int(r["aisle_no"]), int(r["rack_no"])) for r in docks] == [
+        (d.aisle, d.rack) for d in WAREHOUSE.spec.docks
+    ]
+    # One per cluster of three robots, on the back cross-aisle.
+    assert len(docks) == 3 and {int(r["rack_no"]) for r in docks} == {WAREHOUSE.layout.racks_per_aisle + 1}
+
+
 INJECTIONS = [
     'Gucci_bag_14" } ; DROP ALL #',
     "Gucci_bag_14> <x",
@@ -157,6 +166,7 @@ def test_registry() -> None:
         "robots-for-grip",
         "robot-positions",
         "warehouse-layout",
+        "charging-docks",
     } <= set(NAMED_QUERIES)
     assert {q.kb for q in NAMED_QUERIES.values()} == {"Object", "Location", "Capability"}
     obj = named_queries_for(["Object"])
