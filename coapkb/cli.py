@@ -16,16 +16,17 @@ import logging
 import signal
 import sys
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
-
-from tqdm import tqdm
 
 from .errors import CoapkbError
 from .wire import codec
 from .transport import SCHEMES, ClientSecurity, Endpoint, ServerSecurity
 from .transport.messages import ContentFormat, Method
 from .world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 
 class UserError(CoapkbError):
@@ -257,6 +258,7 @@ async def _demo(args: argparse.Namespace) -> int:
 async def _team(args: argparse.Namespace) -> int:
     from .harness.record import TaskRecord, summarise
     from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks, read_tasks_file
+    from tqdm import tqdm
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
     try:
