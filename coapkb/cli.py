@@ -16,7 +16,7 @@ import logging
 import signal
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
 
 from .errors import CoapkbError
@@ -24,9 +24,6 @@ from .wire import codec
 from .transport import SCHEMES, ClientSecurity, Endpoint, ServerSecurity
 from .transport.messages import ContentFormat, Method
 from .world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
-
-if TYPE_CHECKING:
-    from tqdm import tqdm
 
 
 class UserError(CoapkbError):
