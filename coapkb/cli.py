@@ -19,8 +19,6 @@ from pathlib import Path
 from typing import Callable, Sequence
 from urllib.parse import parse_qsl, urlsplit
 
-from tqdm import tqdm
-
 from .errors import CoapkbError
 from .wire import codec
 from .transport import SCHEMES, ClientSecurity, Endpoint, ServerSecurity
@@ -255,6 +253,8 @@ async def _demo(args: argparse.Namespace) -> int:
 
 
 async def _team(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from .feeder import FeederError, TaskRecord, read_tasks_file
     from .harness.record import summarise
     from .harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamSpec, draw_tasks

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
 
 def percentile(values: Sequence[float], q: float) -> float | None:
     """The ``q``-th percentile (0..100) of ``values`` with numpy's default
@@ -13,4 +11,8 @@ def percentile(values: Sequence[float], q: float) -> float | None:
     ``q`` outside 0..100 raises ValueError."""
     if len(values) == 0:
         return None
+    # Here, not at the top: ``coapkb bench``'s options are built by every
+    # ``coapkb`` command, a robot's too, and a robot has no use for numpy.
+    import numpy as np
+
     return float(np.percentile(np.asarray(values, dtype=float), q))

@@ -32,7 +32,6 @@ from .formats import KBFile
 from .index import open_or_build_index
 from .limits import Deadline
 from .oxigraph_backend import OxigraphBackend
-from .rdflib_backend import RdflibBackend
 from .refusals import refused_feature
 from .results import QueryResult
 
@@ -111,7 +110,15 @@ class KnowledgeBase:
         files = [KBFile.open(Path(item)) for item in paths]
         if index_dir is not None:
             return cls._open_index(files, Path(index_dir))
-        engine: Backend = OxigraphBackend() if backend == "oxigraph" else RdflibBackend()
+        engine: Backend
+        if backend == "oxigraph":
+            engine = OxigraphBackend()
+        else:
+            # Imported only when chosen: rdflib's SPARQL engine and pyparsing
+            # cost every process that loads a KB several MB.
+            from .rdflib_backend import RdflibBackend
+
+            engine = RdflibBackend()
         # Parsing is nearly all of a big KB's load time: the files are parsed
         # one after another on a worker thread (GIL released) while this
         # thread hashes them for the ETag.

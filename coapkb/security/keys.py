@@ -294,21 +294,52 @@ def _load_curve(team_dir: Path, member: TeamMember) -> str | None:
     """The member's CurveZMQ secret key, checked against its public key."""
     if member.curve_public is None:
         return None
-    import zmq
-
     path = team_dir / f"{member.name}.curve"
     try:
         if path.stat().st_mode & 0o077:
             raise SecurityError(f"{path}: private key is readable by group or others (chmod 600 it)")
         secret = path.read_bytes().strip()
-        public = zmq.curve_public(secret)
+        public = curve_public(secret)
     except OSError as exc:
         raise SecurityError(f"cannot read private key {path}: {exc.strerror}") from None
-    except (ValueError, zmq.ZMQError):
+    except ValueError:
         raise SecurityError(f"{path}: not a Z85 Curve25519 secret key") from None
-    if public.decode("ascii") != member.curve_public:
+    if public != member.curve_public:
         raise SecurityError(f"{path}: the key does not match {member.name}'s Curve key in {TRUST_FILE}")
     return secret.decode("ascii")
+
+
+#: Z85's alphabet (ZeroMQ RFC 32), digit values 0..84 in order.
+_Z85 = "0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ.-:+=^!/*?&<>()[]{}@%$#"
+_Z85_VALUE = {c: v for v, c in enumerate(_Z85.encode("ascii"))}
+
+
+def curve_public(secret_z85: bytes) -> str:
+    """The CurveZMQ public key (Z85) of a Z85 secret key, as ``zmq.curve_public``.
+
+    Computed with cryptography's X25519, which OSCORE loads anyway, so that
+    loading an identity does not load ZeroMQ into every robot.  ValueError
+    if ``secret_z85`` is not 40 Z85 characters."""
+    from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
+
+    if len(secret_z85) != 40:
+        raise ValueError("a Curve25519 secret key is 40 Z85 characters")
+    secret = bytearray()
+    for start in range(0, 40, 5):
+        value = 0
+        for char in secret_z85[start:start + 5]:
+            if char not in _Z85_VALUE:
+                raise ValueError(f"{chr(char)!r} is not a Z85 character")
+            value = value * 85 + _Z85_VALUE[char]
+        if value >= 1 << 32:
+            raise ValueError("not a Z85 encoding")
+        secret += value.to_bytes(4, "big")
+    public = X25519PrivateKey.from_private_bytes(bytes(secret)).public_key().public_bytes_raw()
+    chars = []
+    for start in range(0, 32, 4):
+        value = int.from_bytes(public[start:start + 4], "big")
+        chars += [_Z85[value // 85 ** power % 85] for power in range(4, -1, -1)]
+    return "".join(chars)
 
 
 def default_members(robots: int, extra_robots: Iterable[str] = ()) -> list[tuple[str, str]]:

@@ -10,7 +10,7 @@ import pytest
 
 from coapkb.config import ConfigError, parse_config
 from coapkb.security import SecurityError, generate_team, load_identity, load_trust
-from coapkb.security.keys import default_members
+from coapkb.security.keys import curve_public, default_members
 
 
 def test_keys_are_private_and_the_trust_list_public(team_dir: Path) -> None:
@@ -41,6 +41,8 @@ def test_a_team_directory_is_never_overwritten(team_dir: Path) -> None:
     (lambda d: (d / "team.json").unlink(), "cannot read the team's trust list"),
     (lambda d: (d / "Robot1.curve").unlink(), "cannot read private key .*Robot1.curve"),
     (lambda d: os.replace(d / "Robot2.curve", d / "Robot1.curve"), "does not match Robot1's Curve key"),
+    (lambda d: (d / "Robot1.curve").write_bytes(b"~" * 40), "Robot1.curve: not a Z85 Curve25519 secret key"),
+    (lambda d: (d / "Robot1.curve").write_bytes(b"abc"), "Robot1.curve: not a Z85 Curve25519 secret key"),
     (lambda d: (d / "team.json").write_text(json.dumps({"format": "other"})), "not a coapkb trust list"),
 ])
 def test_bad_key_material_is_one_clear_error(team_dir: Path, damage, message: str) -> None:
@@ -48,6 +50,16 @@ def test_bad_key_material_is_one_clear_error(team_dir: Path, damage, message: st
     with pytest.raises(SecurityError, match=message) as info:
         load_identity(team_dir, "Robot1")
     assert "\n" not in str(info.value)
+
+
+def test_the_curve_public_key_is_zeromqs() -> None:
+    zmq = pytest.importorskip("zmq")
+    for _ in range(50):
+        public, secret = zmq.curve_keypair()
+        assert curve_public(secret) == public.decode("ascii")
+    for malformed in (b"", b"#" * 40, b"0" * 39, b"~" * 40):
+        with pytest.raises(ValueError):
+            curve_public(malformed)
 
 
 def test_a_stranger_is_not_in_the_trust_list(team_dir: Path) -> None:
