@@ -216,7 +216,7 @@ class CoapServerTransport:
         return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
 
     def describe(self) -> dict[str, Any]:
-        return {"profile": {"name": "robust"}, "notifications": "timed from the client's path estimates"}
+        return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
 
     async def aclose(self) -> None:
         await self._ctx.shutdown()
