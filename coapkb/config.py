@@ -14,7 +14,6 @@ against the folder of the TOML file, not the working directory)::
     kb = ["../../ontologies/Location.owl", "../../ontologies/Object.owl"]
     # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
     strategy = "compute-by-all"
-    retransmission = "robust"
     # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
 
     [start]                  # initial state; left out: the depot (aisle 1, rack 0)
@@ -60,7 +59,6 @@ from .errors import CoapkbError
 import tomli_w
 
 from .security.settings import SecurityConfig, parse_security
-from .transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from .transport.base import Endpoint
 from .transport.registry import transport_for
 
@@ -159,7 +157,6 @@ class RobotConfig:
     team: Mapping[str, Teammate]
     start: StartState = field(default_factory=StartState)
     strategy: str = "compute-by-all"
-    retransmission: str = DEFAULT_PROFILE
     #: Where all KBs live in the centralised baseline; None = distributed.
     central: Endpoint | None = None
     query_timeout_s: float = 20.0
@@ -219,7 +216,6 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         "bind": str(config.bind),
         "kb": [str(path.resolve()) for path in config.kb_files],
         "strategy": config.strategy,
-        "retransmission": config.retransmission,
         "query_timeout_s": config.query_timeout_s,
         "lease_s": config.lease_s,
     }
@@ -250,7 +246,7 @@ def dump_config(config: RobotConfig) -> str:
 def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotConfig:
     """Validate a configuration mapping (as read from TOML)."""
     known = {
-        "robot_id", "bind", "kb", "team", "start", "strategy", "retransmission",
+        "robot_id", "bind", "kb", "team", "start", "strategy",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
         "discovery", "lease_s",
     }
@@ -266,9 +262,6 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     strategy = _get(data, "strategy", str, "compute-by-all")
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
-    retransmission = _get(data, "retransmission", str, DEFAULT_PROFILE)
-    if retransmission not in PROFILE_NAMES:
-        raise ConfigError(f"retransmission: {retransmission!r} is not one of {', '.join(PROFILE_NAMES)}")
     team_data = _get(data, "team", dict)
     team = {}
     for mate_id, mate in team_data.items():
@@ -299,7 +292,6 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         team=team,
         start=_section(data, "start", StartState),
         strategy=strategy,
-        retransmission=retransmission,
         central=central_ep,
         query_timeout_s=float(_get(data, "query_timeout_s", (int, float), 20.0)),
         link_kbps=None if data.get("link_kbps") is None else float(_get(data, "link_kbps", (int, float))),

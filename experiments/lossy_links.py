@@ -85,7 +85,7 @@ async def _open_client(system: System, link_kbps: float) -> Any:
     settings = ReliabilitySettings(link_kbps=link_kbps)
     if not system.window:
         settings = ReliabilitySettings(link_kbps=link_kbps, window_min=64, window_max=64)
-    return await open_client("coap", retransmission=ReliabilityLayer(settings))
+    return await open_client("coap", reliability=ReliabilityLayer(settings))
 
 
 def _spurious(client: Any) -> int | None:

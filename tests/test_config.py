@@ -29,7 +29,6 @@ robot_id = "Robot1"
 bind = "coap://127.0.0.1:5701"
 kb = ["{ontologies}/Location.owl"]
 strategy = "compute-and-communicate"
-retransmission = "robust"
 query_timeout_s = 3
 
 [start]
@@ -83,7 +82,6 @@ def test_valid_toml_round_trip(tmp_path: Path) -> None:
     assert config.transport == "coap"
     assert config.kb_files == (ONTOLOGIES / "Location.owl",)
     assert config.strategy == "compute-and-communicate"
-    assert config.retransmission == "robust"
     assert config.query_timeout_s == 3.0 and isinstance(config.query_timeout_s, float)
     assert config.central is None
     assert config.start == StartState(aisle=2, rack=7, battery_wh=500.0, payload_kg=35.5)
@@ -111,7 +109,6 @@ def test_relative_kb_path_is_relative_to_the_config_file(tmp_path: Path) -> None
 def test_defaults() -> None:
     config = parse_config(base())
     assert config.strategy == "compute-by-all"
-    assert config.retransmission == "robust"
     assert config.start == StartState()
     assert config.cost == CostModel()
     assert config.execution == ExecutionModel()
@@ -138,7 +135,7 @@ def test_zmq_and_central_mode() -> None:
 @pytest.mark.parametrize("central", [False, True])
 def test_dump_config_is_read_back_as_the_same_config(tmp_path: Path, central: bool) -> None:
     data = base()
-    data.update(strategy="compute-and-communicate", retransmission="robust", query_timeout_s=7.5,
+    data.update(strategy="compute-and-communicate", query_timeout_s=7.5,
                 start={"aisle": 3, "rack": 9, "battery_wh": 312.5, "payload_kg": 31.4},
                 cost={"reserve_wh": 12.0}, execution={"time_scale": 50.0, "pick_s": 2.0})
     if central:
@@ -239,10 +236,11 @@ def test_nobody_holds_a_kb_in_distributed_mode(module: str) -> None:
     assert parse_config(data).central is not None
 
 
-def test_unknown_retransmission_profile_is_a_config_error() -> None:
-    """A typo in retransmission must be caught when the file is read, not crash the robot at start-up."""
-    with pytest.raises(ConfigError, match=r"^retransmission"):
-        parse_config(_edit("retransmission", "rfc-7252"))
+def test_retransmission_is_no_longer_a_field() -> None:
+    """The reliability layer is the only one, so nothing names it: a file
+    that still does is told so, like any other unknown field."""
+    with pytest.raises(ConfigError, match=r"^retransmission: unknown field"):
+        parse_config(_edit("retransmission", "robust"))
 
 
 def test_load_config_nonexistent_file(tmp_path: Path) -> None:

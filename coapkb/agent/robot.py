@@ -151,7 +151,7 @@ class Robot:
             KBResources(kb).mount(router)
         # One reliability layer for the client and the server's notifications.
         reliability = reliability_for(config.transport, link_kbps=config.link_kbps)
-        client = await open_client(config.transport, retransmission=reliability, security=client_security)
+        client = await open_client(config.transport, reliability=reliability, security=client_security)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
@@ -202,7 +202,7 @@ class Robot:
                 # Decisions only from whom this robot's Controller waits for.
                 deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
                 server_side = server_security(config.transport, secured[0], AccessPolicy(deciders))
-            robot.server = await serve(router, config.bind, retransmission=reliability, security=server_side)
+            robot.server = await serve(router, config.bind, reliability=reliability, security=server_side)
         except BaseException:
             await client.aclose()
             raise

@@ -84,7 +84,7 @@ class DirectoryClient:
             security = ClientSecurity(identity, {config.discovery.rd.hostport: config.discovery.rd_identity})
             trust = identity.trust
         reliability = reliability_for("coap", link_kbps=config.link_kbps)
-        client = await open_client("coap", retransmission=reliability, security=security)
+        client = await open_client("coap", reliability=reliability, security=security)
         return cls(config, client, trust)
 
     async def aclose(self) -> None:

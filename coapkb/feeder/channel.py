@@ -12,7 +12,6 @@ from ..agent.robot_state import RobotState
 from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
 from ..transport import open_client
 from ..transport.base import ClientTransport, Endpoint, TransportError
-from ..transport.coap.reliability import DEFAULT_PROFILE
 from ..transport.messages import ContentFormat, Method, Request
 from .tasks import FeederError
 
@@ -38,7 +37,6 @@ class FeederSettings:
     """How the feeder talks to the team and how long it waits."""
 
     transport: str
-    retransmission: str = DEFAULT_PROFILE
     #: Wall-clock limit for one task's coordination before the run is declared stuck.
     task_timeout_s: float = 120.0
     #: How long a robot's statistics may take to download.
@@ -65,7 +63,7 @@ class Channel:
     async def open(cls, roster: Roster, settings: FeederSettings, security: object = None) -> AsyncIterator["Channel"]:
         """A client and a watcher (with liveness: the feeder declares a robot
         down when its requests fail, and then waits for the survivors only)."""
-        client = await open_client(settings.transport, retransmission=settings.retransmission, security=security)
+        client = await open_client(settings.transport, security=security)
         try:
             watcher = ObservedStates(
                 client, roster.endpoints, STATE_PATH, liveness=True,

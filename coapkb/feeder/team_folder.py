@@ -91,7 +91,6 @@ def read_team_folder(folder: str | Path, task_timeout_s: float = 120.0) -> TeamF
         raise FeederError(f"the robots name different key directories: {', '.join(sorted(map(str, set(secured.values()))))}")
     settings = FeederSettings(
         transport=first.transport,
-        retransmission=first.retransmission,
         task_timeout_s=task_timeout_s,
         query_timeout_s=max(c.query_timeout_s for c in configs.values()),
         lease_s=max(c.lease_s for c in configs.values()),

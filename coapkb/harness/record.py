@@ -50,7 +50,6 @@ class TeamRecord:
     mode: str
     transport: str
     strategy: str
-    retransmission: str
     query_wire: str
     robots: list[str]
     clusters: list[list[str]]
@@ -77,7 +76,6 @@ class TeamRecord:
             "mode": self.mode,
             "transport": self.transport,
             "strategy": self.strategy,
-            "retransmission": self.retransmission,
             "query_wire": self.query_wire,
             "robots": list(self.robots),
             "clusters": [list(c) for c in self.clusters],
@@ -97,7 +95,6 @@ class TeamRecord:
             mode=str(data["mode"]),
             transport=str(data["transport"]),
             strategy=str(data["strategy"]),
-            retransmission=str(data["retransmission"]),
             query_wire=str(data["query_wire"]),
             robots=[str(r) for r in data["robots"]],
             clusters=[[str(r) for r in c] for c in data["clusters"]],

@@ -44,7 +44,6 @@ from ..config import (
 from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, TaskRecord, feeder_security
 from ..kb.store import KnowledgeBase
 from ..kb.named_queries import NAMED_QUERIES
-from ..transport.coap.reliability import DEFAULT_PROFILE, PROFILE_NAMES
 from ..transport import SCHEMES, transport_for
 from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import Endpoint, TrafficCounters
@@ -99,7 +98,6 @@ class TeamSpec:
     mode: str = "distributed"
     transport: str = "coap"
     strategy: str = "compute-by-all"
-    retransmission: str = DEFAULT_PROFILE
     query_wire: str = "compact"
     ontologies: Path = DEFAULT_ONTOLOGIES
     host: str = "127.0.0.1"
@@ -156,8 +154,6 @@ class TeamSpec:
             raise ValueError(f"transport must be one of {', '.join(SCHEMES)}, got {self.transport!r}")
         if self.strategy not in STRATEGIES:
             raise ValueError(f"strategy must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}")
-        if self.retransmission not in PROFILE_NAMES:
-            raise ValueError(f"retransmission must be one of {', '.join(PROFILE_NAMES)}, got {self.retransmission!r}")
         if self.query_wire not in QUERY_WIRES:
             raise ValueError(f"query_wire must be one of {', '.join(QUERY_WIRES)}, got {self.query_wire!r}")
         if self.discovery not in DISCOVERY_METHODS:
@@ -307,7 +303,6 @@ class Team:
                     lease_s=spec.lease_s,
                     start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
                     strategy=spec.strategy,
-                    retransmission=spec.retransmission,
                     central=self.central,
                     query_timeout_s=spec.query_timeout_s,
                     link_kbps=spec.link_kbps,
@@ -418,7 +413,7 @@ class Team:
     def feeder_settings(self) -> FeederSettings:
         spec = self.spec
         return FeederSettings(
-            transport=spec.transport, retransmission=spec.retransmission, task_timeout_s=spec.task_timeout_s,
+            transport=spec.transport, task_timeout_s=spec.task_timeout_s,
             query_timeout_s=spec.query_timeout_s, lease_s=spec.lease_s, link_kbps=spec.link_kbps,
         )
 
@@ -518,7 +513,6 @@ class Team:
             mode=spec.mode,
             transport=spec.transport,
             strategy=spec.strategy,
-            retransmission=spec.retransmission,
             query_wire=spec.query_wire,
             robots=spec.robot_ids,
             clusters=spec.clusters(),

@@ -18,43 +18,45 @@ from .base import (
     TrafficCounters,
     TransportError,
 )
-from .registry import SCHEMES, TransportInfo, secured_schemes, transport_for
+from .registry import SCHEMES, Reliability, TransportInfo, secured_schemes, transport_for
 from .security import ClientSecurity, GuardedService, ServerSecurity
 
 
-def reliability_for(scheme: str, profile: str = "robust", *, link_kbps: float | None = None) -> object:
-    """What a robot hands to both :func:`open_client` and :func:`serve` as
-    ``retransmission``: for CoAP's ``robust`` profile one shared layer (its
-    server's notifications then use its client's path estimates), else the
-    profile name.  TCP retransmits by itself: ZeroMQ ignores it."""
+def reliability_for(scheme: str, *, link_kbps: float | None = None) -> Reliability | None:
+    """The reliability layer a robot hands to both :func:`open_client` and
+    :func:`serve`: for CoAP one shared layer (its server's notifications
+    then use its client's path estimates), sized for a link of
+    ``link_kbps`` if known; None for a transport without one (TCP
+    retransmits by itself)."""
     make = transport_for(scheme).reliability
-    return profile if make is None else make(profile, link_kbps)
+    return None if make is None else make(link_kbps)
 
 
-async def open_client(scheme: str, *, retransmission: object = "robust",
+async def open_client(scheme: str, *, reliability: Reliability | None = None,
                       security: ClientSecurity | None = None) -> ClientTransport:
     """A client transport for ``scheme``.
 
-    ``retransmission``: a reliability profile name (``robust``, the default,
-    or one of the CON profiles ``rfc7252``, ``lossy-fixed``, ``adaptive``),
-    or what :func:`reliability_for` returned; ZeroMQ and Zenoh ignore it.
-    ``security``: the client side of the transport's security mechanism
-    (:func:`coapkb.security.client_security`), or None."""
-    return await transport_for(scheme).open_client(retransmission, security)
+    ``reliability``: what :func:`reliability_for` returned, or None for a
+    layer of the transport's own; transports without one (ZeroMQ, Zenoh)
+    ignore it.  ``security``: the client side of the transport's security
+    mechanism (:func:`coapkb.security.client_security`), or None."""
+    return await transport_for(scheme).open_client(reliability, security)
 
 
 async def serve(
-    service: Service, endpoint: Endpoint, *, retransmission: object = "robust", security: ServerSecurity | None = None
+    service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
+    security: ServerSecurity | None = None,
 ) -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
-    ``retransmission`` applies to CoAP's confirmable notifications;
-    ``security`` is the server side of the transport's security mechanism
-    (:func:`coapkb.security.server_security`), or None.  With security every
-    request is held to its access rules before the service sees it."""
+    ``reliability`` times CoAP's confirmable notifications (None: a layer
+    of the server's own); ``security`` is the server side of the
+    transport's security mechanism (:func:`coapkb.security.server_security`),
+    or None.  With security every request is held to its access rules
+    before the service sees it."""
     serves = transport_for(endpoint.scheme).serve
     if security is not None:
         service = GuardedService(service, security.rules)
-    return await serves(service, endpoint, retransmission, security)
+    return await serves(service, endpoint, reliability, security)
 
 
 __all__ = [
@@ -62,6 +64,7 @@ __all__ = [
     "ClientTransport",
     "Endpoint",
     "PeerUnreachable",
+    "Reliability",
     "ResourceInfo",
     "ServerTransport",
     "Service",

@@ -15,20 +15,34 @@ loads aiocoap or Zenoh, and ``import coapkb.transport`` loads none of them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, Protocol, cast
 
 from ..errors import CoapkbError
 
 if TYPE_CHECKING:
     from .base import ClientTransport, Endpoint, ServerTransport, Service
+    from .coap.reliability import ReliabilityLayer
     from .security import ClientSecurity, ServerSecurity
 
-#: ``open_client``'s signature for one transport: (retransmission, security).
-ClientFactory = Callable[[object, "ClientSecurity | None"], Awaitable["ClientTransport"]]
-#: ``serve``'s signature for one transport: (service, endpoint, retransmission, security).
-ServerFactory = Callable[["Service", "Endpoint", object, "ServerSecurity | None"], Awaitable["ServerTransport"]]
-#: The reliability a robot's client and server share: (profile name, link rate in kbit/s).
-ReliabilityFactory = Callable[[str, "float | None"], object]
+
+class Reliability(Protocol):
+    """A transport's reliability layer (CoAP's
+    :class:`~.coap.reliability.ReliabilityLayer`), built by
+    :attr:`TransportInfo.reliability` and shared by a robot's client and
+    server; only the transport that built it looks inside."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """Its settings and per-peer estimates, for the robot's record."""
+        ...
+
+
+#: ``open_client``'s signature for one transport: (reliability, security).
+ClientFactory = Callable[["Reliability | None", "ClientSecurity | None"], Awaitable["ClientTransport"]]
+#: ``serve``'s signature for one transport: (service, endpoint, reliability, security).
+ServerFactory = Callable[["Service", "Endpoint", "Reliability | None", "ServerSecurity | None"],
+                         Awaitable["ServerTransport"]]
+#: Builds the reliability a robot's client and server share, from its link rate in kbit/s (None: unknown).
+ReliabilityFactory = Callable[["float | None"], Reliability]
 
 
 class UnknownTransport(CoapkbError, ValueError):
@@ -59,53 +73,56 @@ class TransportInfo:
 
     @property
     def retransmits_itself(self) -> bool:
-        """The transport below (TCP) retransmits: coapkb's profiles do not apply."""
+        """The transport below (TCP) retransmits: it takes no reliability layer."""
         return not self.datagram
 
 
 # ----------------------------------------------------------------- the factories
 
 
-async def _coap_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+# CoAP's factories are handed what _coap_reliability built (or None), so the
+# casts hold.
+async def _coap_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
     from .coap import CoapClientTransport
 
-    return await CoapClientTransport.create(retransmission=retransmission, security=security)
+    layer = cast("ReliabilityLayer | None", reliability)
+    return await CoapClientTransport.create(reliability=layer, security=security)
 
 
-async def _coap_server(service: Service, endpoint: Endpoint, retransmission: object,
+async def _coap_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
                        security: ServerSecurity | None) -> ServerTransport:
     from .coap import CoapServerTransport
 
-    return await CoapServerTransport.start(service, endpoint, retransmission=retransmission,
-                                           security=security)
+    layer = cast("ReliabilityLayer | None", reliability)
+    return await CoapServerTransport.start(service, endpoint, reliability=layer, security=security)
 
 
-def _coap_reliability(profile: str, link_kbps: float | None) -> object:
+def _coap_reliability(link_kbps: float | None) -> Reliability:
     from .coap.reliability import make_reliability
 
-    return make_reliability(profile, link_kbps=link_kbps)
+    return make_reliability(link_kbps=link_kbps)
 
 
-async def _zmq_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+async def _zmq_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
     from .zmq.transport import ZmqClientTransport
 
     return ZmqClientTransport(security=security)
 
 
-async def _zmq_server(service: Service, endpoint: Endpoint, retransmission: object,
+async def _zmq_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
                       security: ServerSecurity | None) -> ServerTransport:
     from .zmq.transport import ZmqServerTransport
 
     return await ZmqServerTransport.start(service, endpoint, security=security)
 
 
-async def _zenoh_client(retransmission: object, security: ClientSecurity | None) -> ClientTransport:
+async def _zenoh_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
     from .zenoh.transport import ZenohClientTransport
 
     return ZenohClientTransport(security=security)
 
 
-async def _zenoh_server(service: Service, endpoint: Endpoint, retransmission: object,
+async def _zenoh_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
                         security: ServerSecurity | None) -> ServerTransport:
     from .zenoh.transport import ZenohServerTransport
 

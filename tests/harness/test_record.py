@@ -36,7 +36,7 @@ def _record() -> TeamRecord:
                    errors={"Robot2": "query timed out"}),
     ]
     return TeamRecord(
-        mode="distributed", transport="coap", strategy="compute-by-all", retransmission="robust",
+        mode="distributed", transport="coap", strategy="compute-by-all",
         query_wire="compact", robots=["Robot1", "Robot2"], clusters=[["Robot1", "Robot2"]], tasks=tasks,
         coordination_s=1.5, completion_s=2.25,
         robot_stats={"Robot1": _stats("Robot1", sent=100, spurious=2), "Robot2": _stats("Robot2", sent=50)},
@@ -64,7 +64,7 @@ def test_robot_stats_keep_their_wire_form() -> None:
 def test_team_record_round_trips_through_its_json_file() -> None:
     record = _record()
     data = json.loads(json.dumps(record.to_dict()))
-    assert list(data) == ["mode", "transport", "strategy", "retransmission", "query_wire", "robots", "clusters",
+    assert list(data) == ["mode", "transport", "strategy", "query_wire", "robots", "clusters",
                           "tasks", "coordination_s", "completion_s", "robot_stats", "feeder_traffic",
                           "faults", "down"]
     assert data["tasks"][0]["coordination_s"] == 0.123457 and data["tasks"][0]["agreed"] is True
@@ -79,6 +79,8 @@ def test_team_record_round_trips_through_its_json_file() -> None:
     back = TeamRecord.from_dict(old)
     assert (back.faults, back.down) == ([], {})
     assert [t.fate for t in back.tasks] == ["assigned", "skipped", "failed"]
+    # A record from when it named the reliability profile: the name is ignored.
+    assert TeamRecord.from_dict({**data, "retransmission": "robust"}).to_dict() == data
 
 
 OLD_TASK_KEYS = {"object", "cluster", "seq", "skipped", "assigned_to", "decisions", "costs", "reasons", "errors",

@@ -31,9 +31,10 @@ def test_lookups() -> None:
 
 
 def test_only_coap_shares_a_reliability_layer() -> None:
-    assert reliability_for("zmq", "robust") == "robust"
-    assert reliability_for("zenoh+udp", "robust") == "robust"
-    assert reliability_for("coap", "robust") != "robust"  # the layer itself
+    assert reliability_for("zmq") is None
+    assert reliability_for("zenoh+udp") is None
+    layer = reliability_for("coap", link_kbps=256)
+    assert layer is not None and layer.as_dict()["profile"]["link_kbps"] == 256  # the layer itself
 
 
 def test_each_secured_transport_has_its_mechanism() -> None:

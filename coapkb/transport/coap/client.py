@@ -79,9 +79,9 @@ class CoapClientTransport:
 
     @classmethod
     async def create(
-        cls, retransmission: ReliabilityLayer | str = "robust", security: CoapClientSecurity | None = None,
+        cls, reliability: ReliabilityLayer | None = None, security: CoapClientSecurity | None = None,
     ) -> "CoapClientTransport":
-        """``retransmission``: a layer (shared with the robot's server), or ``robust`` for one of its own.
+        """``reliability``: a layer (shared with the robot's server), or None for one of its own.
         ``security``: OSCORE keyed by EDHOC, or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")
         if not any(isinstance(f, _AbandonedTryFilter) for f in logger.filters):
@@ -90,7 +90,8 @@ class CoapClientTransport:
         if security is not None:
             security.install(ctx)
         hooks = ContextHooks.of(ctx)
-        reliability = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)
+        if reliability is None:
+            reliability = make_reliability()
         hooks.on_datagram = reliability.on_datagram
         return cls(ctx, hooks, reliability, security)
 

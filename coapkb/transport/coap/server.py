@@ -160,9 +160,9 @@ def _resolve_host(host: str) -> str:
 class CoapServerTransport:
     """Serves a :class:`Service` over CoAP/UDP.
 
-    ``retransmission`` times the server's confirmable messages (Observe
+    ``reliability`` times the server's confirmable messages (Observe
     notifications): a :class:`ReliabilityLayer` shared with the robot's
-    client (its path estimates), or ``robust`` for one of its own."""
+    client (its path estimates), or None for one of its own."""
 
     def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy) -> None:
         self._ctx = ctx
@@ -174,7 +174,7 @@ class CoapServerTransport:
     @classmethod
     async def start(
         cls, service: Service, endpoint: Endpoint,
-        retransmission: ReliabilityLayer | str = "robust",
+        reliability: ReliabilityLayer | None = None,
         security: CoapServerSecurity | None = None,
     ) -> "CoapServerTransport":
         """``security``: OSCORE + EDHOC (:mod:`coapkb.security.coap`) on every
@@ -182,7 +182,7 @@ class CoapServerTransport:
         access rules (:meth:`Service.admit`)."""
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
-        layer = retransmission if isinstance(retransmission, ReliabilityLayer) else make_reliability(retransmission)
+        layer = make_reliability() if reliability is None else reliability
         policy = NotificationPolicy(layer)
         notification, answer = NotificationTuning(), TransportTuning()
         # Only an observation's answers are CON; an answer to a NON try is
@@ -216,7 +216,7 @@ class CoapServerTransport:
         return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
 
     def describe(self) -> dict[str, Any]:
-        return {"profile": {"name": "robust"}, "notifications": "timed from the client's path estimates"}
+        return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
 
     async def aclose(self) -> None:
         await self._ctx.shutdown()

@@ -113,7 +113,7 @@ async def served() -> AsyncIterator[Served]:
         return Response(Status.CONTENT, str(counter[0]).encode(), ContentFormat.TEXT)
 
     router.add(ResourceInfo("/counter", obs=True), get_counter)
-    server = await serve(router, Endpoint("coap", "127.0.0.1", 0), retransmission=ReliabilityLayer())
+    server = await serve(router, Endpoint("coap", "127.0.0.1", 0), reliability=ReliabilityLayer())
     s = Served(router, resources, slow, counter)
     s.port = server.endpoint.port
     yield s
@@ -136,7 +136,7 @@ def _named(query: str, **params: str) -> Request:
 async def test_every_request_is_answered_at_20_percent_loss_and_no_query_runs_twice(served: Served) -> None:
     relay, peer = await _relayed(served, 20, seed=3)
     layer = ReliabilityLayer()
-    client = await open_client("coap", retransmission=layer)
+    client = await open_client("coap", reliability=layer)
     try:
         names = [f"Gucci_bag_{i}" for i in range(14, 54)]
         answers = [await client.request(peer, _named("object-exists", name=n), timeout=20) for n in names]
@@ -157,7 +157,7 @@ async def test_every_request_is_answered_at_20_percent_loss_and_no_query_runs_tw
 async def test_several_exchanges_in_flight_per_peer(served: Served) -> None:
     """NSTART=1 would serialise eight 0.3 s requests into 2.4 s."""
     layer = ReliabilityLayer(ReliabilitySettings(initial_rto=2.0))
-    client = await open_client("coap", retransmission=layer)
+    client = await open_client("coap", reliability=layer)
     peer = Endpoint("coap", "127.0.0.1", served.port)
     try:
         answers = await asyncio.gather(*(client.request(peer, Request(Method.GET, "/slow"), timeout=10) for _ in range(8)))
@@ -169,7 +169,7 @@ async def test_several_exchanges_in_flight_per_peer(served: Served) -> None:
 
 async def test_window_bounds_requests_in_flight(served: Served) -> None:
     layer = ReliabilityLayer(ReliabilitySettings(initial_rto=2.0, window_min=2, window_max=3))
-    client = await open_client("coap", retransmission=layer)
+    client = await open_client("coap", reliability=layer)
     peer = Endpoint("coap", "127.0.0.1", served.port)
     try:
         await asyncio.gather(*(client.request(peer, Request(Method.GET, "/slow"), timeout=10) for _ in range(7)))
@@ -185,7 +185,7 @@ async def test_late_answer_to_an_earlier_try_completes_the_request_and_counts_sp
     to the first try still completes the request, and the retries sent after
     that try left count as spurious (exactly, thanks to the tokens)."""
     layer = ReliabilityLayer(ReliabilitySettings(min_rto=0.05, min_rto_unknown_link=0.05, initial_rto=0.05))
-    client = await open_client("coap", retransmission=layer)
+    client = await open_client("coap", reliability=layer)
     peer = Endpoint("coap", "127.0.0.1", served.port)
     try:
         answer = await client.request(peer, Request(Method.GET, "/slow"), timeout=10)
@@ -202,7 +202,7 @@ async def test_late_answer_to_an_earlier_try_completes_the_request_and_counts_sp
 
 async def test_blockwise_answer_through_loss(served: Served) -> None:
     relay, peer = await _relayed(served, 15, seed=5)
-    client = await open_client("coap", retransmission="robust")
+    client = await open_client("coap")
     text = "SELECT * WHERE { ?s ?p ?o } LIMIT 60"
     try:
         for _ in range(3):
@@ -219,7 +219,7 @@ async def test_blockwise_answer_through_loss(served: Served) -> None:
 async def test_notifications_arrive_through_loss(served: Served) -> None:
     relay, peer = await _relayed(served, 20, seed=11)
     layer = ReliabilityLayer()
-    client = await open_client("coap", retransmission=layer)
+    client = await open_client("coap", reliability=layer)
     seen: list[int] = []
     try:
         # Warm the path up, so notifications are timed from real samples.
@@ -252,7 +252,7 @@ async def test_dead_peer_is_reported_at_once() -> None:
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    client = await open_client("coap", retransmission="robust")
+    client = await open_client("coap")
     assert isinstance(client, CoapClientTransport)
     try:
         with pytest.raises(PeerUnreachable):  # not a timeout

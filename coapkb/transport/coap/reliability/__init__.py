@@ -12,19 +12,15 @@ from __future__ import annotations
 
 from .layer import ReliabilityLayer, ReliabilitySettings
 
-#: The layer's name, as configurations and records state it.
-ROBUST = "robust"
-#: Every name a configuration may give (the layer is the only one).
-PROFILE_NAMES: tuple[str, ...] = (ROBUST,)
-DEFAULT_PROFILE = ROBUST
+#: The layer's name, as records state it (its stats, the bench's
+#: ``retransmission_profile`` column).
+ROBUST = ReliabilityLayer.name
 
 
-def make_reliability(profile: str = ROBUST, *, link_kbps: float | None = None) -> ReliabilityLayer:
+def make_reliability(*, link_kbps: float | None = None) -> ReliabilityLayer:
     """The layer for one robot's CoAP client and server: shared, so the
     server's notifications use the client's estimates."""
-    if profile != ROBUST:
-        raise ValueError(f"unknown reliability profile {profile!r} (choose from {', '.join(PROFILE_NAMES)})")
     return ReliabilityLayer(ReliabilitySettings(link_kbps=link_kbps))
 
 
-__all__ = ["PROFILE_NAMES", "DEFAULT_PROFILE", "ROBUST", "ReliabilityLayer", "ReliabilitySettings", "make_reliability"]
+__all__ = ["ROBUST", "ReliabilityLayer", "ReliabilitySettings", "make_reliability"]

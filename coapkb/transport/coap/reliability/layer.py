@@ -325,7 +325,7 @@ class ReliabilityLayer:
     NON request each time.  One layer serves a robot's client and its
     server's notifications, so both use the same path estimates."""
 
-    #: The profile name users select it by.
+    #: Its name in records (``profile.name`` of :meth:`as_dict`).
     name = "robust"
 
     def __init__(self, settings: ReliabilitySettings | None = None, *, clock: Callable[[], float] = time.monotonic) -> None:
