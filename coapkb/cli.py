@@ -311,7 +311,7 @@ async def _team(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal, sig)
     try:
-        async with Team.launch(spec) as team:
+        async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
             scheme = {"coap": "OSCORE keyed by EDHOC", "zmq": "CurveZMQ", "zenoh": "mutual TLS with team certificates"}[
                 spec.transport] if spec.secure else ""

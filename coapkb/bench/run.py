@@ -251,6 +251,7 @@ class NetnsPlacement(Placement):
     port and is started with ``ip netns exec``."""
 
     def __init__(self, testbed: Testbed) -> None:
+        super().__init__()
         self.testbed = testbed
 
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
