@@ -460,12 +460,23 @@ class Team:
                     identity = None if team.team_dir is None else load_identity(team.team_dir, "feeder")
                     team.directory = await ResourceDirectory.start(Endpoint("coap", spec.host, 0), identity)
                 configs = team.write_configs()
-                # A TaskGroup cancels the other start-ups as soon as one fails.
+                # A few robots start at a time: a robot's start-up is CPU work
+                # (imports, KBs, keys), and 99 at once on two cores would make
+                # each take longer than _spawn waits for its ready line.  In
+                # cluster order, so robots waiting for their cluster (rd) have
+                # their mates starting with them.  A TaskGroup cancels the other
+                # start-ups as soon as one fails.
+                slots = asyncio.Semaphore(max(CLUSTER_SIZE, 2 * (os.cpu_count() or 1)))
+
+                async def start(robot_id: str, path: Path) -> None:
+                    async with slots:
+                        argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
+                        await team._spawn(robot_id, argv, "robot")
+
                 try:
                     async with asyncio.TaskGroup() as starting:
                         for robot_id, path in configs.items():
-                            argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
-                            starting.create_task(team._spawn(robot_id, argv, "robot"))
+                            starting.create_task(start(robot_id, path))
                 except ExceptionGroup as failed:
                     raise failed.exceptions[0] from None
                 yield team
