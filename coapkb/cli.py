@@ -311,7 +311,7 @@ async def _team(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal, sig)
     try:
-        async with Team.launch(spec) as team:
+        async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
             scheme = {"coap": "OSCORE keyed by EDHOC", "zmq": "CurveZMQ", "zenoh": "mutual TLS with team certificates"}[
                 spec.transport] if spec.secure else ""
@@ -391,7 +391,7 @@ def _add_feed(sub: argparse._SubParsersAction) -> None:
 
 
 async def _feed(args: argparse.Namespace) -> int:
-    from .feeder import Feeder, read_tasks_file
+    from .feeder import FateCounts, Feeder, read_tasks_file
     from .feeder.team_folder import read_team_folder
 
     if not args.timeout > 0 or not args.answer_timeout > 0:
@@ -406,9 +406,8 @@ async def _feed(args: argparse.Namespace) -> int:
     async with Feeder.open(team.roster, team.settings, security) as feeder:
         await feeder.check_ready(args.answer_timeout, {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
         outcome = await feeder.feed(tasks, lambda record: print(_task_lines(record, args.costs), flush=True))
-    assigned = sum(1 for t in outcome.tasks if t.fate == "assigned")
     disputed = [t for t in outcome.tasks if not t.agreed]
-    print(f"{len(outcome.tasks)} task(s): {assigned} assigned, {len(disputed)} disagreement(s); "
+    print(f"{FateCounts.of(outcome.tasks).line()}; "
           f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s")
     return 1 if disputed else 0
 

@@ -15,6 +15,7 @@ class                      raised by                                   also a
 ``WireError``              :mod:`coapkb.wire.zmq_envelope`              ``ValueError``
 ``FeederError``            :mod:`coapkb.feeder` (tasks file, feeding)
 ``TeamError``              :mod:`coapkb.harness.team`                   ``FeederError``
+``KnowledgeGap``           :mod:`coapkb.harness.kbs`                    ``FeederError``
 ``LinkEmulationError``     :mod:`coapkb.bench.linkemu`                  ``RuntimeError``
 ``UserError``              :mod:`coapkb.cli`
 =========================  ==========================================  ========================

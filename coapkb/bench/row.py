@@ -16,7 +16,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
+
+if TYPE_CHECKING:
+    from ..feeder.record import FateCounts
 
 _KEY = "key"
 
@@ -97,6 +100,34 @@ class BenchRow:
     #: ``oscore``, ``curve``, ``tls``, or ``none`` -- a CSV written before the column
     #: holds unprotected runs only.
     security: str = key_field("none")
+    # Every task's fate (coapkb.feeder.record.FateCounts; tasks_reassigned and
+    # tasks_unavailable above are two of them).  Empty in a CSV written before them.
+    tasks_assigned: int | None = None
+    tasks_skipped: int | None = None
+    tasks_unassigned: int | None = None
+    tasks_errors: int | None = None
+    tasks_disagreements: int | None = None
+    #: The robots' commonest reason for the unassigned tasks.
+    unassigned_reason: str = ""
+    #: On how many of the unassigned tasks that reason was the commonest.
+    unassigned_reason_tasks: int | None = None
+
+    def fates(self) -> "FateCounts | None":
+        """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""
+        from ..feeder.record import FateCounts  # the feeder package is heavy; report code reads rows without it
+
+        counts = (self.tasks_assigned, self.tasks_skipped, self.tasks_unassigned, self.tasks_unavailable,
+                  self.tasks_reassigned, self.tasks_errors, self.tasks_disagreements)
+        if any(n is None for n in counts):
+            return None
+        assigned, skipped, unassigned, unavailable, reassigned, errors, disagreements = counts
+        reason = self.unassigned_reason or None
+        return FateCounts(
+            tasks=sum(counts), assigned=assigned, skipped=skipped, unassigned=unassigned,  # type: ignore[arg-type]
+            unavailable=unavailable, reassigned=reassigned, errors=errors,  # type: ignore[arg-type]
+            disagreements=disagreements, unassigned_reason=reason,  # type: ignore[arg-type]
+            unassigned_reason_tasks=self.unassigned_reason_tasks or 0,
+        )
 
     def key(self) -> tuple[str, ...]:
         """The run's identity: rows with equal keys are the same run (a re-run
@@ -211,6 +242,9 @@ def format_row(row: BenchRow) -> str:
     line = (f"{head}: completion {row.completion_s or 0:.1f} s, wire {row.wire_bytes or 0:,} B "
             f"in {row.wire_packets or 0:,} pkts, retx {row.retransmissions}, "
             f"query p50/p99 {ms(row.query_p50_ms)}/{ms(row.query_p99_ms)} ms")
+    fates = row.fates()
+    if fates is not None:
+        line += f"; {fates.line()}"
     if row.faults:
         line += (f"; killed {row.faults}: detected after {row.fault_detected_s} s, "
                  f"{row.tasks_reassigned} re-assigned, {row.tasks_unavailable} unavailable")

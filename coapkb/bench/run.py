@@ -81,6 +81,7 @@ from ..harness.team import (
     draw_tasks,
     Fault,
 )
+from ..feeder.record import FateCounts
 from ..harness.record import TeamRecord
 from ..errors import CoapkbError
 from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
@@ -250,6 +251,7 @@ class NetnsPlacement(Placement):
     port and is started with ``ip netns exec``."""
 
     def __init__(self, testbed: Testbed) -> None:
+        super().__init__()
         self.testbed = testbed
 
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
@@ -326,6 +328,7 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
     if len(given) != tasks:
         problems.insert(0, f"{len(given)} of {tasks} tasks recorded")
     detected = [f.detected_after_s for f in record.faults if f.action == "kill"]
+    fates = FateCounts.of(record.tasks)
     row = replace(
         row,
         coordination_s=record.coordination_s,
@@ -339,8 +342,15 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
         spurious_retransmissions=sum(s.spurious_retransmissions for s in stats),
         tasks_agreed=sum(1 for t in record.tasks if t.agreed),
         fault_detected_s=max(detected) if detected and None not in detected else None,  # type: ignore[type-var]
-        tasks_reassigned=sum(t.fate == "reassigned" for t in record.tasks),
-        tasks_unavailable=sum(t.fate == "unavailable" for t in record.tasks),
+        tasks_reassigned=fates.reassigned,
+        tasks_unavailable=fates.unavailable,
+        tasks_assigned=fates.assigned,
+        tasks_skipped=fates.skipped,
+        tasks_unassigned=fates.unassigned,
+        tasks_errors=fates.errors,
+        tasks_disagreements=fates.disagreements,
+        unassigned_reason=fates.unassigned_reason or "",
+        unassigned_reason_tasks=fates.unassigned_reason_tasks,
         ok=not problems,
         error="; ".join(problems)[:500],
     )

@@ -15,12 +15,13 @@ know the feeder by its member name, :data:`~.security.FEEDER_IDENTITY`.
 
 from .channel import FeederSettings, Roster
 from .feeder import Feeder, FeedOutcome
-from .record import TaskRecord
+from .record import FateCounts, TaskRecord
 from .security import FEEDER_IDENTITY, feeder_security
 from .tasks import FeederError, read_tasks_file, split_tasks, task_post
 
 __all__ = [
     "FEEDER_IDENTITY",
+    "FateCounts",
     "FeedOutcome",
     "Feeder",
     "FeederError",

@@ -6,8 +6,9 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 
 @dataclass
@@ -103,3 +104,60 @@ class TaskRecord:
             unavailable=data.get("unavailable"),
             joined=[str(r) for r in data.get("joined") or ()],
         )
+
+
+@dataclass(frozen=True)
+class FateCounts:
+    """How many tasks met each fate: every task counted once, so the counts
+    add up to ``tasks``.  A failed task is counted as ``errors`` when a robot
+    failed on it, else as a ``disagreement``.  ``coapkb team``, ``coapkb
+    feed`` and ``coapkb bench`` print :meth:`line`."""
+
+    tasks: int = 0
+    assigned: int = 0
+    skipped: int = 0
+    unassigned: int = 0
+    unavailable: int = 0
+    reassigned: int = 0
+    errors: int = 0
+    disagreements: int = 0
+    #: Why nobody took the unassigned tasks: the robots' commonest reason, and on how many tasks.
+    unassigned_reason: str | None = None
+    unassigned_reason_tasks: int = 0
+
+    @classmethod
+    def of(cls, tasks: Sequence[TaskRecord]) -> "FateCounts":
+        fates = Counter(t.fate for t in tasks)
+        failed = [t for t in tasks if t.fate == "failed"]
+        errors = sum(1 for t in failed if t.errors)
+        # Each unassigned task's own commonest reason (its robots may differ:
+        # one cannot pick by suction, another's battery is low), then the
+        # commonest of those over the tasks.
+        reasons = Counter(
+            Counter(t.reasons.values()).most_common(1)[0][0]
+            for t in tasks if t.fate == "unassigned" and t.reasons
+        )
+        reason, reason_tasks = reasons.most_common(1)[0] if reasons else (None, 0)
+        return cls(
+            tasks=len(tasks), assigned=fates["assigned"], skipped=fates["skipped"],
+            unassigned=fates["unassigned"], unavailable=fates["unavailable"], reassigned=fates["reassigned"],
+            errors=errors, disagreements=len(failed) - errors,
+            unassigned_reason=reason, unassigned_reason_tasks=reason_tasks,
+        )
+
+    @property
+    def counted(self) -> int:
+        """The sum of the fates' counts: equal to ``tasks``."""
+        return (self.assigned + self.skipped + self.unassigned + self.unavailable + self.reassigned
+                + self.errors + self.disagreements)
+
+    def line(self) -> str:
+        """``60 tasks, 18 assigned, 0 skipped, 42 unassigned, ...`` and, if
+        any went unassigned, the robots' commonest reason."""
+        text = (f"{self.tasks} tasks, {self.assigned} assigned, {self.skipped} skipped, "
+                f"{self.unassigned} unassigned, {self.unavailable} unavailable, {self.reassigned} reassigned, "
+                f"{self.errors} with errors, {self.disagreements} disagreements")
+        if self.unassigned_reason is not None:
+            text += (f"; unassigned mostly as {self.unassigned_reason!r} "
+                     f"({self.unassigned_reason_tasks} of {self.unassigned} tasks)")
+        return text

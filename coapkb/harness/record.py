@@ -12,12 +12,12 @@ harness knows; the feeder's part of it is the task records.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
 from ..agent.stats import RobotStats
 from ..agent.task_assigner import robot_sort_key
-from ..feeder.record import TaskRecord
+from ..feeder.record import FateCounts, TaskRecord
 from ..transport.base import TrafficCounters
 
 
@@ -86,6 +86,7 @@ class TeamRecord:
             "feeder_traffic": self.feeder_traffic.as_dict(),
             "faults": [f.to_dict() for f in self.faults],
             "down": dict(self.down),
+            "fates": asdict(FateCounts.of(self.tasks)),  # derived, like a task's "fate"; ignored on reading
         }
 
     @classmethod
@@ -111,9 +112,7 @@ class TeamRecord:
 def summarise(record: TeamRecord) -> str:
     """A human summary of a team record."""
     tasks = record.tasks
-    done = [t for t in tasks if t.assigned_to and not t.orphaned]
-    skipped = [t for t in tasks if t.skipped]
-    errors = [t for t in tasks if t.errors]
+    done = [t for t in tasks if t.fate == "assigned"]
     per_robot: dict[str, int] = {}
     for t in done:
         assert t.assigned_to is not None
@@ -123,12 +122,9 @@ def summarise(record: TeamRecord) -> str:
     local = sum(s.queries.local for s in stats)
     remote = sum(s.queries.remote for s in stats)
     cached = sum(s.queries.cached for s in stats)
-    reassigned = [t for t in tasks if t.orphaned]
     lines = [
         f"{len(record.robots)} robots, {record.mode}, {record.transport}, {record.strategy}: "
-        f"{len(tasks)} tasks, {len(done)} assigned, {len(skipped)} skipped, {len(errors)} with errors, "
-        f"{len(record.disputed)} disagreements"
-        + (f", {len(reassigned)} reassigned" if reassigned else ""),
+        + FateCounts.of(tasks).line(),
         "assigned: " + ", ".join(f"{r} {n}" for r, n in sorted(per_robot.items(), key=lambda x: robot_sort_key(x[0]))),
         f"coordination {record.coordination_s:.2f} s, completion {record.completion_s:.2f} s",
         f"robots sent {traffic.bytes_sent:,} B in {traffic.messages_sent:,} messages, "

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import os
 import random
@@ -47,6 +48,7 @@ from ..kb.named_queries import NAMED_QUERIES
 from ..transport import SCHEMES, transport_for
 from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..transport.base import Endpoint, TrafficCounters
+from .kbs import kbs_for_team
 from .record import FaultEvent, TeamRecord
 from ..security import SecurityConfig, generate_team, load_identity
 from ..security.keys import default_members
@@ -206,10 +208,70 @@ def draw_tasks(
     return [rng.choice(names) for _ in range(n)]
 
 
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+class PortReservation:
+    """Free ports for the team's servers on one host, each held bound until
+    its process is about to start.
+
+    The robots' configurations name every teammate's port, so ports are
+    chosen before any robot starts, and a robot binds its own (a bound socket
+    cannot be handed to the child: aiocoap, ZeroMQ and Zenoh bind their own).
+    Asking the OS for port 0 and closing the socket again lets a later ask, or
+    a robot's client socket, get the same port before its server binds it: a
+    team of 99 then fails to start now and then.  So the ports are taken
+    below the kernel's ephemeral range (no client socket is ever given one
+    there) and each stays bound here -- no second team member, and no other
+    team started meanwhile, can take it -- until :meth:`release` just before
+    its process starts."""
+
+    #: Where the search starts: above the well-known and most registered
+    #: services' ports (and below Linux's default ephemeral range, 32768-60999).
+    LOWEST = 20000
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+        self._held: dict[str, socket.socket] = {}
+        low, _ = _ephemeral_range()
+        self._candidates = list(range(self.LOWEST, low)) if low - self.LOWEST >= 1000 else []
+        # A random order: two teams allocating at once try different ports first.
+        random.SystemRandom().shuffle(self._candidates)
+
+    def take(self, name: str, kind: int) -> int:
+        """A port held for process ``name`` (``kind``: SOCK_DGRAM or SOCK_STREAM)."""
+        self.release(name)
+        while self._candidates:
+            port = self._candidates.pop()
+            held = socket.socket(socket.AF_INET, kind)
+            try:
+                held.bind((self.host, port))
+            except OSError:  # in use by something else
+                held.close()
+                continue
+            self._held[name] = held
+            return port
+        # No range below the ephemeral one (a tuned kernel): an OS-chosen port, still held.
+        held = socket.socket(socket.AF_INET, kind)
+        held.bind((self.host, 0))
+        self._held[name] = held
+        return held.getsockname()[1]
+
+    def release(self, name: str) -> None:
+        """Let ``name``'s process bind its port (no-op if none is held)."""
+        held = self._held.pop(name, None)
+        if held is not None:
+            held.close()
+
+    def close(self) -> None:
+        for name in list(self._held):
+            self.release(name)
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range of ports for client sockets (Linux; its default elsewhere)."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999
 
 
 def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
@@ -238,14 +300,30 @@ def cluster_modules(index: int, spec: TeamSpec) -> tuple[str, ...]:
 
 
 class Placement:
-    """Where each process of the team runs: here, on loopback, each on a free port.
+    """Where each process of the team runs: here, on loopback, each on a free
+    port held for it until it starts (:class:`PortReservation`).
 
     The benchmark's link emulator subclasses this to put every robot in its
     own network namespace behind an emulated link."""
 
+    def __init__(self) -> None:
+        self._ports: PortReservation | None = None
+
     def endpoint(self, name: str, spec: TeamSpec) -> Endpoint:
         kind = socket.SOCK_DGRAM if transport_for(spec.transport).datagram else socket.SOCK_STREAM
-        return Endpoint(spec.transport, spec.host, _free_port(kind))
+        if self._ports is None:
+            self._ports = PortReservation(spec.host)
+        return Endpoint(spec.transport, spec.host, self._ports.take(name, kind))
+
+    def starting(self, name: str) -> None:
+        """Process ``name`` is about to start and bind its endpoint."""
+        if self._ports is not None:
+            self._ports.release(name)
+
+    def close(self) -> None:
+        """Let go of whatever is still held for processes that never started."""
+        if self._ports is not None:
+            self._ports.close()
 
     def command(self, name: str, argv: list[str]) -> list[str]:
         """The command line that starts ``argv`` for process ``name``."""
@@ -316,6 +394,7 @@ class Team:
 
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
         self._argv[name] = argv
+        self.placement.starting(name)
         proc = await asyncio.create_subprocess_exec(
             *self.placement.command(name, [sys.executable, "-m", "coapkb", *argv]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
@@ -338,9 +417,19 @@ class Team:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def launch(cls, spec: TeamSpec, placement: Placement | None = None) -> AsyncIterator["Team"]:
-        """Start every process; on exit (normal, error or Ctrl-C) stop them all."""
+    async def launch(
+        cls, spec: TeamSpec, placement: Placement | None = None, notice: Callable[[str], None] = log.warning
+    ) -> AsyncIterator["Team"]:
+        """Start every process; on exit (normal, error or Ctrl-C) stop them all.
+
+        When the spec's KBs do not know every robot of the team, the team runs
+        on KBs generated for it in the run's directory (:mod:`.kbs`), and
+        ``notice`` is told so in one line."""
         with tempfile.TemporaryDirectory(prefix="coapkb-team-") as tmp:
+            kbs = kbs_for_team(spec.ontologies, spec.robot_ids, Path(tmp) / "ontologies")
+            if kbs.generated is not None:
+                notice(kbs.generated)
+                spec = dataclasses.replace(spec, ontologies=kbs.ontologies)
             team = cls(spec, Path(tmp), placement)
             try:
                 if spec.secure and spec.credentials is not None:
@@ -366,12 +455,23 @@ class Team:
                     identity = None if team.team_dir is None else load_identity(team.team_dir, "feeder")
                     team.directory = await ResourceDirectory.start(Endpoint("coap", spec.host, 0), identity)
                 configs = team.write_configs()
-                # A TaskGroup cancels the other start-ups as soon as one fails.
+                # A few robots start at a time: a robot's start-up is CPU work
+                # (imports, KBs, keys), and 99 at once on two cores would make
+                # each take longer than _spawn waits for its ready line.  In
+                # cluster order, so robots waiting for their cluster (rd) have
+                # their mates starting with them.  A TaskGroup cancels the other
+                # start-ups as soon as one fails.
+                slots = asyncio.Semaphore(max(CLUSTER_SIZE, 2 * (os.cpu_count() or 1)))
+
+                async def start(robot_id: str, path: Path) -> None:
+                    async with slots:
+                        argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
+                        await team._spawn(robot_id, argv, "robot")
+
                 try:
                     async with asyncio.TaskGroup() as starting:
                         for robot_id, path in configs.items():
-                            argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
-                            starting.create_task(team._spawn(robot_id, argv, "robot"))
+                            starting.create_task(start(robot_id, path))
                 except ExceptionGroup as failed:
                     raise failed.exceptions[0] from None
                 yield team
@@ -379,6 +479,7 @@ class Team:
                 await team.stop()
 
     async def stop(self) -> None:
+        self.placement.close()
         try:
             await self._stop_processes()
         finally:

@@ -127,7 +127,9 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     assert [(int(m[1]), m[2]) for m in lines] == list(enumerate(tasks, 1)), result.stdout
     # The robots of `coapkb demo`, with the same homes and KBs: the same assignments.
     assert [m[3] for m in lines] == DEMO_ASSIGNMENTS, result.stdout
-    assert f"{len(tasks)} task(s): {len(tasks)} assigned, 0 disagreement(s)" in result.stdout
+    n = len(tasks)
+    assert (f"{n} tasks, {n} assigned, 0 skipped, 0 unassigned, 0 unavailable, 0 reassigned, "
+            "0 with errors, 0 disagreements; coordination") in result.stdout
 
     # Fed again, the robots go on with tasks 6 to 10, from where the first list left them.
     again = run(workdir, *feed)

@@ -9,7 +9,7 @@ import cbor2
 
 from coapkb.agent.query_handler import QueryStats
 from coapkb.agent.stats import RobotStats
-from coapkb.feeder import TaskRecord
+from coapkb.feeder import FateCounts, TaskRecord
 from coapkb.harness.record import FaultEvent, TeamRecord, summarise
 from coapkb.transport.base import TrafficCounters
 
@@ -66,7 +66,7 @@ def test_team_record_round_trips_through_its_json_file() -> None:
     data = json.loads(json.dumps(record.to_dict()))
     assert list(data) == ["mode", "transport", "strategy", "query_wire", "robots", "clusters",
                           "tasks", "coordination_s", "completion_s", "robot_stats", "feeder_traffic",
-                          "faults", "down"]
+                          "faults", "down", "fates"]
     assert data["tasks"][0]["coordination_s"] == 0.123457 and data["tasks"][0]["agreed"] is True
     assert [t["agreed"] for t in data["tasks"]] == [True, True, False]
     back = TeamRecord.from_dict(data)
@@ -75,7 +75,7 @@ def test_team_record_round_trips_through_its_json_file() -> None:
     assert [t.object for t in back.disputed] == ["Canon_tv_995"]
     # A record from before fault injection: no faults, nobody down, fates still derived.
     old = {**data, "tasks": [{k: v for k, v in t.items() if k in OLD_TASK_KEYS} for t in data["tasks"]]}
-    del old["faults"], old["down"]
+    del old["faults"], old["down"], old["fates"]
     back = TeamRecord.from_dict(old)
     assert (back.faults, back.down) == ([], {})
     assert [t.fate for t in back.tasks] == ["assigned", "skipped", "failed"]
@@ -100,7 +100,7 @@ def test_a_killed_robot_shows_in_the_record_and_summary() -> None:
     data = json.loads(json.dumps(record.to_dict()))
     assert TeamRecord.from_dict(data).to_dict() == data
     lines = summarise(record).splitlines()
-    assert lines[0].endswith("1 disagreements, 1 reassigned")
+    assert lines[0].endswith("0 unassigned, 0 unavailable, 1 reassigned, 1 with errors, 0 disagreements")
     assert lines[1] == "assigned: Robot1 1"
     assert lines[-1] == "kill Robot2 at 3.0 s, declared down 1.2 s later"
 
@@ -108,8 +108,41 @@ def test_a_killed_robot_shows_in_the_record_and_summary() -> None:
 def test_summary_counts_tasks_traffic_and_queries() -> None:
     lines = summarise(_record()).splitlines()
     assert lines[0] == ("2 robots, distributed, coap, compute-by-all: 3 tasks, 1 assigned, 1 skipped, "
-                        "1 with errors, 1 disagreements")
+                        "0 unassigned, 0 unavailable, 0 reassigned, 1 with errors, 0 disagreements")
     assert lines[1] == "assigned: Robot2 1"
     assert lines[2] == "coordination 1.50 s, completion 2.25 s"
     assert lines[3] == ("robots sent 300 B in 10 messages, received 60 B; "
                         "queries: 2 local, 4 remote, 2 answered from the cache")
+
+
+def test_the_summary_counts_every_fate_once() -> None:
+    """One task of each fate: every count is 1, the counts add up to the
+    tasks, and the unassigned ones carry the robots' commonest reason."""
+    decided = {"Robot1": "Robot1", "Robot2": "Robot1"}
+    nobody = {"Robot1": None, "Robot2": None}
+    tasks = [
+        TaskRecord("Gucci_bag_14", 1, 1, assigned_to="Robot1", decisions=decided),
+        TaskRecord("Nonexistent_thing_1", 1, 2, skipped=True, decisions=nobody),
+        TaskRecord("Canon_tv_995", 1, 3, decisions=nobody, reasons={"Robot1": "cannot pick by suction",
+                                                                   "Robot2": "cannot pick by suction"}),
+        TaskRecord("Canon_tv_996", 1, 4, decisions=nobody, reasons={"Robot1": "cannot pick by suction",
+                                                                   "Robot2": "battery low"}),
+        TaskRecord("Canon_tv_997", 1, 5, decisions=nobody, reasons={"Robot1": "battery low",
+                                                                   "Robot2": "battery low"}),
+        TaskRecord("Sony_tv_1", 1, 6, decisions=nobody, unavailable="no live holder of the Object KB"),
+        TaskRecord("Sony_tv_2", 1, 7, assigned_to="Robot2", decisions={"Robot2": "Robot2"},
+                   orphaned="Robot2 went down before executing it"),
+        TaskRecord("Sony_tv_3", 1, 8, decisions={"Robot1": "Robot1", "Robot2": None}, errors={"Robot2": "timeout"}),
+        TaskRecord("Sony_tv_4", 1, 9, decisions={"Robot1": "Robot1", "Robot2": "Robot2"}),
+    ]
+    counts = FateCounts.of(tasks)
+    assert (counts.assigned, counts.skipped, counts.unassigned, counts.unavailable, counts.reassigned,
+            counts.errors, counts.disagreements) == (1, 1, 3, 1, 1, 1, 1)
+    assert counts.counted == counts.tasks == len(tasks)
+    assert (counts.unassigned_reason, counts.unassigned_reason_tasks) == ("cannot pick by suction", 2)
+    record = replace(_record(), tasks=tasks)
+    assert summarise(record).splitlines()[0] == (
+        "2 robots, distributed, coap, compute-by-all: 9 tasks, 1 assigned, 1 skipped, 3 unassigned, "
+        "1 unavailable, 1 reassigned, 1 with errors, 1 disagreements; "
+        "unassigned mostly as 'cannot pick by suction' (2 of 3 tasks)")
+    assert record.to_dict()["fates"]["unassigned"] == 3
