@@ -75,7 +75,7 @@ def _tls_server(identity: TeamIdentity, policy: AccessPolicy) -> ServerSecurity:
 MECHANISMS: dict[str, Mechanism] = {
     "oscore": Mechanism("OSCORE keyed by EDHOC", _oscore_client, _oscore_server),
     "curve": Mechanism("CurveZMQ", _curve_client, _curve_server, needs_server_name=True),
-    "tls": Mechanism("mTLS", _tls_client, _tls_server),
+    "tls": Mechanism("mutual TLS with team certificates", _tls_client, _tls_server),
 }
 
 

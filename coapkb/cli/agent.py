@@ -1,0 +1,29 @@
+"""``coapkb agent``: one robot from its TOML configuration."""
+
+from __future__ import annotations
+
+import argparse
+
+from .common import until_signalled
+
+
+def add_agent(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("agent", help="run one robot from its TOML configuration")
+    p.add_argument("--config", required=True, metavar="FILE", help="the robot's TOML file")
+    p.add_argument("--query-wire", choices=("compact", "seed"), default="compact",
+                   help="compact: named queries + CBOR; seed: full SPARQL text + JSON, like the seed paper")
+    p.set_defaults(run=_agent)
+
+
+async def _agent(args: argparse.Namespace) -> int:
+    from ..agent.robot import Robot
+    from ..config import load_config
+
+    config = load_config(args.config)
+    robot = await Robot.start(config, query_wire=args.query_wire)
+    print(f"robot {config.robot_id} ready on {robot.server.endpoint}", flush=True)
+    try:
+        await until_signalled()
+    finally:
+        await robot.aclose()
+    return 0

@@ -1,0 +1,65 @@
+"""What several ``coapkb`` subcommands share: the user-error type, a
+signal wait, endpoint parsing and the team credentials options."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+
+from ..errors import CoapkbError
+from ..transport import ClientSecurity, Endpoint, ServerSecurity
+
+
+class UserError(CoapkbError):
+    """A mistake the user can fix; printed as one line."""
+
+
+async def until_signalled() -> None:
+    """Wait for SIGINT or SIGTERM, so a server shuts down cleanly either way."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+
+
+def parse_endpoint(hostport: str, scheme: str) -> Endpoint:
+    try:
+        return Endpoint.parse(hostport, default_scheme=scheme)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
+    p.add_argument("--credentials", metavar="DIR",
+                   help="team key directory (coapkb keys): OSCORE keyed by EDHOC with the team's members")
+    p.add_argument("--identity", default=identity, metavar="NAME",
+                   help=f"whose key in --credentials to use (default {identity})")
+
+
+def client_security(args: argparse.Namespace, peer: Endpoint) -> ClientSecurity | None:
+    if getattr(args, "credentials", None) is None:
+        return None
+    from ..security import load_identity, mechanism_for
+
+    mechanism = mechanism_for(peer.scheme)
+    if mechanism.needs_server_name and not args.peer:
+        raise UserError(f"--credentials over {peer.scheme}: name the member serving there with --peer "
+                        f"({mechanism.title} needs its key)")
+    # Otherwise the handshake finds who serves there; --peer also insists on who it is.
+    return mechanism.client(load_identity(args.credentials, args.identity),
+                            {peer.hostport: args.peer} if args.peer else None)
+
+
+def server_security(args: argparse.Namespace) -> ServerSecurity | None:
+    if args.credentials is None:
+        return None
+    from ..security import load_identity, server_security
+
+    # A KB server takes queries from every member; tasks and decisions are robots' business.
+    return server_security(args.transport, load_identity(args.credentials, args.identity))

@@ -1,0 +1,48 @@
+"""``coapkb feed``: the team's feeder for robots started by hand."""
+
+from __future__ import annotations
+
+import argparse
+
+from .common import UserError
+from .team import task_lines
+
+
+def add_feed(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "feed",
+        help="feed tasks to robots started by hand (coapkb agent --config DIR/RobotN.toml), as the team's feeder",
+        description="Reads the robots' TOML files in --team (their endpoints, clusters and key directory), "
+        "checks that every robot answers, posts the tasks in order and prints what each robot decided. "
+        "Example: examples/three-robots/README.md",
+    )
+    p.add_argument("--team", required=True, metavar="DIR", help="the folder holding the robots' TOML files")
+    p.add_argument("--tasks-file", required=True, metavar="FILE", help="one object name per line")
+    p.add_argument("--timeout", type=float, default=120.0, metavar="SECONDS",
+                   help="how long one task's decisions may take (default 120)")
+    p.add_argument("--answer-timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long each robot has to answer before feeding starts (default 10)")
+    p.add_argument("--costs", action="store_true", help="also print every robot's cost for each task")
+    p.set_defaults(run=_feed)
+
+
+async def _feed(args: argparse.Namespace) -> int:
+    from ..feeder import FateCounts, Feeder, read_tasks_file
+    from ..feeder.team_folder import read_team_folder
+
+    if not args.timeout > 0 or not args.answer_timeout > 0:
+        raise UserError("--timeout and --answer-timeout must be positive")
+    team = read_team_folder(args.team, task_timeout_s=args.timeout)
+    tasks = read_tasks_file(args.tasks_file)
+    if not tasks:
+        raise UserError(f"no tasks in {args.tasks_file}")
+    security = team.security()
+    print(f"feeding {len(tasks)} task(s) to {', '.join(f'{r} {e}' for r, e in team.roster.endpoints.items())}"
+          + ("" if security is None else f" (keys: {team.credentials})"), flush=True)
+    async with Feeder.open(team.roster, team.settings, security) as feeder:
+        await feeder.check_ready(args.answer_timeout, {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
+        outcome = await feeder.feed(tasks, lambda record: print(task_lines(record, args.costs), flush=True))
+    disputed = [t for t in outcome.tasks if not t.agreed]
+    print(f"{FateCounts.of(outcome.tasks).line()}; "
+          f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s")
+    return 1 if disputed else 0

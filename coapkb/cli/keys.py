@@ -1,0 +1,44 @@
+"""``coapkb keys``: a team's key material."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .common import UserError
+
+
+def add_keys(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("keys", help="make a team's key material: EDHOC credentials, CurveZMQ keys, TLS certificates, trust list")
+    p.add_argument("--team-dir", required=True, metavar="DIR", help="a new directory (never overwritten)")
+    p.add_argument("--robots", type=int, default=3, help="Robot1..RobotN")
+    p.add_argument("--member", action="append", default=[], metavar="NAME:ROLE",
+                   help="another member (role robot, feeder, server or client); repeatable")
+    p.add_argument("--aiocoap-client", nargs=3, metavar=("IDENTITY", "PEER", "URI"),
+                   help="instead: print an aiocoap-client --credentials file (.diag) for IDENTITY to talk to "
+                        "member PEER at URI, from the existing --team-dir")
+    p.set_defaults(run=_keys)
+
+
+async def _keys(args: argparse.Namespace) -> int:
+    from ..security import generate_team
+    from ..security.keys import ROLES, aiocoap_client_credentials, default_members
+
+    if args.aiocoap_client:
+        sys.stdout.write(aiocoap_client_credentials(args.team_dir, *args.aiocoap_client))
+        return 0
+    if args.robots < 0:
+        raise UserError("--robots must not be negative")
+    members = default_members(args.robots)
+    for text in args.member:
+        name, sep, role = text.partition(":")
+        if not sep or role not in ROLES:
+            raise UserError(f"--member {text!r}: expected NAME:ROLE with ROLE one of {', '.join(ROLES)}")
+        members.append((name, role))
+    trust = generate_team(args.team_dir, members)
+    # Names and roles only: the keys stay in their 0600 files.
+    print(f"team of {len(trust.members)} in {args.team_dir}: "
+          + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
+    print(f"give each member its {args.team_dir}/NAME.key, NAME.curve, NAME.tls.key, NAME.tls.pem, team.json and team-ca.pem; "
+          "a robot's TOML names the directory: [security] credentials = \"DIR\"")
+    return 0

@@ -1,0 +1,47 @@
+"""``coapkb serve``: knowledge base files served as a robot's resources."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..transport import SCHEMES
+from .common import UserError, add_credentials, parse_endpoint, server_security, until_signalled
+
+
+def add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve knowledge base files as a robot's resources")
+    p.add_argument("--kb", nargs="+", required=True, metavar="FILE", help="RDF files (.owl, .ttl, .nt)")
+    p.add_argument("--bind", default="127.0.0.1:5683", metavar="HOST:PORT")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
+    p.add_argument("--backend", choices=("oxigraph", "rdflib"), default="oxigraph")
+    p.add_argument("--index-dir", metavar="DIR",
+                   help="keep the KB as an on-disk index in DIR: built once, opened in milliseconds later (oxigraph)")
+    add_credentials(p, "central")
+    p.add_argument("--row-limit", type=int, default=1000)
+    p.add_argument("--time-budget", type=float, default=2.0, metavar="SECONDS")
+    p.set_defaults(run=_serve)
+
+
+async def _serve(args: argparse.Namespace) -> int:
+    from ..kb.resources import KBResources, QueryLimits
+    from ..kb.store import KnowledgeBase
+    from ..transport.router import Router
+    from ..transport import serve
+
+    endpoint = parse_endpoint(args.bind, args.transport)
+    try:
+        limits = QueryLimits(row_limit=args.row_limit, time_budget_s=args.time_budget)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if args.index_dir is not None and args.backend != "oxigraph":
+        raise UserError("--index-dir needs --backend oxigraph")
+    kb = KnowledgeBase.load(args.kb, backend=args.backend, index_dir=args.index_dir)
+    router = Router()
+    KBResources(kb, limits).mount(router)
+    server = await serve(router, endpoint, security=server_security(args))
+    print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}) on {server.endpoint}", flush=True)
+    try:
+        await until_signalled()
+    finally:
+        await server.aclose()
+    return 0

@@ -1,0 +1,213 @@
+"""``coapkb team`` and ``coapkb demo``: a whole team on this machine, robots
+as processes, fed in order; and the line a task's outcome prints as."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import signal
+import sys
+from pathlib import Path
+
+from ..transport import SCHEMES
+from .common import UserError
+
+
+#: The seed's example task (Fig. 4), a few more picks, and one object that
+#: does not exist, which every robot must skip.
+DEMO_TASKS = ("Gucci_bag_14", "Nonexistent_widget_1")
+
+
+def add_team(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("team", help="run a whole team locally: robots as processes, tasks fed in order")
+    p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
+    tasks = p.add_mutually_exclusive_group(required=True)
+    tasks.add_argument("--tasks", type=int, metavar="N", help="draw N objects from the Object KB")
+    tasks.add_argument("--tasks-file", metavar="FILE", help="one object name per line")
+    p.add_argument("--seed", type=int, default=1, help="seed for --tasks")
+    p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
+    p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
+    p.add_argument("--query-wire", choices=("compact", "seed"), default="compact")
+    p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
+    p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
+    p.add_argument("--replication", type=int, default=2, metavar="R",
+                   help="robots of a cluster holding each KB module (1-3, default 2: one may fail)")
+    p.add_argument("--kill", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
+    p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
+                   help="start a killed robot again at S seconds; it joins the team at the next task (repeatable)")
+    p.add_argument("--stop", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGSTOP a robot at S seconds: cut off with its state intact (repeatable)")
+    p.add_argument("--resume", action="append", default=[], metavar="ROBOT@S",
+                   help="SIGCONT a stopped robot at S seconds; it finds itself fenced off and picks nothing "
+                        "the others took over (repeatable)")
+    p.add_argument("--discovery", choices=("static", "rd"), default="static",
+                   help="how robots find their teammates: static (each config lists its cluster, default) or rd "
+                        "(each config lists the robot alone; it registers in a Resource Directory the feeder "
+                        "hosts and looks its cluster up there; coap only)")
+    p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.add_argument("--insecure", action="store_true",
+                   help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
+    p.add_argument("--credentials", metavar="DIR", help="use this team key directory (coapkb keys) instead of throwaway keys")
+    p.add_argument("--quiet", action="store_true", help="no per-task progress lines")
+    p.set_defaults(run=_team)
+
+
+def add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="the main job: 3 robots on loopback do the seed's example tasks")
+    p.add_argument("--transport", choices=SCHEMES, default="coap")
+    p.add_argument("--insecure", action="store_true", help="no OSCORE/EDHOC (default: on, throwaway keys)")
+    p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.set_defaults(run=_demo)
+
+
+async def _demo(args: argparse.Namespace) -> int:
+    from ..harness.team import draw_tasks, DEFAULT_ONTOLOGIES
+
+    tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS) + list(DEMO_TASKS[1:])
+    print("Demo: a team of 3 robots, each KB module on two of them "
+          "(Robot1: Location+Object, Robot2: Object+Capability, Robot3: Capability+Location)")
+    print("on loopback, each a separate process, over " + args.transport + "; tasks: " + ", ".join(tasks))
+    print("Each robot runs the seed's four queries per task and computes every robot's cost (Wh);")
+    print("the cheapest capable robot gets the task; all robots must agree.\n")
+    team_args = argparse.Namespace(
+        robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
+        strategy="compute-by-all", query_wire="compact", ontologies=None,
+        time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
+        insecure=args.insecure,
+    )
+    return await _team(team_args)
+
+
+def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
+    """The team and its task list from the command line, or a :class:`UserError`."""
+    from ..feeder import read_tasks_file
+    from ..harness.team import DEFAULT_ONTOLOGIES, Fault, TeamSpec, draw_tasks
+
+    ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
+    try:
+        faults = tuple(
+            Fault.parse(action, text)
+            for action in ("kill", "restart", "stop", "resume")
+            for text in getattr(args, action, None) or ()
+        )
+        spec = TeamSpec(
+            robots=args.robots, mode=args.mode, transport=args.transport, strategy=args.strategy,
+            query_wire=args.query_wire, ontologies=ontologies,
+            time_scale=args.time_scale, replication=getattr(args, "replication", 2), faults=faults,
+            security=not getattr(args, "insecure", False),
+            credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
+            discovery=getattr(args, "discovery", "static"),
+        )
+        if getattr(args, "task_list", None):
+            tasks = list(args.task_list)
+        elif args.tasks_file:
+            tasks = read_tasks_file(args.tasks_file)
+        else:
+            if args.tasks < 1:
+                raise UserError("--tasks must be at least 1")
+            tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
+    except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
+        raise UserError(str(exc)) from None
+    if not tasks:
+        raise UserError("no tasks to run")
+    return spec, tasks
+
+
+def _security_line(spec) -> str:  # spec: TeamSpec
+    if not spec.secure:
+        return "security: none"
+    from ..security import mechanism_for
+
+    return f"security: {mechanism_for(spec.transport).title}, team access policy"
+
+
+async def _team(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from ..feeder import FeederError, TaskRecord
+    from ..harness.record import summarise
+    from ..harness.team import Team
+
+    spec, tasks = _spec_and_tasks(args)
+
+    def progress(bar: tqdm, record: TaskRecord) -> None:
+        bar.update()
+        if args.quiet:
+            return
+        bar.write(task_lines(record, getattr(args, "verbose_costs", False)), file=sys.stdout)
+        sys.stdout.flush()
+
+    # Ctrl-C and SIGTERM (kill, a CI timeout) stop the robots: cancel this
+    # task so that Team.launch's clean-up runs.  Ctrl-C reaches the robots
+    # too (one process group), so a failure the feeder sees meanwhile is the
+    # interrupt's doing, not the team's.
+    loop = asyncio.get_running_loop()
+    this_task = asyncio.current_task()
+    stopped_by: int | None = None
+
+    def on_signal(sig: int) -> None:
+        nonlocal stopped_by
+        stopped_by = sig
+        if this_task is not None:
+            this_task.cancel()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal, sig)
+    try:
+        async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
+            print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
+            print(_security_line(spec), flush=True)
+            # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
+            # per-task lines go to stdout above it, so a log or a pipe gets just those.
+            with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
+                      disable=True if args.quiet else None) as bar:
+                record = await team.run(tasks, lambda r: progress(bar, r))
+    except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
+        if stopped_by is None:
+            if isinstance(exc, asyncio.CancelledError):
+                raise
+            print(f"coapkb: team run failed: {exc}", file=sys.stderr)
+            return 1
+        print(f"coapkb: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}; robots stopped",
+              file=sys.stderr)
+        return 128 + stopped_by
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    print()
+    print(summarise(record))
+    if args.record:
+        Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
+        print(f"record written to {args.record}")
+    return 1 if record.disputed else 0
+
+
+def task_lines(record, costs: bool = False) -> str:  # record: TaskRecord
+    """What the feeder saw of one task, as ``coapkb team`` and ``coapkb feed``
+    print it; ``costs``: a second line with every robot's cost."""
+    if record.skipped:
+        outcome = "skipped: no such object"
+    elif record.errors:
+        outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
+    elif record.unavailable is not None:
+        outcome = f"cannot be done: {record.unavailable}"
+    else:
+        outcome = f"-> {record.assigned_to or 'nobody can'}"
+    if record.reassigned_from is not None:
+        outcome += f" (again: task {record.reassigned_from})"
+    if record.joined:
+        outcome += f" [joined again: {', '.join(record.joined)}]"
+    if record.absent:
+        outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
+    agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
+    lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
+             f"({record.coordination_s * 1000:.0f} ms){agreed}"]
+    if costs and record.costs:
+        text = ", ".join(
+            f"{r}: {record.reasons.get(r, '-') if c is None else f'{c:.2f} Wh'}" for r, c in record.costs.items()
+        )
+        lines.append(f"      costs: {text}")
+    return "\n".join(lines)
