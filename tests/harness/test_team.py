@@ -303,8 +303,9 @@ async def test_unreachable_kb_holder_makes_its_tasks_unavailable(transport: str,
                     for r in survivors:
                         await _post_task(client, team.endpoints[r], seq, name)
                     decided: dict[str, dict[str, Any]] = {}
-                    # The queries fail after at most query_timeout_s (plus slack for start-up and scheduling).
-                    deadline = fed + timeout_s * 2 + 5
+                    # The queries fail after query_timeout_s; the bound only tells a hang from a
+                    # slow, loaded machine, so it is generous.
+                    deadline = fed + timeout_s * 4 + 30
                     while len(decided) < len(survivors):
                         assert time.monotonic() < deadline, f"no decision on task {seq} from {survivors}: hanging"
                         for r in survivors:
@@ -435,15 +436,13 @@ def test_cli_team_interrupted_leaves_no_process(sig: int, to_group: bool, exit_c
             os.killpg(proc.pid, sig)
         else:
             os.kill(proc.pid, sig)
-        started = time.monotonic()
         try:
-            _, err = proc.communicate(timeout=15)
+            _, err = proc.communicate(timeout=60)
         except subprocess.TimeoutExpired:
-            pytest.fail(f"coapkb team did not exit within 15 s of {signal.Signals(sig).name}")
-        assert time.monotonic() - started < 15
+            pytest.fail(f"coapkb team did not exit within 60 s of {signal.Signals(sig).name}")
         assert proc.returncode == exit_code, (proc.returncode, err.decode()[-2000:])
         assert b"Traceback" not in err, err.decode()[-2000:]
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30  # generous: the robots exit as soon as they are told
         while time.monotonic() < deadline and any(_alive(a) for a in agents):
             time.sleep(0.1)
         assert not [a for a in agents if _alive(a)], "robot agents outlived coapkb team"
