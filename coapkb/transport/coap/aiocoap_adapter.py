@@ -142,6 +142,8 @@ def verify() -> None:
     check_methods(checks)
     if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
         raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
+    if "self._piggyback_opportunities" not in inspect.getsource(MessageManager.__init__):
+        raise UnsupportedAiocoapVersion("aiocoap's MessageManager keeps its empty-ACK timers elsewhere")
     if f'getChild("{BLOCKWISE_LOGGER}")' not in inspect.getsource(aiocoap.protocol.BlockwiseRequest.__init__):
         raise UnsupportedAiocoapVersion("aiocoap's block-wise requester logs elsewhere")
 
@@ -293,6 +295,17 @@ class ContextHooks:
         if policy is None:
             self._pending.clear()
             self._finished.clear()
+
+    def cancel_empty_ack_timers(self) -> None:
+        """Cancel the timers aiocoap keeps to send an empty ACK for a CON
+        request whose answer is slow.  Its ``shutdown()`` leaves them running:
+        one that fires after the socket closed raised inside an asyncio
+        callback (a logged traceback at a robot's SIGTERM after a burst of
+        CON requests).  Call before ``ctx.shutdown()``."""
+        pending = self.mm._piggyback_opportunities
+        for _mid, handle in pending.values():
+            handle.cancel()
+        pending.clear()
 
     def remove(self) -> None:
         """Take the patches off (after ``ctx.shutdown()``: shutting down is

@@ -219,5 +219,6 @@ class CoapServerTransport:
         return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
 
     async def aclose(self) -> None:
+        self._hooks.cancel_empty_ack_timers()
         await self._ctx.shutdown()
         self._hooks.remove()
