@@ -507,12 +507,18 @@ async def _relay_run(
                 ct.sendto(i.to_bytes(4, "big") + bytes(size - 4))
                 if i % 10 == 9:  # let the loop drain the loopback sockets (no socket-buffer drops)
                     await asyncio.sleep(0.001)
-            # Wait until replies stop coming (0.3 s without one), at most 10 s.
-            deadline = time.monotonic() + 10
-            seen = -1
-            while len(client.times) != seen and time.monotonic() < deadline:
-                seen = len(client.times)
-                await asyncio.sleep(0.3)
+            # Wait for the event, not for a quiet spell (a loaded machine pauses for
+            # longer): every datagram sent is accounted for on the way there, and every
+            # one forwarded has come back.  At most 30 s: a socket-buffer drop would
+            # never be accounted for, and the counts below then say so.
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                c = relay.counters()
+                there = c["up"].dropped + c["up"].rx_packets == n
+                back = c["down"].tx_packets == c["up"].rx_packets and len(client.times) == c["down"].rx_packets
+                if there and back:
+                    break
+                await asyncio.sleep(0.05)
             ct.close()
             return client, relay.counters()
     finally:
