@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from .common import UserError
 
@@ -39,6 +40,6 @@ async def _keys(args: argparse.Namespace) -> int:
     # Names and roles only: the keys stay in their 0600 files.
     print(f"team of {len(trust.members)} in {args.team_dir}: "
           + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
-    print(f"give each member its {args.team_dir}/NAME.key, NAME.curve, NAME.tls.key, NAME.tls.pem, team.json and team-ca.pem; "
+    print(f"give each member its {Path(args.team_dir) / 'NAME.key'}, NAME.curve, NAME.tls.key, NAME.tls.pem, team.json and team-ca.pem; "
           "a robot's TOML names the directory: [security] credentials = \"DIR\"")
     return 0
