@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
@@ -39,6 +40,9 @@ log = logging.getLogger(__name__)
 
 #: The depot, where robots unload: the front end of the first aisle.
 DEPOT = Position(1, 0)
+#: Decisions a robot keeps to show on ``GET /tasks``: a robot runs whole shifts,
+#: and nothing but that listing reads its past decisions.
+DECISIONS_KEPT = 1024
 
 
 @dataclass(frozen=True)
@@ -108,7 +112,8 @@ class Controller:
         self._layout: Layout | None = None
         self._energy: dict[str, RobotEnergy] | None = None
         self._docks: tuple[Position, ...] | None = None
-        self.log: list[Decision] = []
+        #: The last ``DECISIONS_KEPT`` decisions, oldest first (``GET /tasks``).
+        self.log: deque[Decision] = deque(maxlen=DECISIONS_KEPT)
         self._runner: asyncio.Task | None = None
 
     @property

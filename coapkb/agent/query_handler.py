@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import deque
+from collections.abc import MutableSequence
 from dataclasses import dataclass, field
+from itertools import islice
 from typing import Awaitable, Callable, Mapping
 
 from ..errors import CoapkbError
@@ -28,6 +31,8 @@ from ..transport.base import TransportError
 #: (a few bytes each way); "seed" = the whole SPARQL text in every request
 #: with SPARQL-JSON answers, as the seed paper's system did.
 QUERY_WIRES = ("compact", "seed")
+#: Remote-query latencies a robot keeps for its statistics and its hedging delay.
+LATENCIES_KEPT = 16_384
 
 
 class QueryError(CoapkbError):
@@ -57,8 +62,9 @@ class QueryStats:
     failovers: int = 0
     #: Queries also sent to a second holder because the first was slow.
     hedged: int = 0
-    #: Wall-clock latency of each remote query, in seconds.
-    remote_latencies: list[float] = field(default_factory=list)
+    #: Wall-clock latency of the last ``LATENCIES_KEPT`` remote queries, in seconds
+    #: (a robot runs for days: its statistics must not grow with them).
+    remote_latencies: MutableSequence[float] = field(default_factory=lambda: deque(maxlen=LATENCIES_KEPT))
 
     def as_dict(self) -> dict:
         return {
@@ -114,7 +120,8 @@ class QueryHandler:
     def hedge_after_s(self) -> float:
         """How long to wait for one holder before also asking the next replica:
         a multiple of the recent remote latencies, never under the floor."""
-        recent = sorted(self.stats.remote_latencies[-64:])
+        latencies = self.stats.remote_latencies
+        recent = sorted(islice(latencies, max(0, len(latencies) - 64), None))
         if not recent:
             return self.hedge_floor_s
         p90 = recent[min(len(recent) - 1, int(0.9 * len(recent)))]

@@ -89,6 +89,8 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
 
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).
 STATS_SNAPSHOT_S = 5.0
+#: Task posts whose repeat a robot recognises (sequence numbers are consecutive).
+POSTS_REMEMBERED = 64
 
 
 class Robot:
@@ -115,7 +117,8 @@ class Robot:
         self.executor = executor
         self.queries = queries
         self._next_seq = 1
-        #: Object of every task taken, by sequence number (a repeated post is recognised).
+        #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
+        #: (a repeated post is recognised: the feeder repeats only its latest).
         self._accepted: dict[int, str] = {}
         #: Its registration in the team's Resource Directory (``[discovery] method = "rd"``).
         self.directory: Any = None
@@ -303,6 +306,7 @@ class Robot:
             return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
         self._next_seq += 1
         self._accepted[seq] = name
+        self._accepted.pop(seq - POSTS_REMEMBERED, None)
         self.controller.submit(Task(seq, name, tuple(join)))
         return Response(Status.CHANGED)
 

@@ -134,3 +134,29 @@ async def test_tasks_in_order_are_decided_and_shown_in_stats(ask: Asker) -> None
     assert figures["server"]["messages_received"] > 0
     cbor_stats = await ask(Method.GET, "/robot/stats")
     assert cbor2.loads(cbor_stats.payload)["robot_id"] == "Robot1"
+
+
+async def test_a_robot_keeps_its_latest_decisions_and_posts_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot runs whole shifts: what it keeps per task is bounded (the decision
+    listing of ``GET /tasks``, the posts whose repeat it recognises)."""
+    from coapkb.agent import controller, robot as robot_module
+
+    monkeypatch.setattr(controller, "DECISIONS_KEPT", 3)
+    monkeypatch.setattr(robot_module, "POSTS_REMEMBERED", 2)
+    robot = await Robot.start(solo_config(free_udp_port()))
+    client = await open_client("coap")
+    try:
+        ask = Asker(client, robot.config.bind)
+        for seq in range(1, 6):
+            assert (await ask.post_task(seq, "Gucci_bag_14")).status == Status.CHANGED
+        async with asyncio.timeout(PATIENCE_S):
+            while not robot.controller.log or robot.controller.log[-1].seq < 5:
+                await asyncio.sleep(0.05)
+        listed = json.loads((await ask(Method.GET, "/tasks", accept=ContentFormat.JSON)).payload)
+        assert [d["seq"] for d in listed] == [3, 4, 5]
+        assert (await ask.post_task(5, "Gucci_bag_14")).status == Status.CHANGED  # a repeat of the latest
+        forgotten = await ask.post_task(1, "Gucci_bag_14")
+        assert forgotten.status == Status.CONFLICT and "expected task 6" in forgotten.text()
+    finally:
+        await client.aclose()
+        await robot.aclose()

@@ -101,8 +101,22 @@ _WRAPPED = {
     (MessageManager, "send_message"): ("message", "messageerror_monitor"),
     (MessageManager, "dispatch_message"): ("message",),
     (MessageManager, "dispatch_error"): ("error", "remote"),
+    (MessageManager, "_deduplicate_message"): ("message",),
 }
 _MARKER = "_coapkb_hooks"
+
+#: The requests a context remembers to recognise a duplicate (and answer it
+#: again), at most this many and none for longer than ``DUPLICATE_HORIZON_S``.
+#: aiocoap keeps each for RFC 7252's EXCHANGE_LIFETIME, 247 s, with a timer
+#: and the answer: a robot deciding tasks quickly, or anyone sending it
+#: garbage requests, grew its memory by kilobytes per task for four minutes.
+#: Duplicates come from a CON sender's retransmissions, which end within
+#: MAX_TRANSMIT_SPAN (45 s with RFC 7252's defaults); the reliability layer's
+#: own tries are new messages and never duplicates.  A duplicate arriving
+#: after its entry went is handled again: every robot resource is idempotent
+#: or keyed by task (docs/reliability.md).
+DUPLICATES_REMEMBERED = 4096
+DUPLICATE_HORIZON_S = 60.0
 
 
 class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):
@@ -275,6 +289,8 @@ class ContextHooks:
         self.on_datagram: Callable[[int], None] | None = None
         #: While a send is under way: the errors its sendmsg raised (else None).
         self._send_errors: list[OSError] | None = None
+        #: When each request in aiocoap's duplicate memory came, oldest first.
+        self._remembered_at: OrderedDict[tuple[Any, int], float] = OrderedDict()
 
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
@@ -336,6 +352,7 @@ class ContextHooks:
         self._patch(self.mm, "send_message", self._send_message)
         self._patch(self.mm, "dispatch_message", self._dispatch_message)
         self._patch(self.mm, "dispatch_error", self._dispatch_error)
+        self._patch(self.mm, "_deduplicate_message", self._deduplicate_message)
         self._patch(self.mm, "_add_exchange", self._add_exchange)
         self._patch(self.mm, "_schedule_retransmit", self._schedule_retransmit)
         self._patch(self.mm, "_retransmit", self._retransmit)
@@ -402,6 +419,27 @@ class ContextHooks:
                     backlog.remove(entry)
                 self.superseded_notifications += len(superseded)
         return result
+
+    # ------------------------------------------------------------ duplicates
+
+    def _deduplicate_message(self, message: aiocoap.Message) -> bool:
+        """aiocoap's duplicate detection, with its memory bounded in size and
+        age (``DUPLICATES_REMEMBERED``, ``DUPLICATE_HORIZON_S``) and no timer per request."""
+        recent = self.mm._recent_messages
+        key = (message.remote, message.mid)
+        if key in recent:
+            return self._original(self.mm, "_deduplicate_message")(message)
+        remembered = self._remembered_at
+        now = self.mm.loop.time()
+        while remembered:
+            oldest, born = next(iter(remembered.items()))
+            if len(remembered) < DUPLICATES_REMEMBERED and now - born < DUPLICATE_HORIZON_S:
+                break
+            del remembered[oldest]
+            recent.pop(oldest, None)
+        remembered[key] = now
+        recent[key] = None
+        return False
 
     # ------------------------------------------------------------ late events
 

@@ -4,8 +4,11 @@ in this test, when aiocoap changes under it."""
 from __future__ import annotations
 
 import asyncio
+import socket
+from typing import Iterator
 
 import aiocoap
+import aiocoap.resource
 import aiocoap.meta
 import pytest
 
@@ -65,8 +68,6 @@ async def test_a_dead_peers_icmp_error_does_not_fail_the_next_send_to_a_live_one
     """Linux reports one peer's ICMP "port unreachable" from the socket's next
     sendmsg, whoever it goes to; unhooked aiocoap blamed the live peer and
     dropped its datagram (a dead robot made a live teammate look dead)."""
-    import socket
-
     from aiocoap import GET, NON, Message
 
     from tests.support import free_udp_port
@@ -122,5 +123,87 @@ async def test_a_cancelled_blockwise_result_is_not_logged_as_an_error(caplog: py
         levels = {r.getMessage(): r.levelno for r in caplog.records}
         assert levels == {"Exception in BlockwiseRequest runner: invalid state": logging.DEBUG,
                           "something else went wrong": logging.ERROR}
+    finally:
+        await ctx.shutdown()
+
+
+class _Counting(aiocoap.resource.Resource):
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    async def render_get(self, request: aiocoap.Message) -> aiocoap.Message:
+        self.calls += 1
+        return aiocoap.Message(payload=str(self.calls).encode())
+
+
+async def _counting_server() -> tuple[aiocoap.Context, _Counting, int]:
+    from tests.support import free_udp_port
+
+    resource = _Counting()
+    site = aiocoap.resource.Site()
+    site.add_resource(["n"], resource)
+    port = free_udp_port()
+    ctx = await aiocoap.Context.create_server_context(site, bind=("127.0.0.1", port), transports=["udp6"])
+    ContextHooks.of(ctx)
+    return ctx, resource, port
+
+
+async def _ask(sock: socket.socket, port: int, mid: int) -> bytes:
+    """One CON GET /n with this Message ID from a plain socket; the answer's payload."""
+    from aiocoap import CON, GET, Message
+
+    request = Message(code=GET, uri_path=("n",))
+    request.mtype, request.mid, request.token = CON, mid, mid.to_bytes(2, "big")
+    loop = asyncio.get_running_loop()
+    await loop.sock_sendto(sock, request.encode(), ("127.0.0.1", port))
+    while True:
+        answer = Message.decode(await asyncio.wait_for(loop.sock_recv(sock, 2048), 10))
+        if answer.mid == mid:
+            return answer.payload
+
+
+@pytest.fixture
+def client_socket() -> Iterator[socket.socket]:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    yield sock
+    sock.close()
+
+
+async def test_the_duplicate_memory_is_bounded_in_size_and_answers_a_recent_duplicate_again(
+    monkeypatch: pytest.MonkeyPatch, client_socket: socket.socket
+) -> None:
+    monkeypatch.setattr(aiocoap_adapter, "DUPLICATES_REMEMBERED", 32)
+    ctx, resource, port = await _counting_server()
+    try:
+        mm = ContextHooks.of(ctx).mm
+        timers = len(asyncio.get_running_loop()._scheduled)  # type: ignore[attr-defined]
+        for mid in range(1, 201):
+            assert await _ask(client_socket, port, mid) == str(mid).encode()
+        assert len(mm._recent_messages) <= 32
+        # No timer left behind per request (aiocoap's own keeps one for 247 s each).
+        assert len(asyncio.get_running_loop()._scheduled) < timers + 32  # type: ignore[attr-defined]
+        # A retransmission of the latest request is a duplicate: the same answer, not run again.
+        assert await _ask(client_socket, port, 200) == b"200"
+        assert resource.calls == 200
+        # One evicted long ago is new again (every robot resource is idempotent or keyed by task).
+        assert await _ask(client_socket, port, 1) == b"201"
+    finally:
+        await ctx.shutdown()
+
+
+async def test_the_duplicate_memory_forgets_a_request_older_than_its_horizon(
+    monkeypatch: pytest.MonkeyPatch, client_socket: socket.socket
+) -> None:
+    monkeypatch.setattr(aiocoap_adapter, "DUPLICATE_HORIZON_S", 0.0)  # every entry is old at the next request
+    ctx, resource, port = await _counting_server()
+    try:
+        assert await _ask(client_socket, port, 7) == b"1"
+        assert await _ask(client_socket, port, 7) == b"1"  # nothing newer came: still remembered
+        assert await _ask(client_socket, port, 8) == b"2"  # ... which ages 7 out
+        assert await _ask(client_socket, port, 7) == b"3"
+        assert len(ContextHooks.of(ctx).mm._recent_messages) == 1
     finally:
         await ctx.shutdown()
