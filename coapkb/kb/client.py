@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -15,6 +16,10 @@ from ..transport.base import ClientTransport, Endpoint, TransportError
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
 DEFAULT_MAX_AGE_S = 60
+#: Named-query answers a client keeps, the least recently used dropped first:
+#: their keys carry the query's parameters (object names, positions), which
+#: over a shift take as many values as the warehouse has products.
+CACHE_ENTRIES = 512
 
 
 @dataclass
@@ -56,7 +61,7 @@ class KBClient:
     ) -> None:
         self.transport = transport
         self.timeout = timeout
-        self._cache: dict[tuple, _Cached] | None = {} if cache else None
+        self._cache: OrderedDict[tuple, _Cached] | None = OrderedDict() if cache else None
         self._clock = clock
         self.cache_stats = CacheStats()
 
@@ -92,6 +97,8 @@ class KBClient:
             return decode(await self.call(peer, request, timeout))
         key = (peer, request.path, tuple(sorted(request.query.items())), accept)
         cached = self._cache.get(key)
+        if cached is not None:
+            self._cache.move_to_end(key)
         now = self._clock()
         if cached is not None and now < cached.expires:
             self.cache_stats.hits += 1
@@ -108,6 +115,8 @@ class KBClient:
         result = decode(response)
         if max_age > 0:
             self._cache[key] = _Cached(now + max_age, response.etag, result)
+            if len(self._cache) > CACHE_ENTRIES:
+                self._cache.popitem(last=False)
         return result
 
     async def call(self, peer: Endpoint, request: Request, timeout: float | None = None) -> Response:

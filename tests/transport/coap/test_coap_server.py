@@ -817,6 +817,24 @@ async def test_client_cache_serves_fresh_answers_and_revalidates_stale_ones(
     assert (client.cache_stats.hits, client.cache_stats.revalidated, client.cache_stats.misses) == (1, 1, 1)
 
 
+async def test_client_cache_keeps_its_most_recently_used_answers_only(
+    transport: ClientTransport, peer: Endpoint, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from coapkb.kb import client as kb_client
+
+    monkeypatch.setattr(kb_client, "CACHE_ENTRIES", 2)
+    client = KBClient(transport, timeout=10, cache=True)
+    for name in ("Gucci_bag_14", "Gucci_bag_1", "Gucci_bag_14", "Gucci_bag_2"):
+        await client.named(peer, "object-location", {"name": name})
+    # Gucci_bag_1 was the least recently used when a third answer came.
+    assert (client.cache_stats.hits, client.cache_stats.misses) == (1, 3)
+    sent = transport.counters.messages_sent
+    await client.named(peer, "object-location", {"name": "Gucci_bag_14"})
+    assert transport.counters.messages_sent == sent
+    await client.named(peer, "object-location", {"name": "Gucci_bag_1"})
+    assert transport.counters.messages_sent > sent and client.cache_stats.misses == 4
+
+
 # --------------------------------------------------------------------------- block-wise with aiocoap's own client
 
 
