@@ -69,8 +69,23 @@ EDHOC_PATH = (".well-known", "edhoc")
 #: the label as the authenticated claim of a context.
 _MEMBER_LABEL = ":member/"
 _OWN_LABEL = ":own"
-#: Responder contexts kept before the oldest are dropped (their peers re-key).
-MAX_RESPONDER_CONTEXTS = 40
+#: EDHOC sessions a robot's server keeps as responder.  A session is half
+#: open from message_1 until a member's message_3 completes it: anyone on
+#: the link can open one, so at most ``HALF_OPEN_MAX`` are kept, none for
+#: longer than ``HALF_OPEN_S`` (a member's message_3 follows within a few
+#: round trips), the oldest dropped first.  Complete sessions belong to
+#: members: one per member is kept (a member that keys again replaces its
+#: older one), so their number is bounded by the team's size, and a flood
+#: of message_1 never pushes a teammate's session out.
+HALF_OPEN_MAX = 16
+HALF_OPEN_S = 30.0
+#: Connection identifiers aiocoap 0.4.17 gives its responder sessions
+#: (one-byte CBOR integers, -24..23; lakers takes no longer ones), less the
+#: one the initiator chose.  When half-open and complete sessions would
+#: take them all, the complete session used least recently goes (its member
+#: keys again on its next request): only a server with more than about 30
+#: members talking to it, a central server for a large team, gets there.
+RESPONDER_IDENTIFIERS = 47
 
 class EdhocFailed(SecurityError, TransportError):
     """EDHOC with a peer failed: refused, not a teammate, or a bad message.
@@ -118,6 +133,9 @@ def verify() -> None:
     # The replay check reads this attribute, which EDHOC contexts lack (see _TeamSiteWrapper).
     if "echo_recovery" not in inspect.getsource(oscore.CanUnprotect.unprotect):
         raise UnsupportedAiocoapVersion("aiocoap's OSCORE replay check changed (echo_recovery)")
+    # A responder session is half open until message_3 (see _TeamSiteWrapper._prune).
+    if "self._incomplete = False" not in inspect.getsource(aiocoap_edhoc.EdhocResponderContext):
+        raise UnsupportedAiocoapVersion("aiocoap's EDHOC responder no longer marks a session complete")
 
 
 def _edhoc_credentials(identity: TeamIdentity | None, peer: TeamMember | None) -> aiocoap_edhoc.EdhocCredentials:
@@ -423,10 +441,39 @@ class _InitiatorContext(aiocoap_edhoc.EdhocInitiatorContext):
         return []
 
 
+def _context_not_found(pipe: Any) -> None:
+    """Answer, unprotected, that the request's OSCORE context is not here (4.01)."""
+    pipe.add_response(aiocoap.Message(code=aiocoap.UNAUTHORIZED, max_age=0, payload=b"Security context not found"),
+                      is_last=True)
+
+
+class _AnsweredPipe:
+    """A request's pipe that notes whether anything answered it."""
+
+    def __init__(self, pipe: Any) -> None:
+        self._pipe = pipe
+        self.answered = False
+
+    def add_response(self, response: aiocoap.Message, is_last: bool = False) -> None:
+        self.answered = True
+        self._pipe.add_response(response, is_last=is_last)
+
+    def add_exception(self, exception: BaseException) -> None:
+        self.answered = True
+        self._pipe.add_exception(exception)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._pipe, name)
+
+
 class _TeamSiteWrapper(OscoreSiteWrapper):
     def __init__(self, inner_site: Any, credentials: CredentialsMap) -> None:
         super().__init__(inner_site, credentials)
         self.log = logging.getLogger("coapkb.security.server")
+        #: When each responder session (by its label in the credentials) was
+        #: opened, and when its member last sent a request through it.
+        self._opened: dict[str, float] = {}
+        self._used: dict[int, float] = {}  # id() of the session -> time
 
     def _get_edhoc_identity(self, origin: str) -> aiocoap_edhoc.EdhocCredentials | None:
         # One identity per robot, whatever host name the client asked for.
@@ -436,31 +483,73 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
     async def render_to_pipe(self, pipe: Any) -> None:
         request = pipe.request
         if request.opt.uri_path == EDHOC_PATH and request.payload[:1] == cbor2.dumps(True):
-            self._prune()
+            now = asyncio.get_running_loop().time()
+            self._prune(now)
+            before = set(self.server_credentials)
+            await super().render_to_pipe(pipe)
+            for label in set(self.server_credentials) - before:
+                self._opened[label] = now
+            return
         elif request.opt.oscore is not None:
             try:
                 context = self.server_credentials.find_oscore(oscore.verify_start(request))
             except KeyError:
                 if request.mtype == NON:  # (aiocoap answers a CON itself)
-                    pipe.add_response(aiocoap.Message(code=aiocoap.UNAUTHORIZED, max_age=0,
-                                                      payload=b"Security context not found"), is_last=True)
+                    _context_not_found(pipe)
                     return
             except oscore.NotAProtectedMessage:
                 pass
             else:
+                self._used[id(context)] = asyncio.get_running_loop().time()
                 # aiocoap 0.4.17's EDHOC contexts lack the attribute its replay
                 # check reads (a replay became a 5.00 and a traceback).  Their
                 # replay window starts empty and valid (a fresh key), so there
                 # is nothing to recover with Echo (RFC 8613 appendix B.1.2).
                 if not hasattr(context, "echo_recovery"):
                     context.echo_recovery = None
+                if request.mtype == NON:
+                    # aiocoap drops a NON request its context cannot decrypt
+                    # without a word.  That happens when a session was dropped
+                    # and its identifier given to another member's: the first
+                    # member must hear that its context is gone, or it never
+                    # keys again (RFC 8613 section 8.2 lets a server answer).
+                    watched = _AnsweredPipe(pipe)
+                    await super().render_to_pipe(watched)
+                    if not watched.answered:
+                        _context_not_found(pipe)
+                    return
         await super().render_to_pipe(pipe)
 
-    def _prune(self) -> None:
-        responders = [k for k, v in self.server_credentials.items() if isinstance(v, aiocoap_edhoc.EdhocResponderContext)]
-        if len(responders) >= MAX_RESPONDER_CONTEXTS:
-            for label in responders[: len(responders) - MAX_RESPONDER_CONTEXTS + 8]:
-                del self.server_credentials[label]
+    def _prune(self, now: float) -> None:
+        """Make room for one more half-open session (see ``HALF_OPEN_MAX``)."""
+        half_open: list[str] = []
+        newest: dict[tuple[str, ...], str] = {}  # member's claims -> its latest complete session
+        drop: list[str] = []
+        for label, entry in self.server_credentials.items():  # oldest first
+            if not isinstance(entry, aiocoap_edhoc.EdhocResponderContext):
+                continue
+            if entry._incomplete:
+                if now - self._opened.get(label, now) >= HALF_OPEN_S:
+                    drop.append(label)
+                else:
+                    half_open.append(label)
+                continue
+            member = tuple(entry.authenticated_claims)
+            if member in newest:
+                drop.append(newest[member])
+            newest[member] = label
+        drop += half_open[: max(0, len(half_open) - HALF_OPEN_MAX + 1)]
+        half_open = half_open[max(0, len(half_open) - HALF_OPEN_MAX + 1):]
+        complete = list(newest.values())
+        spare = RESPONDER_IDENTIFIERS - 1 - len(half_open) - len(complete)
+        if spare < 0:
+            complete.sort(key=lambda label: self._used.get(id(self.server_credentials[label]), 0.0))
+            drop += complete[:-spare]
+        for label in drop:
+            entry = self.server_credentials.pop(label)
+            self._opened.pop(label, None)
+            self._used.pop(id(entry), None)
+
 
 
 @dataclass
@@ -481,6 +570,12 @@ class ServerSecurity:
 
     def wrap(self, site: Any) -> Any:
         return _TeamSiteWrapper(site, self.credentials)
+
+    def responder_sessions(self) -> tuple[int, int]:
+        """(half open, complete) EDHOC sessions this server holds as responder."""
+        entries = [e for e in self.credentials.values() if isinstance(e, aiocoap_edhoc.EdhocResponderContext)]
+        half_open = sum(1 for e in entries if e._incomplete)
+        return half_open, len(entries) - half_open
 
     def sender(self, request: aiocoap.Message) -> str | None:
         """The team member a request came from, or None if it was not protected."""
