@@ -55,6 +55,7 @@ import argparse
 import asyncio
 import datetime as _dt
 import json
+import logging
 import math
 import sys
 import time
@@ -108,6 +109,8 @@ __all__ = [
     "system_spec",
     "timeouts_for",
 ]
+
+log = logging.getLogger(__name__)
 
 FEEDER = "feeder"
 CENTRAL = "central"
@@ -419,6 +422,7 @@ async def run_once(
     except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
         row = replace(row, error=f"{type(exc).__name__}: {exc}"[:500])
     except Exception as exc:  # noqa: BLE001 -- a sweep must survive any one run's failure
+        log.error("%s failed unexpectedly", row.system, exc_info=True)  # a bug: its traceback helps
         row = replace(row, error=f"unexpected {type(exc).__name__}: {exc}"[:500])
     return replace(row, wall_s=round(time.monotonic() - started, 2))
 

@@ -156,6 +156,10 @@ def verify() -> None:
     check_methods(checks)
     if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
         raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
+    from aiocoap.tokenmanager import TokenManager
+
+    if "self.incoming_requests = None" not in inspect.getsource(TokenManager.shutdown):
+        raise UnsupportedAiocoapVersion("aiocoap's token manager no longer marks itself shut down")
     if "self._piggyback_opportunities" not in inspect.getsource(MessageManager.__init__):
         raise UnsupportedAiocoapVersion("aiocoap's MessageManager keeps its empty-ACK timers elsewhere")
     if f'getChild("{BLOCKWISE_LOGGER}")' not in inspect.getsource(aiocoap.protocol.BlockwiseRequest.__init__):
@@ -450,6 +454,10 @@ class ContextHooks:
             log.debug("late response from %s for an abandoned request", message.remote)
 
     def _dispatch_error(self, error: Exception, remote: Any) -> None:
+        if self.mm.token_manager.incoming_requests is None:
+            # An ICMP error read after the context shut down: nobody to tell.
+            log.debug("late error from %s after shutdown: %s", remote, error)
+            return
         if self.con_policy is not None:
             for key in [k for k in self._pending if k[0] == remote]:
                 self.con_policy.on_give_up(self._pending.pop(key), "error")
