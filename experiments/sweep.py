@@ -179,6 +179,8 @@ QUICK_GRIDS = (
     # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
     Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
 )
+SCALE_SIZES = (3, 9, 30, 60, 99)
+SCALE_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
 PROFILES: dict[str, Profile] = {
     # A representative subset, 6 repetitions of every cell (the fewest with
     # a distribution-free 95 % interval for a median): 330 runs, about 45
@@ -208,6 +210,17 @@ PROFILES: dict[str, Profile] = {
         note="the quick cells; 35 kbit/s x 5 tasks x robots 3/6/9 x loss 2/5/10/15/20 % (compact systems); "
         "3 robots x 10 tasks x 35/128/256/512 kbit/s at 2 % (with the seed's wire); "
         "3 robots x 40/80 tasks x 35 kbit/s at 2 % (with the seed's wire)",
+    ),
+    # Team size, past the seed's nine robots: five tasks per cluster of three
+    # (the seed's headline cell, once per cluster), so a robot's own work is
+    # the same at every size and what grows is only the team around it.
+    # One run at a time: 99 robot processes fill both cores.
+    "scale": Profile(
+        "scale",
+        tuple(Grid((n,), (5 * n // 3,), (35,), (2, 10), SCALE_SYSTEMS) for n in SCALE_SIZES),
+        reps=1,
+        note="robots 3/9/30/60/99 x 5 tasks per cluster x 35 kbit/s x loss 2/10 %, CoAP and ZeroMQ, "
+        "distributed and central",
     ),
     # The seed's whole matrix (section IV), every system but Zenoh over UDP.
     "paper": Profile(
