@@ -111,6 +111,10 @@ class BenchRow:
     unassigned_reason: str = ""
     #: On how many of the unassigned tasks that reason was the commonest.
     unassigned_reason_tasks: int | None = None
+    #: The central server's share of ``wire_bytes`` (central systems; its link's
+    #: load), and the busiest robot's share (what one robot's radio carried).
+    central_wire_bytes: int | None = None
+    robot_wire_bytes_max: int | None = None
 
     def fates(self) -> "FateCounts | None":
         """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""

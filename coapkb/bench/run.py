@@ -463,6 +463,8 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
         row, wire_bytes=total.tx_bytes, wire_packets=total.tx_packets, dropped_packets=total.dropped,
         queue_drops=total.queue_drops, feeder_wire_bytes=delta[FEEDER].tx_bytes,
         retransmissions=retransmissions, tcp_aborts=tcp_aborts,
+        central_wire_bytes=delta[CENTRAL].tx_bytes if CENTRAL in delta else None,
+        robot_wire_bytes_max=max(delta[r].tx_bytes for r in spec.robot_ids),
     )
 
 
