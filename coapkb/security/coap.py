@@ -71,21 +71,23 @@ _MEMBER_LABEL = ":member/"
 _OWN_LABEL = ":own"
 #: EDHOC sessions a robot's server keeps as responder.  A session is half
 #: open from message_1 until a member's message_3 completes it: anyone on
-#: the link can open one, so at most ``HALF_OPEN_MAX`` are kept, none for
-#: longer than ``HALF_OPEN_S`` (a member's message_3 follows within a few
-#: round trips), the oldest dropped first.  Complete sessions belong to
-#: members: one per member is kept (a member that keys again replaces its
-#: older one), so their number is bounded by the team's size, and a flood
-#: of message_1 never pushes a teammate's session out.
-HALF_OPEN_MAX = 16
+#: the link can open one, so at most ``HALF_OPEN_MAX`` are kept (enough for a
+#: central server's whole team keying at once), none for longer than
+#: ``HALF_OPEN_S`` (a member's message_3 follows within a few round trips),
+#: the oldest dropped first.  Complete sessions belong to members: one per
+#: member is kept (a member that keys again replaces its older one), and
+#: half-open ones only get the identifiers complete ones leave, so a flood of
+#: message_1 never pushes a teammate's session out.
+HALF_OPEN_MAX = 32
 HALF_OPEN_S = 30.0
 #: Connection identifiers aiocoap 0.4.17 gives its responder sessions
 #: (one-byte CBOR integers, -24..23; lakers takes no longer ones), less the
-#: one the initiator chose.  When half-open and complete sessions would
-#: take them all, the complete session used least recently goes (its member
-#: keys again on its next request): only a server with more than about 30
-#: members talking to it, a central server for a large team, gets there.
+#: one the initiator chose.  When complete sessions alone would take them
+#: all, the one used least recently goes (its member keys again on its next
+#: request): only a server with more than 46 members talking to it, a central
+#: server for a large team, gets there.
 RESPONDER_IDENTIFIERS = 47
+
 
 class EdhocFailed(SecurityError, TransportError):
     """EDHOC with a peer failed: refused, not a teammate, or a bad message.
@@ -521,7 +523,8 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         await super().render_to_pipe(pipe)
 
     def _prune(self, now: float) -> None:
-        """Make room for one more half-open session (see ``HALF_OPEN_MAX``)."""
+        """Make room for one more half-open session: complete sessions first
+        (see ``HALF_OPEN_MAX`` and ``RESPONDER_IDENTIFIERS``)."""
         half_open: list[str] = []
         newest: dict[tuple[str, ...], str] = {}  # member's claims -> its latest complete session
         drop: list[str] = []
@@ -538,18 +541,19 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
             if member in newest:
                 drop.append(newest[member])
             newest[member] = label
-        drop += half_open[: max(0, len(half_open) - HALF_OPEN_MAX + 1)]
-        half_open = half_open[max(0, len(half_open) - HALF_OPEN_MAX + 1):]
         complete = list(newest.values())
-        spare = RESPONDER_IDENTIFIERS - 1 - len(half_open) - len(complete)
-        if spare < 0:
+        # The new session needs one identifier; complete sessions keep theirs
+        # unless they alone leave none (more members than identifiers).
+        if len(complete) >= RESPONDER_IDENTIFIERS:
             complete.sort(key=lambda label: self._used.get(id(self.server_credentials[label]), 0.0))
-            drop += complete[:-spare]
+            drop += complete[: len(complete) - RESPONDER_IDENTIFIERS + 1]
+            complete = complete[len(complete) - RESPONDER_IDENTIFIERS + 1:]
+        room = min(HALF_OPEN_MAX, RESPONDER_IDENTIFIERS - len(complete)) - 1
+        drop += half_open[: max(0, len(half_open) - room)]
         for label in drop:
             entry = self.server_credentials.pop(label)
             self._opened.pop(label, None)
             self._used.pop(id(entry), None)
-
 
 
 @dataclass
