@@ -273,7 +273,9 @@ def units(run: Run) -> int:
 
 def limit_for(run: Run) -> float:
     """How long a run may take before the sweep kills it (its own timeouts plus start-up and teardown)."""
-    return timeouts_for(run.bandwidth, run.loss, math.ceil(run.tasks / (run.robots // CLUSTER_SIZE))).run_s + 180
+    clusters = run.robots // CLUSTER_SIZE
+    central = clusters if SYSTEMS[run.system].mode == "central" else 0
+    return timeouts_for(run.bandwidth, run.loss, math.ceil(run.tasks / clusters), central).run_s + 180
 
 
 async def _run_child(run: Run, limit_s: float, cwd: Path = ROOT) -> BenchRow:

@@ -150,7 +150,13 @@ class Timeouts:
     run_s: float  # the whole run, a hard stop on top of the team's own limits
 
 
-def timeouts_for(bandwidth_kbps: float, loss_pct: float, tasks_per_cluster: int) -> Timeouts:
+#: What one task of one cluster asks a central server: about eleven answers
+#: of a few hundred bytes (the three robots' queries, measured on the compact wire).
+CENTRAL_BYTES_PER_CLUSTER_TASK = 3300
+
+
+def timeouts_for(bandwidth_kbps: float, loss_pct: float, tasks_per_cluster: int,
+                 central_clusters: int = 0) -> Timeouts:
     """Limits that only bind when something is wrong.
 
     Why these numbers: a remote query moves a few hundred bytes; at 35 kbit/s
@@ -163,10 +169,16 @@ def timeouts_for(bandwidth_kbps: float, loss_pct: float, tasks_per_cluster: int)
     covers the four queries of a task plus waiting for the teammates'
     decisions; the run limit covers every task of a cluster at a generous
     per-task pace.
+
+    ``central_clusters``: the clusters sharing one central server (0 when
+    distributed).  Its link carries every cluster's answers, all clusters
+    deciding at once: a query may wait twice the time that link needs for one
+    task of each, or the baseline fails only because it is slower.
     """
     slow = math.sqrt(512.0 / bandwidth_kbps)  # 1 at 512 kbit/s, 3.8 at 35 kbit/s
     lossy = 1.0 + loss_pct / 5.0  # 1.4 at 2 %, 5 at 20 %
-    query = min(120.0, max(15.0, 6.0 * slow * lossy))
+    queue = 2 * central_clusters * CENTRAL_BYTES_PER_CLUSTER_TASK * 8 / (bandwidth_kbps * 1000)
+    query = min(120.0, max(15.0, 6.0 * slow * lossy)) + queue
     task = 4.0 * query + 30.0
     run = 120.0 + tasks_per_cluster * (10.0 * slow * lossy + 10.0) + 2 * task
     return Timeouts(round(query, 1), round(task, 1), round(run, 1))
@@ -402,7 +414,9 @@ async def run_once(
     try:
         link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
                         loss_model=loss_model, burst_len=burst_len)
-        limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / (robots // CLUSTER_SIZE)))
+        clusters = robots // CLUSTER_SIZE
+        central = clusters if system in SYSTEMS and SYSTEMS[system].mode == "central" else 0
+        limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / clusters), central)
         # Robots know their radio's rate, as a real radio reports it.
         spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
                            link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security)

@@ -345,3 +345,12 @@ def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
     assert "distributed vs central, CoAP + compact: saving | 41 %" in text
     assert "~42% fewer bytes" in text
     assert "coap-central | 3 | 5 | 35 | 20 | 1 | - | run did not finish" in text  # the failed run is listed
+
+
+def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> None:
+    """The central link carries every cluster's answers: the baseline is given
+    the time that takes, so it fails only when something is wrong."""
+    alone, shared = bench.timeouts_for(35, 2, 5), bench.timeouts_for(35, 2, 5, central_clusters=33)
+    assert bench.timeouts_for(35, 2, 5, central_clusters=0) == alone
+    assert shared.query_s - alone.query_s == pytest.approx(2 * 33 * 3300 * 8 / 35000, abs=0.1)
+    assert shared.task_s > alone.task_s and shared.run_s > alone.run_s
