@@ -201,7 +201,10 @@ class Feeder:
         request = task_post(seq, name, joining)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
-            raise FeederError(f"every robot of cluster {index + 1} is down: {watcher.down}")
+            why = "; ".join(f"{r}: {watcher.down[r]}" for r in cluster)
+            others = len(watcher.down) - len(cluster)
+            raise FeederError(f"every robot of cluster {index + 1} is down ({why})"
+                              + (f"; {others} robots of other clusters too" if others else ""))
         await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live))
 
         def decided(states: States, robot_id: str) -> bool:
