@@ -112,3 +112,11 @@ def write_csv(path: Path, fieldnames: Sequence[str], rows: Iterable[Mapping[str,
         writer.writeheader()
         writer.writerows(rows)
     print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
+
+
+def rss_mib(pid: int) -> float:
+    """A process's VmRSS, MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmRSS for process {pid}")

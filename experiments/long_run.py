@@ -32,6 +32,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout without install
 
 from coapkb.feeder import FateCounts, TaskRecord  # noqa: E402
 from coapkb.harness.team import Team, TeamSpec, draw_tasks  # noqa: E402
+from common import rss_mib  # noqa: E402  (experiments/ is the script's own folder)
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -48,11 +49,6 @@ class Sample:
     unassigned_reason: str
 
 
-def rss_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no VmRSS for {pid}")
 
 
 async def main() -> int:

@@ -50,6 +50,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout without install
 from coapkb.feeder import FateCounts, Feeder  # noqa: E402
 from coapkb.harness.kbs import kbs_for_team  # noqa: E402
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks  # noqa: E402
+from common import rss_mib  # noqa: E402  (experiments/ is the script's own folder)
 from coapkb.transport.base import TrafficCounters  # noqa: E402
 
 RESULTS = ROOT / "experiments" / "results"
@@ -77,11 +78,6 @@ class ScaleRow:
     rss_after_max_mib: float
 
 
-def rss_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no VmRSS for {pid}")
 
 
 async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> ScaleRow:
