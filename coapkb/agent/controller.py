@@ -121,6 +121,12 @@ class Controller:
         return self.config.robot_id
 
     @property
+    def _team_param(self) -> dict[str, str]:
+        """The team as a query parameter, in one order on every robot (so a
+        teammate's answer cache serves the same question once)."""
+        return {"robots": ",".join(sorted(self.config.team, key=robot_sort_key))}
+
+    @property
     def leader(self) -> str:
         """The robot that decides for the others ("compute and communicate"):
         the first of the current membership."""
@@ -249,7 +255,7 @@ class Controller:
     async def energy(self) -> dict[str, RobotEnergy]:
         """Every teammate's energy figures, asked once of the Capability KB."""
         if self._energy is None:
-            rows = _first(await self.queries.run("robot-specs", {}), "robot-specs")
+            rows = _first(await self.queries.run("robot-specs-among", self._team_param), "robot-specs")
             self._energy = {
                 str(r["robo_id"]): RobotEnergy(
                     float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]), float(r["battery"])
@@ -282,7 +288,7 @@ class Controller:
         if not where or not features:
             raise QueryError(f"{task.object} exists but has no location or features in the KB")
         grip = _local_name(features[0]["grip"])
-        robots = _first(await self.queries.run("robots-for-grip", {"grip": grip}), "Query_4")
+        robots = _first(await self.queries.run("robots-for-grip-among", {"grip": grip, **self._team_param}), "Query_4")
         capable = {str(r["robo_id"]): float(r["payload"]) for r in robots if str(r["robo_id"]) in self.config.team}
         return TaskFacts(
             seq=task.seq,

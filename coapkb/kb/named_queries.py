@@ -24,6 +24,8 @@ __all__ = ["NAMED_QUERIES", "SAFE_VALUE", "NamedQuery", "named_queries_for"]
 
 #: A parameter value: a SPARQL/XML-safe local name, at most 128 characters,
 #: not ending in "." (a prefixed name cannot end with a dot).
+#: Most local names a list parameter takes (a cluster is three robots).
+MAX_LIST_ITEMS = 16
 SAFE_VALUE = re.compile(r"[A-Za-z_](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?")
 
 
@@ -48,6 +50,9 @@ class NamedQuery:
     template: str
     description: str
     rt: str = "coapkb.q"
+    #: Parameters (of ``params``) whose value is a comma-separated list of
+    #: local names, rendered as a list of string literals (``"a", "b"``).
+    lists: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         placeholders = set(_Template(self.template).get_identifiers())
@@ -56,6 +61,8 @@ class NamedQuery:
                 f"named query {self.name!r}: template placeholders {sorted(placeholders)} "
                 f"do not match params {list(self.params)}"
             )
+        if not set(self.lists) <= set(self.params):
+            raise ValueError(f"named query {self.name!r}: list parameters {list(self.lists)} are not all params")
 
     def render(self, params: Mapping[str, str]) -> str:
         """The query text for these parameter values.
@@ -73,14 +80,21 @@ class NamedQuery:
                 problems.append("unexpected " + ", ".join(extra))
             expected = ", ".join(self.params) if self.params else "no parameters"
             raise ValueError(f"query {self.name!r} takes {expected}: {'; '.join(problems)}")
+        values: dict[str, str] = {}
         for key in self.params:
             value = params[key]
-            if not isinstance(value, str) or SAFE_VALUE.fullmatch(value) is None:
+            items = value.split(",") if key in self.lists and isinstance(value, str) else [value]
+            if len(items) > MAX_LIST_ITEMS or not all(
+                isinstance(item, str) and SAFE_VALUE.fullmatch(item) is not None for item in items
+            ):
+                what = (f"a comma-separated list of at most {MAX_LIST_ITEMS} local names" if key in self.lists
+                        else "a local name")
                 raise ValueError(
-                    f"parameter {key!r} of query {self.name!r} must be a local name "
+                    f"parameter {key!r} of query {self.name!r} must be {what} "
                     f"(letters, digits, '_', '-', '.', at most 128 characters), got {value!r}"
                 )
-        return _Template(self.template).substitute({k: params[k] for k in self.params})
+            values[key] = ", ".join(f'"{item}"' for item in items) if key in self.lists else value
+        return _Template(self.template).substitute(values)
 
 
 _OBJ = "PREFIX ns_2: <http://www.tcs.org/2018/Object#>\n"
@@ -163,6 +177,23 @@ WHERE {
 ORDER BY ?robo_id""",
         description="Query_4: robots that can pick with this grip, and their payloads",
     ),
+    # Query_4 for the asking robot's own team: a robot's cost model needs
+    # its teammates only, and this answer does not grow with the whole team.
+    NamedQuery(
+        name="robots-for-grip-among",
+        kb="Capability",
+        params=("grip", "robots"),
+        lists=("robots",),
+        template=_CAP + """SELECT ?robots ?robo_id ?payload
+WHERE {
+  ?robots ns_3:Can_Pick ns_3:$grip .
+  ?robots ns_3:Robot_Id ?robo_id .
+  ?robots ns_3:Robot_payload ?payload .
+  FILTER (STR(?robo_id) IN ($robots))
+}
+ORDER BY ?robo_id""",
+        description="Query_4 among these robots (comma-separated ids): those that can pick with this grip",
+    ),
     NamedQuery(
         name="robot-specs",
         kb="Capability",
@@ -179,6 +210,25 @@ WHERE {
 }
 ORDER BY ?robo_id""",
         description="Every robot's payload (kg), battery (Wh), speed (m/s) and energy use (Wh/m, Wh/pick)",
+    ),
+    NamedQuery(
+        name="robot-specs-among",
+        kb="Capability",
+        params=("robots",),
+        lists=("robots",),
+        template=_CAP + """SELECT ?robot ?robo_id ?payload ?battery ?speed ?e_empty ?e_loaded ?e_pick
+WHERE {
+  ?robot ns_3:Robot_Id ?robo_id .
+  ?robot ns_3:Robot_payload ?payload .
+  ?robot ns_3:Robot_battery ?battery .
+  ?robot ns_3:Robot_speed ?speed .
+  ?robot ns_3:Energy_per_metre_empty ?e_empty .
+  ?robot ns_3:Energy_per_metre_loaded ?e_loaded .
+  ?robot ns_3:Energy_per_pick ?e_pick .
+  FILTER (STR(?robo_id) IN ($robots))
+}
+ORDER BY ?robo_id""",
+        description="robot-specs among these robots (comma-separated ids)",
     ),
     NamedQuery(
         name="robot-positions",

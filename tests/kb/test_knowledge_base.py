@@ -26,7 +26,7 @@ from coapkb.world.ontologies import build_graphs
 
 from support import ROOT
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]
-PARAMS = {"name": "Gucci_bag_14", "grip": "gripping", "cls": "PersonalItems"}
+PARAMS = {"name": "Gucci_bag_14", "grip": "gripping", "cls": "PersonalItems", "robots": "Robot1,Robot2,Robot3"}
 
 
 @pytest.fixture(scope="module")

@@ -72,6 +72,24 @@ def test_query4_robots_for_grip(team: dict[str, KnowledgeBase], grip: str) -> No
         assert by_id[r.robot_id]["payload"].toPython() == r.payload_kg
 
 
+@pytest.mark.parametrize("grip", GRIP_TYPES)
+def test_query4_among_a_team_answers_its_robots_only(team: dict[str, KnowledgeBase], grip: str) -> None:
+    """What a robot's cost model needs: its own team, an answer that does not
+    grow with the warehouse's fleet; the same rows as Query_4's for them."""
+    cluster = ("Robot4", "Robot5", "Robot6")
+    among = ask(team, "robots-for-grip-among", grip=grip, robots=",".join(cluster))
+    every = ask(team, "robots-for-grip", grip=grip)
+    assert among == [row for row in every if str(row["robo_id"]) in cluster]
+    specs = ask(team, "robot-specs-among", robots=",".join(cluster))
+    assert specs == [row for row in ask(team, "robot-specs") if str(row["robo_id"]) in cluster]
+
+
+@pytest.mark.parametrize("robots", ["", "Robot1,", "Robot1, Robot2", "Robot1,$x", ",".join(["R"] * 17)])
+def test_a_list_parameter_takes_local_names_only(robots: str) -> None:
+    with pytest.raises(ValueError, match="comma-separated list"):
+        NAMED_QUERIES["robot-specs-among"].render({"robots": robots})
+
+
 def test_unknown_product_has_no_rows(team: dict[str, KnowledgeBase]) -> None:
     for query_name in ("object-exists", "object-location", "object-features"):
         assert ask(team, query_name, name="Gucci_bag_15000") == []
