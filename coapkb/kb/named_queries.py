@@ -103,6 +103,27 @@ _CAP = "PREFIX ns_3: <http://www.tcs.org/2018/Capability#>\n"
 _RDF = "PREFIX rdf: <http://www.w3.org/1999/02/22-rdf-syntax-ns#>\n"
 _RDFS = "PREFIX rdfs: <http://www.w3.org/2000/01/rdf-schema#>\n"
 
+# The Capability KB's robots, as two queries and their team-scoped forms ask them.
+_ROBOTS_FOR_GRIP = """SELECT ?robots ?robo_id ?payload
+WHERE {
+  ?robots ns_3:Can_Pick ns_3:$grip .
+  ?robots ns_3:Robot_Id ?robo_id .
+  ?robots ns_3:Robot_payload ?payload .
+"""
+_ROBOT_SPECS = """SELECT ?robot ?robo_id ?payload ?battery ?speed ?e_empty ?e_loaded ?e_pick
+WHERE {
+  ?robot ns_3:Robot_Id ?robo_id .
+  ?robot ns_3:Robot_payload ?payload .
+  ?robot ns_3:Robot_battery ?battery .
+  ?robot ns_3:Robot_speed ?speed .
+  ?robot ns_3:Energy_per_metre_empty ?e_empty .
+  ?robot ns_3:Energy_per_metre_loaded ?e_loaded .
+  ?robot ns_3:Energy_per_pick ?e_pick .
+"""
+#: Only these robots (the asking robot's team): a comma-separated list parameter.
+_AMONG = """  FILTER (STR(?robo_id) IN ($robots))
+"""
+
 _QUERIES = (
     # Query_1, generalised: the paper fixes the class (PersonalItems); an
     # object of any product class exists if its name matches.
@@ -168,12 +189,7 @@ WHERE {
         name="robots-for-grip",
         kb="Capability",
         params=("grip",),
-        template=_CAP + """SELECT ?robots ?robo_id ?payload
-WHERE {
-  ?robots ns_3:Can_Pick ns_3:$grip .
-  ?robots ns_3:Robot_Id ?robo_id .
-  ?robots ns_3:Robot_payload ?payload .
-}
+        template=_CAP + _ROBOTS_FOR_GRIP + """}
 ORDER BY ?robo_id""",
         description="Query_4: robots that can pick with this grip, and their payloads",
     ),
@@ -184,13 +200,7 @@ ORDER BY ?robo_id""",
         kb="Capability",
         params=("grip", "robots"),
         lists=("robots",),
-        template=_CAP + """SELECT ?robots ?robo_id ?payload
-WHERE {
-  ?robots ns_3:Can_Pick ns_3:$grip .
-  ?robots ns_3:Robot_Id ?robo_id .
-  ?robots ns_3:Robot_payload ?payload .
-  FILTER (STR(?robo_id) IN ($robots))
-}
+        template=_CAP + _ROBOTS_FOR_GRIP + _AMONG + """}
 ORDER BY ?robo_id""",
         description="Query_4 among these robots (comma-separated ids): those that can pick with this grip",
     ),
@@ -198,16 +208,7 @@ ORDER BY ?robo_id""",
         name="robot-specs",
         kb="Capability",
         params=(),
-        template=_CAP + """SELECT ?robot ?robo_id ?payload ?battery ?speed ?e_empty ?e_loaded ?e_pick
-WHERE {
-  ?robot ns_3:Robot_Id ?robo_id .
-  ?robot ns_3:Robot_payload ?payload .
-  ?robot ns_3:Robot_battery ?battery .
-  ?robot ns_3:Robot_speed ?speed .
-  ?robot ns_3:Energy_per_metre_empty ?e_empty .
-  ?robot ns_3:Energy_per_metre_loaded ?e_loaded .
-  ?robot ns_3:Energy_per_pick ?e_pick .
-}
+        template=_CAP + _ROBOT_SPECS + """}
 ORDER BY ?robo_id""",
         description="Every robot's payload (kg), battery (Wh), speed (m/s) and energy use (Wh/m, Wh/pick)",
     ),
@@ -216,17 +217,7 @@ ORDER BY ?robo_id""",
         kb="Capability",
         params=("robots",),
         lists=("robots",),
-        template=_CAP + """SELECT ?robot ?robo_id ?payload ?battery ?speed ?e_empty ?e_loaded ?e_pick
-WHERE {
-  ?robot ns_3:Robot_Id ?robo_id .
-  ?robot ns_3:Robot_payload ?payload .
-  ?robot ns_3:Robot_battery ?battery .
-  ?robot ns_3:Robot_speed ?speed .
-  ?robot ns_3:Energy_per_metre_empty ?e_empty .
-  ?robot ns_3:Energy_per_metre_loaded ?e_loaded .
-  ?robot ns_3:Energy_per_pick ?e_pick .
-  FILTER (STR(?robo_id) IN ($robots))
-}
+        template=_CAP + _ROBOT_SPECS + _AMONG + """}
 ORDER BY ?robo_id""",
         description="robot-specs among these robots (comma-separated ids)",
     ),
