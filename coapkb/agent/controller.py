@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
 from ..config import RobotConfig
+from ..kb.named_queries import MAX_LIST_ITEMS
 from ..kb.results import SelectResult
 from ..transport.base import TransportError
 from ..world import Layout, Position, layout_from_row, travel_distance
@@ -120,11 +121,15 @@ class Controller:
     def robot_id(self) -> str:
         return self.config.robot_id
 
-    @property
-    def _team_param(self) -> dict[str, str]:
-        """The team as a query parameter, in one order on every robot (so a
-        teammate's answer cache serves the same question once)."""
-        return {"robots": ",".join(sorted(self.config.team, key=robot_sort_key))}
+    async def _about_team(self, query: str, params: Mapping[str, str]) -> list[dict]:
+        """``query`` for this robot's team only (its ``-among`` form: the answer
+        does not grow with the fleet in the KB), or for every robot when the
+        team is longer than a list parameter takes.  The team is in one order
+        on every robot, so a teammate's answer cache serves it once."""
+        team = sorted(self.config.team, key=robot_sort_key)
+        if len(team) <= MAX_LIST_ITEMS:
+            query, params = f"{query}-among", {**params, "robots": ",".join(team)}
+        return _first(await self.queries.run(query, params), query)
 
     @property
     def leader(self) -> str:
@@ -255,7 +260,7 @@ class Controller:
     async def energy(self) -> dict[str, RobotEnergy]:
         """Every teammate's energy figures, asked once of the Capability KB."""
         if self._energy is None:
-            rows = _first(await self.queries.run("robot-specs-among", self._team_param), "robot-specs")
+            rows = await self._about_team("robot-specs", {})
             self._energy = {
                 str(r["robo_id"]): RobotEnergy(
                     float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]), float(r["battery"])
@@ -288,7 +293,7 @@ class Controller:
         if not where or not features:
             raise QueryError(f"{task.object} exists but has no location or features in the KB")
         grip = _local_name(features[0]["grip"])
-        robots = _first(await self.queries.run("robots-for-grip-among", {"grip": grip, **self._team_param}), "Query_4")
+        robots = await self._about_team("robots-for-grip", {"grip": grip})
         capable = {str(r["robo_id"]): float(r["payload"]) for r in robots if str(r["robo_id"]) in self.config.team}
         return TaskFacts(
             seq=task.seq,

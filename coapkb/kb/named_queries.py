@@ -24,7 +24,8 @@ __all__ = ["NAMED_QUERIES", "SAFE_VALUE", "NamedQuery", "named_queries_for"]
 
 #: A parameter value: a SPARQL/XML-safe local name, at most 128 characters,
 #: not ending in "." (a prefixed name cannot end with a dot).
-#: Most local names a list parameter takes (a cluster is three robots).
+#: Most local names a list parameter takes: a cluster is three robots, and a
+#: CoAP Uri-Query option holds at most 255 bytes.
 MAX_LIST_ITEMS = 16
 SAFE_VALUE = re.compile(r"[A-Za-z_](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?")
 
