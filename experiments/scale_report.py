@@ -77,6 +77,7 @@ def figure(rows: Sequence[BenchRow], out: Path) -> None:
     fig.suptitle("Team size at 35 kbit/s, five tasks per cluster of three (median of the runs; x: a run failed)",
                  fontsize=10)
     for col, loss in enumerate(losses):
+        failures: list[tuple[int, str, list[int]]] = []  # (panel row, colour, sizes): drawn last, at the top
         for system, (colour, dash) in STYLE.items():
             by_size: dict[int, list[BenchRow]] = defaultdict(list)
             for r in rows:
@@ -90,8 +91,11 @@ def figure(rows: Sequence[BenchRow], out: Path) -> None:
                 ax.plot(sizes, ys, dash, color=colour, marker="o", label=system)
                 failed = sorted(n for n, rs in by_size.items() if any(not r.ok for r in rs))
                 if failed:
-                    top = ax.get_ylim()[1]
-                    ax.plot(failed, [top] * len(failed), "x", color=colour, markersize=9)
+                    failures.append((row_no, colour, failed))
+        for row_no, colour, failed in failures:
+            ax = axes[row_no][col]
+            top = ax.get_ylim()[1]
+            ax.plot(failed, [top] * len(failed), "x", color=colour, markersize=9, clip_on=False)
         axes[0][col].set_title(f"{loss:g} % loss", fontsize=10)
         axes[0][col].set_ylabel("wire kB per task")
         axes[1][col].set_ylabel("completion s per task")
