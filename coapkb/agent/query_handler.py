@@ -11,10 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections import deque
-from collections.abc import MutableSequence
 from dataclasses import dataclass, field
-from itertools import islice
 from typing import Awaitable, Callable, Mapping
 
 from ..errors import CoapkbError
@@ -62,9 +59,9 @@ class QueryStats:
     failovers: int = 0
     #: Queries also sent to a second holder because the first was slow.
     hedged: int = 0
-    #: Wall-clock latency of the last ``LATENCIES_KEPT`` remote queries, in seconds
-    #: (a robot runs for days: its statistics must not grow with them).
-    remote_latencies: MutableSequence[float] = field(default_factory=lambda: deque(maxlen=LATENCIES_KEPT))
+    #: Wall-clock latency of the latest remote queries, in seconds: at most
+    #: ``LATENCIES_KEPT`` (a robot runs for days: its statistics must not grow with them).
+    remote_latencies: list[float] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {
@@ -120,8 +117,7 @@ class QueryHandler:
     def hedge_after_s(self) -> float:
         """How long to wait for one holder before also asking the next replica:
         a multiple of the recent remote latencies, never under the floor."""
-        latencies = self.stats.remote_latencies
-        recent = sorted(islice(latencies, max(0, len(latencies) - 64), None))
+        recent = sorted(self.stats.remote_latencies[-64:])
         if not recent:
             return self.hedge_floor_s
         p90 = recent[min(len(recent) - 1, int(0.9 * len(recent)))]
@@ -210,5 +206,8 @@ class QueryHandler:
                 timeout=self.config.query_timeout_s,
             )
         self.stats.remote += 1
-        self.stats.remote_latencies.append(time.monotonic() - started)
+        latencies = self.stats.remote_latencies
+        latencies.append(time.monotonic() - started)
+        if len(latencies) > LATENCIES_KEPT:
+            del latencies[: len(latencies) - LATENCIES_KEPT]
         return result

@@ -7,12 +7,11 @@ and use its fields, so the keys are spelled here only.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from ..transport.base import TrafficCounters
-from .query_handler import LATENCIES_KEPT, QueryStats
+from .query_handler import QueryStats
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +114,7 @@ class RobotStats:
                 cached=int(queries.get("cached", 0)),
                 failovers=int(queries.get("failovers", 0)),
                 hedged=int(queries.get("hedged", 0)),
-                remote_latencies=deque((float(x) for x in data.get("remote_latencies_s") or ()), maxlen=LATENCIES_KEPT),
+                remote_latencies=[float(x) for x in data.get("remote_latencies_s") or ()],
             ),
             executed=int(data.get("executed", 0)),
             idle=bool(data.get("idle", False)),
