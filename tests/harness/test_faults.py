@@ -74,7 +74,7 @@ async def test_one_robot_killed_mid_run(transport: str, robots: int) -> None:
         faults=(Fault("kill", VICTIM, 0.1),),
     )
     # (The fence adds a lease period and one state read before a dead robot's tasks go round again.)
-    async with asyncio.timeout(60):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
     assert set(record.down) == {VICTIM}
@@ -98,7 +98,7 @@ async def test_compute_and_communicate_survives_its_leader(transport: str) -> No
         robots=3, transport=transport, strategy="compute-and-communicate", query_timeout_s=5.0,
         task_timeout_s=30.0, faults=(Fault("kill", leader, 0.3),),
     )
-    async with asyncio.timeout(60):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
     assert set(record.down) == {leader}
@@ -120,7 +120,7 @@ async def test_both_holders_of_a_module_killed(transport: str) -> None:
         robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0,
         faults=tuple(Fault("kill", v, 0.3) for v in sorted(victims)),
     )
-    async with asyncio.timeout(60):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
     assert set(record.down) == victims
@@ -149,7 +149,7 @@ async def test_killed_robot_restarts_and_joins_again(transport: str, discovery: 
         robots=3, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0, time_scale=20.0,
         faults=(Fault("kill", VICTIM, 0.5), Fault("restart", VICTIM, 2.0)), discovery=discovery,
     )
-    async with asyncio.timeout(120):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
     assert [(e.action, e.robot) for e in record.faults] == [("kill", VICTIM), ("restart", VICTIM)]
@@ -209,7 +209,7 @@ async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
     # again once its lease has run out, and only then does it go on (SIGCONT),
     # still holding the jobs: it must pick none of them.
     tasks, spec = _pause_case(transport)
-    async with asyncio.timeout(120):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             stopped, resumed = asyncio.Event(), asyncio.Event()
 
@@ -258,7 +258,7 @@ async def test_a_robot_back_before_its_teammates_noticed_is_fed_again(transport:
     and feeds it again: before, they waited for its plans after tasks it was
     never given and recorded an error for every later task."""
     tasks, spec = _pause_case(transport)
-    async with asyncio.timeout(120):
+    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             stopped, resumed = asyncio.Event(), asyncio.Event()
 
