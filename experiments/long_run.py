@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import csv
 import sys
 import time
 from dataclasses import asdict, dataclass, fields
@@ -32,7 +31,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout without install
 
 from coapkb.feeder import FateCounts, TaskRecord  # noqa: E402
 from coapkb.harness.team import Team, TeamSpec, draw_tasks  # noqa: E402
-from common import rss_mib  # noqa: E402  (experiments/ is the script's own folder)
+from common import rss_mib, write_csv  # noqa: E402  (experiments/ is the script's own folder)
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -88,17 +87,12 @@ async def main() -> int:
     fates = FateCounts.of(record.tasks)
     recharges = {r: len(s.recharges) for r, s in record.robot_stats.items()}
     print(f"done: {fates.line()}; recharges {recharges}; completion {record.completion_s:.0f} s")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("w", newline="") as out:
-        writer = csv.DictWriter(out, [f.name for f in fields(Sample)])
-        writer.writeheader()
-        writer.writerows(asdict(s) for s in samples)
+    write_csv(args.out, [f.name for f in fields(Sample)], (asdict(s) for s in samples))
     first = {s.robot: s.rss_mib for s in samples if s.decided == min(args.every, len(decided))}
     last = {s.robot: s.rss_mib for s in samples if s.decided == len(decided)}
     for robot in sorted(last):
         print(f"{robot}: VmRSS {first[robot]:.1f} MiB at task {min(args.every, len(decided))}, "
               f"{last[robot]:.1f} MiB at task {len(decided)} ({last[robot] - first[robot]:+.1f} MiB)")
-    print(f"wrote {args.out}")
     return 0 if fates.unassigned == 0 else 1
 
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import csv
 import statistics
 import sys
 import tempfile
@@ -50,7 +49,7 @@ if str(ROOT) not in sys.path:  # run as a script from a checkout without install
 from coapkb.feeder import FateCounts, Feeder  # noqa: E402
 from coapkb.harness.kbs import kbs_for_team  # noqa: E402
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks  # noqa: E402
-from common import rss_mib  # noqa: E402  (experiments/ is the script's own folder)
+from common import rss_mib, write_csv  # noqa: E402  (experiments/ is the script's own folder)
 from coapkb.transport.base import TrafficCounters  # noqa: E402
 
 RESULTS = ROOT / "experiments" / "results"
@@ -125,12 +124,7 @@ async def main() -> int:
                 row = await one_team(robots, tasks, rep, Path(tmp))
                 print(" ".join(f"{k}={v}" for k, v in asdict(row).items()), flush=True)
                 rows.append(row)
-    names = [f.name for f in fields(ScaleRow)]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("w", newline="") as out:
-        writer = csv.DictWriter(out, names)
-        writer.writeheader()
-        writer.writerows(asdict(r) for r in rows)
+    write_csv(args.out, [f.name for f in fields(ScaleRow)], (asdict(r) for r in rows))
     print()
     print("| robots | tasks | team up (s) | completion (s) | assigned+skipped | B/task | robot RSS idle/after, median (max) MiB |")
     print("|---|---|---|---|---|---|---|")
@@ -143,7 +137,6 @@ async def main() -> int:
         if r.robots != min(args.sizes):
             print(f"bytes per task, {r.robots} / {base[r.rep].robots} robots (rep {r.rep}): "
                   f"{r.bytes_per_task / base[r.rep].bytes_per_task:.2f}x")
-    print(f"wrote {args.out}")
     return 0
 
 
