@@ -1,0 +1,95 @@
+"""Run one fuzz target, write the seed corpora, or replay every corpus.
+
+    python fuzz/run.py --list                 the targets
+    python fuzz/run.py --seed                 write the seeds to fuzz/corpus/TARGET/
+    python fuzz/run.py --replay [TARGET...]   every corpus file once, plain Python
+    python fuzz/run.py TARGET [libFuzzer flags] [DIR...]
+
+A fuzzing run reads and grows ``fuzz/corpus/TARGET/`` unless corpus folders
+are given (then libFuzzer writes new inputs to the first).  Only coapkb's
+modules are instrumented for coverage: the libraries stay fast.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import sys
+import traceback
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+CORPUS = HERE / "corpus"
+sys.path[:0] = [str(HERE), str(HERE.parent)]
+
+
+def seed() -> None:
+    import targets
+
+    for name, inputs in targets.seeds().items():
+        folder = CORPUS / name
+        folder.mkdir(parents=True, exist_ok=True)
+        for data in inputs:
+            (folder / f"seed-{hashlib.sha1(data).hexdigest()[:16]}").write_bytes(data)
+        print(f"{name}: {len(inputs)} seeds in {folder.relative_to(HERE.parent)}")
+
+
+def replay(names: list[str]) -> int:
+    """Every corpus file of every target (or of ``names``) once; 1 if any crashed."""
+    import targets
+
+    failures = 0
+    for name in names or targets.names():
+        fn = targets.TARGETS[name]
+        files = sorted((CORPUS / name).glob("*"))
+        for path in files:
+            try:
+                fn(path.read_bytes())
+            except Exception:
+                failures += 1
+                print(f"CRASH {name} {path.relative_to(HERE.parent)}", file=sys.stderr)
+                traceback.print_exc()
+        print(f"{name}: {len(files)} inputs replayed")
+    return 1 if failures else 0
+
+
+def fuzz(name: str, args: list[str]) -> None:
+    import atheris
+
+    with atheris.instrument_imports(include=["coapkb"]):
+        import targets
+    if name not in targets.TARGETS:
+        sys.exit(f"unknown target {name!r}; targets: {', '.join(targets.names())}")
+    if not any(not a.startswith("-") for a in args):  # no corpus folder given
+        (CORPUS / name).mkdir(parents=True, exist_ok=True)
+        args = [*args, str(CORPUS / name)]
+    fn = targets.TARGETS[name]
+    fn(b"")  # builds what a target builds once (the KB) before the first timed input
+    atheris.Setup([sys.argv[0], *args], fn)
+    atheris.Fuzz()
+
+
+def main() -> int:
+    # rdflib and aiocoap warn about odd literals and messages the targets
+    # feed them on purpose; a crash is a traceback, which still shows.
+    logging.disable(logging.WARNING)
+    args = sys.argv[1:]
+    if not args or args[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0
+    if args[0] == "--list":
+        import targets
+
+        print("\n".join(targets.names()))
+        return 0
+    if args[0] == "--seed":
+        seed()
+        return 0
+    if args[0] == "--replay":
+        return replay(args[1:])
+    fuzz(args[0], args[1:])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
