@@ -200,6 +200,8 @@ def load_config(path: str | Path) -> RobotConfig:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:  # TOML is UTF-8 (a ValueError, but no ConfigError)
+        raise ConfigError(f"{path}: not UTF-8: byte {exc.start} is {exc.object[exc.start]:#04x}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
     try:

@@ -256,6 +256,14 @@ def test_load_config_not_toml(tmp_path: Path) -> None:
         load_config(path)
 
 
+def test_load_config_not_utf8(tmp_path: Path) -> None:
+    # Found by fuzzing: the decode error escaped load_config as a traceback.
+    path = tmp_path / "bad.toml"
+    path.write_bytes(b'robot_id = "R\x94"\n')
+    with pytest.raises(ConfigError, match=r"not UTF-8: byte 13 is 0x94"):
+        load_config(path)
+
+
 def test_load_config_prefixes_errors_with_the_path(tmp_path: Path) -> None:
     path = tmp_path / "robot1.toml"
     text = VALID_TOML.format(ontologies=ONTOLOGIES).replace('strategy = "compute-and-communicate"',
