@@ -126,21 +126,31 @@ class RobotState:
 
     @classmethod
     def decode(cls, data: bytes) -> "RobotState":
-        """Decode :meth:`encode` or :meth:`encode_plan` output (the latter with an idle live part)."""
+        """Decode :meth:`encode` or :meth:`encode_plan` output (the latter with an idle live part).
+
+        Raises ``ValueError`` for anything docs/robot-state.cddl does not
+        allow, types included: a teammate's state feeds the Task Assigner's
+        arithmetic, so a text where a number belongs must stop here."""
         try:
             raw = cbor2.loads(data)
-            robot_id, plan, prev = raw[0], _plan(raw[1]), _plan(raw[2]) if raw[2] is not None else None
+            _check(type(raw) is list and 3 <= len(raw) <= 6, "a robot state is an array of 3 to 6 items", raw)
+            robot_id, plan = _text(raw[0], "robot-id"), _plan(raw[1])
+            prev = _plan(raw[2]) if raw[2] is not None else None
             if len(raw) in (3, 4):  # the plan form, with or without the incarnation
-                boot = int(raw[3]) if len(raw) == 4 else 0
+                boot = _uint(raw[3], "boot") if len(raw) == 4 else 0
                 return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev, boot)
             live = raw[3]
-            fenced = tuple(int(seq) for seq in live[6]) if len(live) > 6 else ()
-            live_state = LiveState(live[0], live[1], ACTIVITIES[live[2]], live[3], live[4], live[5], fenced,
-                                   (live[7] or None) if len(live) > 7 else None)
-            boot = int(raw[5]) if len(raw) > 5 else 0
+            _check(type(live) is list and 6 <= len(live) <= 8, "live-state is an array of 6 to 8 items", live)
+            fenced = tuple(_uint(seq, "fenced") for seq in _list(live[6], "fenced")) if len(live) > 6 else ()
+            _check(type(live[2]) is int and 0 <= live[2] < len(ACTIVITIES), "unknown activity", live[2])
+            live_state = LiveState(_float(live[0], "live aisle"), _float(live[1], "live rack"), ACTIVITIES[live[2]],
+                                   _text(live[3], "executing", null=True), _uint(live[4], "queued"),
+                                   _uint(live[5], "done"), fenced,
+                                   (_text(live[7], "fence-reason") or None) if len(live) > 7 else None)
+            boot = _uint(raw[5], "boot") if len(raw) > 5 else 0
             return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot)
-        except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"not a robot state: {exc}") from None
+        except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError, RecursionError) as exc:
+            raise ValueError(f"not a robot state: {exc}"[:300]) from None
 
 
 ACTIVITIES = ("idle", "travelling", "picking", "unloading", "charging")
@@ -154,9 +164,36 @@ def _plan_array(plan: PlannedState | None) -> list | None:
     return [plan.aisle, plan.rack, float(plan.battery_wh), float(plan.load_kg), float(plan.payload_kg), plan.seq]
 
 
+def _check(ok: bool, what: str, value: object) -> None:
+    if not ok:
+        raise ValueError(f"{what}, got {value!r}")
+
+
+def _uint(value: object, what: str) -> int:
+    _check(type(value) is int and value >= 0, f"{what} must be a uint", value)  # type() is int: no bool
+    return value  # type: ignore[return-value]
+
+
+def _float(value: object, what: str) -> float:
+    _check(type(value) in (float, int), f"{what} must be a number", value)
+    return value  # type: ignore[return-value]
+
+
+def _text(value: object, what: str, *, null: bool = False) -> str | None:
+    _check(type(value) is str or null and value is None, f"{what} must be text{' or null' if null else ''}", value)
+    return value  # type: ignore[return-value]
+
+
+def _list(value: object, what: str) -> list:
+    _check(type(value) is list, f"{what} must be an array", value)
+    return value  # type: ignore[return-value]
+
+
 def _plan(raw: list) -> PlannedState:
+    _check(type(raw) is list and len(raw) == 6, "planned-state is an array of 6 items", raw)
     aisle, rack, battery, load, payload, seq = raw
-    return PlannedState(aisle, rack, battery, load, payload, seq)
+    return PlannedState(_uint(aisle, "aisle"), _uint(rack, "rack"), _float(battery, "battery-wh"),
+                        _float(load, "load-kg"), _float(payload, "payload-kg"), _uint(seq, "seq"))
 
 
 def _decision_array(d: Decision) -> list:
@@ -167,9 +204,17 @@ def _decision_array(d: Decision) -> list:
 def _decision(raw: list) -> Decision:
     # Eight items: a robot from before membership epochs (epoch 0, members
     # unnamed); ten: from before "unavailable".
+    _check(type(raw) is list and 8 <= len(raw) <= 11, "decision is an array of 8 to 11 items", raw)
     seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons, *later = raw
-    epoch, members, unavailable = (later + [0, (), None][len(later):])[:3]
+    epoch, members, unavailable = (later + [0, [], None][len(later):])[:3]
+    _check(type(skipped) is bool, "skipped must be a bool", skipped)
+    _check(type(costs) is dict and all(type(k) is str and (v is None or type(v) in (float, int))
+                                       for k, v in costs.items()), "costs must map text to number or null", costs)
+    _check(type(reasons) is dict and all(type(k) is str and type(v) is str for k, v in reasons.items()),
+           "reasons must map text to text", reasons)
     return Decision(
-        seq, obj, skipped, assigned_to, dict(costs), error, coordination_s, dict(reasons), int(epoch),
-        tuple(members), unavailable,
+        _uint(seq, "seq"), _text(obj, "object"), skipped, _text(assigned_to, "assigned-to", null=True), costs,  # type: ignore[arg-type]
+        _text(error, "error", null=True), _float(coordination_s, "coordination-s"), reasons, _uint(epoch, "epoch"),
+        tuple(_text(m, "members") for m in _list(members, "members")),  # type: ignore[misc]
+        _text(unavailable, "unavailable", null=True),
     )

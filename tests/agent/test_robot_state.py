@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cbor2
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -97,3 +98,30 @@ def test_incarnation_travels_in_both_forms_and_is_optional(validator: object) ->
     for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan")):
         assert validator.validate(data, root_type=root).valid  # type: ignore[attr-defined]
     assert len(state.encode_plan()) < 80
+
+
+
+_PLAN = [3, 4, 500.0, 1.5, 60.0, 2]
+_LIVE = [3.0, 4.0, 0, None, 0, 0]
+#: Found by fuzzing: states of the right shape with values of the wrong type
+#: decoded, and failed later where they were used (the first one in encode:
+#: float() of a CBOR tag).
+WRONG_TYPES = {
+    "tag-for-a-float": bytes.fromhex("8466526f626f743286030"
+                                     "4f97b5fd0f93e00f953800286010"
+                                     "0f96058f90000fb404e4ccccccccccd0019303"
+                                     "9"),
+    "text-for-an-aisle": cbor2.dumps(["Robot1", ["3", 4, 500.0, 1.5, 60.0, 2], None]),
+    "bool-for-a-seq": cbor2.dumps(["Robot1", [3, 4, 500.0, 1.5, 60.0, True], None]),
+    "unknown-activity": cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 9, None, 0, 0], None]),
+    "negative-activity": cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, -1, None, 0, 0], None]),
+    "number-for-an-id": cbor2.dumps([7, _PLAN, None]),
+    "costs-not-a-map": cbor2.dumps(["Robot1", _PLAN, None, _LIVE, [2, "Box", False, None, [1], None, 0.1, {}]]),
+    "members-not-text": cbor2.dumps(["Robot1", _PLAN, None, _LIVE, [2, "Box", False, None, {}, None, 0.1, {}, 1, [5]]]),
+}
+
+
+@pytest.mark.parametrize("data", WRONG_TYPES.values(), ids=WRONG_TYPES.keys())
+def test_values_of_the_wrong_type_are_a_value_error(data: bytes) -> None:
+    with pytest.raises(ValueError, match="not a robot state"):
+        RobotState.decode(data)
