@@ -62,10 +62,9 @@ from typing import Any, Callable, Mapping, Protocol
 
 import aiocoap
 import aiocoap.meta
-from aiocoap.blockwise import Block1Spool, Block2Cache, IncompleteException, _extract_block_key
+from aiocoap.blockwise import Block1Spool, Block2Cache, ContinueException, IncompleteException, _extract_block_key
 from aiocoap.messagemanager import MessageManager
 from aiocoap.numbers.types import CON
-from aiocoap.util.asyncio.timeoutdict import TimeoutDict
 
 from ...errors import CoapkbError
 from ..base import TrafficCounters
@@ -81,8 +80,8 @@ __all__ = [
     "extract_block",
     "Block1Spool",
     "Block2Cache",
+    "ContinueException",
     "IncompleteException",
-    "TimeoutDict",
 ]
 
 log = logging.getLogger(__name__)
@@ -117,6 +116,31 @@ _MARKER = "_coapkb_hooks"
 #: or keyed by task (docs/reliability.md).
 DUPLICATES_REMEMBERED = 4096
 DUPLICATE_HORIZON_S = 60.0
+#: ... and while the answers kept with them (to send again) stay under this
+#: many payload bytes: 4,096 block-wise answers would be 4 MiB and more.
+DUPLICATE_ANSWER_BYTES = 1024 * 1024
+
+
+class _DuplicateMemory(dict):  # type: ignore[type-arg]
+    """aiocoap's ``_recent_messages`` (request key -> its answer, or None
+    while it is being handled), counting the payload bytes of the answers."""
+
+    answer_bytes = 0
+
+    def __setitem__(self, key: Any, answer: aiocoap.Message | None) -> None:
+        self._forget(self.get(key))
+        if answer is not None:
+            self.answer_bytes += len(answer.payload)
+        super().__setitem__(key, answer)
+
+    def pop(self, key: Any, *default: Any) -> Any:
+        answer = super().pop(key, *default)
+        self._forget(answer)
+        return answer
+
+    def _forget(self, answer: aiocoap.Message | None) -> None:
+        if answer is not None:
+            self.answer_bytes -= len(answer.payload)
 
 
 class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):
@@ -153,6 +177,7 @@ def verify() -> None:
     checks[(MessageInterfaceUDP6, "error_received")] = ("exc",)
     checks[(MessageInterfaceUDP6, "_local_port")] = ()
     checks[(aiocoap.Message, "_extract_block")] = ("number", "size_exp", "max_bert_size")
+    checks[(aiocoap.Message, "_append_request_block")] = ("next_block",)
     check_methods(checks)
     if tuple(inspect.signature(_extract_block_key).parameters) != ("message",):
         raise UnsupportedAiocoapVersion("aiocoap.blockwise._extract_block_key changed")
@@ -348,6 +373,7 @@ class ContextHooks:
         setattr(owner, name, replacement)
 
     def _install(self) -> None:
+        self.mm._recent_messages = _DuplicateMemory(self.mm._recent_messages)
         if not isinstance(self.ctx.log, _PipeSafeLogger):
             self._patch(self.ctx, "log", _PipeSafeLogger(self.ctx.log))
         self._patch(self.interface, "send", self._send)
@@ -433,17 +459,24 @@ class ContextHooks:
         key = (message.remote, message.mid)
         if key in recent:
             return self._original(self.mm, "_deduplicate_message")(message)
+        self.forget_duplicates(room_for=1)
+        self._remembered_at[key] = self.mm.loop.time()
+        recent[key] = None
+        return False
+
+    def forget_duplicates(self, room_for: int = 0) -> None:
+        """Drop the duplicate memory's entries past its bounds (oldest first),
+        leaving room for ``room_for`` more."""
+        recent = self.mm._recent_messages
         remembered = self._remembered_at
-        now = self.mm.loop.time()
+        horizon = self.mm.loop.time() - DUPLICATE_HORIZON_S
         while remembered:
             oldest, born = next(iter(remembered.items()))
-            if len(remembered) < DUPLICATES_REMEMBERED and now - born < DUPLICATE_HORIZON_S:
+            if (len(remembered) + room_for <= DUPLICATES_REMEMBERED and born > horizon
+                    and recent.answer_bytes <= DUPLICATE_ANSWER_BYTES):
                 break
             del remembered[oldest]
             recent.pop(oldest, None)
-        remembered[key] = now
-        recent[key] = None
-        return False
 
     # ------------------------------------------------------------ late events
 

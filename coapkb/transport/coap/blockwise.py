@@ -30,6 +30,14 @@ How :class:`BodyAwareBlock2Cache` matches a follow-up to its answer:
    2.4; aiocoap's does) can never assemble blocks of two answers, even when
    concurrent body-less transfers from one endpoint make rule 3 pick the
    newer one.
+
+Both kinds of state are bounded (:class:`~.expiring.ExpiringMap`): a server
+shares one spool and one cache among its resources, each holding at most
+the bytes and entries below, and none unused for ``TRANSFER_IDLE_S``.  A
+flood of large answers therefore costs a few MiB for a minute and a half,
+not memory that grows with the flood (docs/flood.md); a follow-up whose
+transfer was evicted gets 4.08, as after any expiry, or is answered afresh
+if it carries its body.
 """
 
 from __future__ import annotations
@@ -43,18 +51,57 @@ from aiocoap.numbers.codes import Code
 from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 
-from .aiocoap_adapter import Block1Spool, Block2Cache, IncompleteException, TimeoutDict, block_key, extract_block
+from .aiocoap_adapter import (
+    Block1Spool, Block2Cache, ContinueException, IncompleteException, block_key, extract_block,
+)
+from .expiring import ExpiringMap
+
+#: A block transfer unused this long is forgotten: a CON block request is
+#: retried for at most MAX_TRANSMIT_WAIT (93 s with RFC 7252's defaults).
+TRANSFER_IDLE_S = TransportTuning().MAX_TRANSMIT_WAIT
+#: Multi-block answers kept for their follow-ups, per server: a robot's
+#: largest answer (1,000 rows) is tens of kB, so this holds dozens at once.
+BLOCK2_BYTES = 2 * 1024 * 1024
+BLOCK2_KEYS = 1024
+#: Requests being received block by block (Block1), per server: a SPARQL
+#: text is a few kB at most.
+BLOCK1_BYTES = 1024 * 1024
+BLOCK1_ASSEMBLIES = 256
+#: What a kept message costs beyond its payload (object, options), roughly.
+MESSAGE_OVERHEAD = 512
 
 
 class GapSafeBlock1Spool(Block1Spool):
-    """aiocoap's Block1 spool answers a gap in the blocks (ValueError) with a
-    5.00 and a logged traceback; it is the client's error: 4.08 Incomplete."""
+    """aiocoap's Block1 spool, bounded (``BLOCK1_BYTES``, ``BLOCK1_ASSEMBLIES``,
+    ``TRANSFER_IDLE_S``); a gap in the blocks, which aiocoap answers with a
+    5.00 and a logged traceback, is the client's error: 4.08 Incomplete."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._assemblies: ExpiringMap[Any, aiocoap.Message] = ExpiringMap(
+            TRANSFER_IDLE_S, BLOCK1_ASSEMBLIES, BLOCK1_BYTES, lambda m: len(m.payload) + MESSAGE_OVERHEAD)
+
+    def purge(self) -> None:
+        """Forget the assemblies idle for ``TRANSFER_IDLE_S``."""
+        self._assemblies.purge()
 
     def feed_and_take(self, req: aiocoap.Message) -> aiocoap.Message:
-        try:
-            return super().feed_and_take(req)
-        except ValueError:
-            raise IncompleteException from None
+        block1 = req.opt.block1
+        if block1 is None:
+            return req
+        key = block_key(req)
+        if block1.block_number == 0:
+            assembly = req  # any older incomplete request under this key is dropped
+        else:
+            try:
+                assembly = self._assemblies[key]
+                assembly._append_request_block(req)
+            except (KeyError, ValueError):  # never started, evicted, or a gap
+                raise IncompleteException from None
+        self._assemblies[key] = assembly  # stored again: its size changed
+        if block1.more:
+            raise ContinueException(block1)
+        return assembly
 
 
 @dataclass(frozen=True)
@@ -83,16 +130,22 @@ class BodyAwareBlock2Cache(Block2Cache):
     docstring describes.
 
     ``max_per_key`` bounds the answers kept per client endpoint and request
-    options; entries live for MAX_TRANSMIT_WAIT after their last use, as in
-    aiocoap."""
+    options; all of them together are bounded by ``max_bytes`` and
+    ``BLOCK2_KEYS``, and forgotten ``TRANSFER_IDLE_S`` after their last use."""
 
-    def __init__(self, max_per_key: int = 4) -> None:
+    def __init__(self, max_per_key: int = 4, max_bytes: int = BLOCK2_BYTES) -> None:
         super().__init__()
         if max_per_key < 1:
             raise ValueError(f"max_per_key must be at least 1, got {max_per_key}")
         self.max_per_key = max_per_key
         #: block key -> transfers under it, the most recent last.
-        self._transfers: TimeoutDict = TimeoutDict(TransportTuning().MAX_TRANSMIT_WAIT)
+        self._transfers: ExpiringMap[Any, list[_Transfer]] = ExpiringMap(
+            TRANSFER_IDLE_S, BLOCK2_KEYS, max_bytes,
+            lambda transfers: sum(len(t.answer.payload) + MESSAGE_OVERHEAD for t in transfers))
+
+    def purge(self) -> None:
+        """Forget the answers idle for ``TRANSFER_IDLE_S``."""
+        self._transfers.purge()
 
     async def extract_or_insert(
         self, req: aiocoap.Message, response_builder: Callable[[], Awaitable[aiocoap.Message]]

@@ -9,6 +9,8 @@ binding checks the port first and fails clearly.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import errno
 import ipaddress
 import logging
@@ -30,6 +32,10 @@ from .reliability.notifications import NotificationPolicy, NotificationTuning
 from .security import CoapServerSecurity
 
 log = logging.getLogger(__name__)
+
+#: How often a server forgets the state that has aged out (duplicate memory,
+#: block-wise transfers), so an idle robot gives it back too.
+STATE_SWEEP_S = 10.0
 
 
 class _RateLimitFilter(logging.Filter):
@@ -57,12 +63,14 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
     """One path of a :class:`Service` as an aiocoap resource."""
 
     def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any,
-                 security: CoapServerSecurity | None = None) -> None:
+                 security: CoapServerSecurity | None = None,
+                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache] | None = None) -> None:
         super().__init__()
         #: Tells who sent a request (OSCORE/EDHOC), or None (unprotected).
         self._security = security
-        self._block1 = GapSafeBlock1Spool()
-        self._block2 = BodyAwareBlock2Cache()
+        # One spool and one cache per server (block keys name the path), so
+        # their bounds are the server's, not multiplied by its resources.
+        self._block1, self._block2 = blocks or (GapSafeBlock1Spool(), BodyAwareBlock2Cache())
         self.service = service
         self.info = info
         self._tuning_for = tuning_for
@@ -164,12 +172,22 @@ class CoapServerTransport:
     notifications): a :class:`ReliabilityLayer` shared with the robot's
     client (its path estimates), or None for one of its own."""
 
-    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy) -> None:
+    def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy,
+                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache]) -> None:
         self._ctx = ctx
         self._hooks = hooks
         self.endpoint = endpoint
         self.counters: TrafficCounters = hooks.counters
         self.policy = policy
+        self.blocks = blocks
+        self._sweeper = asyncio.create_task(self._sweep(), name=f"coap state sweep {endpoint.hostport}")
+
+    async def _sweep(self) -> None:
+        while True:
+            await asyncio.sleep(STATE_SWEEP_S)  # a period, not a wait for an event
+            self._hooks.forget_duplicates()
+            for state in self.blocks:
+                state.purge()
 
     @classmethod
     async def start(
@@ -194,9 +212,10 @@ class CoapServerTransport:
             aiocoap.resource.WKCResource(site.get_resources_as_linkheader, impl_info=None),
         )
         parents: set[tuple[str, ...]] = set()
+        blocks = (GapSafeBlock1Spool(), BodyAwareBlock2Cache())
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
-            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security))
+            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security, blocks))
             parents.add(tuple(segments[:-1]))
         for parent in sorted(parents - {()}):
             site.add_resource(list(parent), _UnknownPaths(service, "/" + "/".join(parent)))
@@ -213,12 +232,15 @@ class CoapServerTransport:
         hooks = ContextHooks.of(ctx)
         hooks.set_con_policy(policy)
         hooks.on_datagram = layer.on_datagram
-        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy)
+        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks)
 
     def describe(self) -> dict[str, Any]:
         return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
 
     async def aclose(self) -> None:
+        self._sweeper.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._sweeper
         self._hooks.cancel_empty_ack_timers()
         await self._ctx.shutdown()
         self._hooks.remove()
