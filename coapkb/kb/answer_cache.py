@@ -12,19 +12,33 @@ of starting another.
 from __future__ import annotations
 
 import asyncio
+import time
 from collections import OrderedDict
 from typing import Awaitable, Callable
 
 from ..transport.messages import Response
 
 
+#: Bounds of a robot's answer cache (docs/flood.md).  Anyone who can send a
+#: query can fill it, so it must stay small beside the robot's ~70 MiB: a
+#: named query's answer is 50-500 bytes, so 4 MiB holds every answer a
+#: team asks for; what nobody asked for in ten minutes goes.
+ANSWERS_KEPT = 4096
+ANSWER_BYTES = 4 * 1024 * 1024
+ANSWER_IDLE_S = 600.0
+
+
 class AnswerCache:
     """A bounded LRU of successful answers, plus single flight per key."""
 
-    def __init__(self, max_entries: int = 4096, max_bytes: int = 16 * 1024 * 1024) -> None:
+    def __init__(self, max_entries: int = ANSWERS_KEPT, max_bytes: int = ANSWER_BYTES,
+                 idle_s: float = ANSWER_IDLE_S, clock: Callable[[], float] = time.monotonic) -> None:
         self.max_entries = max_entries
         self.max_bytes = max_bytes
-        self._answers: OrderedDict[bytes, Response] = OrderedDict()
+        self.idle_s = idle_s
+        self._clock = clock
+        #: key -> (answer, last use), least recently used first.
+        self._answers: OrderedDict[bytes, tuple[Response, float]] = OrderedDict()
         self._bytes = 0
         self._running: dict[bytes, asyncio.Future[Response]] = {}
         self.hits = 0
@@ -32,11 +46,13 @@ class AnswerCache:
         self.misses = 0
 
     async def get_or_compute(self, key: bytes, compute: Callable[[], Awaitable[Response]]) -> Response:
-        answer = self._answers.get(key)
-        if answer is not None:
+        now = self._purge()
+        kept = self._answers.get(key)
+        if kept is not None:
+            self._answers[key] = (kept[0], now)
             self._answers.move_to_end(key)
             self.hits += 1
-            return answer
+            return kept[0]
         running = self._running.get(key)
         if running is not None:
             self.joined += 1
@@ -60,10 +76,20 @@ class AnswerCache:
 
     def _store(self, key: bytes, answer: Response) -> None:
         size = len(answer.payload)
-        if size > self.max_bytes:
+        if size > self.max_bytes or key in self._answers:
             return
-        self._answers[key] = answer
+        self._answers[key] = (answer, self._clock())
         self._bytes += size
         while len(self._answers) > self.max_entries or self._bytes > self.max_bytes:
-            _, old = self._answers.popitem(last=False)
-            self._bytes -= len(old.payload)
+            self._drop_oldest()
+
+    def _purge(self) -> float:
+        """Drop the answers unused for ``idle_s``; returns the clock's time."""
+        now = self._clock()
+        while self._answers and next(iter(self._answers.values()))[1] <= now - self.idle_s:
+            self._drop_oldest()
+        return now
+
+    def _drop_oldest(self) -> None:
+        _, (old, _) = self._answers.popitem(last=False)
+        self._bytes -= len(old.payload)

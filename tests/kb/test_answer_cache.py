@@ -109,3 +109,15 @@ async def test_a_failed_run_fails_its_joiners_and_is_not_kept() -> None:
     answers = Answers()
     await answers.ask(cache, b"q")  # the next copy runs the query again
     assert answers.runs == {b"q": 1}
+
+
+async def test_an_answer_nobody_asked_for_in_idle_s_goes() -> None:
+    now = [0.0]
+    cache, answers = AnswerCache(idle_s=600.0, clock=lambda: now[0]), Answers()
+    await answers.ask(cache, b"a", b"b")
+    now[0] = 400.0
+    await answers.ask(cache, b"a")  # a used again: its age starts over
+    now[0] = 700.0
+    await answers.ask(cache, b"a", b"b")  # b idle for 700 s: gone; a idle 300 s: kept
+    assert answers.runs == {b"a": 1, b"b": 2}
+    assert cache.hits == 2
