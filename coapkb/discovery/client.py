@@ -17,6 +17,7 @@ from dataclasses import replace
 from typing import Any
 
 from aiocoap.util.linkformat import Link, LinkFormat, parse
+from aiocoap.util.vendored.link_header import ParseException
 
 from ..config import KB_MODULES, RobotConfig, Teammate
 from ..errors import CoapkbError
@@ -123,9 +124,18 @@ class DirectoryClient:
                         discovery.members, discovery.cluster, ", ".join(sorted(found)) or "none")
         return found
 
+    def _links(self, text: str, what: str) -> list[Link]:
+        """The links of a lookup's answer; a :class:`DiscoveryError` if it is
+        not link-format (aiocoap's parser raises its own exception)."""
+        try:
+            return parse(text).links
+        except ParseException as exc:
+            near = exc.args[1] if len(exc.args) > 1 else ""
+            raise DiscoveryError(f"{what} at {self.rd}: the answer is not link-format (near {near[:80]})") from None
+
     def _endpoints(self, text: str) -> dict[str, Endpoint]:
         found: dict[str, Endpoint] = {}
-        for link in parse(text).links:
+        for link in self._links(text, "endpoint lookup"):
             attrs = dict(link.attr_pairs)
             ep, base = attrs.get("ep"), attrs.get("base")
             if not ep or not base:
@@ -152,7 +162,7 @@ class DirectoryClient:
         if not response.status.is_success:
             raise DiscoveryError(f"resource lookup at {self.rd}: {response.status.dotted} {response.text()}")
         held: dict[str, list[str]] = {}
-        for link in parse(response.text()).links:
+        for link in self._links(response.text(), "resource lookup"):
             kb = dict(link.attr_pairs).get("kb")
             try:
                 hostport = Endpoint.parse(link.href).hostport

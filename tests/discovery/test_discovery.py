@@ -15,14 +15,14 @@ from aiocoap.util.linkformat import parse
 
 from coapkb.config import ConfigError, DiscoveryConfig, RobotConfig, Teammate, dump_config, load_config, parse_config
 from coapkb.discovery import DiscoveryError, ResourceDirectory, discover
-from coapkb.discovery.client import registration_links
+from coapkb.discovery.client import DirectoryClient, registration_links
 from coapkb.discovery.directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH
 from coapkb.harness.team import Team, TeamSpec, draw_tasks
 from coapkb.security import generate_team, load_identity
 from coapkb.security.coap import ClientSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, open_client
-from coapkb.transport.messages import ContentFormat, Method, Request, Status
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 
 from support import ONTOLOGIES, free_udp_port
 
@@ -200,7 +200,29 @@ def test_registration_names_the_modules() -> None:
     assert ("/kb", "Location") in links and ("/kb", "Object") in links
 
 
-@pytest.mark.slow
+class _Answers:
+    """A client whose every answer is ``payload``, as a directory's would be."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = payload
+
+    async def request(self, peer: Endpoint, request: Request, timeout: float | None = None) -> Response:
+        return Response(Status.CONTENT, self.payload, ContentFormat.LINK_FORMAT)
+
+
+#: Found by fuzzing: aiocoap's link-format parser raised its own
+#: ParseException through the lookups, a traceback at a robot's start.
+NOT_LINK_FORMAT = b'<coap://127.0.0.1:5721/kb>;rt=;kb="Object"'
+
+
+async def test_a_lookup_answer_that_is_not_link_format_is_a_discovery_error() -> None:
+    config = _robot_config("Robot1", 5701, ("Location",), Endpoint("coap", "127.0.0.1", 5690))
+    client = DirectoryClient(config, _Answers(NOT_LINK_FORMAT))  # type: ignore[arg-type]
+    with pytest.raises(DiscoveryError, match="resource lookup at coap://127.0.0.1:5690: the answer is not link-format"):
+        await client.modules()
+    with pytest.raises(DiscoveryError, match="endpoint lookup .* not link-format"):
+        client._endpoints(NOT_LINK_FORMAT.decode())
+
 async def test_team_run_with_robots_that_know_only_themselves() -> None:
     # OSCORE on (the default): the directory takes only robots' own
     # registrations, and each robot checks every teammate it found by EDHOC.
