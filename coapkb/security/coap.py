@@ -40,6 +40,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import logging
+import math
 import secrets
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -87,6 +88,17 @@ HALF_OPEN_S = 30.0
 #: request): only a server with more than 46 members talking to it, a central
 #: server for a large team, gets there.
 RESPONDER_IDENTIFIERS = 47
+#: message_1 a responder takes on per second, in bursts of up to
+#: ``HALF_OPEN_MAX``.  Each costs it key generation and two ECDH operations
+#: (about a millisecond): a stranger sending a thousand per second would
+#: otherwise take a robot's whole CPU from the teammates it serves.  The
+#: rest are answered 5.03 with Max-Age (RFC 7252 section 5.9.3.4) at the
+#: cost of parsing them; a member's initiator waits that long and tries
+#: again.  Members already keyed are not affected (docs/flood.md).
+EDHOC_STARTS_PER_S = 20.0
+#: How long a member's initiator waits at most when told to come back later.
+EDHOC_RETRY_MAX_S = 5.0
+EDHOC_BUSY_RETRIES = 6
 
 
 class EdhocFailed(SecurityError, TransportError):
@@ -283,13 +295,18 @@ class ClientSecurity:
         log.debug("EDHOC with %s (%s) done in %.3f s", peer, member.name, stats.seconds)
 
     async def _post(self, post: HandshakePost, peer: Endpoint, payload: bytes, stats: HandshakeStats) -> bytes:
-        stats.round_trips += 1
-        stats.bytes_sent += len(payload)
-        try:
-            response = await post(peer, payload)
-        except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
-            raise TransportError(f"EDHOC with {peer}: no answer ({exc})") from None
-        stats.bytes_received += len(response.payload)
+        for _ in range(EDHOC_BUSY_RETRIES):
+            stats.round_trips += 1
+            stats.bytes_sent += len(payload)
+            try:
+                response = await post(peer, payload)
+            except (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError) as exc:
+                raise TransportError(f"EDHOC with {peer}: no answer ({exc})") from None
+            stats.bytes_received += len(response.payload)
+            if response.code != aiocoap.SERVICE_UNAVAILABLE:
+                break
+            # The responder is taking on no more handshakes now: it says when to come back.
+            await asyncio.sleep(min(float(response.opt.max_age or 1), EDHOC_RETRY_MAX_S))
         if not response.code.is_successful():
             detail = response.payload.decode("utf-8", "replace")[:80]
             raise EdhocFailed(f"EDHOC with {peer} refused: {response.code} {detail}".rstrip())
@@ -476,6 +493,11 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         #: opened, and when its member last sent a request through it.
         self._opened: dict[str, float] = {}
         self._used: dict[int, float] = {}  # id() of the session -> time
+        #: Tokens for message_1 (``EDHOC_STARTS_PER_S``), and when they were counted.
+        self._start_tokens = float(HALF_OPEN_MAX)
+        self._tokens_at = 0.0
+        #: message_1 answered 5.03 for want of a token.
+        self.refused_starts = 0
 
     def _get_edhoc_identity(self, origin: str) -> aiocoap_edhoc.EdhocCredentials | None:
         # One identity per robot, whatever host name the client asked for.
@@ -486,6 +508,11 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         request = pipe.request
         if request.opt.uri_path == EDHOC_PATH and request.payload[:1] == cbor2.dumps(True):
             now = asyncio.get_running_loop().time()
+            wait = self._take_start_token(now)
+            if wait:
+                self.refused_starts += 1
+                pipe.add_response(aiocoap.Message(code=aiocoap.SERVICE_UNAVAILABLE, max_age=wait), is_last=True)
+                return
             self._prune(now)
             before = set(self.server_credentials)
             await super().render_to_pipe(pipe)
@@ -521,6 +548,24 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
                         _context_not_found(pipe)
                     return
         await super().render_to_pipe(pipe)
+
+    def _take_start_token(self, now: float) -> int:
+        """0 if a message_1 may be taken on now, else the seconds to wait (at least 1)."""
+        self._start_tokens = min(float(HALF_OPEN_MAX),
+                                 self._start_tokens + (now - self._tokens_at) * EDHOC_STARTS_PER_S)
+        self._tokens_at = now
+        if self._start_tokens >= 1.0:
+            self._start_tokens -= 1.0
+            return 0
+        return max(1, math.ceil((1.0 - self._start_tokens) / EDHOC_STARTS_PER_S))
+
+    def sweep(self, now: float) -> None:
+        """Forget the half-open sessions older than ``HALF_OPEN_S``."""
+        for label, entry in list(self.server_credentials.items()):
+            if (isinstance(entry, aiocoap_edhoc.EdhocResponderContext) and entry._incomplete
+                    and now - self._opened.get(label, now) >= HALF_OPEN_S):
+                self.server_credentials.pop(label)
+                self._opened.pop(label, None)
 
     def _prune(self, now: float) -> None:
         """Make room for one more half-open session: complete sessions first
@@ -563,6 +608,8 @@ class ServerSecurity:
 
     identity: TeamIdentity
     policy: AccessPolicy = field(default_factory=AccessPolicy)
+    #: The site wrapper of the server this security serves (set by :meth:`wrap`).
+    _site: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         verify()
@@ -573,7 +620,18 @@ class ServerSecurity:
             self.credentials[_MEMBER_LABEL + member.name] = _edhoc_credentials(None, member)
 
     def wrap(self, site: Any) -> Any:
-        return _TeamSiteWrapper(site, self.credentials)
+        self._site = _TeamSiteWrapper(site, self.credentials)
+        return self._site
+
+    def sweep(self) -> None:
+        """Forget the responder state that has aged out (half-open EDHOC sessions)."""
+        if self._site is not None:
+            self._site.sweep(asyncio.get_running_loop().time())
+
+    @property
+    def refused_starts(self) -> int:
+        """message_1 answered 5.03 because the responder took on its rate of them."""
+        return 0 if self._site is None else self._site.refused_starts
 
     def responder_sessions(self) -> tuple[int, int]:
         """(half open, complete) EDHOC sessions this server holds as responder."""

@@ -4,6 +4,7 @@ replays, a server that lost its contexts, Block-wise and Observe."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import socket
 from dataclasses import replace
 from pathlib import Path
@@ -420,3 +421,129 @@ async def test_when_identifiers_run_short_the_least_recently_used_member_keys_ag
         for client in clients.values():
             await client.aclose()
         await robot.stop()
+
+
+def _message_1(mid: int) -> bytes:
+    """A stranger's EDHOC message_1 as a NON POST (anyone can make one)."""
+    import cbor2
+    import lakers
+    from aiocoap import NON, POST, Message
+
+    message_1 = lakers.EdhocInitiator().prepare_message_1(bytes([mid % 24]))
+    flood = Message(code=POST, uri_path=(".well-known", "edhoc"), payload=cbor2.dumps(True) + message_1)
+    flood.mtype, flood.mid, flood.token = NON, mid, mid.to_bytes(2, "big")
+    return flood.encode()
+
+
+async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_state_bounded_and_aging(
+    team_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """While three teammates keep asking, strangers on 50 source ports send
+    EDHOC message_1 beyond the responder's rate, a teammate's protected
+    request replayed, truncated and with unknown key ids: every teammate's
+    request is answered, the half-open sessions stay within HALF_OPEN_MAX and
+    age out, the rest of the message_1 are told 5.03 with Max-Age, and nothing
+    is logged as an error."""
+    from aiocoap import Message
+
+    from coapkb.security import coap as oscore_layer
+
+    robot = Robot1(team_dir)
+    security = ServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
+    robot.server = await serve(robot.router, Endpoint("coap", "127.0.0.1", 0), security=security)
+    peer = robot.server.endpoint
+    loop = asyncio.get_running_loop()
+    transport, relay = await loop.create_datagram_endpoint(lambda: _Relay(("127.0.0.1", peer.port)),
+                                                           local_addr=("127.0.0.1", 0))
+    via = Endpoint("coap", "127.0.0.1", transport.get_extra_info("sockname")[1])
+    teammates = {name: await _client(load_identity(team_dir, name)) for name in ("Robot2", "Robot3", "feeder")}
+    strangers = []
+    for _ in range(50):
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.bind(("127.0.0.1", 0))
+        s.setblocking(False)
+        strangers.append(s)
+    answered: list[Status] = []
+    flooding = True
+
+    async def keep_asking(name: str) -> None:
+        client = teammates[name]
+        target = via if name == "feeder" else peer  # the feeder's datagrams are captured on the way
+        while flooding:
+            answered.append((await client.request(target, Request(Method.GET, "/tasks"), timeout=10)).status)
+
+    try:
+        for client in teammates.values():  # keyed before the strangers come
+            assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        askers = [asyncio.create_task(keep_asking(name)) for name in teammates]
+        while not [d for d in relay.sent if _has_oscore_option(d)]:
+            await asyncio.sleep(0.01)  # until the feeder's first protected request went through the relay
+        protected = [d for d in relay.sent if _has_oscore_option(d)][0]
+        replies = 0
+        for mid in range(1, 401):
+            stranger = strangers[mid % len(strangers)]
+            await loop.sock_sendto(stranger, _message_1(mid), ("127.0.0.1", peer.port))
+            await loop.sock_sendto(stranger, protected, ("127.0.0.1", peer.port))  # a replay
+            await loop.sock_sendto(stranger, protected[: mid % len(protected)], ("127.0.0.1", peer.port))  # cut
+            seen = Message.decode(protected)
+            unknown = Message(code=seen.code, payload=seen.payload)
+            unknown.opt.oscore = bytes([0x09, mid % 256]) + b"\xee" * 6  # a partial IV and a key id nobody has
+            unknown.mtype, unknown.mid, unknown.token = seen.mtype, mid, seen.token
+            await loop.sock_sendto(stranger, unknown.encode(), ("127.0.0.1", peer.port))
+            if mid % 20 == 0:
+                await asyncio.sleep(0.02)  # let the teammates' requests in between
+        for stranger in strangers:
+            while True:
+                try:
+                    stranger.recv(2048)
+                    replies += 1
+                except BlockingIOError:
+                    break
+        flooding = False
+        await asyncio.gather(*askers)
+        assert answered and set(answered) == {Status.CONTENT}
+        half_open, complete = security.responder_sessions()
+        assert half_open <= oscore_layer.HALF_OPEN_MAX and complete == 3
+        assert security.refused_starts >= 400 - oscore_layer.HALF_OPEN_MAX - 100  # (the bucket refills meanwhile)
+        assert replies > 0
+        monkeypatch.setattr(oscore_layer, "HALF_OPEN_S", 0.0)
+        security.sweep()  # what the server's periodic sweep does once HALF_OPEN_S has passed
+        assert security.responder_sessions() == (0, 3)
+        assert robot.calls.count(("GET", "/tasks")) == len(answered) + 3  # no replay reached the resource
+        assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    finally:
+        flooding = False
+        for s in strangers:
+            s.close()
+        for client in teammates.values():
+            await client.aclose()
+        transport.close()
+        await robot.stop()
+
+
+async def test_a_member_told_to_come_back_later_keys_when_it_does(team_dir: Path) -> None:
+    """Strangers took every message_1 the responder takes on for now: a
+    member's first contact is told 5.03 with Max-Age, waits, and keys."""
+    robot = Robot1(team_dir)
+    security = ServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
+    robot.server = await serve(robot.router, Endpoint("coap", "127.0.0.1", 0), security=security)
+    peer = robot.server.endpoint
+    loop = asyncio.get_running_loop()
+    member = await _client(load_identity(team_dir, "Robot3"))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+        stranger.bind(("127.0.0.1", 0))
+        stranger.setblocking(False)
+        try:
+            from coapkb.security import coap as oscore_layer
+
+            for mid in range(1, oscore_layer.HALF_OPEN_MAX + 2):
+                await loop.sock_sendto(stranger, _message_1(mid), ("127.0.0.1", peer.port))
+                await asyncio.wait_for(loop.sock_recv(stranger, 2048), 10)
+            assert security.refused_starts >= 1
+            started = loop.time()
+            response = await member.request(peer, Request(Method.GET, "/tasks"), timeout=15)
+            assert response.status == Status.CONTENT
+            assert loop.time() - started < 10
+        finally:
+            await member.aclose()
+            await robot.stop()

@@ -59,3 +59,7 @@ class CoapServerSecurity(Protocol):
     def sender(self, request: aiocoap.Message) -> str | None:
         """The member the (unprotected) ``request`` came from, None if it was not protected."""
         ...
+
+    def sweep(self) -> None:
+        """Forget the state that has aged out (called every few seconds)."""
+        ...

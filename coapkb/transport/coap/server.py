@@ -173,13 +173,15 @@ class CoapServerTransport:
     client (its path estimates), or None for one of its own."""
 
     def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy,
-                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache]) -> None:
+                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache],
+                 security: CoapServerSecurity | None = None) -> None:
         self._ctx = ctx
         self._hooks = hooks
         self.endpoint = endpoint
         self.counters: TrafficCounters = hooks.counters
         self.policy = policy
         self.blocks = blocks
+        self._security = security
         self._sweeper = asyncio.create_task(self._sweep(), name=f"coap state sweep {endpoint.hostport}")
 
     async def _sweep(self) -> None:
@@ -188,6 +190,8 @@ class CoapServerTransport:
             self._hooks.forget_duplicates()
             for state in self.blocks:
                 state.purge()
+            if self._security is not None:
+                self._security.sweep()
 
     @classmethod
     async def start(
@@ -232,7 +236,7 @@ class CoapServerTransport:
         hooks = ContextHooks.of(ctx)
         hooks.set_con_policy(policy)
         hooks.on_datagram = layer.on_datagram
-        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks)
+        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks, security)
 
     def describe(self) -> dict[str, Any]:
         return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
