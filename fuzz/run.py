@@ -16,6 +16,7 @@ import hashlib
 import logging
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -73,6 +74,7 @@ def main() -> int:
     # rdflib and aiocoap warn about odd literals and messages the targets
     # feed them on purpose; a crash is a traceback, which still shows.
     logging.disable(logging.WARNING)
+    warnings.simplefilter("ignore")
     args = sys.argv[1:]
     if not args or args[0] in ("-h", "--help"):
         print(__doc__)

@@ -16,7 +16,9 @@ the project's own encoders, so the fuzzer starts from valid messages.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import functools
+import shutil
 import tempfile
 import tomllib
 from collections.abc import Callable
@@ -338,6 +340,7 @@ def _config_dir() -> Path:
     """A folder two levels below one holding ``ontologies``: the examples'
     relative paths (``../../ontologies/...``) resolve in it."""
     top = Path(tempfile.mkdtemp(prefix="coapkb-fuzz-"))
+    atexit.register(shutil.rmtree, top, ignore_errors=True)
     (top / "ontologies").symlink_to(ONTOLOGIES)
     (top / "examples" / "team").mkdir(parents=True)
     return top / "examples" / "team"
