@@ -158,8 +158,10 @@ def content_format_of(encoding: str | None) -> int | None:
         return None
     if encoding in _FORMATS:
         return _FORMATS[encoding]
-    if encoding.startswith(_OTHER_FORMAT) and encoding[len(_OTHER_FORMAT) :].isdigit():
-        value = int(encoding[len(_OTHER_FORMAT) :])
+    digits = encoding[len(_OTHER_FORMAT) :]
+    # ASCII only: str.isdigit() is true for "²", which int() refuses (a ValueError, not ours)
+    if encoding.startswith(_OTHER_FORMAT) and digits.isascii() and digits.isdigit():
+        value = int(digits)
         if value < 65536:
             return value
     raise MappingError(f"encoding {encoding[:80]!r} is no CoAP Content-Format")
