@@ -6,7 +6,8 @@
     python fuzz/run.py TARGET [libFuzzer flags] [DIR...]
 
 A fuzzing run reads and grows ``fuzz/corpus/TARGET/`` unless corpus folders
-are given (then libFuzzer writes new inputs to the first).  Only coapkb's
+are given (then libFuzzer writes new inputs to the first), with the
+dictionary ``fuzz/dicts/TARGET.dict`` if there is one.  Only coapkb's
 modules are instrumented for coverage: the libraries stay fast.
 """
 
@@ -64,6 +65,9 @@ def fuzz(name: str, args: list[str]) -> None:
     if not any(not a.startswith("-") for a in args):  # no corpus folder given
         (CORPUS / name).mkdir(parents=True, exist_ok=True)
         args = [*args, str(CORPUS / name)]
+    dictionary = HERE / "dicts" / f"{name}.dict"  # tokens the mutator splices in (SPARQL keywords, ...)
+    if dictionary.exists() and not any(a.startswith("-dict=") for a in args):
+        args = [f"-dict={dictionary}", *args]
     fn = targets.TARGETS[name]
     fn(b"")  # builds what a target builds once (the KB) before the first timed input
     atheris.Setup([sys.argv[0], *args], fn)
