@@ -36,6 +36,11 @@ log = logging.getLogger(__name__)
 #: How often a server forgets the state that has aged out (duplicate memory,
 #: block-wise transfers), so an idle robot gives it back too.
 STATE_SWEEP_S = 10.0
+#: Observations a resource keeps (RFC 7641): each costs a CON notification
+#: per change.  A robot's state is observed by its cluster mates and the
+#: feeder; past this many, a registration is answered without Observe
+#: (section 4.1: the client is told it is not observing).
+OBSERVERS_MAX = 64
 
 
 class _RateLimitFilter(logging.Filter):
@@ -110,7 +115,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         return message
 
     async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
-        if self.info.obs:
+        if self.info.obs and len(self._observations) < OBSERVERS_MAX:
             await super().add_observation(request, serverobservation)
 
 

@@ -4,6 +4,7 @@ transfers in and out, and aiocoap's duplicate memory, on real messages."""
 
 from __future__ import annotations
 
+import asyncio
 import socket
 import struct
 
@@ -63,8 +64,6 @@ async def _server_context() -> tuple[aiocoap.Context, int]:
 
 async def _received(ctx: aiocoap.Context, port: int, datagram: bytes) -> aiocoap.Message:
     """``datagram`` sent to ``ctx`` over a real socket, as aiocoap decoded it."""
-    import asyncio
-
     seen: asyncio.Future[aiocoap.Message] = asyncio.get_running_loop().create_future()
     hooks = ContextHooks.of(ctx)
     original = hooks.mm.dispatch_message
@@ -150,3 +149,35 @@ async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes(monkeypatch) 
     finally:
         hooks.remove()
         await ctx.shutdown()
+
+
+async def test_a_resource_keeps_at_most_observers_max_observations(monkeypatch) -> None:
+    """Past OBSERVERS_MAX, a registration gets the state without Observe (RFC 7641 section 4.1)."""
+    from coapkb.transport import Endpoint, serve
+    from coapkb.transport.base import ResourceInfo
+    from coapkb.transport.coap import server as coap_server
+    from coapkb.transport.messages import Response, Status
+    from coapkb.transport.router import Router
+
+    monkeypatch.setattr(coap_server, "OBSERVERS_MAX", 3)
+    router = Router()
+
+    async def state(request) -> Response:  # type: ignore[no-untyped-def]
+        return Response(Status.CONTENT, b"idle")
+
+    router.add(ResourceInfo("/state", obs=True), state)
+    server = await serve(router, Endpoint("coap", "127.0.0.1", 0))
+    observed = []
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.settimeout(5)
+            for n in range(5):
+                msg = aiocoap.Message(code=aiocoap.GET, uri_path=("state",), observe=0)
+                msg.mtype, msg.mid, msg.token = aiocoap.CON, 100 + n, bytes([n + 1])
+                sock.sendto(msg.encode(), ("127.0.0.1", server.endpoint.port))
+                answer = aiocoap.Message.decode(await asyncio.to_thread(sock.recv, 2048))
+                assert answer.payload == b"idle"
+                observed.append(answer.opt.observe is not None)
+    finally:
+        await server.aclose()
+    assert observed == [True, True, True, False, False]
