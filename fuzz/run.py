@@ -3,6 +3,7 @@
     python fuzz/run.py --list                 the targets
     python fuzz/run.py --seed                 write the seeds to fuzz/corpus/TARGET/
     python fuzz/run.py --replay [TARGET...]   every corpus file once, plain Python
+    python fuzz/run.py --report OUT           the results table of fuzz/long_run.sh OUT
     python fuzz/run.py TARGET [libFuzzer flags] [DIR...]
 
 A fuzzing run reads and grows ``fuzz/corpus/TARGET/`` unless corpus folders
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 import sys
 import traceback
 import warnings
@@ -55,6 +57,26 @@ def replay(names: list[str]) -> int:
     return 1 if failures else 0
 
 
+def report(out: Path) -> None:
+    """The results table of a long run (fuzz/long_run.sh OUT), in Markdown."""
+    print("| target | executions | seconds | coverage (edges) | features | corpus (files, merged) | crashes | hangs |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for log in sorted(out.glob("*.log")):
+        if log.name.endswith(".merge.log"):
+            continue
+        name, text = log.stem, log.read_text(errors="replace")
+        status = re.findall(r"^#(\d+)\s+\S+\s+cov: (\d+) ft: (\d+)", text, re.M)
+        done = re.search(r"^Done (\d+) runs in (\d+) second", text, re.M)
+        executed = re.search(r"stat::number_of_executed_units: (\d+)", text)
+        runs = done.group(1) if done else (executed.group(1) if executed else (status[-1][0] if status else "?"))
+        seconds = done.group(2) if done else "?"
+        cov, ft = (status[-1][1], status[-1][2]) if status else ("?", "?")
+        crashes = len(list(out.glob(f"{name}-crash-*"))) + len(list(out.glob(f"{name}-oom-*")))
+        hangs = len(list(out.glob(f"{name}-timeout-*")))
+        files = len(list((CORPUS / name).glob("*")))
+        print(f"| {name} | {runs} | {seconds} | {cov} | {ft} | {files} | {crashes} | {hangs} |")
+
+
 def fuzz(name: str, args: list[str]) -> None:
     import atheris
 
@@ -90,6 +112,9 @@ def main() -> int:
         return 0
     if args[0] == "--seed":
         seed()
+        return 0
+    if args[0] == "--report":
+        report(Path(args[1]))
         return 0
     if args[0] == "--replay":
         return replay(args[1:])
