@@ -116,9 +116,12 @@ _MARKER = "_coapkb_hooks"
 #: or keyed by task (docs/reliability.md).
 DUPLICATES_REMEMBERED = 4096
 DUPLICATE_HORIZON_S = 60.0
-#: ... and while the answers kept with them (to send again) stay under this
-#: many payload bytes: 4,096 block-wise answers would be 4 MiB and more.
+#: ... and while what they keep stays under this many bytes: the answers to
+#: send again, and what a request's entry costs by itself
+#: (``DUPLICATE_ENTRY_BYTES``, measured roughly: the key, the answer's
+#: object and options).  4,096 block-wise answers would be 10 MiB and more.
 DUPLICATE_ANSWER_BYTES = 1024 * 1024
+DUPLICATE_ENTRY_BYTES = 512
 
 
 class _DuplicateMemory(dict):  # type: ignore[type-arg]
@@ -128,19 +131,18 @@ class _DuplicateMemory(dict):  # type: ignore[type-arg]
     answer_bytes = 0
 
     def __setitem__(self, key: Any, answer: aiocoap.Message | None) -> None:
-        self._forget(self.get(key))
-        if answer is not None:
-            self.answer_bytes += len(answer.payload)
+        if key in self:
+            self._forget(self[key])
+        self.answer_bytes += DUPLICATE_ENTRY_BYTES + (0 if answer is None else len(answer.payload))
         super().__setitem__(key, answer)
 
     def pop(self, key: Any, *default: Any) -> Any:
-        answer = super().pop(key, *default)
-        self._forget(answer)
-        return answer
+        if key in self:
+            self._forget(self[key])
+        return super().pop(key, *default)
 
     def _forget(self, answer: aiocoap.Message | None) -> None:
-        if answer is not None:
-            self.answer_bytes -= len(answer.payload)
+        self.answer_bytes -= DUPLICATE_ENTRY_BYTES + (0 if answer is None else len(answer.payload))
 
 
 class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):
@@ -464,10 +466,11 @@ class ContextHooks:
         recent[key] = None
         return False
 
-    def forget_duplicates(self, room_for: int = 0) -> None:
+    def forget_duplicates(self, room_for: int = 0) -> int:
         """Drop the duplicate memory's entries past its bounds (oldest first),
-        leaving room for ``room_for`` more."""
+        leaving room for ``room_for`` more; returns the bytes dropped."""
         recent = self.mm._recent_messages
+        before = recent.answer_bytes
         remembered = self._remembered_at
         horizon = self.mm.loop.time() - DUPLICATE_HORIZON_S
         while remembered:
@@ -477,6 +480,7 @@ class ContextHooks:
                 break
             del remembered[oldest]
             recent.pop(oldest, None)
+        return before - recent.answer_bytes
 
     # ------------------------------------------------------------ late events
 

@@ -81,9 +81,9 @@ class GapSafeBlock1Spool(Block1Spool):
         self._assemblies: ExpiringMap[Any, aiocoap.Message] = ExpiringMap(
             TRANSFER_IDLE_S, BLOCK1_ASSEMBLIES, BLOCK1_BYTES, lambda m: len(m.payload) + MESSAGE_OVERHEAD)
 
-    def purge(self) -> None:
-        """Forget the assemblies idle for ``TRANSFER_IDLE_S``."""
-        self._assemblies.purge()
+    def purge(self) -> int:
+        """Forget the assemblies idle for ``TRANSFER_IDLE_S``; returns the bytes forgotten."""
+        return self._assemblies.purge()
 
     def feed_and_take(self, req: aiocoap.Message) -> aiocoap.Message:
         block1 = req.opt.block1
@@ -143,9 +143,9 @@ class BodyAwareBlock2Cache(Block2Cache):
             TRANSFER_IDLE_S, BLOCK2_KEYS, max_bytes,
             lambda transfers: sum(len(t.answer.payload) + MESSAGE_OVERHEAD for t in transfers))
 
-    def purge(self) -> None:
-        """Forget the answers idle for ``TRANSFER_IDLE_S``."""
-        self._transfers.purge()
+    def purge(self) -> int:
+        """Forget the answers idle for ``TRANSFER_IDLE_S``; returns the bytes forgotten."""
+        return self._transfers.purge()
 
     async def extract_or_insert(
         self, req: aiocoap.Message, response_builder: Callable[[], Awaitable[aiocoap.Message]]

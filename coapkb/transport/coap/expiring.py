@@ -49,15 +49,15 @@ class ExpiringMap(Generic[K, V]):
         return len(self._items)
 
     def __contains__(self, key: object) -> bool:
-        self.purge()
+        self._purge()
         return key in self._items
 
     def __iter__(self) -> Iterator[K]:
-        self.purge()
+        self._purge()
         return iter(list(self._items))
 
     def __getitem__(self, key: K) -> V:
-        now = self.purge()
+        now = self._purge()
         value, size, _ = self._items[key]
         self._items[key] = (value, size, now)
         self._items.move_to_end(key)
@@ -70,7 +70,7 @@ class ExpiringMap(Generic[K, V]):
             return default
 
     def __setitem__(self, key: K, value: V) -> None:
-        now = self.purge()
+        now = self._purge()
         self._drop(key)
         size = self._size(value)
         if size > self.max_bytes:
@@ -86,8 +86,13 @@ class ExpiringMap(Generic[K, V]):
         self.bytes -= size
         return value
 
-    def purge(self) -> float:
-        """Drop every entry unused for ``ttl_s``; returns the clock's time."""
+    def purge(self) -> int:
+        """Drop every entry unused for ``ttl_s``; returns the bytes dropped."""
+        before = self.bytes
+        self._purge()
+        return before - self.bytes
+
+    def _purge(self) -> float:
         now = self._clock()
         horizon = now - self.ttl_s
         while self._items:

@@ -26,6 +26,7 @@ from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters
 from ..messages import Response, Status
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
+from .heap import trim_heap
 from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
 from .reliability import ReliabilityLayer, make_reliability
 from .reliability.notifications import NotificationPolicy, NotificationTuning
@@ -41,6 +42,9 @@ STATE_SWEEP_S = 10.0
 #: feeder; past this many, a registration is answered without Observe
 #: (section 4.1: the client is told it is not observing).
 OBSERVERS_MAX = 64
+#: When a sweep forgot at least this much, the freed memory goes back to the
+#: system (:mod:`.heap`): a flood's state leaves no lasting RSS.
+TRIM_AFTER_BYTES = 256 * 1024
 
 
 class _RateLimitFilter(logging.Filter):
@@ -192,11 +196,13 @@ class CoapServerTransport:
     async def _sweep(self) -> None:
         while True:
             await asyncio.sleep(STATE_SWEEP_S)  # a period, not a wait for an event
-            self._hooks.forget_duplicates()
+            dropped = self._hooks.forget_duplicates()
             for state in self.blocks:
-                state.purge()
+                dropped += state.purge()
             if self._security is not None:
                 self._security.sweep()
+            if dropped >= TRIM_AFTER_BYTES:
+                trim_heap()
 
     @classmethod
     async def start(
