@@ -181,3 +181,40 @@ async def test_a_resource_keeps_at_most_observers_max_observations(monkeypatch) 
     finally:
         await server.aclose()
     assert observed == [True, True, True, False, False]
+
+
+async def test_an_idle_server_forgets_aged_block_transfers_and_trims_its_heap(monkeypatch) -> None:
+    """The server's sweep, not a new request, ages state out."""
+    from coapkb.transport import Endpoint, open_client, serve
+    from coapkb.transport.base import ResourceInfo
+    from coapkb.transport.coap import heap
+    from coapkb.transport.coap import server as coap_server
+    from coapkb.transport.messages import Method, Request, Response, Status
+    from coapkb.transport.router import Router
+
+    monkeypatch.setattr(blockwise, "TRANSFER_IDLE_S", 0.3)
+    monkeypatch.setattr(coap_server, "STATE_SWEEP_S", 0.1)
+    monkeypatch.setattr(coap_server, "TRIM_AFTER_BYTES", 1)
+    trims = []
+    monkeypatch.setattr(coap_server, "trim_heap", lambda: trims.append(heap.trim_heap()))
+    router = Router()
+
+    async def big(request) -> Response:  # type: ignore[no-untyped-def]
+        return Response(Status.CONTENT, bytes(range(256)) * 12)
+
+    router.add(ResourceInfo("/big"), big)
+    server = await serve(router, Endpoint("coap", "127.0.0.1", 0))
+    client = await open_client("coap")
+    try:
+        answer = await client.request(server.endpoint, Request(Method.GET, "/big"), timeout=5)
+        assert len(answer.payload) == 3072
+        transfers = server.blocks[1]._transfers
+        assert len(transfers._items) == 1
+        for _ in range(100):  # the sweep runs every 0.1 s; give it up to 10 s on a loaded machine
+            if not transfers._items and trims:
+                break
+            await asyncio.sleep(0.1)
+        assert not transfers._items and trims[0] is True
+    finally:
+        await client.aclose()
+        await server.aclose()
