@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import re
+import shlex
 import sys
 import traceback
 import warnings
@@ -92,7 +93,10 @@ def fuzz(name: str, args: list[str]) -> None:
         args = [f"-dict={dictionary}", *args]
     fn = targets.TARGETS[name]
     fn(b"")  # builds what a target builds once (the KB) before the first timed input
-    atheris.Setup([sys.argv[0], *args], fn)
+    # libFuzzer runs its first argument through the shell for -merge=1 and
+    # -fork: the interpreter, this script and the target, not the bare script.
+    command = " ".join(shlex.quote(part) for part in (sys.executable, sys.argv[0], name))
+    atheris.Setup([command, *args], fn)
     atheris.Fuzz()
 
 
