@@ -58,7 +58,7 @@ from aiocoap.numbers.types import NON
 from aiocoap.oscore_sitewrapper import OscoreSiteWrapper
 from aiocoap.transports.oscore import OSCOREAddress, TransportOSCORE
 
-from ..transport.base import Endpoint, TransportError
+from ..transport.base import Endpoint, RateLimitFilter, TransportError
 from ..transport.coap.security import HandshakePost
 from .keys import CIPHER_SUITE, EDHOC_METHOD, SecurityError, TeamIdentity, TeamMember
 from .policy import AccessPolicy, TeamRules
@@ -489,6 +489,9 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
     def __init__(self, inner_site: Any, credentials: CredentialsMap) -> None:
         super().__init__(inner_site, credentials)
         self.log = logging.getLogger("coapkb.security.server")
+        # aiocoap logs a stranger's undecryptable message or stray EDHOC
+        # message as an error, once per datagram.
+        RateLimitFilter.install(self.log, peer_errors=True)
         #: When each responder session (by its label in the credentials) was
         #: opened, and when its member last sent a request through it.
         self._opened: dict[str, float] = {}

@@ -42,6 +42,40 @@ class RateLimiter:
         return suppressed
 
 
+class RateLimitFilter(logging.Filter):
+    """One :class:`RateLimiter` per message template, so a stream of garbage
+    datagrams (each logged by aiocoap) cannot flood the log.
+
+    Errors pass, unless ``peer_errors``: a logger whose errors are about what
+    a peer sent (a security layer refusing a stranger's message) has them
+    rate-limited too, and reported as warnings: they are not the robot's."""
+
+    def __init__(self, interval_s: float = 10.0, peer_errors: bool = False) -> None:
+        super().__init__()
+        self.interval_s = interval_s
+        self.peer_errors = peer_errors
+        self._limiters: dict[str, RateLimiter] = {}
+
+    @classmethod
+    def install(cls, logger: logging.Logger, peer_errors: bool = False) -> None:
+        """Add one to ``logger`` unless it has one."""
+        if not any(isinstance(f, cls) for f in logger.filters):
+            logger.addFilter(cls(peer_errors=peer_errors))
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.ERROR:
+            if not self.peer_errors or record.exc_info:
+                return True
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        key = str(record.msg)
+        suppressed = self._limiters.setdefault(key, RateLimiter(self.interval_s)).allow()
+        if suppressed is None:
+            return False
+        if suppressed:
+            record.msg = f"{record.msg} (and {suppressed} similar messages suppressed)"
+        return True
+
+
 class RateLimitedLog:
     """Warnings through a :class:`RateLimiter`, saying how many were swallowed."""
 

@@ -22,7 +22,7 @@ import aiocoap
 import aiocoap.resource
 from aiocoap.numbers.constants import TransportTuning
 
-from ..base import Endpoint, RateLimiter, ResourceInfo, Service, TrafficCounters, TransportError, handle_safely
+from ..base import Endpoint, RateLimitFilter, ResourceInfo, Service, TrafficCounters, TransportError, handle_safely
 from ..messages import Response, Status
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
@@ -45,27 +45,6 @@ OBSERVERS_MAX = 64
 #: When a sweep forgot at least this much, the freed memory goes back to the
 #: system (:mod:`.heap`): a flood's state leaves no lasting RSS.
 TRIM_AFTER_BYTES = 256 * 1024
-
-
-class _RateLimitFilter(logging.Filter):
-    """One :class:`RateLimiter` per message template, so a stream of garbage
-    datagrams (each logged by aiocoap) cannot flood the log.  Errors pass."""
-
-    def __init__(self, interval_s: float = 10.0) -> None:
-        super().__init__()
-        self.interval_s = interval_s
-        self._limiters: dict[str, RateLimiter] = {}
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno >= logging.ERROR:
-            return True
-        key = str(record.msg)
-        suppressed = self._limiters.setdefault(key, RateLimiter(self.interval_s)).allow()
-        if suppressed is None:
-            return False
-        if suppressed:
-            record.msg = f"{record.msg} (and {suppressed} similar messages suppressed)"
-        return True
 
 
 class _ServiceResource(aiocoap.resource.ObservableResource):
@@ -235,8 +214,7 @@ class CoapServerTransport:
         for parent in sorted(parents - {()}):
             site.add_resource(list(parent), _UnknownPaths(service, "/" + "/".join(parent)))
         logger = logging.getLogger("coapkb.coap.server")
-        if not any(isinstance(f, _RateLimitFilter) for f in logger.filters):
-            logger.addFilter(_RateLimitFilter())
+        RateLimitFilter.install(logger)
         try:
             ctx = await aiocoap.Context.create_server_context(
                 site if security is None else security.wrap(site), bind=(host, endpoint.port), transports=["udp6"],
