@@ -60,7 +60,8 @@ from .expiring import ExpiringMap
 #: retried for at most MAX_TRANSMIT_WAIT (93 s with RFC 7252's defaults).
 TRANSFER_IDLE_S = TransportTuning().MAX_TRANSMIT_WAIT
 #: Multi-block answers kept for their follow-ups, per server: a robot's
-#: largest answer (1,000 rows) is tens of kB, so this holds dozens at once.
+#: largest answer (1,000 rows) is 21 kB in compact CBOR, 236 kB in SPARQL
+#: JSON, so this holds about a hundred, or eight, in transfer at once.
 BLOCK2_BYTES = 2 * 1024 * 1024
 BLOCK2_KEYS = 1024
 #: Requests being received block by block (Block1), per server: a SPARQL
