@@ -24,7 +24,7 @@ def add_query(sub: argparse._SubParsersAction) -> None:
         "  coapkb query 'coap://127.0.0.1:5683/kb/q/object-exists?name=Gucci_bag_14'",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("uri", help="robot (coap://, zmq://, zenoh:// or zenoh+udp://HOST:PORT), or a /kb/q/NAME?param=value URI")
+    p.add_argument("uri", help="robot (coap://, zmq://, zenoh://, zenoh+udp:// or zenoh+quic://HOST:PORT), or a /kb/q/NAME?param=value URI")
     p.add_argument("sparql", nargs="?", help="query text; @FILE reads a file, - reads stdin")
     p.add_argument("--accept", choices=tuple(FORMAT_ACCEPT), default="cbor", help="answer format on the wire")
     p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")

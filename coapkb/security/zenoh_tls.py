@@ -2,10 +2,13 @@
 team's key material (:mod:`.tls`): the Zenoh counterpart of OSCORE on CoAP
 and CurveZMQ on ZeroMQ, so a secured benchmark compares like with like.
 
-* Only ``zenoh://`` endpoints, which become Zenoh ``tls/host:port`` links
-  (TLS 1.3 over TCP, rustls).  ``zenoh+udp://`` has no security: Zenoh's UDP
-  link has no TLS (a DTLS link does not exist in Zenoh 1.x), and QUIC would
-  be a third link type to compare; a secured team refuses it.
+* ``zenoh://`` endpoints become Zenoh ``tls/host:port`` links (TLS 1.3 over
+  TCP, rustls); ``zenoh+quic://`` endpoints stay ``quic/host:port`` links,
+  whose QUIC handshake is TLS 1.3 with the same configuration keys
+  (``transport/link/tls/...``), so the same certificates, checks and access
+  control hold.  ``zenoh+udp://`` has no security: Zenoh's reliable UDP is
+  QUIC with neither encryption nor authentication (and no DTLS link exists
+  in Zenoh 1.x); a secured team refuses it.
 * Both sides present their member certificate and accept only a peer whose
   certificate the team CA issued (``enable_mtls``), so a process without a
   team certificate, or with one from another CA, cannot open a session at
@@ -74,11 +77,16 @@ def _common(config: zenoh.Config, files: TlsFiles) -> None:
 
 
 def tls_locator(locator: str) -> str:
-    """``tcp/h:p`` -> ``tls/h:p``; anything else has no TLS in Zenoh."""
+    """``tcp/h:p`` -> ``tls/h:p``; ``quic/h:p`` is TLS already; anything else
+    (``udp/h:p?rel=1``, Zenoh's reliable UDP) has no TLS in Zenoh."""
     protocol, sep, address = locator.partition("/")
-    if protocol != "tcp" or not sep:
-        raise SecurityError(f"{locator}: Zenoh has TLS only over TCP (zenoh://); zenoh+udp:// cannot be secured")
-    return f"tls/{address}"
+    if sep and protocol == "tcp":
+        return f"tls/{address}"
+    if sep and protocol == "quic":
+        return locator
+    raise SecurityError(f"{locator}: zenoh+udp:// is Zenoh's reliable UDP, QUIC without encryption or "
+                        f"authentication, and cannot be secured; use zenoh+quic:// (QUIC with the team's TLS) "
+                        f"or zenoh:// (TLS over TCP)")
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """Communication (the seed's Fig. 2): one interface, several transports.
 
 ``open_client`` and ``serve`` pick the implementation the
-:mod:`.registry` holds for a scheme (``coap``, ``zmq``, ``zenoh`` or
-``zenoh+udp``), so nothing above this package names a transport.  Security
+:mod:`.registry` holds for a scheme (``coap``, ``zmq``, ``zenoh``,
+``zenoh+udp`` or ``zenoh+quic``), so nothing above this package names a
+transport.  Security
 plugs in from above through the seams of :mod:`.security`.
 """
 

@@ -54,7 +54,7 @@ class TransportInfo:
     """One registered transport."""
 
     scheme: str
-    #: Datagrams (UDP); else a byte stream (TCP), which retransmits by itself.
+    #: Listens on UDP (datagrams); else on TCP (a byte stream).
     datagram: bool
     #: The port it usually listens on.
     default_port: int
@@ -70,11 +70,15 @@ class TransportInfo:
     resource_directory: bool = False
     #: Other spellings of the scheme accepted in URIs.
     aliases: tuple[str, ...] = ()
+    #: What below coapkb recovers its lost packets: ``tcp`` (the kernel's TCP),
+    #: ``quic`` (a QUIC stack inside the transport's library); None: nothing
+    #: does, unless its own :attr:`reliability` layer.
+    recovery: str | None = None
 
     @property
     def retransmits_itself(self) -> bool:
-        """The transport below (TCP) retransmits: it takes no reliability layer."""
-        return not self.datagram
+        """The protocol below (TCP, QUIC) retransmits: it takes no reliability layer."""
+        return self.recovery is not None
 
 
 # ----------------------------------------------------------------- the factories
@@ -137,12 +141,17 @@ REGISTERED: tuple[TransportInfo, ...] = (
                   reliability=_coap_reliability, security="oscore", resource_directory=True),
     # ZeroMQ over TCP, the seed's transport.
     TransportInfo("zmq", datagram=False, default_port=5555, open_client=_zmq_client, serve=_zmq_server,
-                  security="curve", aliases=("tcp",)),
+                  security="curve", aliases=("tcp",), recovery="tcp"),
     # Zenoh over TCP.
     TransportInfo("zenoh", datagram=False, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
-                  security="tls"),
-    # Zenoh's UDP link has no TLS (and no DTLS link exists in Zenoh 1.x).
-    TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server),
+                  security="tls", recovery="tcp"),
+    # Zenoh's reliable UDP: QUIC streams without TLS, so nothing to secure it with
+    # (and no DTLS link exists in Zenoh 1.x).
+    TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
+                  recovery="quic"),
+    # Zenoh over QUIC: TLS 1.3 in its handshake, mutual with the team's certificates.
+    TransportInfo("zenoh+quic", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
+                  security="tls", recovery="quic"),
 )
 
 #: The registered schemes, in registration order.

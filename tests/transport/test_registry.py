@@ -21,24 +21,28 @@ def test_every_registered_scheme_is_an_endpoint_scheme() -> None:
 
 
 def test_lookups() -> None:
-    assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp")
+    assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic")
     assert transport_for("tcp") is transport_for("zmq") is find("zmq")
     assert find("carrier-pigeon") is None
-    with pytest.raises(UnknownTransport, match="choose from coap, zmq, zenoh, zenoh\\+udp"):
+    with pytest.raises(UnknownTransport, match="choose from coap, zmq, zenoh, zenoh\\+udp, zenoh\\+quic"):
         transport_for("carrier-pigeon")
-    assert [t.scheme for t in REGISTERED if t.datagram] == ["coap", "zenoh+udp"]
+    assert [t.scheme for t in REGISTERED if t.datagram] == ["coap", "zenoh+udp", "zenoh+quic"]
     assert [t.scheme for t in REGISTERED if t.resource_directory] == ["coap"]
 
 
 def test_only_coap_shares_a_reliability_layer() -> None:
     assert reliability_for("zmq") is None
     assert reliability_for("zenoh+udp") is None
+    # TCP or QUIC below the others retransmits; CoAP's layer does it itself.
+    assert {t.scheme: t.recovery for t in REGISTERED} == {
+        "coap": None, "zmq": "tcp", "zenoh": "tcp", "zenoh+udp": "quic", "zenoh+quic": "quic"}
+    assert [t.scheme for t in REGISTERED if not t.retransmits_itself] == ["coap"]
     layer = reliability_for("coap", link_kbps=256)
     assert layer is not None and layer.as_dict()["profile"]["link_kbps"] == 256  # the layer itself
 
 
 def test_each_secured_transport_has_its_mechanism() -> None:
-    assert secured_schemes() == ("coap", "zmq", "zenoh")
+    assert secured_schemes() == ("coap", "zmq", "zenoh", "zenoh+quic")
     assert {transport_for(s).security for s in secured_schemes()} == set(MECHANISMS)
     assert mechanism_for("zmq").needs_server_name and not mechanism_for("coap").needs_server_name
     with pytest.raises(SecurityError, match="the zenoh\\+udp transport cannot be secured"):

@@ -1,4 +1,4 @@
-"""Zenoh transport (``zenoh://`` over TCP, ``zenoh+udp://``): see :mod:`.transport`."""
+"""Zenoh transport (``zenoh://`` over TCP, ``zenoh+udp://`` reliable UDP, ``zenoh+quic://``): see :mod:`.transport`."""
 
 from .transport import ZenohClientTransport, ZenohOptions, ZenohServerTransport
 

@@ -39,6 +39,7 @@ __all__ = [
     "KEY_ROOT",
     "NOTIFY_ROOT",
     "LINK_PROTOCOLS",
+    "Link",
     "MappingError",
     "Observe",
     "RequestHeader",
@@ -50,6 +51,7 @@ __all__ = [
     "encode_response_header",
     "encoding_for",
     "key_for_path",
+    "link_for",
     "locator",
     "parameters_text",
     "path_for_key",
@@ -63,9 +65,32 @@ KEY_ROOT = "coapkb"
 #: Observation notifications go to ``coapkb-obs/<client session id>/<n>``, a key
 #: outside the queryable's, chosen by the observing client.
 NOTIFY_ROOT = "coapkb-obs"
-#: Endpoint scheme -> Zenoh link protocol.  TCP is the default; UDP unicast
-#: links carry no retransmission (see docs/zenoh.md), QUIC needs TLS material.
-LINK_PROTOCOLS = {"zenoh": "tcp", "zenoh+udp": "udp"}
+
+
+@dataclass(frozen=True)
+class Link:
+    """The Zenoh link an endpoint scheme stands for."""
+
+    #: Zenoh's link protocol, the locator's prefix.
+    protocol: str
+    #: The locator's metadata (after ``?``), e.g. ``rel=1``.
+    metadata: str = ""
+    #: Listens on a UDP socket (else TCP).
+    datagram: bool = False
+    #: Zenoh opens it only with TLS material (a certificate and key), secured or not.
+    needs_tls: bool = False
+
+
+#: Endpoint scheme -> Zenoh link: the one place that says which locator a
+#: scheme means (docs/zenoh.md).  ``udp/h:p?rel=1`` is Zenoh's *reliable* UDP,
+#: QUIC streams without TLS (``?rel=1`` is locator metadata; ``#rel=1`` would be
+#: link configuration, silently ignored, and give the plain UDP link, which
+#: retransmits nothing); ``quic/h:p`` is QUIC with TLS 1.3.
+LINK_PROTOCOLS: dict[str, Link] = {
+    "zenoh": Link("tcp"),
+    "zenoh+udp": Link("udp", "rel=1", datagram=True),
+    "zenoh+quic": Link("quic", datagram=True, needs_tls=True),
+}
 
 _METHOD_CODES = {Method.GET: 1, Method.POST: 2, Method.PUT: 3, Method.DELETE: 4, Method.FETCH: 5}
 _METHODS_BY_CODE = {code: m for m, code in _METHOD_CODES.items()}
@@ -89,13 +114,19 @@ class Observe(enum.IntEnum):
     DEREGISTER = 1
 
 
-def locator(endpoint: Endpoint) -> str:
-    """Zenoh's locator for ``endpoint``: ``zenoh://h:p`` -> ``tcp/h:p``."""
+def link_for(endpoint: Endpoint) -> Link:
+    """The Zenoh link of ``endpoint``'s scheme (``ValueError`` for a scheme that is not Zenoh's)."""
     try:
-        protocol = LINK_PROTOCOLS[endpoint.scheme]
+        return LINK_PROTOCOLS[endpoint.scheme]
     except KeyError:
         raise ValueError(f"{endpoint} is not a zenoh endpoint ({', '.join(LINK_PROTOCOLS)})") from None
-    return f"{protocol}/{endpoint.hostport}"
+
+
+def locator(endpoint: Endpoint) -> str:
+    """Zenoh's locator for ``endpoint``: ``zenoh://h:p`` -> ``tcp/h:p``,
+    ``zenoh+udp://h:p`` -> ``udp/h:p?rel=1``, ``zenoh+quic://h:p`` -> ``quic/h:p``."""
+    link = link_for(endpoint)
+    return f"{link.protocol}/{endpoint.hostport}" + (f"?{link.metadata}" if link.metadata else "")
 
 
 # --------------------------------------------------------------------------- key and parameters

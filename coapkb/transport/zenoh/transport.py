@@ -9,10 +9,11 @@ queries, replies and samples is :mod:`.mapping`.
 
 Topology: explicit endpoints, no scouting
     A server opens a session in **peer** mode that listens on its endpoint
-    (``zenoh://h:p`` -> ``tcp/h:p``; ``zenoh+udp://`` -> ``udp/h:p``) and
-    declares one queryable, ``coapkb/**``.  A client opens one session per
-    peer, in **client** mode, connected to that peer's endpoint only, lazily
-    on first use -- like ZeroMQ's DEALER per peer -- so a query reaches
+    (``zenoh://h:p`` -> ``tcp/h:p``; ``zenoh+udp://`` -> ``udp/h:p?rel=1``,
+    Zenoh's reliable UDP; ``zenoh+quic://`` -> ``quic/h:p``: the table is
+    :data:`.mapping.LINK_PROTOCOLS`) and declares one queryable,
+    ``coapkb/**``.  A client opens one session per peer, in **client** mode,
+    connected to that peer's endpoint only, lazily on first use -- like ZeroMQ's DEALER per peer -- so a query reaches
     exactly the robot it is addressed to, and nobody routes for anybody.
     Multicast and gossip scouting are off: the emulated network has no
     multicast, and a team's endpoints are configured anyway.  When a query
@@ -37,7 +38,9 @@ Threads
     a fresh session instead (below).
 
 Errors
-    A peer that cannot be connected to, that is not reachable on its
+    A peer that cannot be connected to (over TCP a dead peer refuses at once;
+    a QUIC or reliable-UDP handshake with one fails only at
+    :attr:`ZenohOptions.open_timeout_s`), that is not reachable on its
     session (Zenoh ends the query at once without replies) even on a fresh
     one, or that gives no answer within the timeout raises
     :class:`PeerUnreachable`.  A query the server cannot decode gets a Zenoh
@@ -58,7 +61,8 @@ Observe
 
 Security
     With ``security=`` (mTLS, :mod:`.security`) a ``zenoh://``
-    endpoint becomes a ``tls/`` link with mutual authentication by the
+    endpoint becomes a ``tls/`` link, and a ``zenoh+quic://`` endpoint's QUIC
+    link takes the same TLS configuration, with mutual authentication by the
     team's certificates; the client names its session in each query's
     ``source_info`` and the server holds the member whose certificate
     authenticated that session to the team's access policy (refused: an
@@ -66,7 +70,10 @@ Security
     server's Zenoh access control drops queries on ``/tasks`` and
     ``/decisions`` from certificates whose role may not post there, and a
     key that is not its path's canonical form gets 4.00.
-    ``zenoh+udp://`` cannot be secured (Zenoh's UDP link has no TLS).
+    ``zenoh+udp://`` cannot be secured (Zenoh's reliable UDP is QUIC
+    without TLS).  Without ``security=`` a QUIC link still needs TLS
+    material: :mod:`.anonymous_tls` gives the listener an ephemeral
+    certificate from a public CA that every client accepts (no authentication).
 
 Traffic counters
     Zenoh does not expose socket byte counts, so the counters hold what this
@@ -102,6 +109,7 @@ from ..base import (
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
+from . import anonymous_tls
 from .mapping import (
     KEY_ROOT,
     LINK_PROTOCOLS,
@@ -114,6 +122,7 @@ from .mapping import (
     encode_response_header,
     encoding_for,
     key_for_path,
+    link_for,
     locator,
     parameters_text,
     request_from_query,
@@ -142,6 +151,11 @@ class ZenohOptions:
     observe_timeout_s: float = 10.0
     #: At most one "malformed message" warning per this many seconds.
     malformed_log_interval_s: float = 10.0
+    #: Client: how long one attempt to open a session may take (Zenoh's
+    #: ``transport/unicast/open_timeout``); None: Zenoh's own, 10 s.  A dead
+    #: peer refuses a TCP connection at once, but a QUIC (or reliable-UDP)
+    #: handshake with it fails only at this timeout.
+    open_timeout_s: float | None = None
 
 
 def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()) -> zenoh.Config:
@@ -163,7 +177,7 @@ def _check_scheme(endpoint: Endpoint) -> None:
 def _free_port(endpoint: Endpoint) -> int:
     """A port free right now on the endpoint's host (Zenoh cannot tell which
     port it picked for ``:0``)."""
-    kind = socket.SOCK_DGRAM if LINK_PROTOCOLS[endpoint.scheme] == "udp" else socket.SOCK_STREAM
+    kind = socket.SOCK_DGRAM if link_for(endpoint).datagram else socket.SOCK_STREAM
     family = socket.AF_INET6 if ":" in endpoint.host else socket.AF_INET
     with socket.socket(family, kind) as s:
         s.bind((endpoint.host, 0))
@@ -171,7 +185,7 @@ def _free_port(endpoint: Endpoint) -> int:
 
 
 def _secured_locator(endpoint: Endpoint, security: ZenohClientSecurity | ZenohServerSecurity | None) -> str:
-    """The endpoint's locator; the secured link's (``tls/`` for ``tcp/``) with security."""
+    """The endpoint's locator; the secured link's (``tls/`` for ``tcp/``, ``quic/`` as it is) with security."""
     if security is None:
         return locator(endpoint)
     return security.locator(locator(endpoint))
@@ -284,6 +298,8 @@ class ZenohServerTransport:
         config = session_config("peer", listen=(_secured_locator(endpoint, security),))
         if security is not None:
             security.configure(config)
+        elif link_for(endpoint).needs_tls:  # QUIC will not listen without a certificate
+            anonymous_tls.configure_listener(config)
         try:
             session = await asyncio.get_running_loop().run_in_executor(executor, zenoh.open, config)
         except zenoh.ZError as exc:
@@ -595,8 +611,12 @@ class ZenohClientTransport:
 
     def _config(self, peer: Endpoint) -> zenoh.Config:
         config = session_config("client", connect=(_secured_locator(peer, self._security),))
+        if self._options.open_timeout_s is not None:
+            config.insert_json5("transport/unicast/open_timeout", str(round(self._options.open_timeout_s * 1000)))
         if self._security is not None:
             self._security.configure(config)
+        elif link_for(peer).needs_tls:  # QUIC's client verifies a chain: the anonymous listener's
+            anonymous_tls.configure_connector(config)
         return config
 
     def _open(self, peer: Endpoint) -> zenoh.Session:

@@ -39,10 +39,13 @@ etags = st.lists(st.binary(min_size=1, max_size=8), max_size=3).map(tuple)
 
 def test_locators() -> None:
     assert locator(Endpoint("zenoh", "10.0.0.2", 7447)) == "tcp/10.0.0.2:7447"
-    assert locator(Endpoint("zenoh+udp", "::1", 7447)) == "udp/[::1]:7447"
+    # Zenoh's reliable UDP: "rel" is locator metadata, after "?" ("#rel=1" would be ignored).
+    assert locator(Endpoint("zenoh+udp", "::1", 7447)) == "udp/[::1]:7447?rel=1"
+    assert locator(Endpoint("zenoh+quic", "10.0.0.2", 7447)) == "quic/10.0.0.2:7447"
     with pytest.raises(ValueError, match="not a zenoh endpoint"):
         locator(Endpoint("coap", "127.0.0.1", 5683))
     assert Endpoint.parse("zenoh+udp://127.0.0.1:7447") == Endpoint("zenoh+udp", "127.0.0.1", 7447)
+    assert Endpoint.parse("zenoh+quic://[::1]:7447") == Endpoint("zenoh+quic", "::1", 7447)
 
 
 def test_keys_of_the_robot_resources() -> None:
