@@ -38,11 +38,13 @@ What a row measures (see ``docs/benchmarks.md``):
     Zenoh/TCP: the kernel's ``TcpRetransSegs`` summed over every host's namespace
     (``tcp_aborts``: its ``TCPAbortOnTimeout``, connections the kernel gave
     up on -- keep-alive or ``TCP_USER_TIMEOUT`` -- which ZeroMQ then re-opens).
+    Zenoh over QUIC and Zenoh's reliable UDP (QUIC too): 0, QUIC retransmits
+    inside Zenoh, which does not count it.
 ``security``
     What protected the messages, as in ``coapkb team``: ``oscore`` (CoAP,
     OSCORE keyed by EDHOC, with the team's access policy), ``curve``
-    (ZeroMQ, CurveZMQ), ``tls`` (Zenoh/TCP, mutual TLS), or ``none``
-    (``--insecure``, Zenoh over UDP, the seed's systems).  Handshakes are on
+    (ZeroMQ, CurveZMQ), ``tls`` (Zenoh over TCP or QUIC, mutual TLS), or
+    ``none`` (``--insecure``, Zenoh's reliable UDP, the seed's systems).  Handshakes are on
     the wire and counted.
 ``coordination_s`` / ``completion_s``
     From :meth:`Team.run`: feeding the first task until every cluster decided
@@ -121,7 +123,7 @@ class SystemDef:
     """One system under test: how the team is organised and what goes on the wire."""
 
     mode: str  # "distributed" or "central"
-    transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp"
+    transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic"
     query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
     description: str
 
@@ -135,7 +137,10 @@ SYSTEMS: dict[str, SystemDef] = {
     "seed-central": SystemDef("central", "zmq", "seed", "the seed's centralised baseline: ZeroMQ/TCP, SPARQL text, SPARQL-JSON"),
     "zenoh-distributed": SystemDef("distributed", "zenoh", "compact", "Zenoh/TCP, named queries, compact CBOR, KB split over the robots"),
     "zenoh-central": SystemDef("central", "zenoh", "compact", "Zenoh/TCP, named queries, compact CBOR, one remote KB server"),
-    "zenoh-udp-distributed": SystemDef("distributed", "zenoh+udp", "compact", "Zenoh over UDP unicast (no retransmission), named queries, compact CBOR, KB split"),
+    "zenoh-udp-distributed": SystemDef("distributed", "zenoh+udp", "compact", "Zenoh's reliable UDP (QUIC without TLS, never secured), named queries, compact CBOR, KB split over the robots"),
+    "zenoh-udp-central": SystemDef("central", "zenoh+udp", "compact", "Zenoh's reliable UDP (QUIC without TLS, never secured), named queries, compact CBOR, one remote KB server"),
+    "zenoh-quic-distributed": SystemDef("distributed", "zenoh+quic", "compact", "Zenoh/QUIC, named queries, compact CBOR, KB split over the robots"),
+    "zenoh-quic-central": SystemDef("central", "zenoh+quic", "compact", "Zenoh/QUIC, named queries, compact CBOR, one remote KB server"),
 }
 
 # --------------------------------------------------------------------------- systems and timeouts
@@ -217,8 +222,10 @@ def system_spec(
 def retransmission_label(system: str) -> str:
     """What the ``retransmission_profile`` column holds: ``robust`` (the CoAP
     reliability layer; older results also hold the retired CON profiles),
-    ``tcp`` for ZeroMQ and Zenoh systems (TCP retransmits by itself), ``none``
-    for Zenoh over UDP (its unicast UDP link does not retransmit)."""
+    ``tcp`` for ZeroMQ and Zenoh/TCP systems (TCP retransmits by itself),
+    ``quic`` for Zenoh over QUIC and Zenoh's reliable UDP (QUIC's loss
+    recovery, inside Zenoh).  Older results hold ``none`` for the
+    ``zenoh-udp`` systems of before, on Zenoh's plain UDP link."""
     return _retransmission_label(SYSTEMS[system].transport)
 
 
@@ -250,8 +257,8 @@ def _retransmission_label(scheme: str) -> str:
     transport = find(scheme)
     if transport is None:  # an unknown system: reported as a failed row
         return ROBUST
-    if transport.retransmits_itself:
-        return "tcp"
+    if transport.recovery is not None:
+        return transport.recovery
     return "none" if transport.reliability is None else ROBUST
 
 
@@ -443,7 +450,8 @@ async def run_once(
 
 async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str]) -> BenchRow:
     """``row`` with what one team run measured: link counters and the team's record."""
-    tcp = transport_for(spec.transport).retransmits_itself  # the kernel's retransmissions (RetransSegs)
+    # The kernel's retransmissions (RetransSegs) count only TCP's; QUIC's are Zenoh's business.
+    tcp = transport_for(spec.transport).recovery == "tcp"
 
     async def reading() -> dict[str, Any]:
         counters = await testbed.acounters()

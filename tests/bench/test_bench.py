@@ -17,7 +17,7 @@ from dataclasses import replace
 from typing import Any
 
 import pytest
-from support import ROOT, load_experiment, require
+from support import ROOT, coapkb, load_experiment, require
 
 from coapkb.bench import run as bench
 from coapkb.bench.stats import percentile
@@ -152,6 +152,32 @@ def test_every_system_maps_to_a_team_spec() -> None:
         bench.system_spec("carrier-pigeon", 3)
 
 
+def test_the_zenoh_quic_and_reliable_udp_systems() -> None:
+    """Both modes of each; QUIC is secured with mutual TLS like Zenoh/TCP, the
+    reliable UDP runs plain; QUIC retransmits for both, inside Zenoh."""
+    for link, scheme in (("udp", "zenoh+udp"), ("quic", "zenoh+quic")):
+        for mode in ("distributed", "central"):
+            d = SYSTEMS[f"zenoh-{link}-{mode}"]
+            assert (d.mode, d.transport, d.query_wire) == (mode, scheme, "compact")
+            assert bench.retransmission_label(f"zenoh-{link}-{mode}") == "quic"
+    assert bench.security_label("zenoh-quic-central", True) == "tls"
+    assert bench.security_label("zenoh-quic-central", False) == "none"
+    assert bench.security_label("zenoh-udp-distributed", True) == "none"
+    assert "reliable UDP" in SYSTEMS["zenoh-udp-distributed"].description
+    spec = bench.system_spec("zenoh-quic-distributed", 3)
+    assert spec.secure and spec.security_scheme == "tls"
+    assert not bench.system_spec("zenoh-udp-central", 3).secure
+    assert bench.retransmission_label("zenoh-distributed") == "tcp"
+
+
+async def test_bench_help_lists_the_zenoh_quic_and_udp_systems() -> None:
+    code, out, err = await coapkb("bench", "--help")
+    assert code == 0, err
+    listed = " ".join(out.split()).replace("- ", "-")  # argparse wraps the list at hyphens
+    for system in ("zenoh-udp-distributed", "zenoh-udp-central", "zenoh-quic-distributed", "zenoh-quic-central"):
+        assert system in listed, system
+
+
 def test_timeouts_grow_with_slower_and_lossier_links() -> None:
     fast, slow, lossy = bench.timeouts_for(512, 2, 5), bench.timeouts_for(35, 2, 5), bench.timeouts_for(35, 20, 5)
     assert fast.query_s <= slow.query_s < lossy.query_s
@@ -271,7 +297,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
     paper = sweep.plan(sweep.PROFILES["paper"])
-    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 1) * 3  # 3 reps
+    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 2) * 3  # 3 reps, no zenoh-udp pair
     # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
     short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0) for r, t in ((3, 5), (3, 80)))
     assert (sweep.units(short), sweep.units(long)) == (6, 81)
