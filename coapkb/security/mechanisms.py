@@ -81,10 +81,11 @@ MECHANISMS: dict[str, Mechanism] = {
 
 def mechanism_for(scheme: str) -> Mechanism:
     """The mechanism securing transport ``scheme``; :class:`SecurityError` if it cannot be secured."""
-    name = transport_for(scheme).security
-    if name is None:
-        raise SecurityError(f"the {scheme} transport cannot be secured (use {', '.join(secured_schemes())})")
-    return MECHANISMS[name]
+    transport = transport_for(scheme)
+    if transport.security is None:
+        why = f": {transport.unsecurable_because}" if transport.unsecurable_because else ""
+        raise SecurityError(f"the {scheme} transport cannot be secured{why} (use {', '.join(secured_schemes())})")
+    return MECHANISMS[transport.security]
 
 
 def client_security(scheme: str, identity: TeamIdentity, expected: Expected | None = None) -> ClientSecurity:

@@ -74,6 +74,8 @@ class TransportInfo:
     #: ``quic`` (a QUIC stack inside the transport's library); None: nothing
     #: does, unless its own :attr:`reliability` layer.
     recovery: str | None = None
+    #: Why it cannot be secured (``security`` None), for the refusal a user gets.
+    unsecurable_because: str | None = None
 
     @property
     def retransmits_itself(self) -> bool:
@@ -148,7 +150,8 @@ REGISTERED: tuple[TransportInfo, ...] = (
     # Zenoh's reliable UDP: QUIC streams without TLS, so nothing to secure it with
     # (and no DTLS link exists in Zenoh 1.x).
     TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
-                  recovery="quic"),
+                  recovery="quic", unsecurable_because="it is Zenoh's reliable UDP, QUIC without encryption or "
+                  "authentication, and Zenoh has no DTLS"),
     # Zenoh over QUIC: TLS 1.3 in its handshake, mutual with the team's certificates.
     TransportInfo("zenoh+quic", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
                   security="tls", recovery="quic"),

@@ -45,5 +45,6 @@ def test_each_secured_transport_has_its_mechanism() -> None:
     assert secured_schemes() == ("coap", "zmq", "zenoh", "zenoh+quic")
     assert {transport_for(s).security for s in secured_schemes()} == set(MECHANISMS)
     assert mechanism_for("zmq").needs_server_name and not mechanism_for("coap").needs_server_name
-    with pytest.raises(SecurityError, match="the zenoh\\+udp transport cannot be secured"):
+    with pytest.raises(SecurityError, match="the zenoh\\+udp transport cannot be secured: it is Zenoh's reliable UDP, "
+                                            "QUIC without encryption or authentication"):
         mechanism_for("zenoh+udp")

@@ -13,11 +13,13 @@ from ..security import AccessRules
 
 class ZenohClientSecurity(Protocol):
     def locator(self, plain: str) -> str:
-        """The link to use instead of ``plain`` (``tcp/h:p``); raises if it cannot be secured."""
+        """The link to use instead of ``plain`` (``tcp/h:p`` -> ``tls/h:p``,
+        ``quic/h:p`` as it is); raises if it cannot be secured (``udp/``)."""
         ...
 
     def configure(self, config: zenoh.Config) -> None:
-        """Make a (connecting) session's config authenticate itself and its peer."""
+        """Make a (connecting) session's config authenticate itself and its peer
+        (Zenoh's ``transport/link/tls/...`` keys, which TLS and QUIC links share)."""
         ...
 
     def check_peer(self, session: zenoh.Session, peer: Endpoint) -> None:
