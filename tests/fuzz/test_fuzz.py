@@ -17,6 +17,9 @@ sys.path.insert(0, str(FUZZ))
 
 import targets  # noqa: E402  (fuzz/ is no package: it is on sys.path above)
 
+# Fuzzed literals are odd on purpose ("Parsing weird boolean ...").
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning:rdflib.term")
+
 NAMES = targets.names()
 #: Bounds on the committed corpus of one target, so the repository stays small.
 MAX_FILES, MAX_BYTES = 300, 1_000_000
