@@ -42,6 +42,14 @@ process keep stock behaviour), by :class:`ContextHooks`:
   on_reply / on_give_up) sets each retransmission timeout instead of
   aiocoap's ``uniform(ACK_TIMEOUT, ACK_TIMEOUT*1.5)`` doubling.
 
+One fix is made on a class, once, at import, because the state it bounds
+is the class's: aiocoap's ``OptionNumber`` caches a new member for every
+unknown option number it decodes, in the enum's own value map, for the
+life of the process.  Any datagram can name a new one (option deltas add
+up past 65,535), so a stranger's garbage grew every robot's memory by
+megabytes, for good.  :func:`_uncached_option_number` makes the same
+member without keeping it; option numbers compare as integers, as before.
+
 The call graph the CON hooks rely on (checked against aiocoap 0.4.17's
 ``messagemanager.py``): ``_send_initially`` calls ``_add_exchange`` just
 before a CON's first transmission (after any NSTART backlog wait);
@@ -64,7 +72,9 @@ import aiocoap
 import aiocoap.meta
 from aiocoap.blockwise import Block1Spool, Block2Cache, ContinueException, IncompleteException, _extract_block_key
 from aiocoap.messagemanager import MessageManager
+from aiocoap.numbers.optionnumbers import OptionNumber
 from aiocoap.numbers.types import CON
+from aiocoap.util import ExtensibleIntEnum
 
 from ...errors import CoapkbError
 from ..base import TrafficCounters
@@ -159,6 +169,19 @@ def check_methods(checks: Mapping[tuple[type, str], tuple[str, ...]]) -> None:
         found = tuple(inspect.signature(method).parameters)[1:]
         if found != params:
             raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
+
+
+def _uncached_option_number(cls: type[OptionNumber], value: int) -> OptionNumber:
+    """``ExtensibleIntEnum._missing_`` without adding the value to the enum's map."""
+    member = int.__new__(cls, value)
+    member._value_ = value
+    return member
+
+
+def _install_uncached_option_numbers() -> None:
+    if "_value2member_map_[value] = new_member" not in inspect.getsource(ExtensibleIntEnum._missing_):
+        raise UnsupportedAiocoapVersion("aiocoap's ExtensibleIntEnum no longer caches unknown members as 0.4.17 did")
+    OptionNumber._missing_ = classmethod(_uncached_option_number)  # type: ignore[assignment]
 
 
 def verify() -> None:
@@ -559,3 +582,6 @@ class ContextHooks:
             if expiry > now:
                 break
             self._finished.popitem(last=False)
+
+
+_install_uncached_option_numbers()
