@@ -43,12 +43,13 @@ process keep stock behaviour), by :class:`ContextHooks`:
   aiocoap's ``uniform(ACK_TIMEOUT, ACK_TIMEOUT*1.5)`` doubling.
 
 One fix is made on a class, once, at import, because the state it bounds
-is the class's: aiocoap's ``OptionNumber`` caches a new member for every
-unknown option number it decodes, in the enum's own value map, for the
-life of the process.  Any datagram can name a new one (option deltas add
-up past 65,535), so a stranger's garbage grew every robot's memory by
-megabytes, for good.  :func:`_uncached_option_number` makes the same
-member without keeping it; option numbers compare as integers, as before.
+is the class's: aiocoap's extensible enums (option numbers, content
+formats, codes) cache a new member for every unknown value they decode, in
+the enum's own value map, for the life of the process.  Any datagram can
+name new ones (option deltas add up past 65,535; a Content-Format or
+Accept option holds up to four bytes), so a stranger's garbage grew every
+robot's memory by megabytes, for good.  :func:`_uncached_member` makes
+the same member without keeping it; they compare as integers, as before.
 
 The call graph the CON hooks rely on (checked against aiocoap 0.4.17's
 ``messagemanager.py``): ``_send_initially`` calls ``_add_exchange`` just
@@ -72,7 +73,6 @@ import aiocoap
 import aiocoap.meta
 from aiocoap.blockwise import Block1Spool, Block2Cache, ContinueException, IncompleteException, _extract_block_key
 from aiocoap.messagemanager import MessageManager
-from aiocoap.numbers.optionnumbers import OptionNumber
 from aiocoap.numbers.types import CON
 from aiocoap.util import ExtensibleIntEnum
 
@@ -171,17 +171,17 @@ def check_methods(checks: Mapping[tuple[type, str], tuple[str, ...]]) -> None:
             raise UnsupportedAiocoapVersion(f"aiocoap {owner.__name__}.{name}{found} differs from {params}")
 
 
-def _uncached_option_number(cls: type[OptionNumber], value: int) -> OptionNumber:
+def _uncached_member(cls: type[ExtensibleIntEnum], value: int) -> ExtensibleIntEnum:
     """``ExtensibleIntEnum._missing_`` without adding the value to the enum's map."""
     member = int.__new__(cls, value)
     member._value_ = value
     return member
 
 
-def _install_uncached_option_numbers() -> None:
+def _install_uncached_members() -> None:
     if "_value2member_map_[value] = new_member" not in inspect.getsource(ExtensibleIntEnum._missing_):
         raise UnsupportedAiocoapVersion("aiocoap's ExtensibleIntEnum no longer caches unknown members as 0.4.17 did")
-    OptionNumber._missing_ = classmethod(_uncached_option_number)  # type: ignore[assignment]
+    ExtensibleIntEnum._missing_ = classmethod(_uncached_member)  # type: ignore[assignment]
 
 
 def verify() -> None:
@@ -584,4 +584,4 @@ class ContextHooks:
             self._finished.popitem(last=False)
 
 
-_install_uncached_option_numbers()
+_install_uncached_members()

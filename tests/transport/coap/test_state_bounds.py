@@ -220,21 +220,24 @@ async def test_an_idle_server_forgets_aged_block_transfers_and_trims_its_heap(mo
         await server.aclose()
 
 
-async def test_unknown_option_numbers_leave_nothing_behind() -> None:
-    """aiocoap kept a member of its OptionNumber enum for every unknown number
-    a datagram named, for good; a stranger's garbage grew the process."""
+async def test_unknown_option_numbers_and_content_formats_leave_nothing_behind() -> None:
+    """aiocoap kept a member of its enums for every unknown option number or
+    content format a datagram named, for good; a stranger's garbage grew the process."""
+    from aiocoap.numbers.contentformat import ContentFormat
     from aiocoap.numbers.optionnumbers import OptionNumber
 
     ctx, port = await _server_context()
     try:
-        known = len(OptionNumber._value2member_map_)
+        known = len(OptionNumber._value2member_map_), len(ContentFormat._value2member_map_)
         for n in range(200):
-            # a NON GET with one elective option of a number nobody registered (2000 + 2n: even = elective)
-            number = 2000 + 2 * n
-            delta = number - 269
-            datagram = bytes([0x50, 0x01]) + struct.pack("!H", n) + bytes([0xE1]) + struct.pack("!H", delta) + b"x"
-            await _received(ctx, port, datagram)
-        assert len(OptionNumber._value2member_map_) == known
+            # a NON GET with one elective option of a number nobody registered
+            # (2000 + 2n: even = elective), and an Accept (17) of a format nobody registered
+            delta = 2000 + 2 * n - 269
+            datagram = (bytes([0x50, 0x01]) + struct.pack("!H", n) + bytes([0xD2, 17 - 13]) + struct.pack("!H", 30000 + n)
+                        + bytes([0xE1]) + struct.pack("!H", delta - 17) + b"x")
+            message = await _received(ctx, port, datagram)
+            assert message.opt.accept == 30000 + n
+        assert (len(OptionNumber._value2member_map_), len(ContentFormat._value2member_map_)) == known
         assert OptionNumber(2000) == 2000 and OptionNumber(11) is OptionNumber.URI_PATH
     finally:
         await ctx.shutdown()
