@@ -96,6 +96,7 @@ import json
 import logging
 import os
 import socket
+import threading
 import time
 from collections.abc import AsyncIterator, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
@@ -203,14 +204,37 @@ def _bytes(z: zenoh.ZBytes | None) -> bytes | None:
 
 
 def _close(session: zenoh.Session) -> None:
-    """Close ``session`` (blocking: on an executor thread).  Over QUIC links
-    (``zenoh+quic``, ``zenoh+udp``) Zenoh 1.10 now and then waits its whole
-    close timeout (10 s) for a link whose peer has just gone, then reports
-    "close operation timed out": the session is gone all the same."""
+    """Close ``session`` (blocking: not on the loop).  A client session whose
+    peer has gone waits for its reconnect attempt; over QUIC links
+    (``zenoh+quic``, ``zenoh+udp``) that lasts the open timeout (10 s) and
+    Zenoh may report "close operation timed out": the session is gone all the same."""
     try:
         session.close()
     except zenoh.ZError as exc:
         log.debug("closing a zenoh session: %s", str(exc).split(" at ", 1)[0])
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():  # cancelled by a waiter's timeout
+        future.set_result(None)
+
+
+def _close_in_thread(session: zenoh.Session) -> asyncio.Future[None]:
+    """Close a client session on a daemon thread of its own; the future is
+    done when it is closed.  A client session that lost its peer is retrying
+    the connection, and its close waits for that attempt: at once over TCP
+    (refused), but over QUIC only at the open timeout (10 s), which would hold
+    up an executor thread, and a process's exit (it joins executor threads,
+    not daemon ones)."""
+    loop = asyncio.get_running_loop()
+    closed: asyncio.Future[None] = loop.create_future()
+
+    def run() -> None:
+        _close(session)
+        _post(loop, _resolve, closed)
+
+    threading.Thread(target=run, name="zenoh close", daemon=True).start()
+    return closed
 
 
 def _post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: Any) -> None:
@@ -527,6 +551,8 @@ class _Publication:
 
 #: How much later than the caller's deadline Zenoh times a query out itself.
 _ZENOH_TIMEOUT_MARGIN_S = 0.5
+#: How long a closing client waits for its sessions' goodbyes.
+_CLOSE_WAIT_S = 2.0
 #: Connection attempts of one client session, and the first back-off between them.
 OPEN_ATTEMPTS = 3
 OPEN_BACKOFF_S = 0.5
@@ -583,8 +609,6 @@ class ZenohClientTransport:
         # Threads start on first use, from the loop's thread: see the module doc.
         self._executor = ThreadPoolExecutor(max_workers=4, thread_name_prefix="zenoh client")
         self._sessions: dict[Endpoint, asyncio.Future[zenoh.Session]] = {}
-        #: Sessions being closed in the background (their peer went away).
-        self._closing: set[asyncio.Future[None]] = set()
         #: Names this client's notification keys: ``coapkb-obs/<id>/<n>``.
         self._id = os.urandom(6).hex()
         self._tokens = itertools.count()
@@ -763,9 +787,7 @@ class ZenohClientTransport:
             if opening.result() is session:
                 del self._sessions[peer]
         if not session.is_closed():
-            closing = asyncio.get_running_loop().run_in_executor(self._executor, _close, session)
-            self._closing.add(closing)
-            closing.add_done_callback(self._closing.discard)
+            _close_in_thread(session)  # not awaited: the peer is gone, nobody waits for its goodbye
 
     # ------------------------------------------------------------------ API
 
@@ -858,13 +880,14 @@ class ZenohClientTransport:
         if self._closed:
             return
         self._closed = True
-        loop = asyncio.get_running_loop()
         sessions = []
         for opening in self._sessions.values():
             with contextlib.suppress(Exception):
                 sessions.append(await opening)
         self._sessions.clear()
-        # At once: a QUIC session to a peer that is gone may take Zenoh's close timeout.
-        await asyncio.gather(*(loop.run_in_executor(self._executor, _close, session) for session in sessions))
-        await asyncio.gather(*self._closing, return_exceptions=True)
+        closing = [_close_in_thread(session) for session in sessions if not session.is_closed()]
+        if closing:
+            # Live peers are told goodbye within milliseconds; a session still
+            # retrying a peer that left is not waited for (_close_in_thread).
+            await asyncio.wait(closing, timeout=_CLOSE_WAIT_S)
         self._executor.shutdown(wait=False)
