@@ -2,7 +2,8 @@
 
 Robots are real OS processes on loopback.  The transports carry the very same
 messages, so who gets which task must not depend on which one carries them:
-Zenoh against CoAP and ZeroMQ, distributed and centralised.
+Zenoh (over TCP, QUIC and its reliable UDP) against CoAP and ZeroMQ,
+distributed and centralised.
 """
 
 from __future__ import annotations
@@ -35,19 +36,26 @@ def outcome(record: TeamRecord) -> list[tuple[str, str | None, bool]]:
     return [(t.object, t.assigned_to, t.skipped) for t in record.tasks]
 
 
+#: Zenoh over TCP (mutual TLS), over QUIC (mutual TLS) and its reliable UDP (plain).
+ZENOH_LINKS = ("zenoh", "zenoh+quic", "zenoh+udp")
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["distributed", "central"])
 async def test_zenoh_assigns_as_coap_and_zmq(mode: str) -> None:
     records = {
         transport: await run(TeamSpec(robots=3, mode=mode, transport=transport, query_timeout_s=5.0, task_timeout_s=30.0))
-        for transport in ("coap", "zmq", "zenoh")
+        for transport in ("coap", "zmq", *ZENOH_LINKS)
     }
     outcomes = {transport: outcome(record) for transport, record in records.items()}
-    assert outcomes["zenoh"] == outcomes["coap"] == outcomes["zmq"]
+    for transport in ("zmq", *ZENOH_LINKS):
+        assert outcomes[transport] == outcomes["coap"], transport
     assert sum(winner is not None for _, winner, _ in outcomes["zenoh"]) == len(TASKS) - 1
-    zenoh = records["zenoh"]
-    assert zenoh.transport == "zenoh"
-    for robot_id, stats in zenoh.robot_stats.items():
-        assert stats.queries.failed == 0, robot_id
-        assert stats.server is not None and stats.server.bytes_sent > 0 and stats.server.messages_received > 0
-        assert stats.queries.remote > 0, robot_id
-    assert zenoh.feeder_traffic.bytes_sent > 0
+    for transport in ZENOH_LINKS:
+        zenoh = records[transport]
+        assert zenoh.transport == transport
+        for robot_id, stats in zenoh.robot_stats.items():
+            assert stats.queries.failed == 0, (transport, robot_id)
+            assert stats.server is not None and stats.server.bytes_sent > 0 and stats.server.messages_received > 0
+            assert stats.queries.remote > 0, (transport, robot_id)
+        assert zenoh.feeder_traffic.bytes_sent > 0, transport

@@ -56,9 +56,9 @@ def _client_security(transport: str, identity, expected: dict[str, str]):
     return ZenohClientSecurity(identity)
 
 
-@pytest.mark.parametrize("transport", ["coap", "zmq", "zenoh"])
+@pytest.mark.parametrize("transport", ["coap", "zmq", "zenoh", "zenoh+quic"])
 async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
-    """OSCORE/EDHOC over CoAP, CurveZMQ over ZeroMQ, mTLS over Zenoh: a plain
+    """OSCORE/EDHOC over CoAP, CurveZMQ over ZeroMQ, mTLS over Zenoh (TCP and QUIC): a plain
     client gets 4.01 (CoAP) or no connection at all (ZeroMQ, Zenoh), a robot
     posting a task 4.03 (over Zenoh no answer: its access control drops it)."""
     spec = TeamSpec(robots=3, query_timeout_s=5.0, transport=transport)
@@ -81,7 +81,7 @@ async def test_a_secure_team_runs_and_keeps_others_out(transport: str) -> None:
                     else:
                         with pytest.raises(PeerUnreachable):
                             await plain.request(endpoint, task, timeout=1.5)
-                    if transport == "zenoh":  # Zenoh's access control drops it: only the feeder's certificate
+                    if transport in ("zenoh", "zenoh+quic"):  # Zenoh's ACL drops it: only the feeder's certificate
                         with pytest.raises(PeerUnreachable, match="access control"):
                             await robot2.request(endpoint, task, timeout=5)
                     else:
