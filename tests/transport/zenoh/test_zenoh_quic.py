@@ -29,7 +29,7 @@ from coapkb.transport.messages import ContentFormat, Method, Request, Response, 
 from coapkb.transport.zenoh.mapping import locator
 from coapkb.transport.zenoh.transport import ZenohClientTransport, ZenohOptions, ZenohServerTransport
 
-from support import free_udp_port
+from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 #: The two links this file is about; both listen on UDP.
 LINKS = ("zenoh+quic", "zenoh+udp")
@@ -287,3 +287,34 @@ async def test_garbage_datagrams_leave_the_server_answering(scheme: str) -> None
                 new = await fresh.request(server.endpoint, Request(Method.GET, "/counter"), timeout=5)
     assert again.status == new.status == Status.CONTENT
     assert server.malformed == 0  # QUIC dropped it all below coapkb
+
+
+# =========================================================================== from the command line
+
+
+@pytest.mark.slow
+async def test_serve_and_query_over_quic_from_the_command_line(team: Path) -> None:
+    """``coapkb serve/query --transport zenoh+quic`` with and without the team's
+    keys; a dead peer and a secured zenoh+udp are one line each, no traceback."""
+    kbs = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
+    for credentials in (["--credentials", str(team)], []):
+        server = await ServerProcess.start("--kb", *kbs, "--bind", f"127.0.0.1:{free_udp_port()}",
+                                           "--transport", "zenoh+quic", *credentials)
+        try:
+            uri = f"{server.uri}/kb/q/object-exists?name=Gucci_bag_14"
+            assert uri.startswith("zenoh+quic://")
+            code, out, err = await coapkb("query", uri, *credentials, "--format", "json")
+            assert code == 0 and "Gucci_bag_14" in out, err
+            if credentials:  # a stranger (no keys: the anonymous QUIC trust) never gets a session
+                code, out, err = await coapkb("query", uri, "--timeout", "3")
+                assert code != 0 and "Traceback" not in err and "cannot reach" in err, err
+        finally:
+            await server.stop()
+    dead = f"zenoh+quic://127.0.0.1:{free_udp_port()}/kb/q/object-exists?name=Gucci_bag_14"
+    code, out, err = await coapkb("query", dead, "--timeout", "2")
+    assert code != 0 and "Traceback" not in err, err
+    assert err.splitlines() == [f"coapkb: no answer from {dead.split('/kb')[0]} within 2s"]
+    code, out, err = await coapkb("serve", "--kb", *kbs, "--bind", f"127.0.0.1:{free_udp_port()}",
+                                  "--transport", "zenoh+udp", "--credentials", str(team))
+    assert code != 0 and "Traceback" not in err
+    assert "zenoh+udp transport cannot be secured: it is Zenoh's reliable UDP" in err, err
