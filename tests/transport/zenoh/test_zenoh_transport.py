@@ -332,20 +332,19 @@ async def test_serve_factory_picks_zenoh(service) -> None:
 
 async def test_observe_again_after_the_peer_restarts(service, client) -> None:
     """The first observation's session lost its peer; the next observation
-    reaches the restarted peer at once (on a fresh session, without waiting
-    for Zenoh's own reconnect)."""
+    reaches the restarted peer at once: on a fresh session, or on the old
+    one when Zenoh's own reconnect got there first (a race the test does
+    not decide, so it does not check which)."""
     srv = await ZenohServerTransport.start(service, LOCAL)
     peer = srv.endpoint
     updates = client.observe(peer, Request(Method.GET, "/counter"))
     assert (await anext(updates)).payload == b"0"
-    first_session = client._sessions[peer]
     await updates.aclose()
     await srv.aclose()
     service.bump()
     async with await ZenohServerTransport.start(service, peer):
         again = client.observe(peer, Request(Method.GET, "/counter"), timeout=5)
         assert (await anext(again)).payload == b"1"
-        assert client._sessions[peer] is not first_session  # a fresh session, not Zenoh's reconnect
         service.bump()
         assert (await anext(again)).payload == b"2"
         await again.aclose()
