@@ -297,7 +297,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
     paper = sweep.plan(sweep.PROFILES["paper"])
-    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 2) * 3  # 3 reps, no zenoh-udp pair
+    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 4) * 3  # 3 reps, no zenoh-udp or -quic pair
     # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
     short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0) for r, t in ((3, 5), (3, 80)))
     assert (sweep.units(short), sweep.units(long)) == (6, 81)
