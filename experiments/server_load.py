@@ -189,6 +189,26 @@ class BlockwiseOutcome:
     seconds: float = 0.0
 
 
+async def checked_fetch(ctx: aiocoap.Context, uri: str, text: str, kb: KnowledgeBase,
+                        expected: dict[str, object], timeout: float = 60) -> tuple[str, int]:
+    """One plain aiocoap FETCH of ``text`` (JSON answer), checked against the
+    KB: ("answered" | "wrong" | "refused" (4.08) | "failed", answer bytes)."""
+    msg = aiocoap.Message(code=aiocoap.FETCH, uri=f"{uri}/kb/sparql", payload=text.encode(),
+                          content_format=0, accept=JSON)
+    try:
+        answer = await asyncio.wait_for(ctx.request(msg).response, timeout)
+    except (aiocoap.error.Error, TimeoutError):
+        return "failed", 0
+    if answer.code == aiocoap.REQUEST_ENTITY_INCOMPLETE:
+        return "refused", 0
+    if answer.code != aiocoap.CONTENT:
+        return "failed", 0
+    if text not in expected:
+        expected[text] = kb.query(text)
+    right = codec.decode_json(answer.payload) == expected[text]
+    return ("answered" if right else "wrong"), len(answer.payload)
+
+
 async def blockwise(uri: str, kb: KnowledgeBase, clients: int, queries: int) -> BlockwiseOutcome:
     """Plain aiocoap FETCHes (follow-ups without the body), each answer checked."""
     outcome = BlockwiseOutcome()
@@ -198,25 +218,10 @@ async def blockwise(uri: str, kb: KnowledgeBase, clients: int, queries: int) -> 
         ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
         try:
             for k in range(queries):
-                text = bw_query(n * queries + k)
-                msg = aiocoap.Message(code=aiocoap.FETCH, uri=f"{uri}/kb/sparql", payload=text.encode(),
-                                      content_format=0, accept=JSON)
-                try:
-                    answer = await asyncio.wait_for(ctx.request(msg).response, 60)
-                except (aiocoap.error.Error, TimeoutError):
-                    outcome.failed += 1
-                    continue
-                if answer.code == aiocoap.REQUEST_ENTITY_INCOMPLETE:
-                    outcome.refused += 1
-                elif answer.code != aiocoap.CONTENT:
-                    outcome.failed += 1
-                else:
-                    if text not in expected:
-                        expected[text] = kb.query(text)
-                    right = codec.decode_json(answer.payload) == expected[text]
-                    outcome.answered += right
-                    outcome.wrong += not right
-                    outcome.blocks.append(-(-len(answer.payload) // 1024))
+                fate, size = await checked_fetch(ctx, uri, bw_query(n * queries + k), kb, expected)
+                setattr(outcome, fate, getattr(outcome, fate) + 1)
+                if size:
+                    outcome.blocks.append(-(-size // 1024))
         finally:
             await ctx.shutdown()
 
