@@ -5,6 +5,7 @@ and the run ends by itself with every task's fate recorded exactly once."""
 from __future__ import annotations
 
 import asyncio
+import logging
 
 import pytest
 
@@ -17,6 +18,8 @@ from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
 
 from support import ROOT
+
+log = logging.getLogger(__name__)
 
 ONTOLOGIES = ROOT / "ontologies"
 VICTIM = "Robot2"
@@ -258,20 +261,29 @@ async def test_a_robot_back_before_its_teammates_noticed_is_fed_again(transport:
     and feeds it again: before, they waited for its plans after tasks it was
     never given and recorded an error for every later task."""
     tasks, spec = _pause_case(transport)
-    async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
-        async with Team.launch(spec) as team:
-            stopped, resumed = asyncio.Event(), asyncio.Event()
+    # The case needs the feeder to find Robot2 down before its teammates
+    # do (two of their requests failing).  On a loaded machine they may
+    # win that race, which is another case (test_a_stopped_robot_comes_back_fenced):
+    # the run is then made again, up to three times.
+    for attempt in range(3):
+        async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
+            async with Team.launch(spec) as team:
+                stopped, resumed = asyncio.Event(), asyncio.Event()
 
-            def progress(record: TaskRecord) -> None:
-                if record.seq == 2 and not stopped.is_set():
-                    team.pause(VICTIM)
-                    stopped.set()
-                elif stopped.is_set() and not resumed.is_set() and VICTIM in record.absent:
-                    team.pause(VICTIM, stop=False)
-                    resumed.set()
+                def progress(record: TaskRecord) -> None:
+                    if record.seq == 2 and not stopped.is_set():
+                        team.pause(VICTIM)
+                        stopped.set()
+                    elif stopped.is_set() and not resumed.is_set() and VICTIM in record.absent:
+                        team.pause(VICTIM, stop=False)
+                        resumed.set()
 
-            record = await team.run(tasks, progress)
-    assert stopped.is_set() and resumed.is_set(), [t.absent for t in record.tasks]
+                record = await team.run(tasks, progress)
+        assert stopped.is_set() and resumed.is_set(), [t.absent for t in record.tasks]
+        if VICTIM not in record.down:
+            break
+        log.warning("attempt %d: the teammates found %s down before the feeder did: %s",
+                    attempt + 1, VICTIM, record.down)
     assert VICTIM not in record.down, record.down
     check_fates(record, tasks, spec, fates=("assigned", "skipped"), new_epoch=False)
     assert all(VICTIM in t.members for t in record.tasks), [t.members for t in record.tasks]
