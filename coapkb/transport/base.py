@@ -122,12 +122,16 @@ class Endpoint:
         if scheme not in SCHEMES:
             raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in SCHEMES)})")
         rest = rest.split("/", 1)[0]
-        if rest.startswith("["):  # [IPv6]:port
+        bracketed = rest.startswith("[")
+        if bracketed:  # [IPv6]:port
             host, _, port = rest[1:].partition("]:")
         else:
             host, _, port = rest.rpartition(":")
-        if not host or not port.isdigit() or not 0 <= int(port) < 65536:
+        if not host or not (port.isascii() and port.isdigit()) or not 0 <= int(port) < 65536:
             raise ValueError(f"expected HOST:PORT in {uri!r}")
+        # A host str() could not write back (brackets in it, or a colon outside them).
+        if "[" in host or "]" in host or ":" in host and not bracketed:
+            raise ValueError(f"expected HOST:PORT in {uri!r} (an IPv6 address in brackets: [::1]:5683)")
         return cls(scheme, host, int(port))
 
     @property

@@ -20,6 +20,21 @@ def test_every_registered_scheme_is_an_endpoint_scheme() -> None:
         Endpoint.parse("carrier-pigeon://127.0.0.1:1")
 
 
+@pytest.mark.parametrize("uri", ["coap://127.0.0.1:5683", "zmq://[::1]:5555", "zenoh://robot-1.local:7447", "h:1"])
+def test_an_endpoint_is_written_back_as_it_was_read(uri: str) -> None:
+    endpoint = Endpoint.parse(uri)
+    assert Endpoint.parse(str(endpoint)) == endpoint
+
+
+#: Found by fuzzing the configuration: hosts that parsed, but whose str()
+#: did not (a config written with dump_config could not be loaded again).
+@pytest.mark.parametrize("uri", ["coap://[1:7=.0.0[::1]:5683.1]:5723", "coap://::1:5683", "coap://a]b:1",
+                                 "coap://[::1]]:1", "coap://h:\u00b2"])
+def test_a_host_str_could_not_write_back_is_refused(uri: str) -> None:
+    with pytest.raises(ValueError, match="expected HOST:PORT"):
+        Endpoint.parse(uri)
+
+
 def test_lookups() -> None:
     assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic")
     assert transport_for("tcp") is transport_for("zmq") is find("zmq")
