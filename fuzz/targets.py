@@ -416,6 +416,8 @@ async def _discovery(flags: int, payload: bytes) -> None:
                 Request(Method.GET, EP_LOOKUP_PATH, {"d": "c1"}),
                 Request(Method.GET, RES_LOOKUP_PATH, {"rt": "coapkb.kb"}),
                 Request(Method.GET, RES_LOOKUP_PATH, {}),
+                Request(Method.GET, RES_LOOKUP_PATH, {"kb": "Obj*", "obs": "x*", "if": "y*"}),  # wildcards
+                Request(Method.GET, EP_LOOKUP_PATH, {"base": "coap*", "rt": "z*"}),
             ):
                 response = await _handle(service.router, request)
                 assert response.status != Status.INTERNAL_SERVER_ERROR, response

@@ -115,6 +115,12 @@ class DirectoryService:
             return Response.error(Status.FORBIDDEN, f"{request.peer} may not register as {ep}")
         try:
             links = parse(request.payload.decode("utf-8"))
+            for link in links.links:
+                # aiocoap's lookups split rt and if into words: a link with
+                # none would fail every later lookup filtering on them.
+                missing = [key for key, value in link.attr_pairs if value is None and key in ("rt", "if")]
+                if missing:
+                    raise ValueError(f"{link.href}: {missing[0]} needs a value")
             lifetime = int(request.query.get("lt", MAX_LIFETIME_S))
             if not 1 <= lifetime <= MAX_LIFETIME_S:
                 raise ValueError(f"lt must be 1 to {MAX_LIFETIME_S}")
@@ -151,6 +157,10 @@ class DirectoryService:
             answer = await self._lookups[request.path].render_get(message)
         except aiocoap.error.ConstructionRenderableError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc.message))
+        except AttributeError:
+            # aiocoap matches a wildcard with str methods, and a flag
+            # attribute (obs) registered without a value has none.
+            return Response.error(Status.BAD_REQUEST, "a wildcard cannot match an attribute without a value")
         if answer.code == aiocoap.NOT_ACCEPTABLE:
             return Response.error(Status.NOT_ACCEPTABLE, "lookups answer in link-format (40)")
         return Response(Status.CONTENT, answer.payload, ContentFormat.LINK_FORMAT)

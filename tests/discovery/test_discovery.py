@@ -16,7 +16,7 @@ from aiocoap.util.linkformat import parse
 from coapkb.config import ConfigError, DiscoveryConfig, RobotConfig, Teammate, dump_config, load_config, parse_config
 from coapkb.discovery import DiscoveryError, ResourceDirectory, discover
 from coapkb.discovery.client import DirectoryClient, registration_links
-from coapkb.discovery.directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH
+from coapkb.discovery.directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH, DirectoryService
 from coapkb.harness.team import Team, TeamSpec, draw_tasks
 from coapkb.security import generate_team, load_identity
 from coapkb.security.coap import ClientSecurity
@@ -213,6 +213,26 @@ class _Answers:
 #: Found by fuzzing: aiocoap's link-format parser raised its own
 #: ParseException through the lookups, a traceback at a robot's start.
 NOT_LINK_FORMAT = b'<coap://127.0.0.1:5721/kb>;rt=;kb="Object"'
+
+
+async def test_links_without_a_value_cannot_break_the_lookups() -> None:
+    # Found by fuzzing: a registration of </kb>;rt made aiocoap's resource
+    # lookup raise on every later ?rt= filter (a 5.00 for the whole team),
+    # and a wildcard on a flag attribute (obs) raised as well.
+    service = DirectoryService(authenticated=False)
+    try:
+        bad = replace(registration("Robot2", 5702), payload=b'<coap://h:5>;rt;kb="Obj"')
+        answer = await service.router.handle(bad)
+        assert answer.status == Status.BAD_REQUEST and "rt needs a value" in answer.text(), answer
+        config = _robot_config("Robot1", 5701, ("Object",), Endpoint("coap", "127.0.0.1", 5690))
+        ours = replace(registration("Robot1", 5701), payload=registration_links(config).encode())
+        assert (await service.router.handle(ours)).status == Status.CREATED
+        found = await service.router.handle(Request(Method.GET, RES_LOOKUP_PATH, {"rt": "coapkb.kb"}))
+        assert found.status == Status.CONTENT and b'kb="Object"' in found.payload, found
+        wildcard = await service.router.handle(Request(Method.GET, RES_LOOKUP_PATH, {"obs": "x*"}))
+        assert wildcard.status == Status.BAD_REQUEST, wildcard
+    finally:
+        service.close()
 
 
 async def test_a_lookup_answer_that_is_not_link_format_is_a_discovery_error() -> None:
