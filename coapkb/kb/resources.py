@@ -258,7 +258,7 @@ class KBResources:
             try:
                 outcome = self.kb.query(text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s)
             except BaseException as exc:  # delivered to the awaiting request
-                outcome = exc
+                outcome = _without_frames(exc) if isinstance(exc, KBError) else exc
             try:
                 loop.call_soon_threadsafe(settle, outcome, time.thread_time() - started)
             except RuntimeError:  # the loop is closed: the robot has shut down
@@ -267,6 +267,26 @@ class KBResources:
         self.running += 1
         threading.Thread(target=work, name="sparql-query", daemon=True).start()
         return future
+
+
+def _without_frames(exc: BaseException) -> BaseException:
+    """``exc`` and the exceptions it chains, without their tracebacks.
+
+    Their frames hold the backend's result iterator, and pyoxigraph's may
+    only be dropped on the thread that made it (pyo3 "unsendable"): dropped
+    with the exception on the event loop, it is leaked with an error
+    printed, once for every query that failed or ran out of time.  A
+    KBError is the query's fault, so its traceback tells nobody anything."""
+    seen: set[int] = set()
+    pending: list[BaseException | None] = [exc]
+    while pending:
+        current = pending.pop()
+        if current is None or id(current) in seen:
+            continue
+        seen.add(id(current))
+        current.__traceback__ = None
+        pending += [current.__cause__, current.__context__]
+    return exc
 
 
 def _not_acceptable(accept: int | None) -> Response:
