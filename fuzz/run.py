@@ -70,7 +70,13 @@ def report(out: Path) -> None:
         done = re.search(r"^Done (\d+) runs in (\d+) second", text, re.M)
         executed = re.search(r"stat::number_of_executed_units: (\d+)", text)
         runs = done.group(1) if done else (executed.group(1) if executed else (status[-1][0] if status else "?"))
-        seconds = done.group(2) if done else "?"
+        rate = re.search(r"stat::average_exec_per_sec:\s+(\d+)", text)
+        if done:
+            seconds = done.group(2)
+        elif executed and rate and int(rate.group(1)):  # stopped by a crash: about how long it ran
+            seconds = f"~{int(executed.group(1)) // int(rate.group(1))}"
+        else:
+            seconds = "?"
         cov, ft = (status[-1][1], status[-1][2]) if status else ("?", "?")
         crashes = len(list(out.glob(f"{name}-crash-*"))) + len(list(out.glob(f"{name}-oom-*")))
         hangs = len(list(out.glob(f"{name}-timeout-*")))
