@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections import OrderedDict
 from typing import Awaitable, Callable
 
+from ..transport.expiring import ExpiringMap
 from ..transport.messages import Response
 
 
@@ -33,26 +33,19 @@ class AnswerCache:
 
     def __init__(self, max_entries: int = ANSWERS_KEPT, max_bytes: int = ANSWER_BYTES,
                  idle_s: float = ANSWER_IDLE_S, clock: Callable[[], float] = time.monotonic) -> None:
-        self.max_entries = max_entries
-        self.max_bytes = max_bytes
-        self.idle_s = idle_s
-        self._clock = clock
-        #: key -> (answer, last use), least recently used first.
-        self._answers: OrderedDict[bytes, tuple[Response, float]] = OrderedDict()
-        self._bytes = 0
+        #: key -> answer, least recently used out first.
+        self._answers: ExpiringMap[bytes, Response] = ExpiringMap(
+            idle_s, max_entries, max_bytes, lambda answer: len(answer.payload), clock)
         self._running: dict[bytes, asyncio.Future[Response]] = {}
         self.hits = 0
         self.joined = 0
         self.misses = 0
 
     async def get_or_compute(self, key: bytes, compute: Callable[[], Awaitable[Response]]) -> Response:
-        now = self._purge()
         kept = self._answers.get(key)
         if kept is not None:
-            self._answers[key] = (kept[0], now)
-            self._answers.move_to_end(key)
             self.hits += 1
-            return kept[0]
+            return kept
         running = self._running.get(key)
         if running is not None:
             self.joined += 1
@@ -70,26 +63,6 @@ class AnswerCache:
             del self._running[key]
         if not future.done():
             future.set_result(answer)
-        if answer.status.is_success:
-            self._store(key, answer)
+        if answer.status.is_success and key not in self._answers:
+            self._answers[key] = answer  # (one larger than max_bytes is not kept)
         return answer
-
-    def _store(self, key: bytes, answer: Response) -> None:
-        size = len(answer.payload)
-        if size > self.max_bytes or key in self._answers:
-            return
-        self._answers[key] = (answer, self._clock())
-        self._bytes += size
-        while len(self._answers) > self.max_entries or self._bytes > self.max_bytes:
-            self._drop_oldest()
-
-    def _purge(self) -> float:
-        """Drop the answers unused for ``idle_s``; returns the clock's time."""
-        now = self._clock()
-        while self._answers and next(iter(self._answers.values()))[1] <= now - self.idle_s:
-            self._drop_oldest()
-        return now
-
-    def _drop_oldest(self) -> None:
-        _, (old, _) = self._answers.popitem(last=False)
-        self._bytes -= len(old.payload)

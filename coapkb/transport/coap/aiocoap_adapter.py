@@ -92,6 +92,7 @@ __all__ = [
     "Block2Cache",
     "ContinueException",
     "IncompleteException",
+    "MESSAGE_OVERHEAD",
 ]
 
 log = logging.getLogger(__name__)
@@ -127,11 +128,12 @@ _MARKER = "_coapkb_hooks"
 DUPLICATES_REMEMBERED = 4096
 DUPLICATE_HORIZON_S = 60.0
 #: ... and while what they keep stays under this many bytes: the answers to
-#: send again, and what a request's entry costs by itself
-#: (``DUPLICATE_ENTRY_BYTES``, measured roughly: the key, the answer's
-#: object and options).  4,096 block-wise answers would be 10 MiB and more.
+#: send again, and what each entry costs by itself (``MESSAGE_OVERHEAD``).
+#: 4,096 block-wise answers would be 10 MiB and more.
 DUPLICATE_ANSWER_BYTES = 1024 * 1024
-DUPLICATE_ENTRY_BYTES = 512
+#: What a kept message costs beyond its payload (its object, options and
+#: key), roughly: the unit of every byte bound on kept messages.
+MESSAGE_OVERHEAD = 512
 
 
 class _DuplicateMemory(dict):  # type: ignore[type-arg]
@@ -143,7 +145,7 @@ class _DuplicateMemory(dict):  # type: ignore[type-arg]
     def __setitem__(self, key: Any, answer: aiocoap.Message | None) -> None:
         if key in self:
             self._forget(self[key])
-        self.answer_bytes += DUPLICATE_ENTRY_BYTES + (0 if answer is None else len(answer.payload))
+        self.answer_bytes += MESSAGE_OVERHEAD + (0 if answer is None else len(answer.payload))
         super().__setitem__(key, answer)
 
     def pop(self, key: Any, *default: Any) -> Any:
@@ -152,7 +154,7 @@ class _DuplicateMemory(dict):  # type: ignore[type-arg]
         return super().pop(key, *default)
 
     def _forget(self, answer: aiocoap.Message | None) -> None:
-        self.answer_bytes -= DUPLICATE_ENTRY_BYTES + (0 if answer is None else len(answer.payload))
+        self.answer_bytes -= MESSAGE_OVERHEAD + (0 if answer is None else len(answer.payload))
 
 
 class UnsupportedAiocoapVersion(CoapkbError, RuntimeError):

@@ -31,8 +31,8 @@ How :class:`BodyAwareBlock2Cache` matches a follow-up to its answer:
    concurrent body-less transfers from one endpoint make rule 3 pick the
    newer one.
 
-Both kinds of state are bounded (:class:`~.expiring.ExpiringMap`): a server
-shares one spool and one cache among its resources, each holding at most
+Both kinds of state are bounded (:class:`~coapkb.transport.expiring.ExpiringMap`):
+a server shares one spool and one cache among its resources, each holding at most
 the bytes and entries below, and none unused for ``TRANSFER_IDLE_S``.  A
 flood of large answers therefore costs a few MiB for a minute and a half,
 not memory that grows with the flood (docs/flood.md); a follow-up whose
@@ -52,9 +52,9 @@ from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 
 from .aiocoap_adapter import (
-    Block1Spool, Block2Cache, ContinueException, IncompleteException, block_key, extract_block,
+    MESSAGE_OVERHEAD, Block1Spool, Block2Cache, ContinueException, IncompleteException, block_key, extract_block,
 )
-from .expiring import ExpiringMap
+from ..expiring import ExpiringMap
 
 #: A block transfer unused this long is forgotten: a CON block request is
 #: retried for at most MAX_TRANSMIT_WAIT (93 s with RFC 7252's defaults).
@@ -68,8 +68,6 @@ BLOCK2_KEYS = 1024
 #: text is a few kB at most.
 BLOCK1_BYTES = 1024 * 1024
 BLOCK1_ASSEMBLIES = 256
-#: What a kept message costs beyond its payload (object, options), roughly.
-MESSAGE_OVERHEAD = 512
 
 
 class GapSafeBlock1Spool(Block1Spool):

@@ -15,7 +15,7 @@ from aiocoap.optiontypes import BlockOption
 from coapkb.transport.coap import aiocoap_adapter, blockwise
 from coapkb.transport.coap.aiocoap_adapter import ContextHooks, ContinueException, IncompleteException
 from coapkb.transport.coap.blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
-from coapkb.transport.coap.expiring import ExpiringMap
+from coapkb.transport.expiring import ExpiringMap
 
 
 class Clock:
@@ -144,7 +144,7 @@ async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes(monkeypatch) 
             assert hooks._deduplicate_message(req) is False
             recent[(req.remote, req.mid)] = aiocoap.Message(code=aiocoap.CONTENT, payload=b"x" * 1024)
         hooks.forget_duplicates()
-        assert recent.answer_bytes <= 4096 and len(recent) == 4096 // (1024 + aiocoap_adapter.DUPLICATE_ENTRY_BYTES)
+        assert recent.answer_bytes <= 4096 and len(recent) == 4096 // (1024 + aiocoap_adapter.MESSAGE_OVERHEAD)
         assert len(hooks._remembered_at) == len(recent)
     finally:
         hooks.remove()

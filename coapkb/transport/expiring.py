@@ -1,5 +1,6 @@
 """A map bounded in entries, bytes and age: the shape of every piece of state
-a stranger's datagrams can make a CoAP server keep (docs/flood.md).
+a stranger's requests can make a server keep (docs/flood.md): CoAP's
+block-wise transfers, the KB's answer cache.
 
 aiocoap keeps block-wise state in a ``TimeoutDict``: unbounded in size, and
 an entry lives up to twice its timeout.  This map evicts the least recently
