@@ -573,6 +573,7 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
     def _prune(self, now: float) -> None:
         """Make room for one more half-open session: complete sessions first
         (see ``HALF_OPEN_MAX`` and ``RESPONDER_IDENTIFIERS``)."""
+        self.sweep(now)  # the half-open sessions past their age first
         half_open: list[str] = []
         newest: dict[tuple[str, ...], str] = {}  # member's claims -> its latest complete session
         drop: list[str] = []
@@ -580,10 +581,7 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
             if not isinstance(entry, aiocoap_edhoc.EdhocResponderContext):
                 continue
             if entry._incomplete:
-                if now - self._opened.get(label, now) >= HALF_OPEN_S:
-                    drop.append(label)
-                else:
-                    half_open.append(label)
+                half_open.append(label)
                 continue
             member = tuple(entry.authenticated_claims)
             if member in newest:
