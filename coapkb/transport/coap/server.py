@@ -51,14 +51,14 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
     """One path of a :class:`Service` as an aiocoap resource."""
 
     def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any,
-                 security: CoapServerSecurity | None = None,
-                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache] | None = None) -> None:
+                 security: CoapServerSecurity | None,
+                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache]) -> None:
         super().__init__()
         #: Tells who sent a request (OSCORE/EDHOC), or None (unprotected).
         self._security = security
         # One spool and one cache per server (block keys name the path), so
         # their bounds are the server's, not multiplied by its resources.
-        self._block1, self._block2 = blocks or (GapSafeBlock1Spool(), BodyAwareBlock2Cache())
+        self._block1, self._block2 = blocks
         self.service = service
         self.info = info
         self._tuning_for = tuning_for
