@@ -199,6 +199,7 @@ def system_spec(
     replication: int = 1,
     faults: Sequence[Fault] = (),
     security: bool = True,
+    log_dir: Path | None = None,
 ) -> TeamSpec:
     """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`), with the
     team's keys protecting it where its transport can (``security``)."""
@@ -215,7 +216,7 @@ def system_spec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
         ontologies=ontologies, link_kbps=link_kbps,
         replication=replication, faults=tuple(faults),
-        security=_protected(d, security), **extra,
+        security=_protected(d, security), log_dir=log_dir, **extra,
     )
 
 
@@ -379,6 +380,12 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
     return row, record.feeder_traffic.retransmissions + robots_traffic.retransmissions
 
 
+def _run_name(row: BenchRow) -> str:
+    """A run's folder name under ``--trace``: its system, cell and repetition."""
+    return (f"{row.system}-{row.robots}r{row.tasks}t-{row.bandwidth_kbps:g}k-{row.loss_pct:g}pct"
+            f"-{row.security}-rep{row.rep}")
+
+
 async def run_once(
     system: str,
     robots: int,
@@ -397,6 +404,7 @@ async def run_once(
     replication: int = 1,
     faults: Sequence[Fault] = (),
     security: bool = True,
+    trace_dir: Path | None = None,
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -409,7 +417,9 @@ async def run_once(
     ``faults`` kill robots during the run (``coapkb bench --fail``), usually
     with ``replication`` 2 so their KB modules live on.  ``security``: the
     team's keys protect every process's messages (OSCORE, CurveZMQ), as in
-    ``coapkb team``; off only for comparison.
+    ``coapkb team``; off only for comparison.  ``trace_dir``: keep the run's
+    traces there, in a folder named after the run: each process's log at
+    INFO level and the team's record (``record.json``).
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, seed, security)
@@ -425,8 +435,10 @@ async def run_once(
         central = clusters if system in SYSTEMS and SYSTEMS[system].mode == "central" else 0
         limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / clusters), central)
         # Robots know their radio's rate, as a real radio reports it.
+        run_dir = None if trace_dir is None else trace_dir / _run_name(row)
         spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
-                           link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security)
+                           link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security,
+                           log_dir=run_dir)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
@@ -476,6 +488,8 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
     total = _sum_counters(delta)
     row, coap_retx = _with_record(row, record, row.tasks)
+    if spec.log_dir is not None:
+        (spec.log_dir / "record.json").write_text(json.dumps(record.to_dict(), indent=1) + "\n", encoding="utf-8")
     if tcp:
         retransmissions = sum(after["tcp"][h][0] - before["tcp"][h][0] for h in hosts)
         tcp_aborts: int | None = sum(after["tcp"][h][1] - before["tcp"][h][1] for h in hosts)
@@ -520,6 +534,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="no OSCORE, CurveZMQ or TLS, for comparison (default: the team's keys protect every message, "
                         "as in coapkb team)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
+    p.add_argument("--trace", metavar="DIR", type=Path,
+                   help="keep each run's process logs (INFO level) and team record in DIR/<run>/")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
 
 
@@ -555,7 +571,7 @@ async def main(args: argparse.Namespace) -> int:
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
                                  args.seed, replication=args.replication, faults=faults,
-                                 security=not args.insecure, **link)
+                                 security=not args.insecure, trace_dir=args.trace, **link)
             if args.out:
                 append_rows(args.out, [row])
             if args.json:

@@ -130,6 +130,10 @@ class TeamSpec:
     discovery: str = "static"
     #: Registration lifetime in the directory (``rd``), seconds.
     rd_lifetime_s: int = 60
+    #: Where each process's log goes, one ``NAME.log`` per process at INFO
+    #: level (``coapkb bench --trace``): the robots' own account of each task
+    #: and each wait.  None: only the last lines are kept, for errors.
+    log_dir: Path | None = None
 
     @property
     def lease_s(self) -> float:
@@ -395,6 +399,11 @@ class Team:
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
         self._argv[name] = argv
         self.placement.starting(name)
+        log_file: Path | None = None
+        if self.spec.log_dir is not None:
+            self.spec.log_dir.mkdir(parents=True, exist_ok=True)
+            log_file = self.spec.log_dir / f"{name}.log"
+            argv = ["-v", *argv]
         proc = await asyncio.create_subprocess_exec(
             *self.placement.command(name, [sys.executable, "-m", "coapkb", *argv]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
@@ -404,7 +413,7 @@ class Team:
         assert proc.stdout is not None and proc.stderr is not None
         tail: list[str] = []
         self._stderr_tails[name] = tail
-        asyncio.create_task(_drain(proc.stderr, tail), name=f"stderr-{name}")
+        asyncio.create_task(_drain(proc.stderr, tail, log_file), name=f"stderr-{name}")
         try:
             line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode().strip()
         except asyncio.TimeoutError:
@@ -629,8 +638,13 @@ class Team:
         )
 
 
-async def _drain(stream: asyncio.StreamReader, tail: list[str], keep: int = 20) -> None:
-    """Read a child's output so it never blocks on a full pipe; keep the last lines."""
-    while line := await stream.readline():
-        tail.append(line.decode(errors="replace").rstrip())
-        del tail[:-keep]
+async def _drain(stream: asyncio.StreamReader, tail: list[str], log_file: Path | None = None, keep: int = 20) -> None:
+    """Read a child's output so it never blocks on a full pipe; keep the last
+    lines, and all of them in ``log_file`` (appended: a restart continues it)."""
+    with contextlib.ExitStack() as closing:
+        out = closing.enter_context(log_file.open("ab")) if log_file is not None else None
+        while line := await stream.readline():
+            if out is not None:
+                out.write(line)
+            tail.append(line.decode(errors="replace").rstrip())
+            del tail[:-keep]

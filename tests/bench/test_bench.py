@@ -64,10 +64,15 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
 
 @pytest.mark.root
 @pytest.mark.timeout(120)
-async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain() -> None:
+async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(tmp_path: Path) -> None:
     _require_netns()
-    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False)
+    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False, trace_dir=tmp_path)
     assert plain.ok, plain.error
+    # --trace: each robot's log at INFO level and the team's record, in a folder named after the run.
+    [run] = tmp_path.iterdir()
+    assert run.name == "coap-distributed-3r2t-512k-2pct-none-rep0"
+    assert "task 2 " in (run / "Robot1.log").read_text()
+    assert len(json.loads((run / "record.json").read_text())["tasks"]) == 2
     assert plain.security == "none"
     assert plain.key() != replace(plain, security="oscore").key()
     assert bench.security_label("seed-distributed", True) == "none"  # the seed's baseline, as it ran
