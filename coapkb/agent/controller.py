@@ -3,6 +3,9 @@
 Per task "pick up X" (seed section III-D): Query_1 (does X exist? if not,
 every robot skips it), Query_2 (where is it), Query_3 (its features, how it
 is picked), Query_4 (which robots can pick it that way, their payload).
+With the compact wire Query_1 and Query_3 go to the Object KB's holder as
+one exchange (``pick-facts``), and every query projects only what the
+assigner reads; the seed's own system sends its four queries as printed.
 Then the Task Assigner runs on the teammates' planned states, observed
 through ``/robot/state``, and the winner's Task Executor gets the job.
 
@@ -271,23 +274,23 @@ class Controller:
         return self._energy
 
     async def gather(self, task: Task) -> TaskFacts | None:
-        """The four queries of the seed's workflow; None if the object does not exist."""
+        """What the task's pick needs from the KBs; None if the object does not exist."""
         params = {"name": task.object}
-        # Query_2 and Query_3 need only the name, so they go out with Query_1
-        # (the transports keep several exchanges in flight): two round trips
-        # on the critical path instead of four.  For an object that does not
-        # exist their empty answers are simply dropped.
-        exists, where, features = (
-            _first(rows, label)
-            for rows, label in zip(
-                await asyncio.gather(
-                    self.queries.run("object-exists", params),
-                    self.queries.run("object-location", params),
-                    self.queries.run("object-features", params),
-                ),
-                ("Query_1", "Query_2", "Query_3"),
+        if self.queries.wire == "seed":
+            exists, where, features = await self._seed_queries(params)
+        else:
+            # One exchange per KB holder: existence, grip and weight from the
+            # Object KB, the place from the Location KB (``pick-facts`` and
+            # ``pick-place``: the seed's Query_1-3 as the assigner uses them).
+            exists, where = (
+                _first(rows, label)
+                for rows, label in zip(
+                    await asyncio.gather(self.queries.run("pick-facts", params),
+                                         self.queries.run("pick-place", params)),
+                    ("pick-facts", "pick-place"),
+                )
             )
-        )
+            features = [row for row in exists if row.get("grip") is not None and row.get("weight") is not None]
         if not exists:
             return None
         if not where or not features:
@@ -305,6 +308,19 @@ class Controller:
             grip=grip,
             capable=capable,
         )
+
+    async def _seed_queries(self, params: Mapping[str, str]) -> tuple[list[dict], ...]:
+        """The seed's Query_1, Query_2 and Query_3, as its system sends them."""
+        # Query_2 and Query_3 need only the name, so they go out with Query_1
+        # (the transports keep several exchanges in flight): two round trips
+        # on the critical path instead of four.  For an object that does not
+        # exist their empty answers are simply dropped.
+        answers = await asyncio.gather(
+            self.queries.run("object-exists", params),
+            self.queries.run("object-location", params),
+            self.queries.run("object-features", params),
+        )
+        return tuple(_first(rows, label) for rows, label in zip(answers, ("Query_1", "Query_2", "Query_3")))
 
     async def _compute(self, task: Task) -> DecisionMessage:
         facts = await self.gather(task)

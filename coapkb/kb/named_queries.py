@@ -152,6 +152,27 @@ WHERE {
 }""",
         description="Query_1 (paper form): a product with this name in this class",
     ),
+    # What the task assigner uses of Query_1 and Query_3, in one exchange
+    # with the Object KB's holder instead of two: a row if the product
+    # exists (its class), with the grip it is picked by and its weight when
+    # the KB has them.  Query_3's other features (price, colour, shape) are
+    # for people; the cost model never reads them.
+    NamedQuery(
+        name="pick-facts",
+        kb="Object",
+        params=("name",),
+        template=_OBJ + _RDF + _RDFS + """SELECT ?class ?grip ?weight
+WHERE {
+  ?object ns_2:Product_name "$name" .
+  ?object rdf:type ?class .
+  ?class rdfs:subClassOf ns_2:Product .
+  OPTIONAL {
+    ?object ns_2:can_be_picked_by ?grip .
+    ?object ns_2:weight ?weight .
+  }
+}""",
+        description="Query_1 and the grip and weight of Query_3: what assigning a pick needs from the Object KB",
+    ),
     NamedQuery(
         name="object-location",
         kb="Location",
@@ -165,6 +186,20 @@ WHERE {
   ns_1:$name ns_1:Inventory_rack_no ?rack_no .
 }""",
         description="Query_2: warehouse, aisle, rack and bin of a product",
+    ),
+    # Query_2 as the task assigner uses it: the place on the aisle graph,
+    # without the warehouse's IRI and name (for people; one warehouse here).
+    NamedQuery(
+        name="pick-place",
+        kb="Location",
+        params=("name",),
+        template=_LOC + """SELECT ?aisle_no ?rack_no ?bin_no
+WHERE {
+  ns_1:$name ns_1:Inventory_aisle_no ?aisle_no .
+  ns_1:$name ns_1:Inventory_rack_no ?rack_no .
+  ns_1:$name ns_1:Inventory_bin_no ?bin_no .
+}""",
+        description="Query_2 as assigning a pick needs it: aisle, rack and bin of a product",
     ),
     # Query_3 plus the bindings for ?price and ?color the paper forgot, and
     # ?weight, which the battery cost of carrying the object depends on.

@@ -183,11 +183,15 @@ async def test_a_follower_without_the_leaders_decision_records_an_error(make: Ca
 class NoQueries:
     """A Query Handler that must not be asked."""
 
+    wire = "compact"
+
     async def run(self, name: str, params: Mapping[str, str]) -> object:
         raise AssertionError(f"unexpected query {name}")
 
 
 class Failing:
+    wire = "compact"
+
     def __init__(self, error: Exception) -> None:
         self.error = error
 
@@ -196,7 +200,7 @@ class Failing:
 
 
 @pytest.mark.parametrize("error, expected", [
-    (QueryError("object-exists to Robot2 failed: 5.03"), "object-exists to Robot2 failed: 5.03"),
+    (QueryError("pick-facts to Robot2 failed: 5.03"), "pick-facts to Robot2 failed: 5.03"),
     (TransportError("no state for task 0 from Robot2"), "no state for task 0 from Robot2"),
     (RuntimeError("a bug"), "internal error: a bug"),
 ])

@@ -321,10 +321,10 @@ async def test_unreachable_kb_holder_makes_its_tasks_unavailable(transport: str,
                         assert error and decision["error"] is None, (r, decision)
                         for needle in names:
                             assert needle in error, (r, needle, error)
-                        # Query_1..3 go out together: whichever fails first is named,
-                        # or, once failed queries have declared the holder down, that.
-                        assert any(q in error for q in ("object-exists", "object-location", "object-features",
-                                                        f"{victim}: down")), error
+                        # The Object and Location queries go out together: whichever
+                        # fails first is named, or, once failed queries have declared
+                        # the holder down, that.
+                        assert any(q in error for q in ("pick-facts", "pick-place", f"{victim}: down")), error
                         assert decision["coordination_s"] <= timeout_s + 2, (r, decision)
                 for r in survivors:
                     assert team.processes[r].returncode is None, f"{r} died"

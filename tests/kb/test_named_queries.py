@@ -61,6 +61,33 @@ def test_query3_object_features(team: dict[str, KnowledgeBase]) -> None:
     assert row["dim"] == Literal(BAG.dimension_text)
 
 
+def test_the_pick_queries_answer_what_query_1_to_3_do_that_the_assigner_reads(team: dict[str, KnowledgeBase]) -> None:
+    [exists] = ask(team, "object-exists", name="Gucci_bag_14")
+    [features] = ask(team, "object-features", name="Gucci_bag_14")
+    [where] = ask(team, "object-location", name="Gucci_bag_14")
+    assert ask(team, "pick-facts", name="Gucci_bag_14") == [
+        {"class": exists["class"], "grip": features["grip"], "weight": features["weight"]}
+    ]
+    assert ask(team, "pick-place", name="Gucci_bag_14") == [
+        {k: where[k] for k in ("aisle_no", "rack_no", "bin_no")}
+    ]
+
+
+def test_pick_facts_names_an_object_without_features_and_none_for_a_stranger(tmp_path) -> None:
+    bare = tmp_path / "Object.ttl"
+    bare.write_text(
+        "@prefix ns_2: <http://www.tcs.org/2018/Object#> .\n"
+        "@prefix rdfs: <http://www.w3.org/2000/01/rdf-schema#> .\n"
+        "ns_2:PersonalItems rdfs:subClassOf ns_2:Product .\n"
+        'ns_2:Plain_box_1 a ns_2:PersonalItems ; ns_2:Product_name "Plain_box_1" .\n',
+        encoding="utf-8",
+    )
+    kb = KnowledgeBase.load([bare])
+    query = NAMED_QUERIES["pick-facts"]
+    assert kb.query(query.render({"name": "Plain_box_1"})).as_dicts() == [{"class": URIRef(OBJECT_NS + "PersonalItems")}]
+    assert kb.query(query.render({"name": "Gucci_bag_15000"})).as_dicts() == []
+
+
 @pytest.mark.parametrize("grip", GRIP_TYPES)
 def test_query4_robots_for_grip(team: dict[str, KnowledgeBase], grip: str) -> None:
     rows = ask(team, "robots-for-grip", grip=grip)
@@ -91,7 +118,7 @@ def test_a_list_parameter_takes_local_names_only(robots: str) -> None:
 
 
 def test_unknown_product_has_no_rows(team: dict[str, KnowledgeBase]) -> None:
-    for query_name in ("object-exists", "object-location", "object-features"):
+    for query_name in ("object-exists", "object-location", "object-features", "pick-facts", "pick-place"):
         assert ask(team, query_name, name="Gucci_bag_15000") == []
     assert ask(team, "robots-for-grip", grip="telekinesis") == []
 
