@@ -27,6 +27,7 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, PeerUnreachable, ResourceInfo, open_client, serve
 from coapkb.transport.coap import CoapClientTransport
 from coapkb.transport.coap.reliability import ReliabilityLayer, ReliabilitySettings
+from coapkb.transport.coap.reliability.layer import PeerPath
 from coapkb.transport.coap.reliability.estimator import LossEstimator, airtime
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
@@ -71,6 +72,35 @@ def test_settings_are_validated() -> None:
         ReliabilitySettings(min_rto=2.0, initial_rto=1.0)
     with pytest.raises(ValueError):
         ReliabilitySettings(window_min=4, window_max=2)
+    with pytest.raises(ValueError):
+        ReliabilitySettings(silence_rto=20.0)
+
+
+def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
+    """Random loss leaves a live peer silent for a second now and then: its
+    tries then wait at most ``silence_rto``.  Only a rising round trip (a
+    queue) doubles them up to ``max_rto``."""
+    settings = ReliabilitySettings(link_kbps=35.0)
+    path = PeerPath(settings, now=0.0)
+    for _ in range(8):
+        path.on_sample(0.1, 200)
+    path.last_send = 3.0  # sent, unanswered since t=0
+    timeouts = [path.try_timeout(n, 60, None, now=3.0) - path.extra_airtime(60 + 128) for n in range(6)]
+    assert path.silent(3.0) and not path.congested()
+    assert timeouts[0] == pytest.approx(path.rto())
+    assert max(timeouts) == pytest.approx(settings.silence_rto)
+    assert path.stats.backoffs == 5
+    # A queue: the round trip is up from 0.1 s to over a second.
+    for _ in range(30):
+        path.on_sample(1.5, 200)
+    assert path.congested()
+    assert path.try_timeout(6, 60, None, now=3.0) == pytest.approx(settings.max_rto + path.extra_airtime(188))
+    # A path never answered waits its initial second, and no more, however long it stays silent.
+    fresh = PeerPath(settings, now=0.0)
+    fresh.last_send = 10.0
+    assert fresh.silent(10.0)
+    assert all(fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) == pytest.approx(1.0)
+               for n in range(6))
 
 
 # --------------------------------------------------------------------------- a served robot

@@ -29,7 +29,12 @@ congestion.  It backs off (doubling per try) only on evidence that more
 sending would hurt: the smoothed RTT has risen well above the path's
 minimum (a queue is building: FASOR's point that the round trip, not loss,
 tells congestion), or the peer has been silent for several timeouts (down,
-or cut off).
+or cut off).  Silence backs off only up to ``silence_rto``: on a link
+that loses a fifth of the datagrams, four or five losses in a row happen
+in one run out of a few, and doubling up to ``max_rto`` then left a live
+teammate unasked for 8 s a try (the runs that took three times the
+others); a dead one is the team view's business (its liveness probes),
+and one try a second costs it about 1 kbit/s.
 
 **Several exchanges in flight per peer**, bounded by a window of about one
 bandwidth-delay product of the link (at least ``window_min``), and cut to
@@ -109,6 +114,8 @@ class ReliabilitySettings:
     congestion_slack: float = 0.3
     #: Silence evidence: no answer from the path for this many timeouts (and at least 1 s).
     silence_timeouts: float = 4.0
+    #: The most a try waits on a silent (not congested) path.
+    silence_rto: float = 1.0
     window_min: int = 2
     window_max: int = 16
     max_tries: int = 30
@@ -118,6 +125,8 @@ class ReliabilitySettings:
             raise ValueError("link_kbps must be positive")
         if not 0 < self.min_rto <= self.initial_rto <= self.max_rto:
             raise ValueError("need 0 < min_rto <= initial_rto <= max_rto")
+        if not self.min_rto <= self.silence_rto <= self.max_rto:
+            raise ValueError("need min_rto <= silence_rto <= max_rto")
         if not 0 <= self.hedge_retries_above <= self.hedge_all_above <= 1:
             raise ValueError("need 0 <= hedge_retries_above <= hedge_all_above <= 1")
         if not 1 <= self.window_min <= self.window_max:
@@ -234,8 +243,11 @@ class PeerPath:
 
     def try_timeout(self, try_number: int, request_bytes: int, reply_key: Hashable, now: float) -> float:
         base = self.rto()
-        if try_number and (self.congested() or self.silent(now)):
+        if try_number and self.congested():
             base *= 2 ** min(try_number, 8)
+            self.stats.backoffs += 1
+        elif try_number and self.silent(now) and base < self.settings.silence_rto:
+            base = min(base * 2 ** min(try_number, 8), self.settings.silence_rto)
             self.stats.backoffs += 1
         return self.exchange_timeout(base, request_bytes + self.expected_reply(reply_key))
 
