@@ -56,12 +56,13 @@ from __future__ import annotations
 import argparse
 import asyncio
 import datetime as _dt
+import contextlib
 import json
 import logging
 import math
 import sys
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -380,6 +381,33 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
     return row, record.feeder_traffic.retransmissions + robots_traffic.retransmissions
 
 
+@contextlib.contextmanager
+def _logged_to(log_dir: Path | None) -> Iterator[None]:
+    """This process's coapkb log (the feeder's side) at INFO level in
+    ``log_dir/feeder.log`` while the team runs, as the robots' are."""
+    if log_dir is None:
+        yield
+        return
+    log_dir.mkdir(parents=True, exist_ok=True)
+    logger = logging.getLogger("coapkb")
+    to_file = logging.FileHandler(log_dir / f"{FEEDER}.log", encoding="utf-8")
+    to_file.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    to_screen = logging.StreamHandler()  # what the screen showed before: warnings and errors
+    to_screen.setLevel(logging.WARNING)
+    saved = logger.level, logger.propagate
+    logger.addHandler(to_file)
+    logger.addHandler(to_screen)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+    try:
+        yield
+    finally:
+        for handler in (to_file, to_screen):
+            logger.removeHandler(handler)
+            handler.close()
+        logger.level, logger.propagate = saved
+
+
 def _run_name(row: BenchRow) -> str:
     """A run's folder name under ``--trace``: its system, cell and repetition."""
     return (f"{row.system}-{row.robots}r{row.tasks}t-{row.bandwidth_kbps:g}k-{row.loss_pct:g}pct"
@@ -482,7 +510,7 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
         # The feeder's client transport is opened inside Team.run, so its
         # sockets (and a ZeroMQ context's I/O threads) belong to the feeder's
         # namespace; the robots' addresses are reachable only from there.
-        with enter_netns(testbed[FEEDER].netns):
+        with enter_netns(testbed[FEEDER].netns), _logged_to(spec.log_dir):
             record = await team.run(task_list, finished=read_end)
         after = end or await reading()
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}

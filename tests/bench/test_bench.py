@@ -72,6 +72,7 @@ async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(t
     [run] = tmp_path.iterdir()
     assert run.name == "coap-distributed-3r2t-512k-2pct-none-rep0"
     assert "task 2 " in (run / "Robot1.log").read_text()
+    assert (run / "feeder.log").exists()
     assert len(json.loads((run / "record.json").read_text())["tasks"]) == 2
     assert plain.security == "none"
     assert plain.key() != replace(plain, security="oscore").key()
