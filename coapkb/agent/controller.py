@@ -323,11 +323,16 @@ class Controller:
         return tuple(_first(rows, label) for rows, label in zip(answers, ("Query_1", "Query_2", "Query_3")))
 
     async def _compute(self, task: Task) -> DecisionMessage:
+        started = time.monotonic()
         facts = await self.gather(task)
         if facts is None:
             return DecisionMessage(Decision(task.seq, task.object, skipped=True))
         layout, energy, docks = await self.layout(), await self.energy(), await self.docks()
+        gathered = time.monotonic()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
+        # Where a slow task's time went (coapkb bench --trace keeps these).
+        log.info("task %d: KB answers in %.3f s, teammates' plans %.3f s later",
+                 task.seq, gathered - started, time.monotonic() - gathered)
         result: Assignment = assign(
             facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost, docks
         )
