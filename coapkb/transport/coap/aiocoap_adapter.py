@@ -78,6 +78,7 @@ from aiocoap.util import ExtensibleIntEnum
 
 from ...errors import CoapkbError
 from ..base import TrafficCounters
+from . import wire_trace
 
 __all__ = [
     "SUPPORTED_AIOCOAP_VERSION",
@@ -347,6 +348,8 @@ class ContextHooks:
         self._send_errors: list[OSError] | None = None
         #: When each request in aiocoap's duplicate memory came, oldest first.
         self._remembered_at: OrderedDict[tuple[Any, int], float] = OrderedDict()
+        #: Every datagram sent, written down (``COAPKB_WIRE_TRACE``), or None.
+        self.trace = wire_trace.tracer()
 
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
@@ -435,7 +438,10 @@ class ContextHooks:
             self.mm.dispatch_error(errors[-1], message.remote)
             return
         counters = self.counters
-        size = len(message.encode())
+        data = message.encode()
+        size = len(data)
+        if self.trace is not None:
+            self.trace.sent("client" if self.ctx.serversite is None else "server", local_port(self.ctx), message, data)
         counters.messages_sent += 1
         counters.bytes_sent += size
         if self.on_datagram is not None:
