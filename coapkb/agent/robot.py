@@ -37,6 +37,7 @@ from ..transport import ClientSecurity, open_client, reliability_for, serve
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
 from .lease import LEASE_PATH, Lease
+from .progress import ProgressPacing, acted_on
 from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
@@ -116,6 +117,8 @@ class Robot:
         self.team = team
         self.executor = executor
         self.queries = queries
+        #: Paces the live-progress notifications of /robot/state (set at start).
+        self.progress: ProgressPacing | None = None
         self._next_seq = 1
         #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
         #: (a repeated post is recognised: the feeder repeats only its latest).
@@ -172,13 +175,19 @@ class Robot:
             config, kb, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
         )
 
+        state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
+
         def publish_live(live: LiveState) -> None:
+            before = team.own.live
             team.set_own(replace(team.own, live=live))
-            router.notify(STATE_PATH)
+            if acted_on(before, live):
+                state_changed.now()
+            else:
+                state_changed.progress()
 
         def publish_decision(state: RobotState) -> None:
             router.notify(PLAN_PATH)
-            router.notify(STATE_PATH)
+            state_changed.now()
 
         async def send_decision(message: DecisionMessage) -> None:
             # Not to teammates known down: each would hold the decision up by a timeout.
@@ -198,6 +207,7 @@ class Robot:
             config, queries, team, executor, publish_decision, send_decision
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
+        robot.progress = state_changed
         robot._mount()  # before serving: the transport publishes the resource list
         try:
             server_side = None
@@ -232,6 +242,8 @@ class Robot:
             await self.directory.aclose()
         await self.controller.aclose()
         await self.executor.aclose()
+        if self.progress is not None:
+            self.progress.cancel()
         await self.team.aclose()
         if self.server is not None:
             await self.server.aclose()
