@@ -26,6 +26,7 @@ from .aiocoap_adapter import ContextHooks
 from .mapping import message_from_request, response_from_message
 from .reliability import ReliabilityLayer, make_reliability
 from .reliability.layer import Attempt, ExchangeTimeout
+from .reliability.notifications import NotificationPolicy, NotificationTuning
 from .security import CoapClientSecurity
 
 #: Largest body sent in one datagram (aiocoap's default block size).
@@ -34,6 +35,8 @@ MAX_SINGLE_BODY = 1024
 MAX_TRANSFER_RESTARTS = 4
 #: Longest one EDHOC message may take with its retries (the request's own timeout usually ends it first).
 EDHOC_TIMEOUT_S = 60.0
+#: How long an Observe registration may take, retransmissions included, seconds.
+REGISTRATION_TIMEOUT_S = 60.0
 #: aiocoap's ways of saying that the peer did not answer.
 _NO_ANSWER = (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError)
 
@@ -93,6 +96,7 @@ class CoapClientTransport:
         if reliability is None:
             reliability = make_reliability()
         hooks.on_datagram = reliability.on_datagram
+        hooks.set_con_policy(NotificationPolicy(reliability))  # Observe registrations (_register)
         return cls(ctx, hooks, reliability, security)
 
     def describe(self) -> dict[str, Any]:
@@ -176,8 +180,8 @@ class CoapClientTransport:
         """An aiocoap confirmable request (block-wise for a large body)."""
         return await self._ctx.request(message_from_request(peer, request)).response
 
-    async def _exchange(self, peer: Endpoint, request: Request, timeout: float, *, block2: tuple[int, int] | None = None,
-                        observe: bool = False) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
+    async def _exchange(self, peer: Endpoint, request: Request, timeout: float, *,
+                        block2: tuple[int, int] | None = None) -> tuple[aiocoap.Message, Attempt[aiocoap.Message]]:
         sent = 0
 
         def send(try_number: int) -> Attempt[aiocoap.Message]:
@@ -185,7 +189,7 @@ class CoapClientTransport:
             if sent:  # a retry or a hedge copy: the same request again, as a new exchange
                 self.counters.retransmissions += 1
             sent += 1
-            msg = message_from_request(peer, request, observe=observe)
+            msg = message_from_request(peer, request)
             msg.mtype = NON
             if self.security is not None:
                 # OSCORE builds the outer message afresh, keeping only the
@@ -229,12 +233,11 @@ class CoapClientTransport:
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         try:
-            first, attempt = await self._secured(peer, lambda: self._exchange(peer, request, timeout=60.0, observe=True))
-        except ExchangeTimeout:
+            first, pending = await self._secured(peer, lambda: self._register(peer, request), REGISTRATION_TIMEOUT_S)
+        except (TimeoutError, ExchangeTimeout):
             raise PeerUnreachable(f"no answer from {peer} to the observation") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
-        pending = attempt.handle
         try:
             yield response_from_message(first)
             if pending.observation is None:
@@ -243,6 +246,25 @@ class CoapClientTransport:
                 yield response_from_message(notification)
         finally:
             _abandon(pending)
+
+    async def _register(self, peer: Endpoint, request: Request) -> tuple[aiocoap.Message, Any]:
+        """An Observe registration, as one confirmable request.
+
+        Not the layer's fresh exchange per try: every try that reached the
+        server would be an observation of its own there (RFC 7641 keys one by
+        endpoint and token), each sending the whole state at the next change
+        until this client reset it -- on a lossy link a dozen per run, each
+        holding the real notification behind it.  A CON's retransmissions
+        keep its Message ID, so the server registers it once; their timers
+        follow the layer's path estimates (the context's CON policy)."""
+        msg = message_from_request(peer, request, observe=True)
+        msg.transport_tuning = NotificationTuning  # CON, under OSCORE too
+        pending = self._ctx.request(msg, handle_blockwise=False)
+        try:
+            return await pending.response, pending
+        except BaseException:
+            _abandon(pending)
+            raise
 
     async def aclose(self) -> None:
         try:

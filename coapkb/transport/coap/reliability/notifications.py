@@ -1,4 +1,5 @@
-"""The server's confirmable notifications (RFC 7641) on the layer's paths.
+"""The confirmable messages of RFC 7641 on the layer's paths: a server's
+notifications and a client's registrations.
 
 A robot's state notifications are on every task's critical path: a
 teammate waits for them before it assigns the next task.  aiocoap sends
@@ -8,7 +9,9 @@ of a robot has few samples of its own.  :class:`NotificationPolicy` is a
 notification from the estimates the robot's own client keeps for the same
 host (it queries that teammate all the time), and feeds back the clean
 samples it gets (ACKs of notifications sent once; Karn's rule, since a
-CON retransmission reuses its Message ID).
+CON retransmission reuses its Message ID).  A client's Observe
+registration is confirmable for the same reason it keeps one Message ID:
+the server registers it once, however many times it is sent.
 """
 
 from __future__ import annotations
