@@ -246,13 +246,18 @@ def join_traces(datagrams: Sequence[Datagram], records: Sequence[Mapping[str, An
     return [r for rs in by_key.values() for r in rs]
 
 
+_METHODS = {"0.01": "GET", "0.02": "POST", "0.03": "PUT", "0.04": "DELETE", "0.05": "FETCH", "0.06": "PATCH",
+            "0.07": "iPATCH"}
+
+
 def plaintext(d: Datagram) -> dict[str, Any] | None:
     """What ``d`` carries in plaintext: its trace line's account, or (plain
     CoAP only) its own options decoded."""
     if d.record is not None:
         r = d.record
         out = {k: v for k, v in r.items() if k in ("path", "query", "observe", "block2", "payload", "edhoc", "req")}
-        out["code"] = r.get("inner_code", r.get("code"))
+        code = str(r.get("inner_code") or r.get("code"))
+        out["code"] = _METHODS.get(code, code)  # an unprotected request's line names its method by number
         return out
     if d.coap is None or d.oscore:
         return None
@@ -366,6 +371,7 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -
             key = (d.dst, d.dport, d.src, d.sport, d.coap.token)
             answered[key] = min(answered.get(key, math.inf), d.delivered_t)
     seen_mids: set[tuple[Any, ...]] = set()
+    confirmable: dict[tuple[Any, ...], Datagram] = {}  # (sender, receiver, MID) of each CON
     requests: dict[tuple[Any, ...], Datagram] = {}  # (client, server, token) -> request
     last_same: dict[tuple[Any, ...], Datagram] = {}  # (client, signature) -> latest request
     answer_mids: dict[tuple[Any, ...], list[int]] = defaultdict(list)
@@ -382,7 +388,12 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -
         if c.code == 0:
             d.kind = "empty ACK" if c.mtype == 2 else "reset" if c.mtype == 3 else "other"
             d.copy = "retransmission" if again else "first"
+            answered_con = confirmable.get((d.dst, d.dport, d.src, d.sport, c.mid))
+            if answered_con is not None:  # what it acknowledges (or resets)
+                d.detail = _kind_label(answered_con)
             continue
+        if c.mtype == 0:
+            confirmable[sender[:4] + (c.mid,)] = d
         if d.is_request:
             if not plain:
                 d.kind, d.detail = "other request", "protected, not traced"
@@ -676,7 +687,9 @@ def budget_lines(datagrams: Iterable[Datagram]) -> tuple[list[Line], list[Line],
 
 def _per(value: float, n: int) -> str:
     v = value / n
-    return f"{v:,.0f}" if abs(v) >= 10 else f"{v:.1f}"
+    if abs(v) >= 10:
+        return f"{v:,.0f}"
+    return f"{v:.2f}" if 0 < abs(v) < 0.1 else f"{v:.1f}"
 
 
 def budget_table(runs: Sequence[Run]) -> str:
@@ -823,10 +836,9 @@ def minimum(run: Run) -> list[Need]:
         if d.lost or d.coap is None:
             continue
         if d.kind == "answer" and d.dst in run.robots and plain.get("code") == "2.05":
-            req = plain.get("req") or {}
             block = plain.get("block2")
             number = 0 if block is None else block[0]
-            answers[(d.dst, d.detail, req.get("query", ""))].setdefault(number, int(plain.get("payload", 0)))
+            answers[(d.dst, d.detail, _query_of(plain))].setdefault(number, int(plain.get("payload", 0)))
         elif d.kind == "task post" and d.copy == "first":
             posts.setdefault((d.dst, plain.get("query", "")), int(plain.get("payload", 0)))
         elif d.kind in ("notification", "registration answer") and d.detail == "/robot/plan":
@@ -844,6 +856,11 @@ def minimum(run: Run) -> list[Need]:
     if posts:
         needs.append(Need("task post", run.tasks * n, statistics.fmean(posts.values())))
     return needs
+
+
+def _query_of(plain: Mapping[str, Any]) -> str:
+    """A request's Uri-Query, or an answer's request's."""
+    return str(plain.get("query") or (plain.get("req") or {}).get("query") or "")
 
 
 def minimum_table(settings: Mapping[str, Sequence[Run]]) -> str:
@@ -870,6 +887,72 @@ def minimum_table(settings: Mapping[str, Sequence[Run]]) -> str:
     return head + body
 
 
+#: Where the bytes above the minimum go: each first transmission by what it is for.
+BREAKDOWN = (
+    "needed items, as sent",
+    "requests for the facts",
+    "robots' plan registrations",
+    "acknowledgements of plan notifications",
+    "the feeder's view: /robot/state registrations, notifications and their acknowledgements",
+    "task answers (2.04)",
+    "key exchange (EDHOC)",
+    "liveness, hearsay, lease",
+    "resets, errors, other",
+    "copies: retransmissions, retries, hedged copies",
+)
+
+
+def breakdown_of(d: Datagram) -> str:
+    """Which line of :data:`BREAKDOWN` datagram ``d`` belongs to."""
+    if d.copy != "first":
+        return BREAKDOWN[9]
+    kind, detail = d.kind, d.detail
+    code = (d.plain or {}).get("code")
+    if (kind == "answer" and code == "2.05") or kind == "task post" or (
+            kind in ("notification", "registration answer") and detail == "/robot/plan"):
+        return BREAKDOWN[0]
+    if kind == "query":
+        return BREAKDOWN[1]
+    if kind == "registration" and detail == "/robot/plan":
+        return BREAKDOWN[2]
+    if kind == "empty ACK" and detail.endswith("/robot/plan"):
+        return BREAKDOWN[3]
+    if detail == "/robot/state" or (kind == "empty ACK" and detail.endswith("/robot/state")):
+        return BREAKDOWN[4]
+    if kind == "task answer":
+        return BREAKDOWN[5]
+    if kind.startswith("EDHOC"):
+        return BREAKDOWN[6]
+    if kind.split(" ")[0] in ("liveness", "hearsay", "lease"):
+        return BREAKDOWN[7]
+    return BREAKDOWN[8]
+
+
+def breakdown_table(settings: Mapping[str, Sequence[Run]]) -> str:
+    """Bytes per task by what they are for, against the minimum, per setting."""
+    names = list(settings)
+    head = "| bytes per task | " + " | ".join(names) + " |\n|---|" + "--:|" * len(names) + "\n"
+    values: dict[str, dict[str, float]] = defaultdict(dict)
+    for name, runs in settings.items():
+        n = sum(r.tasks for r in runs)
+        sums: Counter[str] = Counter()
+        for r in runs:
+            for d in r.datagrams:
+                sums[breakdown_of(d)] += d.frame
+        sent = sum(sums.values())
+        need = sum(x.bytes(r.security) for r in runs for x in minimum(r))
+        for line in BREAKDOWN:
+            values[line][name] = sums[line] / n
+        values["**sent**"][name] = sent / n
+        values["**minimum**"][name] = need / n
+        values["sent above the minimum"][name] = (sent - need) / n
+        values["of it, the needed items' framing above the minimum's"][name] = (sums[BREAKDOWN[0]] - need) / n
+    body = ""
+    for line, by_name in values.items():
+        body += f"| {line} | " + " | ".join(f"{by_name.get(nm, 0):,.0f}" for nm in names) + " |\n"
+    return head + body
+
+
 def gap_table(settings: Mapping[str, Sequence[Run]]) -> str:
     """What was sent against the minimum, per setting (over its runs; the
     runs' own byte ratios in brackets)."""
@@ -893,21 +976,28 @@ def gap_table(settings: Mapping[str, Sequence[Run]]) -> str:
 
 
 PACKET_FIELDS = ("run", "setting", "t", "src", "dst", "sport", "dport", "type", "code", "mid", "token", "kind", "detail",
-                 "copy", "block", "lost", "traced", "oscore", "frame", *PART_COLUMNS, "plain")
+                 "copy", "block", "lost", "traced", "protected", "frame", *PART_COLUMNS, "plain_code", "query",
+                 "block_number")
 
 
 def packet_rows(run: Run, setting: str) -> Iterator[dict[str, Any]]:
+    """One CSV row per datagram: where and what, its parts, and the
+    plaintext the minimum reads (code, query, block number; the payload is
+    its part)."""
     start = run.window[0]
     for d in sorted(run.datagrams, key=lambda d: d.t):
         c = d.coap
+        plain = d.plain or {}
+        block = plain.get("block2")
         yield {
-            "run": run.name, "setting": setting, "t": round(d.t - start, 6), "src": d.src, "dst": d.dst,
+            "run": run.name, "setting": setting, "t": f"{d.t - start:.4f}", "src": d.src, "dst": d.dst,
             "sport": d.sport, "dport": d.dport, "type": "" if c is None else ("CON", "NON", "ACK", "RST")[c.mtype],
-            "code": "" if c is None else c.code, "mid": "" if c is None else c.mid, "token": "" if c is None else c.token.hex(), "kind": d.kind,
-            "detail": d.detail, "copy": d.copy, "block": int(d.block), "lost": int(d.lost),
-            "traced": int(d.record is not None), "oscore": int(d.oscore), "frame": d.frame,
-            **{p: d.parts.get(p, 0) for p in PART_COLUMNS},
-            "plain": "" if d.plain is None else json.dumps(d.plain, separators=(",", ":"), sort_keys=True),
+            "code": "" if c is None else c.code, "mid": "" if c is None else c.mid,
+            "token": "" if c is None else c.token.hex(), "kind": d.kind, "detail": d.detail, "copy": d.copy,
+            "block": int(d.block), "lost": int(d.lost), "traced": int(d.record is not None),
+            "protected": int(d.oscore), "frame": d.frame, **{p: d.parts.get(p, 0) for p in PART_COLUMNS},
+            "plain_code": plain.get("code", ""), "query": _query_of(plain),
+            "block_number": "" if block is None else block[0],
         }
 
 
@@ -1003,10 +1093,13 @@ def _datagram_of(row: Mapping[str, str]) -> Datagram:
                  int(row["frame"]), int(row["headers"]), b"")
     d.kind, d.detail, d.copy = row["kind"], row["detail"], row["copy"]
     d.block, d.lost = row["block"] == "1", row["lost"] == "1"
-    d.plain = json.loads(row["plain"]) if row["plain"] else None
     d.parts = {p: int(row[p]) for p in PART_COLUMNS}
+    if row["plain_code"]:
+        d.plain = {"code": row["plain_code"], "query": row["query"], "payload": d.parts["payload"]}
+        if row["block_number"] != "":
+            d.plain["block2"] = [int(row["block_number"]), 0, 0]
     if row["mid"] != "":
-        options = ((OSCORE_OPTION, 1),) if row["oscore"] == "1" else ()
+        options = ((OSCORE_OPTION, 1),) if row["protected"] == "1" else ()
         d.coap = CoapSplit(("CON", "NON", "ACK", "RST").index(row["type"]), int(row["code"]), int(row["mid"]),
                            bytes.fromhex(row["token"]), options, 0, 0)
     return d
@@ -1034,6 +1127,7 @@ def doc_sections(settings: Mapping[str, Sequence[Run]]) -> dict[str, str]:
     sections["explained"] = explained_table([r for runs in settings.values() for r in runs])
     sections["minimum"] = minimum_table(settings)
     sections["gap"] = gap_table(settings)
+    sections["breakdown"] = breakdown_table(settings)
     return sections
 
 
@@ -1055,6 +1149,7 @@ def print_report(settings: Mapping[str, Sequence[Run]]) -> None:
     print(explained_table([r for runs in settings.values() for r in runs]))
     print(minimum_table(settings))
     print(gap_table(settings))
+    print(breakdown_table(settings))
 
 
 # --------------------------------------------------------------------------- main

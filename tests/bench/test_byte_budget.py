@@ -174,6 +174,19 @@ def test_registration_answer_notifications_and_acks() -> None:
         ("notification", "first"), ("notification", "retransmission"), ("empty ACK", "first"),
         ("notification", "retransmission"), ("empty ACK", "retransmission")]
     assert bb._kind_label(sent[3]) == "notification /robot/plan"
+    assert sent[2].detail == "registration answer /robot/plan" and sent[5].detail == "notification /robot/plan"
+    assert [bb.breakdown_of(d) for d in sent[:4]] == [
+        "robots' plan registrations", "needed items, as sent", "acknowledgements of plan notifications",
+        "needed items, as sent"]
+    assert bb.breakdown_of(sent[4]) == "copies: retransmissions, retries, hedged copies"
+
+
+def test_an_unprotected_requests_line_names_its_method_by_number() -> None:
+    d = _dg(0.0, "feeder", 50000, "Robot1", 5683, NON, POST, 1, b"\x01")
+    d.record = {"t": 0.0, "code": "0.02", "path": "/tasks", "query": "qh=ab", "payload": 30}
+    assert bb.plaintext(d) == {"code": "POST", "path": "/tasks", "query": "qh=ab", "payload": 30}
+    bb.classify([d])
+    assert (d.kind, bb.breakdown_of(d)) == ("task post", "needed items, as sent")
 
 
 def test_join_takes_each_trace_line_once_in_order() -> None:
@@ -270,7 +283,9 @@ def test_the_minimum_counts_each_fact_once_every_state_and_every_post() -> None:
 def test_tables_csv_round_trip_and_the_doc_sections(tmp_path: Path) -> None:
     run = _minimal_run()
     for d in run.datagrams:
-        d.parts = {"headers": 42, "coap": 5, "options": 0, "oscore": 20, "inner_options": 5, "payload": d.frame - 67}
+        payload = (d.plain or {})["payload"]
+        d.frame = 42 + 5 + 20 + payload
+        d.parts = {"headers": 42, "coap": 5, "options": 0, "oscore": 20, "inner_options": 5, "payload": payload}
     run.counted = {"Robot1": (300, 3), "Robot2": (200, 2), "Robot3": (0, 0), "feeder": (100, 1)}
     settings = {"loss2": [run]}
     table = bb.budget_table([run])
@@ -281,6 +296,8 @@ def test_tables_csv_round_trip_and_the_doc_sections(tmp_path: Path) -> None:
     assert bb.budget_table(again["loss2"]) == table
     assert bb.minimum_table(again) == bb.minimum_table(settings)
     assert bb.gap_table(again) == bb.gap_table(settings)
+    assert bb.breakdown_table(again) == bb.breakdown_table(settings)
+    assert "| **minimum** |" in bb.breakdown_table(settings)
     doc = "intro\n<!-- budget:gap -->\nold\n<!-- /budget:gap -->\nend\n"
     assert bb.replace_section(doc, "gap", "new\n") == "intro\n<!-- budget:gap -->\nnew\n<!-- /budget:gap -->\nend\n"
     with pytest.raises(ValueError):
