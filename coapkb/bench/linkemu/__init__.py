@@ -52,7 +52,8 @@ nftables and iptables rule text), :mod:`.delayline` (NFQUEUE delay line),
 :mod:`.hosts` (``Host``: names, addresses), :mod:`.topology` (namespaces,
 bridge, veth pairs), :mod:`.link_control` (a live link's shapers, loss rule
 and delay line), :mod:`.counters` (reading the kernel's counters),
-:mod:`.testbed` (``Testbed``: set up, change, run processes, tear down) and
+:mod:`.testbed` (``Testbed``: set up, change, run processes, tear down),
+:mod:`.capture` (``PacketCapture``: every frame crossing the bridge) and
 :mod:`.relay` (``UdpRelay``).
 
 Everything here needs root (``CAP_NET_ADMIN``) and the Debian packages
