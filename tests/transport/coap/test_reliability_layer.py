@@ -95,12 +95,14 @@ def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
         path.on_sample(1.5, 200)
     assert path.congested()
     assert path.try_timeout(6, 60, None, now=3.0) == pytest.approx(settings.max_rto + path.extra_airtime(188))
-    # A path never answered waits its initial second, and no more, however long it stays silent.
+    # A path never answered (on a link of known rate) waits half a second
+    # first, and a second a try however long it stays silent.
     fresh = PeerPath(settings, now=0.0)
     fresh.last_send = 10.0
     assert fresh.silent(10.0)
-    assert all(fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) == pytest.approx(1.0)
-               for n in range(6))
+    waits = [fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) for n in range(6)]
+    assert waits == pytest.approx([settings.initial_rto_known_link] + [settings.silence_rto] * 5)
+    assert PeerPath(ReliabilitySettings(), now=0.0).rto() == 1.0  # nothing known of the link: RFC 6298
 
 
 # --------------------------------------------------------------------------- a served robot

@@ -100,6 +100,12 @@ class ReliabilitySettings:
     max_rto: float = 8.0
     #: Timeout of a path with no sample yet (RFC 6298: 1 s).
     initial_rto: float = 1.0
+    #: The same on a link of known rate: the exchange's airtime at that rate
+    #: and the robot's own queue are added to it, so half a second covers a
+    #: peer's queue of a few exchanges at 35 kbit/s.  RFC 6298's second is
+    #: for a path nothing is known of; here it made every loss among the
+    #: first exchanges with a teammate (EDHOC's, the first query) cost one.
+    initial_rto_known_link: float = 0.5
     rto_k: float = 4.0
     granularity: float = 0.01
     #: Round-trip loss above which retries go out as two copies, and above which every try does.
@@ -123,8 +129,9 @@ class ReliabilitySettings:
     def __post_init__(self) -> None:
         if self.link_kbps is not None and not self.link_kbps > 0:
             raise ValueError("link_kbps must be positive")
-        if not 0 < self.min_rto <= self.initial_rto <= self.max_rto:
-            raise ValueError("need 0 < min_rto <= initial_rto <= max_rto")
+        if not 0 < self.min_rto <= min(self.initial_rto, self.initial_rto_known_link) or max(
+                self.initial_rto, self.initial_rto_known_link) > self.max_rto:
+            raise ValueError("need 0 < min_rto <= initial_rto, initial_rto_known_link <= max_rto")
         if not self.min_rto <= self.silence_rto <= self.max_rto:
             raise ValueError("need min_rto <= silence_rto <= max_rto")
         if not 0 <= self.hedge_retries_above <= self.hedge_all_above <= 1:
@@ -201,7 +208,7 @@ class PeerPath:
     def rto(self) -> float:
         s = self.settings
         return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=self.floor(), ceiling=s.max_rto,
-                            initial=s.initial_rto)
+                            initial=s.initial_rto_known_link if s.link_bps else s.initial_rto)
 
     def exchange_timeout(self, base: float, exchange_bytes: float) -> float:
         """``base`` (the RTO, maybe backed off) plus the airtime by which this
