@@ -156,7 +156,9 @@ WHERE {
     # with the Object KB's holder instead of two: a row if the product
     # exists (its class), with the grip it is picked by and its weight when
     # the KB has them.  Query_3's other features (price, colour, shape) are
-    # for people; the cost model never reads them.
+    # for people; the cost model never reads them.  Class and grip come as
+    # their local names (the vocabulary is the Object KB's own), so the
+    # answer carries no namespace.
     NamedQuery(
         name="pick-facts",
         kb="Object",
@@ -164,11 +166,13 @@ WHERE {
         template=_OBJ + _RDF + _RDFS + """SELECT ?class ?grip ?weight
 WHERE {
   ?object ns_2:Product_name "$name" .
-  ?object rdf:type ?class .
-  ?class rdfs:subClassOf ns_2:Product .
+  ?object rdf:type ?type .
+  ?type rdfs:subClassOf ns_2:Product .
+  BIND (STRAFTER(STR(?type), "#") AS ?class)
   OPTIONAL {
-    ?object ns_2:can_be_picked_by ?grip .
+    ?object ns_2:can_be_picked_by ?by .
     ?object ns_2:weight ?weight .
+    BIND (STRAFTER(STR(?by), "#") AS ?grip)
   }
 }""",
         description="Query_1 and the grip and weight of Query_3: what assigning a pick needs from the Object KB",

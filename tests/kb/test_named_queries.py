@@ -65,8 +65,9 @@ def test_the_pick_queries_answer_what_query_1_to_3_do_that_the_assigner_reads(te
     [exists] = ask(team, "object-exists", name="Gucci_bag_14")
     [features] = ask(team, "object-features", name="Gucci_bag_14")
     [where] = ask(team, "object-location", name="Gucci_bag_14")
+    local = lambda iri: Literal(str(iri).rsplit("#", 1)[1])  # noqa: E731
     assert ask(team, "pick-facts", name="Gucci_bag_14") == [
-        {"class": exists["class"], "grip": features["grip"], "weight": features["weight"]}
+        {"class": local(exists["class"]), "grip": local(features["grip"]), "weight": features["weight"]}
     ]
     assert ask(team, "pick-place", name="Gucci_bag_14") == [
         {k: where[k] for k in ("aisle_no", "rack_no", "bin_no")}
@@ -84,7 +85,7 @@ def test_pick_facts_names_an_object_without_features_and_none_for_a_stranger(tmp
     )
     kb = KnowledgeBase.load([bare])
     query = NAMED_QUERIES["pick-facts"]
-    assert kb.query(query.render({"name": "Plain_box_1"})).as_dicts() == [{"class": URIRef(OBJECT_NS + "PersonalItems")}]
+    assert kb.query(query.render({"name": "Plain_box_1"})).as_dicts() == [{"class": Literal("PersonalItems")}]
     assert kb.query(query.render({"name": "Gucci_bag_15000"})).as_dicts() == []
 
 
