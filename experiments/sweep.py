@@ -87,6 +87,9 @@ class Grid:
     bandwidths: tuple[float, ...]
     losses: tuple[float, ...]
     systems: tuple[str, ...]
+    #: Runs of this block go without the team's keys (``--insecure``): for
+    #: peers that have no security to compare with (DDS from PyPI).
+    insecure: bool = False
 
 
 @dataclass(frozen=True)
@@ -163,6 +166,8 @@ COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-c
 #: (docs/zenoh.md); the plain UDP link they replaced failed every lossy run.
 PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport not in ("zenoh+udp", "zenoh+quic"))
 QUICK_SYSTEMS = (*COMPACT_SYSTEMS, "seed-distributed")
+#: What a team choosing in 2026 also asks about: Zenoh over QUIC and over its reliable UDP.
+QUIC_SYSTEMS = ("zenoh-quic-distributed", "zenoh-quic-central", "zenoh-udp-distributed", "zenoh-udp-central")
 #: The quick profile's cells.  Two things cost time at 20 % loss: CoAP's
 #: retransmission timeouts and TCP connections the kernel gives up on, which
 #: leave a query hanging until its timeout -- mostly on the seed's wire
@@ -179,6 +184,10 @@ QUICK_GRIDS = (
     Grid((3,), (5, 20), (35, 256), (2,), QUICK_SYSTEMS),
     # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
     Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
+    # The 2026 peers in the cells of their comparison (docs/quic-and-dds.md): 3 robots,
+    # 5 tasks, 35 kbit/s at 2 and 20 %, 256 kbit/s at 2 %.
+    Grid((3,), (5,), (35,), (2, 20), QUIC_SYSTEMS),
+    Grid((3,), (5,), (256,), (2,), QUIC_SYSTEMS),
 )
 SCALE_SIZES = (3, 9, 30, 60, 99)
 SCALE_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
@@ -253,7 +262,7 @@ def plan(profile: Profile, reps: int | None = None,
                     if systems is not None and s not in systems:
                         continue
                     run = Run(s, r, t, float(b), float(loss), rep, profile.delay_ms,
-                              profile.jitter_ms, profile.loss_model, profile.burst_len, security)
+                              profile.jitter_ms, profile.loss_model, profile.burst_len, security and not g.insecure)
                     if run.key() not in seen:
                         seen.add(run.key())
                         runs.append(run)
