@@ -248,10 +248,21 @@ def extract_block(message: aiocoap.Message, number: int, size_exp: int, max_payl
 
 
 class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
-    """A context's logger that takes aiocoap's ``exception=`` keyword."""
+    """A context's logger that takes aiocoap's ``exception=`` keyword.
+
+    One error it logs is no error here: a request this client abandoned (a
+    try the reliability layer no longer waits for) whose OSCORE task then
+    meets its cancelled answer raises InvalidStateError, which aiocoap's
+    ``Pipe`` logs as "Discarded exception ... added after ... has ended".
+    Nobody waits for that request, so it is logged at debug level."""
 
     def __init__(self, logger: logging.Logger) -> None:
         super().__init__(logger, {})
+
+    def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
+        if level >= logging.ERROR and isinstance(kwargs.get("exception"), asyncio.InvalidStateError):
+            level = logging.DEBUG
+        super().log(level, msg, *args, **kwargs)
 
     def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
         exception = kwargs.pop("exception", None)
