@@ -119,6 +119,8 @@ class Datagram:
     copy: str = "first"
     block: bool = False
     parts: dict[str, int] = field(default_factory=dict)
+    #: A TCP segment's flags and sequence number (ZeroMQ's systems), else None.
+    tcp: tuple[int, int] | None = None
 
     @property
     def oscore(self) -> bool:
@@ -166,6 +168,28 @@ class OtherFrame:
     icmp: bool
 
 
+def parse_tcp(frame: bytes) -> tuple[str, str, int, int, int, int, int, bytes] | None:
+    """(source IP, destination IP, source port, destination port, header
+    bytes (Ethernet, IPv4, TCP with options), flags, sequence number, payload)
+    of an Ethernet/IPv4/TCP frame, else None."""
+    if len(frame) < ETH_HEADER + 40 or frame[12:14] != b"\x08\x00" or frame[ETH_HEADER] >> 4 != 4:
+        return None
+    if frame[ETH_HEADER + 9] != 6:
+        return None
+    ihl = (frame[ETH_HEADER] & 0x0F) * 4
+    ip_len = int.from_bytes(frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
+    tcp = ETH_HEADER + ihl
+    offset = (frame[tcp + 12] >> 4) * 4
+    src = ".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16])
+    dst = ".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20])
+    return (src, dst, int.from_bytes(frame[tcp:tcp + 2], "big"), int.from_bytes(frame[tcp + 2:tcp + 4], "big"),
+            tcp + offset, frame[tcp + 13], int.from_bytes(frame[tcp + 4:tcp + 8], "big"),
+            bytes(frame[tcp + offset:ETH_HEADER + ip_len]))
+
+
+_SYN, _FIN, _RST = 0x02, 0x01, 0x04
+
+
 def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str]) -> tuple[list[Datagram], list[OtherFrame]]:
     """The datagrams the hosts sent (``in`` frames), each marked delivered if
     its ``out`` copy was seen; and the other frames they sent (not UDP/IPv4).
@@ -176,15 +200,21 @@ def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str]) -> t
     for f in sorted(frames, key=lambda f: f.t):
         if f.direction == "in":
             parsed = parse_frame(f.frame)
-            if parsed is None:
+            segment = parse_tcp(f.frame) if parsed is None else None
+            if segment is not None:
+                src, dst, sport, dport, headers, flags, seq, data = segment
+                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers, data,
+                             tcp=(flags, seq))
+            elif parsed is None:
                 other.append(_other_frame(f, hosts))
                 continue
-            src, dst, sport, dport, headers, data = parsed
-            d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers, data)
-            try:
-                d.coap = split_coap(data)
-            except ValueError:
-                d.coap = None
+            else:
+                src, dst, sport, dport, headers, data = parsed
+                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers, data)
+                try:
+                    d.coap = split_coap(data)
+                except ValueError:
+                    d.coap = None
             sent.append(d)
             waiting[f.frame].append(d)
         else:
@@ -285,7 +315,8 @@ def parts(d: Datagram) -> dict[str, int]:
     out["headers"] = d.headers
     c = d.coap
     if c is None:
-        out["payload"] = d.frame - d.headers
+        out["payload"] = len(d.data) if d.tcp is not None else d.frame - d.headers
+        out["headers"] = d.frame - out["payload"]
         return out
     out["coap"] = c.header + len(c.token)
     if not d.oscore:
@@ -316,6 +347,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("liveness and membership", ("liveness", "liveness answer", "hearsay", "hearsay answer", "lease", "lease answer")),
     ("acknowledgements", ("empty ACK", "reset")),
     ("errors", ("error answer",)),
+    ("TCP (ZeroMQ)", ("TCP handshake", "TCP data", "TCP ACK", "TCP close")),
     ("other", ("stats", "stats answer", "other request", "other answer", "ICMP error", "other")),
 )
 _ANSWER_OF = {"EDHOC message_1": "EDHOC message_2", "EDHOC message_3": "EDHOC message_4", "query": "answer",
@@ -379,7 +411,10 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -
         c = d.coap
         d.parts = parts(d)
         if c is None:
-            d.kind, d.detail = "other", "not CoAP"
+            if d.tcp is not None:
+                _classify_tcp(d, seen_mids)
+            else:
+                d.kind, d.detail = "other", "not CoAP"
             continue
         sender = (d.src, d.sport, d.dst, d.dport, c.mtype, c.mid)
         again = sender in seen_mids
@@ -431,6 +466,25 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -
             d.copy = "retransmission"
         elif request is not None and d.kind != "notification":
             d.copy = request.copy
+
+
+def _classify_tcp(d: Datagram, seen: set[tuple[Any, ...]]) -> None:
+    """A TCP segment's kind (ZeroMQ's systems: CurveZMQ hides the messages,
+    so only TCP's own roles): handshake, data, pure ACK, close; a data
+    segment with the same sequence number and length again is a retransmission."""
+    assert d.tcp is not None
+    flags, seq = d.tcp
+    if flags & _SYN:
+        d.kind = "TCP handshake"
+    elif flags & (_FIN | _RST):
+        d.kind = "TCP close"
+    elif d.data:
+        d.kind = "TCP data"
+        key = ("tcp", d.src, d.sport, d.dst, d.dport, seq, len(d.data))
+        d.copy = "retransmission" if key in seen else "first"
+        seen.add(key)
+    else:
+        d.kind = "TCP ACK"
 
 
 def _signature(d: Datagram, plain: Mapping[str, Any]) -> tuple[Any, ...]:
@@ -696,8 +750,9 @@ def budget_table(runs: Sequence[Run]) -> str:
     """The markdown budget of ``runs`` (one setting; values per task, over every run)."""
     n = sum(r.tasks for r in runs)
     lines, subsets, total = budget_lines(d for r in runs for d in r.datagrams)
-    head = ("| kind | packets | bytes | Eth+IP+UDP | CoAP hdr+token | outer options | OSCORE | (inner code+options) "
-            "| payload | lost packets |\n|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|\n")
+    transport = "TCP" if any(d.tcp is not None for r in runs for d in r.datagrams) else "UDP"
+    head = (f"| kind | packets | bytes | Eth+IP+{transport} | CoAP hdr+token | outer options | OSCORE "
+            "| (inner code+options) | payload | lost packets |\n|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|\n")
 
     def row(line: Line, bold: bool = False) -> str:
         cells = [_per(line.packets, n), _per(line.bytes, n)] + [_per(line.parts[p], n) for p in PART_COLUMNS]
@@ -874,6 +929,8 @@ def minimum_table(settings: Mapping[str, Sequence[Run]]) -> str:
             for need in minimum(r):
                 merged[need.what].append(need)
         secure = runs[0].security
+        if not merged:
+            continue
         total_p = total_b = 0.0
         for what, needs in merged.items():
             count = sum(x.count for x in needs)
@@ -930,7 +987,7 @@ def breakdown_of(d: Datagram) -> str:
 
 def breakdown_table(settings: Mapping[str, Sequence[Run]]) -> str:
     """Bytes per task by what they are for, against the minimum, per setting."""
-    names = list(settings)
+    names = [name for name, runs in settings.items() if any(minimum(r) for r in runs)]
     head = "| bytes per task | " + " | ".join(names) + " |\n|---|" + "--:|" * len(names) + "\n"
     values: dict[str, dict[str, float]] = defaultdict(dict)
     for name, runs in settings.items():
@@ -941,6 +998,8 @@ def breakdown_table(settings: Mapping[str, Sequence[Run]]) -> str:
                 sums[breakdown_of(d)] += d.frame
         sent = sum(sums.values())
         need = sum(x.bytes(r.security) for r in runs for x in minimum(r))
+        if not need:
+            continue
         for line in BREAKDOWN:
             values[line][name] = sums[line] / n
         values["**sent**"][name] = sent / n
@@ -965,6 +1024,8 @@ def gap_table(settings: Mapping[str, Sequence[Run]]) -> str:
         packets = sum(len(r.datagrams) for r in runs)
         need_b = sum(x.bytes(r.security) for r in runs for x in minimum(r))
         need_p = sum(x.packets(r.security) for r in runs for x in minimum(r))
+        if not need_b:
+            continue  # nothing traced, so no minimum (ZeroMQ, Zenoh)
         each = sorted(sum(d.frame for d in r.datagrams) / sum(x.bytes(r.security) for x in minimum(r)) for r in runs)
         per_run = ", ".join(f"{x:.1f}" for x in each)
         body += (f"| {name} | {len(runs)} | {sent / n:,.0f} | {need_b / n:,.0f} | {sent / need_b:.1f}x | {per_run} "
@@ -1155,8 +1216,9 @@ def print_report(settings: Mapping[str, Sequence[Run]]) -> None:
 # --------------------------------------------------------------------------- main
 
 
-def setting_name(loss: float, security: bool) -> str:
-    return f"loss{loss:g}" + ("" if security else "-insecure")
+def setting_name(loss: float, security: bool, system: str = "coap-distributed") -> str:
+    prefix = "" if system == "coap-distributed" else f"{system}-"
+    return f"{prefix}loss{loss:g}" + ("" if security else "-insecure")
 
 
 async def run_settings(plan: Sequence[tuple[str, float, bool]], args: argparse.Namespace,
@@ -1196,7 +1258,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help=f"runs per setting (repetitions 0..N-1, as the bench's; default 1, {DOC_REPS} with --doc)")
     p.add_argument("--insecure", action="store_true", help="security off (OSCORE and EDHOC)")
     p.add_argument("--systems", dest="system", default="coap-distributed",
-                   help="the system (only coap-distributed and coap-central: the trace is CoAP's)")
+                   help="one system of coapkb bench; for ZeroMQ and Zenoh only TCP's roles are told apart "
+                        "(handshake, data, ACK), their messages being encrypted and not traced")
     p.add_argument("--doc", action="store_true",
                    help="the doc's runs (2 %% and 20 %% loss secure, 2 %% insecure), the CSVs and the doc's tables")
     p.add_argument("--from-csv", action="store_true", help="no runs: the tables from the committed per-datagram CSV")
@@ -1207,8 +1270,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.reps is None:
         args.reps = DOC_REPS if args.doc else 1
-    if not args.system.startswith("coap-"):
-        raise SystemExit("byte_budget: only CoAP systems have a wire trace (coap-distributed, coap-central)")
     if args.from_csv:
         settings = read_packets(CSV_PACKETS, CSV_META)
         print_report(settings)
@@ -1219,9 +1280,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         settings = {}
         for directory in args.read:
             run = load_run(directory)
-            settings.setdefault(setting_name(run.loss, run.security), []).append(run)
+            settings.setdefault(setting_name(run.loss, run.security, str(run.row.get("system"))), []).append(run)
     else:
-        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure), args.loss,
+        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, args.system), args.loss,
                                                  not args.insecure)]
         with contextlib.ExitStack() as stack:
             keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))

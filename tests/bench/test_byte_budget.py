@@ -302,3 +302,31 @@ def test_tables_csv_round_trip_and_the_doc_sections(tmp_path: Path) -> None:
     assert bb.replace_section(doc, "gap", "new\n") == "intro\n<!-- budget:gap -->\nnew\n<!-- /budget:gap -->\nend\n"
     with pytest.raises(ValueError):
         bb.replace_section(doc, "minimum", "x")
+
+
+def tcp_frame(src: str, sport: int, dst: str, dport: int, flags: int, seq: int, payload: bytes = b"") -> bytes:
+    """An Ethernet/IPv4/TCP frame with 12 bytes of TCP options (timestamps, as Linux sends them)."""
+    tcp = (sport.to_bytes(2, "big") + dport.to_bytes(2, "big") + seq.to_bytes(4, "big") + b"\0\0\0\0"
+           + bytes([(32 // 4) << 4, flags]) + b"\xff\xff\0\0\0\0" + b"\x01\x01\x08\x0a" + b"\0" * 8 + payload)
+    return frame(src, 0, dst, 0, tcp, proto=6)
+
+
+def test_tcp_segments_get_tcps_roles_and_data_retransmissions() -> None:
+    syn, ack, psh, fin = 0x02, 0x10, 0x18, 0x11
+    frames = [tcp_frame("Robot1", 40000, "Robot2", 5555, syn, 1),
+              tcp_frame("Robot1", 40000, "Robot2", 5555, psh, 2, b"z" * 60),
+              tcp_frame("Robot2", 5555, "Robot1", 40000, ack, 9),
+              tcp_frame("Robot1", 40000, "Robot2", 5555, psh, 2, b"z" * 60),
+              tcp_frame("Robot1", 40000, "Robot2", 5555, fin, 62)]
+    sent, others = bb.datagrams_from_capture(
+        [CapturedFrame(float(i), "p-x", "in", f) for i, f in enumerate(frames)], HOSTS)
+    assert not others and all(d.tcp is not None for d in sent)
+    bb.classify(sent)
+    assert [(d.kind, d.copy) for d in sent] == [("TCP handshake", "first"), ("TCP data", "first"),
+                                               ("TCP ACK", "first"), ("TCP data", "retransmission"),
+                                               ("TCP close", "first")]
+    assert sent[1].parts["headers"] == 14 + 20 + 32 and sent[1].parts["payload"] == 60
+    assert sum(sent[1].parts[p] for p in ("headers", "coap", "options", "oscore", "payload")) == sent[1].frame
+    run = bb.Run("z", 2.0, True, 1, ["Robot1", "Robot2"], {}, (0.0, 1.0), {}, sent)
+    assert "Eth+IP+TCP" in bb.budget_table([run]) and bb.minimum(run) == []
+    assert bb.gap_table({"zmq": [run]}).count("\n") == 2  # the head only: no minimum without plaintext
