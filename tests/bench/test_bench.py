@@ -386,3 +386,14 @@ def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> No
     assert bench.timeouts_for(35, 2, 5, central_clusters=0) == alone
     assert shared.query_s - alone.query_s == pytest.approx(2 * 33 * 3300 * 8 / 35000, abs=0.1)
     assert shared.task_s > alone.task_s and shared.run_s > alone.run_s
+
+
+def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.CaptureFixture[str]) -> None:
+    spread = load_experiment("spread")
+    row = BenchRow(system="coap-distributed", robots=3, tasks=10, bandwidth_kbps=35, loss_pct=20, rep=0,
+                   retransmission_profile="robust", ok=True, completion_s=6.0, coordination_s=5.5,
+                   query_p50_ms=10.0, query_p99_ms=900.0, wire_bytes=62_000, security="oscore")
+    runs = [replace(row, rep=i, completion_s=c) for i, c in enumerate((6.0, 6.2, 18.0, 5.8, 6.1))]
+    lines = spread.report([("after", r) for r in runs])
+    assert lines[0] == "after: coap-distributed 3r 10t 35k 20% oscore"
+    assert lines[-1].startswith("  5 runs: completion median 6.1 s, slowest 2.95x the median; query p99 at most 0.90 s")
