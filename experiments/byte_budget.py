@@ -86,8 +86,10 @@ MIN_FRAMING_PLAIN = 4 + 1 + 1
 #: IPv4 (20) and UDP (8) under an Ethernet MTU of 1500.
 MTU_PAYLOAD = 1500 - 20 - UDP_HEADER
 
-#: The doc's runs: (name, loss %, security).
-DOC_RUNS = (("loss2", 2.0, True), ("loss20", 20.0, True), ("loss2-insecure", 2.0, False))
+#: The doc's runs: (setting, system, loss %, security).  ZeroMQ's is for
+#: comparison: its messages are encrypted and not traced, so only TCP's roles.
+DOC_RUNS = (("loss2", "coap-distributed", 2.0, True), ("loss20", "coap-distributed", 20.0, True),
+            ("loss2-insecure", "coap-distributed", 2.0, False), ("zmq-distributed-loss2", "zmq-distributed", 2.0, True))
 DOC_REPS = 3
 
 PART_COLUMNS = ("headers", "coap", "options", "oscore", "inner_options", "payload")
@@ -717,9 +719,12 @@ def _kind_order(label: str) -> tuple[int, int, str]:
 def budget_lines(datagrams: Iterable[Datagram]) -> tuple[list[Line], list[Line], Line]:
     """The kind lines (every datagram in one), the subset lines (copies,
     block-wise, lost) and the total."""
+    datagrams = list(datagrams)
+    again = ("of which retransmissions (same TCP sequence number)" if any(d.tcp is not None for d in datagrams)
+             else "of which retransmissions (same Message ID)")
     kinds: dict[str, Line] = {}
     subsets = {name: Line(name) for name in (
-        "of which retransmissions (same Message ID)", "of which retries (new message, same request)",
+        again, "of which retries (new message, same request)",
         "of which hedged copies", "of which block-wise continuations", "of which lost on the link")}
     total = Line("total")
     for d in datagrams:
@@ -727,7 +732,7 @@ def budget_lines(datagrams: Iterable[Datagram]) -> tuple[list[Line], list[Line],
         kinds.setdefault(label, Line(label)).add(d)
         total.add(d)
         if d.copy == "retransmission":
-            subsets["of which retransmissions (same Message ID)"].add(d)
+            subsets[again].add(d)
         elif d.copy == "retry":
             subsets["of which retries (new message, same request)"].add(d)
         elif d.copy == "hedge":
@@ -1155,6 +1160,8 @@ def _datagram_of(row: Mapping[str, str]) -> Datagram:
     d.kind, d.detail, d.copy = row["kind"], row["detail"], row["copy"]
     d.block, d.lost = row["block"] == "1", row["lost"] == "1"
     d.parts = {p: int(row[p]) for p in PART_COLUMNS}
+    if d.kind.startswith("TCP "):
+        d.tcp = (0, 0)  # a TCP segment (its flags are not kept)
     if row["plain_code"]:
         d.plain = {"code": row["plain_code"], "query": row["query"], "payload": d.parts["payload"]}
         if row["block_number"] != "":
@@ -1221,7 +1228,7 @@ def setting_name(loss: float, security: bool, system: str = "coap-distributed") 
     return f"{prefix}loss{loss:g}" + ("" if security else "-insecure")
 
 
-async def run_settings(plan: Sequence[tuple[str, float, bool]], args: argparse.Namespace,
+async def run_settings(plan: Sequence[tuple[str, str, float, bool]], args: argparse.Namespace,
                        keep: Path) -> dict[str, list[Run]]:
     from coapkb.bench.linkemu import available, cleanup_stale
 
@@ -1230,10 +1237,10 @@ async def run_settings(plan: Sequence[tuple[str, float, bool]], args: argparse.N
         raise SystemExit(f"byte_budget: no kernel link emulation here: {why}")
     cleanup_stale()
     settings: dict[str, list[Run]] = {}
-    for name, loss, security in plan:
+    for name, system, loss, security in plan:
         for rep in range(args.reps):
             directory = keep / f"{name}-rep{rep}"
-            row = await traced_run(directory, system=args.system, robots=args.robots, tasks=args.tasks,
+            row = await traced_run(directory, system=system, robots=args.robots, tasks=args.tasks,
                                    bandwidth=args.bandwidth, loss=loss, rep=rep, security=security)
             print(f"{name} rep {rep}: ok={row['ok']} wire_bytes={row['wire_bytes']} "
                   f"completion={row['completion_s']} s {row['error']}", flush=True)
@@ -1261,7 +1268,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="one system of coapkb bench; for ZeroMQ and Zenoh only TCP's roles are told apart "
                         "(handshake, data, ACK), their messages being encrypted and not traced")
     p.add_argument("--doc", action="store_true",
-                   help="the doc's runs (2 %% and 20 %% loss secure, 2 %% insecure), the CSVs and the doc's tables")
+                   help="the doc's runs (2 %% and 20 %% loss secure, 2 %% insecure, ZeroMQ at 2 %%), the CSVs and "
+                        "the doc's tables")
     p.add_argument("--from-csv", action="store_true", help="no runs: the tables from the committed per-datagram CSV")
     p.add_argument("--read", type=Path, metavar="DIR", action="append", default=[],
                    help="no runs: a run directory kept earlier (repeatable)")
@@ -1282,8 +1290,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             run = load_run(directory)
             settings.setdefault(setting_name(run.loss, run.security, str(run.row.get("system"))), []).append(run)
     else:
-        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, args.system), args.loss,
-                                                 not args.insecure)]
+        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, args.system), args.system,
+                                                 args.loss, not args.insecure)]
         with contextlib.ExitStack() as stack:
             keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))
             settings = asyncio.run(run_settings(plan, args, keep))

@@ -311,7 +311,7 @@ def tcp_frame(src: str, sport: int, dst: str, dport: int, flags: int, seq: int, 
     return frame(src, 0, dst, 0, tcp, proto=6)
 
 
-def test_tcp_segments_get_tcps_roles_and_data_retransmissions() -> None:
+def test_tcp_segments_get_tcps_roles_and_data_retransmissions(tmp_path: Path) -> None:
     syn, ack, psh, fin = 0x02, 0x10, 0x18, 0x11
     frames = [tcp_frame("Robot1", 40000, "Robot2", 5555, syn, 1),
               tcp_frame("Robot1", 40000, "Robot2", 5555, psh, 2, b"z" * 60),
@@ -330,3 +330,9 @@ def test_tcp_segments_get_tcps_roles_and_data_retransmissions() -> None:
     run = bb.Run("z", 2.0, True, 1, ["Robot1", "Robot2"], {}, (0.0, 1.0), {}, sent)
     assert "Eth+IP+TCP" in bb.budget_table([run]) and bb.minimum(run) == []
     assert bb.gap_table({"zmq": [run]}).count("\n") == 2  # the head only: no minimum without plaintext
+    run.counted = {"Robot1": (1, 1), "Robot2": (1, 1)}
+    bb.write_packets({"zmq": [run]}, tmp_path / "p.csv")
+    bb.write_runs({"zmq": [run]}, tmp_path / "r.csv")
+    again = bb.read_packets(tmp_path / "p.csv", tmp_path / "r.csv")["zmq"]
+    assert bb.budget_table(again) == bb.budget_table([run])
+    assert "same TCP sequence number" in bb.budget_table(again)
