@@ -184,7 +184,7 @@ QUICK_GRIDS = (
     Grid((3,), (5, 20), (35, 256), (2,), QUICK_SYSTEMS),
     # Fig. 11/12: tasks 5 and 20 for 9 robots too (35 kbit/s, 2 %).
     Grid((9,), (20,), (35,), (2,), QUICK_SYSTEMS),
-    # The 2026 peers in the cells of their comparison (docs/quic-and-dds.md): 3 robots,
+    # The 2026 peers in the cells of their comparison (docs/results.md): 3 robots,
     # 5 tasks, 35 kbit/s at 2 and 20 %, 256 kbit/s at 2 %.
     Grid((3,), (5,), (35,), (2, 20), QUIC_SYSTEMS),
     Grid((3,), (5,), (256,), (2,), QUIC_SYSTEMS),
