@@ -4,6 +4,7 @@
     sudo .venv/bin/python experiments/byte_budget.py --doc     # the runs of docs/byte-budget.md: CSVs and its tables
     .venv/bin/python experiments/byte_budget.py --read DIR ... # a kept run again (no root)
     .venv/bin/python experiments/byte_budget.py --from-csv [--doc]   # the tables from the committed CSVs
+    sudo .venv/bin/python experiments/byte_budget.py --peers --doc [--reps 3]   # CoAP against its peers, by packets
 
 One run is ``coapkb bench``'s own run (:func:`coapkb.bench.run.run_once`,
 ``coap-distributed``, by default 3 robots, 10 tasks, 35 kbit/s, 2 % loss,
@@ -26,6 +27,14 @@ bench's own counters.  Then the workflow's minimum (:func:`minimum`): the
 facts, states and task posts every robot needs, one packet each with the
 least CoAP and OSCORE framing, and the ratio of what was sent to it.
 
+The peers (``--peers``: Zenoh over TCP, QUIC and reliable UDP, DDS) keep
+no trace: their datagrams are told apart from the packets alone, by
+:mod:`byte_budget_peers` (QUIC headers and, in clear, frames; RTPS
+submessages; TCP's roles), on the same capture and the same window, and
+written to ``byte_budget_peers.csv`` (per setting: kinds, groups, parts,
+QUIC packet types and connections, RTPS submessages) and
+``byte_budget_peers_runs.csv`` (per run, against the bench's counters).
+
 Writes ``experiments/results/byte_budget.csv`` (per run and kind),
 ``byte_budget_packets.csv`` (per datagram), ``byte_budget_runs.csv`` (per
 run: the bench's counters and how much of them the budget explains) and
@@ -43,6 +52,7 @@ import asyncio
 import contextlib
 import csv
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -54,6 +64,7 @@ from collections import Counter, defaultdict
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 from unittest import mock
 
@@ -61,6 +72,23 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap  # noqa: E402
+
+
+def _sibling(name: str) -> ModuleType:
+    """``experiments/NAME.py`` beside this file, as a module (the experiments are scripts, not a package)."""
+    key = f"experiments_{name}"
+    if key in sys.modules:
+        return sys.modules[key]
+    spec = importlib.util.spec_from_file_location(key, Path(__file__).resolve().with_name(f"{name}.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[key] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+#: The parsers of the peers' protocols (QUIC, RTPS): packets alone, no traces.
+peers = _sibling("byte_budget_peers")
 
 RESULTS = ROOT / "experiments" / "results"
 CSV_RUNS = RESULTS / "byte_budget.csv"
@@ -91,6 +119,17 @@ MTU_PAYLOAD = 1500 - 20 - UDP_HEADER
 DOC_RUNS = (("loss2", "coap-distributed", 2.0, True), ("loss20", "coap-distributed", 20.0, True),
             ("loss2-insecure", "coap-distributed", 2.0, False), ("zmq-distributed-loss2", "zmq-distributed", 2.0, True))
 DOC_REPS = 3
+
+#: The peers' comparison (``--peers``): (system, loss %, security), each
+#: peer with CoAP's security where it has its own (OSCORE against Zenoh's
+#: mutual TLS over TCP and QUIC), and without where it has none (Zenoh's
+#: reliable UDP and DDS against CoAP without OSCORE).  A system the bench
+#: does not have yet is left out.
+PEER_RUNS = tuple((system, loss, security) for loss in (2.0, 20.0) for system, security in (
+    ("coap-distributed", True), ("coap-distributed", False), ("zenoh-distributed", True),
+    ("zenoh-quic-distributed", True), ("zenoh-udp-distributed", False), ("dds-distributed", False)))
+CSV_PEERS = RESULTS / "byte_budget_peers.csv"
+CSV_PEERS_RUNS = RESULTS / "byte_budget_peers_runs.csv"
 
 PART_COLUMNS = ("headers", "coap", "options", "oscore", "inner_options", "payload")
 
@@ -123,6 +162,21 @@ class Datagram:
     parts: dict[str, int] = field(default_factory=dict)
     #: A TCP segment's flags and sequence number (ZeroMQ's systems), else None.
     tcp: tuple[int, int] | None = None
+    #: What the UDP payload is: ``coap``, ``quic`` (Zenoh's QUIC and reliable
+    #: UDP links) or ``rtps`` (DDS); ``tcp`` for a TCP segment.
+    proto: str = "coap"
+    #: A QUIC datagram's packets, an RTPS datagram's message (see byte_budget_peers).
+    quic: list[Any] | None = None
+    rtps: Any = None
+    #: QUIC stream bytes it sent again (in clear only).
+    quic_again: int = 0
+    #: An IPv4 fragment after the first: the datagram whose first fragment
+    #: carries the UDP header (that one's ``data`` is the whole datagram).
+    fragment_of: Datagram | None = None
+    #: The IPv4 fragments after the first, of a fragmented datagram.
+    fragments: int = 0
+    #: False for a fragmented datagram some fragment of which was not seen.
+    whole: bool = True
 
     @property
     def oscore(self) -> bool:
@@ -191,32 +245,70 @@ def parse_tcp(frame: bytes) -> tuple[str, str, int, int, int, int, int, bytes] |
 
 _SYN, _FIN, _RST = 0x02, 0x01, 0x04
 
+#: What a run's UDP datagrams carry, by the bench's transport scheme (CoAP's otherwise).
+UDP_PROTOCOL = {"zenoh+quic": "quic", "zenoh+udp": "quic-plain", "dds": "rtps"}
 
-def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str]) -> tuple[list[Datagram], list[OtherFrame]]:
+
+def ip_fragment(frame: bytes) -> tuple[int, bool, int] | None:
+    """(identification, more fragments, offset in bytes) of an IPv4 frame
+    that is a fragment, else None."""
+    if len(frame) < ETH_HEADER + 20 or frame[12:14] != b"\x08\x00":
+        return None
+    word = int.from_bytes(frame[ETH_HEADER + 6:ETH_HEADER + 8], "big")
+    more, offset = bool(word & 0x2000), (word & 0x1FFF) * 8
+    if not more and not offset:
+        return None
+    return int.from_bytes(frame[ETH_HEADER + 4:ETH_HEADER + 6], "big"), more, offset
+
+
+def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str],
+                           udp: str = "coap") -> tuple[list[Datagram], list[OtherFrame]]:
     """The datagrams the hosts sent (``in`` frames), each marked delivered if
     its ``out`` copy was seen; and the other frames they sent (not UDP/IPv4).
-    ``hosts``: IP address -> host name."""
+    ``hosts``: IP address -> host name.  ``udp``: what the UDP datagrams
+    carry (``coap``, ``quic``, ``quic-plain``, ``rtps``; see
+    :data:`UDP_PROTOCOL`).  An IPv4 fragment after a datagram's first is a
+    datagram of its own (``fragment_of`` the first), and the first's
+    ``data`` the whole datagram once every fragment was seen."""
     sent: list[Datagram] = []
     waiting: dict[bytes, list[Datagram]] = defaultdict(list)
     other: list[OtherFrame] = []
+    pieces: dict[tuple[Any, ...], dict[str, Any]] = {}
+    proto = udp.split("-")[0]
     for f in sorted(frames, key=lambda f: f.t):
         if f.direction == "in":
-            parsed = parse_frame(f.frame)
-            segment = parse_tcp(f.frame) if parsed is None else None
-            if segment is not None:
-                src, dst, sport, dport, headers, flags, seq, data = segment
-                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers, data,
-                             tcp=(flags, seq))
-            elif parsed is None:
-                other.append(_other_frame(f, hosts))
-                continue
+            fragment = ip_fragment(f.frame)
+            if fragment is not None and fragment[2] > 0:
+                d = _continuation(f, fragment, hosts, pieces, proto)
+                if d is None:
+                    other.append(_other_frame(f, hosts))
+                    continue
             else:
-                src, dst, sport, dport, headers, data = parsed
-                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers, data)
-                try:
-                    d.coap = split_coap(data)
-                except ValueError:
-                    d.coap = None
+                parsed = parse_frame(f.frame)
+                segment = parse_tcp(f.frame) if parsed is None else None
+                if segment is not None:
+                    src, dst, sport, dport, headers, flags, seq, data = segment
+                    d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers,
+                                 data, tcp=(flags, seq), proto="tcp")
+                elif parsed is None:
+                    other.append(_other_frame(f, hosts))
+                    continue
+                else:
+                    src, dst, sport, dport, headers, data = parsed
+                    d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers,
+                                 data, proto=proto)
+                    if fragment is not None:  # the first fragment: its UDP header and the start
+                        ihl = (f.frame[ETH_HEADER] & 0x0F) * 4
+                        ip_len = int.from_bytes(f.frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
+                        d.whole = False
+                        p = pieces.setdefault((src, dst, fragment[0]), {"head": None, "parts": {}, "end": None})
+                        p["head"] = d
+                        p["parts"][0] = bytes(f.frame[ETH_HEADER + ihl:ETH_HEADER + ip_len])
+                    elif proto == "coap":
+                        try:
+                            d.coap = split_coap(data)
+                        except ValueError:
+                            d.coap = None
             sent.append(d)
             waiting[f.frame].append(d)
         else:
@@ -224,7 +316,46 @@ def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str]) -> t
             if copies:
                 d = copies.pop(0)
                 d.lost, d.delivered_t = False, f.t
+    for p in pieces.values():  # the whole datagram, where every fragment was seen
+        head, parts = p["head"], p["parts"]
+        if head is None or p["end"] is None:
+            continue
+        whole, at = b"", 0
+        for offset in sorted(parts):
+            if offset != at:
+                break
+            whole += parts[offset]
+            at += len(parts[offset])
+        else:
+            if at == p["end"]:
+                head.data, head.whole = whole[UDP_HEADER:], True
     return sent, other
+
+
+def _continuation(f: Any, fragment: tuple[int, bool, int], hosts: Mapping[str, str],
+                  pieces: dict[tuple[Any, ...], dict[str, Any]], proto: str) -> Datagram | None:
+    """An IPv4 fragment after the first, as a datagram of its own (no UDP header)."""
+    frame = f.frame
+    if frame[ETH_HEADER + 9] != 17:
+        return None
+    ihl = (frame[ETH_HEADER] & 0x0F) * 4
+    ip_len = int.from_bytes(frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
+    src = ".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16])
+    dst = ".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20])
+    ident, more, offset = fragment
+    p = pieces.setdefault((src, dst, ident), {"head": None, "parts": {}, "end": None})
+    piece = bytes(frame[ETH_HEADER + ihl:ETH_HEADER + ip_len])
+    p["parts"][offset] = piece
+    if not more:
+        p["end"] = offset + len(piece)
+    head = p["head"]
+    d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), 0 if head is None else head.sport,
+                 0 if head is None else head.dport, len(frame), ETH_HEADER + ihl, b"", proto=proto, fragment_of=head)
+    if head is not None:
+        head.fragments += 1
+    else:
+        d.whole = False
+    return d
 
 
 def _other_frame(f: Any, hosts: Mapping[str, str]) -> OtherFrame:
@@ -386,15 +517,26 @@ def request_kind(plain: Mapping[str, Any]) -> tuple[str, str]:
     return "other request", f"{code} {path}"
 
 
-def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -> None:
+def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = (), udp: str = "coap") -> None:
     """Give every datagram its kind, detail, copy (``first``,
     ``retransmission``: the same Message ID again; ``retry``: the same
     request again as a new message after its try went unanswered; ``hedge``:
     a copy of a try sent before any answer could come, or the same query to
     another holder) and parts.  Answers take their request's kind and copy.
     ``others``: the frames that are not datagrams; an ICMP error between two
-    copies makes the second a retry (the layer sends again at once)."""
-    ordered = sorted(datagrams, key=lambda d: d.t)
+    copies makes the second a retry (the layer sends again at once).
+    ``udp``: what the UDP datagrams carry (:data:`UDP_PROTOCOL`): QUIC's and
+    RTPS's are classified by :mod:`byte_budget_peers`, from their packets."""
+    heads = [d for d in datagrams if d.fragment_of is None and d.proto in ("quic", "rtps")]
+    if udp.startswith("quic"):
+        peers.classify_quic([d for d in heads if d.proto == "quic"], plaintext=udp == "quic-plain")
+    elif udp == "rtps":
+        peers.classify_rtps([d for d in heads if d.proto == "rtps"])
+    for d in datagrams:
+        if d.fragment_of is not None or (d.proto in ("quic", "rtps") and not d.whole):
+            _classify_fragment(d)
+    ordered = sorted((d for d in datagrams if d.proto in ("coap", "tcp") and d.fragment_of is None
+                      and not d.fragments), key=lambda d: d.t)
     errors = [(o.t, o.src, o.dst) for o in others if o.icmp]
     for d in ordered:
         d.plain = plaintext(d)
@@ -468,6 +610,21 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = ()) -
             d.copy = "retransmission"
         elif request is not None and d.kind != "notification":
             d.copy = request.copy
+
+
+def _classify_fragment(d: Datagram) -> None:
+    """An IPv4 fragment after a datagram's first: its first's kind; its own
+    parts only Ethernet and IPv4 (its bytes beyond are in its first's parts,
+    split with the whole datagram).  One whose first was not seen (or the
+    first of one not whole) is ``IP fragment``."""
+    head = d.fragment_of if d.fragment_of is not None else d
+    if not head.whole:
+        d.kind, d.detail = "IP fragment", "its datagram not whole in the capture"
+        d.parts = dict.fromkeys(peers.PEER_PARTS, 0) | {"headers": d.headers, "payload": d.frame - d.headers}
+        return
+    # Its payload bytes are in its first's parts, split with the whole datagram.
+    d.kind, d.detail, d.copy = head.kind, f"{head.detail} (IP fragment)".strip(), head.copy
+    d.parts = dict.fromkeys(peers.PEER_PARTS, 0) | {"headers": d.headers}
 
 
 def _classify_tcp(d: Datagram, seen: set[tuple[Any, ...]]) -> None:
@@ -548,6 +705,14 @@ class Run:
     exact: bool = True
     #: Per host: bytes sent before the bench's first reading (the team starting up).
     before_window: dict[str, int] = field(default_factory=dict)
+    #: The datagrams sent before the first reading (the team coming up: handshakes, discovery).
+    setup: list[Datagram] = field(default_factory=list)
+    #: What its UDP datagrams carried (:data:`UDP_PROTOCOL`).
+    udp: str = "coap"
+
+    @property
+    def system(self) -> str:
+        return str(self.row.get("system") or "coap-distributed")
 
 
 def load_run(directory: Path, name: str | None = None) -> Run:
@@ -563,10 +728,11 @@ def load_run(directory: Path, name: str | None = None) -> Run:
     meta = json.loads((directory / "run.json").read_text(encoding="utf-8"))
     hosts = {ip: host for host, ip in meta["hosts"].items()}
     before, end = meta["readings"][0], meta["readings"][1]
-    datagrams, others = datagrams_from_capture(read_frames(directory / "capture.jsonl"), hosts)
-    records = read_traces(directory / "wire")
+    udp = UDP_PROTOCOL.get(str(meta["row"].get("transport")), "coap")
+    datagrams, others = datagrams_from_capture(read_frames(directory / "capture.jsonl"), hosts, udp)
+    records = read_traces(directory / "wire") if (directory / "wire").is_dir() else []
     unmatched = join_traces(datagrams, records, hosts)
-    classify(datagrams, others)
+    classify(datagrams, others, udp)
     frames: list[Datagram] = list(datagrams)
     for o in others:  # not UDP: in the budget as what they are
         d = Datagram(o.t, o.src, o.dst, 0, 0, o.frame, o.frame, b"", lost=False)
@@ -576,6 +742,7 @@ def load_run(directory: Path, name: str | None = None) -> Run:
     counted: dict[str, tuple[int, int]] = {}
     before_window: dict[str, int] = {}
     inside: list[Datagram] = []
+    setup: list[Datagram] = []
     exact = True
     window = (before["t1"], end["t0"])
     for host in meta["hosts"]:
@@ -590,6 +757,7 @@ def load_run(directory: Path, name: str | None = None) -> Run:
             early = [d for d in sent if d.t < window[0]]
             mine = [d for d in sent if window[0] <= d.t <= window[1]]
         inside += mine
+        setup += early
         before_window[host] = sum(d.frame for d in early)
     row = meta["row"]
     first = min((d.t for d in inside), default=window[0])
@@ -601,7 +769,7 @@ def load_run(directory: Path, name: str | None = None) -> Run:
         unmatched_records=sum(1 for r in unmatched if first <= r["t"] <= last),
         untraced_protected=sum(1 for d in inside if d.oscore and d.record is None),
         outside=len(frames) - len(inside), path_stats=meta.get("path_stats", {}), exact=exact,
-        before_window=before_window,
+        before_window=before_window, setup=sorted(setup, key=lambda d: d.t), udp=udp,
     )
 
 
@@ -1114,6 +1282,62 @@ RUN_FIELDS = ("setting", "run", "tasks", "loss_pct", "security", "ok", "wire_byt
               "before_window")
 
 
+PEER_RUN_FIELDS = ("setting", "run", "system", "tasks", "loss_pct", "security", "ok", "wire_bytes", "wire_packets",
+                   "completion_s", "all_counted_bytes", "all_budget_bytes", "all_classified_bytes",
+                   "all_packets_counted", "all_packets_budget", "robots_counted_bytes", "robots_budget_bytes",
+                   "robots_explained_pct", "feeder_counted_bytes", "feeder_budget_bytes", "exact",
+                   "frames_outside_window", "before_window_bytes", "before_window_packets")
+
+
+def peer_run_row(setting: str, r: Run) -> dict[str, Any]:
+    """One run of the peers' comparison: the bench's figures and counters
+    against the budget (every host, the robots, the feeder)."""
+    return {"setting": setting, "system": r.system, "tasks": r.tasks, "loss_pct": r.loss,
+            "security": r.row.get("security") or ("oscore" if r.security else "none"),
+            **{k: r.row.get(k) for k in ("ok", "wire_bytes", "wire_packets", "completion_s")},
+            **explained(r), "exact": int(r.exact), "frames_outside_window": r.outside,
+            "before_window_bytes": sum(d.frame for d in r.setup), "before_window_packets": len(r.setup)}
+
+
+def write_peer_runs(settings: Mapping[str, Sequence[Run]], path: Path) -> None:
+    with path.open("w", newline="", encoding="utf-8") as out:
+        w = csv.DictWriter(out, PEER_RUN_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        for setting, runs in settings.items():
+            for r in runs:
+                w.writerow(peer_run_row(setting, r))
+
+
+def peer_explained_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The peers' budgets against the bench's own counters, per run."""
+    head = ("| run | ok | counted (B, every host) | in the budget | classified | packets counted / in the budget "
+            "| exact | the bench's wire_bytes |\n|---|---|--:|--:|--:|--:|---|--:|\n")
+    body = ""
+    for r in rows:
+        body += (f"| {r['run']} | {r['ok']} | {int(r['all_counted_bytes']):,} | {int(r['all_budget_bytes']):,} "
+                 f"| {int(r['all_classified_bytes']):,} | {int(r['all_packets_counted']):,} / "
+                 f"{int(r['all_packets_budget']):,} | {'yes' if str(r['exact']) == '1' else 'no'} "
+                 f"| {int(float(r['wire_bytes'] or 0)):,} |\n")
+    return head + body
+
+
+def peer_sections(rows: Sequence[Mapping[str, Any]], run_rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
+    """The doc's tables of the peers' comparison, by marker name."""
+    sections = {"peers-compare": peers.compare_table(rows), "peers-explained": peer_explained_table(run_rows)}
+    for name, rs in peers._by_setting(rows).items():
+        sections[f"peers-kinds-{name}"] = peers.kind_table(rs)
+        if any(r["table"] == "quic-packet" for r in rs):
+            sections[f"peers-quic-{name}"] = peers.quic_tables(rs)
+        if any(r["table"] == "rtps-submessage" for r in rs):
+            sections[f"peers-rtps-{name}"] = peers.rtps_table(rs)
+    return sections
+
+
+def print_peer_report(rows: Sequence[Mapping[str, Any]], run_rows: Sequence[Mapping[str, Any]]) -> None:
+    for name, content in peer_sections(rows, run_rows).items():
+        print(f"\n## {name}\n\n{content}")
+
+
 def write_runs(settings: Mapping[str, Sequence[Run]], path: Path) -> None:
     """One line per run: the bench's own figures, its counters per host and
     how much of them the budget explains."""
@@ -1199,9 +1423,10 @@ def doc_sections(settings: Mapping[str, Sequence[Run]]) -> dict[str, str]:
     return sections
 
 
-def update_doc(settings: Mapping[str, Sequence[Run]], doc: Path = DOC) -> None:
+def update_doc(settings: Mapping[str, Sequence[Run]], doc: Path = DOC,
+               sections: Mapping[str, str] | None = None) -> None:
     text = doc.read_text(encoding="utf-8")
-    for name, content in doc_sections(settings).items():
+    for name, content in (doc_sections(settings) if sections is None else sections).items():
         if f"<!-- budget:{name} -->" in text:
             text = replace_section(text, name, content)
     doc.write_text(text, encoding="utf-8")
@@ -1267,6 +1492,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--systems", dest="system", default="coap-distributed",
                    help="one system of coapkb bench; for ZeroMQ and Zenoh only TCP's roles are told apart "
                         "(handshake, data, ACK), their messages being encrypted and not traced")
+    p.add_argument("--peers", action="store_true",
+                   help="the peers' comparison: CoAP with and without security, Zenoh over TCP, QUIC and reliable "
+                        "UDP, DDS, at --loss (or, with --doc, 2 %% and 20 %%); --systems a,b picks some; its CSVs "
+                        "byte_budget_peers*.csv")
     p.add_argument("--doc", action="store_true",
                    help="the doc's runs (2 %% and 20 %% loss secure, 2 %% insecure, ZeroMQ at 2 %%), the CSVs and "
                         "the doc's tables")
@@ -1278,6 +1507,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.reps is None:
         args.reps = DOC_REPS if args.doc else 1
+    if args.peers:
+        return peers_main(args)
     if args.from_csv:
         settings = read_packets(CSV_PACKETS, CSV_META)
         print_report(settings)
@@ -1304,6 +1535,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_runs(settings, CSV_META)
     if args.doc:
         update_doc(settings)
+    return 0
+
+
+def peers_main(args: argparse.Namespace) -> int:
+    """``--peers``: run (or read) the peers' settings, write their CSVs, print (and with --doc write) their tables."""
+    if args.from_csv:
+        rows = peers.read_rows(CSV_PEERS)
+        with CSV_PEERS_RUNS.open(newline="", encoding="utf-8") as f:
+            run_rows = list(csv.DictReader(f))
+    else:
+        if args.read:
+            settings: dict[str, list[Run]] = {}
+            for directory in args.read:
+                run = load_run(directory)
+                settings.setdefault(setting_name(run.loss, run.security, run.system), []).append(run)
+        else:
+            from coapkb.bench.run import SYSTEMS
+
+            wanted = set(args.system.split(",")) if args.system != "coap-distributed" else None
+            losses = (2.0, 20.0) if args.doc else (args.loss,)
+            plan = [(setting_name(loss, security, system), system, loss, security)
+                    for system, loss, security in PEER_RUNS
+                    if system in SYSTEMS and loss in losses and (wanted is None or system in wanted
+                                                                  or system == "coap-distributed")]
+            missing = sorted({s for s, _, _ in PEER_RUNS} - set(SYSTEMS))
+            if missing:
+                print(f"not in this bench (left out): {', '.join(missing)}", flush=True)
+            with contextlib.ExitStack() as stack:
+                keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))
+                settings = asyncio.run(run_settings(plan, args, keep))
+        rows = [row for name, runs in settings.items() for row in peers.setting_rows(name, runs, _kind_label)]
+        run_rows = [peer_run_row(name, r) for name, runs in settings.items() for r in runs]
+        if not args.no_csv:
+            RESULTS.mkdir(parents=True, exist_ok=True)
+            peers.write_rows(rows, CSV_PEERS)
+            write_peer_runs(settings, CSV_PEERS_RUNS)
+    print_peer_report(rows, run_rows)
+    if args.doc:
+        update_doc({}, sections=peer_sections(rows, run_rows))
     return 0
 
 
