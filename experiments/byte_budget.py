@@ -1489,13 +1489,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=None,
                    help=f"runs per setting (repetitions 0..N-1, as the bench's; default 1, {DOC_REPS} with --doc)")
     p.add_argument("--insecure", action="store_true", help="security off (OSCORE and EDHOC)")
-    p.add_argument("--systems", dest="system", default="coap-distributed",
+    p.add_argument("--systems", dest="system", default=None,
                    help="one system of coapkb bench; for ZeroMQ and Zenoh only TCP's roles are told apart "
                         "(handshake, data, ACK), their messages being encrypted and not traced")
     p.add_argument("--peers", action="store_true",
                    help="the peers' comparison: CoAP with and without security, Zenoh over TCP, QUIC and reliable "
-                        "UDP, DDS, at --loss (or, with --doc, 2 %% and 20 %%); --systems a,b picks some; its CSVs "
-                        "byte_budget_peers*.csv")
+                        "UDP, DDS, at --loss (or, with --doc, 2 %% and 20 %%); --systems a,b picks some (CoAP "
+                        "among them if wanted); its CSVs byte_budget_peers*.csv; with --read, the runs kept earlier")
     p.add_argument("--doc", action="store_true",
                    help="the doc's runs (2 %% and 20 %% loss secure, 2 %% insecure, ZeroMQ at 2 %%), the CSVs and "
                         "the doc's tables")
@@ -1521,7 +1521,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             run = load_run(directory)
             settings.setdefault(setting_name(run.loss, run.security, str(run.row.get("system"))), []).append(run)
     else:
-        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, args.system), args.system,
+        system = args.system or "coap-distributed"
+        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, system), system,
                                                  args.loss, not args.insecure)]
         with contextlib.ExitStack() as stack:
             keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))
@@ -1553,18 +1554,25 @@ def peers_main(args: argparse.Namespace) -> int:
         else:
             from coapkb.bench.run import SYSTEMS
 
-            wanted = set(args.system.split(",")) if args.system != "coap-distributed" else None
+            wanted = set(args.system.split(",")) if args.system else None
             losses = (2.0, 20.0) if args.doc else (args.loss,)
             plan = [(setting_name(loss, security, system), system, loss, security)
                     for system, loss, security in PEER_RUNS
-                    if system in SYSTEMS and loss in losses and (wanted is None or system in wanted
-                                                                  or system == "coap-distributed")]
+                    if system in SYSTEMS and loss in losses and (wanted is None or system in wanted)]
             missing = sorted({s for s, _, _ in PEER_RUNS} - set(SYSTEMS))
             if missing:
                 print(f"not in this bench (left out): {', '.join(missing)}", flush=True)
             with contextlib.ExitStack() as stack:
                 keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))
                 settings = asyncio.run(run_settings(plan, args, keep))
+        order = [(system, security) for system, _, security in PEER_RUNS]
+
+        def place(item: tuple[str, list[Run]]) -> tuple[float, int, str]:
+            r = item[1][0]
+            key = (r.system, r.security)
+            return r.loss, order.index(key) if key in order else len(order), item[0]
+
+        settings = dict(sorted(settings.items(), key=place))
         rows = [row for name, runs in settings.items() for row in peers.setting_rows(name, runs, _kind_label)]
         run_rows = [peer_run_row(name, r) for name, runs in settings.items() for r in runs]
         if not args.no_csv:

@@ -355,7 +355,7 @@ def classify_quic(datagrams: Sequence[Any], plaintext: bool) -> None:
         parts = dict.fromkeys(PEER_PARTS, 0)
         parts["headers"] = link_headers(d)
         try:
-            packets = parse_quic_datagram(d.data, flows.dcid_len(d.dst, d.dport), plaintext)
+            packets = _parse_guessing(d.data, flows.dcid_len(d.dst, d.dport), plaintext)
         except ValueError as exc:
             d.quic = []
             d.kind, d.detail, d.parts = "other", f"not QUIC: {exc}", parts | {"payload": len(d.data)}
@@ -392,6 +392,23 @@ def classify_quic(datagrams: Sequence[Any], plaintext: bool) -> None:
         d.kind, d.detail = quic_kind(packets, len(d.data))
         d.copy = "retransmission" if again and not fresh else "first"
         d.quic_again = again
+
+
+def _parse_guessing(data: bytes, dcid_len: int, plaintext: bool) -> list[QuicPacket]:
+    """:func:`parse_quic_datagram`; in clear, a short header whose receiver's
+    connection-id length is not known (none of its long headers seen) is
+    cut at the length whose frames parse."""
+    try:
+        return parse_quic_datagram(data, dcid_len, plaintext)
+    except ValueError:
+        if not plaintext or not data or data[0] & 0x80:
+            raise
+    for n in range(21):
+        try:
+            return parse_quic_datagram(data, n, plaintext)
+        except ValueError:
+            continue
+    raise ValueError("no connection-id length makes its frames parse")
 
 
 def quic_kind(packets: Sequence[QuicPacket], size: int) -> tuple[str, str]:
@@ -1118,8 +1135,9 @@ def compare_table(rows: Iterable[Mapping[str, Any]]) -> str:
     settings = _by_setting(rows)
     head = ("| setting | security | runs ok | bytes | ÷ CoAP | packets | set-up and discovery | messages "
             "| acks and keep-alives | other | Eth+IP+UDP/TCP | protocol headers, acks, control | crypto "
-            "| encrypted, not split | payload | before the first reading (B per run) |\n"
-            "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|\n")
+            "| encrypted, not split | payload | after 1 s of silence: packets, bytes "
+            "| before the first reading (B per run) |\n"
+            "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|--:|\n")
     body = ""
     for name, rs in settings.items():
         total = next((r for r in rs if r["table"] == "total"), None)
@@ -1131,11 +1149,13 @@ def compare_table(rows: Iterable[Mapping[str, Any]]) -> str:
         groups = {r["name"]: r["bytes"] for r in rs if r["table"] == "group"}
         setup = next((r["bytes"] for r in rs if r["table"] == "setup" and r["name"] == "total"), 0.0)
         framing = total["transport"] + total["acks"] + total["control"]
+        idle = {r["name"]: r["value"] for r in rs if r["table"] == "idle"}
         body += (f"| {name} | {total['security']} | {total['ok']}/{total['runs']} | {_per(total['bytes'], n)} | {ratio} "
                  f"| {_per(total['packets'], n)} | "
                  + " | ".join(_per(groups.get(g, 0.0), n) for g in COMPARE_GROUPS)
                  + f" | {_per(total['headers'], n)} | {_per(framing, n)} | {_per(total['crypto'], n)} "
                  f"| {_per(total['encrypted'], n)} | {_per(total['payload'], n)} "
+                 f"| {_per(idle.get('idle_datagrams', 0), n)}, {_per(idle.get('idle_bytes', 0), n)} "
                  f"| {setup / max(1, total['runs']):,.0f} |\n")
     return head + body
 

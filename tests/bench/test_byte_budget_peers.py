@@ -395,3 +395,23 @@ def test_coap_parts_map_onto_the_peers_parts() -> None:
     d.kind, d.parts = "empty ACK", {"headers": 42, "coap": 4, "options": 0, "oscore": 0, "inner_options": 0,
                                     "payload": 0}
     assert pp.peer_parts(d)["acks"] == 4 and sum(pp.peer_parts(d).values()) == 46
+
+
+def test_peers_mode_reads_kept_runs_and_prints_their_tables(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    init = long_packet(0, b"\x11" * 8, C_CID, 0, crypto(0, b"\x01" * 60) + b"\0" * 100)
+    data_ = short_packet(S_CID, 1, stream(0, 0, FRAME) + ack(1))
+    f1, f2 = udp_frame("Robot1", 40000, "Robot2", 7447, init), udp_frame("Robot1", 40000, "Robot2", 7447, data_)
+    frames = [CapturedFrame(0.1, "p-Robot1", "in", f1), CapturedFrame(1.0, "p-Robot1", "in", f2),
+              CapturedFrame(1.01, "p-Robot2", "out", f2)]
+    _write_run(tmp_path / "udp", "zenoh+udp", "zenoh-udp-distributed", frames, {"Robot1": (len(f1) + len(f2), 2)})
+    meta = json.loads((tmp_path / "udp" / "run.json").read_text(encoding="utf-8"))
+    meta["readings"][0]["counters"]["Robot1"] = {"tx_bytes": len(f1), "tx_packets": 1}  # the Initial came before
+    (tmp_path / "udp" / "run.json").write_text(json.dumps(meta), encoding="utf-8")
+    assert bb.main(["--peers", "--read", str(tmp_path / "udp"), "--no-csv"]) == 0
+    out = capsys.readouterr().out
+    assert "## peers-kinds-zenoh-udp-distributed-loss2-insecure" in out and "## peers-explained" in out
+    # The server's long headers were not seen: its connection id's length is the one whose frames parse.
+    assert "| QUIC 1-RTT stream data | 1.0 |" in out
+    # In the window only the 1-RTT packet; the connection's Initial came before, in the whole capture.
+    assert "| 1-RTT | 1.0 |" in out and "| Initial |" not in out
+    assert "| 1.0 | 1.0 | 232 | 0.0 | 0.0 | 1 of 1 | 0.0 |" in out
