@@ -63,9 +63,27 @@ FIGURE_TITLES = {
 CELL = ("robots", "tasks", "bandwidth_kbps", "loss_pct")
 
 
+#: Appended to a system's name for its runs without the team's keys, where
+#: the same results also hold secured runs of it (``coapkb bench
+#: --insecure`` beside the default): a system of its own in every table and
+#: pairing, never mixed with the secured runs of the same cell.
+INSECURE = " --insecure"
+
+
+def system_labels(rows: Sequence[BenchRow]) -> list[str]:
+    """Each row's system, marked :data:`INSECURE` when it ran plain and
+    ``rows`` also hold secured runs of that system (results from before the
+    security column are all plain: their names stay)."""
+    secured = {r.system for r in rows if r.security != "none"}
+    return [r.system + INSECURE if r.security == "none" and r.system in secured else r.system for r in rows]
+
+
 def frame(rows: Sequence[BenchRow]) -> pd.DataFrame:
-    """The rows as a data frame, one column per CSV column (None as NaN)."""
-    return pd.DataFrame([r.to_dict() for r in rows], columns=list(BenchRow.__dataclass_fields__))
+    """The rows as a data frame, one column per CSV column (None as NaN),
+    with the systems named by :func:`system_labels`."""
+    df = pd.DataFrame([r.to_dict() for r in rows], columns=list(BenchRow.__dataclass_fields__))
+    df["system"] = system_labels(rows)
+    return df
 
 
 @dataclass(frozen=True)
@@ -144,8 +162,9 @@ def _md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]
 
 
 def _systems(rows: Sequence[BenchRow]) -> list[str]:
-    present = {r.system for r in rows}
-    return [s for s in SYSTEMS if s in present]
+    """The systems of ``rows`` in :data:`SYSTEMS`' order, each insecure variant after its system."""
+    present = set(system_labels(rows))
+    return [label for s in SYSTEMS for label in (s, s + INSECURE) if label in present]
 
 
 def _values(rows: Sequence[BenchRow], column: str) -> list[Any]:
@@ -197,7 +216,8 @@ def section_setup(rows: Sequence[BenchRow], csv_path: Path, profile: str) -> lis
     ]
     security = frame(rows).groupby("system")["security"].agg(lambda v: ", ".join(sorted(set(v))))
     lines += _md_table(("system", "what", "security"),
-                       ((f"`{s}`", SYSTEMS[s].description, security.get(s, "none")) for s in _systems(rows)))
+                       ((f"`{s}`", SYSTEMS[s.removesuffix(INSECURE)].description, security.get(s, "none"))
+                        for s in _systems(rows)))
     lines += ["", "Security as in `coapkb team` (the bench's default): `oscore` = OSCORE keyed by EDHOC, `curve` = "
               "CurveZMQ, `tls` = Zenoh's mutual TLS, each from the team's keys with its handshakes counted; "
               "the seed's systems run plain, as the seed ran them (docs/security.md)."]
@@ -256,6 +276,11 @@ COMPARISONS: tuple[tuple[str, str, str, str], ...] = (
     ("compact vs seed wire (ZeroMQ, distributed)", "zmq-distributed", "seed-distributed", "-"),
     ("compact vs seed wire (ZeroMQ, central)", "zmq-central", "seed-central", "-"),
     ("coapkb (CoAP, compact, distributed) vs the seed's system", "coap-distributed", "seed-distributed", "-"),
+    ("CoAP vs Zenoh/QUIC, distributed (both secured)", "coap-distributed", "zenoh-quic-distributed", "-"),
+    ("CoAP vs Zenoh reliable UDP, distributed (CoAP secured, Zenoh plain)", "coap-distributed",
+     "zenoh-udp-distributed", "-"),
+    ("CoAP vs DDS, distributed (both plain)", "coap-distributed" + INSECURE, "dds-distributed", "-"),
+    ("CoAP vs DDS, central (both plain)", "coap-central" + INSECURE, "dds-central", "-"),
 )
 #: The per-cell ratio tables: (column header, A, B).
 CELL_RATIOS: tuple[tuple[str, str, str], ...] = (
@@ -266,6 +291,9 @@ CELL_RATIOS: tuple[tuple[str, str, str], ...] = (
     ("CoAP/ZeroMQ central", "coap-central", "zmq-central"),
     ("CoAP/Zenoh dist", "coap-distributed", "zenoh-distributed"),
     ("CoAP/Zenoh central", "coap-central", "zenoh-central"),
+    ("CoAP/Zenoh-QUIC dist", "coap-distributed", "zenoh-quic-distributed"),
+    ("CoAP/Zenoh-rel-UDP dist", "coap-distributed", "zenoh-udp-distributed"),
+    ("CoAP/DDS dist (plain)", "coap-distributed" + INSECURE, "dds-distributed"),
 )
 
 

@@ -213,7 +213,8 @@ def _row(system: str = "coap-distributed", **kw: Any) -> BenchRow:
                    retransmission_profile=bench.retransmission_label(system), ok=True,
                    coordination_s=1.5, completion_s=2.0, wire_bytes=1000, wire_packets=10, retransmissions=0,
                    query_p50_ms=5.0, query_p99_ms=50.0, mode=SYSTEMS[system].mode,
-                   transport=SYSTEMS[system].transport, query_wire=SYSTEMS[system].query_wire, app_bytes=500)
+                   transport=SYSTEMS[system].transport, query_wire=SYSTEMS[system].query_wire, app_bytes=500,
+                   security=bench.security_label(system, True))
     return replace(row, **kw)
 
 
@@ -264,12 +265,12 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     read with the defaults, and their keys equal those of plain-link runs."""
     path = tmp_path / "old.csv"
     old_columns = [c for c in COLUMNS if c not in ("delay_ms", "jitter_ms", "loss_model", "burst_len")]
-    cells = _row().to_csv()
+    cells = _row(security="none").to_csv()
     path.write_text(",".join(old_columns) + "\n" + ",".join(str(cells[c]) for c in old_columns) + "\n")
     (back,) = read_rows(path)
     assert (back.delay_ms, back.jitter_ms, back.loss_model, back.burst_len) == (0.0, 0.0, "random", 0.0)
-    assert back.key() == _row(delay_ms=0, loss_model="random").key() in done_keys(path)
-    assert _row(delay_ms=100).key() not in done_keys(path)
+    assert back.key() == _row(delay_ms=0, loss_model="random", security="none").key() in done_keys(path)
+    assert _row(delay_ms=100, security="none").key() not in done_keys(path)
     sweep = load_experiment("sweep")
     plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, security=False)
     assert plain.key() == back.key()
@@ -345,6 +346,10 @@ def _synthetic(path: Path) -> None:
                                          query_p99_ms=100 * (1 + loss)))
     rows.append(_row("coap-central", robots=3, tasks=5, bandwidth_kbps=35.0, loss_pct=20.0, rep=1, ok=False,
                      error="run did not finish within 600 s"))
+    # CoAP without its keys, beside DDS (which has none): a system of its own in the report.
+    rows.append(_row("coap-distributed", security="none", wire_bytes=15_000))
+    rows.append(_row("dds-distributed", wire_bytes=30_000) if "dds-distributed" in SYSTEMS else
+                _row("zenoh-udp-distributed", wire_bytes=30_000))
     append_rows(path, rows)
 
 
@@ -377,6 +382,7 @@ def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
     assert "distributed vs central, CoAP + compact: saving | 41 %" in text
     assert "~42% fewer bytes" in text
     assert "coap-central | 3 | 5 | 35 | 20 | 1 | - | run did not finish" in text  # the failed run is listed
+    assert "`coap-distributed --insecure`" in text  # never paired as the secured runs of its cell
 
 
 def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> None:
