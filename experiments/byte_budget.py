@@ -1323,7 +1323,8 @@ def peer_explained_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 def peer_sections(rows: Sequence[Mapping[str, Any]], run_rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
     """The doc's tables of the peers' comparison, by marker name."""
-    sections = {"peers-compare": peers.compare_table(rows), "peers-explained": peer_explained_table(run_rows)}
+    sections = {"peers-compare": peers.compare_table(rows, run_rows),
+                "peers-explained": peer_explained_table(run_rows)}
     for name, rs in peers._by_setting(rows).items():
         sections[f"peers-kinds-{name}"] = peers.kind_table(rs)
         if any(r["table"] == "quic-packet" for r in rs):

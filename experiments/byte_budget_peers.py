@@ -537,7 +537,7 @@ RTPS_SUBMESSAGES = {0x01: "PAD", 0x06: "ACKNACK", 0x07: "HEARTBEAT", 0x08: "GAP"
                     0x0C: "INFO_SRC", 0x0D: "INFO_REPLY_IP4", 0x0E: "INFO_DST", 0x0F: "INFO_REPLY",
                     0x12: "NACK_FRAG", 0x13: "HEARTBEAT_FRAG", 0x15: "DATA", 0x16: "DATA_FRAG",
                     0x30: "SEC_BODY", 0x31: "SEC_PREFIX", 0x32: "SEC_POSTFIX", 0x33: "SRTPS_PREFIX",
-                    0x34: "SRTPS_POSTFIX"}
+                    0x34: "SRTPS_POSTFIX", 0x81: "vendor MSG_LEN", 0x82: "vendor ENTITY_ID"}
 _ENTITY_SUBMESSAGES = ("DATA", "DATA_FRAG", "HEARTBEAT", "HEARTBEAT_FRAG", "GAP", "ACKNACK", "NACK_FRAG")
 _ACK_SUBMESSAGES = ("HEARTBEAT", "HEARTBEAT_FRAG", "GAP", "ACKNACK", "NACK_FRAG")
 
@@ -1127,13 +1127,18 @@ def _reference(rows: Mapping[str, Sequence[Mapping[str, Any]]], row: Mapping[str
     return None
 
 
-def compare_table(rows: Iterable[Mapping[str, Any]]) -> str:
-    """Every setting on one line, per task: bytes (and against CoAP at the
-    same loss, with or without security as the peer), packets, the
-    comparison groups, the parts, and the team's set-up before the window
-    (per run)."""
+def compare_table(rows: Iterable[Mapping[str, Any]], run_rows: Iterable[Mapping[str, Any]] = ()) -> str:
+    """Every setting on one line, per task: bytes (the runs' own in
+    brackets, from ``run_rows``; and against CoAP at the same loss, with or
+    without security as the peer), packets, the comparison groups, the
+    parts, the traffic on quiet flows, and the team's set-up before the
+    window (per run)."""
     settings = _by_setting(rows)
-    head = ("| setting | security | runs ok | bytes | ÷ CoAP | packets | set-up and discovery | messages "
+    spread: dict[str, list[float]] = defaultdict(list)
+    for r in run_rows:
+        if int(float(r.get("tasks") or 0)):
+            spread[str(r["setting"])].append(float(r["all_budget_bytes"]) / int(float(r["tasks"])))
+    head = ("| setting | security | runs ok | bytes [runs] | ÷ CoAP | packets | set-up and discovery | messages "
             "| acks and keep-alives | other | Eth+IP+UDP/TCP | protocol headers, acks, control | crypto "
             "| encrypted, not split | payload | after 1 s of silence: packets, bytes "
             "| before the first reading (B per run) |\n"
@@ -1150,7 +1155,10 @@ def compare_table(rows: Iterable[Mapping[str, Any]]) -> str:
         setup = next((r["bytes"] for r in rs if r["table"] == "setup" and r["name"] == "total"), 0.0)
         framing = total["transport"] + total["acks"] + total["control"]
         idle = {r["name"]: r["value"] for r in rs if r["table"] == "idle"}
-        body += (f"| {name} | {total['security']} | {total['ok']}/{total['runs']} | {_per(total['bytes'], n)} | {ratio} "
+        each = sorted(spread.get(name, []))
+        runs = f" [{each[0]:,.0f}-{each[-1]:,.0f}]" if len(each) > 1 else ""
+        body += (f"| {name} | {total['security']} | {total['ok']}/{total['runs']} | {_per(total['bytes'], n)}{runs} "
+                 f"| {ratio} "
                  f"| {_per(total['packets'], n)} | "
                  + " | ".join(_per(groups.get(g, 0.0), n) for g in COMPARE_GROUPS)
                  + f" | {_per(total['headers'], n)} | {_per(framing, n)} | {_per(total['crypto'], n)} "
