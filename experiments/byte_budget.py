@@ -610,6 +610,7 @@ def classify(datagrams: Sequence[Datagram], others: Sequence[OtherFrame] = (), u
             d.copy = "retransmission"
         elif request is not None and d.kind != "notification":
             d.copy = request.copy
+    peers.split_tls([d for d in ordered if d.tcp is not None])  # Zenoh over TCP with TLS: its records
 
 
 def _classify_fragment(d: Datagram) -> None:

@@ -531,6 +531,75 @@ def _quantile(values: Sequence[float], q: float) -> float | None:
     return s[min(len(s) - 1, int(q * len(s)))]
 
 
+# =========================================================================== TLS over TCP
+
+#: TLS 1.3 record: a 5-byte header; an encrypted record's content ends with
+#: its inner content type (1 byte) and the AEAD tag (16).
+TLS_HEADER, TLS_SEALED_TAIL = 5, 1 + 16
+
+
+def split_tls(segments: Sequence[Any]) -> None:
+    """Split the payload of TCP segments that carry TLS (Zenoh over TCP with
+    the team's keys) by the records they hold: each record's 5-byte header
+    is ``transport``; an application-data record's inner type and tag
+    ``crypto`` and the rest ``payload`` (the handshake's last flights are
+    application-data records too in TLS 1.3, and count as payload here); a
+    handshake, change-cipher-spec or alert record's content ``crypto``.
+    The sender's stream is read in sequence-number order (the capture holds
+    what each host sent, before any loss, so it has no holes); a segment
+    sent again gets the split of the bytes it repeats.  A flow whose stream
+    does not start with a TLS handshake record is left alone."""
+    flows: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for d in sorted(segments, key=lambda d: d.t):
+        if d.tcp is None:
+            continue
+        flags, seq = d.tcp
+        f = flows.setdefault((d.src, d.sport, d.dst, d.dport), {"base": None, "buf": bytearray(), "segments": []})
+        if flags & 0x02:
+            f["base"] = (seq + 1) & 0xFFFFFFFF
+            continue
+        if not d.data:
+            continue
+        if f["base"] is None:
+            f["base"] = seq
+        offset = (seq - f["base"]) & 0xFFFFFFFF
+        f["segments"].append((d, offset))
+        buf = f["buf"]
+        if offset <= len(buf) < offset + len(d.data):
+            buf += d.data[len(buf) - offset:]
+    for f in flows.values():
+        buf = f["buf"]
+        if len(buf) < 3 or buf[0] != 0x16 or buf[1] != 0x03:
+            continue
+        labels = _tls_labels(bytes(buf))
+        for d, offset in f["segments"]:
+            parts = dict.fromkeys(PEER_PARTS, 0)
+            parts["headers"] = d.frame - len(d.data)
+            for start, end, part in labels:
+                parts[part] += max(0, min(end, offset + len(d.data)) - max(start, offset))
+            parts["payload"] += len(d.data) - sum(parts[p] for p in PEER_PARTS if p != "headers")
+            d.parts = parts
+            d.detail = "TLS"
+
+
+def _tls_labels(stream: bytes) -> list[tuple[int, int, str]]:
+    labels: list[tuple[int, int, str]] = []
+    pos = 0
+    while pos + TLS_HEADER <= len(stream):
+        kind, major = stream[pos], stream[pos + 1]
+        length = int.from_bytes(stream[pos + 3:pos + 5], "big")
+        if kind not in (20, 21, 22, 23) or major != 3:
+            break  # not TLS from here on: the rest stays payload
+        labels.append((pos, pos + TLS_HEADER, "transport"))
+        body, end = pos + TLS_HEADER, pos + TLS_HEADER + length
+        if kind == 23 and length >= TLS_SEALED_TAIL:
+            labels += [(body, end - TLS_SEALED_TAIL, "payload"), (end - TLS_SEALED_TAIL, end, "crypto")]
+        else:
+            labels.append((body, end, "crypto"))
+        pos = end
+    return labels
+
+
 # =========================================================================== RTPS
 
 RTPS_SUBMESSAGES = {0x01: "PAD", 0x06: "ACKNACK", 0x07: "HEARTBEAT", 0x08: "GAP", 0x09: "INFO_TS",
@@ -927,7 +996,7 @@ def peer_parts(d: Any) -> dict[str, int]:
     ``acks``, OSCORE's option, markers and tag ``crypto``); a TCP segment's
     headers and payload."""
     p = d.parts or {}
-    if d.proto in ("quic", "rtps") or d.kind == "IP fragment":
+    if d.proto in ("quic", "rtps") or d.kind == "IP fragment" or "crypto" in p:
         return {k: int(p.get(k, 0)) for k in PEER_PARTS}
     out = dict.fromkeys(PEER_PARTS, 0)
     out["headers"], out["payload"] = int(p.get("headers", 0)), int(p.get("payload", 0))

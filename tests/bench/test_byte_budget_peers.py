@@ -415,3 +415,31 @@ def test_peers_mode_reads_kept_runs_and_prints_their_tables(tmp_path: Path, caps
     # In the window only the 1-RTT packet; the connection's Initial came before, in the whole capture.
     assert "| 1-RTT | 1.0 |" in out and "| Initial |" not in out
     assert "| 1.0 | 1.0 | 232 | 0.0 | 0.0 | 1 of 1 | 0.0 |" in out
+
+
+def tcp(t: float, src: str, dst: str, flags: int, seq: int, payload: bytes = b"") -> Any:
+    d = bb.Datagram(t, src, dst, 40000 if src == "Robot1" else 7447, 7447 if src == "Robot1" else 40000,
+                    66 + len(payload), 66, payload, tcp=(flags, seq), proto="tcp")
+    return d
+
+
+def test_tls_records_over_tcp_are_split_into_headers_tags_and_data() -> None:
+    hello = bytes([22, 3, 1]) + (100).to_bytes(2, "big") + b"h" * 100
+    app = bytes([23, 3, 3]) + (60).to_bytes(2, "big") + b"z" * 43 + b"\x17" + b"t" * 16
+    stream_ = hello + app
+    isn = 1000
+    first, second = stream_[:130], stream_[130:]
+    sent = [tcp(0.0, "Robot1", "Robot2", 0x02, isn), tcp(0.1, "Robot1", "Robot2", 0x18, isn + 1, first),
+            tcp(0.2, "Robot1", "Robot2", 0x18, isn + 1 + 130, second),
+            tcp(0.9, "Robot1", "Robot2", 0x18, isn + 1 + 130, second),                       # sent again
+            tcp(1.0, "Robot2", "Robot1", 0x18, 5, b"\xff" + b"\0" * 9 + b"\x7f")]            # ZMTP: not TLS
+    bb.classify(sent)
+    assert [(d.kind, d.copy) for d in sent] == [("TCP handshake", "first"), ("TCP data", "first"),
+                                               ("TCP data", "first"), ("TCP data", "retransmission"),
+                                               ("TCP data", "first")]
+    a, b, c, z = (d.parts for d in sent[1:])
+    assert a == dict.fromkeys(pp.PEER_PARTS, 0) | {"headers": 66, "transport": 5 + 5, "crypto": 100, "payload": 20}
+    assert b == c == dict.fromkeys(pp.PEER_PARTS, 0) | {"headers": 66, "payload": 43 - 20, "crypto": 17}
+    assert "crypto" not in z and pp.peer_parts(sent[4])["payload"] == 11
+    for d in sent:
+        assert sum(pp.peer_parts(d).values()) == d.frame
