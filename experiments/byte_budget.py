@@ -1541,6 +1541,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def peer_setting_name(system: str, loss: float, security: bool) -> str:
+    """A setting of the peers' comparison: the system always named."""
+    return f"{system}-loss{loss:g}" + ("" if security else "-insecure")
+
+
 def peers_main(args: argparse.Namespace) -> int:
     """``--peers``: run (or read) the peers' settings, write their CSVs, print (and with --doc write) their tables."""
     if args.from_csv:
@@ -1552,13 +1557,13 @@ def peers_main(args: argparse.Namespace) -> int:
             settings: dict[str, list[Run]] = {}
             for directory in args.read:
                 run = load_run(directory)
-                settings.setdefault(setting_name(run.loss, run.security, run.system), []).append(run)
+                settings.setdefault(peer_setting_name(run.system, run.loss, run.security), []).append(run)
         else:
             from coapkb.bench.run import SYSTEMS
 
             wanted = set(args.system.split(",")) if args.system else None
             losses = (2.0, 20.0) if args.doc else (args.loss,)
-            plan = [(setting_name(loss, security, system), system, loss, security)
+            plan = [(peer_setting_name(system, loss, security), system, loss, security)
                     for system, loss, security in PEER_RUNS
                     if system in SYSTEMS and loss in losses and (wanted is None or system in wanted)]
             missing = sorted({s for s, _, _ in PEER_RUNS} - set(SYSTEMS))

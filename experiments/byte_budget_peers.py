@@ -1147,8 +1147,8 @@ def _by_setting(rows: Iterable[Mapping[str, Any]]) -> dict[str, list[Mapping[str
     return out
 
 
-_KIND_ORDER = ("EDHOC", "query", "answer", "registration", "notification", "task", "decision", "liveness", "hearsay",
-               "lease", "empty ACK", "reset", "error", "TCP handshake", "TCP data", "TCP ACK", "TCP close",
+_KIND_ORDER = ("EDHOC", "query", "answer", "registration", "notification", "task post", "task answer",
+               "decision post", "decision answer", "liveness", "hearsay", "lease", "empty ACK", "reset", "error", "TCP handshake", "TCP data", "TCP ACK", "TCP close",
                "QUIC Initial", "QUIC 0-RTT", "QUIC Handshake", "QUIC Retry", "QUIC Version",
                "QUIC 1-RTT Zenoh session set-up", "QUIC 1-RTT stream data", "QUIC 1-RTT large",
                "QUIC 1-RTT Zenoh keep-alive", "QUIC 1-RTT PING", "QUIC 1-RTT ACK only", "QUIC 1-RTT small",
