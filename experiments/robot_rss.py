@@ -34,7 +34,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 IMPORTS = {
     "import coapkb.agent.robot": "import coapkb.agent.robot",
     "a CoAP robot's imports": (
-        "import coapkb.cli as cli; cli.build_parser(); "
+        "import coapkb.cli as cli; cli.build_parser(only='agent'); "
         "import coapkb.agent.robot, coapkb.transport.coap, coapkb.security.coap"
     ),
 }

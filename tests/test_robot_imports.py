@@ -44,13 +44,13 @@ def test_importing_the_robot_loads_no_other_transport_and_no_analysis_library() 
 
 def test_a_coap_robot_process_loads_only_its_transport_and_back_end(tmp_path: Path) -> None:
     """What ``coapkb agent`` loads on CoAP with OSCORE: the command line
-    (every subcommand's options), the robot, the CoAP transport and its
+    (the agent's options only, as :func:`coapkb.cli.main` builds it), the robot, the CoAP transport and its
     security, the team's keys, and a KB on oxigraph."""
     team = tmp_path / "team"
     generate_team(team, default_members(3))
     modules = _loaded_after(
         "import coapkb.cli as cli\n"
-        "cli.build_parser()\n"
+        "cli.build_parser(only='agent')\n"
         "import coapkb.agent.robot, coapkb.transport.coap, coapkb.security.coap\n"
         "from coapkb.security import load_identity\n"
         "from coapkb.kb.store import KnowledgeBase\n"
@@ -58,6 +58,7 @@ def test_a_coap_robot_process_loads_only_its_transport_and_back_end(tmp_path: Pa
         "KnowledgeBase.load(['ontologies/Capability.owl']).query('SELECT ?s WHERE { ?s ?p ?o } LIMIT 1')\n"
     )
     assert _unwanted(modules) == []
+    assert not {m for m in modules if m.startswith(("coapkb.bench", "coapkb.harness", "coapkb.feeder"))}
     assert {"aiocoap", "pyoxigraph", "coapkb.transport.coap", "coapkb.security.coap"} <= modules
 
 
@@ -72,3 +73,17 @@ def test_the_rdflib_back_end_is_loaded_when_chosen() -> None:
 def test_the_command_line_does_not_load_the_benchmark_libraries() -> None:
     modules = _loaded_after("import coapkb.cli as cli\ncli.build_parser()")
     assert not {"numpy", "pandas", "tqdm", "matplotlib"} & modules
+
+
+def test_the_agent_command_builds_only_its_own_options() -> None:
+    """``coapkb agent`` never imports the benchmark's systems to build its
+    parser; ``coapkb bench`` does (its options name them)."""
+    from coapkb.cli import _command
+
+    assert _command(["-v", "agent", "--config", "x"]) == "agent"
+    assert _command(["--help"]) is None
+    modules = _loaded_after(
+        "import coapkb.cli as cli\n"
+        "try:\n    cli.main(['agent', '--config', '/nonexistent/robot.toml'])\nexcept SystemExit:\n    pass\n"
+    )
+    assert "coapkb.cli.agent" in modules and "coapkb.bench.run" not in modules

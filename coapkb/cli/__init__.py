@@ -3,8 +3,11 @@
 Every user mistake ends in one ``coapkb: error: ...`` line and a non-zero
 exit (2 for usage, 1 for a failed operation), never a traceback: any
 :class:`~coapkb.errors.CoapkbError` that reaches :func:`main` is printed so.
-Each subcommand imports what it runs when it runs, so ``coapkb agent``
-loads a robot's modules only.
+Each subcommand imports what it runs when it runs, and :func:`main` builds
+only the chosen subcommand's options (the benchmark's need its systems and
+the harness), so ``coapkb agent`` loads a robot's modules only: with a
+hundred robot processes starting on one machine, every import is paid a
+hundred times.
 """
 
 from __future__ import annotations
@@ -23,23 +26,39 @@ from .render import render
 __all__ = ["UserError", "build_parser", "main", "render"]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line, or with ``only`` the one subcommand of that
+    name (what :func:`main` runs: the others' options are not imported)."""
     parser = argparse.ArgumentParser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in COMMANDS:
-        add(sub)
+    for name, add in COMMANDS.items():
+        if only is None or name == only:
+            add(sub)
     return parser
 
 
-COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    team.add_demo, team.add_team, feed.add_feed, serve.add_serve, agent.add_agent, query.add_query,
-    bench.add_bench, keys.add_keys,
-]
+#: Each subcommand's name and the function adding its parser.
+COMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {
+    "demo": team.add_demo, "team": team.add_team, "feed": feed.add_feed, "serve": serve.add_serve,
+    "agent": agent.add_agent, "query": query.add_query, "bench": bench.add_bench, "keys": keys.add_keys,
+}
+
+
+def _command(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names, if it names a known one before any
+    option other than ``-v`` (else the whole parser reports the mistake)."""
+    for word in argv:
+        if word in COMMANDS:
+            return word
+        if word not in ("-v", "-vv", "-vvv", "--verbose"):
+            return None
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(only=_command(argv))
     args = parser.parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
