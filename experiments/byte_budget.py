@@ -500,7 +500,7 @@ def request_kind(plain: Mapping[str, Any]) -> tuple[str, str]:
         return "query", path[len("/kb/q/"):]
     if path == "/kb/sparql":
         return "query", "sparql"
-    if path in ("/robot/plan", "/robot/state"):
+    if path in ("/robot/plan", "/robot/state", "/robot/outcome"):
         if plain.get("observe") == 0:
             return "registration", path
         if "of=" in query:
@@ -1124,13 +1124,18 @@ BREAKDOWN = (
     "requests for the facts",
     "robots' plan registrations",
     "acknowledgements of plan notifications",
-    "the feeder's view: /robot/state registrations, notifications and their acknowledgements",
+    "the feeder's view: /robot/outcome (before: /robot/state) registrations, notifications and their acknowledgements",
     "task answers (2.04)",
     "key exchange (EDHOC)",
     "liveness, hearsay, lease",
     "resets, errors, other",
     "copies: retransmissions, retries, hedged copies",
 )
+
+
+#: What the feeder observes of each robot: /robot/outcome, or /robot/state
+#: in runs of the code before it.
+FEEDER_VIEW = ("/robot/outcome", "/robot/state")
 
 
 def breakdown_of(d: Datagram) -> str:
@@ -1148,7 +1153,7 @@ def breakdown_of(d: Datagram) -> str:
         return BREAKDOWN[2]
     if kind == "empty ACK" and detail.endswith("/robot/plan"):
         return BREAKDOWN[3]
-    if detail == "/robot/state" or (kind == "empty ACK" and detail.endswith("/robot/state")):
+    if detail in FEEDER_VIEW or (kind == "empty ACK" and detail.endswith(FEEDER_VIEW)):
         return BREAKDOWN[4]
     if kind == "task answer":
         return BREAKDOWN[5]

@@ -5,6 +5,7 @@ Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 =================  ======  ==================================================
 ``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
 ``/robot/plan``    GET     planned state only, for teammates; observable
+``/robot/outcome`` GET     what the feeder acts on: decisions, jobs done or dropped, idle; observable
 ``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON; :mod:`coapkb.feeder.tasks`)
 ``/tasks``         GET     the decisions taken so far
 ``/decisions``     POST    the leader's decision ("compute and communicate")
@@ -42,7 +43,7 @@ from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_executor import TaskExecutor
-from .team_view import PLAN_PATH, STATE_PATH, TeamView
+from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
 from ..world import Position, layout_from_row
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
@@ -117,8 +118,8 @@ class Robot:
         self.team = team
         self.executor = executor
         self.queries = queries
-        #: Paces the live-progress notifications of /robot/state (set at start).
-        self.progress: ProgressPacing | None = None
+        #: Paces the notifications of /robot/state and /robot/outcome (set at start).
+        self.progress: tuple[ProgressPacing, ...] = ()
         self._next_seq = 1
         #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
         #: (a repeated post is recognised: the feeder repeats only its latest).
@@ -176,18 +177,23 @@ class Robot:
         )
 
         state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
+        # Never progress alone: only what the feeder acts on, the changes of
+        # one loop turn as one notification.
+        outcome_changed = ProgressPacing(lambda: router.notify(OUTCOME_PATH))
 
         def publish_live(live: LiveState) -> None:
             before = team.own.live
             team.set_own(replace(team.own, live=live))
             if acted_on(before, live):
                 state_changed.now()
+                outcome_changed.now()
             else:
                 state_changed.progress()
 
         def publish_decision(state: RobotState) -> None:
             router.notify(PLAN_PATH)
             state_changed.now()
+            outcome_changed.now()
 
         async def send_decision(message: DecisionMessage) -> None:
             # Not to teammates known down: each would hold the decision up by a timeout.
@@ -207,7 +213,7 @@ class Robot:
             config, queries, team, executor, publish_decision, send_decision
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
-        robot.progress = state_changed
+        robot.progress = (state_changed, outcome_changed)
         robot._mount()  # before serving: the transport publishes the resource list
         try:
             server_side = None
@@ -228,6 +234,8 @@ class Robot:
         add = self.router.add
         add(ResourceInfo(STATE_PATH, rt="coapkb.state", ct=(60, 50), obs=True, title="robot state"), self._get_state)
         add(ResourceInfo(PLAN_PATH, rt="coapkb.plan", ct=(60,), obs=True, title="planned state"), self._get_plan)
+        add(ResourceInfo(OUTCOME_PATH, rt="coapkb.outcome", ct=(60,), obs=True, title="decisions and jobs"),
+            self._get_outcome)
         add(
             ResourceInfo("/tasks", rt="coapkb.tasks", ct=(60, 50), title="task feed", methods=("GET", "POST")),
             self._tasks,
@@ -242,8 +250,8 @@ class Robot:
             await self.directory.aclose()
         await self.controller.aclose()
         await self.executor.aclose()
-        if self.progress is not None:
-            self.progress.cancel()
+        for pacing in self.progress:
+            pacing.cancel()
         await self.team.aclose()
         if self.server is not None:
             await self.server.aclose()
@@ -255,6 +263,9 @@ class Robot:
         if request.accept == ContentFormat.JSON:
             return _encode(self.team.own.to_dict(), request.accept)
         return _cbor_state(self.team.own.encode(), request.accept)
+
+    async def _get_outcome(self, request: Request) -> Response:
+        return _cbor_state(self.team.own.encode_outcome(), request.accept)
 
     async def _get_plan(self, request: Request) -> Response:
         about = request.query.get("of")

@@ -1,7 +1,8 @@
 """A robot's state, as its teammates see it through Observe (RFC 7641).
 
 ``/robot/plan`` carries what teammates need to assign tasks; ``/robot/state``
-adds the live part and the last decision, for the feeder and for people.
+adds the live part and the last decision, for people; ``/robot/outcome`` is
+the part of it the feeder acts on.
 Two parts with different jobs:
 
 * ``plan``: the state the Task Assigner reasons with (where the robot will be,
@@ -114,6 +115,26 @@ class RobotState:
             ],
             canonical=True,  # smallest lossless float widths
         )
+
+    def encode_outcome(self) -> bytes:
+        """What the feeder acts on, as a ``robot-outcome`` (docs/robot-state.cddl):
+        :meth:`encode`'s array without what only people and teammates read.
+
+        No previous plan (teammates read it on ``/robot/plan``).  The last
+        decision without its coordination time (the feeder times tasks
+        itself), its members only once the membership has changed (epoch
+        above 0: before that they are the cluster the feeder fed), and its
+        costs and reasons only from the robot the task went to, or from
+        every robot when it went to none: every robot of a cluster computes
+        the same costs, and the feeder records one robot's.  The feeder
+        observes every robot after every task, so this is about half of
+        what it was sent."""
+        last = self.last
+        if last is not None:
+            carries = last.assigned_to is None or last.assigned_to == self.robot_id
+            last = replace(last, coordination_s=0.0, members=last.members if last.epoch else (),
+                           costs=last.costs if carries else {}, reasons=last.reasons if carries else {})
+        return replace(self, prev=None, last=last).encode()
 
     def _boot(self) -> list[int]:
         return [self.boot] if self.boot else []

@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 STATE_PATH = "/robot/state"
 #: Planned state only: all a teammate needs to assign tasks.
 PLAN_PATH = "/robot/plan"
+#: What the feeder acts on: each decision's outcome and the job queue's
+#: standing, notified only when it changes (RobotState.encode_outcome).
+OUTCOME_PATH = "/robot/outcome"
 
 States = dict[str, RobotState]
 

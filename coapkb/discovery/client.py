@@ -46,6 +46,7 @@ def registration_links(config: RobotConfig) -> str:
     links += [
         Link("/robot/plan", [("rt", "coapkb.plan"), ("obs", None)]),
         Link("/robot/state", [("rt", "coapkb.state"), ("obs", None)]),
+        Link("/robot/outcome", [("rt", "coapkb.outcome"), ("obs", None)]),
     ]
     return str(LinkFormat(links))
 

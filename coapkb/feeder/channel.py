@@ -9,14 +9,15 @@ from dataclasses import dataclass
 from typing import AsyncIterator, Callable, Mapping, Sequence
 
 from ..agent.robot_state import RobotState
-from ..agent.team_view import STATE_PATH, ObservedStates, States, liveness_floor_s
+from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..transport import open_client
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .tasks import FeederError
 
-#: A robot's state, asked once (the watcher observes it all along).
-STATE_REQUEST = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+#: What the feeder reads of a robot: its outcome (RobotState.encode_outcome),
+#: asked once (the watcher observes it all along).
+OUTCOME_REQUEST = Request(Method.GET, OUTCOME_PATH, accept=ContentFormat.CBOR)
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,7 @@ class Channel:
         client = await open_client(settings.transport, security=security)
         try:
             watcher = ObservedStates(
-                client, roster.endpoints, STATE_PATH, liveness=True,
+                client, roster.endpoints, OUTCOME_PATH, liveness=True,
                 liveness_floor_s=liveness_floor_s(settings.link_kbps),
             )
             watcher.start()
@@ -90,7 +91,7 @@ class Channel:
     async def state(self, robot_id: str, timeout: float) -> RobotState | None:
         """``robot_id``'s state asked once; None if it does not answer with one."""
         try:
-            response = await self.client.request(self.endpoint(robot_id), STATE_REQUEST, timeout=timeout)
+            response = await self.client.request(self.endpoint(robot_id), OUTCOME_REQUEST, timeout=timeout)
             return RobotState.decode(response.payload) if response.status.is_success else None
         except (TransportError, ValueError):
             return None

@@ -18,7 +18,7 @@ from ..agent.stats import RobotStats
 from ..agent.team_view import ObservedStates, States
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
-from .channel import STATE_REQUEST, Channel, FeederSettings, Roster
+from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
 from .membership import Membership
 from .orphans import idle
 from .record import TaskRecord
@@ -82,7 +82,7 @@ class Feeder:
             """``robot_id``'s state, or why it cannot be fed."""
             endpoint = channel.endpoint(robot_id)
             try:
-                response = await channel.client.request(endpoint, STATE_REQUEST, timeout=timeout)
+                response = await channel.client.request(endpoint, OUTCOME_REQUEST, timeout=timeout)
             except TransportError as exc:
                 hint = f"; {hints[robot_id]}" if hints and robot_id in hints else ""
                 return f"{robot_id} does not answer at {endpoint} ({exc}){hint}"
@@ -241,8 +241,10 @@ class Feeder:
                 continue
             record.decisions[robot_id] = decision.assigned_to
             record.epochs[robot_id] = decision.epoch
-            if decision.members and not record.members:
-                record.members = list(decision.members)
+            if not record.members:
+                # A robot's outcome names the members only once they changed:
+                # at epoch 0 they are the cluster the feeder fed.
+                record.members = list(decision.members or (sorted(cluster) if decision.epoch == 0 else ()))
             if decision.error:
                 record.errors[robot_id] = decision.error
             if decision.unavailable and record.unavailable is None:

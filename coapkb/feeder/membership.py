@@ -14,7 +14,7 @@ from ..agent.lease import LEASE_PATH
 from ..agent.robot_state import RobotState
 from ..transport.base import TransportError
 from ..transport.messages import Method, Request, Status
-from .channel import STATE_REQUEST, Channel
+from .channel import OUTCOME_REQUEST, Channel
 from .orphans import orphans, unexecuted
 from .record import TaskRecord
 from .tasks import FeederError, task_post
@@ -126,7 +126,7 @@ class Membership:
         channel = self.channel
         with contextlib.suppress(TransportError, ValueError, TimeoutError):
             async with asyncio.timeout(channel.settings.task_timeout_s * 4):
-                async for response in channel.client.observe(channel.endpoint(robot_id), STATE_REQUEST):
+                async for response in channel.client.observe(channel.endpoint(robot_id), OUTCOME_REQUEST):
                     live = RobotState.decode(response.payload).live
                     if live.activity == "idle" and live.queued == 0:
                         return

@@ -75,6 +75,41 @@ def test_matches_the_cddl(validator: object) -> None:
         assert outcome.valid, [str(d) for d in outcome.diagnostics]
 
 
+@given(states)
+def test_outcome_carries_what_the_feeder_acts_on(state: RobotState) -> None:
+    seen = RobotState.decode(state.encode_outcome())
+    assert (seen.robot_id, seen.plan, seen.live, seen.boot, seen.prev) == (
+        state.robot_id, state.plan, state.live, state.boot, None)
+    if state.last is None:
+        assert seen.last is None
+        return
+    last, got = state.last, seen.last
+    assert got is not None
+    assert (got.seq, got.object, got.skipped, got.assigned_to, got.error, got.epoch, got.unavailable) == (
+        last.seq, last.object, last.skipped, last.assigned_to, last.error, last.epoch, last.unavailable)
+    assert got.members == (last.members if last.epoch else ())
+    carries = last.assigned_to in (None, state.robot_id)
+    assert (got.costs, got.reasons) == ((last.costs, last.reasons) if carries else ({}, {}))
+
+
+def test_the_outcome_is_half_the_state_and_matches_the_cddl(validator: object) -> None:
+    costs = {"Robot1": 12.345678912, "Robot2": 10.98765432, "Robot3": None}
+    members = ("Robot1", "Robot2", "Robot3")
+    loser = RobotState(
+        "Robot1", PlannedState(12, 7, 512.3456789123, 23.4567891, 60.6, 14),
+        LiveState(11.5, 6.25, "travelling", "Gucci_bag_14", 1, 13),
+        Decision(14, "Hermes_scarf_231", False, "Robot2", costs, None, 0.123456789,
+                 {"Robot3": "cannot pick by suction"}, 0, members),
+        PlannedState(11, 3, 520.123456789, 13.456789, 60.6, 13), boot=3123456789,
+    )
+    winner = replace(loser, robot_id="Robot2")
+    assert len(loser.encode_outcome()) * 2 < len(loser.encode())
+    assert len(winner.encode_outcome()) < len(winner.encode()) - 50
+    for state in (loser, winner, replace(loser, last=replace(loser.last, epoch=1))):
+        outcome = validator.validate(state.encode_outcome(), root_type="robot-outcome")  # type: ignore[attr-defined]
+        assert outcome.valid, [str(d) for d in outcome.diagnostics]
+
+
 def test_compact_enough_for_slow_links() -> None:
     state = RobotState(
         "Robot1", PlannedState(3, 21, 412.25, 0.8, 60.6, 5), LiveState(3.0, 21.0),

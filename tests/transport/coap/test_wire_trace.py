@@ -113,7 +113,7 @@ def test_a_team_on_loopback_writes_every_datagram_with_its_plaintext(tmp_path: P
     protected = [line for line in requests if line.get("oscore")]
     assert protected and all(line["code"] in ("0.02", "0.05") for line in protected)  # POST, or FETCH to observe
     paths = Counter(line["path"] for line in protected)
-    assert paths["/tasks"] >= 3 * 2 and paths["/robot/state"] >= 3 and paths["/robot/plan"] >= 3 * 2
+    assert paths["/tasks"] >= 3 * 2 and paths["/robot/outcome"] >= 3 and paths["/robot/plan"] >= 3 * 2
     assert any(p.startswith("/kb/q/") for p in paths), paths
     assert all(line["inner_code"] in ("GET", "POST", "FETCH") for line in protected)
 
