@@ -7,7 +7,7 @@ With the compact wire Query_1 and Query_3 go to the Object KB's holder as
 one exchange (``pick-facts``), and every query projects only what the
 assigner reads; the seed's own system sends its four queries as printed.
 Then the Task Assigner runs on the teammates' planned states, observed
-through ``/robot/state``, and the winner's Task Executor gets the job.
+through ``/robot/plan``, and the winner's Task Executor gets the job.
 
 Strategies: "compute-by-all" (every robot queries and computes the same
 assignment, no further message) and "compute-and-communicate" (the first

@@ -10,7 +10,8 @@ RFC 7641 lets a server skip intermediate states (section 4.5: only the
 newest matters), so :class:`ProgressPacing` sends at once what observers
 act on -- a decision, a job done, a job dropped, the robot idle -- and
 progress alone at most once per ``pace_s``, with whatever the state is by
-then.
+then.  The feeder observes ``/robot/outcome`` instead, which is notified
+only for what it acts on: progress alone never reaches it.
 """
 
 from __future__ import annotations

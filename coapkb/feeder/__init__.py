@@ -1,7 +1,7 @@
 """The feeder: the team's task source, a role of the system like a robot.
 
 It posts each cluster's tasks in order (``POST /tasks``, :mod:`.tasks`),
-waits for every robot's decision on the ``/robot/state`` it observes, and
+waits for every robot's decision on the ``/robot/outcome`` it observes, and
 keeps the team whole while robots fail: a robot that stops answering is
 down and fed no more, a restarted one joins at a task boundary, one back
 before its teammates noticed is fed what it missed, and a down robot's
