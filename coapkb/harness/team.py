@@ -134,13 +134,6 @@ class TeamSpec:
     #: level (``coapkb bench --trace``): the robots' own account of each task
     #: and each wait.  None: only the last lines are kept, for errors.
     log_dir: Path | None = None
-    #: Robots of this machine share one on-disk KB index per set of modules,
-    #: in the run's directory: the first robot holding a set builds it, the
-    #: rest open it read-only.  A robot then opens its KB in about 20 ms of
-    #: CPU where parsing the OWL files took 150 ms, and keeps about 5 MiB less
-    #: resident; what a hundred robots starting on two cores feel.  False:
-    #: every robot parses its files into memory, as a robot alone does.
-    shared_kb_index: bool = True
 
     @property
     def lease_s(self) -> float:
@@ -397,7 +390,6 @@ class Team:
                     link_kbps=spec.link_kbps,
                     execution=ExecutionModel(time_scale=spec.time_scale),
                     security=None if self.team_dir is None else SecurityConfig(self.team_dir),
-                    kb_index=self.workdir / "kb-index" if spec.shared_kb_index else None,
                 )
                 path = self.workdir / f"{robot_id}.toml"
                 path.write_text(dump_config(config), encoding="utf-8")
