@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test venv bytecode system-deps clean
+.PHONY: demo test venv system-deps clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -11,12 +11,10 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q -e '.[test,bench]'
 	touch $@
 
-venv: $(VENV)/.installed
-
-# The package's bytecode, written once here: an editable install has none, and
+# Then the package's bytecode, written here: an editable install has none, and
 # with PYTHONDONTWRITEBYTECODE set every robot process would compile coapkb's
 # modules again (0.3 s of CPU each: a 99-robot team's start-up on two cores).
-bytecode: venv
+venv: $(VENV)/.installed
 	@$(PY) -m compileall -q coapkb >/dev/null
 
 # Debian packages used by the interop and link-emulation tests (needs root; skipped otherwise).
@@ -28,12 +26,12 @@ system-deps:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 iptables >/dev/null; }; \
 	else echo "system-deps: not root or no apt-get; interop/netns tests will skip"; fi
 
-demo: bytecode
+demo: venv
 	$(VENV)/bin/coapkb demo
 
 # Coverage is reported, not enforced: the total line (robots run as processes included,
 # [tool.coverage] in pyproject.toml) and coverage.xml for tools; printed even when a test fails.
-test: bytecode system-deps
+test: venv system-deps
 	$(PY) -m pytest -q --cov --cov-report=xml:coverage.xml; status=$$?; \
 	  echo "coverage: $$($(PY) -m coverage report --format=total)% of coapkb's lines run by the tests (coverage.xml)"; \
 	  exit $$status
