@@ -61,7 +61,7 @@ import sys
 import tempfile
 import time
 from collections import Counter, defaultdict
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -941,6 +941,15 @@ def budget_table(runs: Sequence[Run]) -> str:
     return head + body
 
 
+def _frame_bytes_by(runs: Sequence[Run], key: Callable[[Datagram], str]) -> Counter[str]:
+    """The runs' frame bytes summed by ``key`` of each datagram."""
+    sums: Counter[str] = Counter()
+    for r in runs:
+        for d in r.datagrams:
+            sums[key(d)] += d.frame
+    return sums
+
+
 def group_table(settings: Mapping[str, Sequence[Run]]) -> str:
     """Bytes per task by group of kinds, one column per setting."""
     names = list(settings)
@@ -948,10 +957,7 @@ def group_table(settings: Mapping[str, Sequence[Run]]) -> str:
     per_group: dict[str, dict[str, float]] = defaultdict(dict)
     for name, runs in settings.items():
         n = sum(r.tasks for r in runs)
-        totals: Counter[str] = Counter()
-        for r in runs:
-            for d in r.datagrams:
-                totals[_group_of(d.kind)] += d.frame
+        totals = _frame_bytes_by(runs, lambda d: _group_of(d.kind))
         for g, _ in GROUPS:
             per_group[g][name] = totals[g] / n
         per_group["total"][name] = sum(totals.values()) / n
@@ -1171,10 +1177,7 @@ def breakdown_table(settings: Mapping[str, Sequence[Run]]) -> str:
     values: dict[str, dict[str, float]] = defaultdict(dict)
     for name, runs in settings.items():
         n = sum(r.tasks for r in runs)
-        sums: Counter[str] = Counter()
-        for r in runs:
-            for d in r.datagrams:
-                sums[breakdown_of(d)] += d.frame
+        sums = _frame_bytes_by(runs, breakdown_of)
         sent = sum(sums.values())
         need = sum(x.bytes(r.security) for r in runs for x in minimum(r))
         if not need:
