@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import functools
 import logging
 import math
 import secrets
@@ -134,6 +135,7 @@ _INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
 }
 
 
+@functools.cache  # once per process: reading aiocoap's source costs 20 ms of CPU each time
 def verify() -> None:
     """Check aiocoap's version and every internal name used here; raises
     :class:`~coapkb.transport.coap.aiocoap_adapter.UnsupportedAiocoapVersion`."""
