@@ -176,11 +176,22 @@ def test_the_zenoh_quic_and_reliable_udp_systems() -> None:
     assert bench.retransmission_label("zenoh-distributed") == "tcp"
 
 
+def test_the_dds_systems() -> None:
+    """Both modes; RTPS's reliable QoS retransmits; never secured (no DDS Security in the wheel)."""
+    for mode in ("distributed", "central"):
+        d = SYSTEMS[f"dds-{mode}"]
+        assert (d.mode, d.transport, d.query_wire) == (mode, "dds", "compact")
+        assert bench.retransmission_label(f"dds-{mode}") == "rtps"
+        assert bench.security_label(f"dds-{mode}", True) == "none"
+        assert not bench.system_spec(f"dds-{mode}", 3).secure
+
+
 async def test_bench_help_lists_the_zenoh_quic_and_udp_systems() -> None:
     code, out, err = await coapkb("bench", "--help")
     assert code == 0, err
     listed = " ".join(out.split()).replace("- ", "-")  # argparse wraps the list at hyphens
-    for system in ("zenoh-udp-distributed", "zenoh-udp-central", "zenoh-quic-distributed", "zenoh-quic-central"):
+    for system in ("zenoh-udp-distributed", "zenoh-udp-central", "zenoh-quic-distributed", "zenoh-quic-central",
+                   "dds-distributed", "dds-central"):
         assert system in listed, system
 
 
@@ -304,7 +315,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
     paper = sweep.plan(sweep.PROFILES["paper"])
-    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 4) * 3  # 3 reps, no zenoh-udp or -quic pair
+    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 6) * 3  # 3 reps, no zenoh-udp, -quic or dds pair
     # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
     short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0) for r, t in ((3, 5), (3, 80)))
     assert (sweep.units(short), sweep.units(long)) == (6, 81)
