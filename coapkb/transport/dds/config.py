@@ -24,6 +24,10 @@ Discovery
     the wire, so one process can hold one Cyclone domain per peer
     (``Discovery/ExternalDomainId``) while all of them are one DDS domain.
 
+Heartbeats and lease
+    See :class:`DomainSettings`: a slow radio needs a slower heartbeat than
+    Cyclone's default.
+
 Message size
     Cyclone's default maximum message is 14 720 bytes: one UDP datagram can
     pack many submessages, which IP then fragments on a 1500-byte link; one
@@ -49,8 +53,17 @@ class DomainSettings:
     domain_id: int = 0
     #: Largest UDP payload Cyclone generates: 1500-byte MTU less IPv4 and UDP headers.
     max_message_size: int = 1472
-    #: Participant lease: a peer silent this long is dropped (Cyclone's default, 10 s).
-    lease_duration_s: float = 10.0
+    #: Participant lease: a peer silent this long is dropped.  Cyclone's
+    #: default is 10 s, with an SPDP announcement every 8 s; at 30 s one goes
+    #: every 28 s (any packet from a peer renews its lease meanwhile).  A
+    #: teammate's liveness is coapkb's own business (its team view), not DDS's.
+    lease_duration_s: float = 30.0
+    #: A reliable writer's heartbeat period while it has unacknowledged data.
+    #: Cyclone's 100 ms is shorter than one 1500-byte frame takes at 35 kbit/s
+    #: (340 ms): every heartbeat draws an ACKNACK, the discovery endpoints of
+    #: a dozen participants saturated the link, and no request got through in
+    #: 60 s (measured); at 1 s the same run completes.  None: Cyclone's.
+    heartbeat_interval_s: float | None = 1.0
 
 
 def _ms(seconds: float) -> str:
@@ -70,8 +83,15 @@ def _common(address: str, settings: DomainSettings) -> str:
     )
 
 
-def _document(general: str, discovery: str) -> str:
-    return f'<CycloneDDS><Domain Id="any">{general}<Discovery>{discovery}</Discovery></Domain></CycloneDDS>'
+def _internal(settings: DomainSettings) -> str:
+    if settings.heartbeat_interval_s is None:
+        return ""
+    return f"<Internal><HeartbeatInterval>{_ms(settings.heartbeat_interval_s)}</HeartbeatInterval></Internal>"
+
+
+def _document(general: str, discovery: str, internal: str = "") -> str:
+    return (f'<CycloneDDS><Domain Id="any">{general}<Discovery>{discovery}</Discovery>{internal}'
+            "</Domain></CycloneDDS>")
 
 
 def server_domain_xml(address: str, port: int, settings: DomainSettings = DomainSettings()) -> str:
@@ -90,7 +110,7 @@ def server_domain_xml(address: str, port: int, settings: DomainSettings = Domain
         '<Peers AddLocalhost="false"/>'
         f"<LeaseDuration>{_ms(settings.lease_duration_s)}</LeaseDuration>"
     )
-    return _document(_common(address, settings), discovery)
+    return _document(_common(address, settings), discovery, _internal(settings))
 
 
 def client_domain_xml(address: str, peer: str, settings: DomainSettings = DomainSettings()) -> str:
@@ -101,7 +121,7 @@ def client_domain_xml(address: str, peer: str, settings: DomainSettings = Domain
         f'<Peers AddLocalhost="false"><Peer Address={quoteattr(peer)} PruneDelay="inf"/></Peers>'
         f"<LeaseDuration>{_ms(settings.lease_duration_s)}</LeaseDuration>"
     )
-    return _document(_common(address, settings), discovery)
+    return _document(_common(address, settings), discovery, _internal(settings))
 
 
 def local_address_towards(host: str, port: int) -> str:
