@@ -121,6 +121,9 @@ def test_server_takes_discovery_and_data_on_its_one_port() -> None:
     for gain_or_offset in ("DomainGain", "ParticipantGain", "UnicastMetaOffset", "UnicastDataOffset"):
         assert f"<{gain_or_offset}>0</{gain_or_offset}>" in xml
     assert "<AllowMulticast>false</AllowMulticast>" in xml and "<Peer " not in xml
+    # The slow-radio settings (docs/dds.md): one frame per datagram, 1 s heartbeats, 30 s lease.
+    assert "<MaxMessageSize>1472B</MaxMessageSize>" in xml
+    assert "<HeartbeatInterval>1000ms</HeartbeatInterval>" in xml and "<LeaseDuration>30000ms</LeaseDuration>" in xml
     client = client_domain_xml("127.0.0.1", "127.0.0.1:7400")
     assert '<Peer Address="127.0.0.1:7400" PruneDelay="inf"/>' in client
     assert "<ParticipantIndex>none</ParticipantIndex>" in client
