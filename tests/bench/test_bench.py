@@ -414,3 +414,18 @@ def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.Capt
     lines = spread.report([("after", r) for r in runs])
     assert lines[0] == "after: coap-distributed 3r 10t 35k 20% oscore"
     assert lines[-1].startswith("  5 runs: completion median 6.1 s, slowest 2.95x the median; query p99 at most 0.90 s")
+
+
+def test_dds_table_pairs_runs_by_setting_and_repetition() -> None:
+    """CoAP ÷ DDS per pair (same setting and repetition); a failed run drops its pair."""
+    table = load_experiment("dds_table")
+    rows = [
+        *(_row("coap-distributed", rep=r, wire_bytes=1000, completion_s=2.0, security="none") for r in range(3)),
+        *(_row("dds-distributed", rep=r, wire_bytes=4000 * (r + 1), completion_s=4.0) for r in range(3)),
+        _row("dds-distributed", rep=3, ok=False),
+    ]
+    ratios = "\n".join(table.ratios(rows))
+    assert "| 3 robots, 5 tasks, 35 kbit/s, 2 % | 3 | 0.12 [0.083, 0.25]" in ratios  # 1000/8000 the median of 3
+    assert "| 0.50 [0.50, 0.50]" in ratios
+    medians = "\n".join(table.medians(rows))
+    assert "| `dds-distributed` | 3/4 | 8,000 [4,000, 12,000]" in medians
