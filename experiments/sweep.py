@@ -164,11 +164,14 @@ COMPACT_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-c
 #: The paper matrix keeps the systems it was first run with: Zenoh over
 #: reliable UDP and over QUIC came later and are compared on their own
 #: (docs/zenoh.md); the plain UDP link they replaced failed every lossy run.
-PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport not in ("zenoh+udp", "zenoh+quic"))
+PAPER_SYSTEMS = tuple(s for s in SYSTEMS if SYSTEMS[s].transport not in ("zenoh+udp", "zenoh+quic", "dds"))
 QUICK_SYSTEMS = (*COMPACT_SYSTEMS, "seed-distributed")
 #: What a team choosing in 2026 also asks about: Zenoh over QUIC and over its reliable UDP.
 QUIC_SYSTEMS = ("zenoh-quic-distributed", "zenoh-quic-central", "zenoh-udp-distributed", "zenoh-udp-central")
 QUIC_DISTRIBUTED = tuple(s for s in QUIC_SYSTEMS if s.endswith("-distributed"))
+#: DDS (Cyclone DDS; its wheel has no DDS Security) and CoAP without OSCORE
+#: beside it: both run --insecure in these cells.
+DDS_VERSUS = ("coap-distributed", "dds-distributed")
 #: The quick profile's cells.  Two things cost time at 20 % loss: CoAP's
 #: retransmission timeouts and TCP connections the kernel gives up on, which
 #: leave a query hanging until its timeout -- mostly on the seed's wire
@@ -191,6 +194,10 @@ QUICK_GRIDS = (
     Grid((3,), (5,), (35,), (2, 20), QUIC_DISTRIBUTED),
     Grid((3,), (5,), (256,), (2,), QUIC_DISTRIBUTED),
     Grid((3,), (5,), (35,), (2,), ("zenoh-quic-central",)),
+    # DDS in the same cells, against plain CoAP (no DDS Security to compare with).
+    Grid((3,), (5,), (35,), (2, 20), DDS_VERSUS, insecure=True),
+    Grid((3,), (5,), (256,), (2,), DDS_VERSUS, insecure=True),
+    Grid((3,), (5,), (35,), (2,), ("coap-central", "dds-central"), insecure=True),
 )
 SCALE_SIZES = (3, 9, 30, 60, 99)
 SCALE_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")

@@ -18,9 +18,9 @@ ROOT = Path(__file__).resolve().parent.parent
 #: itself is: its terms are the query results' terms; its SPARQL engine
 #: (and pyparsing, which it needs) is not.
 NOT_FOR_A_COAP_ROBOT = (
-    "zmq", "zenoh", "numpy", "pandas", "matplotlib", "tqdm", "dask", "scipy",
+    "zmq", "zenoh", "cyclonedds", "numpy", "pandas", "matplotlib", "tqdm", "dask", "scipy",
     "rdflib.plugins.sparql", "pyparsing",
-    "coapkb.transport.zmq", "coapkb.transport.zenoh", "coapkb.security.curve", "coapkb.security.zenoh_tls",
+    "coapkb.transport.zmq", "coapkb.transport.zenoh", "coapkb.transport.dds", "coapkb.security.curve", "coapkb.security.zenoh_tls",
     "coapkb.kb.rdflib_backend",
 )
 

@@ -124,7 +124,7 @@ class SystemDef:
     """One system under test: how the team is organised and what goes on the wire."""
 
     mode: str  # "distributed" or "central"
-    transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic"
+    transport: str  # a scheme of coapkb.transport.SCHEMES: "coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic", "dds"
     query_wire: str  # "compact" (named queries, CBOR) or "seed" (SPARQL text, SPARQL-JSON)
     description: str
 
@@ -142,6 +142,8 @@ SYSTEMS: dict[str, SystemDef] = {
     "zenoh-udp-central": SystemDef("central", "zenoh+udp", "compact", "Zenoh's reliable UDP (QUIC without TLS, never secured), named queries, compact CBOR, one remote KB server"),
     "zenoh-quic-distributed": SystemDef("distributed", "zenoh+quic", "compact", "Zenoh/QUIC, named queries, compact CBOR, KB split over the robots"),
     "zenoh-quic-central": SystemDef("central", "zenoh+quic", "compact", "Zenoh/QUIC, named queries, compact CBOR, one remote KB server"),
+    "dds-distributed": SystemDef("distributed", "dds", "compact", "DDS (Cyclone DDS, RTPS over UDP, no DDS Security in its wheel), named queries, compact CBOR, KB split over the robots"),
+    "dds-central": SystemDef("central", "dds", "compact", "DDS (Cyclone DDS, RTPS over UDP, no DDS Security in its wheel), named queries, compact CBOR, one remote KB server"),
 }
 
 # --------------------------------------------------------------------------- systems and timeouts

@@ -2,7 +2,7 @@
 
 ``open_client`` and ``serve`` pick the implementation the
 :mod:`.registry` holds for a scheme (``coap``, ``zmq``, ``zenoh``,
-``zenoh+udp`` or ``zenoh+quic``), so nothing above this package names a
+``zenoh+udp``, ``zenoh+quic`` or ``dds``), so nothing above this package names a
 transport.  Security
 plugs in from above through the seams of :mod:`.security`.
 """

@@ -3,8 +3,8 @@
 A transport moves :class:`~coapkb.transport.messages.Request` / ``Response`` pairs
 between robots.  The client side is :class:`ClientTransport`; the server side
 exposes a :class:`Service` (the robot's resources) through a
-:class:`ServerTransport`.  CoAP/UDP (``coap``), ZeroMQ/TCP (``zmq``) and
-Zenoh (``zenoh``, ``zenoh+udp``) implement both; the agent, CLI and
+:class:`ServerTransport`.  CoAP/UDP (``coap``), ZeroMQ/TCP (``zmq``),
+Zenoh (``zenoh``, ``zenoh+udp``, ``zenoh+quic``) and DDS (``dds``) implement both; the agent, CLI and
 benchmarks only see these protocols.
 """
 
@@ -112,7 +112,7 @@ class Endpoint:
     @classmethod
     def parse(cls, uri: str, default_scheme: str = "coap") -> "Endpoint":
         """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq), ``zenoh://h:p``,
-        ``zenoh+udp://h:p`` or bare ``h:p``."""
+        ``zenoh+udp://h:p``, ``zenoh+quic://h:p``, ``dds://h:p`` or bare ``h:p``."""
         scheme, sep, rest = uri.partition("://")
         if not sep:
             scheme, rest = default_scheme, uri

@@ -71,7 +71,8 @@ class TransportInfo:
     #: Other spellings of the scheme accepted in URIs.
     aliases: tuple[str, ...] = ()
     #: What below coapkb recovers its lost packets: ``tcp`` (the kernel's TCP),
-    #: ``quic`` (a QUIC stack inside the transport's library); None: nothing
+    #: ``quic`` (a QUIC stack inside the transport's library), ``rtps`` (DDS's
+    #: reliable QoS: heartbeats, ACKNACKs, retransmits); None: nothing
     #: does, unless its own :attr:`reliability` layer.
     recovery: str | None = None
     #: Why it cannot be secured (``security`` None), for the refusal a user gets.
@@ -79,7 +80,7 @@ class TransportInfo:
 
     @property
     def retransmits_itself(self) -> bool:
-        """The protocol below (TCP, QUIC) retransmits: it takes no reliability layer."""
+        """The protocol below (TCP, QUIC, RTPS) retransmits: it takes no reliability layer."""
         return self.recovery is not None
 
 
@@ -135,6 +136,19 @@ async def _zenoh_server(service: Service, endpoint: Endpoint, reliability: Relia
     return await ZenohServerTransport.start(service, endpoint, security=security)
 
 
+async def _dds_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
+    from .dds.transport import DdsClientTransport
+
+    return DdsClientTransport()
+
+
+async def _dds_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
+                      security: ServerSecurity | None) -> ServerTransport:
+    from .dds.transport import DdsServerTransport
+
+    return await DdsServerTransport.start(service, endpoint)
+
+
 # ----------------------------------------------------------------- the registrations
 
 REGISTERED: tuple[TransportInfo, ...] = (
@@ -155,6 +169,11 @@ REGISTERED: tuple[TransportInfo, ...] = (
     # Zenoh over QUIC: TLS 1.3 in its handshake, mutual with the team's certificates.
     TransportInfo("zenoh+quic", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
                   security="tls", recovery="quic"),
+    # DDS (Cyclone DDS): RTPS over UDP, whose reliable QoS retransmits (heartbeats
+    # and ACKNACKs); the PyPI wheel has no DDS Security plugins.
+    TransportInfo("dds", datagram=True, default_port=7400, open_client=_dds_client, serve=_dds_server,
+                  recovery="rtps", unsecurable_because="the cyclonedds wheel carries no DDS Security plugins "
+                  "(authentication, access control, cryptography), so DDS runs only --insecure"),
 )
 
 #: The registered schemes, in registration order.

@@ -176,11 +176,22 @@ def test_the_zenoh_quic_and_reliable_udp_systems() -> None:
     assert bench.retransmission_label("zenoh-distributed") == "tcp"
 
 
+def test_the_dds_systems() -> None:
+    """Both modes; RTPS's reliable QoS retransmits; never secured (no DDS Security in the wheel)."""
+    for mode in ("distributed", "central"):
+        d = SYSTEMS[f"dds-{mode}"]
+        assert (d.mode, d.transport, d.query_wire) == (mode, "dds", "compact")
+        assert bench.retransmission_label(f"dds-{mode}") == "rtps"
+        assert bench.security_label(f"dds-{mode}", True) == "none"
+        assert not bench.system_spec(f"dds-{mode}", 3).secure
+
+
 async def test_bench_help_lists_the_zenoh_quic_and_udp_systems() -> None:
     code, out, err = await coapkb("bench", "--help")
     assert code == 0, err
     listed = " ".join(out.split()).replace("- ", "-")  # argparse wraps the list at hyphens
-    for system in ("zenoh-udp-distributed", "zenoh-udp-central", "zenoh-quic-distributed", "zenoh-quic-central"):
+    for system in ("zenoh-udp-distributed", "zenoh-udp-central", "zenoh-quic-distributed", "zenoh-quic-central",
+                   "dds-distributed", "dds-central"):
         assert system in listed, system
 
 
@@ -304,7 +315,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
     left = sweep.pending(runs, done_keys(path))
     assert first not in left and len(left) == len(runs) - 1
     paper = sweep.plan(sweep.PROFILES["paper"])
-    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 4) * 3  # 3 reps, no zenoh-udp or -quic pair
+    assert len(paper) == 3 * 5 * 4 * 5 * len(sweep.PAPER_SYSTEMS) * 3 == 3 * 5 * 4 * 5 * (len(SYSTEMS) - 6) * 3  # 3 reps, no zenoh-udp, -quic or dds pair
     # Progress counts tasks per cluster (+1 for start-up), so long runs weigh more.
     short, long = (sweep.Run("coap-distributed", r, t, 35.0, 2.0, 0) for r, t in ((3, 5), (3, 80)))
     assert (sweep.units(short), sweep.units(long)) == (6, 81)
@@ -403,3 +414,18 @@ def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.Capt
     lines = spread.report([("after", r) for r in runs])
     assert lines[0] == "after: coap-distributed 3r 10t 35k 20% oscore"
     assert lines[-1].startswith("  5 runs: completion median 6.1 s, slowest 2.95x the median; query p99 at most 0.90 s")
+
+
+def test_dds_table_pairs_runs_by_setting_and_repetition() -> None:
+    """CoAP ÷ DDS per pair (same setting and repetition); a failed run drops its pair."""
+    table = load_experiment("dds_table")
+    rows = [
+        *(_row("coap-distributed", rep=r, wire_bytes=1000, completion_s=2.0, security="none") for r in range(3)),
+        *(_row("dds-distributed", rep=r, wire_bytes=4000 * (r + 1), completion_s=4.0) for r in range(3)),
+        _row("dds-distributed", rep=3, ok=False),
+    ]
+    ratios = "\n".join(table.ratios(rows))
+    assert "| 3 robots, 5 tasks, 35 kbit/s, 2 % | 3 | 0.12 [0.083, 0.25]" in ratios  # 1000/8000 the median of 3
+    assert "| 0.50 [0.50, 0.50]" in ratios
+    medians = "\n".join(table.medians(rows))
+    assert "| `dds-distributed` | 3/4 | 8,000 [4,000, 12,000]" in medians

@@ -2,7 +2,7 @@
 
 Robots are real OS processes on loopback.  The transports carry the very same
 messages, so who gets which task must not depend on which one carries them:
-Zenoh (over TCP, QUIC and its reliable UDP) against CoAP and ZeroMQ,
+Zenoh (over TCP, QUIC and its reliable UDP) and DDS against CoAP and ZeroMQ,
 distributed and centralised.
 """
 
@@ -59,3 +59,22 @@ async def test_zenoh_assigns_as_coap_and_zmq(mode: str) -> None:
             assert stats.server is not None and stats.server.bytes_sent > 0 and stats.server.messages_received > 0
             assert stats.queries.remote > 0, (transport, robot_id)
         assert zenoh.feeder_traffic.bytes_sent > 0, transport
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["distributed", "central"])
+async def test_dds_assigns_as_coap(mode: str) -> None:
+    """DDS has no security in its wheel: both run plain."""
+    records = {
+        transport: await run(TeamSpec(robots=3, mode=mode, transport=transport, security=False,
+                                      query_timeout_s=5.0, task_timeout_s=30.0))
+        for transport in ("coap", "dds")
+    }
+    assert outcome(records["dds"]) == outcome(records["coap"])
+    dds = records["dds"]
+    assert dds.transport == "dds"
+    for robot_id, stats in dds.robot_stats.items():
+        assert stats.queries.failed == 0, robot_id
+        assert stats.server is not None and stats.server.bytes_sent > 0 and stats.server.messages_received > 0
+        assert stats.queries.remote > 0, robot_id
+    assert dds.feeder_traffic.bytes_sent > 0

@@ -36,21 +36,21 @@ def test_a_host_str_could_not_write_back_is_refused(uri: str) -> None:
 
 
 def test_lookups() -> None:
-    assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic")
+    assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic", "dds")
     assert transport_for("tcp") is transport_for("zmq") is find("zmq")
     assert find("carrier-pigeon") is None
-    with pytest.raises(UnknownTransport, match="choose from coap, zmq, zenoh, zenoh\\+udp, zenoh\\+quic"):
+    with pytest.raises(UnknownTransport, match="choose from coap, zmq, zenoh, zenoh\\+udp, zenoh\\+quic, dds"):
         transport_for("carrier-pigeon")
-    assert [t.scheme for t in REGISTERED if t.datagram] == ["coap", "zenoh+udp", "zenoh+quic"]
+    assert [t.scheme for t in REGISTERED if t.datagram] == ["coap", "zenoh+udp", "zenoh+quic", "dds"]
     assert [t.scheme for t in REGISTERED if t.resource_directory] == ["coap"]
 
 
 def test_only_coap_shares_a_reliability_layer() -> None:
     assert reliability_for("zmq") is None
     assert reliability_for("zenoh+udp") is None
-    # TCP or QUIC below the others retransmits; CoAP's layer does it itself.
+    # TCP, QUIC or RTPS below the others retransmits; CoAP's layer does it itself.
     assert {t.scheme: t.recovery for t in REGISTERED} == {
-        "coap": None, "zmq": "tcp", "zenoh": "tcp", "zenoh+udp": "quic", "zenoh+quic": "quic"}
+        "coap": None, "zmq": "tcp", "zenoh": "tcp", "zenoh+udp": "quic", "zenoh+quic": "quic", "dds": "rtps"}
     assert [t.scheme for t in REGISTERED if not t.retransmits_itself] == ["coap"]
     layer = reliability_for("coap", link_kbps=256)
     assert layer is not None and layer.as_dict()["profile"]["link_kbps"] == 256  # the layer itself
@@ -63,3 +63,6 @@ def test_each_secured_transport_has_its_mechanism() -> None:
     with pytest.raises(SecurityError, match="the zenoh\\+udp transport cannot be secured: it is Zenoh's reliable UDP, "
                                             "QUIC without encryption or authentication"):
         mechanism_for("zenoh+udp")
+    with pytest.raises(SecurityError, match="the dds transport cannot be secured: the cyclonedds wheel carries no "
+                                            "DDS Security plugins"):
+        mechanism_for("dds")

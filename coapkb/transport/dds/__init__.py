@@ -1,0 +1,1 @@
+"""DDS (Cyclone DDS) transport: :mod:`.transport`; how an endpoint becomes a Cyclone domain: :mod:`.config`."""
