@@ -13,7 +13,7 @@ $(VENV)/.installed: pyproject.toml
 
 # Then the package's bytecode, written here: an editable install has none, and
 # with PYTHONDONTWRITEBYTECODE set every robot process would compile coapkb's
-# modules again (0.3 s of CPU each: a 99-robot team's start-up on two cores).
+# modules again (0.4 s of CPU each: a 99-robot team's start-up on two cores).
 venv: $(VENV)/.installed
 	@$(PY) -m compileall -q coapkb >/dev/null
 
