@@ -480,6 +480,7 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
             await asyncio.sleep(0.01)  # until the feeder's first protected request went through the relay
         protected = [d for d in relay.sent if _has_oscore_option(d)][0]
         replies = 0
+        flood_started = loop.time()
         for mid in range(1, 401):
             stranger = strangers[mid % len(strangers)]
             await loop.sock_sendto(stranger, _message_1(mid), ("127.0.0.1", peer.port))
@@ -504,7 +505,11 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
         assert answered and set(answered) == {Status.CONTENT}
         half_open, complete = security.responder_sessions()
         assert half_open <= oscore_layer.HALF_OPEN_MAX and complete == 3
-        assert security.refused_starts >= 400 - oscore_layer.HALF_OPEN_MAX - 100  # (the bucket refills meanwhile)
+        # The bucket takes on its burst and refills while the flood lasts, which
+        # is longer on a loaded machine (a CI run refused 246); 100 more is the
+        # margin a quick run needs.
+        refilled = oscore_layer.EDHOC_STARTS_PER_S * (loop.time() - flood_started)
+        assert security.refused_starts >= 400 - oscore_layer.HALF_OPEN_MAX - 100 - refilled
         assert replies > 0
         monkeypatch.setattr(oscore_layer, "HALF_OPEN_S", 0.0)
         security.sweep()  # what the server's periodic sweep does once HALF_OPEN_S has passed
