@@ -13,6 +13,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import logging
+import socket
 import time
 from dataclasses import dataclass, fields
 from typing import AsyncIterator, Callable, Mapping, Protocol
@@ -244,3 +245,13 @@ class ServerTransport(Protocol):
     endpoint: Endpoint
 
     async def aclose(self) -> None: ...
+
+
+def free_port(host: str, kind: int = socket.SOCK_DGRAM) -> int:
+    """A port free right now on ``host``, for a library that cannot say which
+    port it took for ``:0`` (Zenoh, Cyclone DDS).  Another process may take it
+    before the caller binds it: callers that can should pass real ports."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, kind) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])

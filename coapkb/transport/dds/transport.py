@@ -107,7 +107,7 @@ from ...wire.zmq_envelope import (
     encode_response,
 )
 from ..base import (
-    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
+    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port, handle_safely,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import ObservationRegistry, ObserverState, put_latest
@@ -170,13 +170,6 @@ def _resolve(host: str) -> str:
         return str(socket.getaddrinfo(host, None, family, socket.SOCK_DGRAM)[0][4][0])
     except socket.gaierror as exc:
         raise TransportError(f"cannot resolve {host!r}: {exc}") from None
-
-
-def _free_udp_port(address: str) -> int:
-    family = socket.AF_INET6 if ":" in address else socket.AF_INET
-    with socket.socket(family, socket.SOCK_DGRAM) as s:
-        s.bind((address, 0))
-        return int(s.getsockname()[1])
 
 
 def _delete(entity: Entity | None) -> None:
@@ -353,7 +346,7 @@ class DdsServerTransport:
         options = options or DdsOptions()
         address = _resolve(endpoint.host)
         if endpoint.port == 0:
-            endpoint = Endpoint(endpoint.scheme, endpoint.host, _free_udp_port(address))
+            endpoint = Endpoint(endpoint.scheme, endpoint.host, free_port(address))
         try:
             participant = _Participant(server_domain_xml(address, endpoint.port, options.settings))
         except TransportError as exc:

@@ -106,7 +106,7 @@ from typing import Any
 import zenoh
 
 from ..base import (
-    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
+    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port, handle_safely,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
@@ -173,16 +173,6 @@ def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[st
 def _check_scheme(endpoint: Endpoint) -> None:
     if endpoint.scheme not in LINK_PROTOCOLS:
         raise ValueError(f"{endpoint} is not a zenoh endpoint ({', '.join(s + '://' for s in LINK_PROTOCOLS)})")
-
-
-def _free_port(endpoint: Endpoint) -> int:
-    """A port free right now on the endpoint's host (Zenoh cannot tell which
-    port it picked for ``:0``)."""
-    kind = socket.SOCK_DGRAM if link_for(endpoint).datagram else socket.SOCK_STREAM
-    family = socket.AF_INET6 if ":" in endpoint.host else socket.AF_INET
-    with socket.socket(family, kind) as s:
-        s.bind((endpoint.host, 0))
-        return int(s.getsockname()[1])
 
 
 def _secured_locator(endpoint: Endpoint, security: ZenohClientSecurity | ZenohServerSecurity | None) -> str:
@@ -328,7 +318,8 @@ class ZenohServerTransport:
         _check_scheme(endpoint)
         _secured_locator(endpoint, security)  # zenoh+udp with security: refused before a port is taken
         if endpoint.port == 0:
-            endpoint = Endpoint(endpoint.scheme, endpoint.host, _free_port(endpoint))
+            kind = socket.SOCK_DGRAM if link_for(endpoint).datagram else socket.SOCK_STREAM
+            endpoint = Endpoint(endpoint.scheme, endpoint.host, free_port(endpoint.host, kind))
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"zenoh server {endpoint}")
         config = session_config("peer", listen=(_secured_locator(endpoint, security),))
         if security is not None:
