@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections import deque
 from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
+from .. import clock
 from ..config import RobotConfig
 from ..kb.named_queries import MAX_LIST_ITEMS
 from ..kb.results import SelectResult
@@ -157,7 +157,7 @@ class Controller:
 
     def submit(self, task: Task) -> None:
         """A new task from the feeder; tasks are handled strictly in order."""
-        self._tasks.put_nowait((task, time.monotonic()))
+        self._tasks.put_nowait((task, clock.monotonic()))
 
     def receive_decision(self, message: DecisionMessage) -> None:
         """The leader's decision ("compute and communicate")."""
@@ -186,7 +186,7 @@ class Controller:
             except Exception as exc:  # keep the robot alive and the team informed
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
-            coordination_s = round(time.monotonic() - received, 6)
+            coordination_s = round(clock.monotonic() - received, 6)
             decision = self._with_membership(replace(message.decision, coordination_s=coordination_s))
             self._apply(replace(message, decision=decision))
 
@@ -323,16 +323,16 @@ class Controller:
         return tuple(_first(rows, label) for rows, label in zip(answers, ("Query_1", "Query_2", "Query_3")))
 
     async def _compute(self, task: Task) -> DecisionMessage:
-        started = time.monotonic()
+        started = clock.monotonic()
         facts = await self.gather(task)
         if facts is None:
             return DecisionMessage(Decision(task.seq, task.object, skipped=True))
         layout, energy, docks = await self.layout(), await self.energy(), await self.docks()
-        gathered = time.monotonic()
+        gathered = clock.monotonic()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
         # Where a slow task's time went (coapkb bench --trace keeps these).
         log.info("task %d: KB answers in %.3f s, teammates' plans %.3f s later",
-                 task.seq, gathered - started, time.monotonic() - gathered)
+                 task.seq, gathered - started, clock.monotonic() - gathered)
         result: Assignment = assign(
             facts, states, energy, lambda a, b: travel_distance(a, b, layout), DEPOT, self.config.cost, docks
         )

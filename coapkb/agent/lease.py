@@ -38,9 +38,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from typing import Awaitable, Callable, Mapping
 
+from .. import clock
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import Method, Request, Status
 
@@ -94,10 +94,10 @@ class Lease:
         robot is fenced."""
         for_s = min(for_s, self.duration_s / 2)
         backoff = 0.2
-        while time.monotonic() + for_s >= self._until:
+        while clock.monotonic() + for_s >= self._until:
             if self.needed == 0:
                 return None  # a cluster of one: nobody else could take its tasks
-            sent = time.monotonic()
+            sent = clock.monotonic()
             refused = await self._round()
             if refused is None:
                 self._until = sent + self.duration_s

@@ -17,9 +17,9 @@ only for what it acts on: progress alone never reaches it.
 from __future__ import annotations
 
 import asyncio
-import time
 from typing import Callable
 
+from ..clock import monotonic as loop_clock
 from .robot_state import LiveState
 
 #: Least time between two notifications that carry progress alone, seconds.
@@ -42,7 +42,7 @@ class ProgressPacing:
     per ``pace_s`` for progress alone (the last change wins)."""
 
     def __init__(self, notify: Callable[[], None], pace_s: float = PROGRESS_PACE_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = loop_clock) -> None:
         self._notify = notify
         self.pace_s = pace_s
         self._clock = clock

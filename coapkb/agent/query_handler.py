@@ -10,10 +10,10 @@ failed over to the next, and a slow one is hedged.
 from __future__ import annotations
 
 import asyncio
-import time
 from dataclasses import dataclass, field
 from typing import Awaitable, Callable, Mapping
 
+from .. import clock
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
 from ..config import RobotConfig, Teammate
@@ -190,7 +190,7 @@ class QueryHandler:
         """One remote query to one holder; raises QueryFailed or TransportError."""
         query = NAMED_QUERIES[name]
         peer = mate.endpoint
-        started = time.monotonic()
+        started = clock.monotonic()
         if self.wire == "compact":
             hits_before = self.client.cache_stats.hits
             result = await self.client.named(peer, name, params, timeout=self.config.query_timeout_s)
@@ -207,7 +207,7 @@ class QueryHandler:
             )
         self.stats.remote += 1
         latencies = self.stats.remote_latencies
-        latencies.append(time.monotonic() - started)
+        latencies.append(clock.monotonic() - started)
         if len(latencies) > LATENCIES_KEPT:
             del latencies[: len(latencies) - LATENCIES_KEPT]
         return result

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
+from .. import clock
 from ..transport.messages import ContentFormat, Method, Request
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.rtt import RttEstimator
@@ -137,7 +137,7 @@ class ObservedStates:
         log.warning("%s is down: %s", robot_id, reason)
         async with self._changed:
             self.down[robot_id] = reason
-            self.down_at[robot_id] = time.monotonic()
+            self.down_at[robot_id] = clock.monotonic()
             self._changed.notify_all()
         watcher = self._watchers.pop(robot_id, None)
         if watcher is not None:
@@ -152,7 +152,7 @@ class ObservedStates:
         # For a while, failed requests do not count: reaching the new process
         # takes a new security handshake first (OSCORE: the first requests
         # meet a context that is gone, and EDHOC runs again).
-        self._joining[robot_id] = time.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
+        self._joining[robot_id] = clock.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
 
@@ -162,7 +162,7 @@ class ObservedStates:
             await self._failed(robot_id, exc)
 
     async def _failed(self, robot_id: str, exc: Exception) -> None:
-        if time.monotonic() < self._joining.get(robot_id, 0.0):
+        if clock.monotonic() < self._joining.get(robot_id, 0.0):
             return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
@@ -189,7 +189,7 @@ class ObservedStates:
         change); with liveness, failures in a row declare it down."""
         endpoint = self._endpoints[robot_id]
         for _ in range(FAILURES_TO_DOWN if self.liveness else 1):
-            started = time.monotonic()
+            started = clock.monotonic()
             try:
                 response = await self._transport.request(endpoint, self._request, timeout=self.request_timeout_s)
                 state = RobotState.decode(response.payload) if response.status.is_success else None
@@ -202,7 +202,7 @@ class ObservedStates:
             except ValueError as exc:
                 log.debug("refreshing %s: %s", robot_id, exc)
                 return
-            self.round_trip.on_sample(time.monotonic() - started)
+            self.round_trip.on_sample(clock.monotonic() - started)
             self._failures[robot_id] = 0
             if state is not None and state != self.states.get(robot_id):
                 log.info("observation of %s missed a change; registering again", robot_id)
@@ -236,14 +236,14 @@ class ObservedStates:
     async def _watch(self, robot_id: str, endpoint: Endpoint) -> None:
         backoff = 0.2
         while True:
-            registered = time.monotonic()
+            registered = clock.monotonic()
             first = True
             try:
                 async for response in self._transport.observe(endpoint, self._request):
                     if first:
                         # The registration is a request and its answer: a
                         # round-trip sample before any probe is needed.
-                        self.round_trip.on_sample(time.monotonic() - registered)
+                        self.round_trip.on_sample(clock.monotonic() - registered)
                         first = False
                     if not response.status.is_success:
                         log.warning("%s answered %s on %s", robot_id, response.status.dotted, self._request.path)

@@ -4,13 +4,13 @@ every robot's state, and the requests every part of the feeder makes."""
 from __future__ import annotations
 
 import contextlib
-import time
 from dataclasses import dataclass
 from typing import AsyncIterator, Callable, Mapping, Sequence
 
+from .. import clock
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
-from ..transport import open_client
+from ..host import Network, Sockets
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .tasks import FeederError
@@ -61,10 +61,13 @@ class Channel:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None) -> AsyncIterator["Channel"]:
-        """A client and a watcher (with liveness: the feeder declares a robot
-        down when its requests fail, and then waits for the survivors only)."""
-        client = await open_client(settings.transport, security=security)
+    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
+                   network: Network | None = None) -> AsyncIterator["Channel"]:
+        """A client (on ``network``: the sockets unless a simulator gives one)
+        and a watcher (with liveness: the feeder declares a robot down when
+        its requests fail, and then waits for the survivors only)."""
+        network = network or Sockets()
+        client = await network.open_client(settings.transport, security=security)  # type: ignore[arg-type]
         try:
             watcher = ObservedStates(
                 client, roster.endpoints, OUTCOME_PATH, liveness=True,
@@ -101,7 +104,7 @@ class Channel:
         whether it is down (then the task goes to the survivors only) or
         post again (a robot recognises a repeated post)."""
         watcher = self.watcher
-        deadline = time.monotonic() + self.settings.task_timeout_s
+        deadline = clock.monotonic() + self.settings.task_timeout_s
         while True:
             try:
                 response = await self.client.request(
@@ -111,7 +114,7 @@ class Channel:
                 await watcher.probe(robot_id)
                 if robot_id in watcher.down:
                     return
-                if time.monotonic() > deadline:
+                if clock.monotonic() > deadline:
                     raise FeederError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
                 continue
             if not response.status.is_success:

@@ -7,9 +7,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import time
 from typing import Sequence
 
+from .. import clock
 from ..agent.lease import LEASE_PATH
 from ..agent.robot_state import RobotState
 from ..transport.base import TransportError
@@ -153,13 +153,13 @@ class Membership:
                     await watcher.probe(survivor)
                     continue
                 if response.status == Status.FORBIDDEN:
-                    return time.monotonic()
+                    return clock.monotonic()
                 if response.status.is_success:
                     return None
                 raise FeederError(
                     f"{survivor} answered {response.status.dotted} about {robot_id}'s lease: {response.text()}"
                 )
-            return time.monotonic()
+            return clock.monotonic()
 
         survivors = [r for r in cluster if r != robot_id and r not in watcher.down]
         answers = await asyncio.gather(*(refused_at(r) for r in survivors))
@@ -169,8 +169,8 @@ class Membership:
             return False
         # Waiting the lease out is the fence itself: any lease the robot
         # holds was granted before the last refusal, so it ends within this.
-        last = max(answers, default=time.monotonic())
-        await asyncio.sleep(max(0.0, last + lease_s - time.monotonic()))
+        last = max(answers, default=clock.monotonic())
+        await asyncio.sleep(max(0.0, last + lease_s - clock.monotonic()))
         # From now on the robot can pick nothing: if it answers (it was only
         # cut off), its state is final and says what it did pick.
         state = await channel.state(robot_id, watcher.request_timeout_s)

@@ -12,9 +12,9 @@ of starting another.
 from __future__ import annotations
 
 import asyncio
-import time
 from typing import Awaitable, Callable
 
+from ..clock import monotonic as loop_clock
 from ..transport.expiring import ExpiringMap
 from ..transport.messages import Response
 
@@ -32,7 +32,7 @@ class AnswerCache:
     """A bounded LRU of successful answers, plus single flight per key."""
 
     def __init__(self, max_entries: int = ANSWERS_KEPT, max_bytes: int = ANSWER_BYTES,
-                 idle_s: float = ANSWER_IDLE_S, clock: Callable[[], float] = time.monotonic) -> None:
+                 idle_s: float = ANSWER_IDLE_S, clock: Callable[[], float] = loop_clock) -> None:
         #: key -> answer, least recently used out first.
         self._answers: ExpiringMap[bytes, Response] = ExpiringMap(
             idle_s, max_entries, max_bytes, lambda answer: len(answer.payload), clock)

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
+from ..clock import monotonic as loop_clock
 from ..errors import CoapkbError
 from ..wire import codec
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
@@ -57,7 +57,7 @@ class KBClient:
         *,
         timeout: float = 30.0,
         cache: bool = False,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = loop_clock,
     ) -> None:
         self.transport = transport
         self.timeout = timeout

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterable
 
+from .. import clock
 from .errors import QueryTimeout
 from .results import Term
 
@@ -16,10 +16,10 @@ class Deadline:
 
     def __init__(self, budget_s: float | None) -> None:
         self.budget = budget_s
-        self.end = None if budget_s is None else time.monotonic() + budget_s
+        self.end = None if budget_s is None else clock.monotonic() + budget_s
 
     def check(self, rows: int) -> None:
-        if self.end is not None and time.monotonic() > self.end:
+        if self.end is not None and clock.monotonic() > self.end:
             raise QueryTimeout(self.budget or 0.0, rows)
 
 

@@ -14,10 +14,10 @@ import abc
 import asyncio
 import logging
 import socket
-import time
 from dataclasses import dataclass, fields
 from typing import AsyncIterator, Callable, Mapping, Protocol
 
+from .. import clock
 from ..errors import CoapkbError
 from .messages import Request, Response, Status
 
@@ -35,7 +35,7 @@ class RateLimiter:
 
     def allow(self) -> int | None:
         """None if the event must be dropped; else how many were dropped since the last one."""
-        now = time.monotonic()
+        now = clock.monotonic()
         if now - self._last < self.interval_s:
             self._suppressed += 1
             return None

@@ -10,10 +10,11 @@ entries unused for ``ttl_s`` whenever it is touched or :meth:`purge` runs.
 
 from __future__ import annotations
 
-import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
+
+from ..clock import monotonic as loop_clock
 
 K = TypeVar("K")
 V = TypeVar("V")
@@ -32,7 +33,7 @@ class ExpiringMap(Generic[K, V]):
         max_entries: int,
         max_bytes: int,
         size: Callable[[V], int],
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = loop_clock,
     ) -> None:
         if ttl_s <= 0 or max_entries < 1 or max_bytes < 1:
             raise ValueError(f"bounds must be positive: ttl_s={ttl_s}, max_entries={max_entries}, max_bytes={max_bytes}")
