@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import random
 import re
-import time
 from dataclasses import asdict, replace
 from typing import Any, Iterable
 
 import cbor2
 
+from .. import clock
 from ..kb.client import KBClient
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..config import ConfigError, RobotConfig
@@ -34,7 +33,8 @@ from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
-from ..transport import ClientSecurity, open_client, reliability_for, serve
+from ..host import Host, operating_system
+from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
 from .lease import LEASE_PATH, Lease
@@ -128,7 +128,10 @@ class Robot:
         self.directory: Any = None
 
     @classmethod
-    async def start(cls, config: RobotConfig, *, query_wire: str = "compact") -> "Robot":
+    async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> "Robot":
+        """Start the robot ``config`` describes on ``host`` (the operating
+        system unless a simulator gives one)."""
+        host = host or operating_system()
         directory = None
         if config.discovery.method == "rd":
             # The teammates come from the directory; the rest of the robot is
@@ -139,7 +142,7 @@ class Robot:
 
             config, directory = await discover(config)
         try:
-            robot = await cls._start(config, query_wire)
+            robot = await cls._start(config, query_wire, host)
         except BaseException:
             if directory is not None:
                 await directory.aclose()
@@ -148,24 +151,24 @@ class Robot:
         return robot
 
     @classmethod
-    async def _start(cls, config: RobotConfig, query_wire: str) -> "Robot":
+    async def _start(cls, config: RobotConfig, query_wire: str, host: Host) -> "Robot":
         secured = robot_security(config)  # first: a bad key stops the robot before the KB loads
         client_security = None if secured is None else secured[1]
-        kb = KnowledgeBase.load(config.kb_files, index_dir=config.kb_index) if config.kb_files else None
+        kb = host.load_kb(config.kb_files, config.kb_index) if config.kb_files else None
         check_start(config, kb)
         router = Router()
         if kb is not None:
-            KBResources(kb).mount(router)
+            KBResources(kb, threads=host.threads).mount(router)
         # One reliability layer for the client and the server's notifications.
         reliability = reliability_for(config.transport, link_kbps=config.link_kbps)
-        client = await open_client(config.transport, reliability=reliability, security=client_security)
+        client = await host.network.open_client(config.transport, reliability=reliability, security=client_security)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
             plan=PlannedState(start.aisle, start.rack, start.battery_wh, 0.0, start.payload_kg, seq=0),
             live=LiveState(float(start.aisle), float(start.rack)),
             # Nonzero, so it is always sent: teammates tell a restart by it.
-            boot=random.randrange(1, 2**32),
+            boot=host.rng.randrange(1, 2**32),
         )
         teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
         team = TeamView(own, teammates, client, link_kbps=config.link_kbps)
@@ -221,7 +224,7 @@ class Robot:
                 # Decisions only from whom this robot's Controller waits for.
                 deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
                 server_side = server_security(config.transport, secured[0], AccessPolicy(deciders))
-            robot.server = await serve(router, config.bind, reliability=reliability, security=server_side)
+            robot.server = await host.network.serve(router, config.bind, reliability=reliability, security=server_side)
         except BaseException:
             await client.aclose()
             raise
@@ -345,7 +348,7 @@ class Robot:
         # Serving the stats counts traffic, so every fresh snapshot differs: a
         # retried first block of a block-wise transfer on a lossy link would
         # start a new answer each time.  One snapshot serves for a few seconds.
-        now = time.monotonic()
+        now = clock.monotonic()
         snapshot = self._stats_snapshots.get(request.accept)
         if snapshot is None or now - snapshot[0] > STATS_SNAPSHOT_S:
             snapshot = (now, _encode(self.stats().to_dict(), request.accept))

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from dataclasses import dataclass, replace
 from typing import AsyncIterator, Callable, Mapping, Sequence
 
 import cbor2
 
+from .. import clock
 from ..agent.robot_state import RobotState
+from ..host import Network
 from ..agent.stats import RobotStats
 from ..agent.team_view import ObservedStates, States
 from ..transport.base import TrafficCounters, TransportError
@@ -56,8 +57,9 @@ class Feeder:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None) -> AsyncIterator["Feeder"]:
-        async with Channel.open(roster, settings, security) as channel:
+    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
+                   network: Network | None = None) -> AsyncIterator["Feeder"]:
+        async with Channel.open(roster, settings, security, network) as channel:
             yield cls(channel)
 
     @property
@@ -121,7 +123,7 @@ class Feeder:
         """Feed ``tasks`` and wait until every robot has executed what it took;
         ``progress`` is called with each task's record once it is decided.
         ``started``: the run's start (monotonic), if not now."""
-        started = time.monotonic() if started is None else started
+        started = clock.monotonic() if started is None else started
         clusters = self.channel.roster.clusters
         shares = split_tasks(tasks, len(clusters))
         per_cluster = await asyncio.gather(
@@ -129,7 +131,7 @@ class Feeder:
               for index, (cluster, share) in enumerate(zip(clusters, shares)))
         )
         coordination_s = max(decided_at for _, decided_at in per_cluster) - started
-        completion_s = time.monotonic() - started
+        completion_s = clock.monotonic() - started
         records = [record for share_records, _ in per_cluster for record in share_records]
         # Restore the order given: cluster shares are contiguous.
         records.sort(key=lambda r: (r.cluster, r.seq))
@@ -162,7 +164,7 @@ class Feeder:
         #: Tasks of a robot's previous process, found when it joins again.
         reruns: list[TaskRecord] = []
         seq = self._first_seq.get(index, 1) - 1
-        decided_at = time.monotonic()
+        decided_at = clock.monotonic()
         while queue:
             for name, reassigned_from in queue:
                 seq += 1
@@ -176,7 +178,7 @@ class Feeder:
                 records.append(record)
                 if progress is not None:
                     progress(record)
-            decided_at = time.monotonic()
+            decided_at = clock.monotonic()
             # Until the cluster's survivors have executed everything: a robot
             # that dies meanwhile is found by the stalled wait's liveness requests.
             await channel.wait_for(
@@ -197,7 +199,7 @@ class Feeder:
         self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = ()
     ) -> TaskRecord:
         channel, watcher = self.channel, self.channel.watcher
-        fed = time.monotonic()
+        fed = clock.monotonic()
         request = task_post(seq, name, joining)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
@@ -216,7 +218,7 @@ class Feeder:
             channel.settings.task_timeout_s,
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
         )
-        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=time.monotonic() - fed,
+        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
                             joined=list(joining))
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
         if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:

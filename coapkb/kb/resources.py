@@ -72,9 +72,12 @@ def encode_result(result: QueryResult, fmt: ContentFormat) -> bytes:
 class KBResources:
     """Answers SPARQL over one (read-only) knowledge base."""
 
-    def __init__(self, kb: KnowledgeBase, limits: QueryLimits | None = None) -> None:
+    def __init__(self, kb: KnowledgeBase, limits: QueryLimits | None = None, *, threads: bool = True) -> None:
         self.kb = kb
         self.limits = limits or QueryLimits()
+        #: False: every query runs on the event loop (the simulator's
+        #: processes share one thread, and a thread's timing is not replayable).
+        self.threads = threads
         self.named = {q.name: q for q in named_queries_for(kb.names)}
         self.running = 0
         self.answers = AnswerCache()
@@ -181,7 +184,7 @@ class KBResources:
     async def _run(self, text: str, fmt: ContentFormat, etag: bytes, shape: str | None) -> Response:
         limits = self.limits
         slowest = self.slowest_run.get(shape) if shape is not None else None
-        inline = slowest is not None and slowest < limits.inline_below_s
+        inline = not self.threads or (slowest is not None and slowest < limits.inline_below_s)
         if not inline and self.running >= limits.max_concurrent:
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
@@ -190,7 +193,7 @@ class KBResources:
             )
         try:
             if inline:
-                result = self._evaluate_inline(text, shape)  # type: ignore[arg-type]  # inline implies a shape
+                result = self._evaluate_inline(text, shape)
             else:
                 result = await asyncio.wait_for(self._evaluate(text, shape), limits.time_budget_s + 0.5)
         except QuerySyntaxError as exc:
@@ -213,7 +216,7 @@ class KBResources:
         if shape is not None:
             self.slowest_run[shape] = max(seconds, self.slowest_run.get(shape, 0.0))
 
-    def _evaluate_inline(self, text: str, shape: str) -> QueryResult:
+    def _evaluate_inline(self, text: str, shape: str | None) -> QueryResult:
         """Run a query known to be cheap right here, on the event loop.
 
         The KB's deadline still applies between rows; a run that turns out
