@@ -191,21 +191,32 @@ class TeamSpec:
     def robot_ids(self) -> list[str]:
         return [f"Robot{i}" for i in range(1, self.robots + 1)]
 
+    def feeder_settings(self) -> FeederSettings:
+        """How the feeder talks to this team and how long it waits."""
+        return FeederSettings(
+            transport=self.transport, task_timeout_s=self.task_timeout_s,
+            query_timeout_s=self.query_timeout_s, lease_s=self.lease_s, link_kbps=self.link_kbps,
+        )
+
     def clusters(self) -> list[list[str]]:
         ids = self.robot_ids
         return [ids[i : i + CLUSTER_SIZE] for i in range(0, len(ids), CLUSTER_SIZE)]
+
+
+def product_names(object_kb: KnowledgeBase) -> list[str]:
+    """Every product's name in the Object KB, sorted."""
+    result = object_kb.query(
+        f"PREFIX o: <{OBJECT_NS}> SELECT ?name WHERE {{ ?p o:Product_name ?name }} ORDER BY ?name",
+        row_limit=10_000_000,
+    )
+    return [str(row[0]) for row in result.rows]  # type: ignore[union-attr]
 
 
 def draw_tasks(
     n: int, ontologies: Path = DEFAULT_ONTOLOGIES, seed: int = 1, exclude: Sequence[str] = ()
 ) -> list[str]:
     """``n`` product names drawn (with a seed, with replacement) from the Object KB."""
-    kb = KnowledgeBase.load([ontologies / "Object.owl"])
-    result = kb.query(
-        f"PREFIX o: <{OBJECT_NS}> SELECT ?name WHERE {{ ?p o:Product_name ?name }} ORDER BY ?name",
-        row_limit=10_000_000,
-    )
-    names = [str(row[0]) for row in result.rows if str(row[0]) not in exclude]  # type: ignore[union-attr]
+    names = [name for name in product_names(KnowledgeBase.load([ontologies / "Object.owl"])) if name not in exclude]
     if not names:
         raise TeamError("the Object KB has no products")
     rng = random.Random(seed)
@@ -303,6 +314,45 @@ def cluster_modules(index: int, spec: TeamSpec) -> tuple[str, ...]:
     return tuple(CLUSTER_MODULES[(index + j) % CLUSTER_SIZE] for j in range(spec.replication))
 
 
+def robot_configs(
+    spec: TeamSpec,
+    endpoints: dict[str, Endpoint],
+    *,
+    central: Endpoint | None = None,
+    security: SecurityConfig | None = None,
+    discovery: Callable[[int, Sequence[str]], DiscoveryConfig] | None = None,
+) -> dict[str, RobotConfig]:
+    """Every robot's configuration for ``spec``, each listening at its
+    ``endpoints`` entry: its cluster as teammates (with ``discovery``, a
+    Resource Directory's configuration per cluster, each robot knows only
+    itself and finds the rest), its KB modules, its start from the KBs."""
+    starts = robot_starts(spec.ontologies)
+    configs: dict[str, RobotConfig] = {}
+    for cluster_no, cluster in enumerate(spec.clusters(), 1):
+        team = {
+            mate: Teammate(mate, endpoints[mate], cluster_modules(i, spec) if spec.mode == "distributed" else ())
+            for i, mate in enumerate(cluster)
+        }
+        found = DiscoveryConfig() if discovery is None else discovery(cluster_no, cluster)
+        for robot_id in cluster:
+            configs[robot_id] = RobotConfig(
+                robot_id=robot_id,
+                bind=endpoints[robot_id],
+                kb_files=tuple(spec.ontologies / f"{kb}.owl" for kb in team[robot_id].kbs),
+                team=team if discovery is None else {robot_id: team[robot_id]},
+                discovery=found,
+                lease_s=spec.lease_s,
+                start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
+                strategy=spec.strategy,
+                central=central,
+                query_timeout_s=spec.query_timeout_s,
+                link_kbps=spec.link_kbps,
+                execution=ExecutionModel(time_scale=spec.time_scale),
+                security=security,
+            )
+    return configs
+
+
 class Placement:
     """Where each process of the team runs: here, on loopback, each on a free
     port held for it until it starts (:class:`PortReservation`).
@@ -358,42 +408,26 @@ class Team:
 
     def write_configs(self) -> dict[str, Path]:
         spec = self.spec
-        starts = robot_starts(spec.ontologies)
+        for robot_id in spec.robot_ids:
+            self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
+        directory = self.directory
+
+        def registration(cluster_no: int, cluster: Sequence[str]) -> DiscoveryConfig:
+            return DiscoveryConfig(
+                "rd", rd=directory.endpoint, rd_identity="feeder", cluster=f"cluster{cluster_no}",
+                members=len(cluster), lifetime_s=spec.rd_lifetime_s, wait_s=spec.task_timeout_s,
+            )
+
+        configs = robot_configs(
+            spec, self.endpoints, central=self.central,
+            security=None if self.team_dir is None else SecurityConfig(self.team_dir),
+            discovery=None if directory is None else registration,
+        )
         paths: dict[str, Path] = {}
-        for cluster in spec.clusters():
-            for robot_id in cluster:
-                self.endpoints[robot_id] = self.placement.endpoint(robot_id, spec)
-        for cluster_no, cluster in enumerate(spec.clusters(), 1):
-            team = {
-                mate: Teammate(mate, self.endpoints[mate], cluster_modules(i, spec) if spec.mode == "distributed" else ())
-                for i, mate in enumerate(cluster)
-            }
-            discovery = DiscoveryConfig()
-            if self.directory is not None:
-                discovery = DiscoveryConfig(
-                    "rd", rd=self.directory.endpoint, rd_identity="feeder", cluster=f"cluster{cluster_no}",
-                    members=len(cluster), lifetime_s=spec.rd_lifetime_s, wait_s=spec.task_timeout_s,
-                )
-            for robot_id in cluster:
-                config = RobotConfig(
-                    robot_id=robot_id,
-                    bind=self.endpoints[robot_id],
-                    kb_files=tuple(spec.ontologies / f"{kb}.owl" for kb in team[robot_id].kbs),
-                    # With a directory, each robot knows only itself and finds the rest.
-                    team=team if self.directory is None else {robot_id: team[robot_id]},
-                    discovery=discovery,
-                    lease_s=spec.lease_s,
-                    start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
-                    strategy=spec.strategy,
-                    central=self.central,
-                    query_timeout_s=spec.query_timeout_s,
-                    link_kbps=spec.link_kbps,
-                    execution=ExecutionModel(time_scale=spec.time_scale),
-                    security=None if self.team_dir is None else SecurityConfig(self.team_dir),
-                )
-                path = self.workdir / f"{robot_id}.toml"
-                path.write_text(dump_config(config), encoding="utf-8")
-                paths[robot_id] = path
+        for robot_id, config in configs.items():
+            path = self.workdir / f"{robot_id}.toml"
+            path.write_text(dump_config(config), encoding="utf-8")
+            paths[robot_id] = path
         return paths
 
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
@@ -521,11 +555,7 @@ class Team:
         return Roster({r: self.endpoints[r] for r in self.spec.robot_ids}, self.spec.clusters())
 
     def feeder_settings(self) -> FeederSettings:
-        spec = self.spec
-        return FeederSettings(
-            transport=spec.transport, task_timeout_s=spec.task_timeout_s,
-            query_timeout_s=spec.query_timeout_s, lease_s=spec.lease_s, link_kbps=spec.link_kbps,
-        )
+        return self.spec.feeder_settings()
 
     async def run(
         self,
@@ -560,7 +590,7 @@ class Team:
         for event in events:
             if event.robot in down_at and event.action in ("kill", "stop"):
                 event.detected_after_s = round(down_at[event.robot] - started - event.at_s, 3)
-        return self._record(outcome, stats, traffic, events, down)
+        return team_record(self.spec, outcome, stats, traffic, events, down)
 
     def feeder_security(self) -> Any:
         """The feeder's client side for this team (None for an insecure team)."""
@@ -610,32 +640,33 @@ class Team:
                 log.warning("killed %s at %.1fs", fault.robot, at_s)
             events.append(FaultEvent(fault.action, fault.robot, at_s))
 
-    def _record(
-        self,
-        outcome: FeedOutcome,
-        stats: dict[str, RobotStats],
-        feeder: TrafficCounters,
-        faults: list[FaultEvent],
-        down: dict[str, str],
-    ) -> TeamRecord:
-        spec = self.spec
-        return TeamRecord(
-            mode=spec.mode,
-            transport=spec.transport,
-            strategy=spec.strategy,
-            query_wire=spec.query_wire,
-            robots=spec.robot_ids,
-            clusters=spec.clusters(),
-            tasks=outcome.tasks,
-            # Rounded as the JSON record has always been, so the benchmark row
-            # made from this record holds the same numbers as before.
-            coordination_s=round(outcome.coordination_s, 6),
-            completion_s=round(outcome.completion_s, 6),
-            robot_stats=stats,
-            feeder_traffic=feeder,
-            faults=faults,
-            down=down,
-        )
+
+def team_record(
+    spec: TeamSpec,
+    outcome: FeedOutcome,
+    stats: dict[str, RobotStats],
+    feeder: TrafficCounters,
+    faults: list[FaultEvent],
+    down: dict[str, str],
+) -> TeamRecord:
+    """The record of one run of ``spec``'s team (real processes or simulated)."""
+    return TeamRecord(
+        mode=spec.mode,
+        transport=spec.transport,
+        strategy=spec.strategy,
+        query_wire=spec.query_wire,
+        robots=spec.robot_ids,
+        clusters=spec.clusters(),
+        tasks=outcome.tasks,
+        # Rounded as the JSON record has always been, so the benchmark row
+        # made from this record holds the same numbers as before.
+        coordination_s=round(outcome.coordination_s, 6),
+        completion_s=round(outcome.completion_s, 6),
+        robot_stats=stats,
+        feeder_traffic=feeder,
+        faults=faults,
+        down=down,
+    )
 
 
 async def _drain(stream: asyncio.StreamReader, tail: list[str], log_file: Path | None = None, keep: int = 20) -> None:
