@@ -22,6 +22,10 @@ from .task_assigner import ChargeStop
 
 log = logging.getLogger(__name__)
 
+#: The log line of a pick, once it counts: the history a checker reads
+#: (the simulator's invariant that no task is executed twice).
+PICKED = "done: %s (task %d)"
+
 
 @dataclass(frozen=True)
 class Job:
@@ -136,7 +140,7 @@ class TaskExecutor:
                 continue
             # Done once picked: the count the feeder reads says what nobody may pick again.
             self._update(done=self.live.done + 1)
-            log.info("done: %s (task %d)", job.object, job.seq)
+            log.info(PICKED, job.object, job.seq)
             if job.to_depot_m > 0:
                 self._update(activity="unloading")
                 await self._simulate(job.to_depot_m / self.model.speed_m_s)

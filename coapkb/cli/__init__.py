@@ -19,7 +19,7 @@ import sys
 from typing import Callable, Sequence
 
 from ..errors import CoapkbError
-from . import agent, bench, feed, keys, query, serve, team
+from . import agent, bench, feed, keys, query, serve, sim, team
 from .common import UserError
 from .render import render
 
@@ -42,6 +42,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 COMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {
     "demo": team.add_demo, "team": team.add_team, "feed": feed.add_feed, "serve": serve.add_serve,
     "agent": agent.add_agent, "query": query.add_query, "bench": bench.add_bench, "keys": keys.add_keys,
+    "sim": sim.add_sim,
 }
 
 
@@ -60,6 +61,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(only=_command(argv))
     args = parser.parse_args(argv)
+    args.argv = argv
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:

@@ -1,0 +1,106 @@
+"""``coapkb sim``: the whole team in the deterministic simulator, one run
+per seed, each judged against the invariants (docs/simulation.md)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from .common import UserError
+
+
+def add_sim(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sim", help="run the team in the deterministic simulator under seeded faults")
+    p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
+    p.add_argument("--tasks", type=int, default=10, help="tasks per run, drawn from the Object KB by the seed")
+    p.add_argument("--seeds", default="1-100", metavar="A-B",
+                   help="run every seed from A to B (default 1-100); also N or a list: 2,65,100-120")
+    p.add_argument("--seed", type=int, metavar="S", help="run seed S alone (with --trace: write its trace)")
+    p.add_argument("--faults", default="mixed", metavar="LIST",
+                   help="fault kinds a run may draw: kill, freeze, partition, starve, loss[=P], burst[=P], dup[=P], "
+                        "jitter[=S]; mixed = all of them; none = no faults (default mixed)")
+    p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
+    p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
+    p.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: the cores)")
+    p.add_argument("--trace", metavar="FILE", help="with --seed: write every message, fault and pick in order")
+    p.add_argument("--quiet", action="store_true", help="only violating seeds and the summary line")
+    p.set_defaults(run=_sim)
+
+
+def _seeds(text: str) -> list[int]:
+    """``1-500``, ``7``, or a list of both: ``2,65,100-120``."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        first, sep, last = part.strip().partition("-")
+        try:
+            a, b = int(first), int(last) if sep else int(first)
+        except ValueError:
+            raise UserError(f"--seeds expects A-B (like 1-500), numbers, or a list of both, got {text!r}") from None
+        if b < a:
+            raise UserError(f"--seeds {part}: the range is empty")
+        seeds += range(a, b + 1)
+    return seeds
+
+
+def _replayable(args: argparse.Namespace) -> None:
+    """Runs replay byte for byte only under one hash seed (the iteration
+    order of sets of names): start again under PYTHONHASHSEED=0 if needed,
+    when run as the command (not from a test calling main())."""
+    if os.environ.get("PYTHONHASHSEED") == "0" or sys.argv[1:] != args.argv:
+        return
+    sys.stdout.flush()
+    os.execve(sys.executable, [sys.executable, "-m", "coapkb", *args.argv], {**os.environ, "PYTHONHASHSEED": "0"})
+
+
+async def _sim(args: argparse.Namespace) -> int:
+    from ..harness.team import DEFAULT_ONTOLOGIES
+    from ..sim import FaultMix, KBCache, SimSpec, run_checked, run_many, summary
+
+    _replayable(args)
+    if args.robots < 3 or args.robots % 3:
+        raise UserError(f"--robots must be a multiple of 3, got {args.robots}")
+    if args.tasks < 1:
+        raise UserError(f"--tasks must be at least 1, got {args.tasks}")
+    if args.trace and args.seed is None:
+        raise UserError("--trace writes one run's trace: give --seed S")
+    spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
+                   ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
+    started = time.monotonic()
+    if args.seed is not None:
+        kbs = KBCache()
+        if args.trace:
+            try:
+                with open(args.trace, "w", encoding="utf-8") as out:
+                    runs = [summary(run_checked(spec, args.seed, kbs, out))]
+            except OSError as exc:
+                raise UserError(f"cannot write {args.trace}: {exc.strerror}") from None
+        else:
+            runs = [summary(run_checked(spec, args.seed, kbs))]
+    else:
+        runs = []
+        for run in run_many(spec, _seeds(args.seeds), args.jobs):
+            runs.append(run)
+            _report(run, args.quiet)
+    if args.seed is not None:
+        _report(runs[0], args.quiet)
+    violating = sum(1 for r in runs if r.violations)
+    excused = sum(len(r.excused) for r in runs)
+    if excused:
+        print(f"sim: {excused} findings excused by their schedules (a starved CPU, lost answers, a pick unreported "
+              f"when its robot died), "
+              f"in {sum(1 for r in runs if r.excused)} runs")
+    print(f"sim: {len(runs)} runs, {violating} violations, {sum(r.sim_s for r in runs):,.0f} simulated s "
+          f"in {time.monotonic() - started:,.1f} wall s")
+    return 1 if violating else 0
+
+
+def _report(run, quiet: bool) -> None:  # type: ignore[no-untyped-def]
+    if run.violations:
+        print(f"seed {run.seed} ({run.schedule}): VIOLATION " + " | ".join(run.violations), flush=True)
+    elif run.excused and not quiet:
+        print(f"seed {run.seed} ({run.schedule}): excused " + " | ".join(run.excused), flush=True)
+    elif not quiet:
+        print(f"seed {run.seed}: ok, {run.fates} ({run.sim_s:.1f} simulated s)", flush=True)

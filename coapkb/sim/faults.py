@@ -1,0 +1,184 @@
+"""Which faults a simulated run may meet, and the schedule a seed draws.
+
+``--faults`` names the kinds (``kill,freeze,partition,loss=0.2,starve``);
+:func:`draw_schedule` turns them and a seed into a :class:`Schedule`: link
+behaviour for the whole run, and timed events on processes and links.  A
+schedule stays inside the fault model the team claims to tolerate: at any
+moment at most one robot of a cluster is dead, frozen or cut off (two of
+three would leave no majority to grant leases, and the cluster could only
+wait), and every freeze and partition heals.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass, field
+
+from ..errors import CoapkbError
+from .network import LinkModel
+
+#: Fault kinds that act on processes or links at a time.
+EVENT_KINDS = ("kill", "freeze", "partition", "starve")
+#: Kinds that shape every link for the whole run, with their default amount.
+LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
+#: Everything at once, with default amounts.
+MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
+
+
+class FaultSpecError(CoapkbError, ValueError):
+    """A ``--faults`` list that cannot be read."""
+
+
+@dataclass(frozen=True)
+class FaultMix:
+    """The fault kinds a run may draw, and the link faults' amounts."""
+
+    events: tuple[str, ...] = ()
+    loss: float = 0.0
+    burst: float = 0.0
+    dup: float = 0.0
+    jitter: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> "FaultMix":
+        """``kill,freeze,partition,loss=0.2,starve`` (``mixed``: every kind;
+        ``none`` or empty: a fault-free run).  Amounts are probabilities
+        (``loss=0.2`` or ``loss=20%``); ``jitter`` is in seconds."""
+        events: list[str] = []
+        amounts: dict[str, float] = {}
+        items = [i.strip() for i in text.replace("mixed", MIXED).split(",") if i.strip() and i.strip() != "none"]
+        for item in items:
+            name, sep, value = item.partition("=")
+            if name in EVENT_KINDS and not sep:
+                if name not in events:
+                    events.append(name)
+            elif name in LINK_KINDS:
+                amounts[name] = _amount(name, value) if sep else LINK_KINDS[name]
+            else:
+                known = ", ".join([*EVENT_KINDS, *(f"{k}[=P]" for k in LINK_KINDS), "mixed"])
+                raise FaultSpecError(f"unknown fault {item!r} (choose from {known})")
+        return cls(tuple(events), **amounts)
+
+    @property
+    def lossy(self) -> bool:
+        return self.loss > 0 or self.burst > 0
+
+    def link(self) -> LinkModel:
+        """Every link's behaviour: a radio's (30 ms one way) once anything is lost, else a LAN's."""
+        if self.lossy:
+            return LinkModel(delay_s=0.03, jitter_s=max(self.jitter, 0.005), loss=self.loss,
+                             burst=self.burst, duplicate=self.dup)
+        return LinkModel(delay_s=0.001, jitter_s=max(self.jitter, 0.0005), duplicate=self.dup)
+
+    def describe(self) -> str:
+        parts = list(self.events)
+        parts += [f"{k}={getattr(self, k):g}" for k in LINK_KINDS if getattr(self, k)]
+        return ",".join(parts) or "none"
+
+
+def _amount(name: str, value: str) -> float:
+    try:
+        amount = float(value[:-1]) / 100 if value.endswith("%") else float(value)
+    except ValueError:
+        raise FaultSpecError(f"{name}= expects a number, got {value!r}") from None
+    if not 0 <= amount <= (10 if name == "jitter" else 0.99 if name == "burst" else 1):
+        raise FaultSpecError(f"{name}={value} is out of range")
+    return amount
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """One scheduled fault: ``action`` on ``targets`` at ``at_s`` (simulated seconds)."""
+
+    at_s: float
+    action: str  # kill, restart, freeze, resume, cut, heal, starve
+    targets: tuple[str, ...]
+    #: starve: the mean lateness of each loop turn, seconds; cut: the other side.
+    amount: float = 0.0
+    other: tuple[str, ...] = ()
+    until_s: float = 0.0
+
+    def __str__(self) -> str:
+        who = "+".join(self.targets)
+        if self.action == "cut":
+            return f"cut {who}|{'+'.join(self.other)}@{self.at_s:.2f}s"
+        if self.action == "starve":
+            return f"starve {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount * 1000:.0f}ms)"
+        return f"{self.action} {who}@{self.at_s:.2f}s"
+
+
+@dataclass(frozen=True)
+class Schedule:
+    link: LinkModel
+    events: tuple[FaultEvent, ...] = field(default_factory=tuple)
+
+    def __str__(self) -> str:
+        model = self.link
+        links = []
+        if model.loss:
+            links.append(f"loss {model.loss:.0%}")
+        if model.burst:
+            links.append(f"bursts {model.burst:.0%}")
+        if model.duplicate:
+            links.append(f"dup {model.duplicate:.0%}")
+        return "; ".join([*(str(e) for e in self.events), *links]) or "no faults"
+
+
+def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rng: random.Random) -> Schedule:
+    """The faults of one run: up to three events drawn from ``mix``'s kinds
+    over the first ``horizon_s`` simulated seconds, at most one robot of a
+    cluster out at a time."""
+    events: list[FaultEvent] = []
+    #: Robot -> until when it is out (dead, frozen or cut off): None = for good.
+    out: dict[str, float | None] = {}
+    cluster_of = {r: i for i, c in enumerate(clusters) for r in c}
+
+    def free(robot: str, at: float) -> bool:
+        """No robot of ``robot``'s cluster is out at ``at``."""
+        return all(
+            until is not None and until < at for r, until in out.items() if cluster_of[r] == cluster_of[robot]
+        )
+
+    robots = [r for c in clusters for r in c]
+    for _ in range(rng.randint(1, 3) if mix.events else 0):
+        kind = rng.choice(mix.events)
+        at = round(rng.uniform(0.05, horizon_s), 3)
+        lasting = round(rng.uniform(0.5, max(1.0, horizon_s / 2)), 3)
+        if kind == "starve":
+            target = rng.choice(["feeder", *robots])
+            events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.02, 0.4), 3),
+                                     until_s=round(at + lasting, 3)))
+            continue
+        candidates = [r for r in robots if free(r, at) and free(r, at + lasting)]
+        if kind == "partition" and rng.random() < 0.2:
+            # The feeder cut off from everyone for a while.
+            events.append(FaultEvent(at, "cut", ("feeder",), other=tuple(robots)))
+            events.append(FaultEvent(round(at + lasting, 3), "heal", ("feeder",)))
+            continue
+        if not candidates:
+            continue
+        victim = rng.choice(candidates)
+        if kind == "kill":
+            restart = rng.random() < 0.5
+            out[victim] = at + lasting if restart else None
+            events.append(FaultEvent(at, "kill", (victim,)))
+            if restart:
+                events.append(FaultEvent(round(at + lasting, 3), "restart", (victim,)))
+        elif kind == "freeze":
+            out[victim] = at + lasting
+            events.append(FaultEvent(at, "freeze", (victim,)))
+            events.append(FaultEvent(round(at + lasting, 3), "resume", (victim,)))
+        else:
+            out[victim] = at + lasting
+            cluster = clusters[cluster_of[victim]]
+            if rng.random() < 0.5:
+                # One robot cut off from its cluster and the feeder.
+                others = tuple(r for r in ["feeder", *robots] if r != victim)
+            else:
+                # A cluster split: the robot alone on one side, its teammates with the feeder on the other.
+                others = tuple(r for r in cluster if r != victim)
+            events.append(FaultEvent(at, "cut", (victim,), other=others))
+            events.append(FaultEvent(round(at + lasting, 3), "heal", (victim,)))
+    events.sort(key=lambda e: e.at_s)
+    return Schedule(mix.link(), tuple(events))
+

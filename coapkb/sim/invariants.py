@@ -1,0 +1,242 @@
+"""What must hold after every simulated run, whatever its schedule.
+
+Each check reads the run's history (the feeder's record, the picks the
+robots logged, the state left at the end) and returns what it found
+broken, one line each, naming the task, robot and time.  A disagreement
+the schedule explains -- a robot that decided against its teammates while
+its own loop was starved and it took a live teammate for dead -- is not a
+protocol bug of the kind these checks look for: it is reported apart, as
+excused, with the reason (the decisions-under-load work removes it).
+
+To add an invariant: write ``def check_NAME(run: RunResult) -> Iterable[str]``
+here and list it in :data:`CHECKS`.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Callable, Iterable
+
+from ..feeder import split_tasks
+from ..feeder.record import TaskRecord
+from .run import Pick, RunResult
+
+
+def check_finished(run: RunResult) -> Iterable[str]:
+    """The run ends by itself with a record (no hang, no feeder giving up)."""
+    if run.error is not None:
+        yield f"did not finish: {run.error}"
+    for crash in run.crashes:
+        yield f"exception escaped a task: {crash}"
+
+
+def check_one_fate(run: RunResult) -> Iterable[str]:
+    """Every fed task has exactly one final fate: each task given appears once
+    as an original, in order; numbers run on without gaps; a re-run names a
+    task that went round once, whose fate says so."""
+    record = run.record
+    if record is None:
+        return
+    given = [t.object for t in record.tasks if t.reassigned_from is None]
+    for index, cluster_records in _by_cluster(record.tasks).items():
+        seqs = [t.seq for t in cluster_records]
+        if seqs != list(range(seqs[0], seqs[0] + len(seqs))):
+            yield f"cluster {index}: task numbers {seqs} have gaps or repeats"
+        by_seq = {t.seq: t for t in cluster_records}
+        reruns = [t for t in cluster_records if t.reassigned_from is not None]
+        origins = [t.reassigned_from for t in reruns]
+        for origin in {o for o in origins if origins.count(o) > 1}:
+            yield f"cluster {index}: task {origin} went round more than once"
+        for rerun in reruns:
+            original = by_seq.get(rerun.reassigned_from)  # type: ignore[arg-type]
+            if original is None or original.object != rerun.object or original.fate != "reassigned":
+                yield f"cluster {index}: task {rerun.seq} re-runs task {rerun.reassigned_from}, which was not reassigned"
+        for task in cluster_records:
+            if task.fate == "reassigned" and task.seq not in origins:
+                yield f"cluster {index}: task {task.seq} ({task.object}) was reassigned and never ran again"
+    clusters = len(record.clusters)
+    shares = split_tasks(given, clusters)
+    for index, share in enumerate(shares, 1):
+        originals = [t.object for t in _by_cluster(record.tasks).get(index, []) if t.reassigned_from is None]
+        if originals != share:
+            yield f"cluster {index}: fed {originals}, expected {share}"
+
+
+def check_executed_once(run: RunResult) -> Iterable[str]:
+    """No task executed twice or lost: each task (with the re-runs it went
+    through) is picked at most once, and a task whose final fate is
+    "assigned" is picked exactly once, by the robot it went to.  A second
+    pick is excused (:func:`excused_picks`) when the first picker died
+    before any report of its pick could reach the feeder."""
+    record = run.record
+    if record is None:
+        return
+    tasks, picked, strays = _picks_by_task(run)
+    yield from strays
+    for key, picks in picked.items():
+        if len(picks) > 1 and _unreported(run, picks[0]) is None:
+            yield f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: " \
+                  + "; ".join(_said(p) for p in picks)
+    for task in record.tasks:
+        if task.fate != "assigned":
+            continue
+        picks = picked.get(_root(tasks, task), [])
+        if not picks:
+            yield f"cluster {task.cluster} task {task.seq} ({task.object}) was assigned to {task.assigned_to} " \
+                  "and never executed"
+        elif picks[-1].robot != task.assigned_to:
+            yield f"cluster {task.cluster} task {task.seq} went to {task.assigned_to} but {_said(picks[-1])} picked it"
+
+
+def excused_picks(run: RunResult) -> list[str]:
+    """Second picks the schedule explains: the first picker was killed before
+    any report of its pick reached the feeder, so nobody could know it was
+    done (the shared world of the next step lets the second robot find the
+    object gone instead)."""
+    if run.record is None:
+        return []
+    tasks, picked, _ = _picks_by_task(run)
+    found = []
+    for key, picks in picked.items():
+        why = _unreported(run, picks[0]) if len(picks) > 1 else None
+        if why is not None:
+            found.append(f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: "
+                         + "; ".join(_said(p) for p in picks) + f": {why}")
+    return found
+
+
+def _said(pick: Pick) -> str:
+    return f"{pick.robot} as task {pick.seq} at {pick.at_s:.3f}s"
+
+
+def _root(tasks: dict[tuple[int, int], TaskRecord], task: TaskRecord) -> tuple[int, int]:
+    """The task ``task`` re-runs, through every round it went (itself if none)."""
+    while task.reassigned_from is not None:
+        task = tasks[(task.cluster, task.reassigned_from)]
+    return task.cluster, task.seq
+
+
+def _picks_by_task(run: RunResult) -> tuple[dict[tuple[int, int], TaskRecord], dict[tuple[int, int], list[Pick]], list[str]]:
+    """Every pick under the task it first was, and the picks of no task fed."""
+    record = run.record
+    assert record is not None
+    cluster_of = {r: i for i, c in enumerate(record.clusters, 1) for r in c}
+    tasks = {(t.cluster, t.seq): t for t in record.tasks}
+    picked: dict[tuple[int, int], list[Pick]] = defaultdict(list)
+    strays = []
+    for pick in run.picks:
+        task = tasks.get((cluster_of[pick.robot], pick.seq))
+        if task is None or task.object != pick.object:
+            strays.append(f"{pick.robot} picked {pick.object} as task {pick.seq}, which its cluster was not fed")
+            continue
+        picked[_root(tasks, task)].append(pick)
+    return tasks, picked, strays
+
+
+def _unreported(run: RunResult, pick: Pick) -> str | None:
+    """Why nobody could know of ``pick``: its robot was killed before any of
+    its outcome reports sent after the pick reached the feeder."""
+    kills = [run.fed_at + e.at_s for e in run.events if e.action == "kill" and pick.robot in e.targets]
+    killed = min((k for k in kills if k >= pick.at_s), default=None)
+    if killed is None:
+        return None
+    if any(pick.at_s <= t <= killed for t in run.reports.get(pick.robot, ())):
+        return None
+    return f"{pick.robot} was killed {killed - pick.at_s:.3f}s after its pick, before any report of it reached the feeder"
+
+
+def check_epochs_grow(run: RunResult) -> Iterable[str]:
+    """Membership epochs only grow: each robot's decisions name epochs that
+    never go back (a restarted robot's new process counts afresh from its join)."""
+    record = run.record
+    if record is None:
+        return
+    for index, tasks in _by_cluster(record.tasks).items():
+        last: dict[str, tuple[int, int]] = {}
+        for task in tasks:
+            for robot in task.joined:
+                last.pop(robot, None)
+            for robot, epoch in task.epochs.items():
+                before = last.get(robot)
+                if before is not None and epoch < before[1]:
+                    yield f"{robot}'s epoch went back from {before[1]} (task {before[0]}) to {epoch} (task {task.seq})"
+                last[robot] = (task.seq, epoch)
+
+
+def check_bounded(run: RunResult) -> Iterable[str]:
+    """Bounded state stays bounded (readings taken at the end of the run)."""
+    for name, (value, bound) in run.bounds.items():
+        if value > bound:
+            yield f"{name}: {value}, above its bound {bound}"
+
+
+def check_agreement(run: RunResult) -> Iterable[str]:
+    """Compute-by-all decisions agree: every robot that decided a task
+    decided alike, in the same epoch (disagreements the schedule explains
+    are returned by :func:`excused_disagreements` instead)."""
+    record = run.record
+    if record is None:
+        return
+    for task in record.tasks:
+        if task.fate == "failed" and _excuse(run, task) is None:
+            yield f"task {task.seq} of cluster {task.cluster} ({task.object}): {_disagreement(task)}"
+
+
+def excused_disagreements(run: RunResult) -> list[str]:
+    """Disagreements the schedule explains, each with why."""
+    record = run.record
+    if record is None:
+        return []
+    found = []
+    for task in record.tasks:
+        why = _excuse(run, task) if task.fate == "failed" else None
+        if why is not None:
+            found.append(f"task {task.seq} of cluster {task.cluster}: {_disagreement(task)}: {why}")
+    return found
+
+
+def _excuse(run: RunResult, task: TaskRecord) -> str | None:
+    """Why the schedule explains a split decision, if it does.  Two known
+    ways, both left to the decisions-under-load work: a robot of the
+    task's cluster (or the feeder) was starved of CPU and took a live
+    teammate for dead; or the links lost answers until a robot's wait for a
+    teammate's plan ran out, and it decided alone."""
+    record = run.record
+    cluster = set(record.clusters[task.cluster - 1]) if record is not None else set()
+    out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
+    starved = sorted({t for e in run.events if e.action == "starve" for t in e.targets if t in cluster | {"feeder"}})
+    blamed = {w.rstrip(",:;") for text in [task.unavailable or "", *task.errors.values()]
+              for w in text.split() if w.startswith("Robot")}
+    if blamed & out:
+        return None  # a fault the protocol must ride out
+    if starved:
+        return f"a false suspicion under CPU starvation ({', '.join(starved)} starved)"
+    if run.lossy and any("no state for task" in e or "no answer" in e for e in task.errors.values()):
+        return "answers lost on the links until a robot's wait ran out: it decided alone"
+    return None
+
+
+def _disagreement(task: TaskRecord) -> str:
+    decided = ", ".join(f"{r}: {d or 'nobody'} (epoch {task.epochs.get(r, '?')})" for r, d in task.decisions.items())
+    errors = "; ".join(f"{r}: {e}" for r, e in task.errors.items())
+    return f"decisions {decided}" + (f"; errors {errors}" if errors else "")
+
+
+def _by_cluster(tasks: list[TaskRecord]) -> dict[int, list[TaskRecord]]:
+    clusters: dict[int, list[TaskRecord]] = defaultdict(list)
+    for task in tasks:
+        clusters[task.cluster].append(task)
+    return clusters
+
+
+#: Every invariant, in the order their findings are printed.
+CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
+    check_finished, check_one_fate, check_executed_once, check_agreement, check_epochs_grow, check_bounded,
+)
+
+
+def check(run: RunResult) -> RunResult:
+    """Fill ``run``'s violations and excused findings; returns ``run``."""
+    run.violations = [finding for invariant in CHECKS for finding in invariant(run)]
+    run.excused = excused_disagreements(run) + excused_picks(run)
+    return run

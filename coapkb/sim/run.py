@@ -1,0 +1,440 @@
+"""One simulated run: the real feeder and robots on the simulated network,
+under one seed's fault schedule, and the history the checker judges.
+
+Every robot is the real :class:`~coapkb.agent.robot.Robot` (its controller,
+team view, lease, query handler and executor) started on a
+:class:`~coapkb.host.Host` of its own simulated process; the feeder is the
+real :class:`~coapkb.feeder.Feeder` in another.  A third process carries out
+the schedule: it kills, freezes and restarts robots, cuts links and starves
+loops at the scheduled simulated times.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gc
+import logging
+import random
+import sys
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence, TextIO
+
+from ..agent.robot import Robot
+from ..agent.task_executor import PICKED
+from ..config import RobotConfig
+from ..feeder import Feeder, FeederError, Roster, TaskRecord
+from ..harness.record import FaultEvent as RecordedFault
+from ..harness.record import TeamRecord
+from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
+from ..host import Host
+from ..kb.store import KnowledgeBase
+from ..transport.base import Endpoint, TransportError
+from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
+from .loop import Process, Scheduler, SimLoop, SimulationError
+from .network import SimNetwork
+
+log = logging.getLogger(__name__)
+
+#: A run still going after this much simulated time is stuck.
+DEFAULT_LIMIT_S = 3600.0
+
+
+@dataclass(frozen=True)
+class SimSpec:
+    """What every run of a profile shares; the seed draws the rest."""
+
+    robots: int = 3
+    tasks: int = 10
+    strategy: str = "compute-by-all"
+    faults: FaultMix = field(default_factory=FaultMix)
+    ontologies: Path = DEFAULT_ONTOLOGIES
+    #: As ``coapkb team``: simulated motion runs this many times faster than real motion.
+    time_scale: float = 50.0
+    query_timeout_s: float = 5.0
+    task_timeout_s: float = 120.0
+    limit_s: float = DEFAULT_LIMIT_S
+    #: How many robots of a cluster hold each KB module (as ``coapkb team --replication``).
+    replication: int = 2
+    #: These tasks instead of ``tasks`` drawn by the seed.
+    task_list: tuple[str, ...] | None = None
+    #: These fault events instead of those drawn by the seed (the link faults still come from ``faults``).
+    schedule: tuple[FaultEvent, ...] | None = None
+    #: Called with each task's record once decided, and the run: a scenario's own faults (tests).
+    scenario: Callable[[TaskRecord, "SimulatedTeam"], None] | None = None
+
+    def team(self) -> TeamSpec:
+        return TeamSpec(
+            robots=self.robots, strategy=self.strategy, ontologies=self.ontologies, security=False,
+            query_timeout_s=self.query_timeout_s, task_timeout_s=self.task_timeout_s,
+            time_scale=self.time_scale, link_kbps=35.0 if self.faults.lossy else None, replication=self.replication,
+        )
+
+    @property
+    def horizon_s(self) -> float:
+        """Over how much simulated time the faults are drawn: about the run's
+        length (a cluster decides and executes a task in well under a second
+        of simulated time on these settings)."""
+        per_cluster = self.tasks / max(1, self.robots // 3)
+        return 1.0 + 0.6 * per_cluster
+
+
+@dataclass(frozen=True)
+class Pick:
+    """One pick that counted, as the picking robot logged it."""
+
+    robot: str
+    incarnation: int
+    seq: int
+    object: str
+    at_s: float
+
+
+@dataclass
+class RunResult:
+    """What one seed's run gave (picklable: runs travel between worker processes)."""
+
+    seed: int
+    schedule: str
+    record: TeamRecord | None
+    #: Why the run did not finish (a hang, the feeder gave up), or None.
+    error: str | None
+    picks: list[Pick]
+    #: Robots out at the end (killed and not restarted, or left frozen): none of their state is final.
+    crashes: list[str]
+    #: Invariants broken (filled in by :mod:`.invariants`), and disagreements the schedule explains.
+    violations: list[str] = field(default_factory=list)
+    excused: list[str] = field(default_factory=list)
+    #: Bounded-state readings at the end: name -> (value, bound).
+    bounds: dict[str, tuple[int, int]] = field(default_factory=dict)
+    events: list[FaultEvent] = field(default_factory=list)
+    #: The links lose messages (loss or bursts in the fault mix).
+    lossy: bool = False
+    #: When the first task was fed (simulated s): the schedule's times count from here.
+    fed_at: float = 0.0
+    #: Robot -> when its outcome reports reached the feeder (simulated s).
+    reports: dict[str, list[float]] = field(default_factory=dict)
+    #: The fate counts in one line (kept when the record is dropped).
+    fates: str = ""
+    sim_s: float = 0.0
+    cpu_s: float = 0.0
+    steps: int = 0
+    messages: int = 0
+    lost: int = 0
+
+
+class KBCache:
+    """The KB modules and team configurations, loaded once per worker process:
+    they are read-only, so every simulated robot may share them."""
+
+    def __init__(self) -> None:
+        self._kbs: dict[tuple[Path, ...], KnowledgeBase] = {}
+        self._configs: dict[TeamSpec, dict[str, RobotConfig]] = {}
+        self._products: dict[Path, list[str]] = {}
+
+    def load(self, files: Sequence[Path], index_dir: Path | None = None) -> KnowledgeBase:
+        key = tuple(files)
+        kb = self._kbs.get(key)
+        if kb is None:
+            kb = self._kbs[key] = KnowledgeBase.load(list(files))
+        return kb
+
+    def products(self, ontologies: Path) -> list[str]:
+        names = self._products.get(ontologies)
+        if names is None:
+            names = self._products[ontologies] = product_names(self.load([ontologies / "Object.owl"]))
+        return names
+
+    def configs(self, spec: TeamSpec) -> dict[str, RobotConfig]:
+        configs = self._configs.get(spec)
+        if configs is None:
+            endpoints = {r: Endpoint("coap", f"10.0.0.{i}", 5683) for i, r in enumerate(spec.robot_ids, 1)}
+            configs = self._configs[spec] = robot_configs(spec, endpoints)
+        return configs
+
+
+class _History(logging.Handler):
+    """The robots' log lines, read as the run's history: picks (the
+    executor's :data:`PICKED` line) and, when tracing, every warning."""
+
+    def __init__(self, names: dict[SimLoop, Process], clock: Callable[[], float],
+                 incarnations: dict[str, int], trace: Callable[[str], None] | None) -> None:
+        super().__init__(logging.INFO)
+        self.names = names
+        self.clock = clock
+        self.incarnations = incarnations
+        self.trace = trace
+        self.picks: list[Pick] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            process = self.names.get(asyncio.get_running_loop())  # type: ignore[call-overload]
+        except RuntimeError:
+            process = None
+        name = process.name if process is not None else "-"
+        if record.msg is PICKED and isinstance(record.args, tuple):
+            obj, seq = record.args
+            self.picks.append(Pick(name, self.incarnations.get(name, 0), int(seq), str(obj),  # type: ignore[call-overload]
+                                   round(self.clock(), 6)))
+            if self.trace is not None:
+                self.trace(f"pick {name} task {seq} {obj}")
+        elif record.levelno >= logging.WARNING and self.trace is not None:
+            self.trace(f"log {name} {record.getMessage()}")
+
+
+@contextlib.contextmanager
+def _capturing(handler: _History) -> Iterator[None]:
+    """The package's log through ``handler`` only (no echo to stderr), picks included."""
+    package = logging.getLogger("coapkb")
+    executor = logging.getLogger("coapkb.agent.task_executor")
+    saved = (package.propagate, package.level, executor.level)
+    package.addHandler(handler)
+    package.propagate = False
+    package.setLevel(logging.WARNING)
+    executor.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        package.removeHandler(handler)
+        package.propagate, _, _ = saved
+        package.setLevel(saved[1])
+        executor.setLevel(saved[2])
+
+
+@contextlib.contextmanager
+def _asyncgen_hooks(owner: "weakref.WeakKeyDictionary[Any, SimLoop]") -> Iterator[None]:
+    """Async generators closed on the loop that ran them, as ``run_forever``
+    arranges for one real loop (the simulator steps many)."""
+
+    def first(agen: Any) -> None:
+        owner[agen] = asyncio.get_running_loop()  # type: ignore[assignment]
+
+    def finalize(agen: Any) -> None:
+        loop = owner.pop(agen, None)
+        if loop is not None and not loop.is_closed():
+            loop.call_soon(loop.create_task, agen.aclose())
+
+    saved = sys.get_asyncgen_hooks()
+    sys.set_asyncgen_hooks(firstiter=first, finalizer=finalize)
+    try:
+        yield
+    finally:
+        sys.set_asyncgen_hooks(*saved)
+
+
+def draw_tasks(names: list[str], count: int, rng: random.Random) -> list[str]:
+    return [rng.choice(names) for _ in range(count)]
+
+
+class SimulatedTeam:
+    """One run: the processes, the network, the schedule, and what they left.
+
+    ``controls`` are the faults a scenario may inject itself, from the
+    feeder's progress (a robot frozen right after it was given a task), the
+    way ``coapkb team``'s tests do with real processes."""
+
+    def __init__(self, spec: SimSpec, seed: int, kbs: KBCache, trace: TextIO | None = None) -> None:
+        rng = random.Random(seed)
+        self.spec, self.seed, self.kbs = spec, seed, kbs
+        self.team = spec.team()
+        drawn = draw_tasks(kbs.products(spec.ontologies), spec.tasks, random.Random(rng.random()))
+        self.tasks = list(spec.task_list) if spec.task_list is not None else drawn
+        schedule = draw_schedule(spec.faults, self.team.clusters(), spec.horizon_s, random.Random(rng.random()))
+        if spec.schedule is not None:
+            schedule = Schedule(schedule.link, tuple(sorted(spec.schedule, key=lambda e: e.at_s)))
+        self.schedule = schedule
+        scheduler_rng, network_rng, self._boot_rng = (random.Random(rng.random()) for _ in range(3))
+        self._out = trace
+        self.scheduler = Scheduler(scheduler_rng, self.note)
+        self.network = SimNetwork(self.scheduler, network_rng, schedule.link, self.note if trace else None)
+        self.configs = kbs.configs(self.team)
+        self.processes: dict[SimLoop, Process] = {}
+        self.current: dict[str, Process] = {}
+        self.incarnations: dict[str, int] = {}
+        self.robots: dict[str, Robot] = {}
+        self.history = _History(self.processes, lambda: self.scheduler.clock.now, self.incarnations,
+                                self.note if trace else None)
+        self.feeder: Feeder | None = None
+        self.fed_at: float | None = None
+        self.resumed: set[str] = set()
+        self.recorded: list[RecordedFault] = []
+        #: Set once every task is done: from then on the schedule only heals (no new faults after the run).
+        self.ending = False
+
+    def note(self, text: str) -> None:
+        """A line of the trace, stamped with the simulated time."""
+        if self._out is not None:
+            self._out.write(f"{self.scheduler.clock.now:11.6f} {text}\n")
+
+    # ------------------------------------------------------------- processes
+
+    def _spawn(self, name: str) -> Process:
+        process = self.scheduler.spawn(name)
+        self.processes[process.loop] = process
+        self.current[name] = process
+        return process
+
+    async def _start_robot(self, robot_id: str, process: Process) -> Robot:
+        host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
+                    threads=False)
+        robot = await Robot.start(self.configs[robot_id], host=host)
+        self.robots[robot_id] = robot
+        return robot
+
+    # ------------------------------------------------------------- faults
+
+    def inject(self, event: FaultEvent) -> None:
+        """Carry out ``event`` now (``event.at_s`` is what the record says)."""
+        self.note(f"fault {event}")
+        action, target = event.action, event.targets[0]
+        process = self.current[target]
+        if action == "kill":
+            self.scheduler.kill(process)
+        elif action == "restart":
+            reborn = self._spawn(target)
+            self.incarnations[target] = self.incarnations.get(target, 0) + 1
+            feeder = self.feeder
+
+            async def restart() -> None:
+                await self._start_robot(target, reborn)
+                if feeder is not None:
+                    feeder.membership.rejoin(target)  # it joins at the next task fed, as the harness tells it
+
+            self.scheduler.start(reborn, restart())
+        elif action == "freeze":
+            self.scheduler.freeze(process)
+        elif action == "resume":
+            self.scheduler.resume(process)
+            self.resumed.add(target)
+        elif action == "cut":
+            self.network.cut(target, event.targets, event.other)
+        elif action == "heal":
+            self.network.heal(target)
+        elif action == "starve":
+            process.starved = (event.amount, event.until_s)
+        self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
+
+    @property
+    def elapsed_s(self) -> float:
+        """Simulated seconds since the first task was fed."""
+        return self.scheduler.clock.now - (self.fed_at or 0.0)
+
+    def control(self, action: str, robot: str) -> None:
+        """A fault a scenario injects now: kill, restart, freeze or resume ``robot``."""
+        self.inject(FaultEvent(round(self.elapsed_s, 3), action, (robot,)))
+
+    async def _run_schedule(self) -> None:
+        loop = asyncio.get_running_loop()
+        for event in self.schedule.events:
+            await asyncio.sleep(max(0.0, (self.fed_at or 0.0) + event.at_s - loop.time()))
+            if self.ending and event.action not in ("heal", "resume"):
+                continue
+            self.inject(event)
+
+    # ------------------------------------------------------------- the run
+
+    async def _feed(self, chaos: Process) -> TeamRecord:
+        team, feeder_process = self.team, self.current["feeder"]
+        roster = Roster({r: c.bind for r, c in self.configs.items()}, team.clusters())
+        async with Feeder.open(roster, team.feeder_settings(), None,
+                               self.network.for_process(feeder_process)) as feeder:
+            self.feeder = feeder
+            self.fed_at = started = asyncio.get_running_loop().time()
+            schedule = self.scheduler.start(chaos, self._run_schedule())
+            scenario = self.spec.scenario
+            progress = None if scenario is None else (lambda record: scenario(record, self))
+            try:
+                outcome = await feeder.feed(self.tasks, progress, started)
+                self.ending = True
+                # Every partition healed, every robot resumed and idle before the
+                # statistics are asked for, as a run's report would be.  Those run
+                # in other processes, whose tasks this loop cannot await: look
+                # again shortly (simulated time, free).
+                while not schedule.done() or not self._settled():
+                    await asyncio.sleep(0.5)
+                watcher = feeder.watcher
+                alive = [r for r in watcher.alive if self.current[r].status == "running"]
+                maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
+                stats = await feeder.collect_stats(alive, maybe)
+            finally:
+                schedule.cancel()
+            return team_record(team, outcome, stats, feeder.traffic, self.recorded, dict(watcher.down))
+
+    def _settled(self) -> bool:
+        """Every running robot has executed what it holds."""
+        return all(
+            robot.executor.live.activity == "idle" and not robot.executor.live.queued
+            for robot_id, robot in self.robots.items() if self.current[robot_id].status == "running"
+        )
+
+    def run(self) -> RunResult:
+        """Start the robots, feed the tasks under the schedule, and return what happened."""
+        cpu = time.process_time()
+        spec, scheduler = self.spec, self.scheduler
+        self.note(f"seed {self.seed}: {spec.robots} robots, {len(self.tasks)} tasks, {spec.strategy}; "
+                  f"schedule: {self.schedule}")
+        self.note(f"tasks: {' '.join(self.tasks)}")
+        owner: weakref.WeakKeyDictionary[Any, SimLoop] = weakref.WeakKeyDictionary()
+        error: str | None = None
+        record: TeamRecord | None = None
+        bounds: dict[str, tuple[int, int]] = {}
+        gc_was_enabled = gc.isenabled()
+        gc.disable()  # collection timing is the one thing refcounting does not fix: keep it out of the run
+        try:
+            with _capturing(self.history), _asyncgen_hooks(owner):
+                starting = [scheduler.start(p, self._start_robot(r, p))
+                            for r, p in ((r, self._spawn(r)) for r in self.team.robot_ids)]
+                self._spawn("feeder")
+                chaos = self._spawn("faults")
+                try:
+                    scheduler.run(lambda: all(t.done() for t in starting), spec.limit_s)
+                    for task in starting:
+                        task.result()
+                    fed = scheduler.start(self.current["feeder"], self._feed(chaos))
+                    scheduler.run(fed.done, spec.limit_s)
+                    record = fed.result()
+                except (SimulationError, FeederError, TransportError, TimeoutError) as exc:
+                    error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                bounds = _bounds(self.robots, scheduler)
+                scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
+        finally:
+            if gc_was_enabled:
+                gc.enable()
+        return RunResult(
+            seed=self.seed, schedule=str(self.schedule), record=record, error=error, picks=self.history.picks,
+            crashes=list(scheduler.crashes), bounds=bounds, events=list(self.schedule.events),
+            lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
+            steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
+            fed_at=self.fed_at or 0.0, reports=self.network.reports,
+        )
+
+
+def run_seed(spec: SimSpec, seed: int, kbs: KBCache, trace: TextIO | None = None) -> RunResult:
+    """Run ``spec``'s team under seed ``seed``'s schedule; the result's
+    ``violations`` are empty until :func:`coapkb.sim.invariants.check` fills them."""
+    return SimulatedTeam(spec, seed, kbs, trace).run()
+
+
+#: Tasks one process may hold at once in a team of N robots: a handful per teammate's exchanges.
+TASKS_PER_PEER = 12
+TASKS_BASE = 40
+
+
+def _bounds(robots: dict[str, Robot], scheduler: Scheduler) -> dict[str, tuple[int, int]]:
+    """State that must stay bounded whatever the schedule: (reading, bound)."""
+    from ..agent.controller import DECISIONS_KEPT
+    from ..agent.robot import POSTS_REMEMBERED
+
+    peers = len(robots) + 1
+    readings: dict[str, tuple[int, int]] = {}
+    for robot_id, robot in robots.items():
+        readings[f"{robot_id} posts remembered"] = (len(robot._accepted), POSTS_REMEMBERED)
+        readings[f"{robot_id} decisions kept"] = (len(robot.controller.log), DECISIONS_KEPT)
+    for process in scheduler.processes:
+        if process.alive:
+            pending = sum(1 for t in asyncio.all_tasks(process.loop) if not t.done())
+            readings[f"{process.name} tasks"] = (pending, TASKS_BASE + TASKS_PER_PEER * peers)
+    return readings

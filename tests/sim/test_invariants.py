@@ -1,0 +1,96 @@
+"""The checker: each invariant finds what breaks it in a made-up history,
+and says nothing of a good one."""
+
+from __future__ import annotations
+
+from coapkb.feeder.record import TaskRecord
+from coapkb.harness.record import TeamRecord
+from coapkb.sim.faults import FaultEvent
+from coapkb.sim.invariants import check
+from coapkb.sim.run import Pick, RunResult
+from coapkb.transport.base import TrafficCounters
+
+CLUSTER = ["Robot1", "Robot2", "Robot3"]
+
+
+def _task(seq: int, obj: str, to: str | None = "Robot1", **changes: object) -> TaskRecord:
+    task = TaskRecord(object=obj, cluster=1, seq=seq, assigned_to=to,
+                      decisions={r: to for r in CLUSTER}, epochs={r: 0 for r in CLUSTER}, members=list(CLUSTER))
+    for name, value in changes.items():
+        setattr(task, name, value)
+    return task
+
+
+def _run(tasks: list[TaskRecord], picks: list[Pick], **changes: object) -> RunResult:
+    record = TeamRecord(mode="distributed", transport="coap", strategy="compute-by-all", query_wire="compact",
+                        robots=list(CLUSTER), clusters=[list(CLUSTER)], tasks=tasks, coordination_s=1.0,
+                        completion_s=2.0, robot_stats={}, feeder_traffic=TrafficCounters(), faults=[], down={})
+    run = RunResult(seed=1, schedule="test", record=record, error=None, picks=picks, crashes=[])
+    for name, value in changes.items():
+        setattr(run, name, value)
+    return check(run)
+
+
+def _pick(robot: str, seq: int, obj: str, at_s: float = 1.0) -> Pick:
+    return Pick(robot, 0, seq, obj, at_s)
+
+
+def test_a_good_history_breaks_nothing() -> None:
+    run = _run([_task(1, "A"), _task(2, "B", "Robot2")], [_pick("Robot1", 1, "A"), _pick("Robot2", 2, "B")])
+    assert run.violations == [] and run.excused == []
+
+
+def test_a_task_picked_twice_is_found() -> None:
+    tasks = [_task(1, "A", orphaned="Robot1 down"), _task(2, "A", "Robot2", reassigned_from=1)]
+    run = _run(tasks, [_pick("Robot1", 1, "A", 1.0), _pick("Robot2", 2, "A", 5.0)])
+    assert any("executed 2 times" in v for v in run.violations), run.violations
+
+
+def test_a_pick_its_dead_robot_never_reported_is_excused_not_hidden() -> None:
+    tasks = [_task(1, "A", orphaned="Robot1 down"), _task(2, "A", "Robot2", reassigned_from=1)]
+    picks = [_pick("Robot1", 1, "A", 1.0), _pick("Robot2", 2, "A", 5.0)]
+    killed = [FaultEvent(1.1, "kill", ("Robot1",))]
+    run = _run(tasks, picks, events=killed, reports={"Robot1": [0.5]})
+    assert run.violations == [] and "killed 0.100s after its pick" in run.excused[0]
+    reported = _run(tasks, picks, events=killed, reports={"Robot1": [1.05]})
+    assert any("executed 2 times" in v for v in reported.violations)  # the feeder knew: no excuse
+
+
+def test_an_assigned_task_nobody_executed_is_found() -> None:
+    run = _run([_task(1, "A")], [])
+    assert run.violations == ["cluster 1 task 1 (A) was assigned to Robot1 and never executed"]
+
+
+def test_fates_that_do_not_add_up_are_found() -> None:
+    tasks = [_task(1, "A"), _task(3, "B"), _task(4, "A", reassigned_from=1)]
+    run = _run(tasks, [_pick("Robot1", 1, "A"), _pick("Robot1", 3, "B")])
+    found = " | ".join(run.violations)
+    assert "have gaps or repeats" in found and "re-runs task 1, which was not reassigned" in found
+
+
+def test_a_split_decision_and_an_epoch_going_back_are_found() -> None:
+    split = _task(2, "B", decisions={"Robot1": "Robot1", "Robot2": "Robot1", "Robot3": None},
+                  epochs={"Robot1": 1, "Robot2": 1, "Robot3": 1})
+    back = _task(3, "C", epochs={"Robot1": 0, "Robot2": 0, "Robot3": 0})
+    first = _task(1, "A", epochs={"Robot1": 1, "Robot2": 1, "Robot3": 1})
+    run = _run([first, split, back], [_pick("Robot1", 1, "A"), _pick("Robot1", 3, "C")])
+    found = " | ".join(run.violations)
+    assert "task 2 of cluster 1 (B): decisions Robot1: Robot1 (epoch 1)" in found
+    assert "Robot1's epoch went back from 1 (task 2) to 0 (task 3)" in found
+
+
+def test_a_false_suspicion_under_starvation_is_excused_with_its_reason() -> None:
+    split = _task(1, "A", decisions={"Robot1": "Robot1", "Robot2": "Robot1", "Robot3": None},
+                  errors={"Robot3": "no state for task 0 from Robot1 within 10s"})
+    starved = [FaultEvent(0.5, "starve", ("Robot3",), amount=0.2, until_s=3.0)]
+    run = _run([split], [_pick("Robot1", 1, "A")], events=starved)
+    assert run.violations == [] and "a false suspicion under CPU starvation (Robot3 starved)" in run.excused[0]
+
+
+def test_a_hang_a_crash_and_unbounded_state_are_found() -> None:
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], error="SimulationError: hung at 3.000 s",
+               crashes=["Robot2: Task exception was never retrieved KeyError: 'x'"],
+               bounds={"Robot1 tasks": (500, 100)})
+    found = " | ".join(run.violations)
+    assert "did not finish: SimulationError: hung" in found and "exception escaped a task" in found
+    assert "Robot1 tasks: 500, above its bound 100" in found

@@ -1,0 +1,173 @@
+"""The simulator itself: virtual time, replay from a seed, the faults it
+injects, the command's output, and the CI profile of seeded runs."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from coapkb.sim import FaultMix, FaultSpecError, KBCache, SimSpec, run_checked
+from coapkb.sim.faults import draw_schedule
+from coapkb.sim.loop import Scheduler, SimulationError
+from coapkb.sim.network import Link, LinkModel
+
+from support import ROOT
+
+
+@pytest.fixture(scope="module")
+def kbs() -> KBCache:
+    return KBCache()
+
+
+def _coapkb(*args: str, env: dict[str, str] | None = None, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "coapkb", *args], capture_output=True, text=True, cwd=ROOT,
+                          timeout=timeout, env={**os.environ, **(env or {})})
+
+
+# --------------------------------------------------------------------------- the clock and the processes
+
+
+def test_time_jumps_to_the_next_timer_and_a_frozen_process_waits() -> None:
+    scheduler = Scheduler(__import__("random").Random(1), lambda _: None)
+    fast, frozen = scheduler.spawn("fast"), scheduler.spawn("frozen")
+    woke: dict[str, float] = {}
+
+    async def sleeper(name: str, seconds: float) -> None:
+        await asyncio.sleep(seconds)
+        woke[name] = asyncio.get_running_loop().time()
+
+    done = [scheduler.start(fast, sleeper("fast", 3600.0)), scheduler.start(frozen, sleeper("frozen", 1.0))]
+    scheduler.freeze(frozen)
+    scheduler.run(lambda: done[0].done(), limit_s=10_000)
+    assert woke == {"fast": 3600.0}  # an hour of timers, no wall-clock wait
+    scheduler.resume(frozen)  # SIGCONT: it had not yet run at all, so its 1 s sleep starts now
+    scheduler.run(lambda: done[1].done(), limit_s=10_000)
+    assert woke["frozen"] == 3601.0
+    with pytest.raises(SimulationError, match="hung"):
+        scheduler.run(lambda: False, limit_s=10_000)
+
+
+def test_a_starved_loop_runs_late() -> None:
+    scheduler = Scheduler(__import__("random").Random(1), lambda _: None)
+    busy = scheduler.spawn("busy")
+    busy.starved = (0.2, 1_000.0)
+
+    async def ticks() -> float:
+        for _ in range(20):
+            await asyncio.sleep(0)
+        return asyncio.get_running_loop().time()
+
+    task = scheduler.start(busy, ticks())
+    scheduler.run(task.done, limit_s=1_000)
+    assert 1.0 < task.result() < 10.0  # twenty turns of about 0.2 s each
+
+
+def test_links_lose_duplicate_and_reorder_as_seeded() -> None:
+    rng = __import__("random").Random(7)
+    link = Link(LinkModel(delay_s=0.03, jitter_s=0.02, loss=0.2, duplicate=0.1))
+    fates = [link.copies(i * 0.001, rng) for i in range(10_000)]
+    lost = sum(1 for f in fates if not f) / len(fates)
+    twice = sum(1 for f in fates if len(f) == 2) / len(fates)
+    assert 0.18 < lost < 0.22 and 0.06 < twice < 0.10
+    arrivals = [i * 0.001 + d for i, f in enumerate(fates) for d in f]
+    assert arrivals != sorted(arrivals)  # jitter beyond the spacing: messages overtake each other
+    bursty = Link(LinkModel(burst=0.1, burst_s=0.5, burst_loss=1.0))
+    losses = [not bursty.copies(i * 0.01, rng) for i in range(100_000)]
+    assert 0.07 < sum(losses) / len(losses) < 0.13
+    runs = "".join("x" if lost else "." for lost in losses).split(".")
+    assert max(len(r) for r in runs) > 20  # lost in bursts, not one by one
+
+
+def test_fault_lists_are_read_or_refused() -> None:
+    mix = FaultMix.parse("kill,freeze,partition,loss=20%,starve")
+    assert mix.events == ("kill", "freeze", "partition", "starve") and mix.loss == 0.2 and mix.lossy
+    assert FaultMix.parse("mixed").events == ("kill", "freeze", "partition", "starve")
+    assert FaultMix.parse("none") == FaultMix()
+    for bad, needle in [("explode", "unknown fault 'explode'"), ("loss=lots", "expects a number"),
+                        ("loss=2", "out of range")]:
+        with pytest.raises(FaultSpecError, match=needle):
+            FaultMix.parse(bad)
+
+
+def test_a_schedule_keeps_a_majority_of_every_cluster_up() -> None:
+    clusters = [["Robot1", "Robot2", "Robot3"], ["Robot4", "Robot5", "Robot6"]]
+    rng = __import__("random").Random(3)
+    for _ in range(500):
+        schedule = draw_schedule(FaultMix.parse("kill,freeze,partition"), clusters, 20.0, rng)
+        out: dict[str, tuple[float, float]] = {}
+        ends = {"restart": "kill", "resume": "freeze", "heal": "cut"}
+        for event in schedule.events:
+            if event.targets == ("feeder",):
+                continue
+            if event.action in ("kill", "freeze", "cut"):
+                out[event.targets[0]] = (event.at_s, float("inf"))
+            elif event.action in ends:
+                out[event.targets[0]] = (out[event.targets[0]][0], event.at_s)
+        for cluster in clusters:
+            spans = [out[r] for r in cluster if r in out]
+            for a in spans:
+                overlapping = [b for b in spans if b is not a and b[0] < a[1] and a[0] < b[1]]
+                assert not overlapping, schedule
+
+
+# --------------------------------------------------------------------------- replay
+
+
+def test_the_same_seed_gives_the_same_run_and_trace(kbs: KBCache) -> None:
+    spec = SimSpec(robots=3, tasks=8, faults=FaultMix.parse("mixed"))
+    traces = []
+    for _ in range(2):
+        out = io.StringIO()
+        run = run_checked(spec, 11, kbs, out)
+        traces.append((out.getvalue(), run.record.to_dict() if run.record else None, run.picks))
+    assert traces[0] == traces[1]
+    other = io.StringIO()
+    run_checked(spec, 12, kbs, other)
+    assert other.getvalue() != traces[0][0]
+    lines = traces[0][0].splitlines()
+    assert lines[0].startswith("   0.000000 seed 11: 3 robots, 8 tasks")
+    assert any(" send feeder>Robot1 req#" in line for line in lines)
+    assert any(" pick Robot" in line for line in lines)
+
+
+def test_a_fault_free_run_assigns_and_executes_every_task_once(kbs: KBCache) -> None:
+    run = run_checked(SimSpec(robots=6, tasks=20), 5, kbs)
+    assert run.violations == [] and run.excused == [] and run.record is not None
+    assert [t.fate for t in run.record.tasks] == ["assigned"] * 20
+    assert sorted((p.robot, p.seq) for p in run.picks) == sorted(
+        (t.assigned_to, t.seq) for t in run.record.tasks)
+    assert run.messages > 0 and run.lost == 0 and run.sim_s > 0
+
+
+def test_the_command_replays_a_seed_byte_for_byte(tmp_path: Path) -> None:
+    """Run by hand twice (each under its own hash seed as a new process),
+    a seed writes the same trace."""
+    args = ["sim", "--robots", "3", "--tasks", "6", "--faults", "mixed", "--seed", "21"]
+    first = _coapkb(*args, "--trace", str(tmp_path / "a.trace"), env={"PYTHONHASHSEED": "1"})
+    second = _coapkb(*args, "--trace", str(tmp_path / "b.trace"), env={"PYTHONHASHSEED": "2"})
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert (tmp_path / "a.trace").read_bytes() == (tmp_path / "b.trace").read_bytes()
+    assert re.search(r"^sim: 1 runs, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s$", first.stdout, re.M)
+    def without_wall_time(out: str) -> str:
+        return re.sub(r"in [\d.,]+ wall s", "", out)
+
+    assert without_wall_time(first.stdout) == without_wall_time(second.stdout)
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--seeds", "9-3"], "the range is empty"),
+    (["--seeds", "x"], "--seeds expects"),
+    (["--trace", "t.txt"], "give --seed S"),
+    (["--robots", "4"], "multiple of 3"),
+    (["--faults", "meteor"], "unknown fault 'meteor'"),
+])
+def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
+    result = _coapkb("sim", *args, timeout=60)
+    assert result.returncode == 2 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr
