@@ -170,6 +170,13 @@ class ObservedStates:
 
     async def _update(self, robot_id: str, state: RobotState) -> None:
         old = self.states.get(robot_id)
+        if old is not None and state.boot == old.boot and state.boot and state.plan.seq < old.plan.seq:
+            # The same process, an older state: an answer that left before a
+            # newer notification and arrived after it (reordered, or a
+            # retransmitted request answered again from the exchange cache).
+            # Found in the simulator: taken for a restart, it made a robot
+            # declare a live teammate down and decide alone.
+            return
         if self.liveness and old is not None and (state.boot != old.boot or state.plan.seq < old.plan.seq):
             # A new process that lost the old one's state (a restart): the
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
