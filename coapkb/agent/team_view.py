@@ -119,6 +119,12 @@ class ObservedStates:
         return liveness_timeout_s(self.round_trip, self._liveness_floor_s)
 
     @property
+    def detection_s(self) -> float:
+        """How long a stalled wait may take to find a silent robot down: a
+        refresh period, then :data:`FAILURES_TO_DOWN` requests' timeouts."""
+        return self.refresh_s + FAILURES_TO_DOWN * self.request_timeout_s + 1.0
+
+    @property
     def refresh_s(self) -> float:
         return min(self._refresh_s, self.liveness_timeout_s) if self.liveness else self._refresh_s
 
@@ -469,9 +475,13 @@ class TeamView:
 
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
         """Every member's planned state right after task ``seq``; waits for
-        teammates that have not decided it yet, for at most ``timeout`` seconds.
+        teammates that have not decided it yet, for at most ``timeout`` seconds
+        or as long as finding a silent teammate down takes, if longer: a
+        robot that gave up first would decide alone, without the dead
+        teammate's last plan that the others hold (found in the simulator).
         A teammate that is down without a plan for ``seq`` leaves the team from
         task ``seq + 1`` on (see :attr:`membership`)."""
+        timeout = max(timeout, self._teammates.detection_s)
         down = self._teammates.down
         expected = self._peers - set(self.excluded)
 

@@ -146,3 +146,20 @@ async def test_an_older_state_of_the_same_process_is_stale_not_a_restart() -> No
     assert states.states["Robot2"].plan.seq == 7 and not states.down
     await states._update("Robot2", robot("Robot2", 0, boot=9))
     assert "restarted" in states.down["Robot2"]
+
+
+async def test_the_wait_for_plans_outlasts_finding_a_silent_teammate_down() -> None:
+    """Robot2 died before Robot1 ever heard from it; Robot3 holds its last
+    plan.  However short the wait asked for, Robot1 waits until its failure
+    detector finds Robot2 down and takes the plan from Robot3, as Robot3
+    decides with it: giving up first, it decided alone (simulator seeds 2,
+    50 and 100 of the 3-robot mixed profile)."""
+    network = MemoryNetwork()
+    await serve_plan(network, robot("Robot3", 1), seen={"Robot2": robot("Robot2", 1)})
+    team = view(network, robot("Robot1", 1))
+    team.start()
+    try:
+        plans = await team.planned_states(1, timeout=0.1)
+        assert plans["Robot2"] == robot("Robot2", 1).plan and not team.is_up("Robot2")
+    finally:
+        await team.aclose()

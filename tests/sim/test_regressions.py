@@ -14,6 +14,9 @@ from support import ROOT
 
 #: Seed -> what went wrong before the fix.
 FOUND = {
+    2: "a robot gave up waiting for a dead teammate's plan before it could find it down: it decided alone",
+    50: "the same, a kill alone on a lossy link",
+    100: "the same, with the robot's own loop starved",
     32: "an older plan answered late was taken for a restart: a live teammate declared down, the cluster split",
     65: "the same, after a kill: the survivors disagreed on every later task",
     76: "the same, with the feeder starved",
