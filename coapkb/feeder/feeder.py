@@ -26,6 +26,8 @@ from .record import TaskRecord
 from .tasks import FeederError, split_tasks, task_post
 
 STATS_PATH = "/robot/stats"
+#: Requests for one robot's statistics before the feeder gives up on them.
+STATS_TRIES = 3
 
 
 @dataclass(frozen=True)
@@ -139,20 +141,34 @@ class Feeder:
 
     async def collect_stats(self, robots: Sequence[str], maybe: Sequence[str] = ()) -> dict[str, RobotStats]:
         """Every robot's statistics; those of ``maybe`` if they answer."""
-        channel = self.channel
-        request = Request(Method.GET, STATS_PATH, accept=ContentFormat.CBOR)
         stats = {}
         for robot_id in [*robots, *maybe]:
+            try:
+                stats[robot_id] = await self._stats_of(robot_id)
+            except TransportError:
+                if robot_id in maybe:
+                    continue
+                raise
+        return stats
+
+    async def _stats_of(self, robot_id: str) -> RobotStats:
+        """``robot_id``'s statistics, asked up to :data:`STATS_TRIES` times: a
+        burst of loss on a radio link can swallow every retransmission of one
+        download, and a run's record is worth another try (found in the
+        simulator)."""
+        channel = self.channel
+        request = Request(Method.GET, STATS_PATH, accept=ContentFormat.CBOR)
+        for attempt in range(1, STATS_TRIES + 1):
             try:
                 response = await channel.client.request(
                     channel.endpoint(robot_id), request, timeout=channel.settings.query_timeout_s
                 )
             except TransportError:
-                if robot_id in maybe:
-                    continue
-                raise
-            stats[robot_id] = RobotStats.from_dict(cbor2.loads(response.payload))
-        return stats
+                if attempt == STATS_TRIES:
+                    raise
+                continue
+            return RobotStats.from_dict(cbor2.loads(response.payload))
+        raise AssertionError("unreachable")
 
     async def _feed_cluster(
         self, index: int, cluster: list[str], share: list[str], progress: Callable[[TaskRecord], None] | None

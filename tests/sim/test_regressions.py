@@ -20,6 +20,7 @@ FOUND = {
     32: "an older plan answered late was taken for a restart: a live teammate declared down, the cluster split",
     65: "the same, after a kill: the survivors disagreed on every later task",
     76: "the same, with the feeder starved",
+    478: "a burst of loss swallowed every retransmission of one robot's statistics: the whole run failed",
 }
 
 
