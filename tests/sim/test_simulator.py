@@ -171,3 +171,16 @@ def test_the_command_replays_a_seed_byte_for_byte(tmp_path: Path) -> None:
 def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
     result = _coapkb("sim", *args, timeout=60)
     assert result.returncode == 2 and needle in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+# --------------------------------------------------------------------------- the CI profile
+
+
+@pytest.mark.slow
+def test_the_ci_profile_holds_every_invariant() -> None:
+    """500 seeded runs of a 3-robot team with every kind of fault mixed in:
+    no violation (what the schedules explain is listed apart)."""
+    result = _coapkb("sim", "--robots", "3", "--tasks", "10", "--seeds", "1-500", "--faults", "mixed", "--quiet",
+                     timeout=900)
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+    assert re.search(r"^sim: 500 runs, 0 violations, ", result.stdout, re.M), result.stdout[-2000:]
