@@ -38,7 +38,7 @@ from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import Assignment, ChargeStop, RobotEnergy, TaskFacts, assign, robot_sort_key
 from .task_executor import Job, TaskExecutor
-from .team_view import TeamView
+from .team_view import Membership, TeamView
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +187,9 @@ class Controller:
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
             coordination_s = round(clock.monotonic() - received, 6)
-            decision = self._with_membership(replace(message.decision, coordination_s=coordination_s))
+            decision = replace(message.decision, coordination_s=coordination_s)
+            if not decision.members:  # not the leader's, stamped already
+                decision = self._with_membership(decision)
             self._apply(replace(message, decision=decision))
 
     def _apply(self, message: DecisionMessage) -> None:
@@ -219,6 +221,9 @@ class Controller:
             return await self._await_decision(task)
         message = await self._compute(task)
         if self.config.strategy == "compute-and-communicate":
+            # Stamped with the membership it was computed in: the followers
+            # take it as theirs (a follower's own view of who is down lags).
+            message = replace(message, decision=self._with_membership(message.decision))
             try:
                 await self._send_decision(message)
             except TransportError as exc:  # the decision stands; the teammate reports its own timeout
@@ -240,7 +245,9 @@ class Controller:
             leader_down.cancel()
             self._decisions.pop(task.seq, None)
         if future.done():
-            return future.result()
+            message = future.result()
+            self.team.adopt(Membership(message.decision.epoch, message.decision.members), task.seq)
+            return message
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
         return await self._compute(task)
 

@@ -20,7 +20,7 @@ import asyncio
 import json
 import re
 from dataclasses import asdict, replace
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import cbor2
 
@@ -91,6 +91,9 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
 
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).
 STATS_SNAPSHOT_S = 5.0
+#: Tries to deliver the leader's decision to a follower ("compute and communicate"),
+#: each within the query timeout: together under the follower's patience (4 of them).
+DECISION_SENDS = 3
 #: Task posts whose repeat a robot recognises (sequence numbers are consecutive).
 POSTS_REMEMBERED = 64
 
@@ -201,7 +204,7 @@ class Robot:
         async def send_decision(message: DecisionMessage) -> None:
             # Not to teammates known down: each would hold the decision up by a timeout.
             members = [r for r in team.membership.members if r != config.robot_id and team.is_up(r)]
-            await broadcast_decision(client, config, message, members)
+            await broadcast_decision(client, config, message, members, team.is_up)
 
         fence = None
         if config.lease_s > 0:
@@ -391,17 +394,25 @@ def robot_security(config: RobotConfig) -> tuple[TeamIdentity, ClientSecurity] |
 
 
 async def broadcast_decision(
-    client: ClientTransport, config: RobotConfig, message: DecisionMessage, recipients: Iterable[str]
+    client: ClientTransport, config: RobotConfig, message: DecisionMessage, recipients: Iterable[str],
+    still_up: Callable[[str], bool] = lambda _: True,
 ) -> None:
-    """Send the leader's decision to ``recipients`` (teammates), concurrently."""
+    """Send the leader's decision to ``recipients`` (teammates), concurrently;
+    a teammate it did not reach is sent it again, up to
+    :data:`DECISION_SENDS` times while ``still_up`` says it is up: a
+    follower that never gets it waits out its patience and decides nothing
+    (found in the simulator, a burst of loss on a radio link)."""
     payload = cbor2.dumps(message.to_dict())
     request = Request(Method.POST, "/decisions", payload=payload, content_format=ContentFormat.CBOR)
-    peers = [config.team[r].endpoint for r in recipients]
-    results = await asyncio.gather(
-        *(client.request(p, request, timeout=config.query_timeout_s) for p in peers), return_exceptions=True
-    )
-    failed = [
-        str(p) for p, r in zip(peers, results) if isinstance(r, BaseException) or not r.status.is_success
-    ]
-    if failed:
-        raise TransportError(f"decision for task {message.decision.seq} not delivered to {', '.join(failed)}")
+    pending = list(recipients)
+    for _ in range(DECISION_SENDS):
+        peers = [config.team[r].endpoint for r in pending]
+        results = await asyncio.gather(
+            *(client.request(p, request, timeout=config.query_timeout_s) for p in peers), return_exceptions=True
+        )
+        pending = [r for r, result in zip(pending, results)
+                   if (isinstance(result, BaseException) or not result.status.is_success) and still_up(r)]
+        if not pending:
+            return
+    failed = ", ".join(str(config.team[r].endpoint) for r in pending)
+    raise TransportError(f"decision for task {message.decision.seq} not delivered to {failed}")

@@ -427,6 +427,20 @@ class TeamView:
         self.epoch += 1
         self._teammates.readmit(robot_id)
 
+    def adopt(self, membership: Membership, seq: int) -> None:
+        """Take the membership the leader decided task ``seq`` in, if newer
+        than this robot's own ("compute and communicate": a follower does not
+        compute who is down, and must not name an older epoch than the
+        decision it carries out; found in the simulator)."""
+        if membership.epoch <= self.epoch or not membership.members:
+            return
+        members = set(membership.members)
+        for robot_id in self._peers - members:
+            self.excluded.setdefault(robot_id, seq)
+        for robot_id in members & set(self.excluded):
+            del self.excluded[robot_id]
+        self.epoch = membership.epoch
+
     async def join(self, seq: int, timeout: float) -> None:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in (a new epoch: its

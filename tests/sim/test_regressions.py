@@ -1,7 +1,7 @@
-"""Every seed on which the simulator found a bug, replayed after its fix
-(the 3-robot, 10-task mixed profile, under the command's own hash seed).
-A fix's own unit test sits beside the code it fixed; this replays the
-whole run that found it."""
+"""Every seed on which the simulator found a bug, replayed after its fix,
+under the command's own hash seed.  A fix's own unit test sits beside the
+code it fixed where one can be written; this replays the whole run that
+found it."""
 
 from __future__ import annotations
 
@@ -10,26 +10,33 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from support import ROOT
 
-#: Seed -> what went wrong before the fix.
-FOUND = {
-    2: "a robot gave up waiting for a dead teammate's plan before it could find it down: it decided alone",
-    50: "the same, a kill alone on a lossy link",
-    100: "the same, with the robot's own loop starved",
-    32: "an older plan answered late was taken for a restart: a live teammate declared down, the cluster split",
-    65: "the same, after a kill: the survivors disagreed on every later task",
-    76: "the same, with the feeder starved",
-    478: "a burst of loss swallowed every retransmission of one robot's statistics: the whole run failed",
-}
+#: A profile's options, and seed -> what went wrong before the fix.
+FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed"), {
+        2: "a robot gave up waiting for a dead teammate's plan before it could find it down: it decided alone",
+        32: "an older plan answered late was taken for a restart: a live teammate declared down, the cluster split",
+        50: "the same as seed 2, a kill alone on a lossy link",
+        65: "the same as seed 32, after a kill: the survivors disagreed on every later task",
+        76: "the same as seed 32, with the feeder starved",
+        100: "the same as seed 2, with the robot's own loop starved",
+        478: "a burst of loss swallowed every retransmission of one robot's statistics: the whole run failed",
+    }),
+    (("--robots", "6", "--tasks", "12", "--faults", "mixed", "--strategy", "compute-and-communicate"), {
+        49: "the leader's decision was lost in a burst and never sent again: the follower decided nothing",
+        50: "a follower stamped the leader's decision with its own, older membership epoch",
+    }),
+]
 
 
-def test_every_seed_that_found_a_bug_now_holds_every_invariant() -> None:
-    seeds = ",".join(str(s) for s in sorted(FOUND))
+@pytest.mark.parametrize(("profile", "seeds"), FOUND, ids=lambda v: " ".join(v) if isinstance(v, tuple) else "")
+def test_every_seed_that_found_a_bug_now_holds_every_invariant(profile: tuple[str, ...], seeds: dict[int, str]) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "coapkb", "sim", "--robots", "3", "--tasks", "10", "--faults", "mixed",
-         "--seeds", seeds, "--quiet"],
+        [sys.executable, "-m", "coapkb", "sim", *profile, "--seeds", ",".join(map(str, sorted(seeds))), "--quiet"],
         capture_output=True, text=True, cwd=ROOT, timeout=600, env={**os.environ, "PYTHONHASHSEED": "0"},
     )
     assert result.returncode == 0, result.stdout + result.stderr
-    assert re.search(rf"^sim: {len(FOUND)} runs, 0 violations, ", result.stdout, re.M), result.stdout
+    assert re.search(rf"^sim: {len(seeds)} runs, 0 violations, ", result.stdout, re.M), result.stdout
