@@ -43,10 +43,15 @@ class Membership:
         """``robot_id`` had done ``done`` jobs, all of them an earlier feeder's."""
         self._done_before[robot_id] = done
 
-    def rejoin(self, robot_id: str) -> None:
+    async def rejoin(self, robot_id: str) -> None:
         """``robot_id`` runs again as a new process (same endpoint): it joins
-        the team at the next task fed to its cluster."""
+        the team at the next task fed to its cluster.  Its old process is
+        gone, so no wait counts on it any more, even if no request has failed
+        yet: a feeder that never heard from the old process could not tell
+        the new one from it, and waited for its decision on the task being
+        decided for good (found in the simulator)."""
         self._restarted.add(robot_id)
+        await self.channel.watcher.declare_down(robot_id, "restarted")
 
     def joining(self, cluster: Sequence[str]) -> list[str]:
         return sorted(r for r in cluster if r in self._restarted)

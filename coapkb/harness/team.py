@@ -630,7 +630,7 @@ class Team:
             at_s = round(time.monotonic() - started, 3)
             if fault.action == "restart":
                 await self.restart(fault.robot)
-                feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
+                await feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
                 log.warning("restarted %s at %.1fs", fault.robot, at_s)
             elif fault.action in ("stop", "resume"):
                 self.pause(fault.robot, fault.action == "stop")

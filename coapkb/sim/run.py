@@ -301,7 +301,8 @@ class SimulatedTeam:
             async def restart() -> None:
                 await self._start_robot(target, reborn)
                 if feeder is not None:
-                    feeder.membership.rejoin(target)  # it joins at the next task fed, as the harness tells it
+                    # It joins at the next task fed, as the harness tells the feeder: in the feeder's process.
+                    self.scheduler.start(self.current["feeder"], feeder.membership.rejoin(target))
 
             self.scheduler.start(reborn, restart())
         elif action == "freeze":

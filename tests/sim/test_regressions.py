@@ -28,6 +28,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
     (("--robots", "6", "--tasks", "12", "--faults", "mixed", "--strategy", "compute-and-communicate"), {
         49: "the leader's decision was lost in a burst and never sent again: the follower decided nothing",
         50: "a follower stamped the leader's decision with its own, older membership epoch",
+        71: "a robot restarted before the feeder ever heard from its old process: the feeder waited for the old "
+            "process's decision for good",
+        140: "the same as seed 71, with a partition and a starved loop",
+        202: "the same as seed 71, with a freeze",
     }),
 ]
 
