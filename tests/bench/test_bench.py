@@ -96,11 +96,14 @@ async def test_run_once_over_delayed_bursty_links() -> None:
 
 @pytest.mark.root
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("system", ["coap-distributed", "zmq-distributed"])
+@pytest.mark.parametrize("system", ["coap-distributed"])
 async def test_run_once_with_a_robot_killed_on_a_slow_lossy_link(system: str) -> None:
     """``coapkb bench --fail``: 6 robots at 35 kbit/s and 10 % loss, Robot2
     killed 2 s in, every module on two robots: the row is ok (each task given
-    decided once, survivors agreeing) and says when the kill was detected."""
+    decided once, survivors agreeing) and says when the kill was detected.
+    Over CoAP only: the protocol under kills and lossy links runs through
+    thousands of seeded schedules in the simulator (tests/sim), and ZeroMQ's
+    kill on real sockets in tests/harness/test_cli_team.py."""
     _require_netns()
     row = await bench.run_once(system, 6, 20, 35, 10, rep=0, replication=2, faults=[Fault("kill", "Robot2", 2.0)])
     assert row.ok is True, row.error
