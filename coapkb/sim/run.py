@@ -31,6 +31,7 @@ from ..harness.record import FaultEvent as RecordedFault
 from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
 from ..host import Host
+from ..kb.results import QueryResult
 from ..kb.store import KnowledgeBase
 from ..transport.base import Endpoint, TransportError
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
@@ -126,6 +127,31 @@ class RunResult:
     lost: int = 0
 
 
+class SharedAnswers(KnowledgeBase):
+    """A loaded KB whose answers are computed once per worker process and
+    shared by every simulated robot that holds it.  The KB is read-only, so
+    each robot would compute the very same (immutable) answer: running the
+    query once per robot was most of a simulated run's CPU.  Errors are not
+    kept: they are raised again each time."""
+
+    #: Distinct queries kept before the memo starts afresh (a bound, not a tuning).
+    MAX_ANSWERS = 100_000
+
+    def __init__(self, kb: KnowledgeBase) -> None:
+        super().__init__(kb.backend, kb._engine, kb.names, kb.paths, kb.prefixes, kb.etag)
+        self._answers: dict[tuple[str, int], QueryResult] = {}
+
+    def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult:
+        key = (sparql, row_limit)
+        answer = self._answers.get(key)
+        if answer is None:
+            answer = super().query(sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+            if len(self._answers) >= self.MAX_ANSWERS:
+                self._answers.clear()
+            self._answers[key] = answer
+        return answer
+
+
 class KBCache:
     """The KB modules and team configurations, loaded once per worker process:
     they are read-only, so every simulated robot may share them."""
@@ -139,7 +165,7 @@ class KBCache:
         key = tuple(files)
         kb = self._kbs.get(key)
         if kb is None:
-            kb = self._kbs[key] = KnowledgeBase.load(list(files))
+            kb = self._kbs[key] = SharedAnswers(KnowledgeBase.load(list(files)))
         return kb
 
     def products(self, ontologies: Path) -> list[str]:
