@@ -374,6 +374,10 @@ class _Observation:
         self.pending: Response | None = None
         self.arrived = asyncio.Event()
         self.closed = False
+        #: The registration's answer, until it comes: a notification that
+        #: overtakes it completes it instead (a notification is a response
+        #: with the registration's token, RFC 7641 section 3.2).
+        self.registration: asyncio.Future[Response] | None = None
 
     def notified(self, seq: int, response: Response) -> None:
         client = self.client
@@ -388,6 +392,9 @@ class _Observation:
         if self.closed or seq <= self.latest_seq:
             return  # an old or repeated notification (RFC 7641 4.4: the newest wins)
         self.latest_seq = seq
+        if self.registration is not None and not self.registration.done():
+            self.registration.set_result(response)
+            return
         self.pending = response
         self.arrived.set()
 
@@ -441,6 +448,8 @@ class SimClient:
         xid = self.network.next_id()
         answer: asyncio.Future[Response] = loop.create_future()
         self._waiting[xid] = answer
+        if observe is not None:
+            observe.registration = answer
         deadline = loop.time() + timeout
         estimator = self.estimator(peer)
         rto = estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=1.0)
@@ -462,6 +471,8 @@ class SimClient:
             del self._waiting[xid]
             if not answer.done():
                 answer.cancel()
+            elif not answer.cancelled():
+                answer.exception()  # an ICMP error in the same turn as a cancellation: seen, not leaked
 
     def _send(self, peer: Endpoint, xid: int, request: Request, observe: _Observation | None, attempt: int) -> None:
         self.counters.messages_sent += 1
