@@ -3,8 +3,9 @@ every robot's state, and the requests every part of the feeder makes."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import AsyncIterator, Callable, Mapping, Sequence
 
 from .. import clock
@@ -12,7 +13,7 @@ from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..host import Network, Sockets
 from ..transport.base import ClientTransport, Endpoint, TransportError
-from ..transport.messages import ContentFormat, Method, Request
+from ..transport.messages import ContentFormat, Method, Request, Response
 from .tasks import FeederError
 
 #: What the feeder reads of a robot: its outcome (RobotState.encode_outcome),
@@ -58,6 +59,8 @@ class Channel:
     watcher: ObservedStates
     roster: Roster
     settings: FeederSettings
+    #: Robot -> its task posts in flight (see :meth:`forget_posts`).
+    _posting: dict[str, set[asyncio.Future[Response]]] = field(default_factory=dict)
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -106,10 +109,18 @@ class Channel:
         watcher = self.watcher
         deadline = clock.monotonic() + self.settings.task_timeout_s
         while True:
+            exchange = asyncio.ensure_future(self.client.request(
+                self.endpoint(robot_id), request, timeout=max(watcher.request_timeout_s, 1.0)
+            ))
+            posting = self._posting.setdefault(robot_id, set())
+            posting.add(exchange)
             try:
-                response = await self.client.request(
-                    self.endpoint(robot_id), request, timeout=max(watcher.request_timeout_s, 1.0)
-                )
+                response = await exchange
+            except asyncio.CancelledError:
+                current = asyncio.current_task()
+                if exchange.cancelled() and (current is None or not current.cancelling()):
+                    return  # forgotten (forget_posts): the robot restarted, the post was its old process's
+                raise
             except TransportError as exc:
                 await watcher.probe(robot_id)
                 if robot_id in watcher.down:
@@ -117,9 +128,20 @@ class Channel:
                 if clock.monotonic() > deadline:
                     raise FeederError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
                 continue
+            finally:
+                posting.discard(exchange)
             if not response.status.is_success:
                 await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
                 if robot_id in watcher.down:
                     return
                 raise FeederError(f"{robot_id} refused task {seq} ({name}): {response}")
             return
+
+    def forget_posts(self, robot_id: str) -> None:
+        """Stop the task posts still in flight to ``robot_id``: it restarted,
+        and a retransmission of its old process's post would reach the new
+        process (same endpoint) as a task of its own, which the new process
+        took and executed before the task went round again (found in the
+        simulator)."""
+        for exchange in self._posting.pop(robot_id, ()):
+            exchange.cancel()

@@ -51,6 +51,7 @@ class Membership:
         the new one from it, and waited for its decision on the task being
         decided for good (found in the simulator)."""
         self._restarted.add(robot_id)
+        self.channel.forget_posts(robot_id)
         await self.channel.watcher.declare_down(robot_id, "restarted")
 
     def joining(self, cluster: Sequence[str]) -> list[str]:

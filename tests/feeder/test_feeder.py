@@ -174,3 +174,34 @@ async def test_robots_of_a_cluster_at_different_tasks_are_refused() -> None:
                 with pytest.raises(FeederError, match=r"cluster 1 have taken different tasks "
                                                       r"\(Robot1: up to 1, Robot2: up to 0, Robot3: up to 1\)"):
                     await feeder.check_ready(10.0)
+
+
+async def test_a_post_to_a_restarted_robot_is_forgotten_not_delivered_to_its_new_process() -> None:
+    """The feeder stops the posts still in flight to a robot it is told has
+    restarted: a retransmission of the old process's post would reach the
+    new process as a task of its own (simulator seed 3291 of the 3-robot
+    mixed profile: the new process picked it, and so did the robot it went
+    round again to)."""
+    from coapkb.agent.team_view import OUTCOME_PATH, ObservedStates
+    from coapkb.feeder.channel import Channel, FeederSettings, Roster
+
+    class Silent:
+        """A robot that never answers: the post stays in flight."""
+
+        counters = None
+
+        async def request(self, peer: Endpoint, request: object, *, timeout: float) -> object:
+            await asyncio.Event().wait()
+
+        async def aclose(self) -> None:
+            pass
+
+    endpoint = Endpoint("coap", "127.0.0.1", 5683)
+    watcher = ObservedStates(Silent(), {"Robot1": endpoint}, OUTCOME_PATH, liveness=True)  # type: ignore[arg-type]
+    channel = Channel(Silent(), watcher, Roster({"Robot1": endpoint}, [["Robot1"]]),  # type: ignore[arg-type]
+                      FeederSettings(transport="coap"))
+    posting = asyncio.create_task(channel.post_task("Robot1", task_post(1, "Gucci_bag_14"), 1, "Gucci_bag_14"))
+    await asyncio.sleep(0)
+    channel.forget_posts("Robot1")
+    await asyncio.wait_for(posting, 1)  # returns: the post is void, not an error
+    assert posting.result() is None and not channel._posting.get("Robot1")

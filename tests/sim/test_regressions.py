@@ -24,6 +24,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         76: "the same as seed 32, with the feeder starved",
         100: "the same as seed 2, with the robot's own loop starved",
         478: "a burst of loss swallowed every retransmission of one robot's statistics: the whole run failed",
+        3291: "a retransmitted task post of a killed robot reached its restarted process, which took it as its "
+              "own task: picked there and again where it went round",
     }),
     (("--robots", "6", "--tasks", "12", "--faults", "mixed", "--strategy", "compute-and-communicate"), {
         49: "the leader's decision was lost in a burst and never sent again: the follower decided nothing",
