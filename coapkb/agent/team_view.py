@@ -121,8 +121,12 @@ class ObservedStates:
     @property
     def detection_s(self) -> float:
         """How long a stalled wait may take to find a silent robot down: a
-        refresh period, then :data:`FAILURES_TO_DOWN` requests' timeouts."""
-        return self.refresh_s + FAILURES_TO_DOWN * self.request_timeout_s + 1.0
+        refresh period, then :data:`FAILURES_TO_DOWN` requests' timeouts,
+        after the grace a readmitted robot still has (its failures do not
+        count before: a process that died before it was ever reached is
+        found down only then)."""
+        grace = max(self._joining.values(), default=0.0) - clock.monotonic()
+        return max(0.0, grace) + self.refresh_s + FAILURES_TO_DOWN * self.request_timeout_s + 1.0
 
     @property
     def refresh_s(self) -> float:
@@ -188,6 +192,11 @@ class ObservedStates:
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
             await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
             return
+        # Heard from: the grace a readmitted process gets until it can be
+        # reached (readmit) is over.  Kept beyond, it hid the new process's
+        # own death, and its teammates waited out the plan of a dead robot
+        # (found in the simulator: killed again soon after a restart).
+        self._joining.pop(robot_id, None)
         async with self._changed:
             self.states[robot_id] = state
             self._changed.notify_all()
@@ -217,6 +226,7 @@ class ObservedStates:
                 return
             self.round_trip.on_sample(clock.monotonic() - started)
             self._failures[robot_id] = 0
+            self._joining.pop(robot_id, None)  # reached: see _update
             if state is not None and state != self.states.get(robot_id):
                 log.info("observation of %s missed a change; registering again", robot_id)
                 await self._update(robot_id, state)

@@ -163,3 +163,22 @@ async def test_the_wait_for_plans_outlasts_finding_a_silent_teammate_down() -> N
         assert plans["Robot2"] == robot("Robot2", 1).plan and not team.is_up("Robot2")
     finally:
         await team.aclose()
+
+
+async def test_a_readmitted_robot_has_a_grace_until_heard_from_and_waits_outlast_it() -> None:
+    """A readmitted robot's failed requests do not count for a while (its new
+    process may need a new security handshake first), so a wait for plans
+    lasts past that grace; once the new process is heard from the grace
+    ends, and its death is found as anyone's (simulator seeds 2067, 2144,
+    3548, 3868, 8344, 9308: killed again soon after a restart, the robot
+    was waited for until its teammates decided nothing)."""
+    network = MemoryNetwork()
+    states = ObservedStates(network.client(), {"Robot2": endpoint("Robot2")}, PLAN_PATH, liveness=True)
+    plain = states.refresh_s + 2 * states.request_timeout_s + 1.0
+    try:
+        states.readmit("Robot2")
+        assert states.detection_s > plain + 1.0
+        await states._update("Robot2", robot("Robot2", 1))
+        assert abs(states.detection_s - plain) < 1e-6
+    finally:
+        await states.aclose()

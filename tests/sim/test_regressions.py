@@ -24,6 +24,13 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         76: "the same as seed 32, with the feeder starved",
         100: "the same as seed 2, with the robot's own loop starved",
         478: "a burst of loss swallowed every retransmission of one robot's statistics: the whole run failed",
+        2067: "a robot killed again soon after its restart: its new process could not be found down within "
+              "the readmission grace, and its teammates decided nothing",
+        2144: "the same as seed 2067, with its loop starved",
+        3548: "the same as seed 2067, with a teammate's loop starved",
+        3868: "the same as seed 2067",
+        8344: "the same as seed 2067",
+        9308: "the same as seed 2067",
         3291: "a retransmitted task post of a killed robot reached its restarted process, which took it as its "
               "own task: picked there and again where it went round",
     }),
