@@ -208,12 +208,17 @@ class Controller:
         )
 
     async def _admit(self, task: Task) -> None:
-        """Joins take effect at their task, in task order, on every robot."""
+        """Joins take effect at their task, in task order, on every robot:
+        one epoch each on top of the membership of the task before.  A robot
+        that joins takes that membership first, then admits the others
+        joining with it (admitted first, they were lost when it took the
+        membership: two robots back at one task named different epochs,
+        found in the simulator)."""
+        if self.robot_id in task.join:
+            await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4)
+            self._publish(self.team.own)
         for robot_id in task.join:
-            if robot_id == self.robot_id:
-                await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4)
-                self._publish(self.team.own)
-            else:
+            if robot_id != self.robot_id:
                 self.team.admit(robot_id)
 
     async def _decide(self, task: Task) -> DecisionMessage:

@@ -31,6 +31,13 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         3868: "the same as seed 2067",
         8344: "the same as seed 2067",
         9308: "the same as seed 2067",
+        5571: "two robots back at the same task: the one that admitted the other before taking the team's "
+              "membership lost that admission and named an older epoch",
+        3606: "the same as seed 5571: a task picked by both robots",
+        3963: "the same as seed 5571",
+        4513: "the same as seed 5571",
+        5964: "the same as seed 5571",
+        7315: "the same as seed 5571: three tasks picked twice",
         3291: "a retransmitted task post of a killed robot reached its restarted process, which took it as its "
               "own task: picked there and again where it went round",
     }),
