@@ -196,23 +196,31 @@ def excused_disagreements(run: RunResult) -> list[str]:
 
 
 def _excuse(run: RunResult, task: TaskRecord) -> str | None:
-    """Why the schedule explains a split decision, if it does.  Two known
-    ways, both left to the decisions-under-load work: a robot of the
-    task's cluster (or the feeder) was starved of CPU and took a live
-    teammate for dead; or the links lost answers until a robot's wait for a
-    teammate's plan ran out, and it decided alone."""
+    """Why the schedule explains a split decision, if it does: a false
+    suspicion, one robot taking a live teammate for dead and deciding
+    alone.  Three ways, all left to the decisions-under-load work (confirm a
+    suspicion through another member before acting on it): the robot's (or
+    the feeder's) loop was starved; the robot was the one cut off from its
+    cluster; or the links lost a live teammate's answers until its wait ran
+    out.  A split that blames only robots a fault really took out is never
+    excused: the protocol must ride those out."""
     record = run.record
     cluster = set(record.clusters[task.cluster - 1]) if record is not None else set()
     out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
+    texts = [task.unavailable or "", *task.errors.values()]
+    blamed = {w.rstrip(",:;()") for text in texts for w in text.split() if w.startswith("Robot")}
+    suspected_alive = blamed - out
+    if not suspected_alive:
+        return None
     starved = sorted({t for e in run.events if e.action == "starve" for t in e.targets if t in cluster | {"feeder"}})
-    blamed = {w.rstrip(",:;") for text in [task.unavailable or "", *task.errors.values()]
-              for w in text.split() if w.startswith("Robot")}
-    if blamed & out:
-        return None  # a fault the protocol must ride out
     if starved:
         return f"a false suspicion under CPU starvation ({', '.join(starved)} starved)"
-    if run.lossy and any("no state for task" in e or "no answer" in e for e in task.errors.values()):
-        return "answers lost on the links until a robot's wait ran out: it decided alone"
+    cut_off = sorted(r for e in run.events if e.action == "cut" for r in e.targets if r in cluster)
+    if cut_off:
+        return f"a false suspicion of a robot cut off from its cluster ({', '.join(cut_off)}): it decided alone"
+    if run.lossy and any("no answer" in t or "no state for task" in t for t in texts):
+        return (f"a false suspicion on lossy links: answers of {', '.join(sorted(suspected_alive))} lost "
+                "until a wait ran out, and a robot decided alone")
     return None
 
 
