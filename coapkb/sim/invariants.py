@@ -134,13 +134,17 @@ def _picks_by_task(run: RunResult) -> tuple[dict[tuple[int, int], TaskRecord], d
 
 
 def _unreported(run: RunResult, pick: Pick) -> str | None:
-    """Why nobody could know of ``pick``: its robot was killed before any of
-    its outcome reports sent after the pick reached the feeder."""
+    """Why nobody could know of ``pick``: its robot was killed before any
+    outcome report counting it (as many jobs done as that process had
+    picked by then) reached the feeder."""
     kills = [run.fed_at + e.at_s for e in run.events if e.action == "kill" and pick.robot in e.targets]
     killed = min((k for k in kills if k >= pick.at_s), default=None)
     if killed is None:
         return None
-    if any(pick.at_s <= t <= killed for t in run.reports.get(pick.robot, ())):
+    done = sum(1 for p in run.picks
+               if (p.robot, p.incarnation) == (pick.robot, pick.incarnation) and p.at_s <= pick.at_s)
+    reports = run.reports.get((pick.robot, pick.incarnation), ())
+    if any(at <= killed and told >= done for at, told in reports):
         return None
     return f"{pick.robot} was killed {killed - pick.at_s:.3f}s after its pick, before any report of it reached the feeder"
 

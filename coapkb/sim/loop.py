@@ -98,6 +98,8 @@ class Process:
 
     name: str
     loop: SimLoop
+    #: How many processes of this name ran before it (a restart is the next incarnation).
+    incarnation: int = 0
     #: Running, ``frozen`` (SIGSTOP: timers and sockets wait) or ``dead``.
     status: str = "running"
     #: Its loop may not run again before this time (it is busy elsewhere: CPU starvation).
@@ -131,7 +133,8 @@ class Scheduler:
 
     def spawn(self, name: str) -> Process:
         """A new process named ``name`` (a restarted robot is a new process of the same name)."""
-        process = Process(name, SimLoop(self.clock, lambda context: self._crashed(name, context)))
+        incarnation = sum(1 for p in self.processes if p.name == name)
+        process = Process(name, SimLoop(self.clock, lambda context: self._crashed(name, context)), incarnation)
         self.processes.append(process)
         return process
 

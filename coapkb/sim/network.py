@@ -32,6 +32,8 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, AsyncIterator, Callable, Iterable
 
+from ..agent.robot_state import RobotState
+from ..agent.team_view import OUTCOME_PATH
 from ..transport.base import Endpoint, PeerUnreachable, Service, TrafficCounters, handle_safely
 from ..transport.messages import Request, Response
 from ..transport.rtt import RttEstimator
@@ -130,8 +132,9 @@ class SimNetwork:
         self._ids = itertools.count(1)
         self.sent = 0
         self.lost = 0
-        #: Robot -> when each of its outcome reports (notification or answer) reached the feeder.
-        self.reports: dict[str, list[float]] = {}
+        #: (robot, incarnation) -> when each of its outcome reports (notification
+        #: or answer) reached the feeder, and the jobs done it told.
+        self.reports: dict[tuple[str, int], list[tuple[float, int]]] = {}
 
     # ------------------------------------------------------------- faults
 
@@ -157,9 +160,11 @@ class SimNetwork:
         if self._trace is not None:
             self._trace(text)
 
-    def carry(self, src: Process, dst: Process, what: str, deliver: Callable[[], None]) -> None:
+    def carry(self, src: Process, dst: Process, what: str, deliver: Callable[[], None],
+              report: bytes | None = None) -> None:
         """Send a message from ``src`` to ``dst``: ``deliver`` runs in ``dst``'s
-        loop when (and as often as) it arrives."""
+        loop when (and as often as) it arrives.  ``report``: the payload of a
+        robot's outcome on its way to the feeder (what it tells is noted)."""
         self.sent += 1
         if (src.name, dst.name) in self._cut:
             self.lost += 1
@@ -174,16 +179,22 @@ class SimNetwork:
             self._note(f"lost {src.name}>{dst.name} {what}")
             return
         self._note(f"send {src.name}>{dst.name} {what}" + (" (twice)" if len(delays) > 1 else ""))
-        if dst.name == "feeder" and "/robot/outcome" in what:
-            deliver = self._reported(src.name, deliver)
+        if report is not None and dst.name == "feeder":
+            deliver = self._reported(src, report, deliver)
         for delay in delays:
             dst.loop.call_at(self.scheduler.clock.now + delay, _if_alive, dst, deliver)
 
-    def _reported(self, robot: str, deliver: Callable[[], None]) -> Callable[[], None]:
-        """``deliver``, noting when a robot's outcome reached the feeder (the
-        checker asks whether a pick was reported before its robot died)."""
+    def _reported(self, robot: Process, payload: bytes, deliver: Callable[[], None]) -> Callable[[], None]:
+        """``deliver``, noting when a robot's outcome reached the feeder and
+        how many jobs it said were done (the checker asks whether a pick was
+        reported before its robot died)."""
+        try:
+            done = RobotState.decode(payload).live.done
+        except ValueError:
+            return deliver
+
         def arrived() -> None:
-            self.reports.setdefault(robot, []).append(self.scheduler.clock.now)
+            self.reports.setdefault((robot.name, robot.incarnation), []).append((self.scheduler.clock.now, done))
             deliver()
         return arrived
 
@@ -277,7 +288,8 @@ class SimServer:
         self.counters.messages_sent += 1
         self.counters.bytes_sent += len(response.payload) + HEADER_BYTES
         self.network.carry(self.process, client.process, f"ans#{xid} {path} {response.status.dotted}",
-                           lambda: client.answered(xid, response))
+                           lambda: client.answered(xid, response),
+                           response.payload if path == OUTCOME_PATH and response.status.is_success else None)
 
     def forget(self, key: tuple[int, int]) -> None:
         observer = self._observers.pop(key, None)
@@ -341,7 +353,8 @@ class _Observer:
                     server.counters.retransmissions += 1
                 observation, sent = self.observation, seq
                 network.carry(server.process, self.client.process, f"ntf {self.request.path} #{seq}",
-                              lambda: observation.notified(sent, response))
+                              lambda: observation.notified(sent, response),
+                              response.payload if self.request.path == OUTCOME_PATH else None)
                 try:
                     async with asyncio.timeout(rto * 2 ** attempt):
                         while self.acked_seq < seq and not self.changed.is_set():

@@ -116,8 +116,8 @@ class RunResult:
     lossy: bool = False
     #: When the first task was fed (simulated s): the schedule's times count from here.
     fed_at: float = 0.0
-    #: Robot -> when its outcome reports reached the feeder (simulated s).
-    reports: dict[str, list[float]] = field(default_factory=dict)
+    #: (robot, incarnation) -> when each of its outcome reports reached the feeder, and the jobs done it told.
+    reports: dict[tuple[str, int], list[tuple[float, int]]] = field(default_factory=dict)
     #: The fate counts in one line (kept when the record is dropped).
     fates: str = ""
     sim_s: float = 0.0
@@ -187,11 +187,10 @@ class _History(logging.Handler):
     executor's :data:`PICKED` line) and, when tracing, every warning."""
 
     def __init__(self, names: dict[SimLoop, Process], clock: Callable[[], float],
-                 incarnations: dict[str, int], trace: Callable[[str], None] | None) -> None:
+                 trace: Callable[[str], None] | None) -> None:
         super().__init__(logging.INFO)
         self.names = names
         self.clock = clock
-        self.incarnations = incarnations
         self.trace = trace
         self.picks: list[Pick] = []
 
@@ -203,7 +202,8 @@ class _History(logging.Handler):
         name = process.name if process is not None else "-"
         if record.msg is PICKED and isinstance(record.args, tuple):
             obj, seq = record.args
-            self.picks.append(Pick(name, self.incarnations.get(name, 0), int(seq), str(obj),  # type: ignore[call-overload]
+            incarnation = process.incarnation if process is not None else 0
+            self.picks.append(Pick(name, incarnation, int(seq), str(obj),  # type: ignore[call-overload]
                                    round(self.clock(), 6)))
             if self.trace is not None:
                 self.trace(f"pick {name} task {seq} {obj}")
@@ -279,10 +279,8 @@ class SimulatedTeam:
         self.configs = kbs.configs(self.team)
         self.processes: dict[SimLoop, Process] = {}
         self.current: dict[str, Process] = {}
-        self.incarnations: dict[str, int] = {}
         self.robots: dict[str, Robot] = {}
-        self.history = _History(self.processes, lambda: self.scheduler.clock.now, self.incarnations,
-                                self.note if trace else None)
+        self.history = _History(self.processes, lambda: self.scheduler.clock.now, self.note if trace else None)
         self.feeder: Feeder | None = None
         self.fed_at: float | None = None
         self.resumed: set[str] = set()
@@ -321,7 +319,6 @@ class SimulatedTeam:
             self.scheduler.kill(process)
         elif action == "restart":
             reborn = self._spawn(target)
-            self.incarnations[target] = self.incarnations.get(target, 0) + 1
             feeder = self.feeder
 
             async def restart() -> None:

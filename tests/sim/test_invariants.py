@@ -50,9 +50,9 @@ def test_a_pick_its_dead_robot_never_reported_is_excused_not_hidden() -> None:
     tasks = [_task(1, "A", orphaned="Robot1 down"), _task(2, "A", "Robot2", reassigned_from=1)]
     picks = [_pick("Robot1", 1, "A", 1.0), _pick("Robot2", 2, "A", 5.0)]
     killed = [FaultEvent(1.1, "kill", ("Robot1",))]
-    run = _run(tasks, picks, events=killed, reports={"Robot1": [0.5]})
+    run = _run(tasks, picks, events=killed, reports={("Robot1", 0): [(0.5, 0), (1.05, 0)]})
     assert run.violations == [] and "killed 0.100s after its pick" in run.excused[0]
-    reported = _run(tasks, picks, events=killed, reports={"Robot1": [1.05]})
+    reported = _run(tasks, picks, events=killed, reports={("Robot1", 0): [(1.05, 1)]})
     assert any("executed 2 times" in v for v in reported.violations)  # the feeder knew: no excuse
 
 
