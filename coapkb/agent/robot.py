@@ -38,6 +38,7 @@ from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
 from .controller import Controller, DecisionMessage, Task
 from .lease import LEASE_PATH, Lease
+from .local_health import LoopHealth
 from .progress import ProgressPacing, acted_on
 from .query_handler import QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
@@ -129,6 +130,8 @@ class Robot:
         self._accepted: dict[int, str] = {}
         #: Its registration in the team's Resource Directory (``[discovery] method = "rd"``).
         self.directory: Any = None
+        #: How late its own event loop runs (set at start).
+        self.health: LoopHealth | None = None
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> "Robot":
@@ -174,7 +177,10 @@ class Robot:
             boot=host.rng.randrange(1, 2**32),
         )
         teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
-        team = TeamView(own, teammates, client, link_kbps=config.link_kbps)
+        # Local health: this robot's own loop lateness, so its failure
+        # detector does not blame teammates for its own busy CPU.
+        health = LoopHealth()
+        team = TeamView(own, teammates, client, link_kbps=config.link_kbps, health=health)
         # The compact wire caches answers for their Max-Age (the KBs are
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
@@ -220,6 +226,7 @@ class Robot:
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot.progress = (state_changed, outcome_changed)
+        robot.health = health
         robot._mount()  # before serving: the transport publishes the resource list
         try:
             server_side = None
@@ -231,6 +238,7 @@ class Robot:
         except BaseException:
             await client.aclose()
             raise
+        health.start()
         team.start()
         executor.start()
         controller.start()
@@ -259,6 +267,8 @@ class Robot:
         for pacing in self.progress:
             pacing.cancel()
         await self.team.aclose()
+        if self.health is not None:
+            await self.health.aclose()
         if self.server is not None:
             await self.server.aclose()
         await self.client.aclose()
@@ -375,6 +385,7 @@ class Robot:
             idle=self.executor.live.activity == "idle" and self.executor.live.queued == 0,
             fenced=list(self.executor.live.fenced),
             recharges=list(self.executor.recharges),
+            loop_lateness=self.health.stats() if self.health is not None else None,
         )
 
 

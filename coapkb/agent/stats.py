@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from .local_health import LatenessStats
 from ..transport.base import TrafficCounters
 from .query_handler import QueryStats
 
@@ -59,6 +60,8 @@ class RobotStats:
     fenced: list[int] = field(default_factory=list)
     #: The charges it made at a dock, in order.
     recharges: list[Recharge] = field(default_factory=list)
+    #: How late its own event loop ran (local health), if measured.
+    loop_lateness: LatenessStats | None = None
 
     @property
     def traffic(self) -> TrafficCounters:
@@ -91,6 +94,7 @@ class RobotStats:
             # something to say, so the usual form stays as it was.
             **({"fenced": list(self.fenced)} if self.fenced else {}),
             **({"recharges": [r.to_dict() for r in self.recharges]} if self.recharges else {}),
+            **({"loop_lateness": self.loop_lateness.as_dict()} if self.loop_lateness is not None else {}),
         }
 
     @classmethod
@@ -120,4 +124,5 @@ class RobotStats:
             idle=bool(data.get("idle", False)),
             fenced=[int(seq) for seq in data.get("fenced") or ()],
             recharges=[Recharge.from_dict(r) for r in data.get("recharges") or ()],
+            loop_lateness=LatenessStats.from_dict(data["loop_lateness"]) if data.get("loop_lateness") else None,
         )

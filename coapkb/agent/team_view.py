@@ -17,8 +17,9 @@ from typing import Callable, Mapping
 
 from .. import clock
 from ..transport.messages import ContentFormat, Method, Request
-from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.base import ClientTransport, Endpoint, PeerTimeout, TransportError
 from ..transport.rtt import RttEstimator
+from .local_health import LoopHealth
 from .robot_state import PlannedState, RobotState
 
 log = logging.getLogger(__name__)
@@ -36,6 +37,9 @@ States = dict[str, RobotState]
 #: Failed requests in a row after which a robot is declared down: one lost
 #: datagram or one busy moment must not remove a live teammate.
 FAILURES_TO_DOWN = 2
+#: Turns of the event loop one exchange takes (send, receive, the handlers
+#: in between): how often a late loop's lateness adds up in one request.
+TURNS_PER_EXCHANGE = 8
 
 
 def liveness_floor_s(link_kbps: float | None) -> float:
@@ -74,8 +78,12 @@ class ObservedStates:
         request_timeout_s: float = 10.0,
         liveness: bool = False,
         liveness_floor_s: float = 1.0,
+        health: LoopHealth | None = None,
     ) -> None:
         self._transport = transport
+        #: This process's own loop lateness (local health): stretches the
+        #: liveness timeouts, and failures while the loop ran late do not count.
+        self.health = health
         self._endpoints = dict(endpoints)
         self._request = Request(Method.GET, path, accept=ContentFormat.CBOR)
         self._refresh_s = refresh_s
@@ -116,7 +124,17 @@ class ObservedStates:
 
     @property
     def liveness_timeout_s(self) -> float:
-        return liveness_timeout_s(self.round_trip, self._liveness_floor_s)
+        return liveness_timeout_s(self.round_trip, self._liveness_floor_s) + self.health_margin_s
+
+    @property
+    def health_margin_s(self) -> float:
+        """What this process's own lateness adds to a liveness timeout: an
+        exchange takes several turns of the loop, each as late as the loop
+        lately was (0 when it runs on time, or nothing measures it)."""
+        if self.health is None:
+            return 0.0
+        base = liveness_timeout_s(self.round_trip, self._liveness_floor_s)
+        return TURNS_PER_EXCHANGE * self.health.late_within(2 * base)
 
     @property
     def detection_s(self) -> float:
@@ -173,6 +191,13 @@ class ObservedStates:
 
     async def _failed(self, robot_id: str, exc: Exception) -> None:
         if clock.monotonic() < self._joining.get(robot_id, 0.0):
+            return
+        if isinstance(exc, PeerTimeout) and (
+                self.health_margin_s * 2 >= liveness_timeout_s(self.round_trip, self._liveness_floor_s)):
+            # This loop ran late: the request had no fair chance, and the
+            # silence may be its own (local health, as Lifeguard's).
+            log.info("a request to %s failed while this process ran late (%.2f s a turn): not counted",
+                     robot_id, self.health_margin_s / TURNS_PER_EXCHANGE)
             return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
@@ -334,10 +359,12 @@ class TeamView:
         teammates: Mapping[str, Endpoint],
         transport: ClientTransport,
         link_kbps: float | None = None,
+        health: LoopHealth | None = None,
     ) -> None:
         self._own = own
         self._teammates = ObservedStates(
-            transport, teammates, PLAN_PATH, liveness=True, liveness_floor_s=liveness_floor_s(link_kbps)
+            transport, teammates, PLAN_PATH, liveness=True, liveness_floor_s=liveness_floor_s(link_kbps),
+            health=health,
         )
         self._peers = set(teammates)
         self._transport = transport

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import AsyncIterator, Callable, Mapping, Sequence
 
 from .. import clock
+from ..agent.local_health import LoopHealth
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..host import Network, Sockets
@@ -71,10 +72,14 @@ class Channel:
         its requests fail, and then waits for the survivors only)."""
         network = network or Sockets()
         client = await network.open_client(settings.transport, security=security)  # type: ignore[arg-type]
+        # Local health: the feeder's own loop lateness, so it does not declare
+        # robots down for its own busy CPU.
+        health = LoopHealth()
+        health.start()
         try:
             watcher = ObservedStates(
                 client, roster.endpoints, OUTCOME_PATH, liveness=True,
-                liveness_floor_s=liveness_floor_s(settings.link_kbps),
+                liveness_floor_s=liveness_floor_s(settings.link_kbps), health=health,
             )
             watcher.start()
             try:
@@ -82,6 +87,7 @@ class Channel:
             finally:
                 await watcher.aclose()
         finally:
+            await health.aclose()
             await client.aclose()
 
     def endpoint(self, robot_id: str) -> Endpoint:

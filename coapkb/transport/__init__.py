@@ -12,6 +12,7 @@ from __future__ import annotations
 from .base import (
     ClientTransport,
     Endpoint,
+    PeerTimeout,
     PeerUnreachable,
     ResourceInfo,
     ServerTransport,
@@ -64,6 +65,7 @@ __all__ = [
     "SCHEMES",
     "ClientTransport",
     "Endpoint",
+    "PeerTimeout",
     "PeerUnreachable",
     "Reliability",
     "ResourceInfo",

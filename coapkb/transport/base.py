@@ -102,6 +102,12 @@ class PeerUnreachable(TransportError):
     """No answer from the peer within the time budget (after retransmissions)."""
 
 
+class PeerTimeout(PeerUnreachable):
+    """The time budget ran out with no answer (not an error the network
+    reported, such as ICMP's port unreachable): the silence may be this
+    process's own, if its loop ran late (local health)."""
+
+
 @dataclass(frozen=True)
 class Endpoint:
     """Where a robot listens: ``scheme://host:port`` (a scheme of :mod:`.registry`)."""

@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 from typing import AsyncIterator, Callable
 
-from .base import Endpoint, PeerUnreachable, Service, TrafficCounters
+from .base import Endpoint, PeerTimeout, PeerUnreachable, Service, TrafficCounters
 from .messages import Request, Response
 
 
@@ -111,7 +111,7 @@ class MemoryClientTransport:
             async with asyncio.timeout(timeout):
                 return await self._exchange(server, request)
         except TimeoutError:
-            raise PeerUnreachable(f"{peer}: no answer within {timeout:g}s") from None
+            raise PeerTimeout(f"{peer}: no answer within {timeout:g}s") from None
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         """The current representation of ``request.path``, then one per change

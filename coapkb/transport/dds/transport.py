@@ -107,7 +107,8 @@ from ...wire.zmq_envelope import (
     encode_response,
 )
 from ..base import (
-    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port, handle_safely,
+    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port,
+    handle_safely,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import ObservationRegistry, ObserverState, put_latest
@@ -676,7 +677,7 @@ class DdsClientTransport:
         except TimeoutError:
             if stage == "discovered":
                 raise PeerUnreachable(f"no DDS participant discovered at {link.peer} within {timeout:g}s") from None
-            raise PeerUnreachable(f"no answer from {link.peer} within {timeout:g}s") from None
+            raise PeerTimeout(f"no answer from {link.peer} within {timeout:g}s") from None
         finally:
             link.waiting.pop(token, None)
 

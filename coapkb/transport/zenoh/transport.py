@@ -106,7 +106,8 @@ from typing import Any
 import zenoh
 
 from ..base import (
-    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port, handle_safely,
+    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port,
+    handle_safely,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
@@ -761,7 +762,7 @@ class ZenohClientTransport:
                         return self._response(peer, reply)
                     self._drop_session(peer, on)
         except TimeoutError:
-            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+            raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
         except asyncio.CancelledError:
             if (err := self._closed_error()) is not None:
                 raise err from None
@@ -820,7 +821,7 @@ class ZenohClientTransport:
                 async with asyncio.timeout(max(deadline - loop.time(), 0.0)):
                     session = await self._session(peer)
             except TimeoutError:
-                raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+                raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
             try:
                 subscriber = session.declare_subscriber(
                     notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, put_latest, notifications, _copy_sample(sample)))

@@ -78,7 +78,7 @@ import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
 from ..base import (
-    Endpoint, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
+    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
 )
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
 from .security import ZmqClientSecurity, ZmqServerSecurity
@@ -643,7 +643,7 @@ class ZmqClientTransport:
                 response, _ = await fut
                 return response
         except TimeoutError:
-            raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+            raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
         except asyncio.CancelledError:
             if (err := self._closed_error()) is not None:
                 raise err from None
@@ -686,7 +686,7 @@ class ZmqClientTransport:
                     self._count_sent(data)
                     item = await queue.get()
             except TimeoutError:
-                raise PeerUnreachable(f"no answer from {peer} within {timeout:g}s") from None
+                raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
             except asyncio.CancelledError:
                 if (err := self._closed_error()) is not None:
                     raise err from None
