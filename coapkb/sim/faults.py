@@ -146,7 +146,7 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
         lasting = round(rng.uniform(0.5, max(1.0, horizon_s / 2)), 3)
         if kind == "starve":
             target = rng.choice(["feeder", *robots])
-            events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.02, 0.4), 3),
+            events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.1, 1.5), 3),
                                      until_s=round(at + lasting, 3)))
             continue
         candidates = [r for r in robots if free(r, at) and free(r, at + lasting)]

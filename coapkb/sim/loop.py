@@ -26,6 +26,9 @@ from ..errors import CoapkbError
 
 T = TypeVar("T")
 
+#: How long a starved process runs, on average, between two pauses (seconds).
+RUN_SLICE_S = 0.3
+
 
 class SimulationError(CoapkbError):
     """The simulated run could not go on: it hung, or ran past its time limit."""
@@ -102,10 +105,32 @@ class Process:
     incarnation: int = 0
     #: Running, ``frozen`` (SIGSTOP: timers and sockets wait) or ``dead``.
     status: str = "running"
-    #: Its loop may not run again before this time (it is busy elsewhere: CPU starvation).
-    busy_until: float = 0.0
-    #: While starved, each turn of its loop is followed by this much lost CPU: (mean seconds, until).
+    #: While starved: (mean length of a pause, until when).  The CPU is
+    #: taken away in pauses (other work of the robot runs), between slices
+    #: of :data:`RUN_SLICE_S` on average; what fell due in a pause runs in
+    #: one batch after it, timers and arrivals together, as on a busy machine.
     starved: tuple[float, float] | None = None
+    #: The current or next pause: [start, end).
+    pause: tuple[float, float] = (float("inf"), float("inf"))
+
+    def starve(self, mean_pause_s: float, until_s: float, now: float) -> None:
+        self.starved = (mean_pause_s, until_s)
+        self.pause = (now, now)
+
+    def runnable_at(self, at: float, rng: random.Random) -> float:
+        """When an event due at ``at`` can run: after any pause it falls in."""
+        if self.starved is None:
+            return at
+        mean, until = self.starved
+        start, end = self.pause
+        while at >= end and end < until:  # draw the pauses up to ``at``, lazily and in order
+            start = end + rng.expovariate(1.0 / RUN_SLICE_S)
+            end = start + rng.expovariate(1.0 / mean)
+        self.pause = (start, end)
+        if end >= until and at >= until:
+            self.starved = None
+            return at
+        return end if start <= at < end else at
     #: Tasks started in it and not done (held so none is collected while pending).
     tasks: set[asyncio.Task[Any]] = field(default_factory=set)
 
@@ -189,7 +214,7 @@ class Scheduler:
             at = process.loop.next_event()
             if at is None:
                 continue
-            at = max(at, process.busy_until)
+            at = process.runnable_at(at, self.rng)
             if at < best_at:
                 best, best_at = process, at
         return best, best_at
@@ -208,11 +233,3 @@ class Scheduler:
             clock.now = max(clock.now, at)
             process.loop.step()
             self.steps += 1
-            starved = process.starved
-            if starved is not None:
-                mean, until = starved
-                if clock.now >= until:
-                    process.starved = None
-                else:
-                    # The loop's turn came late: the robot's other work held the CPU.
-                    process.busy_until = clock.now + self.rng.expovariate(1.0 / mean)

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, AsyncIterator, Callable, Iterable
 
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH
-from ..transport.base import Endpoint, PeerUnreachable, Service, TrafficCounters, handle_safely
+from ..transport.base import Endpoint, PeerTimeout, PeerUnreachable, Service, TrafficCounters, handle_safely
 from ..transport.messages import Request, Response
 from ..transport.rtt import RttEstimator
 from .loop import Process, Scheduler
@@ -437,8 +437,15 @@ class SimClient:
         return estimator
 
     def answered(self, xid: int, response: Response) -> None:
+        """An answer's datagram arrived.  Reading and matching it takes the
+        stack another turn of the loop, as a real one's (the datagram, then
+        the exchange it answers): a timeout due in the same turn as the
+        arrival fires first, as on a process that got the CPU late."""
         self.counters.messages_received += 1
         self.counters.bytes_received += len(response.payload) + HEADER_BYTES
+        self.process.loop.call_soon(self._settle, xid, response)
+
+    def _settle(self, xid: int, response: Response) -> None:
         waiting = self._waiting.get(xid)
         if waiting is not None and not waiting.done():
             waiting.set_result(response)
@@ -478,7 +485,7 @@ class SimClient:
                         estimator.on_sample(loop.time() - first_sent)
                     return answer.result()
                 if loop.time() >= deadline:
-                    raise PeerUnreachable(f"{peer}: no answer within {timeout:g}s")
+                    raise PeerTimeout(f"{peer}: no answer within {timeout:g}s")
             raise AssertionError("unreachable")
         finally:
             del self._waiting[xid]

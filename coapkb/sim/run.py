@@ -338,7 +338,7 @@ class SimulatedTeam:
         elif action == "heal":
             self.network.heal(target)
         elif action == "starve":
-            process.starved = (event.amount, event.until_s)
+            process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
         self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
 
     @property
