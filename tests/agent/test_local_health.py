@@ -1,0 +1,58 @@
+"""Local health: a process knows when its own loop runs late, and its
+failure detector does not blame a peer for a timeout while it did.  Run on
+the simulator's clock, where a loop's pauses are set, not suffered."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+
+from coapkb.agent.local_health import LoopHealth
+from coapkb.agent.team_view import PLAN_PATH, ObservedStates
+from coapkb.sim.loop import Scheduler
+from coapkb.transport.base import Endpoint, PeerTimeout, PeerUnreachable
+from coapkb.transport.memory import MemoryNetwork
+
+
+def _run(coroutine_factory, starve: float | None):  # type: ignore[no-untyped-def]
+    scheduler = Scheduler(random.Random(1), lambda _: None)
+    process = scheduler.spawn("robot")
+    if starve is not None:
+        process.starve(starve, 1_000.0, now=0.0)
+    task = scheduler.start(process, coroutine_factory())
+    scheduler.run(task.done, limit_s=1_000)
+    return task.result()
+
+
+def test_a_loop_on_time_reads_no_lateness_and_a_starved_one_does() -> None:
+    async def measure() -> tuple[float, dict[str, float | int]]:
+        health = LoopHealth()
+        health.start()
+        await asyncio.sleep(20)
+        late = health.late_within(10)
+        await health.aclose()
+        return late, health.stats().as_dict()
+
+    on_time, stats = _run(measure, starve=None)
+    assert on_time == 0.0 and stats["late_ticks"] == 0 and stats["ticks"] >= 70
+    late, stats = _run(measure, starve=1.0)
+    assert late > 0.5 and stats["late_ticks"] > 0 and stats["max_s"] >= late
+
+
+def test_a_timeout_while_the_own_loop_ran_late_is_not_counted_against_the_peer() -> None:
+    peer = {"Robot2": Endpoint("coap", "10.0.0.2", 5683)}
+
+    async def failures(late_by: float) -> tuple[int, bool, bool]:
+        health = LoopHealth()
+        states = ObservedStates(MemoryNetwork().client(), peer, PLAN_PATH, liveness=True, health=health)
+        health.note(asyncio.get_running_loop().time(), late_by)
+        stretched = states.liveness_timeout_s > 2.0
+        for _ in range(3):
+            await states._failed("Robot2", PeerTimeout("no answer within 1s"))
+        timed_out_down = "Robot2" in states.down
+        await states._failed("Robot2", PeerUnreachable("port unreachable"))  # the network said so: counts
+        return states._failures.get("Robot2", 0), timed_out_down, stretched
+
+    assert _run(lambda: failures(0.0), starve=None) == (4, True, False)
+    count, down, stretched = _run(lambda: failures(1.0), starve=None)
+    assert (count, down, stretched) == (1, False, True)
