@@ -51,3 +51,20 @@ def check_fates(
     for robot_id, stats in record.robot_stats.items():
         mine = [t for t in final if t.assigned_to == robot_id and t.seq >= joined_at.get(robot_id, 0)]
         assert stats.executed == len(mine), robot_id
+
+
+def check_joined_again(record: TeamRecord, tasks: list[str], spec: TeamSpec) -> None:
+    """Robot2 was killed and restarted: it joined at one task, every robot
+    names one new epoch from then on, it got work again, and every task has
+    one fate."""
+    assert [(e.action, e.robot) for e in record.faults] == [("kill", VICTIM), ("restart", VICTIM)]
+    [join] = [t for t in record.tasks if t.joined]
+    assert join.joined == [VICTIM]
+    check_fates(record, tasks, spec, new_epoch=False)
+    before = max((t.epochs.get("Robot1", 0) for t in record.tasks if t.seq < join.seq), default=0)
+    for task in record.tasks:
+        if task.seq >= join.seq:
+            assert set(task.members) == {"Robot1", "Robot2", "Robot3"} and not task.absent, task
+            assert set(task.epochs) == {"Robot1", "Robot2", "Robot3"} and set(task.epochs.values()) == {before + 1}
+    assert any(t.assigned_to == VICTIM for t in record.tasks if t.seq >= join.seq), "the new Robot2 got no task"
+    assert set(record.robot_stats) == set(spec.robot_ids) and not record.down

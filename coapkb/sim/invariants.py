@@ -49,7 +49,9 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
             yield f"cluster {index}: task {origin} went round more than once"
         for rerun in reruns:
             original = by_seq.get(rerun.reassigned_from)  # type: ignore[arg-type]
-            if original is None or original.object != rerun.object or original.fate != "reassigned":
+            # Sent round (orphaned): its fate says "reassigned", or "failed" when
+            # its robots also disagreed (a split the schedule may excuse).
+            if original is None or original.object != rerun.object or original.orphaned is None:
                 yield f"cluster {index}: task {rerun.seq} re-runs task {rerun.reassigned_from}, which was not reassigned"
         for task in cluster_records:
             if task.fate == "reassigned" and task.seq not in origins:

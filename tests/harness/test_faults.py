@@ -17,7 +17,7 @@ from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tas
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
 
-from fates import VICTIM, check_fates
+from fates import VICTIM, check_fates, check_joined_again
 from support import ROOT
 
 ONTOLOGIES = ROOT / "ontologies"
@@ -55,17 +55,7 @@ async def test_killed_robot_restarts_and_joins_again(transport: str, discovery: 
     async with asyncio.timeout(180):  # a hang detector: one lease request may take task_timeout_s
         async with Team.launch(spec) as team:
             record = await team.run(tasks)
-    assert [(e.action, e.robot) for e in record.faults] == [("kill", VICTIM), ("restart", VICTIM)]
-    [join] = [t for t in record.tasks if t.joined]
-    assert join.joined == [VICTIM]
-    check_fates(record, tasks, spec, new_epoch=False)
-    before = max((t.epochs.get("Robot1", 0) for t in record.tasks if t.seq < join.seq), default=0)
-    for task in record.tasks:
-        if task.seq >= join.seq:
-            assert set(task.members) == {"Robot1", "Robot2", "Robot3"} and not task.absent, task
-            assert set(task.epochs) == {"Robot1", "Robot2", "Robot3"} and set(task.epochs.values()) == {before + 1}
-    assert any(t.assigned_to == VICTIM for t in record.tasks if t.seq >= join.seq), "the new Robot2 got no task"
-    assert set(record.robot_stats) == set(spec.robot_ids) and not record.down
+    check_joined_again(record, tasks, spec)
 
 
 def test_fault_option_parses_and_is_checked() -> None:

@@ -15,7 +15,7 @@ from coapkb.sim import KBCache, SimSpec, run_checked
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.run import SimulatedTeam
 
-from fates import VICTIM, check_fates
+from fates import VICTIM, check_fates, check_joined_again
 
 
 @pytest.fixture(scope="module")
@@ -82,17 +82,7 @@ def test_killed_robot_restarts_and_joins_again(kbs: KBCache) -> None:
                    schedule=(FaultEvent(0.5, "kill", (VICTIM,)), FaultEvent(2.0, "restart", (VICTIM,))))
     run, record = _run(kbs, spec)
     tasks = [t.object for t in record.tasks if t.reassigned_from is None]
-    assert [(e.action, e.robot) for e in record.faults] == [("kill", VICTIM), ("restart", VICTIM)]
-    [join] = [t for t in record.tasks if t.joined]
-    assert join.joined == [VICTIM]
-    check_fates(record, tasks, spec.team(), new_epoch=False)
-    before = max((t.epochs.get("Robot1", 0) for t in record.tasks if t.seq < join.seq), default=0)
-    for task in record.tasks:
-        if task.seq >= join.seq:
-            assert set(task.members) == {"Robot1", "Robot2", "Robot3"} and not task.absent, task
-            assert set(task.epochs) == {"Robot1", "Robot2", "Robot3"} and set(task.epochs.values()) == {before + 1}
-    assert any(t.assigned_to == VICTIM for t in record.tasks if t.seq >= join.seq), "the new Robot2 got no task"
-    assert set(record.robot_stats) == set(spec.team().robot_ids) and not record.down
+    check_joined_again(record, tasks, spec.team())
 
 
 def test_a_stopped_robot_comes_back_fenced(kbs: KBCache) -> None:
