@@ -78,7 +78,7 @@ import zmq.asyncio
 
 from ..messages import Method, Request, Response, Status
 from ..base import (
-    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
+    Endpoint, PeerTimeout, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
 )
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
 from .security import ZmqClientSecurity, ZmqServerSecurity
