@@ -17,7 +17,7 @@ from typing import Callable, Mapping
 
 from .. import clock
 from ..transport.messages import ContentFormat, Method, Request
-from ..transport.base import ClientTransport, Endpoint, PeerTimeout, TransportError
+from ..transport.base import ClientTransport, Endpoint, PeerGone, PeerTimeout, TransportError
 from ..transport.rtt import RttEstimator
 from .local_health import LoopHealth
 from .robot_state import PlannedState, RobotState
@@ -190,7 +190,10 @@ class ObservedStates:
             await self._failed(robot_id, exc)
 
     async def _failed(self, robot_id: str, exc: Exception) -> None:
-        if clock.monotonic() < self._joining.get(robot_id, 0.0):
+        if clock.monotonic() < self._joining.get(robot_id, 0.0) and not isinstance(exc, PeerGone):
+            # The grace of a readmitted robot covers reaching its new process
+            # (a security handshake), not its absence: nobody listening there
+            # counts (found in the simulator: a process that died before it joined).
             return
         if isinstance(exc, PeerTimeout) and (
                 self.health_margin_s * 2 >= liveness_timeout_s(self.round_trip, self._liveness_floor_s)):

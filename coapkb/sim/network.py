@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, AsyncIterator, Callable, Iterable
 
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH
-from ..transport.base import Endpoint, PeerTimeout, PeerUnreachable, Service, TrafficCounters, handle_safely
+from ..transport.base import Endpoint, PeerGone, PeerTimeout, PeerUnreachable, Service, TrafficCounters, handle_safely
 from ..transport.messages import Request, Response
 from ..transport.rtt import RttEstimator
 from .loop import Process, Scheduler
@@ -453,7 +453,7 @@ class SimClient:
     def _unreachable(self, xid: int, peer: Endpoint) -> None:
         waiting = self._waiting.get(xid)
         if waiting is not None and not waiting.done():
-            waiting.set_exception(PeerUnreachable(f"{peer}: port unreachable (nobody listens there)"))
+            waiting.set_exception(PeerGone(f"{peer}: port unreachable (nobody listens there)"))
 
     async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
         """Send ``request`` confirmably; :class:`PeerUnreachable` after ``timeout``

@@ -12,6 +12,7 @@ from __future__ import annotations
 from .base import (
     ClientTransport,
     Endpoint,
+    PeerGone,
     PeerTimeout,
     PeerUnreachable,
     ResourceInfo,
@@ -65,6 +66,7 @@ __all__ = [
     "SCHEMES",
     "ClientTransport",
     "Endpoint",
+    "PeerGone",
     "PeerTimeout",
     "PeerUnreachable",
     "Reliability",

@@ -102,6 +102,11 @@ class PeerUnreachable(TransportError):
     """No answer from the peer within the time budget (after retransmissions)."""
 
 
+class PeerGone(PeerUnreachable):
+    """The network reported that nobody listens at the peer's address (ICMP
+    port unreachable): its process is not there, whatever the timing."""
+
+
 class PeerTimeout(PeerUnreachable):
     """The time budget ran out with no answer (not an error the network
     reported, such as ICMP's port unreachable): the silence may be this

@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 from typing import AsyncIterator, Callable
 
-from .base import Endpoint, PeerTimeout, PeerUnreachable, Service, TrafficCounters
+from .base import Endpoint, PeerGone, PeerTimeout, PeerUnreachable, Service, TrafficCounters
 from .messages import Request, Response
 
 
@@ -44,7 +44,7 @@ class MemoryNetwork:
     def server_at(self, peer: Endpoint) -> "MemoryServerTransport":
         server = self._servers.get(peer)
         if server is None:
-            raise PeerUnreachable(f"{peer}: nobody listens there")
+            raise PeerGone(f"{peer}: nobody listens there")
         return server
 
     def _remove(self, server: "MemoryServerTransport") -> None:

@@ -99,7 +99,7 @@ async def test_failed_queries_are_reported_for_failure_detection(network: Memory
     queries = handler(network, kbs["Location"], holders=REPLICATED, on_failure=failed)
     with pytest.raises(ModuleUnavailable):
         await queries.run("robot-specs", {})
-    assert sorted(failures) == [("Robot2", "PeerUnreachable"), ("Robot3", "PeerUnreachable")]
+    assert sorted(failures) == [("Robot2", "PeerGone"), ("Robot3", "PeerGone")]  # nobody listens there
 
 
 async def test_holders_known_down_are_not_asked(network: MemoryNetwork, kbs: dict, serve_kbs: Callable) -> None:

@@ -20,7 +20,7 @@ from aiocoap.numbers.constants import Unreliable
 from aiocoap.numbers.types import NON
 from aiocoap.optiontypes import BlockOption
 
-from ..base import Endpoint, PeerTimeout, PeerUnreachable, TrafficCounters, TransportError
+from ..base import Endpoint, PeerGone, PeerTimeout, PeerUnreachable, TrafficCounters, TransportError
 from ..messages import Request, Response
 from .aiocoap_adapter import ContextHooks
 from .mapping import message_from_request, response_from_message
@@ -110,6 +110,8 @@ class CoapClientTransport:
             message = await self._secured(peer, lambda: self._request_any(peer, request, timeout), timeout)
         except (TimeoutError, ExchangeTimeout):
             raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
+        except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
+            raise PeerGone(f"no answer from {peer}: {exc}") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         except aiocoap.error.Error as exc:
@@ -235,7 +237,9 @@ class CoapClientTransport:
         try:
             first, pending = await self._secured(peer, lambda: self._register(peer, request), REGISTRATION_TIMEOUT_S)
         except (TimeoutError, ExchangeTimeout):
-            raise PeerUnreachable(f"no answer from {peer} to the observation") from None
+            raise PeerTimeout(f"no answer from {peer} to the observation") from None
+        except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
+            raise PeerGone(f"no answer from {peer}: {exc}") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         try:
