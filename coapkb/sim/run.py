@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import gc
 import logging
 import random
 import sys
+import tempfile
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -27,6 +29,7 @@ from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
 from ..config import RobotConfig
 from ..feeder import Feeder, FeederError, Roster, TaskRecord
+from ..harness.kbs import kbs_for_team
 from ..harness.record import FaultEvent as RecordedFault
 from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
@@ -160,6 +163,8 @@ class KBCache:
         self._kbs: dict[tuple[Path, ...], KnowledgeBase] = {}
         self._configs: dict[TeamSpec, dict[str, RobotConfig]] = {}
         self._products: dict[Path, list[str]] = {}
+        self._ontologies: dict[tuple[Path, int], Path] = {}
+        self._generated: tempfile.TemporaryDirectory[str] | None = None
 
     def load(self, files: Sequence[Path], index_dir: Path | None = None) -> KnowledgeBase:
         key = tuple(files)
@@ -173,6 +178,20 @@ class KBCache:
         if names is None:
             names = self._products[ontologies] = product_names(self.load([ontologies / "Object.owl"]))
         return names
+
+    def team(self, spec: SimSpec) -> TeamSpec:
+        """``spec``'s team, on KBs that know every robot of it: generated once
+        per worker for a team larger than the given KBs know, as ``coapkb
+        team`` does (:func:`~coapkb.harness.kbs.kbs_for_team`)."""
+        team = spec.team()
+        known = self._ontologies.get((spec.ontologies, spec.robots))
+        if known is None:
+            if self._generated is None:
+                self._generated = tempfile.TemporaryDirectory(prefix="coapkb-sim-")
+            into = Path(self._generated.name) / f"robots-{spec.robots}"
+            known = kbs_for_team(spec.ontologies, team.robot_ids, into).ontologies
+            self._ontologies[(spec.ontologies, spec.robots)] = known
+        return dataclasses.replace(team, ontologies=known)
 
     def configs(self, spec: TeamSpec) -> dict[str, RobotConfig]:
         configs = self._configs.get(spec)
@@ -265,8 +284,8 @@ class SimulatedTeam:
     def __init__(self, spec: SimSpec, seed: int, kbs: KBCache, trace: TextIO | None = None) -> None:
         rng = random.Random(seed)
         self.spec, self.seed, self.kbs = spec, seed, kbs
-        self.team = spec.team()
-        drawn = draw_tasks(kbs.products(spec.ontologies), spec.tasks, random.Random(rng.random()))
+        self.team = kbs.team(spec)
+        drawn = draw_tasks(kbs.products(self.team.ontologies), spec.tasks, random.Random(rng.random()))
         self.tasks = list(spec.task_list) if spec.task_list is not None else drawn
         schedule = draw_schedule(spec.faults, self.team.clusters(), spec.horizon_s, random.Random(rng.random()))
         if spec.schedule is not None:

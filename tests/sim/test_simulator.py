@@ -185,3 +185,13 @@ def test_the_ci_profile_holds_every_invariant() -> None:
                      timeout=900)
     assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
     assert re.search(r"^sim: 500 runs, 0 violations, ", result.stdout, re.M), result.stdout[-2000:]
+
+
+def test_a_team_larger_than_the_kbs_know_runs_on_kbs_generated_for_it(kbs: KBCache) -> None:
+    """Twelve robots on the shipped KBs (which know nine): as ``coapkb team``,
+    the simulator generates the warehouse again for the team, so the fourth
+    cluster has capabilities too."""
+    run = run_checked(SimSpec(robots=12, tasks=24), 1, kbs)
+    assert run.violations == [] and run.record is not None
+    assert [t.fate for t in run.record.tasks] == ["assigned"] * 24
+    assert any(t.assigned_to in ("Robot10", "Robot11", "Robot12") for t in run.record.tasks)
