@@ -13,7 +13,7 @@ from coapkb.transport.registry import REGISTERED
 PACKAGE = Path(__file__).resolve().parent.parent / "coapkb"
 #: What lies above the transport.
 ABOVE_TRANSPORT = frozenset({
-    "security", "kb", "agent", "harness", "bench", "discovery", "world", "config", "cli", "feeder",
+    "security", "kb", "agent", "harness", "bench", "discovery", "world", "config", "cli", "feeder", "sim", "host",
 })
 #: Scheme comparisons tolerated outside transport/.
 MAX_SCHEME_COMPARISONS = 2
