@@ -10,6 +10,7 @@ output file, and still exits 0, so the tests check stderr, not the status.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 from pathlib import Path
 from typing import AsyncIterator
@@ -67,9 +68,15 @@ class Run:
         return self.stderr.decode(errors="replace").strip()
 
 
+#: Numbers the output files of coap-client runs.
+_OUTPUTS = itertools.count()
+
+
 async def coap(binary: str, tmp_path: Path, *args: str, out: bool = True) -> Run:
     """Run coap-client with a 10 s break (-B) and a hard 30 s limit."""
-    output = tmp_path / f"out-{len(list(tmp_path.iterdir()))}.bin"
+    # A name of its own: runs at once (the concurrent test) named their output
+    # by counting the folder, and two could count alike before either wrote.
+    output = tmp_path / f"out-{next(_OUTPUTS)}.bin"
     argv = [binary, "-B", "10", *(("-o", str(output)) if out else ()), *args]
     proc = await asyncio.create_subprocess_exec(
         *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
