@@ -138,12 +138,6 @@ class SimNetwork:
 
     # ------------------------------------------------------------- faults
 
-    def set_model(self, model: LinkModel) -> None:
-        """Every link behaves as ``model`` from now on."""
-        self.model = model
-        for link in self._links.values():
-            link.model = model
-
     def cut(self, name: str, side: Iterable[str], other: Iterable[str]) -> None:
         """Partition ``side`` from ``other`` (process names), both ways, until ``heal(name)``."""
         pairs = {(a, b) for a in side for b in other}
@@ -213,6 +207,11 @@ class SimNetwork:
 
     def next_id(self) -> int:
         return next(self._ids)
+
+
+def _rto(estimator: RttEstimator) -> float:
+    """A confirmable message's first timeout on a path (RFC 6298: 1 s with no sample)."""
+    return estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=1.0)
 
 
 def _if_alive(process: Process, deliver: Callable[[], None]) -> None:
@@ -311,13 +310,18 @@ class _Observer:
         self.observation = observation
         self.request = request
         self.changed = asyncio.Event()
-        self.acked: asyncio.Event = asyncio.Event()
+        #: Set by an acknowledgement or a change: what a notification in flight waits for.
+        self.woken = asyncio.Event()
         self.acked_seq = 0
         self._unsubscribe: Callable[[], None] = lambda: None
         self._task: asyncio.Task[None] | None = None
 
     def start(self) -> None:
-        self._unsubscribe = self.server.service.subscribe(self.request.path, self.changed.set)
+        def changed() -> None:
+            self.changed.set()
+            self.woken.set()
+
+        self._unsubscribe = self.server.service.subscribe(self.request.path, changed)
         self._task = self.server.process.hold(self.server.process.loop.create_task(self._run()))
 
     def stop(self) -> None:
@@ -330,7 +334,7 @@ class _Observer:
             self.server.forget(self.observation.key)
             return
         self.acked_seq = max(self.acked_seq, seq)
-        self.acked.set()
+        self.woken.set()
 
     async def _run(self) -> None:
         server, network = self.server, self.server.network
@@ -342,11 +346,10 @@ class _Observer:
             self.changed.clear()
             response = await handle_safely(server.service, self.request, log)
             seq += 1
-            rto = estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=1.0)
+            rto = _rto(estimator)
             # RFC 7641 4.5.2: a newer state replaces a notification still in
             # flight at once, keeping its retransmission count and timeout.
             while attempt < NOTIFY_TRIES:
-                self.acked.clear()
                 server.counters.messages_sent += 1
                 server.counters.bytes_sent += len(response.payload) + HEADER_BYTES
                 if attempt:
@@ -357,11 +360,11 @@ class _Observer:
                               response.payload if self.request.path == OUTCOME_PATH else None)
                 try:
                     async with asyncio.timeout(rto * 2 ** attempt):
-                        while self.acked_seq < seq and not self.changed.is_set():
-                            await asyncio.wait([asyncio.ensure_future(self.acked.wait()),
-                                                asyncio.ensure_future(self.changed.wait())],
-                                               return_when=asyncio.FIRST_COMPLETED)
-                            self.acked.clear()
+                        while True:
+                            self.woken.clear()
+                            if self.acked_seq >= seq or self.changed.is_set():
+                                break
+                            await self.woken.wait()
                 except TimeoutError:
                     attempt += 1
                     continue
@@ -472,7 +475,7 @@ class SimClient:
             observe.registration = answer
         deadline = loop.time() + timeout
         estimator = self.estimator(peer)
-        rto = estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=1.0)
+        rto = _rto(estimator)
         first_sent = loop.time()
         try:
             for attempt in itertools.count():
