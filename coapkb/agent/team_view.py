@@ -124,7 +124,12 @@ class ObservedStates:
 
     @property
     def liveness_timeout_s(self) -> float:
-        return liveness_timeout_s(self.round_trip, self._liveness_floor_s) + self.health_margin_s
+        return self._on_time_timeout_s + self.health_margin_s
+
+    @property
+    def _on_time_timeout_s(self) -> float:
+        """The liveness timeout of a process whose loop runs on time."""
+        return liveness_timeout_s(self.round_trip, self._liveness_floor_s)
 
     @property
     def health_margin_s(self) -> float:
@@ -133,8 +138,7 @@ class ObservedStates:
         lately was (0 when it runs on time, or nothing measures it)."""
         if self.health is None:
             return 0.0
-        base = liveness_timeout_s(self.round_trip, self._liveness_floor_s)
-        return TURNS_PER_EXCHANGE * self.health.late_within(2 * base)
+        return TURNS_PER_EXCHANGE * self.health.late_within(2 * self._on_time_timeout_s)
 
     @property
     def detection_s(self) -> float:
@@ -195,8 +199,7 @@ class ObservedStates:
             # (a security handshake), not its absence: nobody listening there
             # counts (found in the simulator: a process that died before it joined).
             return
-        if isinstance(exc, PeerTimeout) and (
-                self.health_margin_s * 2 >= liveness_timeout_s(self.round_trip, self._liveness_floor_s)):
+        if isinstance(exc, PeerTimeout) and self.health_margin_s * 2 >= self._on_time_timeout_s:
             # This loop ran late: the request had no fair chance, and the
             # silence may be its own (local health, as Lifeguard's).
             log.info("a request to %s failed while this process ran late (%.2f s a turn): not counted",
