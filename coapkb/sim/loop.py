@@ -112,6 +112,8 @@ class Process:
     starved: tuple[float, float] | None = None
     #: The current or next pause: [start, end).
     pause: tuple[float, float] = (float("inf"), float("inf"))
+    #: Tasks started in it and not done (held so none is collected while pending).
+    tasks: set[asyncio.Task[Any]] = field(default_factory=set)
 
     def starve(self, mean_pause_s: float, until_s: float, now: float) -> None:
         self.starved = (mean_pause_s, until_s)
@@ -131,8 +133,6 @@ class Process:
             self.starved = None
             return at
         return end if start <= at < end else at
-    #: Tasks started in it and not done (held so none is collected while pending).
-    tasks: set[asyncio.Task[Any]] = field(default_factory=set)
 
     def hold(self, task: "asyncio.Task[T]") -> "asyncio.Task[T]":
         self.tasks.add(task)
