@@ -37,8 +37,8 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
     record = run.record
     if record is None:
         return
-    given = [t.object for t in record.tasks if t.reassigned_from is None]
-    for index, cluster_records in _by_cluster(record.tasks).items():
+    clusters = _by_cluster(record.tasks)
+    for index, cluster_records in clusters.items():
         seqs = [t.seq for t in cluster_records]
         if seqs != list(range(seqs[0], seqs[0] + len(seqs))):
             yield f"cluster {index}: task numbers {seqs} have gaps or repeats"
@@ -56,10 +56,8 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
         for task in cluster_records:
             if task.fate == "reassigned" and task.seq not in origins:
                 yield f"cluster {index}: task {task.seq} ({task.object}) was reassigned and never ran again"
-    clusters = len(record.clusters)
-    shares = split_tasks(given, clusters)
-    for index, share in enumerate(shares, 1):
-        originals = [t.object for t in _by_cluster(record.tasks).get(index, []) if t.reassigned_from is None]
+    for index, share in enumerate(split_tasks(run.fed, len(record.clusters)), 1):
+        originals = [t.object for t in clusters.get(index, []) if t.reassigned_from is None]
         if originals != share:
             yield f"cluster {index}: fed {originals}, expected {share}"
 

@@ -109,6 +109,8 @@ class RunResult:
     picks: list[Pick]
     #: Robots out at the end (killed and not restarted, or left frozen): none of their state is final.
     crashes: list[str]
+    #: The tasks the feeder was given, in order.
+    fed: list[str] = field(default_factory=list)
     #: Invariants broken (filled in by :mod:`.invariants`), and disagreements the schedule explains.
     violations: list[str] = field(default_factory=list)
     excused: list[str] = field(default_factory=list)
@@ -451,7 +453,7 @@ class SimulatedTeam:
             crashes=list(scheduler.crashes), bounds=bounds, events=list(self.schedule.events),
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
-            fed_at=self.fed_at or 0.0, reports=self.network.reports,
+            fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
         )
 
 

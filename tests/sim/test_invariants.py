@@ -25,7 +25,8 @@ def _run(tasks: list[TaskRecord], picks: list[Pick], **changes: object) -> RunRe
     record = TeamRecord(mode="distributed", transport="coap", strategy="compute-by-all", query_wire="compact",
                         robots=list(CLUSTER), clusters=[list(CLUSTER)], tasks=tasks, coordination_s=1.0,
                         completion_s=2.0, robot_stats={}, feeder_traffic=TrafficCounters(), faults=[], down={})
-    run = RunResult(seed=1, schedule="test", record=record, error=None, picks=picks, crashes=[])
+    run = RunResult(seed=1, schedule="test", record=record, error=None, picks=picks, crashes=[],
+                    fed=[t.object for t in tasks if t.reassigned_from is None])
     for name, value in changes.items():
         setattr(run, name, value)
     return check(run)
