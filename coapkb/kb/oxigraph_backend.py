@@ -67,6 +67,15 @@ def _ox_syntax_message(message: str, text: str, line: int, column: int) -> str:
     return f"syntax error near {rest[0][:20]!r}" if rest else "syntax error (reached the end of the query)"
 
 
+def syntax_error(message: str, text: str) -> QuerySyntaxError:
+    """Oxigraph's syntax error on ``text`` (a query or an update), readable, with its position."""
+    m = _OX_POSITION.match(message)
+    if m is None:
+        return QuerySyntaxError(short_message(message))
+    line, column = int(m.group(1)), int(m.group(2))
+    return QuerySyntaxError(_ox_syntax_message(m.group(3), text, line, column), line, column)
+
+
 class OxigraphBackend:
     """pyoxigraph ``Store`` in memory; results converted to rdflib terms."""
 
@@ -84,6 +93,8 @@ class OxigraphBackend:
         #: On disk, building goes through bulk_load (no transaction log):
         #: many times faster there, and the index is not in use until built.
         self._bulk = store is not None
+        #: An on-disk index (it is never written after it is built).
+        self.on_disk = triple_count is not None
         self._triple_count = triple_count
         self._terms: dict[object, Term] = {}
 
@@ -132,14 +143,7 @@ class OxigraphBackend:
             # Parses and plans; evaluation is lazy, one solution per next().
             result = self.store.query(text)
         except SyntaxError as exc:
-            msg = str(exc)
-            m = _OX_POSITION.match(msg)
-            if m:
-                line, column = int(m.group(1)), int(m.group(2))
-                error = QuerySyntaxError(_ox_syntax_message(m.group(3), text, line, column), line, column)
-            else:
-                error = QuerySyntaxError(short_message(msg))
-            raise refuse_or_syntax(text, error) from None
+            raise refuse_or_syntax(text, syntax_error(str(exc), text)) from None
         except Exception as exc:  # broad on purpose: OSError from the store, anything else from planning
             raise QueryEvaluationError(short_message(exc)) from exc
         # What the deadline cannot interrupt: Oxigraph evaluates inside Rust

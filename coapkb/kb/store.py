@@ -75,7 +75,7 @@ class KnowledgeBase:
         etag: bytes,
     ) -> None:
         self.backend = backend
-        self._engine = engine
+        self.engine = engine
         self.names = names
         self.paths = paths
         self.prefixes = prefixes
@@ -190,7 +190,18 @@ class KnowledgeBase:
             raise ValueError(f"row_limit must be >= 0, got {row_limit}")
         if time_budget_s is not None and time_budget_s < 0:
             raise ValueError(f"time_budget_s must be >= 0, got {time_budget_s}")
+        return self.query_with(self.engine, sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+
+    @staticmethod
+    def query_with(
+        engine: Backend, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None
+    ) -> QueryResult:
+        """:meth:`query` on another graph of the same kind (a written module's view)."""
+        if row_limit < 0:
+            raise ValueError(f"row_limit must be >= 0, got {row_limit}")
+        if time_budget_s is not None and time_budget_s < 0:
+            raise ValueError(f"time_budget_s must be >= 0, got {time_budget_s}")
         feature = refused_feature(sparql)
         if feature is not None:
             raise FeatureRefused(feature)
-        return self._engine.query(sparql, row_limit, Deadline(time_budget_s))
+        return engine.query(sparql, row_limit, Deadline(time_budget_s))

@@ -143,7 +143,7 @@ class SharedAnswers(KnowledgeBase):
     MAX_ANSWERS = 100_000
 
     def __init__(self, kb: KnowledgeBase) -> None:
-        super().__init__(kb.backend, kb._engine, kb.names, kb.paths, kb.prefixes, kb.etag)
+        super().__init__(kb.backend, kb.engine, kb.names, kb.paths, kb.prefixes, kb.etag)
         self._answers: dict[tuple[str, int], QueryResult] = {}
 
     def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult:

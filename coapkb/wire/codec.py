@@ -55,7 +55,7 @@ import cbor2
 from rdflib.term import BNode, Literal, URIRef
 
 from ..errors import CoapkbError
-from ..kb.results import AskResult, GraphResult, QueryResult, SelectResult, Term
+from ..kb.results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
 
 __all__ = [
     "CodecError",
@@ -835,7 +835,10 @@ class _TermDecoder:
         raise CodecError(f"malformed term {item!r}")
 
 
-def _load_cbor(data: bytes) -> object:
+def load_cbor(data: bytes) -> object:
+    """One CBOR item, with only the tags this package's formats allow
+    turned into values (others stay :class:`cbor2.CBORTag`); raises
+    :class:`CodecError` and nothing else."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise CodecError(f"expected bytes, got {type(data).__name__}")
     data = bytes(data)
@@ -888,7 +891,7 @@ def _prefix_table(item: object) -> list[str]:
 
 def decode_cbor(data: bytes) -> QueryResult:
     """Decode compact CBOR; raises :class:`CodecError` on any malformed input."""
-    item = _load_cbor(data)
+    item = load_cbor(data)
     if type(item) is bool:
         return AskResult(item)
     if type(item) is not list or len(item) not in (3, 4):
@@ -1095,3 +1098,24 @@ def decode_json(data: bytes) -> QueryResult:
             _check_triple(triple, f"triple {i}")
         return GraphResult(tuple(rows), truncated)  # type: ignore[arg-type]
     return SelectResult(tuple(variables), tuple(rows), truncated)
+
+
+# ------------------------------------------------------ embedded graphs
+
+#: CBOR tag 24: an embedded CBOR data item (RFC 8949 section 3.4.5.1).
+EMBEDDED_CBOR: Final = 24
+
+
+def graph_item(triples: Sequence[Sequence[object]]) -> cbor2.CBORTag:
+    """Triples as a compact graph embedded in a bigger message (a patch, a delta)."""
+    return cbor2.CBORTag(EMBEDDED_CBOR, encode_cbor(GraphResult(tuple(tuple(t) for t in triples))))  # type: ignore[misc]
+
+
+def decode_graph_item(item: object, what: str) -> tuple[Triple, ...]:
+    """The triples of a :func:`graph_item` (raises :class:`CodecError`)."""
+    if not isinstance(item, cbor2.CBORTag) or item.tag != EMBEDDED_CBOR or not isinstance(item.value, bytes):
+        raise CodecError(f"{what}: expected tag 24 wrapping a compact graph")
+    graph = decode_cbor(item.value)
+    if not isinstance(graph, GraphResult):
+        raise CodecError(f"{what}: expected a graph, not a {type(graph).__name__}")
+    return graph.triples

@@ -47,3 +47,14 @@ CLUSTER_SIZE = 3
 GUCCI_BAG = "Gucci_bag_14"
 GUCCI_BAG_SERIAL = 14
 
+
+#: Properties with one value per subject: a write replaces the value, and of
+#: concurrent writes the latest (by hybrid logical clock) is the one seen.
+SINGLE_VALUED: frozenset[str] = frozenset(
+    {
+        LOCATION_NS + "Robot_aisle_no",
+        LOCATION_NS + "Robot_rack_no",
+        CAPABILITY_NS + "Robot_battery",
+        CAPABILITY_NS + "Robot_payload",
+    }
+)

@@ -1,0 +1,333 @@
+"""A robot's knowledge base that learns: its modules' files, the writes
+every holder made since, and the graph queries see.
+
+The files' graph stays as loaded: it is the base every holder shares, and
+tells a write which triples came from the files.  The first write copies
+it into the *view*, the graph queries run on from then on; every change
+(a local write or a teammate's delta) goes into the module's
+:class:`~coapkb.kb.replica.Replica` first and into the view as the effect
+the replica computes, so the view is always what the replicas say.
+
+A triple belongs to the module whose namespace its subject is in
+(``vocabulary.ONTOLOGIES``; the ontology's own IRI too).  A robot holding a
+single module takes every other subject into it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+
+import pyoxigraph as ox
+from rdflib.term import BNode, Literal, URIRef
+
+from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
+from .errors import KBError, QueryEvaluationError
+from .oxigraph_backend import OxigraphBackend, _to_ox
+from .replica import Delta, Effect, Replica, ReplicaLimits, WrittenState
+from .results import GraphResult, QueryResult, Term, Triple
+from .store import KnowledgeBase
+from .update import Operation, UpdateUnsupported, parse_update
+
+__all__ = ["LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
+
+
+class NotHeld(KBError):
+    """The write names a module this robot does not hold."""
+
+    def __init__(self, module: str, held: Iterable[str]) -> None:
+        self.module = module
+        super().__init__(f"this robot does not hold the {module} module (it holds {', '.join(held)})")
+
+
+class PreconditionFailed(KBError):
+    """An If-Match that no longer matches the module's version (4.12)."""
+
+
+class WriteTooLarge(KBError):
+    """A write that would change more triples than a robot takes at once (4.13)."""
+
+
+@dataclass(frozen=True)
+class WriteLimits:
+    """What one write may do."""
+
+    #: Triples one write may remove or add (each CONSTRUCT is stopped there).
+    max_triples: int = 1000
+    replica: ReplicaLimits = field(default_factory=ReplicaLimits)
+
+    def __post_init__(self) -> None:
+        if self.max_triples < 1:
+            raise ValueError(f"max_triples must be at least 1, got {self.max_triples}")
+
+
+@dataclass(frozen=True)
+class Written:
+    """A local write: the delta per module it changed, and its new version."""
+
+    deltas: Mapping[str, Delta]
+    version: bytes
+    removed: int
+    added: int
+
+
+def module_namespaces(names: Iterable[str]) -> dict[str, tuple[str, ...]]:
+    """Module name -> the IRI prefixes of the subjects it holds."""
+    return {name: (ONTOLOGIES[name][1], ONTOLOGIES[name][0]) for name in names if name in ONTOLOGIES}
+
+
+class LiveKB:
+    """The modules of one robot as they stand now (see the module docstring).
+
+    Answers queries like a :class:`KnowledgeBase` (``names``, ``prefixes``,
+    ``etag``, ``query``); writes with :meth:`update` and :meth:`patch`,
+    joins teammates' changes with :meth:`apply` and :meth:`join`."""
+
+    def __init__(
+        self,
+        base: KnowledgeBase,
+        writer: str,
+        *,
+        wall_ms: Callable[[], int],
+        limits: WriteLimits | None = None,
+        single_valued: frozenset[str] = SINGLE_VALUED,
+    ) -> None:
+        if base.backend != "oxigraph" or not isinstance(base.engine, OxigraphBackend) or base.engine.on_disk:
+            raise ValueError("a writable knowledge base needs the in-memory oxigraph backend")
+        self.base = base
+        self.names = base.names
+        self.prefixes = base.prefixes
+        self.backend = base.backend
+        self.writer = writer
+        self.limits = limits or WriteLimits()
+        self._wall_ms = wall_ms
+        self._base_store: ox.Store = base.engine.store
+        self._view: OxigraphBackend | None = None
+        functional = frozenset(URIRef(p) for p in single_valued)
+        self.replicas: dict[str, Replica] = {
+            name: Replica(writer, single_valued=functional, base_values=self._base_values, limits=self.limits.replica)
+            for name in base.names
+        }
+        self._namespaces = module_namespaces(base.names)
+        self._etag: bytes | None = None
+        #: Called with the modules a change touched (after the view has it).
+        self.listeners: list[Callable[[frozenset[str]], None]] = []
+
+    def __repr__(self) -> str:
+        return f"<LiveKB {'+'.join(self.names)} of {self.writer}>"
+
+    # -------------------------------------------------------------- reading
+
+    @property
+    def triple_count(self) -> int:
+        return len(self._view.store) if self._view is not None else self.base.triple_count
+
+    @property
+    def etag(self) -> bytes:
+        """The version: the files' ETag and every change the replicas hold,
+        so two holders that agree give the same ETag."""
+        if self._etag is None:
+            digest = hashlib.blake2b(self.base.etag, digest_size=8)
+            for name in self.names:
+                digest.update(repr((name, self.replicas[name].context.summary())).encode())
+            untouched = not any(r.context.vv or r.context.cloud for r in self.replicas.values())
+            self._etag = self.base.etag if untouched else digest.digest()
+        return self._etag
+
+    @property
+    def changed(self) -> bool:
+        return self._view is not None
+
+    def module_version(self, module: str) -> bytes:
+        return hashlib.blake2b(repr(self.replicas[module].context.summary()).encode(), digest_size=8).digest()
+
+    def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult:
+        if self._view is None:
+            return self.base.query(sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+        return self.base.query_with(self._view, sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+
+    def _base_values(self, s: Term, p: Term) -> list[Term]:
+        from .oxigraph_backend import _from_ox
+
+        return [_from_ox(q.object) for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]
+
+    def _is_base(self, triple: Triple) -> bool:
+        return _quad(triple) in self._base_store
+
+    def module_of(self, triple: Triple) -> str:
+        """The module a triple belongs to: its subject's namespace (module docstring)."""
+        subject = str(triple[0])
+        for name, prefixes in self._namespaces.items():
+            if any(subject.startswith(prefix) for prefix in prefixes):
+                return name
+        for name, (ontology, ns, _) in ONTOLOGIES.items():
+            if subject.startswith(ns) or subject == ontology:
+                raise NotHeld(name, self.names)
+        if len(self.names) == 1:
+            return self.names[0]
+        known = ", ".join(f"{ns} ({name})" for name, (_, ns, _) in ONTOLOGIES.items())
+        raise UpdateUnsupported(f"subject {subject} is in no module's namespace: {known}")
+
+    # -------------------------------------------------------------- writing
+
+    def update(self, text: str, *, if_match: tuple[bytes, ...] = ()) -> Written:
+        """Run SPARQL 1.1 Update text (see :mod:`.update`) as one write."""
+        parsed = parse_update(text)
+        self._check_precondition(if_match)
+        removes: dict[Triple, None] = {}
+        adds: dict[Triple, None] = {}
+        # Operations run in order, each seeing the ones before: their
+        # changes go into the view for the next one to read, and are taken
+        # back before the write is made (the replicas decide the view).
+        undo: list[tuple[str, Triple]] = []
+        try:
+            for operation in parsed.operations:
+                gone, new = self._resolve(operation, parsed.prologue)
+                for triple in gone:
+                    adds.pop(triple, None)
+                    removes[triple] = None
+                for triple in new:
+                    removes.pop(triple, None)
+                    adds[triple] = None
+                if operation is not parsed.operations[-1]:
+                    undo += self._scratch(gone, new)
+        finally:
+            self._unscratch(undo)
+        return self._write(list(removes), list(adds))
+
+    def patch(self, deletes: Iterable[Triple], inserts: Iterable[Triple], *, if_match: tuple[bytes, ...] = ()) -> Written:
+        """A compact patch: remove ``deletes`` that are there, add ``inserts``."""
+        self._check_precondition(if_match)
+        deletes, inserts = list(deletes), list(inserts)
+        for triple in deletes + inserts:
+            _check_term_kinds(triple)
+        if len(deletes) > self.limits.max_triples or len(inserts) > self.limits.max_triples:
+            raise WriteTooLarge(f"a write changes at most {self.limits.max_triples} triples each way")
+        view = self._store()
+        return self._write([t for t in deletes if _quad(t) in view], inserts)
+
+    def _check_precondition(self, if_match: tuple[bytes, ...]) -> None:
+        if if_match and self.etag not in if_match:
+            raise PreconditionFailed(f"the knowledge base is at version {self.etag.hex()}, not {if_match[0].hex()}")
+
+    def _resolve(self, operation: Operation, prologue: str) -> tuple[list[Triple], list[Triple]]:
+        removes_q, adds_q = operation.queries(prologue)
+        removed = self._construct(removes_q, operation.reads_module)
+        if operation.kind == "DELETE DATA":
+            view = self._store()
+            removed = [t for t in removed if _quad(t) in view]
+        added = self._construct(adds_q, operation.reads_module)
+        for triple in added:
+            _check_term_kinds(triple)
+        return removed, added
+
+    def _construct(self, query: str | None, reads_module: bool) -> list[Triple]:
+        if query is None:
+            return []
+        limit = self.limits.max_triples
+        if reads_module:
+            result = self.query(query, row_limit=limit, time_budget_s=2.0)
+        else:
+            result = OxigraphBackend().query(query, limit, _no_deadline())
+        if not isinstance(result, GraphResult):  # pragma: no cover - a CONSTRUCT always gives a graph
+            raise QueryEvaluationError("a write's template did not give triples")
+        if result.truncated:
+            raise WriteTooLarge(f"the update changes more than {limit} triples; split it")
+        return list(result.triples)
+
+    def _scratch(self, removes: list[Triple], adds: list[Triple]) -> list[tuple[str, Triple]]:
+        store = self._store()
+        undo: list[tuple[str, Triple]] = []
+        for triple in removes:
+            if _quad(triple) in store:
+                store.remove(_quad(triple))
+                undo.append(("add", triple))
+        for triple in adds:
+            if _quad(triple) not in store:
+                store.add(_quad(triple))
+                undo.append(("remove", triple))
+        return undo
+
+    def _unscratch(self, undo: list[tuple[str, Triple]]) -> None:
+        store = self._store() if undo else None
+        for action, triple in reversed(undo):
+            assert store is not None
+            (store.add if action == "add" else store.remove)(_quad(triple))
+
+    def _write(self, removes: list[Triple], adds: list[Triple]) -> Written:
+        by_module: dict[str, tuple[list[Triple], list[Triple]]] = {}
+        for triple in removes:
+            by_module.setdefault(self.module_of(triple), ([], []))[0].append(triple)
+        for triple in adds:
+            by_module.setdefault(self.module_of(triple), ([], []))[1].append(triple)
+        deltas: dict[str, Delta] = {}
+        now = self._wall_ms()
+        for module, (gone, new) in by_module.items():
+            delta, effect = self.replicas[module].write(gone, new, now, self._is_base)
+            deltas[module] = delta
+            self._show(effect)
+        self._changed(frozenset(deltas))
+        return Written(deltas, self.etag, len(removes), len(adds))
+
+    # -------------------------------------------------------------- joining
+
+    def apply(self, module: str, deltas: Iterable[Delta]) -> bool:
+        """Join teammates' deltas of ``module``; whether the view changed."""
+        replica = self.replicas[module]
+        changed = False
+        for delta in deltas:
+            effect = replica.apply(delta, self._is_base)
+            changed |= bool(effect)
+            self._show(effect)
+        self._changed(frozenset({module}) if changed else frozenset())
+        return changed
+
+    def join(self, module: str, state: WrittenState) -> bool:
+        effect = self.replicas[module].join(state, self._is_base)
+        self._show(effect)
+        self._changed(frozenset({module}) if effect else frozenset())
+        return bool(effect)
+
+    def _store(self) -> ox.Store:
+        if self._view is None:
+            # Copy on first write: until then the files' graph serves queries
+            # (and in the simulator stays shared by every robot loading it).
+            view = ox.Store()
+            view.extend(self._base_store)
+            self._view = OxigraphBackend(view)
+        return self._view.store
+
+    def _show(self, effect: Effect) -> None:
+        if not effect:
+            return
+        store = self._store()
+        for triple in effect.removed:
+            store.remove(_quad(triple))
+        for triple in effect.added:
+            store.add(_quad(triple))
+
+    def _changed(self, modules: frozenset[str]) -> None:
+        self._etag = None
+        if modules:
+            for listener in list(self.listeners):
+                listener(modules)
+
+
+def _quad(triple: Triple) -> ox.Quad:
+    s, p, o = triple
+    return ox.Quad(_to_ox(s), _to_ox(p), _to_ox(o))  # type: ignore[arg-type]  # positions checked on the way in
+
+
+def _check_term_kinds(triple: Triple) -> None:
+    s, p, o = triple
+    if any(isinstance(t, BNode) for t in triple):
+        raise UpdateUnsupported("blank nodes cannot be written: they have no identity across robots; use an IRI")
+    if not isinstance(s, URIRef) or not isinstance(p, URIRef) or not isinstance(o, (URIRef, Literal)):
+        raise UpdateUnsupported("a triple is an IRI subject, an IRI predicate and an IRI or literal object")
+
+
+def _no_deadline():  # noqa: ANN202 - the KB's own deadline type
+    from .limits import Deadline
+
+    return Deadline(None)

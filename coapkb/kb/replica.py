@@ -1,0 +1,465 @@
+"""A module's replicated, writable state: a set of triples that every holder
+changes and that converges whatever the order of delivery (pure, no I/O).
+
+The model (``docs/knowledge.md``) is a delta-state observed-remove set of
+triples, after the ORSWOT of Riak and the delta CRDTs of Almeida et al.:
+
+* Every write gets a *dot* ``(writer, seq)``; a writer is one incarnation of
+  one holder, and its sequence numbers count up from 1.
+* A triple is live while it carries at least one dot.  A write that adds a
+  triple tags it with the write's dot; a write that removes a triple drops
+  the dots it saw on it.  What the writer did not see (a concurrent add)
+  survives: add wins.
+* The triples loaded from the module's files carry no dot: they are the
+  base every holder loads alike.  Removing one records it in
+  ``removed_base``, a set that only grows.
+* The *causal context* is every dot a replica has seen (a version vector
+  plus the dots past a gap).  A delta is a write's context (its dot and the
+  dots it removed) and its adds; applying one is the join of two states,
+  so applying deltas in any order, twice, or a whole state at once gives
+  the same result.  A remove that arrives before the add it removes wins:
+  the add's dot is already in the context.
+* A predicate with one value (a robot's position, its battery) keeps the
+  value whose write has the greatest hybrid-logical-clock stamp; the
+  others stay in the set, shadowed, so the choice is the same everywhere.
+
+Catch-up sends the deltas a peer's context lacks from the journal, so what
+it costs grows with what the peer missed; when the journal no longer has
+them, the whole written state (what changed against the files, never the
+files themselves).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+
+from .errors import KBError
+from .results import Term, Triple
+
+__all__ = [
+    "BASE_STAMP",
+    "CausalContext",
+    "Delta",
+    "Dot",
+    "Effect",
+    "Replica",
+    "ReplicaFull",
+    "ReplicaLimits",
+    "Stamp",
+    "WrittenState",
+]
+
+
+@dataclass(frozen=True, order=True)
+class Dot:
+    """One write: its writer (a holder's incarnation) and that writer's count."""
+
+    writer: str
+    seq: int
+
+
+@dataclass(frozen=True, order=True)
+class Stamp:
+    """A hybrid logical clock reading: wall milliseconds, a counter for
+    writes within one millisecond or behind a faster clock, and the writer
+    (so two stamps are never equal)."""
+
+    ms: int
+    counter: int
+    writer: str
+
+
+#: The stamp of a value loaded from the files: older than any write.
+BASE_STAMP = Stamp(0, 0, "")
+
+
+class CausalContext:
+    """The dots a replica has seen: a version vector (every seq up to
+    ``vv[writer]``) and the dots beyond a gap (``cloud``)."""
+
+    def __init__(self, vv: Mapping[str, int] | None = None, cloud: Iterable[Dot] = ()) -> None:
+        self.vv: dict[str, int] = dict(vv or {})
+        self.cloud: set[Dot] = set()
+        for dot in cloud:
+            self.add(dot)
+
+    def __contains__(self, dot: Dot) -> bool:
+        return dot.seq <= self.vv.get(dot.writer, 0) or dot in self.cloud
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, CausalContext) and self.vv == other.vv and self.cloud == other.cloud
+
+    def __repr__(self) -> str:
+        return f"CausalContext({self.vv}, cloud={sorted(self.cloud)})"
+
+    def add(self, dot: Dot) -> None:
+        if dot in self:
+            return
+        if dot.seq == self.vv.get(dot.writer, 0) + 1:
+            self.vv[dot.writer] = dot.seq
+            self._compact(dot.writer)
+        else:
+            self.cloud.add(dot)
+
+    def merge(self, other: CausalContext) -> None:
+        for writer, seq in other.vv.items():
+            if seq > self.vv.get(writer, 0):
+                self.vv[writer] = seq
+                self._compact(writer)
+        for dot in other.cloud:
+            self.add(dot)
+        self.cloud = {d for d in self.cloud if d.seq > self.vv.get(d.writer, 0)}
+
+    def _compact(self, writer: str) -> None:
+        nxt = Dot(writer, self.vv[writer] + 1)
+        while nxt in self.cloud:
+            self.cloud.discard(nxt)
+            self.vv[writer] = nxt.seq
+            nxt = Dot(writer, nxt.seq + 1)
+
+    def missing_from(self, other: CausalContext) -> Iterator[Dot]:
+        """The dots seen here that ``other`` has not seen."""
+        for writer, top in self.vv.items():
+            for seq in range(other.vv.get(writer, 0) + 1, top + 1):
+                dot = Dot(writer, seq)
+                if dot not in other:
+                    yield dot
+        for dot in self.cloud:
+            if dot not in other:
+                yield dot
+
+    def covers(self, other: CausalContext) -> bool:
+        return next(other.missing_from(self), None) is None
+
+    def copy(self) -> CausalContext:
+        return CausalContext(self.vv, self.cloud)
+
+    def summary(self) -> tuple[tuple[str, int], ...]:
+        """A canonical form (version vector, then the cloud), for a version ETag."""
+        return tuple(sorted(self.vv.items())) + tuple((d.writer, -d.seq) for d in sorted(self.cloud))
+
+
+@dataclass(frozen=True)
+class Delta:
+    """One write as it travels between holders.
+
+    Its context is its own dot and the dots it removed; its adds are tagged
+    with its dot.  ``removed_base`` names the files' triples it removed."""
+
+    dot: Dot
+    stamp: Stamp
+    added: tuple[Triple, ...] = ()
+    removed: tuple[Dot, ...] = ()
+    removed_base: tuple[Triple, ...] = ()
+
+    @property
+    def size(self) -> int:
+        """Triples and dots it carries: what a journal's bound counts."""
+        return 1 + len(self.added) + len(self.removed) + len(self.removed_base)
+
+
+@dataclass(frozen=True)
+class WrittenState:
+    """Everything a replica's writes changed against the files: a whole state
+    to join when the journal no longer holds a peer's missing deltas."""
+
+    context: CausalContext
+    #: triple -> its live dots and their stamps
+    entries: Mapping[Triple, Mapping[Dot, Stamp]]
+    removed_base: frozenset[Triple]
+
+
+@dataclass(frozen=True)
+class Effect:
+    """What a delta changed in the visible graph: the store applies it."""
+
+    removed: frozenset[Triple] = frozenset()
+    added: frozenset[Triple] = frozenset()
+
+    def __bool__(self) -> bool:
+        return bool(self.removed or self.added)
+
+
+@dataclass(frozen=True)
+class ReplicaLimits:
+    """Bounds on what a write flood can make a replica hold."""
+
+    #: Deltas kept for catch-up, counted in triples and dots (:attr:`Delta.size`);
+    #: past it the oldest go and a peer that needs them gets the whole state.
+    journal_max: int = 20_000
+    #: Written triples (live or shadowed) a replica accepts; past it a local
+    #: write is refused (a peer's is still joined: refusing it would split).
+    entries_max: int = 100_000
+    #: Dots past a gap, waiting for the deltas before them.
+    cloud_max: int = 10_000
+
+    def __post_init__(self) -> None:
+        for name in ("journal_max", "entries_max", "cloud_max"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+
+
+class ReplicaFull(KBError):
+    """A local write would pass :attr:`ReplicaLimits.entries_max`."""
+
+
+class Replica:
+    """One holder's copy of a module's writes (see the module docstring).
+
+    ``base_values(s, p)`` gives the files' objects of a single-valued
+    property; ``single_valued`` names those properties."""
+
+    def __init__(
+        self,
+        writer: str,
+        *,
+        single_valued: frozenset[Term] = frozenset(),
+        base_values: Callable[[Term, Term], Iterable[Term]] = lambda s, p: (),
+        limits: ReplicaLimits | None = None,
+    ) -> None:
+        self.writer = writer
+        self.single_valued = single_valued
+        self._base_values = base_values
+        self.limits = limits or ReplicaLimits()
+        self.context = CausalContext()
+        self.entries: dict[Triple, dict[Dot, Stamp]] = {}
+        self.removed_base: set[Triple] = set()
+        self._by_dot: dict[Dot, set[Triple]] = {}
+        #: (subject, single-valued predicate) -> objects with entries
+        self._values: dict[tuple[Term, Term], set[Term]] = {}
+        self.journal: OrderedDict[Dot, Delta] = OrderedDict()
+        self._journal_size = 0
+        self._seq = 0
+        self._clock = BASE_STAMP
+
+    # ------------------------------------------------------------ versions
+
+    def stamp(self, now_ms: int) -> Stamp:
+        """The next hybrid-logical-clock stamp of a local write."""
+        last = self._clock
+        stamp = Stamp(now_ms, 0, self.writer) if now_ms > last.ms else Stamp(last.ms, last.counter + 1, self.writer)
+        self._clock = stamp
+        return stamp
+
+    def _observe(self, stamp: Stamp) -> None:
+        if (stamp.ms, stamp.counter) > (self._clock.ms, self._clock.counter):
+            self._clock = Stamp(stamp.ms, stamp.counter, self.writer)
+
+    # ---------------------------------------------------------- visibility
+
+    def live_dots(self, triple: Triple) -> Mapping[Dot, Stamp]:
+        return self.entries.get(triple, {})
+
+    def _present(self, triple: Triple, is_base: bool) -> bool:
+        """Live by the set's rules, before single values shadow any."""
+        return bool(self.entries.get(triple)) or (is_base and triple not in self.removed_base)
+
+    def _winners(self, s: Term, p: Term) -> frozenset[Term]:
+        """The visible objects of a single-valued property: the greatest stamp's."""
+        best: Stamp | None = None
+        chosen: set[Term] = set()
+        candidates = [(o, True) for o in self._base_values(s, p)] + [(o, False) for o in self._values.get((s, p), ())]
+        for o, from_base in candidates:
+            triple = (s, p, o)
+            dots = self.entries.get(triple)
+            if dots:
+                top = max(dots.values())
+            elif from_base and triple not in self.removed_base:
+                top = BASE_STAMP
+            else:
+                continue
+            if best is None or top > best:
+                best, chosen = top, {o}
+            elif top == best:
+                chosen.add(o)
+        return frozenset(chosen)
+
+    def visible(self, triple: Triple, is_base: bool) -> bool:
+        s, p, o = triple
+        if p in self.single_valued:
+            return o in self._winners(s, p)
+        return self._present(triple, is_base)
+
+    def _snapshot(self, triples: Iterable[Triple], is_base: Callable[[Triple], bool]) -> dict[Triple, bool]:
+        seen: dict[Triple, bool] = {}
+        for triple in triples:
+            s, p, _ = triple
+            if p in self.single_valued:
+                winners = self._winners(s, p)
+                for o in set(self._base_values(s, p)) | self._values.get((s, p), set()):
+                    seen[(s, p, o)] = o in winners
+            seen[triple] = self.visible(triple, is_base(triple))
+        return seen
+
+    def _effect(self, before: dict[Triple, bool], is_base: Callable[[Triple], bool]) -> Effect:
+        after = self._snapshot(before, is_base)
+        return Effect(
+            removed=frozenset(t for t, v in before.items() if v and not after.get(t, False)),
+            added=frozenset(t for t, v in after.items() if v and not before.get(t, False)),
+        )
+
+    # --------------------------------------------------------------- writes
+
+    def write(
+        self, removes: Iterable[Triple], adds: Iterable[Triple], now_ms: int, is_base: Callable[[Triple], bool]
+    ) -> tuple[Delta, Effect]:
+        """A local write: remove what is seen of ``removes``, add ``adds``.
+
+        Raises :class:`ReplicaFull` past the entries bound (nothing changes)."""
+        adds = tuple(dict.fromkeys(adds))
+        added = set(adds)
+        removes = tuple(t for t in dict.fromkeys(removes) if t not in added)
+        fresh = sum(1 for t in adds if t not in self.entries)
+        if len(self.entries) + fresh > self.limits.entries_max:
+            raise ReplicaFull(
+                f"this module holds {len(self.entries)} written triples; at most {self.limits.entries_max}"
+            )
+        self._seq += 1
+        removed_dots: set[Dot] = set()
+        removed_base: dict[Triple, None] = {}
+        for triple in removes:
+            s, p, _ = triple
+            # Removing a single value removes the values it shadows too:
+            # else an older one would show again.
+            gone = [triple]
+            if p in self.single_valued:
+                gone += [(s, p, o) for o in self._values.get((s, p), ())]
+                gone += [(s, p, o) for o in self._base_values(s, p)]
+            for t in gone:
+                removed_dots.update(self.entries.get(t, {}))
+                if is_base(t) and t not in self.removed_base:
+                    removed_base[t] = None
+        delta = Delta(
+            Dot(self.writer, self._seq), self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base)
+        )
+        return delta, self.apply(delta, is_base)
+
+    def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
+        """Join a delta (idempotent, in any order); what it changed in view."""
+        if delta.dot in self.context and all(d in self.context for d in delta.removed):
+            # Seen already: a duplicate, or covered by a whole state joined.
+            return Effect()
+        self._observe(delta.stamp)
+        touched: set[Triple] = set(delta.added) | set(delta.removed_base)
+        for dot in delta.removed:
+            touched |= self._by_dot.get(dot, set())
+        before = self._snapshot(touched, is_base)
+        for dot in delta.removed:
+            for triple in self._by_dot.pop(dot, set()):
+                self._drop(triple, dot)
+        if delta.dot not in self.context:
+            for triple in delta.added:
+                self._tag(triple, delta.dot, delta.stamp)
+        self.removed_base.update(delta.removed_base)
+        self.context.add(delta.dot)
+        for dot in delta.removed:
+            self.context.add(dot)
+        self._journal(delta)
+        return self._effect(before, is_base)
+
+    def _tag(self, triple: Triple, dot: Dot, stamp: Stamp) -> None:
+        self.entries.setdefault(triple, {})[dot] = stamp
+        self._by_dot.setdefault(dot, set()).add(triple)
+        s, p, o = triple
+        if p in self.single_valued:
+            self._values.setdefault((s, p), set()).add(o)
+
+    def _drop(self, triple: Triple, dot: Dot) -> None:
+        dots = self.entries.get(triple)
+        if dots is None:
+            return
+        dots.pop(dot, None)
+        if not dots:
+            del self.entries[triple]
+            s, p, o = triple
+            values = self._values.get((s, p))
+            if values is not None:
+                values.discard(o)
+                if not values:
+                    del self._values[(s, p)]
+
+    # ---------------------------------------------------------- the journal
+
+    def _journal(self, delta: Delta) -> None:
+        if delta.dot in self.journal:
+            return
+        self.journal[delta.dot] = delta
+        self._journal_size += delta.size
+        while self._journal_size > self.limits.journal_max and len(self.journal) > 1:
+            self._forget(next(iter(self.journal)))
+
+    def _forget(self, dot: Dot) -> None:
+        delta = self.journal.pop(dot)
+        self._journal_size -= delta.size
+
+    def compact(self, peers: Iterable[CausalContext]) -> int:
+        """Forget the deltas every peer in ``peers`` has seen; how many went."""
+        contexts = list(peers)
+        gone = [dot for dot in self.journal if all(dot in c for c in contexts)]
+        for dot in gone:
+            self._forget(dot)
+        return len(gone)
+
+    def missing_for(self, peer: CausalContext) -> list[Delta] | WrittenState:
+        """What ``peer`` lacks: the deltas from the journal, in the order
+        they came, or the whole written state when the journal no longer
+        holds one of them."""
+        missing = list(self.context.missing_from(peer))
+        if any(dot not in self.journal for dot in missing):
+            return self.state()
+        wanted = set(missing)
+        return [d for dot, d in self.journal.items() if dot in wanted]
+
+    # ---------------------------------------------------------- whole state
+
+    def state(self) -> WrittenState:
+        return WrittenState(
+            self.context.copy(),
+            {t: dict(dots) for t, dots in self.entries.items()},
+            frozenset(self.removed_base),
+        )
+
+    def join(self, other: WrittenState, is_base: Callable[[Triple], bool]) -> Effect:
+        """Join a whole state (a peer's, for catch-up)."""
+        touched: set[Triple] = set(other.entries) | (set(other.removed_base) - self.removed_base)
+        removed: list[tuple[Triple, Dot]] = []
+        for triple, dots in self.entries.items():
+            theirs = other.entries.get(triple, {})
+            for dot in dots:
+                if dot in other.context and dot not in theirs:
+                    removed.append((triple, dot))
+                    touched.add(triple)
+        before = self._snapshot(touched, is_base)
+        for triple, dot in removed:
+            self._drop(triple, dot)
+            left = self._by_dot.get(dot)
+            if left is not None:
+                left.discard(triple)
+                if not left:
+                    del self._by_dot[dot]
+        for triple, dots in other.entries.items():
+            for dot, stamp in dots.items():
+                self._observe(stamp)
+                if dot not in self.context:
+                    self._tag(triple, dot, stamp)
+        self.removed_base |= other.removed_base
+        self.context.merge(other.context)
+        return self._effect(before, is_base)
+
+    def equal_to(self, other: Replica) -> bool:
+        """Same set, same context (for tests and the simulator's checker)."""
+        return (
+            self.context == other.context
+            and self.entries == other.entries
+            and self.removed_base == other.removed_base
+        )
+
+    @property
+    def journal_size(self) -> int:
+        return self._journal_size
+
+    def gaps(self) -> int:
+        return len(self.context.cloud)
+

@@ -1,0 +1,196 @@
+"""The replication message: a holder's context and the changes it sends
+(pure; specified in ``docs/knowledge.cddl``).
+
+::
+
+    sync     = [module: tstr, context, changes / null]
+    context  = [* [writer: tstr, top: uint, ? [+ seq: uint]]]   ; vv, then dots past a gap
+    changes  = [* delta] / state
+    delta    = [writer: tstr, seq: uint, ms: uint, counter: uint,
+                removed: [* [writer: tstr, [+ seq: uint]]],
+                removed-base: graph-item, added: graph-item]
+    state    = {1: context, 2: graph-item, 3: [* [+ dot-stamp]], 4: graph-item}
+    dot-stamp = [writer: tstr, seq: uint, ms: uint, counter: uint]
+    graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
+
+In a state, key 2 is the written triples, key 3 the dots (and stamps) of
+each in the same order, key 4 the files' triples removed.  Decoders raise
+:class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cbor2
+
+from ..kb.replica import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..kb.results import Triple
+from . import codec
+from .codec import CodecError, decode_graph_item
+
+__all__ = ["SyncMessage", "decode_sync", "encode_sync"]
+
+#: Bounds a decoder holds garbage to before building anything from it.
+MAX_WRITERS = 4096
+MAX_DELTAS = 100_000
+
+
+@dataclass(frozen=True)
+class SyncMessage:
+    module: str
+    context: CausalContext
+    #: Deltas, a whole written state, or None (only the context: "what do I lack?").
+    changes: Sequence[Delta] | WrittenState | None = None
+
+
+def _context(context: CausalContext) -> list[list[object]]:
+    cloud: dict[str, list[int]] = {}
+    for dot in sorted(context.cloud):
+        cloud.setdefault(dot.writer, []).append(dot.seq)
+    items: list[list[object]] = []
+    for writer in sorted(set(context.vv) | set(cloud)):
+        item: list[object] = [writer, context.vv.get(writer, 0)]
+        if writer in cloud:
+            item.append(cloud[writer])
+        items.append(item)
+    return items
+
+
+def _dots(dots: Sequence[Dot]) -> list[list[object]]:
+    grouped: dict[str, list[int]] = {}
+    for dot in dots:
+        grouped.setdefault(dot.writer, []).append(dot.seq)
+    return [[writer, seqs] for writer, seqs in grouped.items()]
+
+
+def _delta(delta: Delta) -> list[object]:
+    return [
+        delta.dot.writer,
+        delta.dot.seq,
+        delta.stamp.ms,
+        delta.stamp.counter,
+        _dots(delta.removed),
+        codec.graph_item(delta.removed_base),
+        codec.graph_item(delta.added),
+    ]
+
+
+def _state(state: WrittenState) -> dict[int, object]:
+    triples = list(state.entries)
+    return {
+        1: _context(state.context),
+        2: codec.graph_item(triples),
+        3: [[[d.writer, d.seq, s.ms, s.counter] for d, s in sorted(state.entries[t].items())] for t in triples],
+        4: codec.graph_item(sorted(state.removed_base, key=repr)),
+    }
+
+
+def encode_sync(message: SyncMessage) -> bytes:
+    changes: object = None
+    if isinstance(message.changes, WrittenState):
+        changes = _state(message.changes)
+    elif message.changes is not None:
+        changes = [_delta(d) for d in message.changes]
+    return cbor2.dumps([message.module, _context(message.context), changes])
+
+
+# ------------------------------------------------------------------ decoding
+
+
+def _uint(item: object, what: str) -> int:
+    if not isinstance(item, int) or isinstance(item, bool) or item < 0:
+        raise CodecError(f"{what}: expected an unsigned integer")
+    return item
+
+
+def _text(item: object, what: str) -> str:
+    if not isinstance(item, str) or not item or len(item) > 200:
+        raise CodecError(f"{what}: expected a name")
+    return item
+
+
+def _list(item: object, what: str, limit: int = MAX_DELTAS) -> list[object]:
+    if not isinstance(item, list) or len(item) > limit:
+        raise CodecError(f"{what}: expected an array of at most {limit}")
+    return item
+
+
+def _decode_context(item: object) -> CausalContext:
+    vv: dict[str, int] = {}
+    cloud: list[Dot] = []
+    for entry in _list(item, "context", MAX_WRITERS):
+        entry = _list(entry, "context entry", 3)
+        if len(entry) < 2:
+            raise CodecError("context entry: expected [writer, top, ?seqs]")
+        writer = _text(entry[0], "context writer")
+        vv[writer] = _uint(entry[1], "context top")
+        if len(entry) == 3:
+            cloud += [Dot(writer, _uint(s, "context seq")) for s in _list(entry[2], "context seqs")]
+    return CausalContext({w: s for w, s in vv.items() if s}, cloud)
+
+
+def _decode_delta(item: object) -> Delta:
+    fields = _list(item, "delta", 7)
+    if len(fields) != 7:
+        raise CodecError("delta: expected 7 fields")
+    writer = _text(fields[0], "delta writer")
+    seq = _uint(fields[1], "delta seq")
+    if seq == 0:
+        raise CodecError("delta seq: counts from 1")
+    removed: list[Dot] = []
+    for group in _list(fields[4], "removed dots", MAX_WRITERS):
+        group = _list(group, "removed dots entry", 2)
+        if len(group) != 2:
+            raise CodecError("removed dots entry: expected [writer, seqs]")
+        removed += [Dot(_text(group[0], "removed writer"), _uint(s, "removed seq")) for s in _list(group[1], "seqs")]
+    return Delta(
+        Dot(writer, seq),
+        Stamp(_uint(fields[2], "delta ms"), _uint(fields[3], "delta counter"), writer),
+        added=decode_graph_item(fields[6], "added"),
+        removed=tuple(removed),
+        removed_base=decode_graph_item(fields[5], "removed base"),
+    )
+
+
+def _decode_state(item: dict[object, object]) -> WrittenState:
+    if set(item) != {1, 2, 3, 4}:
+        raise CodecError("state: expected keys 1-4")
+    triples = decode_graph_item(item[2], "state triples")
+    dots = _list(item[3], "state dots")
+    if len(dots) != len(triples):
+        raise CodecError("state: a dot list per triple")
+    entries: dict[Triple, dict[Dot, Stamp]] = {}
+    for triple, tags in zip(triples, dots):
+        tagged: dict[Dot, Stamp] = {}
+        for tag in _list(tags, "state dot list", MAX_WRITERS):
+            tag = _list(tag, "state dot", 4)
+            if len(tag) != 4:
+                raise CodecError("state dot: expected [writer, seq, ms, counter]")
+            writer = _text(tag[0], "state writer")
+            tagged[Dot(writer, _uint(tag[1], "state seq"))] = Stamp(
+                _uint(tag[2], "state ms"), _uint(tag[3], "state counter"), writer
+            )
+        if not tagged:
+            raise CodecError("state: a written triple has at least one dot")
+        entries[triple] = tagged
+    return WrittenState(_decode_context(item[1]), entries, frozenset(decode_graph_item(item[4], "removed base")))
+
+
+def decode_sync(data: bytes) -> SyncMessage:
+    item = codec.load_cbor(data)
+    fields = _list(item, "sync", 3)
+    if len(fields) != 3:
+        raise CodecError("sync: expected [module, context, changes]")
+    module = _text(fields[0], "module")
+    context = _decode_context(fields[1])
+    raw = fields[2]
+    changes: Sequence[Delta] | WrittenState | None
+    if raw is None:
+        changes = None
+    elif isinstance(raw, dict):
+        changes = _decode_state(raw)
+    else:
+        changes = [_decode_delta(d) for d in _list(raw, "changes")]
+    return SyncMessage(module, context, changes)
