@@ -15,6 +15,7 @@ against the folder of the TOML file, not the working directory)::
     # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
     strategy = "compute-by-all"
     # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
+    # kb_writable = true     # take writes (PATCH /kb) and replicate them with the module's holders
 
     [start]                  # initial state; left out: the depot (aisle 1, rack 0)
     aisle = 9                # aisles are numbered from 1; racks 0..R+1 (0, R+1: the cross-aisles)
@@ -34,6 +35,12 @@ against the folder of the TOML file, not the working directory)::
     [team.Robot3]
     endpoint = "coap://127.0.0.1:5723"
     kbs = ["Capability", "Location"]
+
+    # Optional, with kb_writable: holders of this robot's modules in other
+    # clusters, each write passed on to them (docs/knowledge.md).
+    # [replicas.Robot4]
+    # endpoint = "coap://127.0.0.1:5724"
+    # kbs = ["Location", "Object"]
 
     # Optional: find the teammates in a Resource Directory (RFC 9176) instead;
     # the team table then needs this robot only, and other entries are the
@@ -175,6 +182,10 @@ class RobotConfig:
     lease_s: float = 3.0
     #: How the teammates are found (``[discovery]``); default: the ``team`` table.
     discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
+    #: Take writes and replicate them with the holders of its modules.
+    kb_writable: bool = False
+    #: Holders of its modules in other clusters (``[replicas]``): writes pass on to them.
+    replicas: Mapping[str, Teammate] = field(default_factory=dict)
 
     @property
     def transport(self) -> str:
@@ -237,6 +248,11 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         discovery["rd"] = None if config.discovery.rd is None else str(config.discovery.rd)
         data["discovery"] = {k: v for k, v in discovery.items() if v is not None}
     data["team"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)} for m in config.team.values()}
+    if config.kb_writable:
+        data["kb_writable"] = True
+    if config.replicas:
+        data["replicas"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)}
+                            for m in config.replicas.values()}
     return data
 
 
@@ -250,7 +266,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
-        "discovery", "lease_s",
+        "discovery", "lease_s", "kb_writable", "replicas",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -264,21 +280,10 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     strategy = _get(data, "strategy", str, "compute-by-all")
     if strategy not in STRATEGIES:
         raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
-    team_data = _get(data, "team", dict)
-    team = {}
-    for mate_id, mate in team_data.items():
-        where = f"team.{mate_id}"
-        if not isinstance(mate, dict):
-            raise ConfigError(f"{where}: expected a table")
-        _no_unknown(mate, {"endpoint", "kbs"}, where + ".")
-        endpoint = _endpoint(_get(mate, "endpoint", str, where=where), where + ".endpoint")
-        kbs = tuple(_get(mate, "kbs", list, [], where=where))
-        for kb in kbs:
-            if kb not in KB_MODULES:
-                raise ConfigError(f"{where}.kbs: unknown KB module {kb!r} (choose from {', '.join(KB_MODULES)})")
-        if endpoint.scheme != bind.scheme:
-            raise ConfigError(f"{where}.endpoint: {endpoint.scheme} teammate, but this robot uses {bind.scheme}")
-        team[mate_id] = Teammate(mate_id, endpoint, kbs)
+    team = _teammates(_get(data, "team", dict), "team", bind)
+    replicas = _teammates(_get(data, "replicas", dict, {}), "replicas", bind)
+    if robot_id in replicas or set(replicas) & set(team):
+        raise ConfigError("replicas: list robots of other clusters, not this robot or its teammates")
     if robot_id not in team:
         raise ConfigError(f"team: must list this robot ({robot_id}) too")
     try:
@@ -303,9 +308,29 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         kb_index=None if kb_index is None else (base_dir / kb_index),
         discovery=_discovery(data.get("discovery", {})),
         lease_s=float(_get(data, "lease_s", (int, float), 3.0)),
+        kb_writable=_get(data, "kb_writable", bool, False),
+        replicas=replicas,
     )
     _check_values(config)
     return config
+
+
+def _teammates(table: Mapping[str, Any], section: str, bind: Endpoint) -> dict[str, Teammate]:
+    team = {}
+    for mate_id, mate in table.items():
+        where = f"{section}.{mate_id}"
+        if not isinstance(mate, dict):
+            raise ConfigError(f"{where}: expected a table")
+        _no_unknown(mate, {"endpoint", "kbs"}, where + ".")
+        endpoint = _endpoint(_get(mate, "endpoint", str, where=where), where + ".endpoint")
+        kbs = tuple(_get(mate, "kbs", list, [], where=where))
+        for kb in kbs:
+            if kb not in KB_MODULES:
+                raise ConfigError(f"{where}.kbs: unknown KB module {kb!r} (choose from {', '.join(KB_MODULES)})")
+        if endpoint.scheme != bind.scheme:
+            raise ConfigError(f"{where}.endpoint: {endpoint.scheme} teammate, but this robot uses {bind.scheme}")
+        team[mate_id] = Teammate(mate_id, endpoint, kbs)
+    return team
 
 
 def _check_values(c: RobotConfig) -> None:

@@ -14,6 +14,7 @@ the same protocol code runs in both.
 from __future__ import annotations
 
 import random
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Protocol, Sequence
@@ -67,6 +68,8 @@ class Host:
     #: May blocking work (a SPARQL query) go to a worker thread?  Not in the
     #: simulator: its processes share one thread and replay from a seed.
     threads: bool = True
+    #: Wall-clock milliseconds: a KB write's timestamp (virtual in the simulator).
+    wall_ms: Callable[[], int] = field(default=lambda: time.time_ns() // 1_000_000)
 
 
 def operating_system() -> Host:

@@ -29,6 +29,8 @@ from ..kb.client import KBClient
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..config import ConfigError, RobotConfig
 from ..kb.named_queries import NAMED_QUERIES
+from ..kb.live import LiveKB
+from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
@@ -90,6 +92,14 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
         )
 
 
+def module_holders(config: RobotConfig, modules: Iterable[str]) -> list[Holder]:
+    """The other robots holding any of ``modules``: teammates, then the
+    holders in other clusters (``replicas``)."""
+    held = set(modules)
+    mates = [m for m in (*config.team.values(), *config.replicas.values()) if m.robot_id != config.robot_id]
+    return [Holder(m.robot_id, m.endpoint, tuple(k for k in m.kbs if k in held)) for m in mates if held & set(m.kbs)]
+
+
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).
 STATS_SNAPSHOT_S = 5.0
 #: Tries to deliver the leader's decision to a follower ("compute and communicate"),
@@ -132,6 +142,8 @@ class Robot:
         self.directory: Any = None
         #: How late its own event loop runs (set at start).
         self.health: LoopHealth | None = None
+        #: Spreads its KB's writes to the other holders (``kb_writable``).
+        self.replicator: Replicator | None = None
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> "Robot":
@@ -163,18 +175,25 @@ class Robot:
         kb = host.load_kb(config.kb_files, config.kb_index) if config.kb_files else None
         check_start(config, kb)
         router = Router()
-        if kb is not None:
-            KBResources(kb, threads=host.threads).mount(router)
         # One reliability layer for the client and the server's notifications.
         reliability = reliability_for(config.transport, link_kbps=config.link_kbps)
         client = await host.network.open_client(config.transport, reliability=reliability, security=client_security)
+        # Nonzero, so it is always sent: teammates tell a restart by it.
+        boot = host.rng.randrange(1, 2**32)
+        replicator = None
+        if kb is not None:
+            served: KnowledgeBase | LiveKB = kb
+            if config.kb_writable:
+                # Each incarnation writes as a writer of its own: its counts start again at 1.
+                served = LiveKB(kb, f"{config.robot_id}.{boot}", wall_ms=host.wall_ms)
+                replicator = Replicator(served, client, module_holders(config, served.names), rng=host.rng)
+            KBResources(served, threads=host.threads, replicator=replicator).mount(router)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
             plan=PlannedState(start.aisle, start.rack, start.battery_wh, 0.0, start.payload_kg, seq=0),
             live=LiveState(float(start.aisle), float(start.rack)),
-            # Nonzero, so it is always sent: teammates tell a restart by it.
-            boot=host.rng.randrange(1, 2**32),
+            boot=boot,
         )
         teammates = {r: m.endpoint for r, m in config.team.items() if r != config.robot_id}
         # Local health: this robot's own loop lateness, so its failure
@@ -227,6 +246,7 @@ class Robot:
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot.progress = (state_changed, outcome_changed)
         robot.health = health
+        robot.replicator = replicator
         robot._mount()  # before serving: the transport publishes the resource list
         try:
             server_side = None
@@ -239,6 +259,8 @@ class Robot:
             await client.aclose()
             raise
         health.start()
+        if replicator is not None:
+            replicator.start()
         team.start()
         executor.start()
         controller.start()
@@ -267,6 +289,8 @@ class Robot:
         for pacing in self.progress:
             pacing.cancel()
         await self.team.aclose()
+        if self.replicator is not None:
+            await self.replicator.aclose()
         if self.health is not None:
             await self.health.aclose()
         if self.server is not None:

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
-from ..transport.messages import ContentFormat, Method
+from ..transport.base import Endpoint
+from ..transport.messages import ContentFormat, Method, Request
 from .common import UserError, add_credentials, client_security, parse_endpoint
 from .render import render
 
@@ -30,12 +31,15 @@ def add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")
     p.add_argument("--method", choices=("fetch", "post", "get"), default="fetch")
     p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
+    p.add_argument("--observe", action="store_true",
+                   help="keep printing the answer each time it changes (RFC 7641; SPARQL text is observed by FETCH)")
     add_credentials(p, "operator")
     p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
     p.set_defaults(run=_query)
 
 
-def _read_query_text(arg: str | None) -> str | None:
+def read_text(arg: str | None, what: str = "query") -> str | None:
+    """``arg`` itself, or a file's text (``@FILE``), or stdin's (``-``)."""
     if arg is None:
         return None
     if arg == "-":
@@ -44,8 +48,14 @@ def _read_query_text(arg: str | None) -> str | None:
         try:
             return Path(arg[1:]).read_text(encoding="utf-8")
         except OSError as exc:
-            raise UserError(f"cannot read query file {arg[1:]}: {exc.strerror}") from None
+            raise UserError(f"cannot read {what} file {arg[1:]}: {exc.strerror}") from None
     return arg
+
+
+def split_robot_uri(uri: str) -> tuple[Endpoint, str]:
+    """A robot's endpoint and the path of ``uri`` (``coap://`` if no scheme)."""
+    parts = urlsplit(uri if "://" in uri else f"coap://{uri}")
+    return parse_endpoint(f"{parts.scheme}://{parts.netloc}", parts.scheme), parts.path
 
 
 async def _query(args: argparse.Namespace) -> int:
@@ -54,8 +64,8 @@ async def _query(args: argparse.Namespace) -> int:
     from ..transport import TransportError, open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
-    peer = parse_endpoint(f"{parts.scheme}://{parts.netloc}", parts.scheme)
-    text = _read_query_text(args.sparql)
+    peer, _ = split_robot_uri(args.uri)
+    text = read_text(args.sparql)
     named = parts.path.startswith("/kb/q/")
     if named and text:
         raise UserError("give either a named query URI or SPARQL text, not both")
@@ -66,6 +76,16 @@ async def _query(args: argparse.Namespace) -> int:
     transport = await open_client(peer.scheme, security=client_security(args, peer))
     client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
+    if args.observe:
+        if named:
+            request = Request(Method.GET, parts.path, dict(parse_qsl(parts.query)), accept=accept)
+        else:
+            request = Request(Method.FETCH, "/kb/sparql", payload=(text or "").encode(),
+                              content_format=ContentFormat.TEXT, accept=accept)
+        try:
+            return await _observe(transport, peer, request, args)
+        finally:
+            await transport.aclose()
     try:
         if named:
             result = await client.named(peer, parts.path.rsplit("/", 1)[1], dict(parse_qsl(parts.query)), accept=accept)
@@ -85,4 +105,28 @@ async def _query(args: argparse.Namespace) -> int:
         shown = len(result.triples if isinstance(result, GraphResult) else result.rows)  # type: ignore[union-attr]
         print(f"coapkb: {peer} truncated the answer at its row limit: the CSV holds its first {shown} rows",
               file=sys.stderr)
+    return 0
+
+
+async def _observe(transport: object, peer: Endpoint, request: Request, args: argparse.Namespace) -> int:
+    """Print the answer, then again at every notification, until interrupted
+    or the robot ends the observation."""
+    from ..kb.client import decode
+    from ..transport import TransportError
+
+    count = 0
+    try:
+        async for response in transport.observe(peer, request):  # type: ignore[attr-defined]
+            if not response.status.is_success:
+                print(f"coapkb: {peer} answered {response.status.dotted} {response.text()}", file=sys.stderr)
+                return 1
+            if count:
+                print(f"-- changed (notification {count})", flush=True)
+            sys.stdout.write(render(decode(response), args.format))
+            sys.stdout.flush()
+            count += 1
+    except TransportError as exc:
+        print(f"coapkb: {exc}", file=sys.stderr)
+        return 1
+    print(f"coapkb: {peer} ended the observation", file=sys.stderr)
     return 0

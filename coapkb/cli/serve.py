@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import secrets
 
 from ..transport import SCHEMES
 from .common import UserError, add_credentials, parse_endpoint, server_security, until_signalled
@@ -17,12 +18,15 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--index-dir", metavar="DIR",
                    help="keep the KB as an on-disk index in DIR: built once, opened in milliseconds later (oxigraph)")
     add_credentials(p, "central")
+    p.add_argument("--writable", action="store_true",
+                   help="take writes (PATCH /kb) without credentials; with --credentials, the team's access table decides")
     p.add_argument("--row-limit", type=int, default=1000)
     p.add_argument("--time-budget", type=float, default=2.0, metavar="SECONDS")
     p.set_defaults(run=_serve)
 
 
 async def _serve(args: argparse.Namespace) -> int:
+    from ..kb.live import LiveKB, wall_ms
     from ..kb.resources import KBResources, QueryLimits
     from ..kb.store import KnowledgeBase
     from ..transport.router import Router
@@ -35,11 +39,17 @@ async def _serve(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from None
     if args.index_dir is not None and args.backend != "oxigraph":
         raise UserError("--index-dir needs --backend oxigraph")
-    kb = KnowledgeBase.load(args.kb, backend=args.backend, index_dir=args.index_dir)
+    writable = args.writable or args.credentials is not None
+    if writable and (args.backend != "oxigraph" or args.index_dir is not None):
+        raise UserError("a writable KB needs the in-memory oxigraph backend (no --index-dir, no --backend rdflib)")
+    base = KnowledgeBase.load(args.kb, backend=args.backend, index_dir=args.index_dir)
+    kb = LiveKB(base, f"{args.identity}.{secrets.randbelow(2**32)}", wall_ms=wall_ms) if writable else base
     router = Router()
     KBResources(kb, limits).mount(router)
     server = await serve(router, endpoint, security=server_security(args))
-    print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}) on {server.endpoint}", flush=True)
+    mode = "writable" if writable else "read-only"
+    print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) on {server.endpoint}",
+          flush=True)
     try:
         await until_signalled()
     finally:

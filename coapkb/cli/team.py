@@ -48,6 +48,8 @@ def add_team(sub: argparse._SubParsersAction) -> None:
                         "(each config lists the robot alone; it registers in a Resource Directory the feeder "
                         "hosts and looks its cluster up there; coap only)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.add_argument("--writable", action="store_true",
+                   help="the robots' KBs take writes (coapkb update) and replicate them among the holders")
     p.add_argument("--insecure", action="store_true",
                    help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
     p.add_argument("--credentials", metavar="DIR", help="use this team key directory (coapkb keys) instead of throwaway keys")
@@ -100,6 +102,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             security=not getattr(args, "insecure", False),
             credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
             discovery=getattr(args, "discovery", "static"),
+            kb_writable=getattr(args, "writable", False),
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)

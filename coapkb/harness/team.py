@@ -114,6 +114,9 @@ class TeamSpec:
     replication: int = 2
     #: Failures injected during the run (``coapkb team --kill/--restart``).
     faults: tuple[Fault, ...] = ()
+    #: The robots' KBs take writes and replicate them (distributed mode):
+    #: within a cluster, and with the same-place robot of the next cluster.
+    kb_writable: bool = False
     #: OSCORE keyed by EDHOC (CoAP), CurveZMQ (ZeroMQ) or mTLS (Zenoh) between every
     #: process, with the team's access policy, from throwaway keys made in
     #: the run's directory.  A transport the registry knows no security for
@@ -328,7 +331,8 @@ def robot_configs(
     itself and finds the rest), its KB modules, its start from the KBs."""
     starts = robot_starts(spec.ontologies)
     configs: dict[str, RobotConfig] = {}
-    for cluster_no, cluster in enumerate(spec.clusters(), 1):
+    clusters = spec.clusters()
+    for cluster_no, cluster in enumerate(clusters, 1):
         team = {
             mate: Teammate(mate, endpoints[mate], cluster_modules(i, spec) if spec.mode == "distributed" else ())
             for i, mate in enumerate(cluster)
@@ -349,8 +353,26 @@ def robot_configs(
                 link_kbps=spec.link_kbps,
                 execution=ExecutionModel(time_scale=spec.time_scale),
                 security=security,
+                kb_writable=spec.kb_writable and spec.mode == "distributed",
+                replicas=next_cluster_replicas(spec, clusters, cluster_no - 1, robot_id, endpoints),
             )
     return configs
+
+
+def next_cluster_replicas(
+    spec: TeamSpec, clusters: Sequence[Sequence[str]], index: int, robot_id: str, endpoints: dict[str, Endpoint]
+) -> dict[str, Teammate]:
+    """The holder of the same modules in the next cluster (a ring over the
+    clusters): every write passes on to one robot more, whatever the
+    team's size, and reaches every cluster around the ring."""
+    if not spec.kb_writable or spec.mode != "distributed" or len(clusters) < 2:
+        return {}
+    place = list(clusters[index]).index(robot_id)
+    following = clusters[(index + 1) % len(clusters)]
+    if place >= len(following):
+        return {}
+    mate = following[place]
+    return {mate: Teammate(mate, endpoints[mate], cluster_modules(place, spec))}
 
 
 class Placement:

@@ -119,6 +119,30 @@ class KBClient:
                 self._cache.popitem(last=False)
         return result
 
+    async def update(
+        self,
+        peer: Endpoint,
+        update: str | bytes,
+        *,
+        if_match: bytes | None = None,
+        idempotent: bool = False,
+        timeout: float | None = None,
+    ) -> bytes:
+        """Write to ``peer``'s KB: SPARQL Update text, or a compact patch
+        (bytes, :func:`coapkb.kb.update.encode_patch`); PATCH, or iPATCH
+        when ``idempotent``.  Returns the KB's new version (its ETag);
+        raises :class:`QueryFailed` with the robot's diagnostic."""
+        text = isinstance(update, str)
+        request = Request(
+            Method.IPATCH if idempotent else Method.PATCH,
+            "/kb",
+            payload=update.encode("utf-8") if isinstance(update, str) else update,
+            content_format=ContentFormat.TEXT if text else ContentFormat.CBOR,
+            if_match=() if if_match is None else (if_match,),
+        )
+        response = await self.call(peer, request, timeout)
+        return response.etag or b""
+
     async def call(self, peer: Endpoint, request: Request, timeout: float | None = None) -> Response:
         response = await self.transport.request(peer, request, timeout=timeout or self.timeout)
         if not response.status.is_success:

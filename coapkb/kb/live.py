@@ -16,6 +16,7 @@ single module takes every other subject into it.
 from __future__ import annotations
 
 import hashlib
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -70,6 +71,12 @@ class Written:
     version: bytes
     removed: int
     added: int
+
+
+def wall_ms() -> int:
+    """The machine's wall clock in milliseconds: a write's stamp (the
+    hybrid logical clock keeps stamps growing if it steps back)."""
+    return time.time_ns() // 1_000_000
 
 
 def module_namespaces(names: Iterable[str]) -> dict[str, tuple[str, ...]]:
@@ -208,7 +215,8 @@ class LiveKB:
         return self._write([t for t in deletes if _quad(t) in view], inserts)
 
     def _check_precondition(self, if_match: tuple[bytes, ...]) -> None:
-        if if_match and self.etag not in if_match:
+        # An empty If-Match asks only that the resource exist: it does.
+        if if_match and b"" not in if_match and self.etag not in if_match:
             raise PreconditionFailed(f"the knowledge base is at version {self.etag.hex()}, not {if_match[0].hex()}")
 
     def _resolve(self, operation: Operation, prologue: str) -> tuple[list[Triple], list[Triple]]:

@@ -1,7 +1,9 @@
 """The knowledge base's resources: ``/kb``, ``/kb/sparql`` and ``/kb/q/<name>``.
 
-Transport-neutral handlers mounted on a :class:`~coapkb.transport.router.Router`; the
-CoAP and ZeroMQ transports expose them unchanged.
+Transport-neutral handlers mounted on a :class:`~coapkb.transport.router.Router`; every
+transport exposes them unchanged.  A writable KB (:class:`~.live.LiveKB`) also takes
+PATCH and iPATCH on ``/kb`` (RFC 8132), and its queries are observable (RFC 7641; a
+FETCH's body is part of what is observed, RFC 8132 section 2.4).
 """
 
 from __future__ import annotations
@@ -16,15 +18,22 @@ from dataclasses import dataclass
 
 import cbor2
 
+from typing import TYPE_CHECKING, Protocol
+
 from ..wire import codec
 from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout
-from .store import KnowledgeBase
+from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written
+from .replica import ReplicaFull
+from .update import UpdateUnsupported, decode_patch, parse_update
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from .answer_cache import AnswerCache
 from .named_queries import NamedQuery, named_queries_for
 from .results import QueryResult
 from ..transport.router import Router
 from ..transport.base import ResourceInfo
+
+if TYPE_CHECKING:
+    from .replication import Replicator
 
 RESULT_FORMATS = (ContentFormat.CBOR, ContentFormat.JSON)
 
@@ -36,8 +45,13 @@ class QueryLimits:
     row_limit: int = 1000
     time_budget_s: float = 2.0
     max_request_bytes: int = 8192
-    #: Max-Age of query answers: the KB is read-only, so answers stay fresh.
+    #: Max-Age of query answers of a read-only KB: they stay fresh.
     max_age_s: int = 300
+    #: Max-Age of a writable KB's answers: how stale a cached answer may get
+    #: (an observer is told of a change at once).
+    live_max_age_s: int = 2
+    #: Bytes of an update (SPARQL Update text or a compact patch) taken at most.
+    max_update_bytes: int = 8192
     #: Max-Age on a 5.03 when the time budget ran out: when to try again.
     retry_after_s: int = 5
     #: Queries evaluated at once (including ones still running past their
@@ -49,7 +63,8 @@ class QueryLimits:
     inline_below_s: float = 0.002
 
     def __post_init__(self) -> None:
-        for name in ("row_limit", "max_request_bytes", "max_age_s", "retry_after_s", "max_concurrent"):
+        for name in ("row_limit", "max_request_bytes", "max_age_s", "live_max_age_s", "max_update_bytes",
+                     "retry_after_s", "max_concurrent"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not self.time_budget_s > 0:
@@ -69,11 +84,37 @@ def encode_result(result: QueryResult, fmt: ContentFormat) -> bytes:
     return codec.encode_cbor(result) if fmt == ContentFormat.CBOR else codec.encode_json(result)
 
 
-class KBResources:
-    """Answers SPARQL over one (read-only) knowledge base."""
+class QueryableKB(Protocol):
+    """What answering needs of a KB: a :class:`~.store.KnowledgeBase` or a :class:`~.live.LiveKB`."""
 
-    def __init__(self, kb: KnowledgeBase, limits: QueryLimits | None = None, *, threads: bool = True) -> None:
+    names: tuple[str, ...]
+    backend: str
+    prefixes: dict[str, str]
+
+    @property
+    def triple_count(self) -> int: ...
+
+    @property
+    def etag(self) -> bytes: ...
+
+    def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult: ...
+
+
+class KBResources:
+    """Answers SPARQL over one knowledge base, and takes writes if it is a
+    :class:`~.live.LiveKB` (``replicator`` then spreads them)."""
+
+    def __init__(
+        self,
+        kb: QueryableKB,
+        limits: QueryLimits | None = None,
+        *,
+        threads: bool = True,
+        replicator: Replicator | None = None,
+    ) -> None:
         self.kb = kb
+        self.live = kb if isinstance(kb, LiveKB) else None
+        self.replicator = replicator
         self.limits = limits or QueryLimits()
         #: False: every query runs on the event loop (the simulator's
         #: processes share one thread, and a thread's timing is not replayable).
@@ -84,16 +125,24 @@ class KBResources:
         #: named query -> the longest any of its runs took (s); runs inline once known cheap.
         self.slowest_run: dict[str, float] = {}
 
+    @property
+    def max_age_s(self) -> int:
+        return self.limits.max_age_s if self.live is None else self.limits.live_max_age_s
+
     def mount(self, router: Router) -> None:
+        live = self.live is not None
         router.add(
-            ResourceInfo("/kb", rt="coapkb.kb", ct=RESULT_FORMATS, title="knowledge base summary"),
-            self.get_info,
+            ResourceInfo("/kb", rt="coapkb.kb", ct=RESULT_FORMATS, obs=live, quiet=live,
+                         title="knowledge base summary" + ("; PATCH/iPATCH a SPARQL Update to write" if live else ""),
+                         methods=("GET", "PATCH", "iPATCH") if live else ("GET",)),
+            self.kb_resource,
         )
         router.add(
             ResourceInfo(
                 "/kb/sparql",
                 rt="sparql",
                 ct=RESULT_FORMATS,
+                obs=live, quiet=live,
                 title="SPARQL 1.1 query (FETCH/POST body or GET ?q=)",
                 methods=("GET", "POST", "FETCH"),
             ),
@@ -105,10 +154,90 @@ class KBResources:
                     f"/kb/q/{query.name}",
                     rt="coapkb.q",
                     ct=RESULT_FORMATS,
+                    obs=live, quiet=live,
                     title=_link_title(query),
                 ),
                 self.named_query,
             )
+        if self.live is not None:
+            self.live.listeners.append(lambda modules: self._changed(router, modules))
+        if self.replicator is not None:
+            self.replicator.mount(router)
+
+    def _changed(self, router: Router, modules: frozenset[str]) -> None:
+        """Tell the observers of what a change may have changed: an
+        unchanged answer is not sent again (the transports compare)."""
+        router.notify("/kb")
+        router.notify("/kb/sparql")
+        for query in self.named.values():
+            if query.kb is None or query.kb in modules:
+                router.notify(f"/kb/q/{query.name}")
+
+    async def kb_resource(self, request: Request) -> Response:
+        if request.method in (Method.PATCH, Method.IPATCH):
+            return await self.write(request)
+        return await self.get_info(request)
+
+    async def write(self, request: Request) -> Response:
+        """PATCH/iPATCH ``/kb``: SPARQL Update text (0) or a compact patch (60)."""
+        live = self.live
+        if live is None:  # pragma: no cover - the router allows PATCH only on a live KB
+            return Response.error(Status.METHOD_NOT_ALLOWED, "this knowledge base is read-only")
+        size = len(request.payload)
+        if size > self.limits.max_update_bytes:
+            return Response.error(
+                Status.REQUEST_ENTITY_TOO_LARGE,
+                f"the update is {size} bytes; this robot takes at most {self.limits.max_update_bytes}",
+            )
+        try:
+            if request.content_format in (None, ContentFormat.TEXT):
+                try:
+                    text = request.payload.decode("utf-8")
+                except UnicodeDecodeError as exc:
+                    return Response.error(Status.BAD_REQUEST, f"the update is not UTF-8: {exc}")
+                if not text.strip():
+                    return Response.error(Status.BAD_REQUEST, "empty update")
+                if request.method == Method.IPATCH and _not_idempotent(text):
+                    return Response.error(
+                        Status.BAD_REQUEST, "DELETE/INSERT ... WHERE is not idempotent: send it with PATCH, not iPATCH"
+                    )
+                written = live.update(text, if_match=request.if_match)
+            elif request.content_format == ContentFormat.CBOR:
+                deletes, inserts = decode_patch(request.payload)
+                written = live.patch(deletes, inserts, if_match=request.if_match)
+            else:
+                return Response.error(
+                    Status.UNSUPPORTED_CONTENT_FORMAT,
+                    "a write is SPARQL Update text (content-format 0) or a compact patch (60)",
+                )
+        except QuerySyntaxError as exc:
+            return Response.error(Status.BAD_REQUEST, f"malformed SPARQL Update: {exc}")
+        except codec.CodecError as exc:
+            return Response.error(Status.BAD_REQUEST, f"malformed patch: {exc}")
+        except (UpdateUnsupported, NotHeld) as exc:
+            return Response.error(Status.UNPROCESSABLE_ENTITY, str(exc))
+        except PreconditionFailed as exc:
+            return Response.error(Status.PRECONDITION_FAILED, str(exc))
+        except WriteTooLarge as exc:
+            return Response.error(Status.REQUEST_ENTITY_TOO_LARGE, str(exc))
+        except ReplicaFull as exc:
+            return Response.error(Status.SERVICE_UNAVAILABLE, f"not written: {exc}", max_age=self.limits.retry_after_s)
+        except KBError as exc:
+            return Response.error(Status.BAD_REQUEST, str(exc))
+        return await self._acknowledge(written)
+
+    async def _acknowledge(self, written: Written) -> Response:
+        """2.04 once a second holder has the write (or none is known)."""
+        summary = f"removed {written.removed}, added {written.added}".encode()
+        replicator = self.replicator
+        if replicator is not None and written.deltas and any(replicator.holders[m] for m in written.deltas):
+            if await replicator.replicate(written) == 0:
+                return Response.error(
+                    Status.GATEWAY_TIMEOUT,
+                    f"written here (version {written.version.hex()}) but no other holder confirmed it yet; "
+                    "it spreads when one answers",
+                )
+        return Response(Status.CHANGED, summary, ContentFormat.TEXT, etag=written.version)
 
     async def get_info(self, request: Request) -> Response:
         fmt = negotiate(request.accept)
@@ -122,8 +251,10 @@ class KBResources:
             "queries": {q.name: list(q.params) for q in self.named.values()},
             "etag": self.kb.etag.hex(),
         }
+        if self.live is not None:
+            info["versions"] = {m: self.live.module_version(m).hex() for m in self.live.names}
         payload = cbor2.dumps(info) if fmt == ContentFormat.CBOR else json.dumps(info).encode()
-        return Response(Status.CONTENT, payload, fmt, max_age=self.limits.max_age_s, etag=self.kb.etag)
+        return Response(Status.CONTENT, payload, fmt, max_age=self.max_age_s, etag=self.kb.etag)
 
     async def sparql(self, request: Request) -> Response:
         if request.method == Method.GET:
@@ -167,18 +298,17 @@ class KBResources:
     ) -> Response:
         """Run a query within the limits and encode it in the negotiated format.
 
-        The KB is read-only, so an answer's ETag follows from the KB's ETag,
-        the format and the query text: a client that still holds it gets
-        2.03 Valid and the query is not even run.  ``shape`` names the
+        An answer's ETag follows from the KB's version (its ETag), the
+        format and the query text: a client that still holds it gets 2.03
+        Valid and the query is not even run.  ``shape`` names the
         query's kind (a named query's name) for the inline fast path; free
         SPARQL text has none and always runs on a thread."""
         fmt = negotiate(accept)
         if fmt is None:
             return _not_acceptable(accept)
-        limits = self.limits
         etag = hashlib.blake2s(self.kb.etag + fmt.to_bytes(2, "big") + text.encode(), digest_size=8).digest()
         if etag in etags:
-            return Response(Status.VALID, max_age=limits.max_age_s, etag=etag)
+            return Response(Status.VALID, max_age=self.max_age_s, etag=etag)
         return await self.answers.get_or_compute(etag, lambda: self._run(text, fmt, etag, shape))
 
     async def _run(self, text: str, fmt: ContentFormat, etag: bytes, shape: str | None) -> Response:
@@ -209,7 +339,7 @@ class KBResources:
         except KBError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
         payload = encode_result(result, fmt)
-        return Response(Status.CONTENT, payload, fmt, max_age=limits.max_age_s, etag=etag)
+        return Response(Status.CONTENT, payload, fmt, max_age=self.max_age_s, etag=etag)
 
 
     def _record_run(self, shape: str | None, seconds: float) -> None:
@@ -290,6 +420,12 @@ def _without_frames(exc: BaseException) -> BaseException:
         current.__traceback__ = None
         pending += [current.__cause__, current.__context__]
     return exc
+
+
+def _not_idempotent(text: str) -> bool:
+    """Whether an update may change more when applied again: one that
+    matches a pattern (DELETE WHERE only removes, so it may repeat)."""
+    return any(op.kind == "MODIFY" for op in parse_update(text).operations)
 
 
 def _not_acceptable(accept: int | None) -> Response:

@@ -14,6 +14,8 @@ POST ``/tasks``                            the feeder
 POST ``/decisions``                        the robot(s) deciding for this
                                            robot's cluster (its Controller's
                                            leader under compute-and-communicate)
+PATCH / iPATCH ``/kb`` (a write)           operators (role client) and robots
+POST ``/kb/sync`` (replication)            robots
 anything else                              nobody (4.03)
 =========================================  ==================================
 
@@ -48,6 +50,9 @@ class RoleRule:
     roles: frozenset[str]
     refusal: str
     deciders_only: bool = False
+    #: Whether Zenoh's access control can enforce it by key expression:
+    #: not where the same key is also read by everyone (``/kb``).
+    by_key: bool = True
 
 
 #: The writes a role may make; every other write is nobody's.
@@ -55,6 +60,11 @@ ROLE_RULES: tuple[RoleRule, ...] = (
     RoleRule("POST", "/tasks", frozenset({"feeder"}), "only the feeder posts tasks"),
     RoleRule("POST", "/decisions", frozenset({"robot"}), "only the cluster's deciding robot posts decisions",
              deciders_only=True),
+    RoleRule("PATCH", "/kb", frozenset({"client", "robot"}), "only operators (role client) and robots write the KB",
+             by_key=False),
+    RoleRule("iPATCH", "/kb", frozenset({"client", "robot"}), "only operators (role client) and robots write the KB",
+             by_key=False),
+    RoleRule("POST", "/kb/sync", frozenset({"robot"}), "only a module's holders replicate it"),
 )
 
 

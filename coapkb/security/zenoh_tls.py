@@ -120,6 +120,8 @@ class ZenohServerSecurity:
         policies: list[dict[str, object]] = []
         # By key expression: Zenoh's access control cannot tell a rule's method from another.
         for index, rule in enumerate(ROLE_RULES):
+            if not rule.by_key:
+                continue
             others = [m.name for m in members if m.role not in rule.roles]
             if not others:
                 continue

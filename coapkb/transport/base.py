@@ -190,6 +190,9 @@ class ResourceInfo:
     obs: bool = False
     title: str | None = None
     methods: tuple[str, ...] = ("GET",)
+    #: Observers are notified only when their answer changed (a query's
+    #: answer is the same after most changes of the KB), not at every change.
+    quiet: bool = False
 
 
 class Service(abc.ABC):

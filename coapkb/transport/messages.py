@@ -19,6 +19,8 @@ class Method(enum.StrEnum):
     PUT = "PUT"
     DELETE = "DELETE"
     FETCH = "FETCH"  # RFC 8132
+    PATCH = "PATCH"  # RFC 8132
+    IPATCH = "iPATCH"  # RFC 8132: a patch that may be applied twice
 
 
 class Status(enum.IntEnum):
@@ -41,6 +43,7 @@ class Status(enum.IntEnum):
     PRECONDITION_FAILED = 412
     REQUEST_ENTITY_TOO_LARGE = 413
     UNSUPPORTED_CONTENT_FORMAT = 415
+    UNPROCESSABLE_ENTITY = 422  # RFC 8132: well-formed, but not applicable
     INTERNAL_SERVER_ERROR = 500
     NOT_IMPLEMENTED = 501
     BAD_GATEWAY = 502
@@ -76,6 +79,9 @@ class Request:
     #: ETags of representations the client holds (RFC 7252 section 5.10.6):
     #: if one still matches, the answer is 2.03 Valid without a payload.
     etags: tuple[bytes, ...] = ()
+    #: If-Match (RFC 7252 section 5.10.8.1): apply only if the resource is
+    #: at one of these versions (empty: unconditional).
+    if_match: tuple[bytes, ...] = ()
     #: The team member the request came from, as the server's security layer
     #: authenticated it (OSCORE/EDHOC, CurveZMQ, mTLS): a claim set below the
     #: request interface, never read from the wire.  None if unprotected.

@@ -79,6 +79,9 @@ class _Observation:
     active: bool = True
     unsubscribe: Callable[[], None] | None = None
     worker: asyncio.Task[None] | None = None
+    #: Notify only a changed answer (the resource is ``quiet``); the last one sent.
+    quiet: bool = False
+    last: Response | None = None
 
 
 class ObservationRegistry:
@@ -138,7 +141,8 @@ class ObservationRegistry:
             # Like a CoAP server out of observer slots: answer, but without seq.
             await answer(await self._call(request), None)
             return
-        obs = _Observation(client, key, request)
+        quiet = any(info.quiet for info in self._service.resources() if info.path == request.path)
+        obs = _Observation(client, key, request, quiet=quiet)
         obs.notifier = open_notifier(lambda: self._stop(obs))
         if obs.notifier is None:
             await answer(await self._call(request), None)
@@ -168,6 +172,7 @@ class ObservationRegistry:
             self._stop(obs)
             await answer(response, None)
             return
+        obs.last = response
         if await answer(response, 0) and obs.active:
             obs.worker = self._spawn(self._notify_loop(obs))
         else:
@@ -183,6 +188,9 @@ class ObservationRegistry:
                 response = await self._call(obs.request)
             if not obs.active:
                 return
+            if obs.quiet and obs.last is not None and _same_answer(response, obs.last):
+                continue  # the change did not change this answer (its ETag may have)
+            obs.last = response
             obs.seq += 1
             if not await obs.notifier.notify(response, obs.seq):
                 self._stop(obs)
@@ -224,6 +232,10 @@ class ObservationRegistry:
             obs.notifier.close()
         if obs.worker is not None and obs.worker is not asyncio.current_task():
             obs.worker.cancel()
+
+
+def _same_answer(a: Response, b: Response) -> bool:
+    return (a.status, a.content_format, a.payload) == (b.status, b.content_format, b.payload)
 
 
 # =========================================================================== client side

@@ -71,6 +71,8 @@ _METHOD_CODES: dict[Method, int] = {
     Method.PUT: 3,
     Method.DELETE: 4,
     Method.FETCH: 5,
+    Method.PATCH: 6,
+    Method.IPATCH: 7,
 }
 _METHODS_BY_CODE: dict[int, Method] = {code: m for m, code in _METHOD_CODES.items()}
 

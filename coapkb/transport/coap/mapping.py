@@ -16,6 +16,8 @@ from ..messages import Method, Request, Response, Status
 BODY_HASH_PARAM = "qh"
 
 METHOD_CODES = {m: getattr(Code, m.value) for m in Method}
+#: Methods whose body names what is asked or changed.
+BODY_METHODS = (Method.FETCH, Method.POST, Method.PATCH, Method.IPATCH)
 
 
 def body_hash(payload: bytes) -> str:
@@ -49,6 +51,7 @@ def request_from_message(path: str, msg: aiocoap.Message) -> Request:
         content_format=None if msg.opt.content_format is None else int(msg.opt.content_format),
         accept=None if msg.opt.accept is None else int(msg.opt.accept),
         etags=tuple(msg.opt.etags),
+        if_match=tuple(m for m in msg.opt.if_match if isinstance(m, bytes)),
     )
 
 
@@ -71,7 +74,7 @@ def message_from_request(peer: Endpoint, request: Request, *, observe: bool = Fa
         payload=request.payload,
     )
     query = [f"{k}={v}" for k, v in request.query.items()]
-    if request.payload and request.method in (Method.FETCH, Method.POST):
+    if request.payload and request.method in BODY_METHODS:
         query.append(f"{BODY_HASH_PARAM}={body_hash(request.payload)}")
     msg.opt.uri_query = tuple(query)
     if request.content_format is not None:
@@ -80,6 +83,8 @@ def message_from_request(peer: Endpoint, request: Request, *, observe: bool = Fa
         msg.opt.accept = request.accept
     if request.etags:
         msg.opt.etags = request.etags
+    if request.if_match:
+        msg.opt.if_match = request.if_match
     if observe:
         msg.opt.observe = 0
     return msg

@@ -63,6 +63,12 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         self.info = info
         self._tuning_for = tuning_for
         self.rt = info.rt
+        #: For a ``quiet`` resource: each observation's request and the
+        #: last answer it was sent (code, content-format, payload).
+        self._watched: dict[Any, aiocoap.Message] = {}
+        self._sent: dict[Any, tuple[object, ...]] = {}
+        self._dirty = False
+        self._refresher: asyncio.Task[None] | None = None
         if info.obs:
             service.subscribe(info.path, self.updated_state)
 
@@ -95,11 +101,45 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         # Piggybacked answers are never retransmitted, but Observe
         # notifications are CON: they follow the notification policy's timers.
         message.transport_tuning = self._tuning_for(request)
+        for observation, watched in self._watched.items():
+            if watched is request and observation not in self._sent:  # an observation's first answer
+                self._sent[observation] = _digest(message)
         return message
 
     async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
         if self.info.obs and len(self._observations) < OBSERVERS_MAX:
             await super().add_observation(request, serverobservation)
+            if self.info.quiet:
+                self._watched[serverobservation] = request
+
+    def updated_state(self, response: Any = None) -> None:
+        """A change: every observer is notified, or, for a ``quiet``
+        resource (a query), only those whose answer it changed."""
+        if not self.info.quiet:
+            super().updated_state(response)
+            return
+        self._dirty = True
+        if self._refresher is None or self._refresher.done():
+            self._refresher = asyncio.ensure_future(self._refresh())
+
+    async def _refresh(self) -> None:
+        # Changes while answers are computed are coalesced into one more pass.
+        while self._dirty:
+            self._dirty = False
+            for observation, request in list(self._watched.items()):
+                if observation not in self._observations:  # cancelled
+                    self._watched.pop(observation, None)
+                    self._sent.pop(observation, None)
+                    continue
+                message = await self.render(request)
+                digest = _digest(message)
+                if self._sent.get(observation) != digest:
+                    self._sent[observation] = digest
+                    observation.trigger(message)
+
+
+def _digest(message: aiocoap.Message) -> tuple[object, ...]:
+    return (message.code, message.opt.content_format, message.payload)
 
 
 class _UnknownPaths(aiocoap.resource.Resource, aiocoap.resource.PathCapable):

@@ -92,7 +92,9 @@ LINK_PROTOCOLS: dict[str, Link] = {
     "zenoh+quic": Link("quic", datagram=True, needs_tls=True),
 }
 
-_METHOD_CODES = {Method.GET: 1, Method.POST: 2, Method.PUT: 3, Method.DELETE: 4, Method.FETCH: 5}
+_METHOD_CODES = {
+    Method.GET: 1, Method.POST: 2, Method.PUT: 3, Method.DELETE: 4, Method.FETCH: 5, Method.PATCH: 6, Method.IPATCH: 7,
+}
 _METHODS_BY_CODE = {code: m for m, code in _METHOD_CODES.items()}
 #: Characters left as they are in key chunks and parameters (RFC 3986
 #: unreserved plus a few harmless ones); everything else is %-encoded.
