@@ -35,6 +35,8 @@ class Robot1:
         self.router.add(ResourceInfo("/decisions", methods=("POST",)), self._handle)
         self.router.add(ResourceInfo("/big"), self._handle)
         self.router.add(ResourceInfo("/state", obs=True), self._handle)
+        self.router.add(ResourceInfo("/kb", methods=("GET", "PATCH", "iPATCH")), self._handle)
+        self.router.add(ResourceInfo("/kb/sync", methods=("POST",)), self._handle)
         self.server = None
 
     async def _handle(self, request: Request) -> Response:
@@ -43,7 +45,7 @@ class Robot1:
             return Response(Status.CONTENT, BIG)
         if request.path == "/state":
             return Response(Status.CONTENT, str(self.state).encode())
-        return Response(Status.CHANGED if request.method == Method.POST else Status.CONTENT, b"ok")
+        return Response(Status.CONTENT if request.method == Method.GET else Status.CHANGED, b"ok")
 
     async def start(self, port: int = 0) -> Endpoint:
         # Robot2 decides for this robot's cluster.
@@ -70,7 +72,7 @@ async def _client(identity: TeamIdentity | None):
 async def _ask(identity: TeamIdentity | None, peer: Endpoint, method: Method, path: str) -> Response:
     client = await _client(identity)
     try:
-        return await client.request(peer, Request(method, path, payload=b"x" if method == Method.POST else b""),
+        return await client.request(peer, Request(method, path, payload=b"" if method == Method.GET else b"x"),
                                     timeout=5)
     finally:
         await client.aclose()
@@ -108,6 +110,26 @@ async def test_each_role_may_do_what_the_policy_says(robot1, team_dir: Path) -> 
         response = await _ask(me[who], peer, method, path)
         assert response.status == expected, (who, method, path, response)
     assert robot.calls == [("POST", "/tasks"), ("POST", "/decisions"), ("GET", "/tasks"), ("GET", "/tasks")]
+
+
+async def test_writes_to_the_kb_by_role(robot1, team_dir: Path) -> None:
+    """The operator and robots write the KB; only robots replicate; the feeder writes nothing."""
+    robot, peer = robot1
+    me = {name: load_identity(team_dir, name) for name in ("feeder", "Robot3", "operator")}
+    cases = [
+        ("operator", Method.PATCH, "/kb", Status.CHANGED),
+        ("Robot3", Method.IPATCH, "/kb", Status.CHANGED),
+        ("feeder", Method.PATCH, "/kb", Status.FORBIDDEN),
+        ("Robot3", Method.POST, "/kb/sync", Status.CHANGED),
+        ("operator", Method.POST, "/kb/sync", Status.FORBIDDEN),
+        ("feeder", Method.POST, "/kb/sync", Status.FORBIDDEN),
+        ("feeder", Method.GET, "/kb", Status.CONTENT),
+    ]
+    for who, method, path, expected in cases:
+        response = await _ask(me[who], peer, method, path)
+        assert response.status == expected, (who, method, path, response)
+    assert (await _ask(None, peer, Method.PATCH, "/kb")).status == Status.UNAUTHORIZED
+    assert robot.calls == [("PATCH", "/kb"), ("iPATCH", "/kb"), ("POST", "/kb/sync"), ("GET", "/kb")]
 
 
 async def test_a_credential_not_in_the_trust_list_is_refused(robot1, team_dir: Path, tmp_path: Path) -> None:

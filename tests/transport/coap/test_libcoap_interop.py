@@ -294,3 +294,61 @@ async def test_large_questions_concurrently_from_many_ports(
             assert codec.decode_json(run.output) == local_kb.query(text), text
 
     await asyncio.gather(*(user(n) for n in range(6)))
+
+
+# --------------------------------------------------------------------------- writes (RFC 8132 PATCH)
+
+LOC = "http://www.tcs.org/2018/Location#"
+MOVE = (f"PREFIX loc: <{LOC}> DELETE {{{{ loc:Robot2 loc:Robot_rack_no ?r }}}} "
+        "INSERT {{ loc:Robot2 loc:Robot_rack_no {rack} }} WHERE {{ loc:Robot2 loc:Robot_rack_no ?r }}")
+RACK_OF_ROBOT2 = f"PREFIX loc: <{LOC}> SELECT ?r WHERE {{ loc:Robot2 loc:Robot_rack_no ?r }}"
+
+
+async def test_an_unprotected_server_without_writable_refuses_a_patch(
+    coap_client: str, base: str, tmp_path: Path
+) -> None:
+    run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", MOVE.format(rack=3), f"{base}/kb",
+                     out=False)
+    assert run.error.startswith("4.05"), run.error
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def writable() -> AsyncIterator[ServerProcess]:
+    port = free_udp_port()
+    srv = await ServerProcess.start("--kb", str(Path(KB_FILES[0]).parent / "Location.owl"),
+                                    "--bind", f"127.0.0.1:{port}", "--writable")
+    yield srv
+    await srv.stop()
+
+
+async def test_coap_client_writes_and_observes(coap_client: str, writable: ServerProcess, tmp_path: Path) -> None:
+    """libcoap PATCHes a SPARQL Update (2.04); an observing libcoap client
+    (``-s``) of the query gets the new answer; aiocoap reads it too."""
+    rq = query_file(tmp_path, RACK_OF_ROBOT2)
+    watcher = asyncio.ensure_future(
+        coap(coap_client, tmp_path, "-s", "4", "-m", "fetch", "-t", "0", "-A", "50", "-f", rq,
+             f"{writable.uri}/kb/sparql", out=False)
+    )
+    await asyncio.sleep(1.0)
+    run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", MOVE.format(rack=3),
+                     f"{writable.uri}/kb", out=False)
+    assert run.stdout.decode().strip() == "removed 1, added 1", run.error
+    seen = await watcher
+    # coap-client prints each notification's JSON right after the last one.
+    text, answers, at = seen.stdout.decode(), [], 0
+    while (at := text.find("{", at)) >= 0:
+        answer, at = json.JSONDecoder().raw_decode(text, at)
+        answers.append(answer)
+    racks = [int(b["r"]["value"]) for a in answers for b in a["results"]["bindings"]]
+    assert racks == [16, 3], seen.stdout
+    payload = await aiocoap_payload(writable.uri, Request(Method.FETCH, "/kb/sparql", payload=RACK_OF_ROBOT2.encode(),
+                                                          content_format=0, accept=50))
+    assert json.loads(payload)["results"]["bindings"][0]["r"]["value"] == "3"
+
+
+async def test_coap_client_gets_line_and_column_for_a_bad_update(
+    coap_client: str, writable: ServerProcess, tmp_path: Path
+) -> None:
+    run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", "INSERT DATA { <http://a> <http://b> }",
+                     f"{writable.uri}/kb", out=False)
+    assert run.error.startswith("4.00 malformed SPARQL Update: line 1, column"), run.error
