@@ -23,6 +23,8 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
                    help="fault kinds a run may draw: kill, freeze, partition, starve, loss[=P], burst[=P], dup[=P], "
                         "jitter[=S]; mixed = all of them; none = no faults (default mixed)")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
+    p.add_argument("--writes", type=int, default=0, metavar="N",
+                   help="an operator writes N times to random robots' KBs during each run (replication checked)")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: the cores)")
     p.add_argument("--trace", metavar="FILE", help="with --seed: write every message, fault and pick in order")
@@ -66,7 +68,10 @@ async def _sim(args: argparse.Namespace) -> int:
         raise UserError(f"--tasks must be at least 1, got {args.tasks}")
     if args.trace and args.seed is None:
         raise UserError("--trace writes one run's trace: give --seed S")
+    if args.writes < 0:
+        raise UserError("--writes must not be negative")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
+                   writes=args.writes,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
     started = time.monotonic()
     if args.seed is not None:

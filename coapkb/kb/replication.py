@@ -227,10 +227,20 @@ class Replicator:
             self._task = asyncio.ensure_future(self._rounds())
 
     async def _rounds(self) -> None:
+        # A robot that starts (again) has missed everything: it catches up
+        # from every holder at once, not at its first round.
+        await self.catch_up()
         period = self.settings.sync_every_s
         while True:
             await asyncio.sleep(period * self._rng.uniform(2 / 3, 4 / 3))
             await self.sync_once()
+
+    async def catch_up(self) -> None:
+        """One exchange with every holder of every module, all at once."""
+        exchanges = [
+            self._sync_with(holder, module) for module, holders in self.holders.items() for holder in holders
+        ]
+        await asyncio.gather(*exchanges)
 
     async def sync_once(self) -> None:
         """One anti-entropy exchange per module, with its next holder."""
@@ -239,15 +249,17 @@ class Replicator:
         for module, holders in self.holders.items():
             if not holders:
                 continue
-            holder = holders[self._turn % len(holders)]
-            replica = self.live.replicas[module]
-            answer = await self._exchange(holder, SyncMessage(module, replica.context.copy()))
-            if answer is None:
-                continue
-            # Both ways: what the holder lacks of ours, pushed now.
-            theirs = replica.missing_for(answer.context)
-            if theirs:
-                await self._push(holder, module, self._fit(theirs) if isinstance(theirs, list) else theirs)
+            await self._sync_with(holders[self._turn % len(holders)], module)
+
+    async def _sync_with(self, holder: Holder, module: str) -> None:
+        replica = self.live.replicas[module]
+        answer = await self._exchange(holder, SyncMessage(module, replica.context.copy()))
+        if answer is None:
+            return
+        # Both ways: what the holder lacks of ours, pushed now.
+        theirs = replica.missing_for(answer.context)
+        if theirs:
+            await self._push(holder, module, self._fit(theirs) if isinstance(theirs, list) else theirs)
 
     async def aclose(self) -> None:
         tasks = [t for t in (self._task, *self._pushes) if t is not None]

@@ -242,8 +242,23 @@ def _by_cluster(tasks: list[TaskRecord]) -> dict[int, list[TaskRecord]]:
 
 
 #: Every invariant, in the order their findings are printed.
+def check_replicas(run: RunResult) -> Iterable[str]:
+    """The KB's replicas converge and keep what they acknowledged: at the end
+    (every fault healed, the writes answered, anti-entropy given its time),
+    the running holders of each module hold the same version, and each has
+    every insert a holder acknowledged (2.04) -- the run removes none."""
+    for module, versions in run.versions.items():
+        if len(set(versions.values())) > 1:
+            yield f"the holders of {module} disagree at the end: " + ", ".join(
+                f"{robot} {version}" for robot, version in versions.items()
+            )
+    for robot, labels in run.missing.items():
+        yield f"{robot} lacks acknowledged writes {', '.join(labels)}"
+
+
 CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
     check_finished, check_one_fate, check_executed_once, check_agreement, check_epochs_grow, check_bounded,
+    check_replicas,
 )
 
 

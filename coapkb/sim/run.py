@@ -34,8 +34,11 @@ from ..harness.record import FaultEvent as RecordedFault
 from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
 from ..host import Host
+from ..kb.client import KBClient, QueryFailed
+from ..kb.live import LiveKB
 from ..kb.results import QueryResult
 from ..kb.store import KnowledgeBase
+from ..world.vocabulary import ONTOLOGIES
 from ..transport.base import Endpoint, TransportError
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
@@ -45,6 +48,13 @@ log = logging.getLogger(__name__)
 
 #: A run still going after this much simulated time is stuck.
 DEFAULT_LIMIT_S = 3600.0
+#: How long the holders may take, once the last write is answered and the
+#: faults healed, to agree (anti-entropy rounds every few seconds).
+REPLICATION_SETTLE_S = 60.0
+MOVE_ROBOT = (
+    "PREFIX loc: <http://www.tcs.org/2018/Location#> DELETE {{ loc:{robot} loc:Robot_aisle_no ?a }} "
+    "INSERT {{ loc:{robot} loc:Robot_aisle_no {aisle} }} WHERE {{ loc:{robot} loc:Robot_aisle_no ?a }}"
+)
 
 
 @dataclass(frozen=True)
@@ -69,12 +79,15 @@ class SimSpec:
     schedule: tuple[FaultEvent, ...] | None = None
     #: Called with each task's record once decided, and the run: a scenario's own faults (tests).
     scenario: Callable[[TaskRecord, "SimulatedTeam"], None] | None = None
+    #: An operator's writes to random robots' KBs during the run (0: the KBs stay read-only).
+    writes: int = 0
 
     def team(self) -> TeamSpec:
         return TeamSpec(
             robots=self.robots, strategy=self.strategy, ontologies=self.ontologies, security=False,
             query_timeout_s=self.query_timeout_s, task_timeout_s=self.task_timeout_s,
             time_scale=self.time_scale, link_kbps=35.0 if self.faults.lossy else None, replication=self.replication,
+            kb_writable=self.writes > 0,
         )
 
     @property
@@ -125,6 +138,12 @@ class RunResult:
     reports: dict[tuple[str, int], list[tuple[float, int]]] = field(default_factory=dict)
     #: The fate counts in one line (kept when the record is dropped).
     fates: str = ""
+    #: The operator's writes: (label, robot written to, status, the triple's module).
+    writes: list[tuple[str, str, str, str]] = field(default_factory=list)
+    #: At the end, per module: each running holder's version of it, and the
+    #: acknowledged inserts it lacks (filled when the run wrote).
+    versions: dict[str, dict[str, str]] = field(default_factory=dict)
+    missing: dict[str, list[str]] = field(default_factory=dict)
     sim_s: float = 0.0
     cpu_s: float = 0.0
     steps: int = 0
@@ -308,6 +327,9 @@ class SimulatedTeam:
         self.recorded: list[RecordedFault] = []
         #: Set once every task is done: from then on the schedule only heals (no new faults after the run).
         self.ending = False
+        #: The operator's writes (``spec.writes``), as they were answered.
+        self.write_log: list[tuple[str, str, str, str]] = []
+        self._write_seed = rng.random()
 
     def note(self, text: str) -> None:
         """A line of the trace, stamped with the simulated time."""
@@ -323,8 +345,9 @@ class SimulatedTeam:
         return process
 
     async def _start_robot(self, robot_id: str, process: Process) -> Robot:
+        clock = self.scheduler.clock
         host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
-                    threads=False)
+                    threads=False, wall_ms=lambda: int(clock.now * 1000))
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
         return robot
@@ -379,6 +402,76 @@ class SimulatedTeam:
                 continue
             self.inject(event)
 
+    # ------------------------------------------------------------- writes
+
+    async def _write(self, operator: Process, rng: random.Random) -> None:
+        """The operator's writes: at random times over the run, each to a
+        random robot, adding a triple of its own to a module that robot
+        holds, or moving a robot (a single value: the latest write wins)."""
+        client = KBClient(await self.network.for_process(operator).open_client("coap"), timeout=10.0)
+        times = sorted(rng.uniform(0, self.spec.horizon_s) for _ in range(self.spec.writes))
+        loop = asyncio.get_running_loop()
+        pending = []
+        for i, at in enumerate(times):
+            await asyncio.sleep(max(0.0, (self.fed_at or 0.0) + at - loop.time()))
+            robot = rng.choice(sorted(self.configs))
+            modules = self.configs[robot].team[robot].kbs
+            module = rng.choice(modules)
+            if module == "Location" and rng.random() < 0.5:
+                label = f"move{i}"
+                text = MOVE_ROBOT.format(robot=rng.choice(sorted(self.configs)), aisle=rng.randint(1, 9))
+            else:
+                label = f"W{i}"
+                ns = ONTOLOGIES[module][1]
+                text = f"INSERT DATA {{ <{ns}{label}> <{ns}written> {i} }}"
+            pending.append(asyncio.ensure_future(self._send_write(client, robot, module, label, text)))
+        await asyncio.gather(*pending)
+
+    async def _send_write(self, client: KBClient, robot: str, module: str, label: str, text: str) -> None:
+        try:
+            await client.update(self.configs[robot].bind, text)
+            status = "2.04"
+        except QueryFailed as exc:
+            status = exc.response.status.dotted
+        except TransportError:
+            status = "lost"
+        self.note(f"write {label} to {robot} ({module}): {status}")
+        self.write_log.append((label, robot, status, module))
+
+    def _live_holders(self) -> dict[str, dict[str, LiveKB]]:
+        """Module -> running robot -> its LiveKB."""
+        held: dict[str, dict[str, LiveKB]] = {}
+        for robot_id, robot in self.robots.items():
+            live = robot.replicator.live if robot.replicator is not None else None
+            if live is None or self.current[robot_id].status != "running":
+                continue
+            for module in live.names:
+                held.setdefault(module, {})[robot_id] = live
+        return held
+
+    def _replicas_agree(self) -> bool:
+        return all(
+            len({live.module_version(module) for live in holders.values()}) == 1
+            for module, holders in self._live_holders().items()
+        )
+
+    def _replication_outcome(self) -> tuple[dict[str, dict[str, str]], dict[str, list[str]]]:
+        versions = {
+            module: {r: live.module_version(module).hex() for r, live in sorted(holders.items())}
+            for module, holders in self._live_holders().items()
+        }
+        missing: dict[str, list[str]] = {}
+        for module, holders in self._live_holders().items():
+            ns = ONTOLOGIES[module][1]
+            for label, _, status, written_to in self.write_log:
+                if status != "2.04" or written_to != module or not label.startswith("W"):
+                    continue
+                ask = f"ASK {{ <{ns}{label}> ?p ?o }}"
+                for robot_id, live in holders.items():
+                    if not live.query(ask).value:  # type: ignore[union-attr]
+                        missing.setdefault(robot_id, []).append(label)
+        return versions, missing
+
     # ------------------------------------------------------------- the run
 
     async def _feed(self, chaos: Process) -> TeamRecord:
@@ -389,6 +482,10 @@ class SimulatedTeam:
             self.feeder = feeder
             self.fed_at = started = asyncio.get_running_loop().time()
             schedule = self.scheduler.start(chaos, self._run_schedule())
+            writer = None
+            if self.spec.writes:
+                operator = self._spawn("operator")
+                writer = self.scheduler.start(operator, self._write(operator, random.Random(self._write_seed)))
             scenario = self.spec.scenario
             progress = None if scenario is None else (lambda record: scenario(record, self))
             try:
@@ -400,6 +497,13 @@ class SimulatedTeam:
                 # again shortly (simulated time, free).
                 while not schedule.done() or not self._settled():
                     await asyncio.sleep(0.5)
+                if writer is not None:
+                    # Quiescence for the KBs: the writes delivered and anti-entropy done.
+                    while not writer.done():
+                        await asyncio.sleep(0.5)
+                    deadline = asyncio.get_running_loop().time() + REPLICATION_SETTLE_S
+                    while not self._replicas_agree() and asyncio.get_running_loop().time() < deadline:
+                        await asyncio.sleep(0.5)
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]
                 maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
@@ -444,6 +548,7 @@ class SimulatedTeam:
                 except (SimulationError, FeederError, TransportError, TimeoutError) as exc:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
+                versions, missing = self._replication_outcome() if spec.writes else ({}, {})
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
         finally:
             if gc_was_enabled:
@@ -454,6 +559,7 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
+            writes=list(self.write_log), versions=versions, missing=missing,
         )
 
 
