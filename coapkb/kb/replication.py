@@ -39,6 +39,8 @@ from .replica import CausalContext, Delta, WrittenState
 __all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings"]
 
 SYNC_PATH = "/kb/sync"
+#: Exchanges one catch-up may chain while the holder has more to send.
+MAX_FOLLOW_UPS = 1000
 
 log = logging.getLogger(__name__)
 
@@ -254,6 +256,12 @@ class Replicator:
     async def _sync_with(self, holder: Holder, module: str) -> None:
         replica = self.live.replicas[module]
         answer = await self._exchange(holder, SyncMessage(module, replica.context.copy()))
+        # An answer holds at most max_answer_bytes of changes: ask again at
+        # once while the holder has more (it said so with its context).
+        for _ in range(MAX_FOLLOW_UPS):
+            if answer is None or replica.context.covers(answer.context):
+                break
+            answer = await self._exchange(holder, SyncMessage(module, replica.context.copy()))
         if answer is None:
             return
         # Both ways: what the holder lacks of ours, pushed now.
