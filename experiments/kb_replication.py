@@ -37,7 +37,6 @@ import argparse
 import asyncio
 import json
 import random
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -92,6 +91,8 @@ async def node(args: argparse.Namespace) -> None:
     client = await open_client(bind.scheme, reliability=reliability)
     live = Watched(KnowledgeBase.load([LOCATION]), f"{args.name}.1", wall_ms=wall_ms)
     holders = [Holder(n, Endpoint.parse(uri), ("Location",)) for n, _, uri in (p.partition("=") for p in args.peer)]
+    holders += [Holder(n, Endpoint.parse(uri), ("Location",), remote=True)
+                for n, _, uri in (p.partition("=") for p in args.remote)]
     replicator = Replicator(live, client, holders, settings=ReplicationSettings(sync_every_s=args.sync_every),
                             rng=random.Random(args.name))
     router = Router()
@@ -147,7 +148,8 @@ async def operator(args: argparse.Namespace) -> None:
 class Holders:
     """The holders and the operator on a testbed: processes and their output."""
 
-    def __init__(self, tb, scheme: str, names: list[str], peers: dict[str, list[str]], link_kbps: float,
+    def __init__(self, tb, scheme: str, names: list[str], peers: dict[str, tuple[list[str], list[str]]],
+                 link_kbps: float,
                  sync_every: float) -> None:
         self.tb, self.scheme, self.names, self.peers = tb, scheme, names, peers
         self.link_kbps, self.sync_every = link_kbps, sync_every
@@ -160,8 +162,10 @@ class Holders:
 
     async def start(self, name: str) -> None:
         argv = [PY, __file__, "node", "--name", name, "--bind", self.uri(name), "--link-kbps", str(self.link_kbps),
-                "--sync-every", str(self.sync_every), *(a for p in self.peers[name] for a in ("--peer",
-                                                                                          f"{p}={self.uri(p)}"))]
+                "--sync-every", str(self.sync_every)]
+        mates, ring = self.peers[name]
+        argv += [a for p in mates for a in ("--peer", f"{p}={self.uri(p)}")]
+        argv += [a for p in ring for a in ("--remote", f"{p}={self.uri(p)}")]
         proc = await self.tb.spawn(name, argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         line = json.loads(await asyncio.wait_for(proc.stdout.readline(), 60))
         assert line.get("ready") == name, line
@@ -203,21 +207,16 @@ class Holders:
             reader.cancel()
 
 
-def topology(robots: int) -> dict[str, list[str]]:
-    """Each holder's peers: its cluster's others and the same place in the next cluster."""
+def topology(robots: int) -> dict[str, tuple[list[str], list[str]]]:
+    """Each holder's peers, as the team harness gives them: its cluster's
+    others, and the same place in the next cluster (a ring of clusters)."""
     names = [f"robot{i}" for i in range(1, robots + 1)]
     clusters = [names[i:i + 3] for i in range(0, robots, 3)]
-    peers: dict[str, list[str]] = {}
+    peers: dict[str, tuple[list[str], list[str]]] = {}
     for c, cluster in enumerate(clusters):
         for place, name in enumerate(cluster):
-            peers[name] = [m for m in cluster if m != name]
-            if len(clusters) > 1:
-                peers[name].append(clusters[(c + 1) % len(clusters)][place])
-    # The ring is walked from both ends: a holder also answers the one before it.
-    for name, mine in list(peers.items()):
-        for other in mine:
-            if name not in peers[other]:
-                peers[other].append(name)
+            ring = [clusters[(c + 1) % len(clusters)][place]] if len(clusters) > 1 else []
+            peers[name] = ([m for m in cluster if m != name], ring)
     return peers
 
 
@@ -382,7 +381,8 @@ def main() -> int:
     p = sub.add_parser("node")
     p.add_argument("--name", required=True)
     p.add_argument("--bind", required=True)
-    p.add_argument("--peer", action="append", default=[])
+    p.add_argument("--peer", action="append", default=[], help="NAME=URI of a holder in this cluster")
+    p.add_argument("--remote", action="append", default=[], help="NAME=URI of a holder in the next cluster")
     p.add_argument("--link-kbps", type=float, default=None)
     p.add_argument("--sync-every", type=float, default=5.0)
     p = sub.add_parser("operator")

@@ -96,8 +96,10 @@ def module_holders(config: RobotConfig, modules: Iterable[str]) -> list[Holder]:
     """The other robots holding any of ``modules``: teammates, then the
     holders in other clusters (``replicas``)."""
     held = set(modules)
-    mates = [m for m in (*config.team.values(), *config.replicas.values()) if m.robot_id != config.robot_id]
-    return [Holder(m.robot_id, m.endpoint, tuple(k for k in m.kbs if k in held)) for m in mates if held & set(m.kbs)]
+    mates = [(m, False) for m in config.team.values() if m.robot_id != config.robot_id]
+    mates += [(m, True) for m in config.replicas.values()]
+    return [Holder(m.robot_id, m.endpoint, tuple(k for k in m.kbs if k in held), remote)
+            for m, remote in mates if held & set(m.kbs)]
 
 
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).

@@ -7,7 +7,10 @@ peer), so it runs over every transport and under its security.
 * **Push.**  A local write's delta goes to every holder of the module this
   robot knows (its cluster's holders and its peers in other clusters) at
   once.  The write is answered once one of them has it: an acknowledged
-  write then lives on two robots.
+  write then lives on two robots.  A holder in another cluster passes a
+  delta new to it on to the holders it knows (its cluster, and the next
+  cluster), so a write crosses the team cluster by cluster, each robot
+  sending it at most once to each holder it knows.
 * **Anti-entropy.**  Every ``sync_every_s`` (with jitter) the robot sends
   one holder its causal context, round robin; the holder answers with the
   deltas the context lacks (from its journal) or, when its journal no
@@ -52,6 +55,8 @@ class Holder:
     name: str
     endpoint: Endpoint
     modules: tuple[str, ...]
+    #: In another cluster: a write pushed to it is passed on there.
+    remote: bool = False
 
 
 @dataclass(frozen=True)
@@ -116,11 +121,22 @@ class Replicator:
             return Response.error(Status.BAD_REQUEST, f"malformed sync message: {exc}")
         if message.module not in self.live.replicas:
             return Response.error(Status.NOT_FOUND, f"this robot does not hold the {message.module} module")
+        fresh = self._fresh(message)
         self._take(message)
+        if fresh:
+            for holder in self.holders[message.module]:
+                self._spawn(self._push(holder, message.module, fresh))
         if request.peer is not None:
             self.known[(message.module, request.peer)] = message.context
         answer = self._answer_for(message.module, message.context)
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
+
+    def _fresh(self, message: SyncMessage) -> list[Delta]:
+        """The deltas of a forwarded push that are new here: to pass on."""
+        if not message.forward or not isinstance(message.changes, list):
+            return []
+        context = self.live.replicas[message.module].context
+        return [d for d in message.changes if d.dot not in context]
 
     def _take(self, message: SyncMessage) -> None:
         if isinstance(message.changes, WrittenState):
@@ -182,7 +198,7 @@ class Replicator:
 
     async def _push(self, holder: Holder, module: str, changes: Sequence[Delta] | WrittenState) -> bool:
         replica = self.live.replicas[module]
-        message = SyncMessage(module, replica.context.copy(), changes)
+        message = SyncMessage(module, replica.context.copy(), changes, forward=holder.remote)
         answer = await self._exchange(holder, message)
         if answer is None:
             self.stats["push_failed"] += 1

@@ -3,7 +3,7 @@
 
 ::
 
-    sync     = [module: tstr, context, changes / null]
+    sync     = [module: tstr, context, changes / null, ? forward: true]
     context  = [* [writer: tstr, top: uint, ? [+ seq: uint]]]   ; vv, then dots past a gap
     changes  = [* delta] / state
     delta    = [writer: tstr, seq: uint, ms: uint, counter: uint,
@@ -13,7 +13,8 @@
     dot-stamp = [writer: tstr, seq: uint, ms: uint, counter: uint]
     graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
 
-In a state, key 2 is the written triples, key 3 the dots (and stamps) of
+``forward`` asks the receiver to pass deltas new to it on to the holders
+it knows (a push from another cluster).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
 each in the same order, key 4 the files' triples removed.  Decoders raise
 :class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
 """
@@ -43,6 +44,8 @@ class SyncMessage:
     context: CausalContext
     #: Deltas, a whole written state, or None (only the context: "what do I lack?").
     changes: Sequence[Delta] | WrittenState | None = None
+    #: Pass the deltas new to the receiver on to the holders it knows.
+    forward: bool = False
 
 
 def _context(context: CausalContext) -> list[list[object]]:
@@ -93,7 +96,10 @@ def encode_sync(message: SyncMessage) -> bytes:
         changes = _state(message.changes)
     elif message.changes is not None:
         changes = [_delta(d) for d in message.changes]
-    return cbor2.dumps([message.module, _context(message.context), changes])
+    fields: list[object] = [message.module, _context(message.context), changes]
+    if message.forward:
+        fields.append(True)
+    return cbor2.dumps(fields)
 
 
 # ------------------------------------------------------------------ decoding
@@ -180,9 +186,9 @@ def _decode_state(item: dict[object, object]) -> WrittenState:
 
 def decode_sync(data: bytes) -> SyncMessage:
     item = codec.load_cbor(data)
-    fields = _list(item, "sync", 3)
-    if len(fields) != 3:
-        raise CodecError("sync: expected [module, context, changes]")
+    fields = _list(item, "sync", 4)
+    if len(fields) not in (3, 4) or (len(fields) == 4 and fields[3] is not True):
+        raise CodecError("sync: expected [module, context, changes, ?true]")
     module = _text(fields[0], "module")
     context = _decode_context(fields[1])
     raw = fields[2]
@@ -193,4 +199,4 @@ def decode_sync(data: bytes) -> SyncMessage:
         changes = _decode_state(raw)
     else:
         changes = [_decode_delta(d) for d in _list(raw, "changes")]
-    return SyncMessage(module, context, changes)
+    return SyncMessage(module, context, changes, forward=len(fields) == 4)
