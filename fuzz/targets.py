@@ -34,7 +34,9 @@ from coapkb.config import ConfigError, dump_config, load_config, parse_config
 from coapkb.discovery.client import DirectoryClient, DiscoveryError, registration_links
 from coapkb.discovery.directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH, DirectoryService
 from coapkb.discovery.multicast import _Asker, _Responder
+from coapkb.kb import update as kb_update
 from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.replica import CausalContext, Delta, Dot, Stamp, WrittenState
 from coapkb.kb.resources import KBResources
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
 from coapkb.kb.store import KnowledgeBase
@@ -44,7 +46,7 @@ from coapkb.transport.coap.blockwise import BodyAwareBlock2Cache, GapSafeBlock1S
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.zenoh import mapping as zenoh_mapping
-from coapkb.wire import codec, zmq_envelope
+from coapkb.wire import codec, sync, zmq_envelope
 
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"
@@ -318,6 +320,31 @@ def kb_request(data: bytes) -> None:
         decode(response.payload)  # the server's answer is one its clients can read
 
 
+# --------------------------------------------------------------------------- replication and patches
+
+
+@target
+def sync_decode(data: bytes) -> None:
+    try:
+        message = sync.decode_sync(data)
+    except codec.CodecError:
+        return
+    # Compared as bytes: the wire groups removed dots by writer, so a decoded
+    # delta's order may differ from a message that split one writer's dots.
+    encoded = sync.encode_sync(message)
+    assert sync.encode_sync(sync.decode_sync(encoded)) == encoded
+
+
+@target
+def patch_decode(data: bytes) -> None:
+    try:
+        deletes, inserts = kb_update.decode_patch(data)
+    except codec.CodecError:
+        return
+    encoded = kb_update.encode_patch(deletes, inserts)
+    assert kb_update.encode_patch(*kb_update.decode_patch(encoded)) == encoded
+
+
 # --------------------------------------------------------------------------- robot state
 
 
@@ -514,6 +541,26 @@ def _block_requests() -> list[bytes]:
     return [b"".join(len(m).to_bytes(2, "big") + m for m in seq) for seq in ([first, *follow], upload)]
 
 
+def _sync_messages() -> list[sync.SyncMessage]:
+    """A push of deltas, a whole written state, and a bare context."""
+    from rdflib.term import Literal, URIRef
+
+    loc = "http://www.tcs.org/2018/Location#"
+    aisle = (URIRef(loc + "Robot1"), URIRef(loc + "Robot_aisle_no"), Literal(4))
+    old = (URIRef(loc + "Robot1"), URIRef(loc + "Robot_aisle_no"), Literal(9))
+    near = (URIRef(loc + "Robot1"), URIRef(loc + "near"), Literal("Rack 3", lang="en"))
+    context = CausalContext({"Robot1.17": 3, "Robot2.4": 1}, [Dot("Robot2.4", 3)])
+    deltas = [
+        Delta(Dot("Robot1.17", 3), Stamp(1_700_000_000_000, 1, "Robot1.17"), added=(aisle,),
+              removed=(Dot("Robot1.17", 2), Dot("Robot2.4", 1)), removed_base=(old,)),
+        Delta(Dot("Robot2.4", 3), Stamp(1_700_000_000_005, 0, "Robot2.4"), added=(near,)),
+    ]
+    state = WrittenState(context, {aisle: {Dot("Robot1.17", 3): Stamp(1_700_000_000_000, 1, "Robot1.17")},
+                                   near: {Dot("Robot2.4", 3): Stamp(1_700_000_000_005, 0, "Robot2.4")}},
+                         frozenset({old}))
+    return [sync.SyncMessage("Location", context, changes) for changes in (deltas, state, None)]
+
+
 def seeds() -> dict[str, list[bytes]]:
     """A few valid inputs per target, written by the project's encoders."""
     results = _results()
@@ -572,6 +619,14 @@ def seeds() -> dict[str, list[bytes]]:
         queries.append(b"\x02" + f"{name}?{params}".encode())
     out["kb_request"] = queries
     out["robot_state"] = [s.encode() for s in _robot_states()] + [_robot_states()[1].encode_plan()]
+    messages = _sync_messages()
+    out["sync_decode"] = [sync.encode_sync(m) for m in messages]
+    written = messages[0].changes
+    assert isinstance(written, list)
+    out["patch_decode"] = [
+        kb_update.encode_patch(written[0].removed_base, written[0].added),
+        kb_update.encode_patch([], [t for d in written for t in d.added]),
+    ]
     configs = [(EXAMPLE_CONFIGS / f"Robot{i}.toml").read_bytes() for i in (1, 2)]
     config = tomllib.loads(configs[0].decode())
     del config["security"]

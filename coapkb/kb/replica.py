@@ -4,21 +4,21 @@ changes and that converges whatever the order of delivery (pure, no I/O).
 The model (``docs/knowledge.md``) is a delta-state observed-remove set of
 triples, after the ORSWOT of Riak and the delta CRDTs of Almeida et al.:
 
-* Every write gets a *dot* ``(writer, seq)``; a writer is one incarnation of
+* Every triple a write adds gets a *dot* ``(writer, seq)`` of its own (a
+  write that adds nothing takes one dot too); a writer is one incarnation of
   one holder, and its sequence numbers count up from 1.
-* A triple is live while it carries at least one dot.  A write that adds a
-  triple tags it with the write's dot; a write that removes a triple drops
-  the dots it saw on it.  What the writer did not see (a concurrent add)
-  survives: add wins.
+* A triple is live while it carries at least one dot.  A write that removes
+  a triple drops the dots it saw on it.  What the writer did not see (a
+  concurrent add) survives: add wins.
 * The triples loaded from the module's files carry no dot: they are the
   base every holder loads alike.  Removing one records it in
   ``removed_base``, a set that only grows.
-* The *causal context* is every dot a replica has seen (a version vector
-  plus the dots past a gap).  A delta is a write's context (its dot and the
-  dots it removed) and its adds; applying one is the join of two states,
-  so applying deltas in any order, twice, or a whole state at once gives
-  the same result.  A remove that arrives before the add it removes wins:
-  the add's dot is already in the context.
+* The *causal context* is the dots of every write a replica has received
+  (a version vector plus the dots past a gap).  A delta is a write's dots,
+  its adds and the dots it removed.  Applying deltas in any order, twice,
+  or a whole state at once gives the same result.  A remove that arrives
+  before the add it removes leaves a *tombstone*, the dot alone, until the
+  add arrives and is dropped with it.
 * A predicate with one value (a robot's position, its battery) keeps the
   value whose write has the greatest hybrid-logical-clock stamp; the
   others stay in the set, shadowed, so the choice is the same everywhere.
@@ -130,6 +130,11 @@ class CausalContext:
             if dot not in other:
                 yield dot
 
+    def count_missing_from(self, other: CausalContext) -> int:
+        """How many dots :meth:`missing_from` gives, at most (not listed)."""
+        behind = sum(max(0, top - other.vv.get(writer, 0)) for writer, top in self.vv.items())
+        return behind + len(self.cloud)
+
     def covers(self, other: CausalContext) -> bool:
         return next(other.missing_from(self), None) is None
 
@@ -145,14 +150,25 @@ class CausalContext:
 class Delta:
     """One write as it travels between holders.
 
-    Its context is its own dot and the dots it removed; its adds are tagged
-    with its dot.  ``removed_base`` names the files' triples it removed."""
+    Its ``i``-th added triple has the dot ``(writer, dot.seq + i)``; a write
+    that adds nothing has ``dot`` alone.  ``removed`` are the dots of the
+    triples it removed, ``removed_base`` the files' triples it removed."""
 
     dot: Dot
     stamp: Stamp
     added: tuple[Triple, ...] = ()
     removed: tuple[Dot, ...] = ()
     removed_base: tuple[Triple, ...] = ()
+
+    @property
+    def dots(self) -> tuple[Dot, ...]:
+        """Every dot the write took."""
+        return tuple(Dot(self.dot.writer, self.dot.seq + i) for i in range(max(1, len(self.added))))
+
+    def tagged(self) -> Iterator[tuple[Triple, Dot]]:
+        """Its added triples with their dots."""
+        for i, triple in enumerate(self.added):
+            yield triple, Dot(self.dot.writer, self.dot.seq + i)
 
     @property
     def size(self) -> int:
@@ -169,6 +185,8 @@ class WrittenState:
     #: triple -> its live dots and their stamps
     entries: Mapping[Triple, Mapping[Dot, Stamp]]
     removed_base: frozenset[Triple]
+    #: Dots removed before their write arrived.
+    tombstones: frozenset[Dot] = frozenset()
 
 
 @dataclass(frozen=True)
@@ -192,7 +210,9 @@ class ReplicaLimits:
     #: Written triples (live or shadowed) a replica accepts; past it a local
     #: write is refused (a peer's is still joined: refusing it would split).
     entries_max: int = 100_000
-    #: Dots past a gap, waiting for the deltas before them.
+    #: Dots past a gap, waiting for the deltas before them, and tombstones
+    #: (dots removed before their write arrived), together.  A delta that
+    #: would pass it is not taken: it comes again, in order, at catch-up.
     cloud_max: int = 10_000
 
     def __post_init__(self) -> None:
@@ -226,13 +246,16 @@ class Replica:
         self.context = CausalContext()
         self.entries: dict[Triple, dict[Dot, Stamp]] = {}
         self.removed_base: set[Triple] = set()
-        self._by_dot: dict[Dot, set[Triple]] = {}
+        self.tombstones: set[Dot] = set()
+        self._by_dot: dict[Dot, Triple] = {}
         #: (subject, single-valued predicate) -> objects with entries
         self._values: dict[tuple[Term, Term], set[Term]] = {}
         self.journal: OrderedDict[Dot, Delta] = OrderedDict()
         self._journal_size = 0
         self._seq = 0
         self._clock = BASE_STAMP
+        #: Deltas not taken: they would have passed ``cloud_max``.
+        self.refused = 0
 
     # ------------------------------------------------------------ versions
 
@@ -316,7 +339,6 @@ class Replica:
             raise ReplicaFull(
                 f"this module holds {len(self.entries)} written triples; at most {self.limits.entries_max}"
             )
-        self._seq += 1
         removed_dots: set[Dot] = set()
         removed_base: dict[Triple, None] = {}
         for triple in removes:
@@ -332,36 +354,48 @@ class Replica:
                 if is_base(t) and t not in self.removed_base:
                     removed_base[t] = None
         delta = Delta(
-            Dot(self.writer, self._seq), self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base)
+            Dot(self.writer, self._seq + 1), self.stamp(now_ms), adds, tuple(sorted(removed_dots)),
+            tuple(removed_base),
         )
+        self._seq += len(delta.dots)
         return delta, self.apply(delta, is_base)
 
     def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a delta (idempotent, in any order); what it changed in view."""
-        if delta.dot in self.context and all(d in self.context for d in delta.removed):
-            # Seen already: a duplicate, or covered by a whole state joined.
+        if delta.dot in self.journal:
+            return Effect()  # a duplicate
+        received = delta.dot in self.context
+        waiting = len(self.context.cloud) + len(self.tombstones)
+        growth = sum(1 for d in delta.removed if d not in self.context and d not in self.tombstones)
+        if not received and delta.dot.seq > self.context.vv.get(delta.dot.writer, 0) + 1:
+            growth += len(delta.dots)
+        if growth and waiting + growth > self.limits.cloud_max:
+            self.refused += 1
             return Effect()
         self._observe(delta.stamp)
         touched: set[Triple] = set(delta.added) | set(delta.removed_base)
-        for dot in delta.removed:
-            touched |= self._by_dot.get(dot, set())
+        touched |= {self._by_dot[d] for d in delta.removed if d in self._by_dot}
         before = self._snapshot(touched, is_base)
         for dot in delta.removed:
-            for triple in self._by_dot.pop(dot, set()):
+            triple = self._by_dot.pop(dot, None)
+            if triple is not None:
                 self._drop(triple, dot)
-        if delta.dot not in self.context:
-            for triple in delta.added:
-                self._tag(triple, delta.dot, delta.stamp)
+            elif dot not in self.context:
+                self.tombstones.add(dot)  # removed before its write came: it never shows
+        if not received:
+            for triple, dot in delta.tagged():
+                if dot not in self.tombstones:
+                    self._tag(triple, dot, delta.stamp)
+            for dot in delta.dots:
+                self.context.add(dot)
+                self.tombstones.discard(dot)
         self.removed_base.update(delta.removed_base)
-        self.context.add(delta.dot)
-        for dot in delta.removed:
-            self.context.add(dot)
         self._journal(delta)
         return self._effect(before, is_base)
 
     def _tag(self, triple: Triple, dot: Dot, stamp: Stamp) -> None:
         self.entries.setdefault(triple, {})[dot] = stamp
-        self._by_dot.setdefault(dot, set()).add(triple)
+        self._by_dot[dot] = triple
         s, p, o = triple
         if p in self.single_valued:
             self._values.setdefault((s, p), set()).add(o)
@@ -395,7 +429,7 @@ class Replica:
         self._journal_size -= delta.size
 
     def compact(self, peers: Iterable[CausalContext]) -> int:
-        """Forget the deltas every peer in ``peers`` has seen; how many went."""
+        """Forget the deltas every peer in ``peers`` has received; how many went."""
         contexts = list(peers)
         gone = [dot for dot in self.journal if all(dot in c for c in contexts)]
         for dot in gone:
@@ -406,11 +440,16 @@ class Replica:
         """What ``peer`` lacks: the deltas from the journal, in the order
         they came, or the whole written state when the journal no longer
         holds one of them."""
-        missing = list(self.context.missing_from(peer))
-        if any(dot not in self.journal for dot in missing):
+        journaled = sum(len(d.dots) for d in self.journal.values())
+        # Counted before they are listed: a context claiming a huge count
+        # must not make this enumerate it.
+        if self.context.count_missing_from(peer) > journaled:
             return self.state()
-        wanted = set(missing)
-        return [d for dot, d in self.journal.items() if dot in wanted]
+        missing = set(self.context.missing_from(peer))
+        wanted = [d for d in self.journal.values() if any(dot in missing for dot in d.dots)]
+        if sum(1 for d in wanted for dot in d.dots if dot in missing) < len(missing):
+            return self.state()
+        return wanted
 
     # ---------------------------------------------------------- whole state
 
@@ -419,6 +458,7 @@ class Replica:
             self.context.copy(),
             {t: dict(dots) for t, dots in self.entries.items()},
             frozenset(self.removed_base),
+            frozenset(self.tombstones),
         )
 
     def join(self, other: WrittenState, is_base: Callable[[Triple], bool]) -> Effect:
@@ -428,24 +468,22 @@ class Replica:
         for triple, dots in self.entries.items():
             theirs = other.entries.get(triple, {})
             for dot in dots:
-                if dot in other.context and dot not in theirs:
+                # They received it and it is gone there, or they know it removed.
+                if (dot in other.context and dot not in theirs) or dot in other.tombstones:
                     removed.append((triple, dot))
                     touched.add(triple)
         before = self._snapshot(touched, is_base)
         for triple, dot in removed:
             self._drop(triple, dot)
-            left = self._by_dot.get(dot)
-            if left is not None:
-                left.discard(triple)
-                if not left:
-                    del self._by_dot[dot]
+            self._by_dot.pop(dot, None)
         for triple, dots in other.entries.items():
             for dot, stamp in dots.items():
                 self._observe(stamp)
-                if dot not in self.context:
+                if dot not in self.context and dot not in self.tombstones:
                     self._tag(triple, dot, stamp)
         self.removed_base |= other.removed_base
         self.context.merge(other.context)
+        self.tombstones = {d for d in self.tombstones | set(other.tombstones) if d not in self.context}
         return self._effect(before, is_base)
 
     def equal_to(self, other: Replica) -> bool:
@@ -454,6 +492,7 @@ class Replica:
             self.context == other.context
             and self.entries == other.entries
             and self.removed_base == other.removed_base
+            and self.tombstones == other.tombstones
         )
 
     @property
@@ -461,5 +500,6 @@ class Replica:
         return self._journal_size
 
     def gaps(self) -> int:
-        return len(self.context.cloud)
+        """Dots waiting: past a gap, or removed before their write came."""
+        return len(self.context.cloud) + len(self.tombstones)
 

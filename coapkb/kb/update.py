@@ -88,7 +88,8 @@ _TOKEN = re.compile(
     r'|(?P<iri><[^<>"{}|^`\\\s]*>)'
     r"|(?P<comment>\#[^\n]*)"
     r"|(?P<var>[?$]\w+)"
-    r"|(?P<word>[A-Za-z_][\w.-]*:?[\w.:-]*)"
+    # a keyword, or a prefixed name (the empty prefix too: ":Robot1")
+    r"|(?P<word>(?:[A-Za-z_][\w.-]*)?:[\w.:-]*|[A-Za-z_][\w.-]*)"
     r"|(?P<punct>[{};])"
     r"|(?P<space>\s+)"
     r"|(?P<other>.)",
@@ -121,7 +122,8 @@ class _Scanner:
         self.i = 0
 
     def peek_word(self) -> str | None:
-        if self.i < len(self.tokens) and self.tokens[self.i][0] == "word":
+        """The keyword here, upper-cased (a prefixed name is none)."""
+        if self.i < len(self.tokens) and self.tokens[self.i][0] == "word" and ":" not in self.tokens[self.i][1]:
             return self.tokens[self.i][1].upper()
         return None
 
@@ -141,7 +143,7 @@ class _Scanner:
         while self.i < len(self.tokens):
             kind, value, pos = self.tokens[self.i]
             self.i += 1
-            if kind == "word" and value.upper() in ("GRAPH", "SERVICE"):
+            if kind == "word" and ":" not in value and value.upper() in ("GRAPH", "SERVICE"):
                 raise UpdateUnsupported(f"{value.upper()}: {_UNSUPPORTED[value.upper()]}")
             if value == "{":
                 depth += 1
@@ -154,8 +156,10 @@ class _Scanner:
     def prologue_item(self) -> str:
         start = self.tokens[self.i][2]
         word = self.take_word("PREFIX", "BASE")
-        if word == "PREFIX":
-            self.take_word()  # the prefix name
+        if word == "PREFIX":  # the prefix name, "obj:" or ":"
+            if self.i >= len(self.tokens) or not self.tokens[self.i][1].endswith(":"):
+                raise ValueError
+            self.i += 1
         if self.i >= len(self.tokens) or self.tokens[self.i][0] != "iri":
             raise ValueError
         end = self.tokens[self.i][2] + len(self.tokens[self.i][1])

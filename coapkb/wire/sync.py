@@ -9,13 +9,15 @@
     delta    = [writer: tstr, seq: uint, ms: uint, counter: uint,
                 removed: [* [writer: tstr, [+ seq: uint]]],
                 removed-base: graph-item, added: graph-item]
-    state    = {1: context, 2: graph-item, 3: [* [+ dot-stamp]], 4: graph-item}
+    state    = {1: context, 2: graph-item, 3: [* [+ dot-stamp]], 4: graph-item,
+                ? 5: [* [writer: tstr, [+ seq: uint]]]}
     dot-stamp = [writer: tstr, seq: uint, ms: uint, counter: uint]
     graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
 
 ``forward`` asks the receiver to pass deltas new to it on to the holders
 it knows (a push from another cluster).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
-each in the same order, key 4 the files' triples removed.  Decoders raise
+each in the same order, key 4 the files' triples removed, key 5 the
+tombstones (dots removed before their write arrived).  Decoders raise
 :class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
 """
 
@@ -82,12 +84,15 @@ def _delta(delta: Delta) -> list[object]:
 
 def _state(state: WrittenState) -> dict[int, object]:
     triples = list(state.entries)
-    return {
+    encoded: dict[int, object] = {
         1: _context(state.context),
         2: codec.graph_item(triples),
         3: [[[d.writer, d.seq, s.ms, s.counter] for d, s in sorted(state.entries[t].items())] for t in triples],
         4: codec.graph_item(sorted(state.removed_base, key=repr)),
     }
+    if state.tombstones:
+        encoded[5] = _dots(sorted(state.tombstones))
+    return encoded
 
 
 def encode_sync(message: SyncMessage) -> bytes:
@@ -137,6 +142,16 @@ def _decode_context(item: object) -> CausalContext:
     return CausalContext({w: s for w, s in vv.items() if s}, cloud)
 
 
+def _decode_dots(item: object, what: str) -> list[Dot]:
+    dots: list[Dot] = []
+    for group in _list(item, what, MAX_WRITERS):
+        group = _list(group, f"{what} entry", 2)
+        if len(group) != 2:
+            raise CodecError(f"{what} entry: expected [writer, seqs]")
+        dots += [Dot(_text(group[0], f"{what} writer"), _uint(s, f"{what} seq")) for s in _list(group[1], "seqs")]
+    return dots
+
+
 def _decode_delta(item: object) -> Delta:
     fields = _list(item, "delta", 7)
     if len(fields) != 7:
@@ -145,12 +160,7 @@ def _decode_delta(item: object) -> Delta:
     seq = _uint(fields[1], "delta seq")
     if seq == 0:
         raise CodecError("delta seq: counts from 1")
-    removed: list[Dot] = []
-    for group in _list(fields[4], "removed dots", MAX_WRITERS):
-        group = _list(group, "removed dots entry", 2)
-        if len(group) != 2:
-            raise CodecError("removed dots entry: expected [writer, seqs]")
-        removed += [Dot(_text(group[0], "removed writer"), _uint(s, "removed seq")) for s in _list(group[1], "seqs")]
+    removed = _decode_dots(fields[4], "removed dots")
     return Delta(
         Dot(writer, seq),
         Stamp(_uint(fields[2], "delta ms"), _uint(fields[3], "delta counter"), writer),
@@ -161,8 +171,8 @@ def _decode_delta(item: object) -> Delta:
 
 
 def _decode_state(item: dict[object, object]) -> WrittenState:
-    if set(item) != {1, 2, 3, 4}:
-        raise CodecError("state: expected keys 1-4")
+    if not {1, 2, 3, 4} <= set(item) <= {1, 2, 3, 4, 5}:
+        raise CodecError("state: expected keys 1-4 and maybe 5")
     triples = decode_graph_item(item[2], "state triples")
     dots = _list(item[3], "state dots")
     if len(dots) != len(triples):
@@ -181,7 +191,9 @@ def _decode_state(item: dict[object, object]) -> WrittenState:
         if not tagged:
             raise CodecError("state: a written triple has at least one dot")
         entries[triple] = tagged
-    return WrittenState(_decode_context(item[1]), entries, frozenset(decode_graph_item(item[4], "removed base")))
+    tombstones = _decode_dots(item.get(5, []), "tombstones")
+    return WrittenState(_decode_context(item[1]), entries, frozenset(decode_graph_item(item[4], "removed base")),
+                        frozenset(tombstones))
 
 
 def decode_sync(data: bytes) -> SyncMessage:
