@@ -27,7 +27,7 @@ import cbor2
 from .. import clock
 from ..kb.client import KBClient
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
-from ..config import ConfigError, RobotConfig
+from ..config import KB_MODULES, ConfigError, RobotConfig
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.live import LiveKB
 from ..kb.replication import Holder, Replicator
@@ -187,7 +187,8 @@ class Robot:
             served: KnowledgeBase | LiveKB = kb
             if config.kb_writable:
                 # Each incarnation writes as a writer of its own: its counts start again at 1.
-                served = LiveKB(kb, f"{config.robot_id}.{boot}", wall_ms=host.wall_ms)
+                known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
+                served = LiveKB(kb, f"{config.robot_id}.{boot}", wall_ms=host.wall_ms, holders=known)
                 replicator = Replicator(served, client, module_holders(config, served.names), rng=host.rng)
             KBResources(served, threads=host.threads, replicator=replicator).mount(router)
         start = config.start

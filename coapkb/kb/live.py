@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import pyoxigraph as ox
@@ -37,9 +37,11 @@ __all__ = ["LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
 class NotHeld(KBError):
     """The write names a module this robot does not hold."""
 
-    def __init__(self, module: str, held: Iterable[str]) -> None:
+    def __init__(self, module: str, held: Iterable[str], holders: Iterable[str] = ()) -> None:
         self.module = module
-        super().__init__(f"this robot does not hold the {module} module (it holds {', '.join(held)})")
+        elsewhere = ", ".join(holders)
+        where = f"; write it to a robot that does: {elsewhere}" if elsewhere else ""
+        super().__init__(f"this robot does not hold the {module} module (it holds {', '.join(held)}){where}")
 
 
 class PreconditionFailed(KBError):
@@ -99,6 +101,7 @@ class LiveKB:
         wall_ms: Callable[[], int],
         limits: WriteLimits | None = None,
         single_valued: frozenset[str] = SINGLE_VALUED,
+        holders: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         if base.backend != "oxigraph" or not isinstance(base.engine, OxigraphBackend) or base.engine.on_disk:
             raise ValueError("a writable knowledge base needs the in-memory oxigraph backend")
@@ -117,6 +120,8 @@ class LiveKB:
             for name in base.names
         }
         self._namespaces = module_namespaces(base.names)
+        #: module -> the robots known to hold it (named when a write is misdirected)
+        self.holders = dict(holders or {})
         self._etag: bytes | None = None
         #: Called with the modules a change touched (after the view has it).
         self.listeners: list[Callable[[frozenset[str]], None]] = []
@@ -170,7 +175,7 @@ class LiveKB:
                 return name
         for name, (ontology, ns, _) in ONTOLOGIES.items():
             if subject.startswith(ns) or subject == ontology:
-                raise NotHeld(name, self.names)
+                raise NotHeld(name, self.names, self.holders.get(name, ()))
         if len(self.names) == 1:
             return self.names[0]
         known = ", ".join(f"{ns} ({name})" for name, (_, ns, _) in ONTOLOGIES.items())

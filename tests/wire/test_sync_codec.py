@@ -10,6 +10,8 @@ and the deltas, the whole written state, or nothing it sends.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cbor2
 import pytest
 from hypothesis import HealthCheck, example, given, settings
@@ -18,6 +20,7 @@ from rdflib.term import Literal, URIRef
 
 from coapkb.kb.replica import CausalContext, Delta, Dot, Replica, Stamp, WrittenState
 from coapkb.kb.results import Triple
+from coapkb.kb.update import encode_patch
 from coapkb.wire.codec import CodecError
 from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
 
@@ -212,3 +215,37 @@ def test_garbage_raises_only_codec_error(data: bytes) -> None:
 def test_wrong_shapes_are_codec_errors(item: object) -> None:
     with pytest.raises(CodecError):
         decode_sync(cbor2.dumps(item))
+
+
+# --------------------------------------------------------------------------- the specification
+
+
+@pytest.fixture(scope="module")
+def knowledge_cddl() -> object:
+    """docs/knowledge.cddl with the compact results' rules it embeds."""
+    cddl_verifier = pytest.importorskip("cddl_verifier")
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    text = (docs / "knowledge.cddl").read_text() + "\n" + (docs / "compact-results.cddl").read_text()
+    return cddl_verifier.Validator(text)
+
+
+def test_sync_messages_match_the_cddl(knowledge_cddl: object) -> None:
+    a, b = Replica("A.1"), Replica("B.1")
+    first, _ = a.write([], [AISLE, NEAR, LABEL], 1, lambda t: False)
+    second, _ = a.write([NEAR, FILE_TRIPLE], [WEIGHT], 2, lambda t: t == FILE_TRIPLE)
+    b.apply(second, lambda t: False)  # before the first: a tombstone for NEAR's dot
+    messages = [
+        SyncMessage("Location", a.context, [first, second]),
+        SyncMessage("Location", a.context, [second], forward=True),
+        SyncMessage("Location", b.context, b.state()),
+        SyncMessage("Location", CausalContext()),
+    ]
+    assert b.state().tombstones
+    for message in messages:
+        outcome = knowledge_cddl.validate(encode_sync(message), root_type="sync")  # type: ignore[attr-defined]
+        assert outcome.valid, [str(d) for d in outcome.diagnostics]
+
+
+def test_a_patch_matches_the_cddl(knowledge_cddl: object) -> None:
+    outcome = knowledge_cddl.validate(encode_patch([FILE_TRIPLE], [AISLE, LABEL]), root_type="patch")  # type: ignore[attr-defined]
+    assert outcome.valid, [str(d) for d in outcome.diagnostics]
