@@ -34,14 +34,16 @@ def add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time-scale", type=float, default=50.0, help="simulated seconds per wall-clock second")
     p.add_argument("--replication", type=int, default=2, metavar="R",
                    help="robots of a cluster holding each KB module (1-3, default 2: one may fail)")
-    p.add_argument("--kill", action="append", default=[], metavar="ROBOT@S",
-                   help="SIGKILL a robot S seconds after the first task is fed, e.g. Robot4@12s (repeatable)")
-    p.add_argument("--restart", action="append", default=[], metavar="ROBOT@S",
-                   help="start a killed robot again at S seconds; it joins the team at the next task (repeatable)")
-    p.add_argument("--stop", action="append", default=[], metavar="ROBOT@S",
-                   help="SIGSTOP a robot at S seconds: cut off with its state intact (repeatable)")
-    p.add_argument("--resume", action="append", default=[], metavar="ROBOT@S",
-                   help="SIGCONT a stopped robot at S seconds; it finds itself fenced off and picks nothing "
+    # WHEN: S seconds after the first task is fed (12s), or once the robot's cluster decided task N (taskN).
+    p.add_argument("--kill", action="append", default=[], metavar="ROBOT@WHEN",
+                   help="SIGKILL a robot at WHEN: Robot4@12s, or Robot4@task3 after its cluster decided task 3 "
+                        "(the same on any machine; repeatable)")
+    p.add_argument("--restart", action="append", default=[], metavar="ROBOT@WHEN",
+                   help="start a killed robot again at WHEN; it joins the team at the next task (repeatable)")
+    p.add_argument("--stop", action="append", default=[], metavar="ROBOT@WHEN",
+                   help="SIGSTOP a robot at WHEN: cut off with its state intact (repeatable)")
+    p.add_argument("--resume", action="append", default=[], metavar="ROBOT@WHEN",
+                   help="SIGCONT a stopped robot at WHEN; it finds itself fenced off and picks nothing "
                         "the others took over (repeatable)")
     p.add_argument("--discovery", choices=("static", "rd"), default="static",
                    help="how robots find their teammates: static (each config lists its cluster, default) or rd "

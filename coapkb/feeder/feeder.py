@@ -8,7 +8,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from dataclasses import dataclass, replace
-from typing import AsyncIterator, Callable, Mapping, Sequence
+from typing import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 
 import cbor2
 
@@ -28,6 +28,11 @@ from .tasks import FeederError, split_tasks, task_post
 STATS_PATH = "/robot/stats"
 #: Requests for one robot's statistics before the feeder gives up on them.
 STATS_TRIES = 3
+
+
+#: Told of each task once decided; what it returns (if anything) is awaited
+#: before the cluster's next task (a fault scheduled at that task).
+Progress = Callable[[TaskRecord], Awaitable[None] | None]
 
 
 @dataclass(frozen=True)
@@ -119,11 +124,12 @@ class Feeder:
     async def feed(
         self,
         tasks: Sequence[str],
-        progress: Callable[[TaskRecord], None] | None = None,
+        progress: Progress | None = None,
         started: float | None = None,
     ) -> FeedOutcome:
         """Feed ``tasks`` and wait until every robot has executed what it took;
-        ``progress`` is called with each task's record once it is decided.
+        ``progress`` is called with each task's record once it is decided
+        (if it returns an awaitable, the cluster's next task waits for it).
         ``started``: the run's start (monotonic), if not now."""
         started = clock.monotonic() if started is None else started
         clusters = self.channel.roster.clusters
@@ -171,7 +177,7 @@ class Feeder:
         raise AssertionError("unreachable")
 
     async def _feed_cluster(
-        self, index: int, cluster: list[str], share: list[str], progress: Callable[[TaskRecord], None] | None
+        self, index: int, cluster: list[str], share: list[str], progress: Progress | None
     ) -> tuple[list[TaskRecord], float]:
         """Feed one cluster's share; returns its records and when its last task was decided."""
         channel, membership, watcher = self.channel, self.membership, self.channel.watcher
@@ -193,7 +199,9 @@ class Feeder:
                 record.reassigned_from = reassigned_from
                 records.append(record)
                 if progress is not None:
-                    progress(record)
+                    held = progress(record)
+                    if held is not None:
+                        await held
             decided_at = clock.monotonic()
             # Until the cluster's survivors have executed everything: a robot
             # that dies meanwhile is found by the stalled wait's liveness requests.

@@ -73,23 +73,43 @@ class Fault:
     ``restart`` starts it again (same configuration and port), ``stop``
     freezes it (SIGSTOP: a robot cut off, its state intact) and ``resume``
     lets it go on (SIGCONT), ``at_s`` seconds of wall time after the first
-    task was fed."""
+    task was fed, or, with ``at_task``, once its cluster's task of that
+    number is decided (the same story on a fast machine and a slow one)."""
 
     action: str
     robot: str
-    at_s: float
+    at_s: float = 0.0
+    at_task: int | None = None
 
     @classmethod
     def parse(cls, action: str, text: str) -> "Fault":
-        """``Robot4@12s`` (or ``Robot4@12``) for ``action``."""
+        """``Robot4@12s`` (or ``Robot4@12``), or ``Robot4@task3``, for ``action``."""
         robot, sep, when = text.partition("@")
+        if when.startswith("task"):
+            number = when.removeprefix("task")
+            if sep and robot and number.isdigit() and int(number) >= 1:
+                return cls(action, robot, at_task=int(number))
+            raise ValueError(f"--{action} expects ROBOT@taskN with N from 1, like Robot4@task3, got {text!r}")
         try:
             at_s = float(when.removesuffix("s"))
         except ValueError:
             at_s = -1.0
         if not sep or not robot or at_s < 0:
-            raise ValueError(f"--{action} expects ROBOT@SECONDS, like Robot4@12s, got {text!r}")
+            raise ValueError(f"--{action} expects ROBOT@SECONDS or ROBOT@taskN, like Robot4@12s or Robot4@task3, "
+                             f"got {text!r}")
         return cls(action, robot, at_s)
+
+    @property
+    def when(self) -> str:
+        return f"task {self.at_task}" if self.at_task is not None else f"{self.at_s:g}s"
+
+    def before(self, other: "Fault") -> bool:
+        """Whether it is scheduled before ``other`` (both by time or both by task)."""
+        if (self.at_task is None) != (other.at_task is None):
+            return False
+        if self.at_task is not None and other.at_task is not None:
+            return self.at_task < other.at_task
+        return self.at_s < other.at_s
 
 
 
@@ -179,13 +199,15 @@ class TeamSpec:
             if fault.robot not in self.robot_ids:
                 raise ValueError(f"cannot {fault.action} {fault.robot}: the team is {', '.join(self.robot_ids)}")
             if fault.action == "restart" and not any(
-                k.action == "kill" and k.robot == fault.robot and k.at_s < fault.at_s for k in self.faults
+                k.action == "kill" and k.robot == fault.robot and k.before(fault) for k in self.faults
             ):
-                raise ValueError(f"cannot restart {fault.robot} at {fault.at_s:g}s: it is not killed before")
+                raise ValueError(f"cannot restart {fault.robot} at {fault.when}: it is not killed before "
+                                 "(schedule both by seconds or both by task)")
             if fault.action == "resume" and not any(
-                k.action == "stop" and k.robot == fault.robot and k.at_s < fault.at_s for k in self.faults
+                k.action == "stop" and k.robot == fault.robot and k.before(fault) for k in self.faults
             ):
-                raise ValueError(f"cannot resume {fault.robot} at {fault.at_s:g}s: it is not stopped before")
+                raise ValueError(f"cannot resume {fault.robot} at {fault.when}: it is not stopped before "
+                                 "(schedule both by seconds or both by task)")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")
@@ -592,11 +614,23 @@ class Team:
         that download is not charged to the system)."""
         spec = self.spec
         events: list[FaultEvent] = []
+        cluster_of = {r: n for n, cluster in enumerate(spec.clusters(), 1) for r in cluster}
+        by_task = sorted((f for f in spec.faults if f.at_task is not None), key=lambda f: f.at_task or 0)
+
+        def on_progress(record: TaskRecord) -> Awaitable[None] | None:
+            if progress is not None:
+                progress(record)
+            # A fault scheduled at this task: carried out before the cluster's next task is fed.
+            due = [f for f in by_task if cluster_of[f.robot] == record.cluster and record.seq >= (f.at_task or 0)]
+            for fault in due:
+                by_task.remove(fault)
+            return self._carry_all(feeder, started, events, due) if due else None
+
         async with Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
             started = time.monotonic()
             injector = asyncio.create_task(self._inject(feeder, started, events), name="faults")
             try:
-                outcome = await feeder.feed(tasks, progress, started)
+                outcome = await feeder.feed(tasks, on_progress, started)
                 if finished is not None:
                     await finished()
                 watcher = feeder.watcher
@@ -645,22 +679,29 @@ class Team:
         await self._spawn(robot_id, self._argv[robot_id], "robot")
 
     async def _inject(self, feeder: Feeder, started: float, events: list[FaultEvent]) -> None:
-        """Carry out the spec's faults at their wall times after ``started``."""
-        for fault in sorted(self.spec.faults, key=lambda f: f.at_s):
+        """Carry out the spec's faults scheduled by time, at their wall times after ``started``."""
+        for fault in sorted((f for f in self.spec.faults if f.at_task is None), key=lambda f: f.at_s):
             # A schedule, not a wait for an event: the user asked for this time.
             await asyncio.sleep(max(0.0, started + fault.at_s - time.monotonic()))
-            at_s = round(time.monotonic() - started, 3)
-            if fault.action == "restart":
-                await self.restart(fault.robot)
-                await feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
-                log.warning("restarted %s at %.1fs", fault.robot, at_s)
-            elif fault.action in ("stop", "resume"):
-                self.pause(fault.robot, fault.action == "stop")
-                log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
-            else:
-                await self.kill(fault.robot)
-                log.warning("killed %s at %.1fs", fault.robot, at_s)
-            events.append(FaultEvent(fault.action, fault.robot, at_s))
+            await self._carry_out(feeder, started, events, fault)
+
+    async def _carry_all(self, feeder: Feeder, started: float, events: list[FaultEvent], faults: list[Fault]) -> None:
+        for fault in faults:
+            await self._carry_out(feeder, started, events, fault)
+
+    async def _carry_out(self, feeder: Feeder, started: float, events: list[FaultEvent], fault: Fault) -> None:
+        at_s = round(time.monotonic() - started, 3)
+        if fault.action == "restart":
+            await self.restart(fault.robot)
+            await feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
+            log.warning("restarted %s at %.1fs", fault.robot, at_s)
+        elif fault.action in ("stop", "resume"):
+            self.pause(fault.robot, fault.action == "stop")
+            log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
+        else:
+            await self.kill(fault.robot)
+            log.warning("killed %s at %.1fs", fault.robot, at_s)
+        events.append(FaultEvent(fault.action, fault.robot, at_s))
 
 
 def team_record(
