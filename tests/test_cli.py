@@ -291,3 +291,20 @@ async def test_team_mistakes() -> None:
         (["team", "--robots", "3", "--tasks", "0"], ["--tasks"]),
         (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], ["/nonexistent/tasks.txt"]),
     ])
+
+
+async def test_keys_warn_when_git_would_commit_them(tmp_path: Path) -> None:
+    """Private keys one `git add -A` away from a commit are said so; once
+    ignored (or outside a work tree) nothing is said."""
+    import subprocess
+
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    exposed = await coapkb("keys", "--team-dir", str(repo / "team"))
+    assert exposed.code == 0 and "warning" in exposed.stderr and "git add -A" in exposed.stderr
+    (repo / ".gitignore").write_text("/ignored/\n")
+    quiet = await coapkb("keys", "--team-dir", str(repo / "ignored"))
+    assert quiet.code == 0 and "warning" not in quiet.stderr
+    outside = await coapkb("keys", "--team-dir", str(tmp_path / "keys"))
+    assert outside.code == 0 and "warning" not in outside.stderr

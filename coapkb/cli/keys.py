@@ -21,6 +21,28 @@ def add_keys(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=_keys)
 
 
+def unignored_in_work_tree(directory: Path) -> Path | None:
+    """The git work tree holding ``directory`` if git would track it (not
+    ignored), else None (no git, no work tree, or ignored)."""
+    import shutil
+    import subprocess
+
+    git = shutil.which("git")
+    if git is None:
+        return None
+    directory = directory.resolve()
+    try:
+        top = subprocess.run([git, "-C", str(directory), "rev-parse", "--show-toplevel"],
+                             capture_output=True, text=True, timeout=10)
+        if top.returncode != 0:
+            return None
+        ignored = subprocess.run([git, "-C", str(directory), "check-ignore", "-q", str(directory / "team.json")],
+                                 capture_output=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return None if ignored.returncode == 0 else Path(top.stdout.strip())
+
+
 async def _keys(args: argparse.Namespace) -> int:
     from ..security import generate_team
     from ..security.keys import ROLES, aiocoap_client_credentials, default_members
@@ -37,6 +59,11 @@ async def _keys(args: argparse.Namespace) -> int:
             raise UserError(f"--member {text!r}: expected NAME:ROLE with ROLE one of {', '.join(ROLES)}")
         members.append((name, role))
     trust = generate_team(args.team_dir, members)
+    exposed = unignored_in_work_tree(Path(args.team_dir))
+    if exposed is not None:
+        print(f"coapkb: warning: {args.team_dir} holds private keys inside the git work tree {exposed}, and git "
+              f"does not ignore it: one `git add -A` would commit them. Keep keys outside the work tree, or add "
+              f"{args.team_dir.rstrip('/')}/ to .gitignore", file=sys.stderr)
     # Names and roles only: the keys stay in their 0600 files.
     print(f"team of {len(trust.members)} in {args.team_dir}: "
           + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
