@@ -156,7 +156,7 @@ async def test_query_over_zmq_matches(tmp_path: Path) -> None:
 
 QUERY_MISTAKES = [
     (["query", "htp://127.0.0.1:5683", "ASK {}"], ["htp"]),
-    (["query", "coap://127.0.0.1", "ASK {}"], ["HOST:PORT"]),
+    (["query", "coap://127.0.0.1:5", "ASK {}"], ["no answer from coap://127.0.0.1:5", "nothing listens"]),
     (["query", "coap://127.0.0.1:99999", "ASK {}"], ["HOST:PORT"]),
     (["query", "coap://127.0.0.1:5683/kb/other", "ASK {}"], ["/kb/other"]),
     (["query", "coap://127.0.0.1:5683"], ["no query"]),

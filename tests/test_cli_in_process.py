@@ -113,7 +113,7 @@ kbs = ["Location"]
         (["query", "coap://127.0.0.1:5683", "ASK {}", "--timeout", "soon"], ["--timeout", "soon"]),
         (["query", "coap://127.0.0.1:5683", "ASK {}", "--accept", "xml"], ["--accept", "xml"]),
         (["query", "htp://127.0.0.1:5683", "ASK {}"], ["htp"]),
-        (["query", "coap://127.0.0.1", "ASK {}"], ["HOST:PORT"]),
+        (["query", "coap://127.0.0.1:port", "ASK {}"], ["HOST:PORT"]),
         (["query", "coap://127.0.0.1:5683"], ["no query"]),
         (["query", "coap://127.0.0.1:5683/kb/q/object-exists?name=x", "ASK {}"], ["not both"]),
         (["query", "coap://127.0.0.1:5683", "@/nonexistent/q.rq"], ["/nonexistent/q.rq"]),

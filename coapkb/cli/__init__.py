@@ -16,6 +16,7 @@ import argparse
 import asyncio
 import logging
 import sys
+import typing
 from typing import Callable, Sequence
 
 from ..errors import CoapkbError
@@ -26,10 +27,18 @@ from .render import render
 __all__ = ["UserError", "build_parser", "main", "render"]
 
 
+class _Parser(argparse.ArgumentParser):
+    """A usage mistake in one line, with where to read the usage (not the
+    usage block: it hides the one line that matters)."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The whole command line, or with ``only`` the one subcommand of that
     name (what :func:`main` runs: the others' options are not imported)."""
-    parser = argparse.ArgumentParser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
+    parser = _Parser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, add in COMMANDS.items():

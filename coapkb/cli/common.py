@@ -29,10 +29,34 @@ async def until_signalled() -> None:
 
 
 def parse_endpoint(hostport: str, scheme: str) -> Endpoint:
+    """``[SCHEME://]HOST[:PORT]``; without a port, the scheme's own (CoAP's
+    5683, RFC 7252 section 6.1)."""
     try:
         return Endpoint.parse(hostport, default_scheme=scheme)
     except ValueError as exc:
-        raise UserError(str(exc)) from None
+        error = UserError(str(exc))
+    with_port = _with_default_port(hostport, scheme)
+    if with_port is None:
+        raise error
+    try:
+        return Endpoint.parse(with_port, default_scheme=scheme)
+    except ValueError:
+        raise error from None
+
+
+def _with_default_port(text: str, scheme: str) -> str | None:
+    from ..transport.registry import transport_for
+
+    given, sep, rest = text.partition("://")
+    if not sep:
+        given, rest = scheme, text
+    if not rest or ":" in rest.rpartition("]")[2]:
+        return None  # a port is there (bad or not): the first error stands
+    try:
+        port = transport_for(given).default_port
+    except (KeyError, ValueError):
+        return None
+    return f"{given}://{rest}:{port}"
 
 
 def add_credentials(p: argparse.ArgumentParser, identity: str) -> None:

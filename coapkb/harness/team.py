@@ -198,16 +198,14 @@ class TeamSpec:
                 raise ValueError(f"fault action must be one of {', '.join(FAULT_ACTIONS)}, got {fault.action!r}")
             if fault.robot not in self.robot_ids:
                 raise ValueError(f"cannot {fault.action} {fault.robot}: the team is {', '.join(self.robot_ids)}")
-            if fault.action == "restart" and not any(
-                k.action == "kill" and k.robot == fault.robot and k.before(fault) for k in self.faults
-            ):
-                raise ValueError(f"cannot restart {fault.robot} at {fault.when}: it is not killed before "
-                                 "(schedule both by seconds or both by task)")
-            if fault.action == "resume" and not any(
-                k.action == "stop" and k.robot == fault.robot and k.before(fault) for k in self.faults
-            ):
-                raise ValueError(f"cannot resume {fault.robot} at {fault.when}: it is not stopped before "
-                                 "(schedule both by seconds or both by task)")
+            for undo, first, done in (("restart", "kill", "killed"), ("resume", "stop", "stopped")):
+                if fault.action != undo:
+                    continue
+                earlier = [k for k in self.faults if k.action == first and k.robot == fault.robot]
+                if not any(k.before(fault) for k in earlier):
+                    mixed = any((k.at_task is None) != (fault.at_task is None) for k in earlier)
+                    hint = " (schedule both by seconds or both by task)" if mixed else ""
+                    raise ValueError(f"cannot {undo} {fault.robot} at {fault.when}: it is not {done} before{hint}")
         for kb in KB_MODULES:
             if not (self.ontologies / f"{kb}.owl").is_file():
                 raise ValueError(f"no {kb}.owl in {self.ontologies}")

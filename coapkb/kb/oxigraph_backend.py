@@ -67,8 +67,31 @@ def _ox_syntax_message(message: str, text: str, line: int, column: int) -> str:
     return f"syntax error near {rest[0][:20]!r}" if rest else "syntax error (reached the end of the query)"
 
 
-def syntax_error(message: str, text: str) -> QuerySyntaxError:
-    """Oxigraph's syntax error on ``text`` (a query or an update), readable, with its position."""
+QUERY_FORMS = ("SELECT", "CONSTRUCT", "ASK", "DESCRIBE")
+UPDATE_FORMS = ("INSERT", "DELETE", "LOAD", "CLEAR", "CREATE", "DROP", "ADD", "MOVE", "COPY", "WITH")
+_PROLOGUE = re.compile(r"(?:\s+|#[^\n]*|(?:PREFIX|BASE)\b[^<]*<[^>]*>)*", re.IGNORECASE)
+_WORD = re.compile(r"[A-Za-z]+")
+
+
+def _unknown_form(text: str, forms: tuple[str, ...]) -> QuerySyntaxError | None:
+    """A misspelt first keyword (``SELEC``), said as such: Oxigraph reports
+    what it expected at the furthest point it reached, often far from it."""
+    start = _PROLOGUE.match(text)
+    at = start.end() if start else 0
+    word = _WORD.match(text, at)
+    if word is None or word.group().upper() in forms:
+        return None
+    line = text.count("\n", 0, at) + 1
+    column = at - (text.rfind("\n", 0, at) + 1) + 1
+    return QuerySyntaxError(f"expected {', '.join(forms[:-1])} or {forms[-1]}, not {word.group()[:20]!r}", line, column)
+
+
+def syntax_error(message: str, text: str, forms: tuple[str, ...] = QUERY_FORMS) -> QuerySyntaxError:
+    """Oxigraph's syntax error on ``text`` (a query, or an update with
+    ``forms=UPDATE_FORMS``), readable, with its position."""
+    unknown = _unknown_form(text, forms)
+    if unknown is not None:
+        return unknown
     m = _OX_POSITION.match(message)
     if m is None:
         return QuerySyntaxError(short_message(message))

@@ -21,7 +21,7 @@ import cbor2
 from typing import TYPE_CHECKING, Protocol
 
 from ..wire import codec
-from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout
+from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout, UpdateRefused
 from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written
 from .replica import ReplicaFull
 from .update import UpdateUnsupported, decode_patch, parse_update
@@ -328,7 +328,12 @@ class KBResources:
                 result = await asyncio.wait_for(self._evaluate(text, shape), limits.time_budget_s + 0.5)
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
-        except QueryRefused as exc:  # SPARQL Update, or SERVICE/FROM that would fetch from the network
+        except UpdateRefused as exc:
+            if self.live is not None:  # a writable KB takes it elsewhere
+                return Response.error(Status.FORBIDDEN, f"refused: {', '.join(exc.operations)} is SPARQL Update, "
+                                      "not a query: send it by PATCH to /kb (coapkb update)")
+            return Response.error(Status.FORBIDDEN, f"refused: {exc}")
+        except QueryRefused as exc:  # SERVICE/FROM that would fetch from the network
             return Response.error(Status.FORBIDDEN, f"refused: {exc}")
         except (QueryTimeout, asyncio.TimeoutError):
             return Response.error(

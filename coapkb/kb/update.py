@@ -237,12 +237,12 @@ def parse_update(text: str) -> ParsedUpdate:
 def _check_syntax(text: str) -> None:
     import pyoxigraph as ox
 
-    from .oxigraph_backend import syntax_error
+    from .oxigraph_backend import UPDATE_FORMS, syntax_error
 
     try:
         ox.Store().update(text)
     except SyntaxError as exc:
-        raise syntax_error(str(exc), text) from None
+        raise syntax_error(str(exc), text, UPDATE_FORMS) from None
     except Exception:  # an evaluation error on an empty store: the syntax is fine
         pass
 

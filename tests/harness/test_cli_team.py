@@ -175,7 +175,8 @@ def test_team_restart_needs_a_kill_before() -> None:
     "args,message",
     [
         (["--resume", "Robot2@3s"], "cannot resume Robot2 at 3s: it is not stopped before"),
-        (["--stop", "Robot2"], "--stop expects ROBOT@SECONDS, like Robot4@12s, got 'Robot2'"),
+        (["--stop", "Robot2"], "--stop expects ROBOT@SECONDS or ROBOT@taskN, like Robot4@12s or Robot4@task3, "
+                               "got 'Robot2'"),
         (["--discovery", "rd", "--transport", "zmq"],
          "discovery rd needs the coap transport (a Resource Directory speaks CoAP), not zmq"),
     ],

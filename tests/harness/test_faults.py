@@ -69,7 +69,7 @@ def test_fault_option_parses_and_is_checked() -> None:
             Fault.parse("kill", bad)
     TeamSpec(robots=3, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot2", at_task=3),
                                                       Fault("restart", "Robot2", at_task=8)))
-    with pytest.raises(ValueError, match="cannot restart Robot2 at task 8: it is not killed before"):
+    with pytest.raises(ValueError, match=r"cannot restart Robot2 at task 8: it is not killed before \(schedule both"):
         TeamSpec(robots=3, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot2", 1.0),
                                                           Fault("restart", "Robot2", at_task=8)))
     TeamSpec(robots=6, ontologies=ONTOLOGIES, faults=(Fault("kill", "Robot4", 1.0), Fault("restart", "Robot4", 3.0)))

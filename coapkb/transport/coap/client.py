@@ -41,6 +41,16 @@ REGISTRATION_TIMEOUT_S = 60.0
 _NO_ANSWER = (aiocoap.error.ConRetransmitsExceeded, aiocoap.error.NetworkError)
 
 
+
+def _refused(exc: aiocoap.error.NetworkError) -> str:
+    """What an ICMP error means for the user: usually that nothing serves there."""
+    text = str(exc.args[0]) if exc.args else ""
+    if "ECONNREFUSED" in text or "Connection refused" in text:
+        return "nothing listens on that port (is the robot or server running there?)"
+    if "EHOSTUNREACH" in text or "ENETUNREACH" in text:
+        return "the host cannot be reached (is the address right?)"
+    return text or "the network refused the request"
+
 class _AbandonedTryFilter(logging.Filter):
     """aiocoap warns when a request is cancelled before its token was even
     registered; the layer abandons hedge copies and retries that way as a
@@ -111,7 +121,7 @@ class CoapClientTransport:
         except (TimeoutError, ExchangeTimeout):
             raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
         except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
-            raise PeerGone(f"no answer from {peer}: {exc}") from None
+            raise PeerGone(f"no answer from {peer}: {_refused(exc)}") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         except aiocoap.error.Error as exc:
@@ -239,7 +249,7 @@ class CoapClientTransport:
         except (TimeoutError, ExchangeTimeout):
             raise PeerTimeout(f"no answer from {peer} to the observation") from None
         except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
-            raise PeerGone(f"no answer from {peer}: {exc}") from None
+            raise PeerGone(f"no answer from {peer}: {_refused(exc)}") from None
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         try:
