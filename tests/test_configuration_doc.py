@@ -39,7 +39,7 @@ SECTIONS: dict[str, tuple[str, type]] = {
     "`[team.NAME]`": ("team.Robot1", Teammate),
 }
 #: Top-level keys that are tables, each with a section of its own.
-TABLES = {"start", "cost", "execution", "security", "discovery", "team"}
+TABLES = {"start", "cost", "execution", "security", "discovery", "team", "replicas"}
 #: TOML key -> dataclass field, where they differ.
 RENAMED = {"kb": "kb_files"}
 #: Defaults the loader gives where the dataclass has none.
