@@ -6,9 +6,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import signal
+import sys
+from typing import Any, Awaitable, Callable, TypeVar
 
 from ..errors import CoapkbError
 from ..transport import ClientSecurity, Endpoint, ServerSecurity
+
+
+T = TypeVar("T")
 
 
 class UserError(CoapkbError):
@@ -87,3 +92,22 @@ def server_security(args: argparse.Namespace) -> ServerSecurity | None:
 
     # A KB server takes queries from every member; tasks and decisions are robots' business.
     return server_security(args.transport, load_identity(args.credentials, args.identity))
+
+
+async def ask_robot(args: argparse.Namespace, peer: Endpoint, call: Callable[[Any], Awaitable[T]]) -> T | None:
+    """``call`` with a :class:`~coapkb.kb.client.KBClient` to ``peer`` (the
+    command's credentials and ``--timeout``); a refusal or an unreachable
+    robot is printed as one line and gives None."""
+    from ..kb.client import KBClient, QueryFailed
+    from ..transport import TransportError, open_client
+
+    transport = await open_client(peer.scheme, security=client_security(args, peer))
+    try:
+        return await call(KBClient(transport, timeout=args.timeout))
+    except QueryFailed as exc:
+        print(f"coapkb: {peer} answered {exc}", file=sys.stderr)
+    except TransportError as exc:
+        print(f"coapkb: {exc}", file=sys.stderr)
+    finally:
+        await transport.aclose()
+    return None

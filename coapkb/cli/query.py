@@ -9,7 +9,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from ..transport.base import Endpoint
 from ..transport.messages import ContentFormat, Method, Request
-from .common import UserError, add_credentials, client_security, parse_endpoint
+from .common import UserError, add_credentials, ask_robot, client_security, parse_endpoint
 from .render import render
 
 
@@ -59,9 +59,8 @@ def split_robot_uri(uri: str) -> tuple[Endpoint, str]:
 
 
 async def _query(args: argparse.Namespace) -> int:
-    from ..kb.client import KBClient, QueryFailed
     from ..kb.results import GraphResult
-    from ..transport import TransportError, open_client
+    from ..transport import open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
     peer, _ = split_robot_uri(args.uri)
@@ -73,8 +72,6 @@ async def _query(args: argparse.Namespace) -> int:
         raise UserError("no query: give SPARQL text (or @FILE, or -) or a /kb/q/NAME URI")
     if parts.path not in ("", "/") and not named:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
-    transport = await open_client(peer.scheme, security=client_security(args, peer))
-    client = KBClient(transport, timeout=args.timeout)
     accept = FORMAT_ACCEPT[args.accept]
     if args.observe:
         if named:
@@ -82,23 +79,20 @@ async def _query(args: argparse.Namespace) -> int:
         else:
             request = Request(Method.FETCH, "/kb/sparql", payload=(text or "").encode(),
                               content_format=ContentFormat.TEXT, accept=accept)
+        transport = await open_client(peer.scheme, security=client_security(args, peer))
         try:
             return await _observe(transport, peer, request, args)
         finally:
             await transport.aclose()
-    try:
-        if named:
-            result = await client.named(peer, parts.path.rsplit("/", 1)[1], dict(parse_qsl(parts.query)), accept=accept)
-        else:
-            result = await client.sparql(peer, text or "", accept=accept, method=Method(args.method.upper()))
-    except QueryFailed as exc:
-        print(f"coapkb: {peer} answered {exc}", file=sys.stderr)
+    if named:
+        name, params = parts.path.rsplit("/", 1)[1], dict(parse_qsl(parts.query))
+        result = await ask_robot(args, peer, lambda client: client.named(peer, name, params, accept=accept))
+    else:
+        method = Method(args.method.upper())
+        result = await ask_robot(args, peer, lambda client: client.sparql(peer, text or "", accept=accept,
+                                                                           method=method))
+    if result is None:
         return 1
-    except TransportError as exc:
-        print(f"coapkb: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        await transport.aclose()
     sys.stdout.write(render(result, args.format))
     if args.format == "csv" and getattr(result, "truncated", False):
         # The table's footer and SPARQL-JSON's "truncated" say so; CSV has no room for it.

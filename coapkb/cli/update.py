@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from .common import UserError, add_credentials, client_security
+from .common import UserError, add_credentials, ask_robot
 from .query import read_text, split_robot_uri
 
 
@@ -31,9 +30,6 @@ def add_update(sub: argparse._SubParsersAction) -> None:
 
 
 async def _update(args: argparse.Namespace) -> int:
-    from ..kb.client import KBClient, QueryFailed
-    from ..transport import TransportError, open_client
-
     peer, path = split_robot_uri(args.uri)
     if path not in ("", "/", "/kb"):
         raise UserError(f"unexpected path {path!r}: give the robot's base URI (or /kb)")
@@ -48,18 +44,11 @@ async def _update(args: argparse.Namespace) -> int:
             raise UserError(f"--if-match: expected a hex version, got {args.if_match!r}") from None
         if not 1 <= len(if_match) <= 8:
             raise UserError("--if-match: a version is 1 to 8 bytes")
-    transport = await open_client(peer.scheme, security=client_security(args, peer))
-    client = KBClient(transport, timeout=args.timeout)
-    try:
-        version = await client.update(peer, text, if_match=if_match, idempotent=args.idempotent)
-    except QueryFailed as exc:
-        print(f"coapkb: {peer} answered {exc}", file=sys.stderr)
+    version = await ask_robot(
+        args, peer, lambda client: client.update(peer, text, if_match=if_match, idempotent=args.idempotent)
+    )
+    if version is None:
         return 1
-    except TransportError as exc:
-        print(f"coapkb: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        await transport.aclose()
     print(version.hex())
     return 0
 
