@@ -56,6 +56,20 @@ COLOURS = {
     "seed-distributed": "#2ca02c", "seed-central": "#98df8a",
 }
 ROBOT_COLOURS = {3: "#1f77b4", 6: "#ff7f0e", 9: "#2ca02c"}
+#: One colour per transport (tab10, colour-blind-safe order), whatever the
+#: mode; a central system is the same colour, lighter and hatched.
+PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+           "#17becf")
+TRANSPORTS = list(dict.fromkeys(s.rsplit("-", 1)[0] for s in SYSTEMS))
+TRANSPORT_COLOURS = {t: PALETTE[i % len(PALETTE)] for i, t in enumerate(TRANSPORTS)}
+
+
+def transport_of(system: str) -> str:
+    return system.rsplit("-", 1)[0]
+
+
+def _no_data(ax: Any, text: str = "no data for this panel") -> None:
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", color="grey", fontsize=9)
 
 
 @dataclass(frozen=True)
@@ -188,8 +202,11 @@ def fig6(data: Data, out: Path) -> Path | str:
                 drawn |= _line(ax, losses, ys, _kb, linestyle=style, color=ROBOT_COLOURS.get(robots),
                                label=f"{robots} robots, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="loss (%)", ylabel="kB on the wire", xticks=data.values("loss"))
+        if not ax.lines and not ax.collections:
+            _no_data(ax)
         _legend(ax, 7)
         ax.set_ylim(bottom=0)
+        ax.margins(x=0.08)  # points at the first and last loss stay off the frame
     return _save(fig, out / "fig06_bytes_vs_loss.png") if drawn else "no points at that bandwidth/tasks"
 
 
@@ -257,6 +274,8 @@ def _difference_figure(data: Data, out: Path, attr: str, scale: Callable[[float]
                     ys.append(diff)
             if len(xs) >= 2:
                 drawn |= _line(ax, xs, ys, scale, color=ROBOT_COLOURS.get(robots), label=f"{robots} robots")
+        if not ax.get_legend_handles_labels()[0]:
+            _no_data(ax, "no data: this family ran no two task counts\nin both modes at this setting")
         ax.axhline(0, color="grey", linewidth=0.8)
         ax.set(title=name, xlabel="tasks", ylabel=ylabel, xticks=data.values("tasks"))
         _legend(ax, 7)
@@ -340,8 +359,11 @@ def common_team(data: Data) -> tuple[int, int] | None:
     return max(count, key=lambda k: (count[k], -k[0], -k[1])) if count else None
 
 
-def _setting_bars(data: Data, out: Path, attr: str, scale: Callable[[float], float], ylabel: str,
+def _setting_bars(data: Data, out: Path, attr: str, estimate: str, scale: Callable[[float], float], ylabel: str,
                   title: str, filename: str) -> Path | str:
+    """One bar per system at each setting: the transport's colour, central
+    lighter and hatched, the median's interval as an error bar, and a mark
+    where a system has no ok run at a setting."""
     team = common_team(data)
     if team is None:
         return "no data"
@@ -350,30 +372,45 @@ def _setting_bars(data: Data, out: Path, attr: str, scale: Callable[[float], flo
     systems = data.systems()
     if len(systems) < 2:
         return "needs at least two systems"
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.4 * len(settings) * len(systems) / 3), 4.2))
+    fig, ax = plt.subplots(figsize=(max(7.0, 1.5 * len(settings) * len(systems) / 3), 4.6))
     width = 0.8 / len(systems)
+    missing = []
     for i, system in enumerate(systems):
-        xs, ys = [], []
+        xs, ys, low, high = [], [], [], []
         for j, (bw, loss) in enumerate(settings):
+            x = j + (i - (len(systems) - 1) / 2) * width
             p = data.get(system, robots, tasks, bw, loss)
-            if p:
-                xs.append(j + (i - (len(systems) - 1) / 2) * width)
-                ys.append(scale(getattr(p, attr)))
-        ax.bar(xs, ys, width=width, label=system, color=COLOURS.get(system))
+            if p is None:
+                missing.append(x)
+                continue
+            value = getattr(p, estimate).map(scale)
+            below, above = value.yerr()
+            xs.append(x)
+            ys.append(scale(getattr(p, attr)))
+            low.append(below)
+            high.append(above)
+        central = SYSTEMS[system].mode == "central"
+        ax.bar(xs, ys, width=width, label=system, color=TRANSPORT_COLOURS[transport_of(system)],
+               alpha=0.55 if central else 1.0, hatch="//" if central else None, edgecolor="black", linewidth=0.4,
+               yerr=[low, high], capsize=2, error_kw={"elinewidth": 0.7})
+    for x in missing:  # a system with no ok run there: said, not left as a gap
+        ax.text(x, 0, "×", ha="center", va="bottom", color="grey", fontsize=8)
     ax.set_xticks(range(len(settings)), [f"{bw:g} kbit/s\n{loss:g} % loss" for bw, loss in settings], fontsize=8)
-    ax.set(ylabel=ylabel, title=f"{title} ({robots} robots, {tasks} tasks)")
-    _legend(ax, 7)
+    note = "; × = no ok run" if missing else ""
+    ax.set(ylabel=ylabel, title=f"{title} ({robots} robots, {tasks} tasks; medians, 95 % intervals{note})")
+    ax.legend(fontsize=8, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="hatched: central",
+              title_fontsize=8)
     return _save(fig, out / filename)
 
 
 def transport_bytes(data: Data, out: Path) -> Path | str:
-    return _setting_bars(data, out, "wire_bytes", _kb, "kB on the wire", "Bytes per system",
+    return _setting_bars(data, out, "wire_bytes", "wire", _kb, "kB on the wire", "Bytes per system",
                          "transport_bytes.png")
 
 
 def transport_time(data: Data, out: Path) -> Path | str:
-    return _setting_bars(data, out, "completion_s", float, "completion time (s)", "Completion time per system",
-                         "transport_time.png")
+    return _setting_bars(data, out, "completion_s", "completion", float, "completion time (s)",
+                         "Completion time per system", "transport_time.png")
 
 
 def query_latency(data: Data, out: Path) -> Path | str:
