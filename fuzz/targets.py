@@ -16,9 +16,8 @@ the project's own encoders, so the fuzzer starts from valid messages.
 from __future__ import annotations
 
 import asyncio
-import atexit
 import functools
-import shutil
+import os
 import tempfile
 import tomllib
 from collections.abc import Callable
@@ -366,10 +365,17 @@ def robot_state(data: bytes) -> None:
 def _config_dir() -> Path:
     """A folder two levels below one holding ``ontologies``: the examples'
     relative paths (``../../ontologies/...``) resolve in it."""
-    top = Path(tempfile.mkdtemp(prefix="coapkb-fuzz-"))
-    atexit.register(shutil.rmtree, top, ignore_errors=True)
-    (top / "ontologies").symlink_to(ONTOLOGIES)
-    (top / "examples" / "team").mkdir(parents=True)
+    # One fixed folder per user, made again if missing: fuzzing workers end
+    # without running exit handlers, so a folder per process was left behind.
+    top = Path(tempfile.gettempdir()) / f"coapkb-fuzz-config-{os.getuid()}"
+    (top / "examples" / "team").mkdir(parents=True, exist_ok=True)
+    link = top / "ontologies"
+    try:
+        link.symlink_to(ONTOLOGIES)
+    except FileExistsError:
+        if link.resolve() != ONTOLOGIES.resolve():  # another checkout's: point it here
+            link.unlink()
+            link.symlink_to(ONTOLOGIES)
     return top / "examples" / "team"
 
 

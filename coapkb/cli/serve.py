@@ -48,6 +48,8 @@ async def _serve(args: argparse.Namespace) -> int:
     KBResources(kb, limits).mount(router)
     server = await serve(router, endpoint, security=server_security(args))
     mode = "writable" if writable else "read-only"
+    if args.credentials is not None:
+        mode += f", OSCORE/EDHOC as {args.identity}, team access policy"
     print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) on {server.endpoint}",
           flush=True)
     try:

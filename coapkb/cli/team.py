@@ -165,6 +165,9 @@ async def _team(args: argparse.Namespace) -> int:
         async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
             print(_security_line(spec), flush=True)
+            if spec.discovery == "rd":
+                print("discovery: each robot found its cluster in the feeder's Resource Directory (RFC 9176)",
+                      flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,

@@ -92,7 +92,8 @@ def kbs_for_team(ontologies: Path, robot_ids: Sequence[str], into: Path) -> Team
         raise KnowledgeGap(f"{where}, and its Object KB is not the generator's for the spec it names "
                            f"(edited?): generate KBs for {len(robot_ids)} robots with tools/gen_warehouse.py")
     return TeamKBs(into, f"{where}: generated KBs for {spec.robots} robots "
-                         f"(seed {spec.seed}, {spec.products} products, the first robots unchanged) in {into}")
+                         f"(seed {spec.seed}, {spec.products} products, the first robots unchanged) in {into}, "
+                         "removed when the run ends")
 
 
 def _span(robot_ids: Sequence[str]) -> str:
