@@ -117,7 +117,7 @@ def test_a_team_of_twelve_on_the_default_command_assigns_every_task(tmp_path: Pa
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     stdout = result.stdout
     assert re.search(r"^the Capability KB in .* does not know Robot10-Robot12 \(3 robots\): "
-                     r"generated KBs for 12 robots .* in .*ontologies$", stdout, re.M), stdout
+                     r"generated KBs for 12 robots .* in .*ontologies, removed when the run ends$", stdout, re.M), stdout
     line = re.search(r"^12 robots, distributed, coap, compute-by-all: (.*)$", stdout, re.M)
     assert line, stdout
     counts = {word: int(n) for n, word in re.findall(
