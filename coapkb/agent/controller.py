@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
@@ -47,6 +47,11 @@ DEPOT = Position(1, 0)
 #: Decisions a robot keeps to show on ``GET /tasks``: a robot runs whole shifts,
 #: and nothing but that listing reads its past decisions.
 DECISIONS_KEPT = 1024
+#: Decisions kept whole (with the assignee's job) for teammates to take: they
+#: ask about the task they are deciding, never about old ones.
+RECENT_KEPT = 64
+#: How often a robot whose knowledge did not arrive asks its teammates again.
+SETTLE_POLL_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,7 @@ class Controller:
         executor: TaskExecutor,
         publish: Callable[[RobotState], None],
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
+        ask_decision: Callable[[str, int], Awaitable[DecisionMessage | None]] | None = None,
     ) -> None:
         self.config = config
         self.queries = queries
@@ -111,6 +117,11 @@ class Controller:
         self.executor = executor
         self._publish = publish
         self._send_decision = send_decision
+        #: Asks a teammate for its decision on a task (None: it has none yet).
+        self._ask_decision = ask_decision
+        #: This robot's last decisions as it applied them, by task: a teammate
+        #: whose knowledge did not arrive takes one instead of deciding alone.
+        self.recent: OrderedDict[int, DecisionMessage] = OrderedDict()
         self._tasks: asyncio.Queue[tuple[Task, float]] = asyncio.Queue()
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
         self._layout: Layout | None = None
@@ -179,10 +190,12 @@ class Controller:
                 # Not an error of this robot: every teammate without the module
                 # finds the same, and the record says why the task waits.
                 log.warning("task %d (%s): %s", task.seq, task.object, exc)
-                message = DecisionMessage(Decision(task.seq, task.object, unavailable=str(exc)))
+                message = await self._settle(task) or DecisionMessage(
+                    Decision(task.seq, task.object, unavailable=str(exc)))
             except (QueryError, TransportError) as exc:
                 log.error("task %d (%s): %s", task.seq, task.object, exc)
-                message = DecisionMessage(Decision(task.seq, task.object, error=str(exc)))
+                message = await self._settle(task) or DecisionMessage(
+                    Decision(task.seq, task.object, error=str(exc)))
             except Exception as exc:  # keep the robot alive and the team informed
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
@@ -192,6 +205,28 @@ class Controller:
                 decision = self._with_membership(decision)
             self._apply(replace(message, decision=decision))
 
+    async def _settle(self, task: Task) -> DecisionMessage | None:
+        """A teammate's decision on ``task``, when this robot's own knowledge
+        did not arrive (a lost answer, a holder that seemed down): every
+        robot then takes the same decision instead of this one deciding
+        alone.  None if no live teammate decided it within the wait."""
+        if self._ask_decision is None:
+            return None
+        deadline = clock.monotonic() + self.config.query_timeout_s * 2
+        while clock.monotonic() < deadline:
+            mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+            if not mates:
+                return None
+            for mate in mates:
+                theirs = await self._ask_decision(mate, task.seq)
+                decided = theirs is not None and theirs.decision.error is None and theirs.decision.unavailable is None
+                if decided and theirs.decision.object == task.object:
+                    log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
+                                task.seq, task.object, mate)
+                    return theirs
+            await asyncio.sleep(SETTLE_POLL_S)
+        return None
+
     def _apply(self, message: DecisionMessage) -> None:
         decision = message.decision
         me = self.team.own
@@ -200,6 +235,9 @@ class Controller:
             plan = message.after
             self.executor.submit(message.job)
         self.log.append(decision)
+        self.recent[decision.seq] = message
+        while len(self.recent) > RECENT_KEPT:
+            self.recent.popitem(last=False)
         self.team.set_own(me.with_plan(replace(plan, seq=decision.seq), decision))
         self._publish(self.team.own)
         log.info(

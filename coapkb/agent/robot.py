@@ -243,8 +243,19 @@ class Robot:
             )
             fence = lease.hold
         executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence)
+        async def ask_decision(robot_id: str, seq: int) -> DecisionMessage | None:
+            request = Request(Method.GET, "/decisions", {"seq": str(seq)}, accept=ContentFormat.CBOR)
+            try:
+                response = await client.request(config.team[robot_id].endpoint, request,
+                                                timeout=team.request_timeout_s)
+                if response.status != Status.CONTENT:
+                    return None
+                return DecisionMessage.from_dict(cbor2.loads(response.payload))
+            except (TransportError, ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
+                return None
+
         controller = Controller(
-            config, queries, team, executor, publish_decision, send_decision
+            config, queries, team, executor, publish_decision, send_decision, ask_decision
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot.progress = (state_changed, outcome_changed)
@@ -279,7 +290,7 @@ class Robot:
             ResourceInfo("/tasks", rt="coapkb.tasks", ct=(60, 50), title="task feed", methods=("GET", "POST")),
             self._tasks,
         )
-        add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("POST",)), self._post_decision)
+        add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("GET", "POST")), self._decisions)
         add(ResourceInfo("/robot/stats", rt="coapkb.stats", ct=(60, 50), title="traffic and query stats"),
             self._get_stats)
         add(ResourceInfo(LEASE_PATH, rt="coapkb.lease", title="lease grants (the fence)"), self._get_lease)
@@ -375,6 +386,23 @@ class Robot:
         self._accepted.pop(seq - POSTS_REMEMBERED, None)
         self.controller.submit(Task(seq, name, tuple(join)))
         return Response(Status.CHANGED)
+
+    async def _decisions(self, request: Request) -> Response:
+        if request.method == Method.GET:
+            return self._get_decision(request)
+        return await self._post_decision(request)
+
+    def _get_decision(self, request: Request) -> Response:
+        """``?seq=N``: this robot's decision on task N, whole (a teammate whose
+        knowledge did not arrive takes it instead of deciding alone)."""
+        try:
+            seq = int(request.query.get("seq", ""))
+        except ValueError:
+            return Response.error(Status.BAD_REQUEST, "give the task: /decisions?seq=N")
+        message = self.controller.recent.get(seq)
+        if message is None:
+            return Response.error(Status.NOT_FOUND, f"no decision on task {seq} here (yet)")
+        return _cbor_state(cbor2.dumps(message.to_dict()), request.accept)
 
     async def _post_decision(self, request: Request) -> Response:
         try:

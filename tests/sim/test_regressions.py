@@ -49,6 +49,20 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         140: "the same as seed 71, with a partition and a starved loop",
         202: "the same as seed 71, with a freeze",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,loss=0.2"), {
+        148: "a lost answer: one robot found no live holder of a module and decided the task for nobody, "
+             "its teammates gave it to a robot",
+        343: "the same as seed 148, after a partition healed",
+        396: "the same as seed 148, a plan that did not arrive",
+        419: "the same as seed 148, right after a partition",
+        488: "the same as seed 148, after a kill",
+    }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), {
+        81: "a restarted robot's only co-holder of a module died before the first anti-entropy round: an "
+            "acknowledged write was lost",
+        266: "the same as seed 81",
+        430: "the same as seed 148 of the lossy profile, on a run that also wrote",
+    }),
 ]
 
 
