@@ -322,6 +322,12 @@ class Robot:
         return _cbor_state(self.team.own.encode_outcome(), request.accept)
 
     async def _get_plan(self, request: Request) -> Response:
+        probed = request.query.get("probe")
+        if probed is not None:
+            # A teammate finds ``probed`` silent: does this robot reach it?
+            if await self.team.reaches(probed):
+                return _cbor_state(self.team.own.encode_plan(), request.accept)
+            return Response.error(Status.GATEWAY_TIMEOUT, f"{probed} does not answer {self.config.robot_id} either")
         about = request.query.get("of")
         if about is None or about == self.config.robot_id:
             return _cbor_state(self.team.own.encode_plan(), request.accept)

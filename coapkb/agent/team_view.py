@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass, replace
-from typing import Callable, Mapping
+from typing import Awaitable, Callable, Mapping, Sequence
 
 from .. import clock
 from ..transport.messages import ContentFormat, Method, Request
@@ -37,6 +37,11 @@ States = dict[str, RobotState]
 #: Failed requests in a row after which a robot is declared down: one lost
 #: datagram or one busy moment must not remove a live teammate.
 FAILURES_TO_DOWN = 2
+#: Teammates asked to reach a robot this one finds silent before it is
+#: declared down (SWIM's indirect probe), and the probe's time, in request
+#: timeouts (the helper's own request to it, and the answer).
+INDIRECT_PROBES = 2
+INDIRECT_PROBE_TIMEOUTS = 2
 #: Turns of the event loop one exchange takes (send, receive, the handlers
 #: in between): how often a late loop's lateness adds up in one request.
 TURNS_PER_EXCHANGE = 8
@@ -57,6 +62,26 @@ def liveness_timeout_s(round_trip: RttEstimator, floor_s: float) -> float:
     if round_trip.srtt is None:
         return 2 * floor_s
     return max(floor_s, 4 * (round_trip.srtt + 4 * round_trip.rttvar))
+
+
+async def indirect_probe(transport: ClientTransport, helpers: Sequence[Endpoint], robot_id: str,
+                         request_timeout_s: float) -> bool:
+    """Whether one of the first :data:`INDIRECT_PROBES` ``helpers`` reaches
+    ``robot_id`` now (``GET /robot/plan?probe=ROBOT`` on each, at once)."""
+    request = Request(Method.GET, PLAN_PATH, {"probe": robot_id}, accept=ContentFormat.CBOR)
+
+    async def via(helper: Endpoint) -> bool:
+        try:
+            # The helper's own request to the robot takes up to a timeout of its own.
+            response = await transport.request(helper, request, timeout=INDIRECT_PROBE_TIMEOUTS * request_timeout_s)
+        except TransportError:
+            return False
+        return response.status.is_success
+
+    for done in asyncio.as_completed([via(h) for h in helpers[:INDIRECT_PROBES]]):
+        if await done:
+            return True
+    return False
 
 
 class ObservedStates:
@@ -104,6 +129,10 @@ class ObservedStates:
         self._joining: dict[str, float] = {}
         self._changed = asyncio.Condition()
         self._watchers: dict[str, asyncio.Task] = {}
+        #: Asks other members whether they reach a robot this process finds
+        #: silent (SWIM's indirect probe): True if one does.  None: no one to ask.
+        self.confirm_silence: Callable[[str], Awaitable[bool]] | None = None
+        self._confirming: dict[str, asyncio.Future[bool]] = {}
 
     def start(self) -> None:
         for robot_id in self._endpoints:
@@ -148,7 +177,7 @@ class ObservedStates:
         count before: a process that died before it was ever reached is
         found down only then)."""
         grace = max(self._joining.values(), default=0.0) - clock.monotonic()
-        return max(0.0, grace) + self.refresh_s + FAILURES_TO_DOWN * self.request_timeout_s + 1.0
+        return max(0.0, grace) + self.refresh_s + (FAILURES_TO_DOWN + INDIRECT_PROBE_TIMEOUTS) * self.request_timeout_s + 1.0
 
     @property
     def refresh_s(self) -> float:
@@ -207,7 +236,26 @@ class ObservedStates:
             return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
+            if isinstance(exc, PeerTimeout) and await self._reached_by_others(robot_id):
+                # Silence here, an answer there: this process's link or loop,
+                # not the robot (nobody listening, ICMP, needs no confirming).
+                log.warning("%s is silent to this robot, but a teammate reaches it: not declared down", robot_id)
+                self._failures[robot_id] = 0
+                return
             await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
+
+    async def _reached_by_others(self, robot_id: str) -> bool:
+        """One indirect probe at a time per robot: concurrent failures share it."""
+        if self.confirm_silence is None or robot_id in self.down:
+            return False
+        pending = self._confirming.get(robot_id)
+        if pending is None:
+            pending = self._confirming[robot_id] = asyncio.ensure_future(self.confirm_silence(robot_id))
+            pending.add_done_callback(lambda _: self._confirming.pop(robot_id, None))
+        try:
+            return await asyncio.shield(pending)
+        except Exception:  # noqa: BLE001 - a probe that failed confirms nothing
+            return False
 
     async def _update(self, robot_id: str, state: RobotState) -> None:
         old = self.states.get(robot_id)
@@ -375,6 +423,7 @@ class TeamView:
         self._peers = set(teammates)
         self._transport = transport
         self._endpoints = dict(teammates)
+        self._teammates.confirm_silence = self._ask_others
         #: Teammate -> the first task it is excluded from.
         self.excluded: dict[str, int] = {}
         #: Membership changes so far (exclusions and admissions).
@@ -395,6 +444,26 @@ class TeamView:
 
     async def aclose(self) -> None:
         await self._teammates.aclose()
+
+    async def _ask_others(self, robot_id: str) -> bool:
+        """Whether another live teammate reaches ``robot_id`` now: up to
+        :data:`INDIRECT_PROBES` of them probe it (``GET /robot/plan?probe=X``)."""
+        others = [self._endpoints[r] for r in sorted(self._peers) if r != robot_id and self.is_up(r)]
+        return await indirect_probe(self._transport, others, robot_id, self._teammates.request_timeout_s)
+
+    async def reaches(self, robot_id: str) -> bool:
+        """Whether this robot reaches teammate ``robot_id`` now (one request,
+        for a teammate's indirect probe)."""
+        if robot_id not in self._peers:
+            return False
+        try:
+            response = await self._transport.request(
+                self._endpoints[robot_id], Request(Method.GET, PLAN_PATH, accept=ContentFormat.CBOR),
+                timeout=self._teammates.request_timeout_s,
+            )
+        except TransportError:
+            return False
+        return response.status.is_success
 
     def state_of(self, robot_id: str) -> RobotState | None:
         """The last state observed of teammate ``robot_id`` (served as ``?of=``)."""

@@ -11,7 +11,7 @@ from typing import AsyncIterator, Callable, Mapping, Sequence
 from .. import clock
 from ..agent.local_health import LoopHealth
 from ..agent.robot_state import RobotState
-from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
+from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
 from ..host import Network, Sockets
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response
@@ -33,6 +33,10 @@ class Roster:
     @property
     def robot_ids(self) -> list[str]:
         return [r for cluster in self.clusters for r in cluster]
+
+    def cluster_of(self, robot_id: str) -> Sequence[str]:
+        """The robots of ``robot_id``'s cluster (its own included)."""
+        return next((c for c in self.clusters if robot_id in c), ())
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,9 @@ class Channel:
                 client, roster.endpoints, OUTCOME_PATH, liveness=True,
                 liveness_floor_s=liveness_floor_s(settings.link_kbps), health=health,
             )
+            watcher.confirm_silence = lambda robot_id: indirect_probe(
+                client, [roster.endpoints[r] for r in roster.cluster_of(robot_id)
+                         if r != robot_id and r not in watcher.down], robot_id, watcher.request_timeout_s)
             watcher.start()
             try:
                 yield cls(client, watcher, roster, settings)

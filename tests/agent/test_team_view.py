@@ -174,7 +174,8 @@ async def test_a_readmitted_robot_has_a_grace_until_heard_from_and_waits_outlast
     was waited for until its teammates decided nothing)."""
     network = MemoryNetwork()
     states = ObservedStates(network.client(), {"Robot2": endpoint("Robot2")}, PLAN_PATH, liveness=True)
-    plain = states.refresh_s + 2 * states.request_timeout_s + 1.0
+    # a refresh, two failed requests and an indirect probe (two request timeouts)
+    plain = states.refresh_s + 4 * states.request_timeout_s + 1.0
     try:
         states.readmit("Robot2")
         assert states.detection_s > plain + 1.0

@@ -7,6 +7,8 @@ keeps one smoke run of a kill, a freeze and a restart."""
 
 from __future__ import annotations
 
+import io
+
 import pytest
 
 from coapkb.feeder import TaskRecord
@@ -143,3 +145,21 @@ def test_a_robot_back_before_its_teammates_noticed_is_fed_again(kbs: KBCache) ->
     tasks = [t.object for t in record.tasks if t.reassigned_from is None]
     check_fates(record, tasks, spec.team(), fates=("assigned", "skipped"), new_epoch=False)
     assert all(VICTIM in t.members for t in record.tasks), [t.members for t in record.tasks]
+
+
+def test_one_broken_link_declares_nobody_down(kbs: KBCache) -> None:
+    """Robot1 and Robot2 cannot reach each other; both reach Robot3 and the
+    feeder.  Each finds the other silent, but Robot3 reaches it (SWIM's
+    indirect probe): nobody is declared down (without the probe, Robot1 and
+    Robot2 each declared the other down within 8 s), and every task is
+    assigned once."""
+    spec = SimSpec(robots=3, tasks=30, schedule=(
+        FaultEvent(0.2, "cut", ("Robot1",), other=("Robot2",)), FaultEvent(30.0, "heal", ("Robot1",)),
+    ))
+    trace = io.StringIO()
+    run = run_checked(spec, 3, kbs, trace)
+    assert run.violations == [] and run.record is not None
+    lines = trace.getvalue().splitlines()
+    assert not [line for line in lines if " is down" in line]
+    assert any("a teammate reaches it: not declared down" in line for line in lines)
+    assert {t.fate for t in run.record.tasks} == {"assigned"}
