@@ -67,8 +67,10 @@ class ReplicationSettings:
     request_timeout_s: float = 10.0
     #: How long a write waits for a second holder before it is answered anyway.
     ack_timeout_s: float = 10.0
-    #: Bytes of changes one answer carries at most; the rest follows next round.
-    max_answer_bytes: int = 16_384
+    #: Bytes of changes one answer carries at most (four CoAP blocks: on a
+    #: lossy link a short exchange that times out wastes little); the rest
+    #: follows at once, in the next exchange.
+    max_answer_bytes: int = 4096
 
     def __post_init__(self) -> None:
         for name in ("sync_every_s", "request_timeout_s", "ack_timeout_s"):
@@ -254,11 +256,16 @@ class Replicator:
             await self.sync_once()
 
     async def catch_up(self) -> None:
-        """One exchange with every holder of every module, all at once."""
-        exchanges = [
-            self._sync_with(holder, module) for module, holders in self.holders.items() for holder in holders
-        ]
-        await asyncio.gather(*exchanges)
+        """One exchange with every holder of every module: the modules at
+        once, their holders one after another (the first sends what was
+        missed, the next only what the first lacked: asked all at once,
+        each sent it all)."""
+
+        async def module(name: str, holders: list[Holder]) -> None:
+            for holder in holders:
+                await self._sync_with(holder, name)
+
+        await asyncio.gather(*(module(name, holders) for name, holders in self.holders.items()))
 
     async def sync_once(self) -> None:
         """One anti-entropy exchange per module, with its next holder."""
