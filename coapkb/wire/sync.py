@@ -5,16 +5,20 @@
 
     sync     = [module: tstr, context, changes / null, ? forward: true]
     context  = [* [writer: tstr, top: uint, ? [+ seq: uint]]]   ; vv, then dots past a gap
-    changes  = [* delta] / state
+    changes  = deltas / state
+    deltas   = [triples: graph-item, [* delta]]
     delta    = [writer: tstr, seq: uint, ms: uint, counter: uint,
                 removed: [* [writer: tstr, [+ seq: uint]]],
-                removed-base: graph-item, added: graph-item]
+                removed-base: uint, added: uint]
     state    = {1: context, 2: graph-item, 3: [* [+ dot-stamp]], 4: graph-item,
                 ? 5: [* [writer: tstr, [+ seq: uint]]]}
     dot-stamp = [writer: tstr, seq: uint, ms: uint, counter: uint]
     graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
 
-``forward`` asks the receiver to pass deltas new to it on to the holders
+The triples of all the deltas travel in one compact graph, so their
+prefixes and repeated names are sent once: each delta takes, in order, its
+``removed-base`` count of them (the files' triples it removed), then its
+``added`` count.  ``forward`` asks the receiver to pass deltas new to it on to the holders
 it knows (a push from another cluster).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
 each in the same order, key 4 the files' triples removed, key 5 the
 tombstones (dots removed before their write arrived).  Decoders raise
@@ -70,15 +74,12 @@ def _dots(dots: Sequence[Dot]) -> list[list[object]]:
     return [[writer, seqs] for writer, seqs in grouped.items()]
 
 
-def _delta(delta: Delta) -> list[object]:
+def _deltas(deltas: Sequence[Delta]) -> list[object]:
+    triples = [t for d in deltas for t in (*d.removed_base, *d.added)]
     return [
-        delta.dot.writer,
-        delta.dot.seq,
-        delta.stamp.ms,
-        delta.stamp.counter,
-        _dots(delta.removed),
-        codec.graph_item(delta.removed_base),
-        codec.graph_item(delta.added),
+        codec.graph_item(triples),
+        [[d.dot.writer, d.dot.seq, d.stamp.ms, d.stamp.counter, _dots(d.removed), len(d.removed_base), len(d.added)]
+         for d in deltas],
     ]
 
 
@@ -100,7 +101,7 @@ def encode_sync(message: SyncMessage) -> bytes:
     if isinstance(message.changes, WrittenState):
         changes = _state(message.changes)
     elif message.changes is not None:
-        changes = [_delta(d) for d in message.changes]
+        changes = _deltas(message.changes)
     fields: list[object] = [message.module, _context(message.context), changes]
     if message.forward:
         fields.append(True)
@@ -152,22 +153,34 @@ def _decode_dots(item: object, what: str) -> list[Dot]:
     return dots
 
 
-def _decode_delta(item: object) -> Delta:
-    fields = _list(item, "delta", 7)
-    if len(fields) != 7:
-        raise CodecError("delta: expected 7 fields")
-    writer = _text(fields[0], "delta writer")
-    seq = _uint(fields[1], "delta seq")
-    if seq == 0:
-        raise CodecError("delta seq: counts from 1")
-    removed = _decode_dots(fields[4], "removed dots")
-    return Delta(
-        Dot(writer, seq),
-        Stamp(_uint(fields[2], "delta ms"), _uint(fields[3], "delta counter"), writer),
-        added=decode_graph_item(fields[6], "added"),
-        removed=tuple(removed),
-        removed_base=decode_graph_item(fields[5], "removed base"),
-    )
+def _decode_deltas(item: list[object]) -> list[Delta]:
+    if len(item) != 2:
+        raise CodecError("deltas: expected [triples, [delta...]]")
+    triples = decode_graph_item(item[0], "delta triples")
+    at = 0
+    deltas = []
+    for raw in _list(item[1], "deltas"):
+        fields = _list(raw, "delta", 7)
+        if len(fields) != 7:
+            raise CodecError("delta: expected 7 fields")
+        writer = _text(fields[0], "delta writer")
+        seq = _uint(fields[1], "delta seq")
+        if seq == 0:
+            raise CodecError("delta seq: counts from 1")
+        removed_base, added = _uint(fields[5], "removed-base count"), _uint(fields[6], "added count")
+        if at + removed_base + added > len(triples):
+            raise CodecError("deltas: more triples counted than sent")
+        deltas.append(Delta(
+            Dot(writer, seq),
+            Stamp(_uint(fields[2], "delta ms"), _uint(fields[3], "delta counter"), writer),
+            added=triples[at + removed_base:at + removed_base + added],
+            removed=tuple(_decode_dots(fields[4], "removed dots")),
+            removed_base=triples[at:at + removed_base],
+        ))
+        at += removed_base + added
+    if at != len(triples):
+        raise CodecError("deltas: triples sent that no delta counts")
+    return deltas
 
 
 def _decode_state(item: dict[object, object]) -> WrittenState:
@@ -210,5 +223,5 @@ def decode_sync(data: bytes) -> SyncMessage:
     elif isinstance(raw, dict):
         changes = _decode_state(raw)
     else:
-        changes = [_decode_delta(d) for d in _list(raw, "changes")]
+        changes = _decode_deltas(_list(raw, "changes", 2))
     return SyncMessage(module, context, changes, forward=len(fields) == 4)

@@ -163,7 +163,7 @@ _cbor = st.recursive(
     | st.builds(cbor2.CBORTag, st.sampled_from([2, 24, 6, 256, 99]), inner),
     max_leaves=16,
 )
-_graph = st.sampled_from([cbor2.loads(VALID[0])[2][0][6], cbor2.CBORTag(24, b"\xf6"), cbor2.CBORTag(24, b"\x81")])
+_graph = st.sampled_from([cbor2.loads(VALID[0])[2][0], cbor2.CBORTag(24, b"\xf6"), cbor2.CBORTag(24, b"\x81")])
 
 
 @st.composite
@@ -171,9 +171,10 @@ def shaped(draw: st.DrawFn) -> bytes:
     """The message's skeleton with wrong parts: gets past the CBOR decoder."""
     delta = [draw(st.sampled_from(["A.1", "", 3])), draw(st.integers(-1, 3)), draw(st.integers(0, 9) | _leaf),
              draw(st.integers(0, 9) | _leaf), draw(st.lists(_cbor, max_size=2) | _leaf),
-             draw(_graph | _cbor), draw(_graph | _cbor)]
+             draw(st.integers(-1, 3) | _cbor), draw(st.integers(-1, 3) | _cbor)]
     state = {k: draw(_cbor | _graph) for k in draw(st.sets(st.integers(0, 5), max_size=5))}
-    changes = draw(st.sampled_from([None, [delta], state, [delta, delta]]) | _cbor)
+    graph = draw(_graph | _cbor)
+    changes = draw(st.sampled_from([None, [graph, [delta]], state, [graph, [delta, delta]]]) | _cbor)
     context = draw(st.lists(st.lists(_cbor, max_size=4), max_size=3) | _cbor)
     return cbor2.dumps([draw(st.sampled_from(["Location", "", 7])), context, changes])
 
@@ -207,8 +208,10 @@ def test_garbage_raises_only_codec_error(data: bytes) -> None:
         ["Location", [["A.1"]], None],  # a context entry without its top
         ["Location", [["A.1", -1]], None],
         ["Location", [["A.1", True]], None],  # a bool is no count
-        ["Location", [], [["A.1", 0, 1, 0, [], cbor2.CBORTag(24, b"\xf6"), cbor2.CBORTag(24, b"\xf6")]]],  # seq 0
-        ["Location", [], [["A.1", 1, 1, 0, [], b"", b""]]],  # graphs not tagged
+        ["Location", [], [cbor2.loads(VALID[0])[2][0], [["A.1", 0, 1, 0, [], 0, 0]]]],  # seq 0
+        ["Location", [], [b"", [["A.1", 1, 1, 0, [], 0, 0]]]],  # the graph not tagged
+        ["Location", [], [cbor2.loads(VALID[0])[2][0], [["A.1", 1, 1, 0, [], 0, 9]]]],  # more counted than sent
+        ["Location", [], [cbor2.loads(VALID[0])[2][0], [["A.1", 1, 1, 0, [], 0, 0]]]],  # sent, not counted
         ["Location", [], {1: [], 2: cbor2.loads(VALID[1])[2][2], 3: [], 4: cbor2.loads(VALID[1])[2][4]}],
     ],
 )
