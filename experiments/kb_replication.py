@@ -22,8 +22,9 @@ replication's bytes.
 * **catch-up**: 3 holders; holder C is stopped, the operator writes W times
   to A, C starts again and catches up.  Bytes: C's link, sent and
   received, from its start until it holds every write; against the missed
-  writes' own encoding (the deltas) and a full transfer of the module
-  (its triples in compact CBOR, the smallest form coapkb has).
+  writes' own encoding (each one's compact patch, as the peers' benchmark
+  carries them: ``experiments/kb_catch_up_peers.py``) and a full transfer
+  of the module (its triples in compact CBOR, the smallest form coapkb has).
 * **soak**: one holder in this process takes a flood of writes (half of
   them moving a robot, a quarter adding a triple, a quarter deleting one
   added before): its RSS and journal stay bounded.
@@ -278,22 +279,26 @@ async def spread(args: argparse.Namespace) -> None:
     write_csv(RESULTS / "kb_replication_spread.csv", list(rows[0]), rows)
 
 
-def missed_encoding(count: int) -> tuple[int, int]:
-    """The encoded size of ``count`` missed writes as deltas, and of the
-    whole Location module as a compact graph (a full transfer)."""
+def missed_encoding(count: int) -> tuple[int, int, int]:
+    """For ``count`` missed one-triple writes: their own encoded size (each
+    write's compact patch, what the peers' benchmark carries too), the same
+    writes as deltas in one sync message, and the whole Location module as
+    a compact graph (a full transfer)."""
     from coapkb.kb.live import LiveKB
     from coapkb.kb.results import GraphResult
     from coapkb.kb.store import KnowledgeBase
+    from coapkb.kb.update import encode_patch
     from coapkb.wire import codec
     from coapkb.wire.sync import SyncMessage, encode_sync
 
-    live = LiveKB(KnowledgeBase.load([LOCATION]), "A.1", wall_ms=lambda: 1_800_000_000_000)
+    live = LiveKB(KnowledgeBase.load([LOCATION]), "robot1.1", wall_ms=lambda: 1_800_000_000_000)
     deltas = [next(iter(live.update(insert(f"M{i}")).deltas.values())) for i in range(count)]
+    own = sum(len(encode_patch([], d.added)) for d in deltas)
     context = live.replicas["Location"].context
-    deltas_bytes = len(encode_sync(SyncMessage("Location", context, deltas)))
+    batched = len(encode_sync(SyncMessage("Location", context, deltas)))
     whole = live.query("CONSTRUCT WHERE { ?s ?p ?o }", row_limit=10**7)
     assert isinstance(whole, GraphResult)
-    return deltas_bytes, len(codec.encode_cbor(whole))
+    return own, batched, len(codec.encode_cbor(whole))
 
 
 async def quiet_links(tb, names: list[str], sync_every: float, timeout: float = 600) -> None:  # type: ignore[no-untyped-def]
@@ -338,12 +343,13 @@ async def catch_up(args: argparse.Namespace) -> None:
                 finally:
                     await holders.aclose()
             c = after["robot3"] - before["robot3"]
-            deltas_bytes, module_bytes = missed_encoding(missed)
+            own_bytes, batched_bytes, module_bytes = missed_encoding(missed)
             row = {
                 "missed": missed, "loss_pct": loss, "kbps": args.kbps, "caught_up": done,
                 "catch_up_bytes": c.tx_bytes + c.rx_bytes, "catch_up_s": round(took, 2),
-                "missed_deltas_bytes": deltas_bytes, "full_module_bytes": module_bytes,
-                "x_missed": round((c.tx_bytes + c.rx_bytes) / deltas_bytes, 2),
+                "missed_own_bytes": own_bytes, "missed_batched_bytes": batched_bytes,
+                "full_module_bytes": module_bytes,
+                "x_missed": round((c.tx_bytes + c.rx_bytes) / own_bytes, 2),
                 "x_full": round((c.tx_bytes + c.rx_bytes) / module_bytes, 3),
             }
             rows.append(row)
