@@ -117,7 +117,8 @@ class Controller:
         self.executor = executor
         self._publish = publish
         self._send_decision = send_decision
-        #: Asks a teammate for its decision on a task (None: it has none yet).
+        #: Asks a teammate for its decision on a task (None: it has none yet;
+        #: TransportError: it does not answer).
         self._ask_decision = ask_decision
         #: This robot's last decisions as it applied them, by task: a teammate
         #: whose knowledge did not arrive takes one instead of deciding alone.
@@ -190,12 +191,11 @@ class Controller:
                 # Not an error of this robot: every teammate without the module
                 # finds the same, and the record says why the task waits.
                 log.warning("task %d (%s): %s", task.seq, task.object, exc)
-                message = await self._settle(task) or DecisionMessage(
-                    Decision(task.seq, task.object, unavailable=str(exc)))
+                message = await self._settle(task, DecisionMessage(Decision(task.seq, task.object,
+                                                                            unavailable=str(exc))))
             except (QueryError, TransportError) as exc:
                 log.error("task %d (%s): %s", task.seq, task.object, exc)
-                message = await self._settle(task) or DecisionMessage(
-                    Decision(task.seq, task.object, error=str(exc)))
+                message = await self._settle(task, DecisionMessage(Decision(task.seq, task.object, error=str(exc))))
             except Exception as exc:  # keep the robot alive and the team informed
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
@@ -205,27 +205,40 @@ class Controller:
                 decision = self._with_membership(decision)
             self._apply(replace(message, decision=decision))
 
-    async def _settle(self, task: Task) -> DecisionMessage | None:
-        """A teammate's decision on ``task``, when this robot's own knowledge
-        did not arrive (a lost answer, a holder that seemed down): every
-        robot then takes the same decision instead of this one deciding
-        alone.  None if no live teammate decided it within the wait."""
+    async def _settle(self, task: Task, alone: DecisionMessage) -> DecisionMessage:
+        """The decision on ``task`` when this robot's own knowledge did not
+        arrive (a lost answer, a holder that seemed down): a live teammate's
+        decided on knowledge, taken whole, so every robot decides alike;
+        ``alone`` (unavailable, or an error) if every live teammate failed
+        too, or none decided within the wait.  Meanwhile teammates asking
+        this robot get ``alone``: two robots that both failed do not wait
+        for each other."""
+        self.recent[task.seq] = alone
         if self._ask_decision is None:
-            return None
+            return alone
         deadline = clock.monotonic() + self.config.query_timeout_s * 2
         while clock.monotonic() < deadline:
+            # A teammate whose answer was just lost is asked too: it may be the
+            # one that had the knowledge (found in the simulator).
             mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
-            if not mates:
-                return None
-            for mate in mates:
-                theirs = await self._ask_decision(mate, task.seq)
-                decided = theirs is not None and theirs.decision.error is None and theirs.decision.unavailable is None
-                if decided and theirs.decision.object == task.object:
+            answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
+                                           return_exceptions=True)
+            failed_too = 0
+            for mate, theirs in zip(mates, answers):
+                if isinstance(theirs, BaseException):  # unreachable: it cannot help either
+                    failed_too += 1
+                    continue
+                if theirs is None or theirs.decision.object != task.object:
+                    continue
+                if theirs.decision.error is None and theirs.decision.unavailable is None:
                     log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
                                 task.seq, task.object, mate)
                     return theirs
+                failed_too += 1
+            if failed_too == len(mates):  # nobody had the knowledge: every robot alike
+                return alone
             await asyncio.sleep(SETTLE_POLL_S)
-        return None
+        return alone
 
     def _apply(self, message: DecisionMessage) -> None:
         decision = message.decision

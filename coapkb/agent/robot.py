@@ -245,13 +245,12 @@ class Robot:
         executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence)
         async def ask_decision(robot_id: str, seq: int) -> DecisionMessage | None:
             request = Request(Method.GET, "/decisions", {"seq": str(seq)}, accept=ContentFormat.CBOR)
+            response = await client.request(config.team[robot_id].endpoint, request, timeout=team.request_timeout_s)
+            if response.status != Status.CONTENT:
+                return None
             try:
-                response = await client.request(config.team[robot_id].endpoint, request,
-                                                timeout=team.request_timeout_s)
-                if response.status != Status.CONTENT:
-                    return None
                 return DecisionMessage.from_dict(cbor2.loads(response.payload))
-            except (TransportError, ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
+            except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
                 return None
 
         controller = Controller(
