@@ -10,9 +10,10 @@ Two interchangeable backends give identical :mod:`coapkb.kb.results`:
   paper's library.  Parsing a query string costs ~3 ms, so prepared queries
   are cached by query text.
 
-A KB is read-only: SPARQL Update is refused (:mod:`.refusals`), and every
-query runs under a row limit and an optional time budget (:mod:`.limits`),
-so one request cannot starve a robot.  Files and their formats:
+A KB is the files as loaded, read-only: SPARQL Update sent as a query is
+refused (:mod:`.refusals`); a writable module wraps it (:mod:`.live`).
+Every query runs under a row limit and an optional time budget
+(:mod:`.limits`), so one request cannot starve a robot.  Files and their formats:
 :mod:`.formats`; errors: :mod:`.errors`.
 """
 
