@@ -22,7 +22,17 @@ holder C) and recovers them with the peer's own means:
   on and scouting off; robot1 listens on ``tcp/<robot1>:7447`` (or, with
   ``--zenoh-link udp``, ``udp/<robot1>:7447?rel=1``) and robot3 connects
   there.  The history and recovery queries of ``zenoh.ext`` time out after
-  10 s (its builder's default; the Python API cannot change it).
+  10 s (its builder's default; the Python API cannot change it), and
+  Zenoh batches up to ``transport/link/tx/batch_size`` (65 535 bytes by
+  default, 15 s of this link) into one TCP frame, and a sender that waits
+  longer than ``.../congestion_control/block/wait_before_close`` (5 s) for
+  room in its queue closes the transport; ``--zenoh-batch`` and
+  ``--zenoh-block-wait`` change them on both sessions.
+* **zenoh-get** (not in the default set): the same AdvancedPublisher, but
+  robot3 sends one plain ``get()`` of its cache (``<key>/@adv/**``, what
+  the AdvancedSubscriber's history query asks) with a timeout of
+  ``--timeout``: the cost of one history transfer without ``zenoh.ext``'s
+  10 s limit.
 * **dds** (Cyclone DDS): robot1's writer is RELIABLE, KEEP_ALL,
   TRANSIENT_LOCAL (durability service KEEP_ALL, no limits); robot3's reader
   RELIABLE, KEEP_ALL, TRANSIENT_LOCAL.  A keyless type ``coapkb::Change
@@ -35,13 +45,17 @@ holder C) and recovers them with the peer's own means:
   transport's client does.
 
 Bytes: robot3's link, sent and received, from the moment its process is
-started until it holds all W changes; time likewise.  A case gives up after
-``--timeout`` (900 s) and is recorded with ``caught_up`` false.  Each role
-(``zenoh-pub``, ``zenoh-sub``, ``dds-writer``, ``dds-reader``) runs as a
+started until it holds all W changes (``catch_up_bytes``, and against the
+W payloads' own size ``payload_bytes``: ``x_payload``); time likewise
+(``catch_up_s``; ``open_s``: until its session or participant was open).
+A case gives up after ``--timeout`` (900 s) and is recorded with
+``caught_up`` false and what it had ``received``.  Each role (``zenoh-pub``,
+``zenoh-sub``, ``zenoh-get``, ``dds-writer``, ``dds-reader``) runs as a
 process of its own in its host's network namespace and reports JSON lines
-on stdout.
+on stdout; ``--log-dir`` keeps their stderr (Zenoh's warnings).
 
-Prints each row and writes ``experiments/results/kb_catch_up_peers.csv``.
+Prints each row and writes ``experiments/results/kb_catch_up_peers.csv``
+(``--out`` another name there).
 """
 
 from __future__ import annotations
@@ -49,6 +63,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import csv
 import json
 import sys
 import threading
@@ -137,6 +152,9 @@ def _zenoh_config(args: argparse.Namespace, *, listen: tuple[str, ...] = (),  # 
     config.insert_json5("timestamping/enabled", "true")
     if args.batch:
         config.insert_json5("transport/link/tx/batch_size", str(args.batch))
+    if args.block_wait:
+        config.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                            str(round(args.block_wait * 1e6)))
     return config
 
 
@@ -188,8 +206,12 @@ def zenoh_sub(args: argparse.Namespace) -> None:
 def zenoh_get(args: argparse.Namespace) -> None:
     """robot3, the late joiner, without zenoh.ext on its side: one plain query
     of the AdvancedPublisher's cache (what the AdvancedSubscriber's history
-    query asks) with a timeout as long as the case may last."""
+    query asks) with a timeout as long as the case may last.  A query that
+    ends without a single reply (the session opened before the connection or
+    the cache's queryable was in place: "scouting delay elapsed" on a lossy
+    link) is asked again a second later."""
     import zenoh
+    from zenoh.handlers import Callback
 
     received = Received(args.count)
     session = zenoh.open(_zenoh_config(args, connect=(args.locator,)))
@@ -199,10 +221,24 @@ def zenoh_get(args: argparse.Namespace) -> None:
         if reply.ok is not None:
             received.add(reply.ok.payload.to_bytes())
 
-    session.get(f"{KEY}/@adv/**", on_reply, consolidation=zenoh.ConsolidationMode.NONE,
-                accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=args.query_timeout)
-    while not received.done.wait(10.0):
-        received.progress()
+    queries = 0
+    next_progress = time.monotonic() + 10.0
+    while not received.done.is_set():
+        ended = threading.Event()
+        queries += 1
+        emit(query=queries, t=time.monotonic())
+        session.get(f"{KEY}/@adv/**", Callback(on_reply, drop=ended.set),
+                    consolidation=zenoh.ConsolidationMode.NONE, accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=args.query_timeout)
+        while not ended.is_set() and not received.done.is_set():
+            ended.wait(0.2)
+            if time.monotonic() >= next_progress:
+                received.progress()
+                next_progress = time.monotonic() + 10.0
+        if received.done.is_set() or received.deliveries:
+            break
+        time.sleep(1.0)
+    received.done.wait()
     _wait_forever()
 
 
@@ -307,18 +343,28 @@ def dds_reader(args: argparse.Namespace) -> None:
 # ============================================================================ on the testbed
 
 
-async def _lines(proc: asyncio.subprocess.Process, out: asyncio.Queue[dict]) -> None:
+async def _lines(proc: asyncio.subprocess.Process, out: asyncio.Queue[dict], log: Path | None = None) -> None:
+    """The process's JSON events into ``out``; other lines (Zenoh logs to stdout) to ``log``."""
     assert proc.stdout is not None
-    while line := await proc.stdout.readline():
-        try:
-            await out.put(json.loads(line))
-        except json.JSONDecodeError:
-            await out.put({"junk": line.decode(errors="replace")[:200]})
+    with open(log, "ab") if log is not None else contextlib.nullcontext() as f:
+        while line := await proc.stdout.readline():
+            try:
+                event = json.loads(line)
+            except json.JSONDecodeError:
+                if f is not None:
+                    f.write(line)
+                    f.flush()
+                continue
+            if f is not None:
+                f.write(line)
+                f.flush()
+            await out.put(event)
 
 
 async def _drain(proc: asyncio.subprocess.Process, tail: list[bytes], log: Path | None = None) -> None:
+    """Keep the last of the process's stderr in ``tail``, all of it in ``log``."""
     assert proc.stderr is not None
-    with open(log, "wb") if log is not None else contextlib.nullcontext() as f:
+    with open(log, "ab") if log is not None else contextlib.nullcontext() as f:
         while chunk := await proc.stderr.read(4096):
             tail.append(chunk)
             del tail[:-8]
@@ -343,6 +389,7 @@ def variant(peer: str, args: argparse.Namespace) -> str:
     """The row's settings, in short."""
     if peer.startswith("zenoh"):
         batch = f"batch {args.zenoh_batch} B" if args.zenoh_batch else "batch default"
+        batch += f", block wait {args.zenoh_block_wait:g} s" if args.zenoh_block_wait else ""
         if peer == "zenoh-get":
             return f"one get() of the AdvancedPublisher cache (timeout {args.timeout:g} s), {batch}"
         late = ", detect_late_publishers" if args.detect_late_publishers else ""
@@ -358,6 +405,8 @@ def _roles(peer: str, tb, args: argparse.Namespace, count: int) -> tuple[list[st
         locator = (f"tcp/{robot1}:{ZENOH_PORT}" if args.zenoh_link == "tcp"
                    else f"udp/{robot1}:{ZENOH_PORT}?rel=1")
         batch = ["--batch", str(args.zenoh_batch)] if args.zenoh_batch else []
+        if args.zenoh_block_wait:
+            batch += ["--block-wait", str(args.zenoh_block_wait)]
         pub = [PY, __file__, "zenoh-pub", "--locator", locator, "--count", str(count),
                "--heartbeat", str(args.heartbeat), *batch]
         if peer == "zenoh-get":
@@ -385,6 +434,8 @@ async def one_case(peer: str, count: int, loss: float, args: argparse.Namespace)
     if args.log_dir:
         Path(args.log_dir).mkdir(parents=True, exist_ok=True)
         logs = {host: Path(args.log_dir) / f"{peer}-{count}-{loss:g}-{host}.log" for host in tails}
+        for log in logs.values():
+            log.unlink(missing_ok=True)
     with Testbed(["robot1", "robot3"], link) as tb:
         try:
             holder_argv, joiner_argv, locator = _roles(peer, tb, args, count)
@@ -392,7 +443,7 @@ async def one_case(peer: str, count: int, loss: float, args: argparse.Namespace)
             holder = await tb.spawn("robot1", holder_argv, stdout=asyncio.subprocess.PIPE,
                                     stderr=asyncio.subprocess.PIPE)
             procs.append(holder)
-            tasks += [asyncio.ensure_future(_lines(holder, holder_events)),
+            tasks += [asyncio.ensure_future(_lines(holder, holder_events, logs["robot1"])),
                       asyncio.ensure_future(_drain(holder, tails["robot1"], logs["robot1"]))]
             published = await _next(holder_events, "published", time.monotonic() + 120)
             if published is None:
@@ -404,7 +455,7 @@ async def one_case(peer: str, count: int, loss: float, args: argparse.Namespace)
             joiner = await tb.spawn("robot3", joiner_argv, stdout=asyncio.subprocess.PIPE,
                                     stderr=asyncio.subprocess.PIPE)
             procs.append(joiner)
-            tasks += [asyncio.ensure_future(_lines(joiner, joiner_events)),
+            tasks += [asyncio.ensure_future(_lines(joiner, joiner_events, logs["robot3"])),
                       asyncio.ensure_future(_drain(joiner, tails["robot3"], logs["robot3"]))]
             deadline = started + args.timeout
             done = None
@@ -454,7 +505,14 @@ async def run(args: argparse.Namespace) -> None:
                 row = await one_case(peer, count, loss, args)
                 rows.append(row)
                 print(row, flush=True)
-    write_csv(RESULTS / args.out, list(rows[0]), rows)
+    path = RESULTS / args.out
+    fields = list(rows[0])
+    if args.append and path.exists():
+        with path.open(newline="") as f:
+            old = list(csv.DictReader(f))
+        fields = list(dict.fromkeys([*(old[0] if old else []), *fields]))
+        rows = old + rows
+    write_csv(path, fields, rows)
 
 
 def main() -> int:
@@ -469,6 +527,9 @@ def main() -> int:
     parser.add_argument("--heartbeat", type=float, default=5.0, help="the AdvancedPublisher's heartbeat period, s")
     parser.add_argument("--zenoh-batch", type=int, default=None,
                         help="zenoh's transport/link/tx/batch_size on both sessions (default: zenoh's, 65535)")
+    parser.add_argument("--zenoh-block-wait", type=float, default=None,
+                        help="zenoh's .../congestion_control/block/wait_before_close, s (default: zenoh's, 5 s)")
+    parser.add_argument("--append", action="store_true", help="add the rows to --out instead of replacing it")
     parser.add_argument("--detect-late-publishers", action="store_true",
                         help="also HistoryConfig(detect_late_publishers=True): a second history query per publisher")
     parser.add_argument("--out", default="kb_catch_up_peers.csv", help="file name under experiments/results/")
@@ -479,15 +540,18 @@ def main() -> int:
     p.add_argument("--count", type=int, required=True)
     p.add_argument("--heartbeat", type=float, default=5.0)
     p.add_argument("--batch", type=int, default=None)
+    p.add_argument("--block-wait", type=float, default=None)
     p = sub.add_parser("zenoh-sub")
     p.add_argument("--locator", required=True)
     p.add_argument("--count", type=int, required=True)
     p.add_argument("--detect-late-publishers", action="store_true")
     p.add_argument("--batch", type=int, default=None)
+    p.add_argument("--block-wait", type=float, default=None)
     p = sub.add_parser("zenoh-get")
     p.add_argument("--locator", required=True)
     p.add_argument("--count", type=int, required=True)
     p.add_argument("--batch", type=int, default=None)
+    p.add_argument("--block-wait", type=float, default=None)
     p.add_argument("--query-timeout", type=float, default=900.0)
     p = sub.add_parser("dds-writer")
     p.add_argument("--address", required=True)
