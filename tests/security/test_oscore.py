@@ -536,7 +536,11 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
         monkeypatch.setattr(oscore_layer, "HALF_OPEN_S", 0.0)
         security.sweep()  # what the server's periodic sweep does once HALF_OPEN_S has passed
         assert security.responder_sessions() == (0, 3)
-        assert robot.calls.count(("GET", "/tasks")) == len(answered) + 3  # no replay reached the resource
+        # No replay reached the resource.  A teammate's try the loaded server
+        # answered late is sent again as a new OSCORE request (a GET is safe),
+        # so each counted retry may add one call.
+        retries = sum(client.counters.retransmissions for client in teammates.values())
+        assert len(answered) + 3 <= robot.calls.count(("GET", "/tasks")) <= len(answered) + 3 + retries
         assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
     finally:
         flooding = False
