@@ -16,6 +16,7 @@ against the folder of the TOML file, not the working directory)::
     strategy = "compute-by-all"
     # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
     # kb_writable = true     # take writes (PATCH /kb) and replicate them with the module's holders
+    # world = "/tmp/world.sock"  # a simulated world shared with teammates (coapkb world PATH)
 
     [start]                  # initial state; left out: the depot (aisle 1, rack 0)
     aisle = 9                # aisles are numbered from 1; racks 0..R+1 (0, R+1: the cross-aisles)
@@ -186,6 +187,9 @@ class RobotConfig:
     kb_writable: bool = False
     #: Holders of its modules in other clusters (``[replicas]``): writes pass on to them.
     replicas: Mapping[str, Teammate] = field(default_factory=dict)
+    #: The Unix socket of a simulated world shared by the team (``coapkb
+    #: world``): what the robot finds at the shelf; None: the KB's word.
+    world: Path | None = None
 
     @property
     def transport(self) -> str:
@@ -253,6 +257,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
     if config.replicas:
         data["replicas"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)}
                             for m in config.replicas.values()}
+    if config.world is not None:
+        data["world"] = str(config.world.resolve())
     return data
 
 
@@ -266,7 +272,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
-        "discovery", "lease_s", "kb_writable", "replicas",
+        "discovery", "lease_s", "kb_writable", "replicas", "world",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -310,6 +316,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         lease_s=float(_get(data, "lease_s", (int, float), 3.0)),
         kb_writable=_get(data, "kb_writable", bool, False),
         replicas=replicas,
+        world=None if data.get("world") is None else base_dir / _get(data, "world", str),
     )
     _check_values(config)
     return config

@@ -26,6 +26,7 @@ from .transport.security import ServerSecurity
 
 if TYPE_CHECKING:
     from .kb.store import KnowledgeBase
+    from .world.truth import World
 
 
 class Network(Protocol):
@@ -70,6 +71,9 @@ class Host:
     threads: bool = True
     #: Wall-clock milliseconds: a KB write's timestamp (virtual in the simulator).
     wall_ms: Callable[[], int] = field(default=lambda: time.time_ns() // 1_000_000)
+    #: What a robot finds at the shelf (the simulator's one world); None:
+    #: the robot's ``world`` socket if configured, else the KB's word.
+    world: World | None = None
 
 
 def operating_system() -> Host:

@@ -1,8 +1,11 @@
 """Controller (the seed's Fig. 2): runs the workflow for each task, in order.
 
 Per task "pick up X" (seed section III-D): Query_1 (does X exist? if not,
-every robot skips it), Query_2 (where is it), Query_3 (its features, how it
-is picked), Query_4 (which robots can pick it that way, their payload).
+every robot skips it), Query_2 (where is it; on a writable team also whether
+it was picked or found missing: then every robot skips it too), Query_3 (its
+features, how it is picked), Query_4 (which robots can pick it that way,
+their payload).  An object the cluster already assigned is skipped without a
+query: every robot of the cluster applied the same decisions.
 With the compact wire Query_1 and Query_3 go to the Object KB's holder as
 one exchange (``pick-facts``), and every query projects only what the
 assigner reads; the seed's own system sends its four queries as printed.
@@ -28,6 +31,8 @@ from collections import OrderedDict, deque
 from dataclasses import asdict, dataclass, replace
 from typing import Awaitable, Callable, Mapping
 
+import cbor2
+
 from .. import clock
 from ..config import RobotConfig
 from ..kb.named_queries import MAX_LIST_ITEMS
@@ -50,8 +55,29 @@ DECISIONS_KEPT = 1024
 #: Decisions kept whole (with the assignee's job) for teammates to take: they
 #: ask about the task they are deciding, never about old ones.
 RECENT_KEPT = 64
+#: Where a robot serves its cluster's claims (:func:`encode_claims`).
+CLAIMS_PATH = "/robot/claims"
 #: How often a robot whose knowledge did not arrive asks its teammates again.
 SETTLE_POLL_S = 0.5
+#: Objects whose assignment a robot remembers (:class:`Claim`): the last
+#: ones decided.  Older picks are in the KB by then (a writable team).
+CLAIMS_KEPT = 4096
+#: Claims a restarted robot takes from a teammate: a few minutes of tasks,
+#: by when a writable team has the picks in the KB (about 20 kB of CBOR).
+CLAIMS_HANDED = 512
+#: The skip reason of an object no KB knows.
+NO_SUCH_OBJECT = "no such object"
+
+
+@dataclass(frozen=True)
+class Claim:
+    """An object this robot's cluster assigned: to whom, at which task."""
+
+    robot: str
+    seq: int
+
+    def __str__(self) -> str:
+        return f"picked by {self.robot} at task {self.seq}"
 
 
 @dataclass(frozen=True)
@@ -60,6 +86,8 @@ class Task:
     object: str
     #: Robots (restarted) that are members again from this task on.
     join: tuple[str, ...] = ()
+    #: The task this one does again: its robot went down before the pick.
+    again: int | None = None
 
 
 @dataclass(frozen=True)
@@ -110,6 +138,7 @@ class Controller:
         publish: Callable[[RobotState], None],
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
         ask_decision: Callable[[str, int], Awaitable[DecisionMessage | None]] | None = None,
+        ask_claims: Callable[[str], Awaitable[dict[str, "Claim"]]] | None = None,
     ) -> None:
         self.config = config
         self.queries = queries
@@ -120,6 +149,8 @@ class Controller:
         #: Asks a teammate for its decision on a task (None: it has none yet;
         #: TransportError: it does not answer).
         self._ask_decision = ask_decision
+        #: Asks a teammate for the cluster's claims (a restarted robot joining).
+        self._ask_claims = ask_claims
         #: This robot's last decisions as it applied them, by task: a teammate
         #: whose knowledge did not arrive takes one instead of deciding alone.
         self.recent: OrderedDict[int, DecisionMessage] = OrderedDict()
@@ -130,6 +161,10 @@ class Controller:
         self._docks: tuple[Position, ...] | None = None
         #: The last ``DECISIONS_KEPT`` decisions, oldest first (``GET /tasks``).
         self.log: deque[Decision] = deque(maxlen=DECISIONS_KEPT)
+        #: object -> the cluster's assignment of it, from the decisions
+        #: applied: the same on every robot of the cluster, so a repeat is
+        #: skipped alike before the pick is written (or even made).
+        self.claims: OrderedDict[str, Claim] = OrderedDict()
         self._runner: asyncio.Task | None = None
 
     @property
@@ -186,6 +221,8 @@ class Controller:
             task, received = await self._tasks.get()
             try:
                 await self._admit(task)
+                if task.again is not None:  # never picked: the object is free again, on every robot alike
+                    self.claims.pop(task.object, None)
                 message = await self._decide(task)
             except ModuleUnavailable as exc:
                 # Not an error of this robot: every teammate without the module
@@ -248,6 +285,11 @@ class Controller:
             plan = message.after
             self.executor.submit(message.job)
         self.log.append(decision)
+        if decision.assigned_to is not None:
+            self.claims[decision.object] = Claim(decision.assigned_to, decision.seq)
+            self.claims.move_to_end(decision.object)
+            while len(self.claims) > CLAIMS_KEPT:
+                self.claims.popitem(last=False)
         self.recent[decision.seq] = message
         while len(self.recent) > RECENT_KEPT:
             self.recent.popitem(last=False)
@@ -255,7 +297,8 @@ class Controller:
         self._publish(self.team.own)
         log.info(
             "task %d %s: %s", decision.seq, decision.object,
-            decision.error or decision.unavailable or ("skipped" if decision.skipped else f"-> {decision.assigned_to}"),
+            decision.error or decision.unavailable
+            or (f"skipped ({decision.skip_reason})" if decision.skipped else f"-> {decision.assigned_to}"),
         )
 
     async def _admit(self, task: Task) -> None:
@@ -267,10 +310,41 @@ class Controller:
         found in the simulator)."""
         if self.robot_id in task.join:
             await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4)
+            # Before its plan is out, nobody has decided this task: the
+            # claims a teammate hands over are those of the tasks before it.
+            await self._take_claims(task.seq)
             self._publish(self.team.own)
         for robot_id in task.join:
             if robot_id != self.robot_id:
                 self.team.admit(robot_id)
+
+    async def _take_claims(self, seq: int) -> None:
+        """A restarted robot joining at task ``seq`` takes the cluster's
+        claims of the tasks before from a live teammate (the last
+        ``CLAIMS_HANDED``), so it skips a repeat as they do."""
+        if self._ask_claims is None:
+            return
+        for mate in sorted(self.team.membership.members, key=robot_sort_key):
+            if mate == self.robot_id or not self.team.is_up(mate):
+                continue
+            try:
+                claims = await self._ask_claims(mate)
+            except TransportError as exc:
+                log.warning("task %d: no claims from %s: %s", seq, mate, exc)
+                continue
+            # A teammate that saw this robot's plan may have decided this
+            # task already: its claim of it is not one of the tasks before.
+            earlier = sorted(((o, c) for o, c in claims.items() if c.seq < seq), key=lambda item: item[1].seq)
+            self.claims = OrderedDict(earlier)
+            log.info("task %d: took %d claims from %s", seq, len(claims), mate)
+            return
+        log.warning("task %d: no teammate handed its claims over: a repeat of an earlier object may be decided "
+                    "differently here", seq)
+
+    def claims_handed(self) -> dict[str, Claim]:
+        """The claims a restarted teammate takes: the latest ``CLAIMS_HANDED``."""
+        latest = list(self.claims.items())[-CLAIMS_HANDED:]
+        return dict(latest)
 
     async def _decide(self, task: Task) -> DecisionMessage:
         if not self.computes:
@@ -336,26 +410,36 @@ class Controller:
             }
         return self._energy
 
-    async def gather(self, task: Task) -> TaskFacts | None:
-        """What the task's pick needs from the KBs; None if the object does not exist."""
+    async def gather(self, task: Task) -> TaskFacts | str:
+        """What the task's pick needs from the KBs, or why nobody picks it:
+        no such object, already picked (by whom, at which task), missing."""
+        claim = self.claims.get(task.object)
+        if claim is not None:  # decided here, perhaps not yet picked: no need to ask
+            return str(claim)
         params = {"name": task.object}
         if self.queries.wire == "seed":
             exists, where, features = await self._seed_queries(params)
         else:
             # One exchange per KB holder: existence, grip and weight from the
-            # Object KB, the place from the Location KB (``pick-facts`` and
-            # ``pick-place``: the seed's Query_1-3 as the assigner uses them).
+            # Object KB, the place and what became of the object from the
+            # Location KB (``pick-facts`` and ``pick-place``: the seed's
+            # Query_1-3 as the assigner uses them).  The place is read as the
+            # holder first told it for this task: every robot alike.
             exists, where = (
                 _first(rows, label)
                 for rows, label in zip(
                     await asyncio.gather(self.queries.run("pick-facts", params),
-                                         self.queries.run("pick-place", params)),
+                                         self.queries.run("pick-place", params, at=task.seq)),
                     ("pick-facts", "pick-place"),
                 )
             )
             features = [row for row in exists if row.get("grip") is not None and row.get("weight") is not None]
+            why = _gone(where)
+            if exists and why is not None:
+                return why
+            where = [row for row in where if row.get("aisle_no") is not None]
         if not exists:
-            return None
+            return NO_SUCH_OBJECT
         if not where or not features:
             raise QueryError(f"{task.object} exists but has no location or features in the KB")
         grip = _local_name(features[0]["grip"])
@@ -388,8 +472,8 @@ class Controller:
     async def _compute(self, task: Task) -> DecisionMessage:
         started = clock.monotonic()
         facts = await self.gather(task)
-        if facts is None:
-            return DecisionMessage(Decision(task.seq, task.object, skipped=True))
+        if isinstance(facts, str):
+            return DecisionMessage(Decision(task.seq, task.object, skipped=True, skip_reason=facts))
         layout, energy, docks = await self.layout(), await self.energy(), await self.docks()
         gathered = clock.monotonic()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
@@ -410,6 +494,40 @@ class Controller:
             (DEPOT.aisle, DEPOT.rack), plan.charge,
         )
         return DecisionMessage(decision, plan.after, job)
+
+
+def encode_claims(claims: Mapping[str, Claim]) -> bytes:
+    """``/robot/claims``: ``[[object, robot, seq], ...]`` in CBOR."""
+    return cbor2.dumps([[obj, c.robot, c.seq] for obj, c in claims.items()])
+
+
+def decode_claims(payload: bytes) -> dict[str, Claim]:
+    """:func:`encode_claims`'s output; ``ValueError`` for anything else."""
+    try:
+        raw = cbor2.loads(payload)
+    except (cbor2.CBORDecodeError, RecursionError) as exc:
+        raise ValueError(f"not CBOR: {exc}") from None
+    if not isinstance(raw, list):
+        raise ValueError("claims are an array")
+    claims = {}
+    for item in raw:
+        if not (isinstance(item, list) and len(item) == 3 and isinstance(item[0], str) and isinstance(item[1], str)
+                and type(item[2]) is int and item[2] > 0):
+            raise ValueError(f"a claim is [object, robot, seq], got {item!r}"[:200])
+        claims[item[0]] = Claim(item[1], item[2])
+    return claims
+
+
+def _gone(rows: list[dict]) -> str | None:
+    """What ``pick-place`` says became of an object: picked (by whom, at
+    which task) or missing from its place; None if it is on its shelf."""
+    for row in rows:
+        if row.get("picked_by") is not None:
+            return f"picked by {row['picked_by']} at task {row.get('picked_task')}"
+    for row in rows:
+        if row.get("missing_task") is not None and row.get("aisle_no") is None:
+            return f"missing from its place since task {row['missing_task']}"
+    return None
 
 
 def _local_name(term: object) -> str:

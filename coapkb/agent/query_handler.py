@@ -18,11 +18,13 @@ from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
 from ..config import RobotConfig, Teammate
 from ..kb.errors import KBError
+from ..kb.live import LiveKB
 from ..kb.store import KnowledgeBase
 from ..transport.messages import ContentFormat, Method
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.results import QueryResult
 from ..transport.base import TransportError
+from .task_assigner import robot_sort_key
 
 #: How queries travel: "compact" = named query resources with CBOR answers
 #: (a few bytes each way); "seed" = the whole SPARQL text in every request
@@ -74,7 +76,7 @@ class QueryHandler:
     def __init__(
         self,
         config: RobotConfig,
-        kb: KnowledgeBase | None,
+        kb: KnowledgeBase | LiveKB | None,
         client: KBClient,
         wire: str = "compact",
         alive: Callable[[str], bool] = lambda robot_id: True,
@@ -97,16 +99,23 @@ class QueryHandler:
         #: Holders whose last request failed at the transport: asked last.
         self._suspects: set[str] = set()
 
-    def _holders_for(self, module: str) -> list[Teammate] | None:
+    def _holders_for(self, module: str, pinned: bool = False) -> list[Teammate] | None:
         """The remote holders of ``module`` to ask, best first; None if this robot
         answers itself.  Holders known to be down (team view) or that failed
-        lately go last: asked only when the others fail too."""
+        lately go last: asked only when the others fail too.  ``pinned``: a
+        question every robot of the cluster must put to one holder (the
+        first live one in robot-id order, this robot included)."""
         if self.config.central is not None:
             return [Teammate("central server", self.config.central, (module,))]
         holders = self.config.holders_of(module)
         if not holders:
             raise QueryError(f"no teammate holds the {module} KB")
-        if holders[0].robot_id == self.config.robot_id and self.kb is not None:
+        if pinned:
+            holders = sorted(holders, key=lambda m: robot_sort_key(m.robot_id))
+            live = [m for m in holders if m.robot_id == self.config.robot_id or self._alive(m.robot_id)]
+            if live and live[0].robot_id == self.config.robot_id and self.kb is not None:
+                return None
+        elif holders[0].robot_id == self.config.robot_id and self.kb is not None:
             return None
         remote = [m for m in holders if m.robot_id != self.config.robot_id]
         if not any(self._alive(m.robot_id) for m in remote):
@@ -123,19 +132,35 @@ class QueryHandler:
         p90 = recent[min(len(recent) - 1, int(0.9 * len(recent)))]
         return max(self.hedge_floor_s, 4 * p90)
 
-    async def run(self, name: str, params: Mapping[str, str]) -> QueryResult:
-        """Run the named query ``name`` wherever its KB module lives."""
+    async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> QueryResult:
+        """Run the named query ``name`` wherever its KB module lives.
+
+        ``at``: the task this answer decides.  On a writable team every
+        robot then asks one holder, which answers each question of a task
+        alike (:meth:`coapkb.kb.live.LiveKB.query_at`)."""
         query = NAMED_QUERIES[name]
-        holders = self._holders_for(query.kb)
+        pinned = at is not None and self.config.kb_writable
+        holders = self._holders_for(query.kb, pinned)
         if holders is None:
             self.stats.local += 1
             assert self.kb is not None
             try:
-                return self.kb.query(query.render(params))
+                text = query.render(params)
+                if pinned and isinstance(self.kb, LiveKB):
+                    return self.kb.query_at(at, text)  # type: ignore[arg-type]
+                return self.kb.query(text)
             except KBError as exc:
                 self.stats.failed += 1
                 raise QueryError(f"{name} on own {query.kb} KB: {exc}") from None
-        return await self._remote(name, params, holders)
+        try:
+            return await self._remote(name, {**params, "at": str(at)} if pinned else params, holders)
+        except ModuleUnavailable:
+            if not (pinned and isinstance(self.kb, LiveKB) and query.kb in self.kb.names):
+                raise
+            # The holder everyone asks is gone: this robot's own copy, rather
+            # than no answer (its teammates fail over alike, to theirs).
+            self.stats.local += 1
+            return self.kb.query_at(at, query.render(params))  # type: ignore[arg-type]
 
     async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
         """Ask the first holder; on a transport failure (dead or unreachable
@@ -200,7 +225,7 @@ class QueryHandler:
         else:
             result = await self.client.sparql(
                 peer,
-                query.render(params),
+                query.render({k: v for k, v in params.items() if k != "at"}),
                 accept=ContentFormat.JSON,
                 method=Method.POST,
                 timeout=self.config.query_timeout_s,

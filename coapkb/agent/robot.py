@@ -25,7 +25,8 @@ from typing import Any, Callable, Iterable
 import cbor2
 
 from .. import clock
-from ..kb.client import KBClient
+from ..errors import CoapkbError
+from ..kb.client import KBClient, QueryFailed
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..config import KB_MODULES, ConfigError, RobotConfig
 from ..kb.named_queries import NAMED_QUERIES
@@ -38,16 +39,19 @@ from ..transport.router import Router
 from ..host import Host, operating_system
 from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
-from .controller import Controller, DecisionMessage, Task
+from .controller import CLAIMS_PATH, Claim, Controller, DecisionMessage, Task, decode_claims, encode_claims
 from .lease import LEASE_PATH, Lease
 from .local_health import LoopHealth
 from .progress import ProgressPacing, acted_on
-from .query_handler import QueryHandler
+from .knowledge_writer import KnowledgeWriter
+from .query_handler import QueryError, QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
+from .task_assigner import robot_sort_key
 from .task_executor import TaskExecutor
 from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
 from ..world import Position, layout_from_row
+from ..world.service import WorldClient
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 
@@ -90,6 +94,33 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
             f"start: aisle {start.aisle}, rack {start.rack} is outside the warehouse "
             f"(aisles 1..{layout.aisles}, racks 0..{layout.racks_per_aisle + 1} in the Location KB)"
         )
+
+
+async def write_location(
+    config: RobotConfig, served: KnowledgeBase | LiveKB | None, replicator: Replicator | None, kb_client: KBClient,
+    update: str, alive: Callable[[str], bool],
+) -> None:
+    """Write ``update`` (a fact of the Location KB): into this robot's own
+    module if it holds it, passed on to the other holders; else to the first
+    live holder in robot-id order (another if it fails)."""
+    if isinstance(served, LiveKB) and "Location" in served.names:
+        written = served.update(update)
+        if replicator is not None and written.deltas:
+            await replicator.replicate(written)
+        return
+    holders = sorted((m for m in config.holders_of("Location") if m.robot_id != config.robot_id),
+                     key=lambda m: (not alive(m.robot_id), robot_sort_key(m.robot_id)))
+    if not holders:
+        raise QueryError("no teammate holds the Location KB")
+    failure: CoapkbError | None = None
+    for holder in holders:
+        try:
+            await kb_client.update(holder.endpoint, update, timeout=config.query_timeout_s)
+            return
+        except (QueryFailed, TransportError) as exc:
+            failure = exc
+    assert failure is not None
+    raise failure
 
 
 def module_holders(config: RobotConfig, modules: Iterable[str]) -> list[Holder]:
@@ -146,6 +177,8 @@ class Robot:
         self.health: LoopHealth | None = None
         #: Spreads its KB's writes to the other holders (``kb_writable``).
         self.replicator: Replicator | None = None
+        #: Writes what the executor did into the Location KB (a writable team).
+        self.knowledge: KnowledgeWriter | None = None
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> "Robot":
@@ -183,8 +216,8 @@ class Robot:
         # Nonzero, so it is always sent: teammates tell a restart by it.
         boot = host.rng.randrange(1, 2**32)
         replicator = None
+        served: KnowledgeBase | LiveKB | None = kb
         if kb is not None:
-            served: KnowledgeBase | LiveKB = kb
             if config.kb_writable:
                 # Each incarnation writes as a writer of its own: its counts start again at 1.
                 known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
@@ -207,7 +240,7 @@ class Robot:
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
         queries = QueryHandler(
-            config, kb, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
+            config, served, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
         )
 
         state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
@@ -242,7 +275,14 @@ class Robot:
                 on_failure=team.request_failed,
             )
             fence = lease.hold
-        executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence)
+        knowledge = None
+        if config.kb_writable:
+            knowledge = KnowledgeWriter(
+                lambda update: write_location(config, served, replicator, kb_client, update, team.is_up))
+        world = host.world if host.world is not None else (
+            WorldClient(config.world) if config.world is not None else None)
+        executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence, robot_id=config.robot_id,
+                                world=world, knowledge=knowledge)
         async def ask_decision(robot_id: str, seq: int) -> DecisionMessage | None:
             request = Request(Method.GET, "/decisions", {"seq": str(seq)}, accept=ContentFormat.CBOR)
             response = await client.request(config.team[robot_id].endpoint, request, timeout=team.request_timeout_s)
@@ -253,13 +293,25 @@ class Robot:
             except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError):
                 return None
 
+        async def ask_claims(robot_id: str) -> dict[str, Claim]:
+            request = Request(Method.GET, CLAIMS_PATH, accept=ContentFormat.CBOR)
+            response = await client.request(config.team[robot_id].endpoint, request,
+                                            timeout=config.query_timeout_s)
+            if response.status != Status.CONTENT:
+                raise TransportError(f"{robot_id} answered {response.status.dotted} for its claims")
+            try:
+                return decode_claims(response.payload)
+            except ValueError as exc:
+                raise TransportError(f"{robot_id}'s claims: {exc}") from None
+
         controller = Controller(
-            config, queries, team, executor, publish_decision, send_decision, ask_decision
+            config, queries, team, executor, publish_decision, send_decision, ask_decision, ask_claims
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot.progress = (state_changed, outcome_changed)
         robot.health = health
         robot.replicator = replicator
+        robot.knowledge = knowledge
         robot._mount()  # before serving: the transport publishes the resource list
         try:
             server_side = None
@@ -274,6 +326,8 @@ class Robot:
         health.start()
         if replicator is not None:
             replicator.start()
+        if knowledge is not None:
+            knowledge.start()
         team.start()
         executor.start()
         controller.start()
@@ -292,12 +346,16 @@ class Robot:
         add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("GET", "POST")), self._decisions)
         add(ResourceInfo("/robot/stats", rt="coapkb.stats", ct=(60, 50), title="traffic and query stats"),
             self._get_stats)
+        add(ResourceInfo(CLAIMS_PATH, rt="coapkb.claims", ct=(60,), title="objects the cluster assigned"),
+            self._get_claims)
         add(ResourceInfo(LEASE_PATH, rt="coapkb.lease", title="lease grants (the fence)"), self._get_lease)
 
     async def aclose(self) -> None:
         if self.directory is not None:
             await self.directory.aclose()
         await self.controller.aclose()
+        if self.knowledge is not None:
+            await self.knowledge.aclose()
         await self.executor.aclose()
         for pacing in self.progress:
             pacing.cancel()
@@ -369,12 +427,16 @@ class Robot:
             body = _decode_body(request)
             seq, name = body["seq"], body["object"]
             join = body.get("join", [])
+            again = body.get("again")
         except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
             return Response.error(
-                Status.BAD_REQUEST, 'expected {"seq": int, "object": name[, "join": [robot, ...]]} in CBOR or JSON'
+                Status.BAD_REQUEST,
+                'expected {"seq": int, "object": name[, "join": [robot, ...]][, "again": int]} in CBOR or JSON',
             )
         if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
             return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
+        if again is not None and (type(again) is not int or not 0 < again < seq):
+            return Response.error(Status.BAD_REQUEST, "again must name an earlier task")
         if not isinstance(join, list) or not all(isinstance(r, str) and r in self.config.team for r in join):
             return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
         if seq < self._next_seq and self._accepted.get(seq) == name:
@@ -389,8 +451,12 @@ class Robot:
         self._next_seq += 1
         self._accepted[seq] = name
         self._accepted.pop(seq - POSTS_REMEMBERED, None)
-        self.controller.submit(Task(seq, name, tuple(join)))
+        self.controller.submit(Task(seq, name, tuple(join), again))
         return Response(Status.CHANGED)
+
+    async def _get_claims(self, request: Request) -> Response:
+        """``/robot/claims``: the objects the cluster assigned lately, for a restarted teammate."""
+        return Response(Status.CONTENT, encode_claims(self.controller.claims_handed()), ContentFormat.CBOR)
 
     async def _decisions(self, request: Request) -> Response:
         if request.method == Method.GET:

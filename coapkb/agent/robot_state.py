@@ -54,6 +54,9 @@ class Decision:
     members: tuple[str, ...] = ()
     #: Why the task cannot be done now: a KB module it needs has no live holder.
     unavailable: str | None = None
+    #: Why the task is skipped: no such object, already picked (by whom, at
+    #: which task), or missing from its place.
+    skip_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,8 @@ class LiveState:
     #: so the team may have given them to another (TaskExecutor).
     fenced: tuple[int, ...] = ()
     fence_reason: str | None = None
+    #: The latest tasks whose object was not at the shelf: (task, why).
+    missed: tuple[tuple[int, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -109,7 +114,7 @@ class RobotState:
                 _plan_array(self.prev),
                 [self.live.aisle, self.live.rack, ACTIVITIES.index(self.live.activity), self.live.executing,
                  self.live.queued, self.live.done,
-                 *([list(self.live.fenced), self.live.fence_reason or ""] if self.live.fenced else [])],
+                 *self._live_tail()],
                 None if self.last is None else _decision_array(self.last),
                 *self._boot(),
             ],
@@ -136,6 +141,13 @@ class RobotState:
                            costs=last.costs if carries else {}, reasons=last.reasons if carries else {})
         return replace(self, prev=None, last=last).encode()
 
+    def _live_tail(self) -> list:
+        live = self.live
+        tail: list = [list(live.fenced), live.fence_reason or ""] if live.fenced or live.missed else []
+        if live.missed:
+            tail.append([[seq, why] for seq, why in live.missed])
+        return tail
+
     def _boot(self) -> list[int]:
         return [self.boot] if self.boot else []
 
@@ -161,13 +173,14 @@ class RobotState:
                 boot = _uint(raw[3], "boot") if len(raw) == 4 else 0
                 return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev, boot)
             live = raw[3]
-            _check(type(live) is list and 6 <= len(live) <= 8, "live-state is an array of 6 to 8 items", live)
+            _check(type(live) is list and 6 <= len(live) <= 9, "live-state is an array of 6 to 9 items", live)
             fenced = tuple(_uint(seq, "fenced") for seq in _list(live[6], "fenced")) if len(live) > 6 else ()
             _check(type(live[2]) is int and 0 <= live[2] < len(ACTIVITIES), "unknown activity", live[2])
             live_state = LiveState(_float(live[0], "live aisle"), _float(live[1], "live rack"), ACTIVITIES[live[2]],
                                    _text(live[3], "executing", null=True), _uint(live[4], "queued"),
                                    _uint(live[5], "done"), fenced,
-                                   (_text(live[7], "fence-reason") or None) if len(live) > 7 else None)
+                                   (_text(live[7], "fence-reason") or None) if len(live) > 7 else None,
+                                   _missed(live[8]) if len(live) > 8 else ())
             boot = _uint(raw[5], "boot") if len(raw) > 5 else 0
             return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot)
         except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError, RecursionError) as exc:
@@ -210,6 +223,13 @@ def _list(value: object, what: str) -> list:
     return value  # type: ignore[return-value]
 
 
+def _missed(raw: object) -> tuple[tuple[int, str], ...]:
+    entries = _list(raw, "missed")
+    for entry in entries:
+        _check(type(entry) is list and len(entry) == 2, "a missed task is [seq, why]", entry)
+    return tuple((_uint(seq, "missed seq"), _text(why, "missed why") or "") for seq, why in entries)
+
+
 def _plan(raw: list) -> PlannedState:
     _check(type(raw) is list and len(raw) == 6, "planned-state is an array of 6 items", raw)
     aisle, rack, battery, load, payload, seq = raw
@@ -219,15 +239,15 @@ def _plan(raw: list) -> PlannedState:
 
 def _decision_array(d: Decision) -> list:
     return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons,
-            d.epoch, list(d.members), d.unavailable]
+            d.epoch, list(d.members), d.unavailable, *([d.skip_reason] if d.skip_reason else [])]
 
 
 def _decision(raw: list) -> Decision:
     # Eight items: a robot from before membership epochs (epoch 0, members
-    # unnamed); ten: from before "unavailable".
-    _check(type(raw) is list and 8 <= len(raw) <= 11, "decision is an array of 8 to 11 items", raw)
+    # unnamed); ten: from before "unavailable"; eleven: no skip reason.
+    _check(type(raw) is list and 8 <= len(raw) <= 12, "decision is an array of 8 to 12 items", raw)
     seq, obj, skipped, assigned_to, costs, error, coordination_s, reasons, *later = raw
-    epoch, members, unavailable = (later + [0, [], None][len(later):])[:3]
+    epoch, members, unavailable, skip_reason = (later + [0, [], None, None][len(later):])[:4]
     _check(type(skipped) is bool, "skipped must be a bool", skipped)
     _check(type(costs) is dict and all(type(k) is str and (v is None or type(v) in (float, int))
                                        for k, v in costs.items()), "costs must map text to number or null", costs)
@@ -237,5 +257,5 @@ def _decision(raw: list) -> Decision:
         _uint(seq, "seq"), _text(obj, "object"), skipped, _text(assigned_to, "assigned-to", null=True), costs,  # type: ignore[arg-type]
         _text(error, "error", null=True), _float(coordination_s, "coordination-s"), reasons, _uint(epoch, "epoch"),
         tuple(_text(m, "members") for m in _list(members, "members")),  # type: ignore[misc]
-        _text(unavailable, "unavailable", null=True),
+        _text(unavailable, "unavailable", null=True), _text(skip_reason, "skip-reason", null=True),
     )

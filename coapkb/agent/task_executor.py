@@ -6,6 +6,12 @@ picks, and unloads at the depot when the plan says so; when the plan
 charges first, it drives to the dock and charges before all that.  Time runs
 ``time_scale`` times faster than the wall clock.  Progress is published
 through the live part of ``/robot/state``.
+
+At the shelf the robot looks (the world, :mod:`coapkb.world.truth`): an
+object that is not there ends its task as not found, and the reason is
+published (``missed``) for the feeder's record.  What the robot did is
+written into the team's knowledge (:mod:`.knowledge_writer`): the pick, the
+delivery, or that the object is missing.
 """
 
 from __future__ import annotations
@@ -16,6 +22,9 @@ from dataclasses import dataclass, replace
 from typing import Awaitable, Callable
 
 from ..config import ExecutionModel
+from ..errors import CoapkbError
+from ..world.truth import KBWorld, World
+from .knowledge_writer import KnowledgeWriter
 from .robot_state import LiveState
 from .stats import Recharge
 from .task_assigner import ChargeStop
@@ -25,6 +34,11 @@ log = logging.getLogger(__name__)
 #: The log line of a pick, once it counts: the history a checker reads
 #: (the simulator's invariant that no task is executed twice).
 PICKED = "done: %s (task %d)"
+#: The log line of an object not found at the shelf.
+NOT_FOUND = "not found: %s (task %d): %s"
+#: Not-found tasks the live state names (the latest): the feeder reads them
+#: after every decision, and a robot finds few objects missing.
+MISSED_KEPT = 8
 
 
 @dataclass(frozen=True)
@@ -48,8 +62,19 @@ class TaskExecutor:
         publish: Callable[[LiveState], None],
         sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
         lease: Callable[[float], Awaitable[str | None]] | None = None,
+        *,
+        robot_id: str = "",
+        world: World | None = None,
+        knowledge: KnowledgeWriter | None = None,
     ) -> None:
         self.model = model
+        self.robot_id = robot_id
+        #: What the robot finds at the shelf; without a simulated world, what the KB says.
+        self._world: World = world or KBWorld()
+        #: Writes the picks, deliveries and missing objects; None: nothing is written.
+        self._knowledge = knowledge
+        #: Jobs picked and still carried (delivered at the next unload).
+        self._carried: list[Job] = []
         #: ``lease(seconds)``: None once this robot holds its lease for that
         #: long, else why it is fenced (coapkb.agent.lease); None = no fence.
         self._lease = lease
@@ -121,6 +146,16 @@ class TaskExecutor:
                  stop.arrive_wh, stop.full_wh, job.seq)
         self._update(activity="travelling")
 
+    async def _look(self, job: Job) -> str | None:
+        """None if ``job``'s object is on the shelf (now in the robot's
+        hands), else why not.  A world that does not answer is no reason to
+        leave the object: the robot trusts the KB, and says so."""
+        try:
+            return await self._world.take(job.object, self.robot_id, job.seq)
+        except CoapkbError as exc:
+            log.warning("task %d: %s; taking %s as the KB says", job.seq, exc, job.object)
+            return None
+
     async def _run(self) -> None:
         while True:
             job = await self._jobs.get()
@@ -135,16 +170,30 @@ class TaskExecutor:
             if not await self._leased(job, self.model.pick_s / self.model.time_scale):
                 continue
             self._update(activity="picking", aisle=float(job.aisle), rack=float(job.rack))
-            await self._simulate(self.model.pick_s)
-            if not await self._leased(job, 0.0):
-                continue
-            # Done once picked: the count the feeder reads says what nobody may pick again.
-            self._update(done=self.live.done + 1)
-            log.info(PICKED, job.object, job.seq)
+            why = await self._look(job)
+            if why is not None:
+                # Done too: the robot went there; the task ends as not found.
+                log.warning(NOT_FOUND, job.object, job.seq, why)
+                self._update(done=self.live.done + 1, missed=(self.live.missed + ((job.seq, why),))[-MISSED_KEPT:])
+                if self._knowledge is not None:
+                    self._knowledge.missing(job, self.robot_id)
+            else:
+                await self._simulate(self.model.pick_s)
+                if not await self._leased(job, 0.0):
+                    continue
+                # Done once picked: the count the feeder reads says what nobody may pick again.
+                self._update(done=self.live.done + 1)
+                log.info(PICKED, job.object, job.seq)
+                self._carried.append(job)
+                if self._knowledge is not None:
+                    self._knowledge.picked(job, self.robot_id)
             if job.to_depot_m > 0:
                 self._update(activity="unloading")
                 await self._simulate(job.to_depot_m / self.model.speed_m_s)
                 self._update(aisle=float(job.depot[0]), rack=float(job.depot[1]))
+                if self._knowledge is not None and self._carried:
+                    self._knowledge.delivered(self._carried, self.robot_id)
+                self._carried = []
             idle = self._jobs.empty()
             self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:

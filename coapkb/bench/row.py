@@ -115,6 +115,10 @@ class BenchRow:
     #: load), and the busiest robot's share (what one robot's radio carried).
     central_wire_bytes: int | None = None
     robot_wire_bytes_max: int | None = None
+    #: The robots' KBs took writes: every pick written (``coapkb bench --writable``).
+    kb_writable: bool = key_field(False)
+    #: Tasks whose robot did not find the object at the shelf.  Empty in a CSV written before it.
+    tasks_not_found: int | None = None
 
     def fates(self) -> "FateCounts | None":
         """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""
@@ -126,9 +130,11 @@ class BenchRow:
             return None
         assigned, skipped, unassigned, unavailable, reassigned, errors, disagreements = counts
         reason = self.unassigned_reason or None
+        not_found = self.tasks_not_found or 0
         return FateCounts(
-            tasks=sum(counts), assigned=assigned, skipped=skipped, unassigned=unassigned,  # type: ignore[arg-type]
-            unavailable=unavailable, reassigned=reassigned, errors=errors,  # type: ignore[arg-type]
+            tasks=sum(counts) + not_found, assigned=assigned, skipped=skipped,  # type: ignore[arg-type]
+            unassigned=unassigned, unavailable=unavailable, reassigned=reassigned,  # type: ignore[arg-type]
+            not_found=not_found, errors=errors,  # type: ignore[arg-type]
             disagreements=disagreements, unassigned_reason=reason,  # type: ignore[arg-type]
             unassigned_reason_tasks=self.unassigned_reason_tasks or 0,
         )

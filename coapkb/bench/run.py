@@ -203,6 +203,8 @@ def system_spec(
     faults: Sequence[Fault] = (),
     security: bool = True,
     log_dir: Path | None = None,
+    kb_writable: bool = False,
+    misplaced: Sequence[str] = (),
 ) -> TeamSpec:
     """The :class:`TeamSpec` of a named system (see :data:`SYSTEMS`), with the
     team's keys protecting it where its transport can (``security``)."""
@@ -219,7 +221,8 @@ def system_spec(
         robots=robots, mode=d.mode, transport=d.transport, query_wire=d.query_wire,
         ontologies=ontologies, link_kbps=link_kbps,
         replication=replication, faults=tuple(faults),
-        security=_protected(d, security), log_dir=log_dir, **extra,
+        security=_protected(d, security), log_dir=log_dir,
+        kb_writable=kb_writable and d.mode == "distributed", misplaced=tuple(misplaced), **extra,
     )
 
 
@@ -375,6 +378,7 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
         tasks_unassigned=fates.unassigned,
         tasks_errors=fates.errors,
         tasks_disagreements=fates.disagreements,
+        tasks_not_found=fates.not_found,
         unassigned_reason=fates.unassigned_reason or "",
         unassigned_reason_tasks=fates.unassigned_reason_tasks,
         ok=not problems,
@@ -435,6 +439,8 @@ async def run_once(
     faults: Sequence[Fault] = (),
     security: bool = True,
     trace_dir: Path | None = None,
+    kb_writable: bool = False,
+    misplaced: Sequence[str] = (),
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -449,13 +455,16 @@ async def run_once(
     team's keys protect every process's messages (OSCORE, CurveZMQ), as in
     ``coapkb team``; off only for comparison.  ``trace_dir``: keep the run's
     traces there, in a folder named after the run: each process's log at
-    INFO level and the team's record (``record.json``).
+    INFO level and the team's record (``record.json``).  ``kb_writable``:
+    the robots write their picks into the KB (distributed systems only);
+    ``misplaced``: objects not where the KB says.
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, seed, security)
     # burst_len means nothing for independent loss: 0 there, so it does not split the resume key.
     row = replace(row, delay_ms=delay_ms, jitter_ms=jitter_ms, loss_model=loss_model,
                   burst_len=burst_len if loss_model == "burst" else 0.0, replication=replication,
+                  kb_writable=kb_writable and system in SYSTEMS and SYSTEMS[system].mode == "distributed",
                   faults="+".join(f"{f.robot}@{f.at_s:g}" for f in faults))
     started = time.monotonic()
     try:
@@ -468,7 +477,7 @@ async def run_once(
         run_dir = None if trace_dir is None else trace_dir / _run_name(row)
         spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
                            link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security,
-                           log_dir=run_dir)
+                           log_dir=run_dir, kb_writable=kb_writable, misplaced=misplaced)
         task_list = draw_tasks(tasks, ontologies, seed=seed)
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
@@ -563,6 +572,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--insecure", action="store_true",
                    help="no OSCORE, CurveZMQ or TLS, for comparison (default: the team's keys protect every message, "
                         "as in coapkb team)")
+    p.add_argument("--writable", action="store_true",
+                   help="the robots' KBs take writes and the robots write every pick (distributed systems)")
+    p.add_argument("--misplace", action="append", default=[], metavar="OBJECT",
+                   help="the object is not where the KB says (repeatable)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--trace", metavar="DIR", type=Path,
                    help="keep each run's process logs (INFO level) and team record in DIR/<run>/")
@@ -601,7 +614,8 @@ async def main(args: argparse.Namespace) -> int:
         for system in systems:
             row = await run_once(system, args.robots, args.tasks, args.bandwidth, args.loss, rep,
                                  args.seed, replication=args.replication, faults=faults,
-                                 security=not args.insecure, trace_dir=args.trace, **link)
+                                 security=not args.insecure, trace_dir=args.trace,
+                                 kb_writable=args.writable, misplaced=args.misplace, **link)
             if args.out:
                 append_rows(args.out, [row])
             if args.json:

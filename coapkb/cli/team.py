@@ -51,7 +51,10 @@ def add_team(sub: argparse._SubParsersAction) -> None:
                         "hosts and looks its cluster up there; coap only)")
     p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
     p.add_argument("--writable", action="store_true",
-                   help="the robots' KBs take writes (coapkb update) and replicate them among the holders")
+                   help="the robots' KBs take writes (coapkb update) and replicate them among the holders; "
+                        "the robots write their picks and what they do not find")
+    p.add_argument("--misplace", action="append", default=[], metavar="OBJECT",
+                   help="the object is not where the KB says: the robot sent finds the shelf empty (repeatable)")
     p.add_argument("--insecure", action="store_true",
                    help="no OSCORE/EDHOC (coap) or CurveZMQ (zmq) and no access policy (default: on, throwaway team keys)")
     p.add_argument("--credentials", metavar="DIR", help="use this team key directory (coapkb keys) instead of throwaway keys")
@@ -105,6 +108,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
             discovery=getattr(args, "discovery", "static"),
             kb_writable=getattr(args, "writable", False),
+            misplaced=tuple(getattr(args, "misplace", None) or ()),
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)
@@ -197,7 +201,7 @@ def task_lines(record, costs: bool = False) -> str:  # record: TaskRecord
     """What the feeder saw of one task, as ``coapkb team`` and ``coapkb feed``
     print it; ``costs``: a second line with every robot's cost."""
     if record.skipped:
-        outcome = "skipped: no such object"
+        outcome = f"skipped: {record.skip_reason or 'no such object'}"
     elif record.errors:
         outcome = "ERROR " + "; ".join(f"{r}: {e}" for r, e in record.errors.items())
     elif record.unavailable is not None:

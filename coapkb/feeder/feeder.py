@@ -22,7 +22,7 @@ from ..transport.messages import ContentFormat, Method, Request
 from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
 from .membership import Membership
 from .orphans import idle
-from .record import TaskRecord
+from .record import TaskRecord, mark_not_found
 from .tasks import FeederError, split_tasks, task_post
 
 STATS_PATH = "/robot/stats"
@@ -195,9 +195,10 @@ class Feeder:
                     reruns += membership.prepare_join(records, joining, seq)
                 if records:
                     await membership.take_back(cluster, records)
-                record = await self._feed_task(index, cluster, seq, name, joining)
+                record = await self._feed_task(index, cluster, seq, name, joining, reassigned_from)
                 record.reassigned_from = reassigned_from
                 records.append(record)
+                mark_not_found(records, watcher.states)
                 if progress is not None:
                     held = progress(record)
                     if held is not None:
@@ -210,6 +211,7 @@ class Feeder:
                 channel.settings.task_timeout_s * 4,
                 f"cluster {index + 1} to finish executing",
             )
+            mark_not_found(records, watcher.states)
             # Tasks assigned to robots that went down before executing them
             # go round again, in their order, to the survivors: once the
             # down robot can no longer pick them (the fence).
@@ -220,11 +222,12 @@ class Feeder:
         return records, decided_at
 
     async def _feed_task(
-        self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = ()
+        self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = (),
+        again: int | None = None,
     ) -> TaskRecord:
         channel, watcher = self.channel, self.channel.watcher
         fed = clock.monotonic()
-        request = task_post(seq, name, joining)
+        request = task_post(seq, name, joining, again)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
             why = "; ".join(f"{r}: {watcher.down[r]}" for r in cluster)
@@ -277,6 +280,7 @@ class Feeder:
                 record.unavailable = decision.unavailable
             if decision.skipped:
                 record.skipped = True
+                record.skip_reason = record.skip_reason or decision.skip_reason
             if decision.costs and not record.costs:
                 record.costs = dict(decision.costs)
                 record.reasons = dict(decision.reasons)

@@ -38,6 +38,10 @@ class TaskRecord:
     unavailable: str | None = None
     #: Robots (restarted) that joined the team again at this task.
     joined: list[str] = field(default_factory=list)
+    #: Why nobody picks it: no such object, picked (by whom, at which task), missing.
+    skip_reason: str | None = None
+    #: The robot it went to did not find the object at the shelf: who, and why.
+    not_found: str | None = None
 
     @property
     def agreed(self) -> bool:
@@ -49,7 +53,8 @@ class TaskRecord:
     def fate(self) -> str:
         """One word: skipped, assigned, reassigned (went round again as a later
         task), failed (errors or disagreement), unavailable (a KB module it
-        needs had no live holder) or unassigned (nobody could)."""
+        needs had no live holder), not-found (its robot did not find the
+        object at the shelf) or unassigned (nobody could)."""
         if self.skipped:
             return "skipped"
         if not self.agreed:
@@ -58,6 +63,8 @@ class TaskRecord:
             return "unavailable"
         if self.orphaned is not None:
             return "reassigned"
+        if self.not_found is not None:
+            return "not-found"
         return "assigned" if self.assigned_to else "unassigned"
 
     def to_dict(self) -> dict[str, Any]:
@@ -80,6 +87,8 @@ class TaskRecord:
             "orphaned": self.orphaned,
             "unavailable": self.unavailable,
             "joined": self.joined,
+            "skip_reason": self.skip_reason,
+            "not_found": self.not_found,
             "fate": self.fate,  # derived, like "agreed"
         }
 
@@ -103,7 +112,29 @@ class TaskRecord:
             orphaned=data.get("orphaned"),
             unavailable=data.get("unavailable"),
             joined=[str(r) for r in data.get("joined") or ()],
+            skip_reason=data.get("skip_reason"),
+            not_found=data.get("not_found"),
         )
+
+
+def skip_kind(reason: str | None) -> str:
+    """The kind of a skip reason: "no such object", "already picked" or "missing"."""
+    if reason is None or reason == "no such object":
+        return "no such object"
+    if reason.startswith("picked by"):
+        return "already picked"
+    return "missing"
+
+
+def mark_not_found(records: Sequence[TaskRecord], states: Mapping[str, Any]) -> None:
+    """Mark the tasks whose robot did not find the object at the shelf, as its
+    live state names them (``missed``: the latest few)."""
+    assigned = {(r.assigned_to, r.seq): r for r in records if r.assigned_to is not None}
+    for robot_id, state in states.items():
+        for seq, why in state.live.missed:
+            record = assigned.get((robot_id, seq))
+            if record is not None and record.not_found is None:
+                record.not_found = f"{robot_id} did not find it: {why}"
 
 
 @dataclass(frozen=True)
@@ -119,11 +150,14 @@ class FateCounts:
     unassigned: int = 0
     unavailable: int = 0
     reassigned: int = 0
+    not_found: int = 0
     errors: int = 0
     disagreements: int = 0
     #: Why nobody took the unassigned tasks: the robots' commonest reason, and on how many tasks.
     unassigned_reason: str | None = None
     unassigned_reason_tasks: int = 0
+    #: Skipped tasks by kind of reason: no such object, already picked, missing.
+    skip_kinds: dict[str, int] = field(default_factory=dict)
 
     @classmethod
     def of(cls, tasks: Sequence[TaskRecord]) -> "FateCounts":
@@ -141,22 +175,26 @@ class FateCounts:
         return cls(
             tasks=len(tasks), assigned=fates["assigned"], skipped=fates["skipped"],
             unassigned=fates["unassigned"], unavailable=fates["unavailable"], reassigned=fates["reassigned"],
-            errors=errors, disagreements=len(failed) - errors,
+            not_found=fates["not-found"], errors=errors, disagreements=len(failed) - errors,
             unassigned_reason=reason, unassigned_reason_tasks=reason_tasks,
+            skip_kinds=dict(Counter(skip_kind(t.skip_reason) for t in tasks if t.fate == "skipped").most_common()),
         )
 
     @property
     def counted(self) -> int:
         """The sum of the fates' counts: equal to ``tasks``."""
         return (self.assigned + self.skipped + self.unassigned + self.unavailable + self.reassigned
-                + self.errors + self.disagreements)
+                + self.not_found + self.errors + self.disagreements)
 
     def line(self) -> str:
         """``60 tasks, 18 assigned, 0 skipped, 42 unassigned, ...`` and, if
         any went unassigned, the robots' commonest reason."""
-        text = (f"{self.tasks} tasks, {self.assigned} assigned, {self.skipped} skipped, "
+        skipped = f"{self.skipped} skipped"
+        if self.skip_kinds:
+            skipped += " (" + ", ".join(f"{n} {kind}" for kind, n in self.skip_kinds.items()) + ")"
+        text = (f"{self.tasks} tasks, {self.assigned} assigned, {skipped}, "
                 f"{self.unassigned} unassigned, {self.unavailable} unavailable, {self.reassigned} reassigned, "
-                f"{self.errors} with errors, {self.disagreements} disagreements")
+                f"{self.not_found} not found, {self.errors} with errors, {self.disagreements} disagreements")
         if self.unassigned_reason is not None:
             text += (f"; unassigned mostly as {self.unassigned_reason!r} "
                      f"({self.unassigned_reason_tasks} of {self.unassigned} tasks)")

@@ -50,8 +50,11 @@ def split_tasks(tasks: Sequence[str], clusters: int) -> list[list[str]]:
     return [list(tasks[bounds[i] : bounds[i + 1]]) for i in range(clusters)]
 
 
-def task_post(seq: int, name: str, joining: Sequence[str] = ()) -> Request:
+def task_post(seq: int, name: str, joining: Sequence[str] = (), again: int | None = None) -> Request:
     """The POST of task ``seq``.  The task stream orders joins: every robot
-    admits the joiners at this task."""
-    body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {})})
+    admits the joiners at this task.  ``again``: the task this one does
+    again (its robot went down before the pick), so no robot takes the
+    object for already picked."""
+    body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {}),
+                        **({"again": again} if again is not None else {})})
     return Request(Method.POST, TASKS_PATH, payload=body, content_format=ContentFormat.CBOR)

@@ -138,6 +138,9 @@ def summarise(record: TeamRecord) -> str:
     for event in record.faults:
         detected = "" if event.detected_after_s is None else f", declared down {event.detected_after_s:.1f} s later"
         lines.append(f"{event.action} {event.robot} at {event.at_s:.1f} s{detected}")
+    for task in tasks:
+        if task.fate == "not-found":
+            lines.append(f"not found: task {task.seq} {task.object} (cluster {task.cluster}): {task.not_found}")
     for robot_id, robot in sorted(record.robot_stats.items(), key=lambda x: robot_sort_key(x[0])):
         if robot.fenced:
             lines.append(f"{robot_id} dropped task(s) {', '.join(map(str, robot.fenced))} unpicked: "

@@ -47,6 +47,8 @@ from ..kb.store import KnowledgeBase
 from ..kb.named_queries import NAMED_QUERIES
 from ..transport import SCHEMES, transport_for
 from ..world import CLUSTER_SIZE, OBJECT_NS
+from ..world.service import WorldServer
+from ..world.truth import WorldTruth
 from ..transport.base import Endpoint, TrafficCounters
 from .kbs import kbs_for_team
 from .record import FaultEvent, TeamRecord
@@ -157,6 +159,9 @@ class TeamSpec:
     #: level (``coapkb bench --trace``): the robots' own account of each task
     #: and each wait.  None: only the last lines are kept, for errors.
     log_dir: Path | None = None
+    #: Objects that are not where the KB says (``--misplace``): the robot sent
+    #: finds the shelf empty, the task ends as not found.
+    misplaced: tuple[str, ...] = ()
 
     @property
     def lease_s(self) -> float:
@@ -238,12 +243,17 @@ def product_names(object_kb: KnowledgeBase) -> list[str]:
 def draw_tasks(
     n: int, ontologies: Path = DEFAULT_ONTOLOGIES, seed: int = 1, exclude: Sequence[str] = ()
 ) -> list[str]:
-    """``n`` product names drawn (with a seed, with replacement) from the Object KB."""
+    """``n`` product names drawn (with a seed) from the Object KB: each object
+    once while there are products left (a picked object is gone: a repeat
+    would be skipped), then again in a new draw, and so on."""
     names = [name for name in product_names(KnowledgeBase.load([ontologies / "Object.owl"])) if name not in exclude]
     if not names:
         raise TeamError("the Object KB has no products")
     rng = random.Random(seed)
-    return [rng.choice(names) for _ in range(n)]
+    drawn: list[str] = []
+    while len(drawn) < n:
+        drawn += rng.sample(names, min(len(names), n - len(drawn)))
+    return drawn
 
 
 class PortReservation:
@@ -344,6 +354,7 @@ def robot_configs(
     central: Endpoint | None = None,
     security: SecurityConfig | None = None,
     discovery: Callable[[int, Sequence[str]], DiscoveryConfig] | None = None,
+    world: Path | None = None,
 ) -> dict[str, RobotConfig]:
     """Every robot's configuration for ``spec``, each listening at its
     ``endpoints`` entry: its cluster as teammates (with ``discovery``, a
@@ -375,6 +386,7 @@ def robot_configs(
                 security=security,
                 kb_writable=spec.kb_writable and spec.mode == "distributed",
                 replicas=next_cluster_replicas(spec, clusters, cluster_no - 1, robot_id, endpoints),
+                world=world,
             )
     return configs
 
@@ -445,6 +457,8 @@ class Team:
         self.directory: Any = None
         #: Stopped robots let go on again: alive, though the team has them down.
         self._resumed: set[str] = set()
+        #: The one world the robots find objects in (:mod:`coapkb.world.service`).
+        self.world: WorldServer | None = None
 
     # ---------------------------------------------------------------- processes
 
@@ -464,6 +478,7 @@ class Team:
             spec, self.endpoints, central=self.central,
             security=None if self.team_dir is None else SecurityConfig(self.team_dir),
             discovery=None if directory is None else registration,
+            world=None if self.world is None else self.world.path,
         )
         paths: dict[str, Path] = {}
         for robot_id, config in configs.items():
@@ -539,6 +554,9 @@ class Team:
 
                     identity = None if team.team_dir is None else load_identity(team.team_dir, "feeder")
                     team.directory = await ResourceDirectory.start(Endpoint("coap", spec.host, 0), identity)
+                # The ground truth of the shelves, shared by every robot.
+                team.world = WorldServer(WorldTruth.with_misplaced(spec.misplaced), Path(tmp) / "world.sock")
+                await team.world.start()
                 configs = team.write_configs()
                 # A few robots start at a time: a robot's start-up is CPU work
                 # (imports, KBs, keys), and 99 at once on two cores would make
@@ -570,6 +588,8 @@ class Team:
         finally:
             if self.directory is not None:
                 await self.directory.aclose()
+            if self.world is not None:
+                await self.world.aclose()
 
     async def _stop_processes(self) -> None:
         for proc in self.processes.values():

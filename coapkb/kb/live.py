@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -30,6 +31,10 @@ from .replica import Delta, Effect, Replica, ReplicaLimits, WrittenState
 from .results import GraphResult, QueryResult, Term, Triple
 from .store import KnowledgeBase
 from .update import Operation, UpdateUnsupported, parse_update
+
+#: Answers kept as first given for a task (:meth:`LiveKB.query_at`): a few
+#: questions per task, and no robot asks about a task hundreds of tasks old.
+PINNED_ANSWERS = 1024
 
 __all__ = ["LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
 
@@ -125,6 +130,8 @@ class LiveKB:
         self._etag: bytes | None = None
         #: Called with the modules a change touched (after the view has it).
         self.listeners: list[Callable[[frozenset[str]], None]] = []
+        #: (task, query) -> the answer first given for that task (:meth:`query_at`).
+        self._pinned: OrderedDict[tuple[int, str], QueryResult] = OrderedDict()
 
     def __repr__(self) -> str:
         return f"<LiveKB {'+'.join(self.names)} of {self.writer}>"
@@ -158,6 +165,25 @@ class LiveKB:
         if self._view is None:
             return self.base.query(sparql, row_limit=row_limit, time_budget_s=time_budget_s)
         return self.base.query_with(self._view, sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+
+    def query_at(self, task: int, sparql: str) -> QueryResult:
+        """``query``'s answer as it was when first asked for ``task``.
+
+        A decision must read the same knowledge on every robot of a cluster,
+        though a write may land between two robots' questions: the holder
+        they all ask answers each question of one task alike
+        (docs/knowledge.md, "The world in the KB").  The last
+        ``PINNED_ANSWERS`` questions are kept."""
+        key = (task, sparql)
+        kept = self._pinned.get(key)
+        if kept is not None:
+            self._pinned.move_to_end(key)
+            return kept
+        answer = self.query(sparql)
+        self._pinned[key] = answer
+        while len(self._pinned) > PINNED_ANSWERS:
+            self._pinned.popitem(last=False)
+        return answer
 
     def _base_values(self, s: Term, p: Term) -> list[Term]:
         from .oxigraph_backend import _from_ox

@@ -197,13 +197,19 @@ WHERE {
         name="pick-place",
         kb="Location",
         params=("name",),
-        template=_LOC + """SELECT ?aisle_no ?rack_no ?bin_no
+        template=_LOC + """SELECT ?aisle_no ?rack_no ?bin_no ?picked_by ?picked_task ?missing_task
 WHERE {
-  ns_1:$name ns_1:Inventory_aisle_no ?aisle_no .
-  ns_1:$name ns_1:Inventory_rack_no ?rack_no .
-  ns_1:$name ns_1:Inventory_bin_no ?bin_no .
+  OPTIONAL {
+    ns_1:$name ns_1:Inventory_aisle_no ?aisle_no .
+    ns_1:$name ns_1:Inventory_rack_no ?rack_no .
+    ns_1:$name ns_1:Inventory_bin_no ?bin_no .
+  }
+  OPTIONAL { ns_1:$name ns_1:Picked_by ?picked_by . ns_1:$name ns_1:Picked_at_task ?picked_task . }
+  OPTIONAL { ns_1:$name ns_1:Missing_since_task ?missing_task . }
+  FILTER (BOUND(?aisle_no) || BOUND(?picked_by) || BOUND(?missing_task))
 }""",
-        description="Query_2 as assigning a pick needs it: aisle, rack and bin of a product",
+        description=("Query_2 as assigning a pick needs it: aisle, rack and bin of a product, "
+                     "or who picked it at which task, or since which task it is missing"),
     ),
     # Query_3 plus the bindings for ?price and ?color the paper forgot, and
     # ?weight, which the battery cost of carrying the object depends on.

@@ -287,11 +287,32 @@ class KBResources:
         # which lists the names there are.
         name = request.path.rsplit("/", 1)[1]
         query = self.named[name]
+        params = dict(request.query)
+        at = params.pop("at", None)
         try:
-            text = query.render(request.query)
+            text = query.render(params)
+            task = _task_number(at)
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
+        if task is not None and self.live is not None:
+            return self._pinned(text, task, request.accept)
         return await self.answer(text, request.accept, request.etags, shape=name)
+
+    def _pinned(self, text: str, task: int, accept: int | None) -> Response:
+        """``?at=TASK``: the answer as first given for that task (LiveKB.query_at),
+        so every robot deciding the task reads the same knowledge.  A named
+        query is small: it runs inline, outside the answer cache."""
+        assert self.live is not None
+        fmt = negotiate(accept)
+        if fmt is None:
+            return _not_acceptable(accept)
+        try:
+            result = self.live.query_at(task, text)
+        except KBError as exc:
+            return Response.error(Status.BAD_REQUEST, str(exc))
+        payload = encode_result(result, fmt)
+        etag = hashlib.blake2s(payload, digest_size=8).digest()
+        return Response(Status.CONTENT, payload, fmt, max_age=self.max_age_s, etag=etag)
 
     async def answer(
         self, text: str, accept: int | None, etags: tuple[bytes, ...] = (), *, shape: str | None = None
@@ -425,6 +446,14 @@ def _without_frames(exc: BaseException) -> BaseException:
         current.__traceback__ = None
         pending += [current.__cause__, current.__context__]
     return exc
+
+
+def _task_number(at: str | None) -> int | None:
+    if at is None:
+        return None
+    if not at.isdigit() or len(at) > 12:
+        raise ValueError(f"at= takes a task number, not {at!r}")
+    return int(at)
 
 
 def _not_idempotent(text: str) -> bool:

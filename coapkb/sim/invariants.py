@@ -242,6 +242,25 @@ def _by_cluster(tasks: list[TaskRecord]) -> dict[int, list[TaskRecord]]:
 
 
 #: Every invariant, in the order their findings are printed.
+def check_repeats_skipped(run: RunResult) -> Iterable[str]:
+    """An object a cluster gave to a robot is never given again by that
+    cluster (every robot skips the repeat: "picked by ... at task ..."),
+    unless the task went round again because its robot could not do it."""
+    record = run.record
+    if record is None:
+        return
+    for index, cluster_records in _by_cluster(record.tasks).items():
+        taken: dict[str, TaskRecord] = {}
+        for task in cluster_records:
+            if task.assigned_to is None or task.fate in ("failed", "skipped"):
+                continue
+            first = taken.get(task.object)
+            if first is not None and task.reassigned_from is None and first.fate != "reassigned":
+                yield (f"cluster {index} task {task.seq} gave {task.object} to {task.assigned_to}, though task "
+                       f"{first.seq} gave it to {first.assigned_to}")
+            taken[task.object] = task
+
+
 def check_replicas(run: RunResult) -> Iterable[str]:
     """The KB's replicas converge and keep what they acknowledged: at the end
     (every fault healed, the writes answered, anti-entropy given its time),
@@ -258,7 +277,7 @@ def check_replicas(run: RunResult) -> Iterable[str]:
 
 CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
     check_finished, check_one_fate, check_executed_once, check_agreement, check_epochs_grow, check_bounded,
-    check_replicas,
+    check_repeats_skipped, check_replicas,
 )
 
 

@@ -40,6 +40,7 @@ from ..kb.results import QueryResult
 from ..kb.store import KnowledgeBase
 from ..world.vocabulary import ONTOLOGIES
 from ..transport.base import Endpoint, TransportError
+from ..world.truth import WorldTruth
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
@@ -320,6 +321,8 @@ class SimulatedTeam:
         self.processes: dict[SimLoop, Process] = {}
         self.current: dict[str, Process] = {}
         self.robots: dict[str, Robot] = {}
+        #: The one warehouse every robot of the run finds objects in (or not).
+        self.world = WorldTruth()
         self.history = _History(self.processes, lambda: self.scheduler.clock.now, self.note if trace else None)
         self.feeder: Feeder | None = None
         self.fed_at: float | None = None
@@ -347,7 +350,7 @@ class SimulatedTeam:
     async def _start_robot(self, robot_id: str, process: Process) -> Robot:
         clock = self.scheduler.clock
         host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
-                    threads=False, wall_ms=lambda: int(clock.now * 1000))
+                    threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.world)
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
         return robot
@@ -513,9 +516,10 @@ class SimulatedTeam:
             return team_record(team, outcome, stats, feeder.traffic, self.recorded, dict(watcher.down))
 
     def _settled(self) -> bool:
-        """Every running robot has executed what it holds."""
+        """Every running robot has executed what it holds and sent what it wrote of it."""
         return all(
             robot.executor.live.activity == "idle" and not robot.executor.live.queued
+            and (robot.knowledge is None or not robot.knowledge.pending)
             for robot_id, robot in self.robots.items() if self.current[robot_id].status == "running"
         )
 

@@ -27,6 +27,7 @@ ALL = ("Location", "Object", "Capability")
 #: Robot1 answers every query itself; Robot2 is a teammate with no KB.
 PAIR = {"Robot1": ALL, "Robot2": ()}
 OBJECT = "Gucci_bag_14"
+OTHER_OBJECT = "Barilla_pasta_1"
 
 
 def _state(robot_id: str, seq: int = 0, aisle: int = 1) -> RobotState:
@@ -111,9 +112,9 @@ async def make(network: MemoryNetwork, all_kbs: KnowledgeBase):
 async def test_gather_runs_the_four_queries(make: Callable) -> None:
     h = await make(config("Robot1", {"Robot1": ALL, "Robot2": (), "Robot4": ()}))
     facts = await h.controller.gather(Task(1, OBJECT))
-    assert facts is not None and facts.object == OBJECT and facts.weight_kg > 0
+    assert not isinstance(facts, str) and facts.object == OBJECT and facts.weight_kg > 0
     assert set(facts.capable) <= {"Robot1", "Robot2", "Robot4"} and facts.capable  # only teammates
-    assert await h.controller.gather(Task(2, "Nonexistent_widget_1")) is None
+    assert await h.controller.gather(Task(2, "Nonexistent_widget_1")) == "no such object"
 
 
 async def test_compute_by_all_waits_for_every_teammate_to_decide_the_previous_task(
@@ -123,7 +124,7 @@ async def test_compute_by_all_waits_for_every_teammate_to_decide_the_previous_ta
     await network.serve(mate.router, endpoint("Robot2"))
     h = await make(config("Robot1", PAIR))
     h.controller.submit(Task(1, OBJECT))
-    h.controller.submit(Task(2, OBJECT))
+    h.controller.submit(Task(2, OTHER_OBJECT))
     first = (await h.published.wait(1))[0]
     assert first.seq == 1 and first.error is None and first.assigned_to in ("Robot1", "Robot2")
     assert set(first.costs) == {"Robot1", "Robot2"}
@@ -185,7 +186,7 @@ class NoQueries:
 
     wire = "compact"
 
-    async def run(self, name: str, params: Mapping[str, str]) -> object:
+    async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> object:
         raise AssertionError(f"unexpected query {name}")
 
 
@@ -195,7 +196,7 @@ class Failing:
     def __init__(self, error: Exception) -> None:
         self.error = error
 
-    async def run(self, name: str, params: Mapping[str, str]) -> object:
+    async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> object:
         raise self.error
 
 

@@ -31,6 +31,7 @@ KEYS_COMMAND = "coapkb keys --team-dir examples/three-robots/keys"
 #: What ``coapkb demo`` assigns the same tasks to (its robots start at their homes in the KBs too).
 DEMO_ASSIGNMENTS = ["Robot2", "Robot1", "Robot2", "Robot1", "Robot1"]
 TASK_LINE = re.compile(r"^\[cluster 1\] task +(\d+) (\S+) +-> (Robot[123]) \(\d+ ms\)$")
+SKIP_LINE = re.compile(r"^\[cluster 1\] task +(\d+) (\S+) +skipped: (.*) \(\d+ ms\)$")
 
 
 def run(workdir: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -128,11 +129,15 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     # The robots of `coapkb demo`, with the same homes and KBs: the same assignments.
     assert [m[3] for m in lines] == DEMO_ASSIGNMENTS, result.stdout
     n = len(tasks)
-    assert (f"{n} tasks, {n} assigned, 0 skipped, 0 unassigned, 0 unavailable, 0 reassigned, "
+    assert (f"{n} tasks, {n} assigned, 0 skipped, 0 unassigned, 0 unavailable, 0 reassigned, 0 not found, "
             "0 with errors, 0 disagreements; coordination") in result.stdout
 
-    # Fed again, the robots go on with tasks 6 to 10, from where the first list left them.
+    # Fed again, the robots go on with tasks 6 to 10, from where the first
+    # list left them, and skip every object: each was picked by then.
     again = run(workdir, *feed)
     assert again.returncode == 0, again.stdout + again.stderr
-    lines = [m for m in map(TASK_LINE.match, again.stdout.splitlines()) if m]
+    lines = [m for m in map(SKIP_LINE.match, again.stdout.splitlines()) if m]
     assert [(int(m[1]), m[2]) for m in lines] == list(enumerate(tasks, 6)), again.stdout
+    assert [m[3] for m in lines] == [f"picked by {robot} at task {i}"
+                                     for i, robot in enumerate(DEMO_ASSIGNMENTS, 1)], again.stdout
+    assert f"{n} tasks, 0 assigned, {n} skipped ({n} already picked)" in again.stdout

@@ -48,8 +48,8 @@ def test_team_with_tasks_file_and_record(tmp_path: Path) -> None:
 
     # The summary.
     assert re.search(
-        r"^3 robots, distributed, coap, compute-by-all: 5 tasks, 4 assigned, 1 skipped, 0 unassigned, "
-        r"0 unavailable, 0 reassigned, 0 with errors, 0 disagreements$", stdout, re.M), stdout
+        r"^3 robots, distributed, coap, compute-by-all: 5 tasks, 4 assigned, 1 skipped \(1 no such object\), 0 unassigned, "
+        r"0 unavailable, 0 reassigned, 0 not found, 0 with errors, 0 disagreements$", stdout, re.M), stdout
     assert re.search(r"^assigned: Robot\d \d+", stdout, re.M)
     assert re.search(r"^coordination \d+\.\d\d s, completion \d+\.\d\d s$", stdout, re.M)
     assert re.search(r"^robots sent [\d,]+ B in [\d,]+ messages, received [\d,]+ B; queries: \d+ local, \d+ remote, \d+ answered from the cache$",

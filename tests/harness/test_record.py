@@ -100,15 +100,15 @@ def test_a_killed_robot_shows_in_the_record_and_summary() -> None:
     data = json.loads(json.dumps(record.to_dict()))
     assert TeamRecord.from_dict(data).to_dict() == data
     lines = summarise(record).splitlines()
-    assert lines[0].endswith("0 unassigned, 0 unavailable, 1 reassigned, 1 with errors, 0 disagreements")
+    assert lines[0].endswith("0 unassigned, 0 unavailable, 1 reassigned, 0 not found, 1 with errors, 0 disagreements")
     assert lines[1] == "assigned: Robot1 1"
     assert lines[-1] == "kill Robot2 at 3.0 s, declared down 1.2 s later"
 
 
 def test_summary_counts_tasks_traffic_and_queries() -> None:
     lines = summarise(_record()).splitlines()
-    assert lines[0] == ("2 robots, distributed, coap, compute-by-all: 3 tasks, 1 assigned, 1 skipped, "
-                        "0 unassigned, 0 unavailable, 0 reassigned, 1 with errors, 0 disagreements")
+    assert lines[0] == ("2 robots, distributed, coap, compute-by-all: 3 tasks, 1 assigned, 1 skipped (1 no such object), "
+                        "0 unassigned, 0 unavailable, 0 reassigned, 0 not found, 1 with errors, 0 disagreements")
     assert lines[1] == "assigned: Robot2 1"
     assert lines[2] == "coordination 1.50 s, completion 2.25 s"
     assert lines[3] == ("robots sent 300 B in 10 messages, received 60 B; "
@@ -134,15 +134,17 @@ def test_the_summary_counts_every_fate_once() -> None:
                    orphaned="Robot2 went down before executing it"),
         TaskRecord("Sony_tv_3", 1, 8, decisions={"Robot1": "Robot1", "Robot2": None}, errors={"Robot2": "timeout"}),
         TaskRecord("Sony_tv_4", 1, 9, decisions={"Robot1": "Robot1", "Robot2": "Robot2"}),
+        TaskRecord("Sony_tv_5", 1, 10, assigned_to="Robot1", decisions=decided,
+                   not_found="Robot1 did not find it: gone: picked by Robot7 at task 3"),
     ]
     counts = FateCounts.of(tasks)
     assert (counts.assigned, counts.skipped, counts.unassigned, counts.unavailable, counts.reassigned,
-            counts.errors, counts.disagreements) == (1, 1, 3, 1, 1, 1, 1)
+            counts.not_found, counts.errors, counts.disagreements) == (1, 1, 3, 1, 1, 1, 1, 1)
     assert counts.counted == counts.tasks == len(tasks)
     assert (counts.unassigned_reason, counts.unassigned_reason_tasks) == ("cannot pick by suction", 2)
     record = replace(_record(), tasks=tasks)
     assert summarise(record).splitlines()[0] == (
-        "2 robots, distributed, coap, compute-by-all: 9 tasks, 1 assigned, 1 skipped, 3 unassigned, "
-        "1 unavailable, 1 reassigned, 1 with errors, 1 disagreements; "
+        "2 robots, distributed, coap, compute-by-all: 10 tasks, 1 assigned, 1 skipped (1 no such object), 3 unassigned, "
+        "1 unavailable, 1 reassigned, 1 not found, 1 with errors, 1 disagreements; "
         "unassigned mostly as 'cannot pick by suction' (2 of 3 tasks)")
     assert record.to_dict()["fates"]["unassigned"] == 3

@@ -100,7 +100,7 @@ def test_two_teams_placed_at_once_get_different_ports() -> None:
 
 def test_fate_counts_of_no_tasks() -> None:
     assert FateCounts.of([]).line() == ("0 tasks, 0 assigned, 0 skipped, 0 unassigned, 0 unavailable, "
-                                         "0 reassigned, 0 with errors, 0 disagreements")
+                                         "0 reassigned, 0 not found, 0 with errors, 0 disagreements")
     one = TaskRecord("Gucci_bag_14", 1, 1, assigned_to="Robot1", decisions={"Robot1": "Robot1"})
     assert FateCounts.of([one]).counted == 1
 
