@@ -491,7 +491,7 @@ class Controller:
         plan = result.plan
         job = Job(
             task.seq, task.object, facts.aisle, facts.rack, plan.to_object_m, plan.to_depot_m,
-            (DEPOT.aisle, DEPOT.rack), plan.charge,
+            (DEPOT.aisle, DEPOT.rack), plan.charge, plan.after.battery_wh, plan.after.load_kg,
         )
         return DecisionMessage(decision, plan.after, job)
 

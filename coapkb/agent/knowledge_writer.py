@@ -1,20 +1,28 @@
-"""What a robot did, written into the team's knowledge (the Location KB).
+"""What a robot did, written into the team's knowledge (Location and Capability KBs).
 
-The paper keeps the robots' real-time world in the Location KB; these are
-the facts a robot's work changes there, each a small SPARQL Update:
+The paper keeps the robots' real-time world in the Location KB ("real time
+locations of the robots") and what they can do in the Capability KB; these
+are the facts a robot's work changes there, each a small SPARQL Update:
 
 * a pick: the object leaves its shelf (its aisle, rack and bin are
-  deleted) and ``Picked_by`` the robot ``Picked_at_task`` the task;
+  deleted) and is ``Picked_by`` the robot ``Picked_at_task`` the task;
 * a delivery at the depot: ``Delivered_at_task``, for each object carried;
 * an object not at the shelf: its place is deleted, and it is
-  ``Missing_since_task`` the task, ``Reported_missing_by`` the robot.
+  ``Missing_since_task`` the task, ``Reported_missing_by`` the robot;
+* with each of these, where the robot is (``Robot_aisle_no``,
+  ``Robot_rack_no``, Location) and, once the job is over, the load it
+  carries and its battery's charge (``Robot_load_kg``, ``Robot_charge_wh``,
+  Capability), each stamped ``Robot_updated_ms`` (Unix milliseconds).
 
-The named query ``pick-place`` reads them back, so a later task for the same
-object is skipped by every robot (docs/knowledge.md, "The world in the KB").
-Writes go out in order, one at a time, behind the robot's work: a robot
-never waits at the shelf for the radio.  A write that fails is tried again a
-few times, then dropped with an error in the log (the team still knows the
-pick from its decision, and the shelf from the world).
+So a robot writes when its work changes the world -- once or twice a job,
+never on a timer: on a 35 kbit/s link a position every second would cost
+more than the task itself (docs/knowledge.md, "The world in the KB").  The
+named queries ``pick-place``, ``robot-positions`` and ``robot-loads`` read
+them back.  Writes go out in order, one at a time, behind the robot's work:
+a robot never waits at the shelf for the radio; what waits for the same
+module goes out as one update.  A write that fails is tried again a few
+times, then dropped with an error in the log (the team still knows the pick
+from its decision, and the shelf from the world).
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from collections import deque
 from typing import TYPE_CHECKING, Awaitable, Callable, Iterable
 
 from ..errors import CoapkbError
-from ..world import LOCATION_NS
+from ..world import CAPABILITY_NS, LOCATION_NS
 
 if TYPE_CHECKING:
     from .task_executor import Job
@@ -38,71 +46,114 @@ QUEUED_MAX = 1000
 #: Tries per write, and the wait between two.
 WRITE_TRIES = 3
 RETRY_S = 2.0
+#: The largest update made of several waiting ones (a robot takes 8 KiB).
+MERGED_MAX_BYTES = 4096
 
 _PLACE = ("Inventory_aisle_no", "Inventory_rack_no", "Inventory_bin_no")
 
 
 def _iri(name: str) -> str:
-    return f"<{LOCATION_NS}{name}>"
+    """A name of the module the update is for: its namespace is the empty
+    prefix (:data:`PROLOGUE`), so a name costs its own length on the radio."""
+    return f":{name}"
 
 
 def _literal(text: str) -> str:
     return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+def _number(value: float) -> str:
+    """A decimal literal (``Robot_payload``'s datatype; SPARQL's ``1.5``): never an exponent."""
+    return f"{value:.3f}"
+
+
 def _leaves_shelf(obj: str) -> str:
-    subject = _iri(obj)
-    pattern = " . ".join(f"{subject} {_iri(p)} ?v{i}" for i, p in enumerate(_PLACE))
-    return f"DELETE WHERE {{ {pattern} }}"
+    pattern = " ; ".join(f"{_iri(p)} ?v{i}" for i, p in enumerate(_PLACE))
+    return f"DELETE WHERE {{ {_iri(obj)} {pattern} }}"
 
 
-def pick_update(obj: str, robot: str, seq: int) -> str:
-    """The SPARQL Update of a pick: off the shelf, picked by ``robot`` at task ``seq``."""
-    subject = _iri(obj)
-    return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {subject} {_iri('Picked_by')} {_literal(robot)} . "
-            f"{subject} {_iri('Picked_at_task')} {seq} }}")
+def _robot_at(robot: str, at: tuple[int, int], at_ms: int) -> str:
+    return (f"{_iri(robot)} {_iri('Robot_aisle_no')} {at[0]} ; {_iri('Robot_rack_no')} {at[1]} ; "
+            f"{_iri('Robot_updated_ms')} {at_ms}")
 
 
-def missing_update(obj: str, robot: str, seq: int) -> str:
+def pick_update(obj: str, robot: str, seq: int, at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
+    """The SPARQL Update of a pick: off the shelf, picked by ``robot`` at task
+    ``seq``; with ``at``, the robot is there (at the shelf) at ``at_ms``."""
+    where = f" . {_robot_at(robot, at, at_ms)}" if at is not None else ""
+    return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {_iri(obj)} {_iri('Picked_by')} {_literal(robot)} ; "
+            f"{_iri('Picked_at_task')} {seq}{where} }}")
+
+
+def missing_update(obj: str, robot: str, seq: int, at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
     """The SPARQL Update of an object not at its shelf at task ``seq``."""
-    subject = _iri(obj)
-    return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {subject} {_iri('Missing_since_task')} {seq} . "
-            f"{subject} {_iri('Reported_missing_by')} {_literal(robot)} }}")
+    where = f" . {_robot_at(robot, at, at_ms)}" if at is not None else ""
+    return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {_iri(obj)} {_iri('Missing_since_task')} {seq} ; "
+            f"{_iri('Reported_missing_by')} {_literal(robot)}{where} }}")
 
 
-def delivered_update(objects: Iterable[tuple[str, int]]) -> str:
-    """The SPARQL Update of a delivery: each (object, task) delivered at the depot."""
-    facts = " . ".join(f"{_iri(obj)} {_iri('Delivered_at_task')} {seq}" for obj, seq in objects)
-    return f"INSERT DATA {{ {facts} }}"
+def delivered_update(objects: Iterable[tuple[str, int]], robot: str | None = None,
+                     at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
+    """The SPARQL Update of a delivery: each (object, task) delivered at the
+    depot; with ``robot`` and ``at``, the robot is there."""
+    facts = [f"{_iri(obj)} {_iri('Delivered_at_task')} {seq}" for obj, seq in objects]
+    if robot is not None and at is not None:
+        facts.append(_robot_at(robot, at, at_ms))
+    return f"INSERT DATA {{ {' . '.join(facts)} }}"
+
+
+def load_update(robot: str, load_kg: float, charge_wh: float, at_ms: int) -> str:
+    """The SPARQL Update of a robot's carried load and battery charge (Capability)."""
+    return (f"INSERT DATA {{ {_iri(robot)} {_iri('Robot_load_kg')} {_number(load_kg)} ; "
+            f"{_iri('Robot_charge_wh')} {_number(charge_wh)} ; {_iri('Robot_updated_ms')} {at_ms} }}")
+
+
+#: Each module's namespace as the empty prefix: what an update of it starts with.
+PROLOGUE = {"Location": f"PREFIX : <{LOCATION_NS}>\n", "Capability": f"PREFIX : <{CAPABILITY_NS}>\n"}
+
+
+def with_prologue(module: str, update: str) -> str:
+    """``update`` (built by this module's functions) as sent: its prologue first."""
+    return PROLOGUE[module] + update
 
 
 class KnowledgeWriter:
-    """Sends a robot's facts with ``write`` (one SPARQL Update each), in order."""
+    """Sends a robot's facts with ``write(module, update)``, in order."""
 
-    def __init__(self, write: Callable[[str], Awaitable[None]], retry_s: float = RETRY_S) -> None:
+    def __init__(self, write: Callable[[str, str], Awaitable[None]], robot: str,
+                 wall_ms: Callable[[], int], retry_s: float = RETRY_S) -> None:
         self._write = write
+        self.robot = robot
+        self._wall_ms = wall_ms
         self._retry_s = retry_s
-        self._queue: deque[str] = deque()
+        #: (module, update) waiting, oldest first.
+        self._queue: deque[tuple[str, str]] = deque()
         self._ready = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.written = 0
         self.dropped = 0
 
-    def picked(self, job: "Job", robot: str) -> None:
-        self._enqueue(pick_update(job.object, robot, job.seq))
+    def picked(self, job: "Job") -> None:
+        self._enqueue("Location", pick_update(job.object, self.robot, job.seq, (job.aisle, job.rack),
+                                              self._wall_ms()))
 
-    def missing(self, job: "Job", robot: str) -> None:
-        self._enqueue(missing_update(job.object, robot, job.seq))
+    def missing(self, job: "Job") -> None:
+        self._enqueue("Location", missing_update(job.object, self.robot, job.seq, (job.aisle, job.rack),
+                                                 self._wall_ms()))
 
-    def delivered(self, jobs: Iterable["Job"], robot: str) -> None:
-        self._enqueue(delivered_update((job.object, job.seq) for job in jobs))
+    def delivered(self, jobs: Iterable["Job"], depot: tuple[int, int]) -> None:
+        self._enqueue("Location", delivered_update(((job.object, job.seq) for job in jobs), self.robot, depot,
+                                                   self._wall_ms()))
 
-    def _enqueue(self, update: str) -> None:
+    def load(self, load_kg: float, charge_wh: float) -> None:
+        self._enqueue("Capability", load_update(self.robot, load_kg, charge_wh, self._wall_ms()))
+
+    def _enqueue(self, module: str, update: str) -> None:
         if len(self._queue) >= QUEUED_MAX:
             self._queue.popleft()
             self.dropped += 1
             log.error("more than %d facts wait for the radio: the oldest is dropped", QUEUED_MAX)
-        self._queue.append(update)
+        self._queue.append((module, update))
         self._ready.set()
 
     def start(self) -> None:
@@ -118,25 +169,38 @@ class KnowledgeWriter:
 
     @property
     def pending(self) -> int:
-        return len(self._queue)
+        return len(self._queue) + (self._sending is not None)
+
+    _sending: tuple[str, str] | None = None
+
+    def _next(self) -> tuple[str, str]:
+        """The oldest waiting update, with the ones after it for the same
+        module joined on (one request instead of several)."""
+        module, update = self._queue.popleft()
+        while (self._queue and self._queue[0][0] == module
+               and len(update) + len(self._queue[0][1]) + 3 <= MERGED_MAX_BYTES):
+            update += " ;\n" + self._queue.popleft()[1]
+        return module, update
 
     async def _run(self) -> None:
         while True:
             await self._ready.wait()
-            while self._queue:
-                update = self._queue[0]
-                for attempt in range(1, WRITE_TRIES + 1):
-                    try:
-                        await self._write(update)
-                        self.written += 1
-                        break
-                    except CoapkbError as exc:
-                        if attempt == WRITE_TRIES:
-                            self.dropped += 1
-                            log.error("a fact was not written after %d tries: %s", WRITE_TRIES, exc)
-                        else:
-                            log.warning("a fact was not written (%s); trying again", exc)
-                            await asyncio.sleep(self._retry_s)
-                if self._queue and self._queue[0] is update:
-                    self._queue.popleft()
             self._ready.clear()
+            while self._queue:
+                self._sending = module, update = self._next()
+                try:
+                    for attempt in range(1, WRITE_TRIES + 1):
+                        try:
+                            await self._write(module, with_prologue(module, update))
+                            self.written += 1
+                            break
+                        except CoapkbError as exc:
+                            if attempt == WRITE_TRIES:
+                                self.dropped += 1
+                                log.error("a fact of the %s KB was not written after %d tries: %s",
+                                          module, WRITE_TRIES, exc)
+                            else:
+                                log.warning("a fact of the %s KB was not written (%s); trying again", module, exc)
+                                await asyncio.sleep(self._retry_s)
+                finally:
+                    self._sending = None

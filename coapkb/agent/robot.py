@@ -96,22 +96,22 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
         )
 
 
-async def write_location(
+async def write_knowledge(
     config: RobotConfig, served: KnowledgeBase | LiveKB | None, replicator: Replicator | None, kb_client: KBClient,
-    update: str, alive: Callable[[str], bool],
+    module: str, update: str, alive: Callable[[str], bool],
 ) -> None:
-    """Write ``update`` (a fact of the Location KB): into this robot's own
+    """Write ``update`` (facts of KB ``module``): into this robot's own
     module if it holds it, passed on to the other holders; else to the first
     live holder in robot-id order (another if it fails)."""
-    if isinstance(served, LiveKB) and "Location" in served.names:
+    if isinstance(served, LiveKB) and module in served.names:
         written = served.update(update)
         if replicator is not None and written.deltas:
             await replicator.replicate(written)
         return
-    holders = sorted((m for m in config.holders_of("Location") if m.robot_id != config.robot_id),
+    holders = sorted((m for m in config.holders_of(module) if m.robot_id != config.robot_id),
                      key=lambda m: (not alive(m.robot_id), robot_sort_key(m.robot_id)))
     if not holders:
-        raise QueryError("no teammate holds the Location KB")
+        raise QueryError(f"no teammate holds the {module} KB")
     failure: CoapkbError | None = None
     for holder in holders:
         try:
@@ -278,7 +278,9 @@ class Robot:
         knowledge = None
         if config.kb_writable:
             knowledge = KnowledgeWriter(
-                lambda update: write_location(config, served, replicator, kb_client, update, team.is_up))
+                lambda module, update: write_knowledge(config, served, replicator, kb_client, module, update,
+                                                       team.is_up),
+                config.robot_id, host.wall_ms)
         world = host.world if host.world is not None else (
             WorldClient(config.world) if config.world is not None else None)
         executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence, robot_id=config.robot_id,

@@ -52,6 +52,10 @@ class Job:
     depot: tuple[int, int]
     #: Drive to a dock and charge before the task (then ``to_object_m`` is from the dock).
     charge: ChargeStop | None = None
+    #: The robot's battery charge (Wh) and carried load (kg) once the job is
+    #: done, as planned: what it writes into the Capability KB then.
+    battery_after_wh: float | None = None
+    load_after_kg: float | None = None
 
 
 class TaskExecutor:
@@ -176,7 +180,7 @@ class TaskExecutor:
                 log.warning(NOT_FOUND, job.object, job.seq, why)
                 self._update(done=self.live.done + 1, missed=(self.live.missed + ((job.seq, why),))[-MISSED_KEPT:])
                 if self._knowledge is not None:
-                    self._knowledge.missing(job, self.robot_id)
+                    self._knowledge.missing(job)
             else:
                 await self._simulate(self.model.pick_s)
                 if not await self._leased(job, 0.0):
@@ -186,14 +190,16 @@ class TaskExecutor:
                 log.info(PICKED, job.object, job.seq)
                 self._carried.append(job)
                 if self._knowledge is not None:
-                    self._knowledge.picked(job, self.robot_id)
+                    self._knowledge.picked(job)
             if job.to_depot_m > 0:
                 self._update(activity="unloading")
                 await self._simulate(job.to_depot_m / self.model.speed_m_s)
                 self._update(aisle=float(job.depot[0]), rack=float(job.depot[1]))
                 if self._knowledge is not None and self._carried:
-                    self._knowledge.delivered(self._carried, self.robot_id)
+                    self._knowledge.delivered(self._carried, job.depot)
                 self._carried = []
+            if self._knowledge is not None and why is None and job.load_after_kg is not None:
+                self._knowledge.load(job.load_after_kg, job.battery_after_wh or 0.0)
             idle = self._jobs.empty()
             self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:

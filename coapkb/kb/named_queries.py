@@ -271,14 +271,32 @@ ORDER BY ?robo_id""",
         name="robot-positions",
         kb="Location",
         params=(),
-        template=_LOC + """SELECT ?robot ?robo_id ?aisle_no ?rack_no
+        template=_LOC + """SELECT ?robot ?robo_id ?aisle_no ?rack_no ?updated_ms
 WHERE {
   ?robot ns_1:Robot_Id ?robo_id .
   ?robot ns_1:Robot_aisle_no ?aisle_no .
   ?robot ns_1:Robot_rack_no ?rack_no .
+  OPTIONAL { ?robot ns_1:Robot_updated_ms ?updated_ms . }
 }
 ORDER BY ?robo_id""",
-        description="Initial aisle and rack of every robot",
+        description=("Aisle and rack of every robot: where it started, or where it last reported "
+                     "(updated_ms: when, Unix milliseconds) on a writable team"),
+    ),
+    NamedQuery(
+        name="robot-loads",
+        kb="Capability",
+        params=(),
+        template=_CAP + """SELECT ?robo_id ?payload ?load_kg ?charge_wh ?updated_ms
+WHERE {
+  ?robot ns_3:Robot_Id ?robo_id .
+  ?robot ns_3:Robot_payload ?payload .
+  OPTIONAL { ?robot ns_3:Robot_load_kg ?load_kg . }
+  OPTIONAL { ?robot ns_3:Robot_charge_wh ?charge_wh . }
+  OPTIONAL { ?robot ns_3:Robot_updated_ms ?updated_ms . }
+}
+ORDER BY ?robo_id""",
+        description=("Every robot's payload capacity (kg) and, as it last reported on a writable team, "
+                     "the load it carries (kg), its battery's charge (Wh) and when (Unix milliseconds)"),
     ),
     NamedQuery(
         name="warehouse-layout",

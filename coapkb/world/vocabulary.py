@@ -54,7 +54,11 @@ SINGLE_VALUED: frozenset[str] = frozenset(
     {
         LOCATION_NS + "Robot_aisle_no",
         LOCATION_NS + "Robot_rack_no",
+        LOCATION_NS + "Robot_updated_ms",
         CAPABILITY_NS + "Robot_battery",
         CAPABILITY_NS + "Robot_payload",
+        CAPABILITY_NS + "Robot_load_kg",
+        CAPABILITY_NS + "Robot_charge_wh",
+        CAPABILITY_NS + "Robot_updated_ms",
     }
 )
