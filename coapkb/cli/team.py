@@ -73,17 +73,20 @@ def add_demo(sub: argparse._SubParsersAction) -> None:
 async def _demo(args: argparse.Namespace) -> int:
     from ..harness.team import draw_tasks, DEFAULT_ONTOLOGIES
 
-    tasks = list(DEMO_TASKS[:1]) + draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS) + list(DEMO_TASKS[1:])
+    drawn = draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS)
+    # The seed's bag, four more, the bag again (picked by then: skipped) and an object nobody has.
+    tasks = [DEMO_TASKS[0], *drawn, DEMO_TASKS[0], *DEMO_TASKS[1:]]
     print("Demo: a team of 3 robots, each KB module on two of them "
           "(Robot1: Location+Object, Robot2: Object+Capability, Robot3: Capability+Location)")
     print("on loopback, each a separate process, over " + args.transport + "; tasks: " + ", ".join(tasks))
     print("Each robot runs the seed's four queries per task and computes every robot's cost (Wh);")
-    print("the cheapest capable robot gets the task; all robots must agree.\n")
+    print("the cheapest capable robot gets the task; all robots must agree.")
+    print("Each pick and each robot's new place is written into the Location KB: the bag's second task is skipped.\n")
     team_args = argparse.Namespace(
         robots=3, tasks=None, tasks_file=None, seed=1, mode="distributed", transport=args.transport,
         strategy="compute-by-all", query_wire="compact", ontologies=None,
         time_scale=50.0, record=args.record, quiet=False, task_list=tasks, verbose_costs=True,
-        insecure=args.insecure,
+        insecure=args.insecure, writable=True,
     )
     return await _team(team_args)
 
@@ -177,6 +180,8 @@ async def _team(args: argparse.Namespace) -> int:
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: progress(bar, r))
+            if spec.kb_writable and spec.mode == "distributed":
+                moved = await _positions_line(team)
     except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
         if stopped_by is None:
             if isinstance(exc, asyncio.CancelledError):
@@ -191,10 +196,27 @@ async def _team(args: argparse.Namespace) -> int:
             loop.remove_signal_handler(sig)
     print()
     print(summarise(record))
+    if spec.kb_writable and spec.mode == "distributed":
+        print(moved)
     if args.record:
         Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
     return 1 if record.disputed else 0
+
+
+async def _positions_line(team) -> str:  # team: Team
+    """Where the Location KB put each robot at the start, and where it says
+    they are now (the robots wrote it as they worked)."""
+    from ..errors import CoapkbError
+    from ..harness.team import robot_starts
+
+    starts = robot_starts(team.spec.ontologies)
+    try:
+        now = await team.kb_positions()
+    except CoapkbError as exc:  # TransportError and QueryFailed among them
+        return f"positions in the Location KB: not read ({exc})"
+    return "positions in the Location KB (aisle, rack), start -> now: " + ", ".join(
+        f"{r} ({starts[r]['aisle']}, {starts[r]['rack']}) -> {now[r]}" for r in team.spec.robot_ids if r in now)
 
 
 def task_lines(record, costs: bool = False) -> str:  # record: TaskRecord

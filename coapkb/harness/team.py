@@ -666,6 +666,25 @@ class Team:
                 event.detected_after_s = round(down_at[event.robot] - started - event.at_s, 3)
         return team_record(self.spec, outcome, stats, traffic, events, down)
 
+    async def kb_positions(self) -> dict[str, tuple[int, int]]:
+        """Every robot's position as the Location KB now says it (its first
+        holder in each cluster, asked with the feeder's credentials)."""
+        from ..kb.client import KBClient  # the KB client is only needed here, after a run
+        from ..transport import open_client
+
+        positions: dict[str, tuple[int, int]] = {}
+        client = await open_client(self.spec.transport, security=self.feeder_security())
+        try:
+            kb = KBClient(client, timeout=self.spec.query_timeout_s, cache=False)
+            for index, cluster in enumerate(self.spec.clusters()):
+                holder = next(r for i, r in enumerate(cluster) if "Location" in cluster_modules(i, self.spec))
+                rows = (await kb.named(self.endpoints[holder], "robot-positions")).as_dicts()  # type: ignore[union-attr]
+                positions.update({str(r["robo_id"]): (int(r["aisle_no"]), int(r["rack_no"]))
+                                  for r in rows if str(r["robo_id"]) in cluster})
+        finally:
+            await client.aclose()
+        return positions
+
     def feeder_security(self) -> Any:
         """The feeder's client side for this team (None for an insecure team)."""
         expected = {e.hostport: r for r, e in self.endpoints.items()}

@@ -102,9 +102,20 @@ def test_demo_shows_costs_and_gucci_bag(tmp_path: Path) -> None:
     assert gucci.group(1) in finite, first
     assert finite[gucci.group(1)] == min(finite.values())
     assert re.search(r"Nonexistent_widget_1 +skipped: no such object", stdout)
+    # The bag comes again: its pick is known, so every robot skips it.
+    assert re.search(rf"task +6 Gucci_bag_14 +skipped: picked by {gucci.group(1)} at task 1 ", stdout), stdout
+    # The robots wrote where they went: the winner of the bag is no longer where it started.
+    moved = re.search(r"^positions in the Location KB \(aisle, rack\), start -> now: (.*)$", stdout, re.M)
+    assert moved, stdout
+    places = {r: (start, now) for r, start, now in
+              re.findall(r"(Robot\d) \((\d+, \d+)\) -> \((\d+, \d+)\)", moved.group(1))}
+    assert set(places) == {"Robot1", "Robot2", "Robot3"}, moved.group(1)
+    start, now = places[gucci.group(1)]
+    assert start != now, moved.group(1)
     record = json.loads(out.read_text(encoding="utf-8"))
     assert record["tasks"][0]["object"] == "Gucci_bag_14"
     assert record["tasks"][0]["assigned_to"] == gucci.group(1)
+    assert record["tasks"][5]["skip_reason"] == f"picked by {gucci.group(1)} at task 1"
 
 
 @pytest.mark.parametrize(
