@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Awaitable, Callable, Iterable
 
 from ..errors import CoapkbError
@@ -102,6 +103,11 @@ def delivered_update(objects: Iterable[tuple[str, int]], robot: str | None = Non
     return f"INSERT DATA {{ {' . '.join(facts)} }}"
 
 
+def robot_at_update(robot: str, at: tuple[int, int], at_ms: int) -> str:
+    """The SPARQL Update of where a robot is (Location) at ``at_ms``."""
+    return f"INSERT DATA {{ {_robot_at(robot, at, at_ms)} }}"
+
+
 def load_update(robot: str, load_kg: float, charge_wh: float, at_ms: int) -> str:
     """The SPARQL Update of a robot's carried load and battery charge (Capability)."""
     return (f"INSERT DATA {{ {_iri(robot)} {_iri('Robot_load_kg')} {_number(load_kg)} ; "
@@ -117,6 +123,15 @@ def with_prologue(module: str, update: str) -> str:
     return PROLOGUE[module] + update
 
 
+@dataclass(frozen=True)
+class _Waiting:
+    """An update waiting for the radio, and where the robot was then (its own update)."""
+
+    module: str
+    update: str
+    where: str | None = None
+
+
 class KnowledgeWriter:
     """Sends a robot's facts with ``write(module, update)``, in order."""
 
@@ -126,34 +141,33 @@ class KnowledgeWriter:
         self.robot = robot
         self._wall_ms = wall_ms
         self._retry_s = retry_s
-        #: (module, update) waiting, oldest first.
-        self._queue: deque[tuple[str, str]] = deque()
+        #: What waits for the radio, oldest first.
+        self._queue: deque[_Waiting] = deque()
         self._ready = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.written = 0
         self.dropped = 0
 
     def picked(self, job: "Job") -> None:
-        self._enqueue("Location", pick_update(job.object, self.robot, job.seq, (job.aisle, job.rack),
-                                              self._wall_ms()))
+        self._enqueue("Location", pick_update(job.object, self.robot, job.seq), (job.aisle, job.rack))
 
     def missing(self, job: "Job") -> None:
-        self._enqueue("Location", missing_update(job.object, self.robot, job.seq, (job.aisle, job.rack),
-                                                 self._wall_ms()))
+        self._enqueue("Location", missing_update(job.object, self.robot, job.seq), (job.aisle, job.rack))
 
     def delivered(self, jobs: Iterable["Job"], depot: tuple[int, int]) -> None:
-        self._enqueue("Location", delivered_update(((job.object, job.seq) for job in jobs), self.robot, depot,
-                                                   self._wall_ms()))
+        self._enqueue("Location", delivered_update((job.object, job.seq) for job in jobs), depot)
 
     def load(self, load_kg: float, charge_wh: float) -> None:
         self._enqueue("Capability", load_update(self.robot, load_kg, charge_wh, self._wall_ms()))
 
-    def _enqueue(self, module: str, update: str) -> None:
+    def _enqueue(self, module: str, update: str, at: tuple[int, int] | None = None) -> None:
+        """``update`` to send; ``at``: where the robot is then, sent with it."""
         if len(self._queue) >= QUEUED_MAX:
             self._queue.popleft()
             self.dropped += 1
             log.error("more than %d facts wait for the radio: the oldest is dropped", QUEUED_MAX)
-        self._queue.append((module, update))
+        where = None if at is None else robot_at_update(self.robot, at, self._wall_ms())
+        self._queue.append(_Waiting(module, update, where))
         self._ready.set()
 
     def start(self) -> None:
@@ -171,23 +185,35 @@ class KnowledgeWriter:
     def pending(self) -> int:
         return len(self._queue) + (self._sending is not None)
 
-    _sending: tuple[str, str] | None = None
+    _sending: "_Waiting | None" = None
 
     def _next(self) -> tuple[str, str]:
         """The oldest waiting update, with the ones after it for the same
-        module joined on (one request instead of several)."""
-        module, update = self._queue.popleft()
-        while (self._queue and self._queue[0][0] == module
-               and len(update) + len(self._queue[0][1]) + 3 <= MERGED_MAX_BYTES):
-            update += " ;\n" + self._queue.popleft()[1]
-        return module, update
+        module joined on (one request instead of several).  Of the robot's
+        positions among them only the latest goes: one write setting a
+        single-valued property twice would keep both (one stamp)."""
+        first = self._queue.popleft()
+        module, parts, where = first.module, [first.update], first.where
+        size = len(first.update) + len(first.where or "")
+        while self._queue and self._queue[0].module == module:
+            following = self._queue[0]
+            if size + len(following.update) + len(following.where or "") + 3 > MERGED_MAX_BYTES:
+                break
+            self._queue.popleft()
+            parts.append(following.update)
+            where = following.where or where
+            size += len(following.update) + 3
+        if where is not None:
+            parts.append(where)
+        return module, " ;\n".join(parts)
 
     async def _run(self) -> None:
         while True:
             await self._ready.wait()
             self._ready.clear()
             while self._queue:
-                self._sending = module, update = self._next()
+                self._sending = self._queue[0]
+                module, update = self._next()
                 try:
                     for attempt in range(1, WRITE_TRIES + 1):
                         try:

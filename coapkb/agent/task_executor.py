@@ -174,6 +174,11 @@ class TaskExecutor:
             if not await self._leased(job, self.model.pick_s / self.model.time_scale):
                 continue
             self._update(activity="picking", aisle=float(job.aisle), rack=float(job.rack))
+            await self._simulate(self.model.pick_s)
+            if not await self._leased(job, 0.0):
+                continue
+            # Only under the lease does the robot take the object off the
+            # shelf: a fenced robot leaves it for the one doing the task again.
             why = await self._look(job)
             if why is not None:
                 # Done too: the robot went there; the task ends as not found.
@@ -182,9 +187,6 @@ class TaskExecutor:
                 if self._knowledge is not None:
                     self._knowledge.missing(job)
             else:
-                await self._simulate(self.model.pick_s)
-                if not await self._leased(job, 0.0):
-                    continue
                 # Done once picked: the count the feeder reads says what nobody may pick again.
                 self._update(done=self.live.done + 1)
                 log.info(PICKED, job.object, job.seq)

@@ -441,6 +441,7 @@ async def run_once(
     trace_dir: Path | None = None,
     kb_writable: bool = False,
     misplaced: Sequence[str] = (),
+    task_list: Sequence[str] | None = None,
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -457,7 +458,8 @@ async def run_once(
     traces there, in a folder named after the run: each process's log at
     INFO level and the team's record (``record.json``).  ``kb_writable``:
     the robots write their picks into the KB (distributed systems only);
-    ``misplaced``: objects not where the KB says.
+    ``misplaced``: objects not where the KB says; ``task_list``: these
+    ``tasks`` objects instead of a draw.
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, seed, security)
@@ -478,7 +480,10 @@ async def run_once(
         spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
                            link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security,
                            log_dir=run_dir, kb_writable=kb_writable, misplaced=misplaced)
-        task_list = draw_tasks(tasks, ontologies, seed=seed)
+        if task_list is None:
+            task_list = draw_tasks(tasks, ontologies, seed=seed)
+        elif len(task_list) != tasks:
+            raise ValueError(f"{len(task_list)} objects listed for {tasks} tasks")
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
     row = replace(row, query_timeout_s=limits.query_s, task_timeout_s=limits.task_s)

@@ -55,6 +55,8 @@ class WorldServer:
         self.truth = truth
         self.path = path
         self._server: asyncio.AbstractServer | None = None
+        #: The robots connected now: closed with the server.
+        self._connections: set[asyncio.StreamWriter] = set()
         #: Requests refused as malformed (they closed their connection).
         self.malformed = 0
 
@@ -63,8 +65,12 @@ class WorldServer:
         self._server = await asyncio.start_unix_server(self._serve, path=str(self.path))
 
     async def aclose(self) -> None:
+        """Stop listening and hang up on every connected robot (from Python
+        3.12 on, ``wait_closed`` waits for them)."""
         if self._server is not None:
             self._server.close()
+            for writer in list(self._connections):
+                writer.close()
             await self._server.wait_closed()
         self.path.unlink(missing_ok=True)
 
@@ -76,6 +82,7 @@ class WorldServer:
         await self.aclose()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._connections.add(writer)
         try:
             while True:
                 try:
@@ -93,9 +100,10 @@ class WorldServer:
                     return
                 writer.write(_frame(self.truth.take_now(*request)))
                 await writer.drain()
-        except (ConnectionError, OSError):
-            return
+        except (ConnectionError, OSError, asyncio.CancelledError):
+            return  # the robot went, or the server is closing: nothing to answer
         finally:
+            self._connections.discard(writer)
             writer.close()
 
 
