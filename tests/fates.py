@@ -12,10 +12,11 @@ VICTIM = "Robot2"
 
 def check_fates(
     record: TeamRecord, tasks: list[str], spec: TeamSpec, victims: frozenset[str] = frozenset({VICTIM}),
-    fates: tuple[str, ...] = ("assigned", "skipped", "reassigned"),
+    fates: tuple[str, ...] = ("assigned", "skipped", "reassigned", "not-found"),
     new_epoch: bool = True,
 ) -> None:
-    """Every task given has one final fate; a re-assigned task names the task it
+    """Every task given has one final fate (an object drawn twice may be
+    picked by another cluster first: not found); a re-assigned task names the task it
     replaces, which names why; survivors decided alike, in the same epoch."""
     for index, share in enumerate(split_tasks(tasks, len(spec.clusters()))):
         cluster = [t for t in record.tasks if t.cluster == index + 1]
@@ -46,7 +47,8 @@ def check_fates(
         assert task.assigned_to not in excluded, task
     # Each survivor executed exactly the tasks finally assigned to it: none
     # twice (a robot that joined again: its new process, from its join on).
-    final = [t for t in record.tasks if t.fate == "assigned"]
+    # A task whose object it did not find counts: it went there.
+    final = [t for t in record.tasks if t.fate in ("assigned", "not-found")]
     joined_at = {r: t.seq for t in record.tasks for r in t.joined}
     for robot_id, stats in record.robot_stats.items():
         mine = [t for t in final if t.assigned_to == robot_id and t.seq >= joined_at.get(robot_id, 0)]

@@ -262,14 +262,22 @@ class Controller:
                                            return_exceptions=True)
             failed_too = 0
             for mate, theirs in zip(mates, answers):
-                if isinstance(theirs, BaseException):  # unreachable: it cannot help either
-                    failed_too += 1
+                if isinstance(theirs, BaseException):
+                    # A lost answer is asked again; a teammate now known to
+                    # be down cannot help (found in the simulator: three
+                    # asks lost at 20 % loss, and this robot decided alone).
+                    failed_too += not self.team.is_up(mate)
                     continue
                 if theirs is None or theirs.decision.object != task.object:
                     continue
                 if theirs.decision.error is None and theirs.decision.unavailable is None:
                     log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
                                 task.seq, task.object, mate)
+                    # And the membership it was taken in: this robot's own
+                    # view may not have caught up (it computed nothing), and
+                    # the next join counts its epoch from there (found in
+                    # the simulator).
+                    self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
                     return theirs
                 failed_too += 1
             if failed_too == len(mates):  # nobody had the knowledge: every robot alike

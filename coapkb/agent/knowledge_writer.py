@@ -14,15 +14,17 @@ are the facts a robot's work changes there, each a small SPARQL Update:
   carries and its battery's charge (``Robot_load_kg``, ``Robot_charge_wh``,
   Capability), each stamped ``Robot_updated_ms`` (Unix milliseconds).
 
-So a robot writes when its work changes the world -- once or twice a job,
-never on a timer: on a 35 kbit/s link a position every second would cost
-more than the task itself (docs/knowledge.md, "The world in the KB").  The
-named queries ``pick-place``, ``robot-positions`` and ``robot-loads`` read
-them back.  Writes go out in order, one at a time, behind the robot's work:
-a robot never waits at the shelf for the radio; what waits for the same
-module goes out as one update.  A write that fails is tried again a few
-times, then dropped with an error in the log (the team still knows the pick
-from its decision, and the shelf from the world).
+So a robot writes when its work changes the world, never on a timer: on a
+35 kbit/s link a position every second would cost more than the task
+itself.  What others decide on (a pick, an object missing) goes at once;
+the robot's position, load and charge (the latest wins) and its deliveries
+wait up to ``LAZY_S`` for an update of their module to ride with, and go
+out when the robot turns idle (docs/knowledge.md, "The world in the KB").
+The named queries ``pick-place``, ``robot-positions`` and ``robot-loads``
+read them back.  A robot never waits at the shelf for the radio.  A write
+that fails is tried again a few times, then dropped with an error in the
+log (the team still knows the pick from its decision, and the shelf from
+the world).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Awaitable, Callable, Iterable
 
 from ..errors import CoapkbError
@@ -49,6 +51,12 @@ WRITE_TRIES = 3
 RETRY_S = 2.0
 #: The largest update made of several waiting ones (a robot takes 8 KiB).
 MERGED_MAX_BYTES = 4096
+#: How long a robot's position, load and charge may wait for an update to
+#: ride with: a few tasks' worth on a slow link (docs/knowledge.md).
+LAZY_S = 10.0
+#: How long a robot that has become idle waits for its facts to go out
+#: before it says it is idle (the feeder waits for that).
+DRAIN_WAIT_S = 5.0
 
 _PLACE = ("Inventory_aisle_no", "Inventory_rack_no", "Inventory_bin_no")
 
@@ -123,51 +131,95 @@ def with_prologue(module: str, update: str) -> str:
     return PROLOGUE[module] + update
 
 
-@dataclass(frozen=True)
-class _Waiting:
-    """An update waiting for the radio, and where the robot was then (its own update)."""
+@dataclass
+class _Later:
+    """A module's facts that may wait: the robot's latest position (or load
+    and charge: single-valued, so only the latest matters) and deliveries."""
 
-    module: str
-    update: str
-    where: str | None = None
+    latest: str | None = None
+    facts: list[str] = field(default_factory=list)
+    #: Loop time since when the oldest of them waits.
+    since: float = 0.0
+
+    def parts(self) -> list[str]:
+        return self.facts + ([self.latest] if self.latest is not None else [])
 
 
 class KnowledgeWriter:
-    """Sends a robot's facts with ``write(module, update)``, in order."""
+    """Sends a robot's facts with ``write(module, update)``.
+
+    What others decide on (a pick, an object missing) goes at once, in
+    order; what only describes the robot (its position, load and charge)
+    and deliveries wait, up to ``lazy_s`` or until the robot is idle
+    (:meth:`flush`), and ride with the next update of their module: a
+    robot's position needs no request of its own after every job."""
 
     def __init__(self, write: Callable[[str, str], Awaitable[None]], robot: str,
-                 wall_ms: Callable[[], int], retry_s: float = RETRY_S) -> None:
+                 wall_ms: Callable[[], int], retry_s: float = RETRY_S, lazy_s: float = LAZY_S) -> None:
         self._write = write
         self.robot = robot
         self._wall_ms = wall_ms
         self._retry_s = retry_s
-        #: What waits for the radio, oldest first.
-        self._queue: deque[_Waiting] = deque()
+        self._lazy_s = lazy_s
+        #: (module, update) to send at once, oldest first.
+        self._queue: deque[tuple[str, str]] = deque()
+        #: module -> what may wait.
+        self._later: dict[str, _Later] = {}
+        self._flushing = False
         self._ready = asyncio.Event()
+        self._drained = asyncio.Event()
+        self._drained.set()
+        self._sending = False
         self._task: asyncio.Task[None] | None = None
         self.written = 0
         self.dropped = 0
 
     def picked(self, job: "Job") -> None:
-        self._enqueue("Location", pick_update(job.object, self.robot, job.seq), (job.aisle, job.rack))
+        self._wait("Location", latest=robot_at_update(self.robot, (job.aisle, job.rack), self._wall_ms()))
+        self._now("Location", pick_update(job.object, self.robot, job.seq))
 
     def missing(self, job: "Job") -> None:
-        self._enqueue("Location", missing_update(job.object, self.robot, job.seq), (job.aisle, job.rack))
+        self._wait("Location", latest=robot_at_update(self.robot, (job.aisle, job.rack), self._wall_ms()))
+        self._now("Location", missing_update(job.object, self.robot, job.seq))
 
     def delivered(self, jobs: Iterable["Job"], depot: tuple[int, int]) -> None:
-        self._enqueue("Location", delivered_update((job.object, job.seq) for job in jobs), depot)
+        self._wait("Location", fact=delivered_update((job.object, job.seq) for job in jobs),
+                   latest=robot_at_update(self.robot, depot, self._wall_ms()))
 
     def load(self, load_kg: float, charge_wh: float) -> None:
-        self._enqueue("Capability", load_update(self.robot, load_kg, charge_wh, self._wall_ms()))
+        self._wait("Capability", latest=load_update(self.robot, load_kg, charge_wh, self._wall_ms()))
 
-    def _enqueue(self, module: str, update: str, at: tuple[int, int] | None = None) -> None:
-        """``update`` to send; ``at``: where the robot is then, sent with it."""
+    def flush(self) -> None:
+        """Send what waits now (the robot is idle: nothing else will carry it)."""
+        if self._later:
+            self._flushing = True
+            self._ready.set()
+
+    async def drained(self) -> None:
+        """Until nothing waits or is being sent."""
+        await self._drained.wait()
+
+    def _now(self, module: str, update: str) -> None:
         if len(self._queue) >= QUEUED_MAX:
             self._queue.popleft()
             self.dropped += 1
             log.error("more than %d facts wait for the radio: the oldest is dropped", QUEUED_MAX)
-        where = None if at is None else robot_at_update(self.robot, at, self._wall_ms())
-        self._queue.append(_Waiting(module, update, where))
+        self._queue.append((module, update))
+        self._drained.clear()
+        self._ready.set()
+
+    def _wait(self, module: str, *, fact: str | None = None, latest: str | None = None) -> None:
+        later = self._later.get(module)
+        if later is None:
+            later = self._later[module] = _Later(since=asyncio.get_running_loop().time())
+        if fact is not None:
+            if len(later.facts) >= QUEUED_MAX:
+                later.facts.pop(0)
+                self.dropped += 1
+            later.facts.append(fact)
+        if latest is not None:
+            later.latest = latest
+        self._drained.clear()
         self._ready.set()
 
     def start(self) -> None:
@@ -183,50 +235,68 @@ class KnowledgeWriter:
 
     @property
     def pending(self) -> int:
-        return len(self._queue) + (self._sending is not None)
+        """Updates waiting or being sent (a module's waiting facts count as one)."""
+        return len(self._queue) + len(self._later) + self._sending
 
-    _sending: "_Waiting | None" = None
+    def _next(self) -> tuple[str, str] | None:
+        """What to send now, if anything: the oldest update to send at once,
+        with those after it for the same module and the module's waiting
+        facts joined on (one request instead of several); else a module's
+        waiting facts once due."""
+        if self._queue:
+            module, first = self._queue.popleft()
+            parts, size = [first], len(first)
+            while self._queue and self._queue[0][0] == module:
+                following = self._queue[0][1]
+                if size + len(following) + 3 > MERGED_MAX_BYTES:
+                    break
+                self._queue.popleft()
+                parts.append(following)
+                size += len(following) + 3
+            later = self._later.pop(module, None)
+            return module, " ;\n".join(parts + (later.parts() if later is not None else []))
+        now = asyncio.get_running_loop().time()
+        for module, later in list(self._later.items()):
+            if self._flushing or now - later.since >= self._lazy_s:
+                del self._later[module]
+                return module, " ;\n".join(later.parts())
+        self._flushing = False
+        return None
 
-    def _next(self) -> tuple[str, str]:
-        """The oldest waiting update, with the ones after it for the same
-        module joined on (one request instead of several).  Of the robot's
-        positions among them only the latest goes: one write setting a
-        single-valued property twice would keep both (one stamp)."""
-        first = self._queue.popleft()
-        module, parts, where = first.module, [first.update], first.where
-        size = len(first.update) + len(first.where or "")
-        while self._queue and self._queue[0].module == module:
-            following = self._queue[0]
-            if size + len(following.update) + len(following.where or "") + 3 > MERGED_MAX_BYTES:
-                break
-            self._queue.popleft()
-            parts.append(following.update)
-            where = following.where or where
-            size += len(following.update) + 3
-        if where is not None:
-            parts.append(where)
-        return module, " ;\n".join(parts)
+    def _due_in(self) -> float | None:
+        if not self._later:
+            return None
+        now = asyncio.get_running_loop().time()
+        return max(0.0, min(later.since for later in self._later.values()) + self._lazy_s - now)
 
     async def _run(self) -> None:
         while True:
-            await self._ready.wait()
+            try:
+                async with asyncio.timeout(self._due_in()):
+                    await self._ready.wait()
+            except TimeoutError:
+                pass
             self._ready.clear()
-            while self._queue:
-                self._sending = self._queue[0]
-                module, update = self._next()
+            while (chosen := self._next()) is not None:
+                module, update = chosen
+                self._sending = True
                 try:
-                    for attempt in range(1, WRITE_TRIES + 1):
-                        try:
-                            await self._write(module, with_prologue(module, update))
-                            self.written += 1
-                            break
-                        except CoapkbError as exc:
-                            if attempt == WRITE_TRIES:
-                                self.dropped += 1
-                                log.error("a fact of the %s KB was not written after %d tries: %s",
-                                          module, WRITE_TRIES, exc)
-                            else:
-                                log.warning("a fact of the %s KB was not written (%s); trying again", module, exc)
-                                await asyncio.sleep(self._retry_s)
+                    await self._send(module, update)
                 finally:
-                    self._sending = None
+                    self._sending = False
+            if not self._queue and not self._later:
+                self._drained.set()
+
+    async def _send(self, module: str, update: str) -> None:
+        for attempt in range(1, WRITE_TRIES + 1):
+            try:
+                await self._write(module, with_prologue(module, update))
+                self.written += 1
+                return
+            except CoapkbError as exc:
+                if attempt == WRITE_TRIES:
+                    self.dropped += 1
+                    log.error("a fact of the %s KB was not written after %d tries: %s", module, WRITE_TRIES, exc)
+                else:
+                    log.warning("a fact of the %s KB was not written (%s); trying again", module, exc)
+                    await asyncio.sleep(self._retry_s)

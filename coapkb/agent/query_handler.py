@@ -111,11 +111,18 @@ class QueryHandler:
         if not holders:
             raise QueryError(f"no teammate holds the {module} KB")
         if pinned:
+            # One holder, neither hedged nor failed over: another holder may
+            # have a write this one has not, and the robots of a cluster must
+            # read alike.  If it fails, the robot takes a teammate's decision
+            # (Controller._settle).
             holders = sorted(holders, key=lambda m: robot_sort_key(m.robot_id))
             live = [m for m in holders if m.robot_id == self.config.robot_id or self._alive(m.robot_id)]
-            if live and live[0].robot_id == self.config.robot_id and self.kb is not None:
+            if not live:
+                raise ModuleUnavailable(module, {m.robot_id: "down" for m in holders})
+            if live[0].robot_id == self.config.robot_id and self.kb is not None:
                 return None
-        elif holders[0].robot_id == self.config.robot_id and self.kb is not None:
+            return live[:1]
+        if holders[0].robot_id == self.config.robot_id and self.kb is not None:
             return None
         remote = [m for m in holders if m.robot_id != self.config.robot_id]
         if not any(self._alive(m.robot_id) for m in remote):
@@ -152,15 +159,7 @@ class QueryHandler:
             except KBError as exc:
                 self.stats.failed += 1
                 raise QueryError(f"{name} on own {query.kb} KB: {exc}") from None
-        try:
-            return await self._remote(name, {**params, "at": str(at)} if pinned else params, holders)
-        except ModuleUnavailable:
-            if not (pinned and isinstance(self.kb, LiveKB) and query.kb in self.kb.names):
-                raise
-            # The holder everyone asks is gone: this robot's own copy, rather
-            # than no answer (its teammates fail over alike, to theirs).
-            self.stats.local += 1
-            return self.kb.query_at(at, query.render(params))  # type: ignore[arg-type]
+        return await self._remote(name, {**params, "at": str(at)} if pinned else params, holders)
 
     async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
         """Ask the first holder; on a transport failure (dead or unreachable

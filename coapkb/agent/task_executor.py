@@ -17,6 +17,7 @@ delivery, or that the object is missing.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from dataclasses import dataclass, replace
 from typing import Awaitable, Callable
@@ -24,7 +25,7 @@ from typing import Awaitable, Callable
 from ..config import ExecutionModel
 from ..errors import CoapkbError
 from ..world.truth import KBWorld, World
-from .knowledge_writer import KnowledgeWriter
+from .knowledge_writer import DRAIN_WAIT_S, KnowledgeWriter
 from .robot_state import LiveState
 from .stats import Recharge
 from .task_assigner import ChargeStop
@@ -202,6 +203,12 @@ class TaskExecutor:
                 self._carried = []
             if self._knowledge is not None and why is None and job.load_after_kg is not None:
                 self._knowledge.load(job.load_after_kg, job.battery_after_wh or 0.0)
+            if self._jobs.empty() and self._knowledge is not None:
+                # Idle from now: what it wrote lazily goes out before it says so.
+                self._knowledge.flush()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(DRAIN_WAIT_S):
+                        await self._knowledge.drained()
             idle = self._jobs.empty()
             self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:

@@ -37,6 +37,7 @@ class Knowledge:
 
     def __init__(self) -> None:
         self.facts: list[tuple[str, tuple[object, ...]]] = []
+        self.flushes = 0
 
     def picked(self, job: Job, *rest: object) -> None:
         self.facts.append(("picked", (job.seq,)))
@@ -48,6 +49,12 @@ class Knowledge:
         self.facts.append(("delivered", tuple(job.seq for job in jobs)))
 
     def load(self, *args: object) -> None:  # what a robot carries after the job, where written
+        pass
+
+    def flush(self) -> None:  # the robot turns idle: what waits goes out
+        self.flushes += 1
+
+    async def drained(self) -> None:
         pass
 
 
@@ -103,7 +110,7 @@ async def test_an_object_not_at_the_shelf_ends_its_task_as_not_found(run: Callab
     r = await run([_job(4, PASTA)], world)
     live = r.executor.live
     assert live.done == 1 and live.missed == ((4, MISPLACED),)  # done: the robot went there
-    assert r.knowledge.facts == [("missing", (4,))]
+    assert r.knowledge.facts == [("missing", (4,))] and r.knowledge.flushes == 1  # idle: sent what waited
     # It drove there and reached for it (the pick's time: it looks only under its lease), and took nothing.
     assert r.clock.waits == pytest.approx([1.5, MODEL.pick_s / MODEL.time_scale])
     assert [(s.activity, s.done, s.missed) for s in r.published][-2:] == [

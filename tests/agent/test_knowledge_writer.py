@@ -194,11 +194,11 @@ class Radio:
             self.apply(update)
 
     async def wait(self, writer: KnowledgeWriter, timeout: float = 5.0) -> None:
-        """Until ``writer`` has nothing left to send."""
+        """Until ``writer`` has nothing left to send, what may wait included
+        (as when its robot turns idle)."""
+        writer.flush()
         async with asyncio.timeout(timeout):
-            while writer.pending:
-                self._changed.clear()
-                await self._changed.wait()
+            await writer.drained()
 
 
 @pytest.fixture
@@ -206,8 +206,9 @@ async def make() -> AsyncIterator[Callable[..., KnowledgeWriter]]:
     """``make(write, start=True)``: Robot1's writer, its clock at 1000, 2000, ... ms."""
     made: list[KnowledgeWriter] = []
 
-    def build(write: Callable, start: bool = True, retry_s: float = 0.001) -> KnowledgeWriter:
-        writer = KnowledgeWriter(write, "Robot1", itertools.count(1000, 1000).__next__, retry_s=retry_s)
+    def build(write: Callable, start: bool = True, retry_s: float = 0.001, lazy_s: float = 10.0) -> KnowledgeWriter:
+        writer = KnowledgeWriter(write, "Robot1", itertools.count(1000, 1000).__next__, retry_s=retry_s,
+                                 lazy_s=lazy_s)
         if start:
             writer.start()
         made.append(writer)
@@ -236,16 +237,18 @@ async def test_waiting_facts_go_out_in_order_one_update_per_module(make: Callabl
     writer.missing(two)
     writer.load(12.5, 380.25)
     writer.delivered([one], DEPOT)
-    assert writer.pending == 4
+    assert writer.pending == 4  # two to send at once, and what waits for each of two modules
     await radio.wait(writer)
     assert radio.calls == [
-        # Of the robot's two positions only the latest goes: one write never sets it twice.
+        # The pick and the missing object go at once, as one update, and the
+        # delivery rides with them; of the robot's positions only the latest
+        # goes: one write never sets it twice.
         ("Location", _location(_joined(pick_update(BAG, "Robot1", 1), missing_update(PASTA, "Robot1", 2),
-                                       _at((5, 6), 2000)))),
+                                       delivered_update([(BAG, 1)]), _at(DEPOT, 4000)))),
+        # The load waits for the robot to turn idle (or for LAZY_S).
         ("Capability", with_prologue("Capability", load_update("Robot1", 12.5, 380.25, 3000))),
-        ("Location", _location(_joined(delivered_update([(BAG, 1)]), _at(DEPOT, 4000)))),
     ]
-    assert (writer.written, writer.dropped, writer.pending) == (3, 0, 0)
+    assert (writer.written, writer.dropped, writer.pending) == (2, 0, 0)
     assert _place(every, BAG) == [{"picked_by": "Robot1", "picked_task": "1"}]
     assert _place(every, PASTA) == [{"missing_task": "2"}]
     assert _values(every, BAG, "Delivered_at_task") == ["1"]
@@ -253,7 +256,20 @@ async def test_waiting_facts_go_out_in_order_one_update_per_module(make: Callabl
     # A fact after the writer went idle goes out too.
     writer.picked(_job(3, TV))
     await radio.wait(writer)
-    assert _place(every, TV) == [{"picked_by": "Robot1", "picked_task": "3"}] and writer.written == 4
+    assert _place(every, TV) == [{"picked_by": "Robot1", "picked_task": "3"}] and writer.written == 3
+
+
+async def test_what_may_wait_goes_alone_once_due(make: Callable) -> None:
+    """A load and charge with no update of their module to ride with go by
+    themselves after ``lazy_s``, without the robot turning idle."""
+    radio = Radio()
+    writer = make(radio, lazy_s=0.05)
+    writer.load(12.5, 380.25)
+    await asyncio.sleep(0)
+    assert radio.calls == [] and writer.pending == 1
+    async with asyncio.timeout(5):
+        await writer.drained()
+    assert radio.calls == [("Capability", with_prologue("Capability", load_update("Robot1", 12.5, 380.25, 1000)))]
 
 
 async def test_an_update_joins_no_more_than_merged_max_bytes(make: Callable, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -264,7 +280,8 @@ async def test_an_update_joins_no_more_than_merged_max_bytes(make: Callable, mon
         writer.picked(_job(seq, obj))
     await radio.wait(writer)
     assert [module for module, _ in radio.calls] == ["Location"] * 3
-    assert [update.count("INSERT DATA") for _, update in radio.calls] == [2, 2, 2]  # a pick, a position
+    # Each pick apart; the robot's position rides with the first.
+    assert [update.count("INSERT DATA") for _, update in radio.calls] == [2, 1, 1]
 
 
 async def test_a_failed_write_is_tried_again_before_the_next(make: Callable) -> None:
@@ -322,7 +339,7 @@ async def test_the_queue_is_bounded_and_drops_the_oldest(make: Callable, monkeyp
     writer = make(radio, start=False)  # nothing goes out: everything waits
     for seq, obj in enumerate((BAG, TV, PASTA), start=1):
         writer.picked(_job(seq, obj))
-    assert (writer.pending, writer.dropped) == (2, 1)
+    assert (writer.pending, writer.dropped) == (3, 1)  # two picks, and the position waiting
     writer.start()
     await radio.wait(writer)
     assert radio.calls == [("Location", _location(_joined(pick_update(TV, "Robot1", 2),

@@ -162,4 +162,6 @@ def test_one_broken_link_declares_nobody_down(kbs: KBCache) -> None:
     lines = trace.getvalue().splitlines()
     assert not [line for line in lines if " is down" in line]
     assert any("a teammate reaches it: not declared down" in line for line in lines)
-    assert {t.fate for t in run.record.tasks} == {"assigned"}
+    # Drawn again, an object is skipped (the simulator draws with replacement).
+    assert {t.fate for t in run.record.tasks} <= {"assigned", "skipped"}
+    assert all((t.skip_reason or "").startswith("picked by") for t in run.record.tasks if t.fate == "skipped")
