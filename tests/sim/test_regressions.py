@@ -62,6 +62,12 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
             "acknowledged write was lost",
         266: "the same as seed 81",
         430: "the same as seed 148 of the lossy profile, on a run that also wrote",
+        99: "a robot that took a teammate's decision kept its older membership: after the next join it named "
+            "an epoch behind its teammates' on every task",
+    }),
+    (("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,loss=0.2", "--writes", "10"), {
+        112: "a robot whose read of the place failed asked its teammate for its decision three times, all "
+             "three asks were lost, and it decided the task for nobody",
     }),
 ]
 
