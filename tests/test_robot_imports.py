@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 #: (and pyparsing, which it needs) is not.
 NOT_FOR_A_COAP_ROBOT = (
     "zmq", "zenoh", "cyclonedds", "numpy", "pandas", "matplotlib", "tqdm", "dask", "scipy",
-    "rdflib.plugins.sparql", "pyparsing",
+    "rdflib.plugins.sparql", "pyparsing", "foxglove", "mcap", "coapkb.harness.recording",
     "coapkb.transport.zmq", "coapkb.transport.zenoh", "coapkb.transport.dds", "coapkb.security.curve", "coapkb.security.zenoh_tls",
     "coapkb.kb.rdflib_backend",
 )

@@ -128,6 +128,8 @@ class ObservedStates:
         #: Readmitted robot -> until when its failed requests do not count.
         self._joining: dict[str, float] = {}
         self._changed = asyncio.Condition()
+        #: Told of every state stored (a recording: coapkb.harness.recording).
+        self.listeners: list[Callable[[str, RobotState], None]] = []
         self._watchers: dict[str, asyncio.Task] = {}
         #: Asks other members whether they reach a robot this process finds
         #: silent (SWIM's indirect probe): True if one does.  None: no one to ask.
@@ -279,6 +281,8 @@ class ObservedStates:
         async with self._changed:
             self.states[robot_id] = state
             self._changed.notify_all()
+        for listener in self.listeners:
+            listener(robot_id, state)
 
     async def refresh(self) -> None:
         """GET every robot's state once; re-observe where the observation missed a change."""

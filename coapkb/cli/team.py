@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import logging
 import signal
 import sys
 from pathlib import Path
@@ -49,7 +50,10 @@ def add_team(sub: argparse._SubParsersAction) -> None:
                    help="how robots find their teammates: static (each config lists its cluster, default) or rd "
                         "(each config lists the robot alone; it registers in a Resource Directory the feeder "
                         "hosts and looks its cluster up there; coap only)")
-    p.add_argument("--record", metavar="OUT.json", help="write the run's record here")
+    p.add_argument("--record", metavar="OUT.json|OUT.mcap",
+                   help="write the run's record here: JSON, or an MCAP file Foxglove opens (by the extension)")
+    p.add_argument("--foxglove", metavar="[HOST:]PORT",
+                   help="serve the run live to Foxglove (WebSocket protocol) while it runs; host 127.0.0.1 by default")
     p.add_argument("--writable", action="store_true",
                    help="the robots' KBs take writes (coapkb update) and replicate them among the holders; "
                         "the robots write their picks and what they do not find")
@@ -144,6 +148,7 @@ async def _team(args: argparse.Namespace) -> int:
     from ..harness.team import Team
 
     spec, tasks = _spec_and_tasks(args)
+    record = None
 
     def progress(bar: tqdm, record: TaskRecord) -> None:
         bar.update()
@@ -166,8 +171,20 @@ async def _team(args: argparse.Namespace) -> int:
         if this_task is not None:
             this_task.cancel()
 
+    recorder = _recorder(args, spec)
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal, sig)
+    logger = logging.getLogger("coapkb")
+    if recorder is not None:
+        logger.addHandler(recorder.log_handler)
+        if recorder.server is not None:
+            print(f"foxglove: live on ws://{args.foxglove_at[0]}:{recorder.server.port}", flush=True)
+
+    def record_task(bar: tqdm, task: TaskRecord) -> None:
+        progress(bar, task)
+        if recorder is not None:
+            recorder.task(task)
+
     try:
         async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
             print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
@@ -179,7 +196,8 @@ async def _team(args: argparse.Namespace) -> int:
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
-                record = await team.run(tasks, lambda r: progress(bar, r))
+                record = await team.run(tasks, lambda r: record_task(bar, r),
+                                        on_state=None if recorder is None else recorder.robot_state)
             if spec.kb_writable and spec.mode == "distributed":
                 moved = await _positions_line(team)
     except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
@@ -194,14 +212,48 @@ async def _team(args: argparse.Namespace) -> int:
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+        if recorder is not None:
+            logger.removeHandler(recorder.log_handler)
+            if record is not None:
+                recorder.finished(record)
+            recorder.close()
     print()
     print(summarise(record))
     if spec.kb_writable and spec.mode == "distributed":
         print(moved)
-    if args.record:
+    if args.record and recorder is not None and recorder.path is not None:
+        print(f"recording written to {args.record} ({recorder.messages} messages)")
+    elif args.record:
         Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
     return 1 if record.disputed else 0
+
+
+def _recorder(args: argparse.Namespace, spec):  # -> RunRecorder | None
+    """The run's recording (``--record X.mcap``, ``--foxglove``), or None."""
+    record = getattr(args, "record", None)
+    mcap = Path(record) if record and record.endswith(".mcap") else None
+    live = getattr(args, "foxglove", None)
+    if mcap is None and live is None:
+        return None
+    from ..harness.recording import RecordingError, RunRecorder, run_metadata, warehouse
+    args.foxglove_at = None if live is None else parse_host_port(live, "--foxglove")
+    layout, docks = warehouse(spec.ontologies)
+    try:
+        return RunRecorder(mcap, args.foxglove_at, spec.robot_ids, layout, docks, metadata=run_metadata(
+            sys.argv, robots=spec.robots, mode=spec.mode, transport=spec.transport, strategy=spec.strategy,
+            writable=spec.kb_writable, misplaced=list(spec.misplaced), time_scale=spec.time_scale,
+            seed=getattr(args, "seed", None)))
+    except RecordingError as exc:
+        raise UserError(str(exc)) from None
+
+
+def parse_host_port(text: str, option: str, host: str = "127.0.0.1") -> tuple[str, int]:
+    """``[HOST:]PORT``, or a :class:`UserError` naming ``option``."""
+    given, _, port = text.rpartition(":")
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise UserError(f"{option} takes [HOST:]PORT, got {text!r}")
+    return given.strip("[]") or host, int(port)
 
 
 async def _positions_line(team) -> str:  # team: Team

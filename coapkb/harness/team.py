@@ -30,6 +30,7 @@ from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.lease import lease_duration_s
 from ..agent.team_view import liveness_floor_s
+from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
 from ..config import (
     DISCOVERY_METHODS,
@@ -624,12 +625,14 @@ class Team:
         tasks: Sequence[str],
         progress: Callable[[TaskRecord], None] | None = None,
         finished: Callable[[], Awaitable[None]] | None = None,
+        on_state: Callable[[str, RobotState], None] | None = None,
     ) -> TeamRecord:
         """Feed the tasks, wait for every robot to finish executing, return the record.
 
         ``finished`` is awaited once every robot is done and before the feeder
         downloads their statistics (a benchmark reads its counters there, so
-        that download is not charged to the system)."""
+        that download is not charged to the system).  ``on_state`` is told
+        of every robot state the feeder observes (a recording)."""
         spec = self.spec
         events: list[FaultEvent] = []
         cluster_of = {r: n for n, cluster in enumerate(spec.clusters(), 1) for r in cluster}
@@ -645,6 +648,8 @@ class Team:
             return self._carry_all(feeder, started, events, due) if due else None
 
         async with Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
+            if on_state is not None:
+                feeder.watcher.listeners.append(on_state)
             started = time.monotonic()
             injector = asyncio.create_task(self._inject(feeder, started, events), name="faults")
             try:
