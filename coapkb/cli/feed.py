@@ -4,8 +4,20 @@ from __future__ import annotations
 
 import argparse
 
+from pathlib import Path
+
 from .common import UserError
-from .team import task_lines
+from .team import open_recorder, task_lines
+
+
+def _location_kb(team) -> Path:  # team: TeamFolder
+    """The Location KB's file, as a robot of the team loads it (the
+    warehouse a recording draws)."""
+    for config in team.configs.values():
+        for path in config.kb_files:
+            if path.name == "Location.owl":
+                return path
+    raise UserError(f"no robot in {team.folder} loads a Location.owl: nothing to draw the warehouse from")
 
 
 def add_feed(sub: argparse._SubParsersAction) -> None:
@@ -23,11 +35,14 @@ def add_feed(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--answer-timeout", type=float, default=10.0, metavar="SECONDS",
                    help="how long each robot has to answer before feeding starts (default 10)")
     p.add_argument("--costs", action="store_true", help="also print every robot's cost for each task")
+    p.add_argument("--record", metavar="OUT.mcap", help="record the run as an MCAP file Foxglove opens")
+    p.add_argument("--foxglove", metavar="[HOST:]PORT",
+                   help="serve the run live to Foxglove (WebSocket protocol); host 127.0.0.1 by default")
     p.set_defaults(run=_feed)
 
 
 async def _feed(args: argparse.Namespace) -> int:
-    from ..feeder import FateCounts, Feeder, read_tasks_file
+    from ..feeder import FateCounts, Feeder, TaskRecord, read_tasks_file
     from ..feeder.team_folder import read_team_folder
 
     if not args.timeout > 0 or not args.answer_timeout > 0:
@@ -36,12 +51,30 @@ async def _feed(args: argparse.Namespace) -> int:
     tasks = read_tasks_file(args.tasks_file)
     if not tasks:
         raise UserError(f"no tasks in {args.tasks_file}")
+    if args.record and not args.record.endswith(".mcap"):
+        raise UserError("--record writes an MCAP file: give it a name ending in .mcap")
     security = team.security()
+    recorder = open_recorder(args, list(team.roster.endpoints), _location_kb(team), team=str(team.folder))
     print(f"feeding {len(tasks)} task(s) to {', '.join(f'{r} {e}' for r, e in team.roster.endpoints.items())}"
           + ("" if security is None else f" (keys: {team.credentials})"), flush=True)
-    async with Feeder.open(team.roster, team.settings, security) as feeder:
-        await feeder.check_ready(args.answer_timeout, {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
-        outcome = await feeder.feed(tasks, lambda record: print(task_lines(record, args.costs), flush=True))
+
+    def decided(record: TaskRecord) -> None:
+        print(task_lines(record, args.costs), flush=True)
+        if recorder is not None:
+            recorder.task(record)
+
+    try:
+        async with Feeder.open(team.roster, team.settings, security) as feeder:
+            await feeder.check_ready(args.answer_timeout,
+                                     {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
+            if recorder is not None:
+                feeder.watcher.listeners.append(recorder.robot_state)
+            outcome = await feeder.feed(tasks, decided)
+        if recorder is not None:
+            recorder.final_fates(outcome.tasks)
+    finally:
+        if recorder is not None:
+            recorder.close()
     disputed = [t for t in outcome.tasks if not t.agreed]
     print(f"{FateCounts.of(outcome.tasks).line()}; "
           f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s")

@@ -231,19 +231,27 @@ async def _team(args: argparse.Namespace) -> int:
 
 def _recorder(args: argparse.Namespace, spec):  # -> RunRecorder | None
     """The run's recording (``--record X.mcap``, ``--foxglove``), or None."""
+    return open_recorder(args, spec.robot_ids, spec.ontologies, robots=spec.robots, mode=spec.mode,
+                         transport=spec.transport, strategy=spec.strategy, writable=spec.kb_writable,
+                         misplaced=list(spec.misplaced), time_scale=spec.time_scale, seed=getattr(args, "seed", None))
+
+
+def open_recorder(args: argparse.Namespace, robot_ids: list[str], location_kb: Path, **settings: object):
+    """``--record X.mcap`` and ``--foxglove [HOST:]PORT``: the run's
+    :class:`~coapkb.harness.recording.RunRecorder`, or None without them
+    (``args.foxglove_at`` is set to the live server's host and port)."""
     record = getattr(args, "record", None)
     mcap = Path(record) if record and record.endswith(".mcap") else None
     live = getattr(args, "foxglove", None)
+    args.foxglove_at = None if live is None else parse_host_port(live, "--foxglove")
     if mcap is None and live is None:
         return None
     from ..harness.recording import RecordingError, RunRecorder, run_metadata, warehouse
-    args.foxglove_at = None if live is None else parse_host_port(live, "--foxglove")
-    layout, docks = warehouse(spec.ontologies)
+
+    layout, docks = warehouse(location_kb)
     try:
-        return RunRecorder(mcap, args.foxglove_at, spec.robot_ids, layout, docks, metadata=run_metadata(
-            sys.argv, robots=spec.robots, mode=spec.mode, transport=spec.transport, strategy=spec.strategy,
-            writable=spec.kb_writable, misplaced=list(spec.misplaced), time_scale=spec.time_scale,
-            seed=getattr(args, "seed", None)))
+        return RunRecorder(mcap, args.foxglove_at, robot_ids, layout, docks,
+                           metadata=run_metadata(sys.argv, **settings))
     except RecordingError as exc:
         raise UserError(str(exc)) from None
 

@@ -39,6 +39,7 @@ from ..world import Layout, Position
 
 if TYPE_CHECKING:
     from ..agent.robot_state import RobotState
+    from ..agent.stats import RobotStats
     from ..feeder.record import TaskRecord
     from .record import TeamRecord
 
@@ -200,12 +201,19 @@ class RunRecorder:
             "fate": record.fate})
 
     def finished(self, record: "TeamRecord") -> None:
-        """The run's end: every task's final fate (a late not-found, a
-        re-run), and each robot's traffic."""
-        for task in record.tasks:
+        """The run's end: every task's final fate, and each robot's traffic."""
+        self.final_fates(record.tasks)
+        self.traffic(record.robot_stats)
+
+    def final_fates(self, tasks: Sequence["TaskRecord"]) -> None:
+        """The tasks whose fate changed after they were decided (not found at
+        the shelf, sent round again), once more: the last word on a task."""
+        for task in tasks:
             if task.fate in ("not-found", "reassigned"):
                 self.task(task)
-        for robot_id, stats in sorted(record.robot_stats.items()):
+
+    def traffic(self, robot_stats: Mapping[str, "RobotStats"]) -> None:
+        for robot_id, stats in sorted(robot_stats.items()):
             latencies = sorted(stats.queries.remote_latencies)
             self._log_message(self._traffic, {
                 "robot": robot_id, "bytes_sent": stats.traffic.bytes_sent,
@@ -265,13 +273,14 @@ class _LogHandler(logging.Handler):
             self.handleError(record)
 
 
-def warehouse(ontologies: Path) -> tuple[Layout | None, list[Position]]:
-    """The layout and the charging docks, from the Location KB's file."""
+def warehouse(location_kb: Path) -> tuple[Layout | None, list[Position]]:
+    """The layout and the charging docks, from the Location KB's file (or a
+    folder holding ``Location.owl``)."""
     from ..kb.named_queries import NAMED_QUERIES
     from ..kb.store import KnowledgeBase
     from ..world import layout_from_row
 
-    location = KnowledgeBase.load([ontologies / "Location.owl"])
+    location = KnowledgeBase.load([location_kb / "Location.owl" if location_kb.is_dir() else location_kb])
     rows = location.query(NAMED_QUERIES["warehouse-layout"].render({})).as_dicts()  # type: ignore[union-attr]
     docks = location.query(NAMED_QUERIES["charging-docks"].render({})).as_dicts()  # type: ignore[union-attr]
     layout = layout_from_row(rows[0]) if rows else None

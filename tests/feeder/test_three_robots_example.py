@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
+from mcap.reader import make_reader
 
 from coapkb.feeder import read_tasks_file
 
@@ -120,8 +121,11 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
         assert f"coapkb agent --config examples/three-robots/{robot_id}.toml" in line, line
 
     request.getfixturevalue("robots")
-    result = run(workdir, *feed)
+    result = run(workdir, *feed, "--record", "feed.mcap")
     assert result.returncode == 0, result.stdout + result.stderr
+    with (workdir / "feed.mcap").open("rb") as f:  # recorded for Foxglove: every task, the robots' poses
+        topics = [channel.topic for _, channel, _ in make_reader(f).iter_messages()]
+    assert topics.count("/tasks") == 5 and topics.count("/warehouse") == 1 and "/robots/poses" in topics
     assert "Traceback" not in result.stdout + result.stderr
     tasks = read_tasks_file(EXAMPLE / "tasks.txt")
     lines = [m for m in map(TASK_LINE.match, result.stdout.splitlines()) if m]
