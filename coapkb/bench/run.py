@@ -521,14 +521,31 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
         # tasks), so that download is not charged to the system.
         end.update(await reading())
 
-    async with Team.launch(spec, NetnsPlacement(testbed)) as team:
-        before = await reading()
-        # The feeder's client transport is opened inside Team.run, so its
-        # sockets (and a ZeroMQ context's I/O threads) belong to the feeder's
-        # namespace; the robots' addresses are reachable only from there.
-        with enter_netns(testbed[FEEDER].netns), _logged_to(spec.log_dir):
-            record = await team.run(task_list, finished=read_end)
-        after = end or await reading()
+    recorder = None
+    if spec.log_dir is not None:
+        # The trace keeps the run for Foxglove too (the recording's module
+        # is imported only here: a run without a trace never loads it).
+        from ..harness.recording import RunRecorder, run_metadata, warehouse
+
+        spec.log_dir.mkdir(parents=True, exist_ok=True)
+        layout, docks = warehouse(spec.ontologies)
+        recorder = RunRecorder(spec.log_dir / "run.mcap", None, spec.robot_ids, layout, docks, metadata=run_metadata(
+            ["coapkb", "bench"], **{k: v for k, v in row.to_dict().items() if v not in (None, "")}))
+    try:
+        async with Team.launch(spec, NetnsPlacement(testbed)) as team:
+            before = await reading()
+            # The feeder's client transport is opened inside Team.run, so its
+            # sockets (and a ZeroMQ context's I/O threads) belong to the feeder's
+            # namespace; the robots' addresses are reachable only from there.
+            with enter_netns(testbed[FEEDER].netns), _logged_to(spec.log_dir):
+                record = await team.run(task_list, None if recorder is None else recorder.task, finished=read_end,
+                                        on_state=None if recorder is None else recorder.robot_state)
+            after = end or await reading()
+        if recorder is not None:
+            recorder.finished(record)
+    finally:
+        if recorder is not None:
+            recorder.close()
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
     total = _sum_counters(delta)
     row, coap_retx = _with_record(row, record, row.tasks)
@@ -583,7 +600,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the object is not where the KB says (repeatable)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")
     p.add_argument("--trace", metavar="DIR", type=Path,
-                   help="keep each run's process logs (INFO level) and team record in DIR/<run>/")
+                   help="keep each run's process logs (INFO level), team record and recording (run.mcap, "
+                        "for Foxglove) in DIR/<run>/")
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
 
 

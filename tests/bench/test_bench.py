@@ -17,6 +17,7 @@ from dataclasses import replace
 from typing import Any
 
 import pytest
+from mcap.reader import make_reader
 from support import ROOT, coapkb, load_experiment, require
 
 from coapkb.bench import run as bench
@@ -74,6 +75,11 @@ async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(t
     assert "task 2 " in (run / "Robot1.log").read_text()
     assert (run / "feeder.log").exists()
     assert len(json.loads((run / "record.json").read_text())["tasks"]) == 2
+    with (run / "run.mcap").open("rb") as f:  # and the run for Foxglove
+        reader = make_reader(f)
+        assert [c.topic for _, c, _ in reader.iter_messages()].count("/tasks") == 2
+        [meta] = reader.iter_metadata()
+        assert meta.metadata["system"] == "coap-distributed" and meta.metadata["loss_pct"] == "2.0"
     assert plain.security == "none"
     assert plain.key() != replace(plain, security="oscore").key()
     assert bench.security_label("seed-distributed", True) == "none"  # the seed's baseline, as it ran
