@@ -114,3 +114,16 @@ async def test_a_foxglove_client_subscribed_live_gets_the_scene_and_a_decision()
         assert (task["seq"], task["object"], task["assigned_to"], task["fate"]) == (7, "Gucci_bag_14", "Robot2", "assigned")
     finally:
         recorder.close()
+
+
+def test_the_foxglove_layout_names_only_topics_the_recording_writes() -> None:
+    layout = json.loads((ROOT / "examples" / "foxglove-layout.json").read_text())
+    written = {"/warehouse", "/robots/markers", "/robots/poses", "/robots/state", "/tasks", "/robots/traffic", "/log"}
+    named = set()
+    for panel, config in layout["configById"].items():
+        named |= set(config.get("topics", {}))
+        named |= {path["value"].split("{")[0].split(".")[0] for path in config.get("paths", [])}
+        named |= {config[key] for key in ("topicPath", "topicToRender") if key in config}
+    assert named and named <= written, named - written
+    source = (ROOT / "coapkb" / "harness" / "recording.py").read_text()
+    assert all(f'"{topic}"' in source for topic in written)
