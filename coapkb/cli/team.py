@@ -18,6 +18,9 @@ from .common import UserError
 #: The seed's example task (Fig. 4), a few more picks, and one object that
 #: does not exist, which every robot must skip.
 DEMO_TASKS = ("Gucci_bag_14", "Nonexistent_widget_1")
+#: How often a recorded run samples the robots' statistics (they serve one
+#: snapshot for 5 s): the series of ``/robots/traffic``.
+STATS_EVERY_S = 2.0
 
 
 def add_team(sub: argparse._SubParsersAction) -> None:
@@ -197,7 +200,8 @@ async def _team(args: argparse.Namespace) -> int:
             with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: record_task(bar, r),
-                                        on_state=None if recorder is None else recorder.robot_state)
+                                        on_state=None if recorder is None else recorder.robot_state,
+                                        on_stats=None if recorder is None else (STATS_EVERY_S, recorder.traffic))
             if spec.kb_writable and spec.mode == "distributed":
                 moved = await _positions_line(team)
     except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError

@@ -11,7 +11,7 @@ topic                  schema                 what
 ``/robots/markers``    foxglove.SceneUpdate   a labelled marker per robot in its own frame
 ``/robots/state``      JSON ``coapkb.RobotState``  activity, job, queue, jobs done, battery, load
 ``/tasks``             JSON ``coapkb.Task``   each task's record: decisions, costs, reasons, fate
-``/robots/traffic``    JSON ``coapkb.Traffic``  per robot at the end: bytes, retransmissions, latencies
+``/robots/traffic``    JSON ``coapkb.Traffic``  per robot, sampled and at the end: bytes, retransmissions, latencies
 ``/log``               foxglove.Log           the run's log lines (WARNING and above)
 =====================  =====================  ==================================================
 

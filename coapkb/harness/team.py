@@ -50,7 +50,7 @@ from ..transport import SCHEMES, transport_for
 from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..world.service import WorldServer
 from ..world.truth import WorldTruth
-from ..transport.base import Endpoint, TrafficCounters
+from ..transport.base import Endpoint, TrafficCounters, TransportError
 from .kbs import kbs_for_team
 from .record import FaultEvent, TeamRecord
 from ..security import SecurityConfig, generate_team, load_identity
@@ -321,6 +321,19 @@ def _ephemeral_range() -> tuple[int, int]:
         return int(low), int(high)
     except (OSError, ValueError):
         return 32768, 60999
+
+
+async def _sample(feeder: Feeder, every_s: float, sink: Callable[[dict[str, RobotStats]], None]) -> None:
+    """Every ``every_s`` seconds, every live robot's statistics to ``sink``;
+    a robot that does not answer is left out of that sample."""
+    while True:
+        await asyncio.sleep(every_s)  # a sampling period: nothing to await but the clock
+        watcher = feeder.watcher
+        try:
+            stats = await feeder.collect_stats([], maybe=[r for r in watcher.alive])
+        except TransportError:
+            continue
+        sink(stats)
 
 
 def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
@@ -626,13 +639,17 @@ class Team:
         progress: Callable[[TaskRecord], None] | None = None,
         finished: Callable[[], Awaitable[None]] | None = None,
         on_state: Callable[[str, RobotState], None] | None = None,
+        on_stats: tuple[float, Callable[[dict[str, RobotStats]], None]] | None = None,
     ) -> TeamRecord:
         """Feed the tasks, wait for every robot to finish executing, return the record.
 
         ``finished`` is awaited once every robot is done and before the feeder
         downloads their statistics (a benchmark reads its counters there, so
         that download is not charged to the system).  ``on_state`` is told
-        of every robot state the feeder observes (a recording)."""
+        of every robot state the feeder observes (a recording); ``on_stats``
+        (seconds, sink): every live robot's statistics that often while the
+        run lasts (a recording's series; the downloads are the feeder's
+        traffic, so a benchmark leaves this out)."""
         spec = self.spec
         events: list[FaultEvent] = []
         cluster_of = {r: n for n, cluster in enumerate(spec.clusters(), 1) for r in cluster}
@@ -652,6 +669,7 @@ class Team:
                 feeder.watcher.listeners.append(on_state)
             started = time.monotonic()
             injector = asyncio.create_task(self._inject(feeder, started, events), name="faults")
+            sampler = None if on_stats is None else asyncio.create_task(_sample(feeder, *on_stats), name="stats")
             try:
                 outcome = await feeder.feed(tasks, on_progress, started)
                 if finished is not None:
@@ -663,8 +681,10 @@ class Team:
                 stats = await feeder.collect_stats(watcher.alive, resumed)
                 traffic = feeder.traffic  # a copy: the client still counts while closing
             finally:
-                injector.cancel()
-                await asyncio.gather(injector, return_exceptions=True)
+                for helper in (injector, sampler):
+                    if helper is not None:
+                        helper.cancel()
+                await asyncio.gather(*(h for h in (injector, sampler) if h is not None), return_exceptions=True)
             down, down_at = dict(watcher.down), dict(watcher.down_at)
         for event in events:
             if event.robot in down_at and event.action in ("kill", "stop"):

@@ -63,7 +63,7 @@ def test_a_team_run_recorded_as_mcap_has_every_channel_task_and_its_metadata(tmp
                 states.append(json.loads(message.data))
     for topic, stamps in times.items():
         assert stamps == sorted(stamps), topic  # in order on each channel
-    assert len(times["/warehouse"]) == 1 and len(times["/robots/traffic"]) == 3
+    assert len(times["/warehouse"]) == 1 and len(times["/robots/traffic"]) >= 3  # sampled, and at the end
     assert sorted(tasks) == [1, 2, 3, 4] and [tasks[s]["object"] for s in (1, 2, 3, 4)] == TASKS
     assert tasks[3]["fate"] == "skipped" and tasks[3]["skip_reason"].startswith("picked by")
     assert tasks[4]["fate"] == "not-found" and "misplaced" in tasks[4]["not_found"]
