@@ -263,9 +263,12 @@ class Controller:
             failed_too = 0
             for mate, theirs in zip(mates, answers):
                 if isinstance(theirs, BaseException):
-                    # A lost answer is asked again; a teammate now known to
-                    # be down cannot help (found in the simulator: three
-                    # asks lost at 20 % loss, and this robot decided alone).
+                    # A lost answer is asked again (found in the simulator:
+                    # three asks lost at 20 % loss, and this robot decided
+                    # alone); the failure counts like a probe's, so a dead
+                    # teammate is soon known down, and cannot help.
+                    if isinstance(theirs, TransportError):
+                        await self.team.request_failed(mate, theirs)
                     failed_too += not self.team.is_up(mate)
                     continue
                 if theirs is None or theirs.decision.object != task.object:

@@ -79,7 +79,7 @@ async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(t
         reader = make_reader(f)
         assert [c.topic for _, c, _ in reader.iter_messages()].count("/tasks") == 2
         [meta] = reader.iter_metadata()
-        assert meta.metadata["system"] == "coap-distributed" and meta.metadata["loss_pct"] == "2.0"
+        assert meta.metadata["system"] == "coap-distributed" and float(meta.metadata["loss_pct"]) == 2
     assert plain.security == "none"
     assert plain.key() != replace(plain, security="oscore").key()
     assert bench.security_label("seed-distributed", True) == "none"  # the seed's baseline, as it ran
@@ -260,7 +260,7 @@ def test_a_row_parses_csv_text_and_json_values_by_field_type() -> None:
     assert (back.robots, back.ok, back.bandwidth_kbps) == (3, True, 35.0)
     assert bench.KEY_COLUMNS == ("system", "robots", "tasks", "bandwidth_kbps", "loss_pct", "rep",
                                  "retransmission_profile", "delay_ms", "jitter_ms", "loss_model", "burst_len",
-                                 "replication", "faults", "security")
+                                 "replication", "faults", "security", "kb_writable")
 
 
 def test_the_committed_results_csv_reads_back_and_writes_the_same_cells(tmp_path: Path) -> None:
