@@ -59,6 +59,7 @@ against the folder of the TOML file, not the working directory)::
 from __future__ import annotations
 
 import tomllib
+import dataclasses
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -452,7 +453,7 @@ def _section(data: Mapping[str, Any], key: str, cls: type) -> Any:
     section = data.get(key, {})
     if not isinstance(section, dict):
         raise ConfigError(f"{key}: expected a table")
-    fields = cls.__dataclass_fields__
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     _no_unknown(section, set(fields), key + ".")
     values = {}
     for name, value in section.items():

@@ -218,6 +218,7 @@ class Robot:
         replicator = None
         served: KnowledgeBase | LiveKB | None = kb
         if kb is not None:
+            served = kb
             if config.kb_writable:
                 # Each incarnation writes as a writer of its own: its counts start again at 1.
                 known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}

@@ -167,7 +167,7 @@ class RobotState:
         try:
             raw = cbor2.loads(data)
             _check(type(raw) is list and 3 <= len(raw) <= 6, "a robot state is an array of 3 to 6 items", raw)
-            robot_id, plan = _text(raw[0], "robot-id"), _plan(raw[1])
+            robot_id, plan = _text(raw[0], "robot-id") or "", _plan(raw[1])
             prev = _plan(raw[2]) if raw[2] is not None else None
             if len(raw) in (3, 4):  # the plan form, with or without the incarnation
                 boot = _uint(raw[3], "boot") if len(raw) == 4 else 0

@@ -20,7 +20,7 @@ import asyncio
 import contextlib
 import logging
 from dataclasses import dataclass, replace
-from typing import Awaitable, Callable
+from typing import Any, Awaitable, Callable
 
 from ..config import ExecutionModel
 from ..errors import CoapkbError
@@ -113,7 +113,7 @@ class TaskExecutor:
     async def wait_idle(self) -> None:
         await self._idle.wait()
 
-    def _update(self, **changes: object) -> None:
+    def _update(self, **changes: Any) -> None:
         self.live = replace(self.live, **changes)
         self._publish(self.live)
 

@@ -480,9 +480,8 @@ async def run_once(
         spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
                            link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security,
                            log_dir=run_dir, kb_writable=kb_writable, misplaced=misplaced)
-        if task_list is None:
-            task_list = draw_tasks(tasks, ontologies, seed=seed)
-        elif len(task_list) != tasks:
+        task_list = draw_tasks(tasks, ontologies, seed=seed) if task_list is None else list(task_list)
+        if len(task_list) != tasks:
             raise ValueError(f"{len(task_list)} objects listed for {tasks} tasks")
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")

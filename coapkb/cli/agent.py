@@ -21,6 +21,7 @@ async def _agent(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     robot = await Robot.start(config, query_wire=args.query_wire)
+    assert robot.server is not None  # Robot.start returns a serving robot
     print(f"robot {config.robot_id} ready on {robot.server.endpoint}", flush=True)
     try:
         await until_signalled()

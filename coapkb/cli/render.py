@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from typing import Any
 
 from ..wire import codec
 from ..world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
@@ -30,6 +31,7 @@ def render(result, fmt: str) -> str:  # result: QueryResult
     if isinstance(result, AskResult):
         return ("true" if result.value else "false") + "\n"
     if isinstance(result, GraphResult):
+        rows: list[list[Any]]
         header, rows = ["subject", "predicate", "object"], [list(t) for t in result.triples]
     else:
         assert isinstance(result, SelectResult)

@@ -175,7 +175,7 @@ class Membership:
             return False
         # Waiting the lease out is the fence itself: any lease the robot
         # holds was granted before the last refusal, so it ends within this.
-        last = max(answers, default=clock.monotonic())
+        last = max((at for at in answers if at is not None), default=clock.monotonic())
         await asyncio.sleep(max(0.0, last + lease_s - clock.monotonic()))
         # From now on the robot can pick nothing: if it answers (it was only
         # cut off), its state is final and says what it did pick.

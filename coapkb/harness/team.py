@@ -553,11 +553,11 @@ class Team:
                     generate_team(team.team_dir, default_members(spec.robots))
                 if spec.mode == "central":
                     team.central = team.placement.endpoint("central", spec)
-                    kbs = [str(spec.ontologies / f"{kb}.owl") for kb in KB_MODULES]
+                    kb_files = [str(spec.ontologies / f"{kb}.owl") for kb in KB_MODULES]
                     secured = [] if team.team_dir is None else ["--credentials", str(team.team_dir), "--identity", "central"]
                     await team._spawn(
                         "central",
-                        ["serve", "--kb", *kbs, "--bind", team.central.hostport, "--transport", spec.transport, *secured],
+                        ["serve", "--kb", *kb_files, "--bind", team.central.hostport, "--transport", spec.transport, *secured],
                         "serving",
                     )
                 if spec.discovery == "rd":

@@ -9,6 +9,7 @@ import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import rdflib
 
@@ -31,6 +32,12 @@ _SUFFIX_FORMATS = {
 _TURTLE_PREFIX = re.compile(
     rb"^[ \t]*(?:@prefix|PREFIX)[ \t]+([A-Za-z][A-Za-z0-9_.-]*)?:[ \t]*<([^>\s]*)>", re.MULTILINE | re.IGNORECASE
 )
+
+
+class Digest(Protocol):
+    """What a file's bytes are fed to (any hashlib digest)."""
+
+    def update(self, data: bytes, /) -> None: ...
 
 
 def _format_for(path: Path, head: bytes) -> str:
@@ -140,7 +147,7 @@ class KBFile:
         prefixes = _xml_root(path, st.st_size) if fmt == "xml" else {}
         return cls(path, fmt, st.st_size, _stamp(st), prefixes)
 
-    def hash_into(self, digest: hashlib._Hash) -> None:  # type: ignore[name-defined]
+    def hash_into(self, digest: Digest) -> None:
         """Feed the file's name, size and bytes to ``digest``; collect Turtle
         prefixes on the way.  Reads in chunks (hashlib releases the GIL), so
         it runs beside a parse on another thread without holding the file."""

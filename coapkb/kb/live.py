@@ -188,7 +188,9 @@ class LiveKB:
     def _base_values(self, s: Term, p: Term) -> list[Term]:
         from .oxigraph_backend import _from_ox
 
-        return [_from_ox(q.object) for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]
+        # A subject and a predicate are never literals: the single-valued properties' keys.
+        return [_from_ox(q.object)
+                for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]
 
     def _is_base(self, triple: Triple) -> bool:
         return _quad(triple) in self._base_store

@@ -476,8 +476,8 @@ class Replica:
         for triple, dot in removed:
             self._drop(triple, dot)
             self._by_dot.pop(dot, None)
-        for triple, dots in other.entries.items():
-            for dot, stamp in dots.items():
+        for triple, theirs in other.entries.items():
+            for dot, stamp in theirs.items():
                 self._observe(stamp)
                 if dot not in self.context and dot not in self.tombstones:
                     self._tag(triple, dot, stamp)

@@ -28,7 +28,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import random
-from collections.abc import Sequence
+from collections.abc import Coroutine, Sequence
+from typing import Any
 from dataclasses import dataclass
 
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
@@ -192,8 +193,8 @@ class Replicator:
             pass
         return acked
 
-    def _spawn(self, coro: object) -> asyncio.Task[bool]:
-        task: asyncio.Task[bool] = asyncio.ensure_future(coro)  # type: ignore[arg-type]
+    def _spawn(self, coro: Coroutine[Any, Any, bool]) -> asyncio.Task[bool]:
+        task = asyncio.ensure_future(coro)
         self._pushes.add(task)
         task.add_done_callback(self._pushes.discard)
         return task

@@ -170,8 +170,8 @@ def encode_response(token: int, resp: Response, *, seq: int | None = None) -> by
 # --------------------------------------------------------------------------- decoding
 
 
-def _load_array(data: bytes | bytearray | memoryview, what: str, sizes: tuple[int, int]) -> list[Any]:
-    """One CBOR array spanning all of ``data``, of one of two lengths."""
+def _load_array(data: bytes | bytearray | memoryview, what: str, sizes: tuple[int, ...]) -> list[Any]:
+    """One CBOR array spanning all of ``data``, of one of the lengths ``sizes``."""
     buf = bytes(data)
     fp = io.BytesIO(buf)
     try:

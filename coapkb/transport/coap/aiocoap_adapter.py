@@ -436,7 +436,8 @@ class ContextHooks:
 
     def _send(self, message: aiocoap.Message) -> None:
         send = self._original(self.interface, "send")
-        self._send_errors = errors = []
+        errors: list[OSError] = []
+        self._send_errors = errors
         try:
             send(message)
             if errors:  # most likely another peer's stale ICMP error, now cleared: once more

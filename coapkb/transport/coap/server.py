@@ -188,7 +188,7 @@ def _resolve_host(host: str) -> str:
         return host
     except ValueError:
         try:
-            return socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)[0][4][0]
+            return str(socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)[0][4][0])
         except socket.gaierror as exc:
             raise TransportError(f"cannot resolve {host!r}: {exc.strerror}") from None
 

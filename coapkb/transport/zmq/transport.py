@@ -327,7 +327,8 @@ class ZmqServerTransport:
                 else:
                     # CURVE: the ZAP handler named the member; libzmq hands it over as frame metadata.
                     raw = await sock.recv_multipart(copy=False)
-                    user = raw[-1].get("User-Id") if len(raw) > 1 else None
+                    named = raw[-1].get("User-Id") if len(raw) > 1 else None
+                    user = named if isinstance(named, str) else None
                     frames = [frame.bytes for frame in raw]
             except zmq.ZMQError as exc:
                 if self._closed or exc.errno in (zmq.ETERM, zmq.ENOTSOCK):
