@@ -14,13 +14,24 @@ from coapkb.agent.robot_state import ACTIVITIES, Decision, LiveState, PlannedSta
 from support import ROOT, require
 
 CDDL = (ROOT / "docs" / "robot-state.cddl").read_text()
+PLAN = PlannedState(3, 21, 412.25, 0.8, 60.6, 5)
+MISPLACED = "not where the KB says it is (misplaced)"
+MISSED = ((4, MISPLACED), (7, "gone: picked by Robot4 at task 6"))
 
 ids = st.sampled_from(["Robot1", "Robot2", "Robot10"])
 floats = st.floats(min_value=0, max_value=1e4, allow_nan=False)
 plans = st.builds(PlannedState, st.integers(0, 50), st.integers(0, 50), floats, floats, floats, st.integers(0, 1000))
+missed = st.lists(st.tuples(st.integers(0, 10**6), st.text(max_size=40)), max_size=8).map(tuple)
+#: Tasks fenced and why, as the executor sets them: a reason only with tasks
+#: (an empty reason is sent as "" and read back as None).
+fences = st.just(((), None)) | st.tuples(st.lists(st.integers(0, 1000), min_size=1, max_size=3).map(tuple),
+                                         st.none() | st.text(min_size=1, max_size=30))
 lives = st.builds(
-    LiveState, floats, floats, st.sampled_from(ACTIVITIES), st.none() | st.text(max_size=20),
-    st.integers(0, 100), st.integers(0, 100),
+    lambda base, fence, missed: replace(base, fenced=fence[0], fence_reason=fence[1], missed=missed),
+    st.builds(LiveState, floats, floats, st.sampled_from(ACTIVITIES), st.none() | st.text(max_size=20),
+              st.integers(0, 100), st.integers(0, 100)),
+    fences,
+    missed,
 )
 decisions = st.builds(
     Decision,
@@ -35,6 +46,7 @@ decisions = st.builds(
     st.integers(0, 5),
     st.lists(ids, max_size=3).map(tuple),
     st.none() | st.text(max_size=40),
+    st.none() | st.text(min_size=1, max_size=40),
 )
 states = st.builds(RobotState, ids, plans, lives, st.none() | decisions, st.none() | plans)
 
@@ -160,3 +172,94 @@ WRONG_TYPES = {
 def test_values_of_the_wrong_type_are_a_value_error(data: bytes) -> None:
     with pytest.raises(ValueError, match="not a robot state"):
         RobotState.decode(data)
+
+
+# What became of a task: the tasks whose object was not at the shelf
+# (``LiveState.missed``) and why a task was skipped (``Decision.skip_reason``).
+
+
+@given(states)
+def test_the_outcome_keeps_what_the_feeder_records(state: RobotState) -> None:
+    seen = RobotState.decode(state.encode_outcome())
+    assert seen.live == state.live and seen.live.missed == state.live.missed
+    if state.last is not None:
+        assert seen.last is not None and seen.last.skip_reason == state.last.skip_reason
+
+
+def test_the_missed_tasks_travel_with_or_without_a_fence() -> None:
+    alone = RobotState("Robot1", PLAN, LiveState(3.0, 21.0, "idle", None, 0, 2, missed=MISSED))
+    raw = cbor2.loads(alone.encode())
+    assert raw[3][6:] == [[], "", [list(m) for m in MISSED]]  # the fence's place kept, empty
+    assert RobotState.decode(alone.encode()).live.missed == MISSED
+    fenced = replace(alone, live=replace(alone.live, fenced=(9,), fence_reason="Robot2 refused"))
+    live = RobotState.decode(fenced.encode_outcome()).live
+    assert (live.fenced, live.fence_reason, live.missed) == ((9,), "Robot2 refused", MISSED)
+    # Nothing missed: the live state is as long as before there was a "missed".
+    plain = replace(alone, live=replace(alone.live, missed=()))
+    assert len(cbor2.loads(plain.encode())[3]) == 6
+
+
+def test_a_skip_reason_is_sent_only_when_there_is_one() -> None:
+    skipped = Decision(3, "Gucci_bag_14", skipped=True, skip_reason="picked by Robot2 at task 1")
+    state = RobotState("Robot1", PLAN, LiveState(3.0, 21.0), skipped)
+    assert cbor2.loads(state.encode())[4][-1] == "picked by Robot2 at task 1"
+    assert RobotState.decode(state.encode_outcome()).last == replace(skipped, coordination_s=0.0)
+    unreasoned = replace(state, last=replace(skipped, skip_reason=None))
+    assert len(cbor2.loads(unreasoned.encode())[4]) == 11
+    assert RobotState.decode(unreasoned.encode()).last.skip_reason is None  # type: ignore[union-attr]
+
+
+def test_missed_and_skip_reasons_match_the_cddl(validator: object) -> None:
+    missed = RobotState("Robot1", PLAN, LiveState(3.0, 21.0, "picking", "Barilla_pasta_1", 1, 4, missed=MISSED),
+                        Decision(8, "Gucci_bag_14", True, None, {}, None, 0.02, {}, 0, ("Robot1", "Robot2"), None,
+                                 "picked by Robot2 at task 1"),
+                        PlannedState(9, 6, 414.37, 0.0, 60.6, 4), boot=7)
+    fenced = replace(missed, live=replace(missed.live, fenced=(3, 5), fence_reason="lost its lease"))
+    eight = replace(missed, live=replace(missed.live, missed=tuple((s, MISPLACED) for s in range(1, 9))))
+    no_reason = replace(missed, last=replace(missed.last, skip_reason=None))  # type: ignore[arg-type]
+    for state in (missed, fenced, eight, no_reason):
+        for data, root in ((state.encode(), "robot-state"), (state.encode_outcome(), "robot-outcome")):
+            outcome = validator.validate(data, root_type=root)  # type: ignore[attr-defined]
+            assert outcome.valid, [str(d) for d in outcome.diagnostics]
+
+
+_PLAN = [3, 4, 500.0, 1.5, 60.0, 2]
+#: A live state whose ninth item, ``missed``, is this.
+MALFORMED_MISSED = {
+    "not-an-array": 7,
+    "an-entry-not-an-array": [4],
+    "an-entry-of-one": [[4]],
+    "an-entry-of-three": [[4, "why", 1]],
+    "a-text-seq": [["4", "why"]],
+    "a-negative-seq": [[-4, "why"]],
+    "a-bool-seq": [[True, "why"]],
+    "a-null-why": [[4, None]],
+    "a-number-why": [[4, 5]],
+    "a-map-entry": [{4: "why"}],
+}
+
+
+@pytest.mark.parametrize("value", MALFORMED_MISSED.values(), ids=MALFORMED_MISSED.keys())
+def test_a_malformed_missed_is_a_value_error(value: object) -> None:
+    data = cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 0, None, 0, 1, [], "", value], None])
+    with pytest.raises(ValueError, match="not a robot state"):
+        RobotState.decode(data)
+
+
+def test_a_live_state_of_ten_items_is_a_value_error() -> None:
+    data = cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 0, None, 0, 1, [], "", [], "more"], None])
+    with pytest.raises(ValueError, match="6 to 9 items"):
+        RobotState.decode(data)
+
+
+@pytest.mark.parametrize("reason", [5, b"why", ["why"], True])
+def test_a_skip_reason_that_is_not_text_is_a_value_error(reason: object) -> None:
+    decision = [3, "Gucci_bag_14", True, None, {}, None, 0.0, {}, 0, [], None, reason]
+    with pytest.raises(ValueError, match="skip-reason must be text"):
+        RobotState.decode(cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 0, None, 0, 1], decision]))
+
+
+def test_a_decision_of_thirteen_items_is_a_value_error() -> None:
+    decision = [3, "Gucci_bag_14", True, None, {}, None, 0.0, {}, 0, [], None, "why", "more"]
+    with pytest.raises(ValueError, match="8 to 12 items"):
+        RobotState.decode(cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 0, None, 0, 1], decision]))
