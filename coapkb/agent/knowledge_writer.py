@@ -81,39 +81,29 @@ def _leaves_shelf(obj: str) -> str:
     return f"DELETE WHERE {{ {_iri(obj)} {pattern} }}"
 
 
-def _robot_at(robot: str, at: tuple[int, int], at_ms: int) -> str:
-    return (f"{_iri(robot)} {_iri('Robot_aisle_no')} {at[0]} ; {_iri('Robot_rack_no')} {at[1]} ; "
-            f"{_iri('Robot_updated_ms')} {at_ms}")
-
-
-def pick_update(obj: str, robot: str, seq: int, at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
-    """The SPARQL Update of a pick: off the shelf, picked by ``robot`` at task
-    ``seq``; with ``at``, the robot is there (at the shelf) at ``at_ms``."""
-    where = f" . {_robot_at(robot, at, at_ms)}" if at is not None else ""
+def pick_update(obj: str, robot: str, seq: int) -> str:
+    """The SPARQL Update of a pick: off the shelf, picked by ``robot`` at task ``seq``."""
     return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {_iri(obj)} {_iri('Picked_by')} {_literal(robot)} ; "
-            f"{_iri('Picked_at_task')} {seq}{where} }}")
+            f"{_iri('Picked_at_task')} {seq} }}")
 
 
-def missing_update(obj: str, robot: str, seq: int, at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
+def missing_update(obj: str, robot: str, seq: int) -> str:
     """The SPARQL Update of an object not at its shelf at task ``seq``."""
-    where = f" . {_robot_at(robot, at, at_ms)}" if at is not None else ""
     return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {_iri(obj)} {_iri('Missing_since_task')} {seq} ; "
-            f"{_iri('Reported_missing_by')} {_literal(robot)}{where} }}")
+            f"{_iri('Reported_missing_by')} {_literal(robot)} }}")
 
 
-def delivered_update(objects: Iterable[tuple[str, int]], robot: str | None = None,
-                     at: tuple[int, int] | None = None, at_ms: int = 0) -> str:
-    """The SPARQL Update of a delivery: each (object, task) delivered at the
-    depot; with ``robot`` and ``at``, the robot is there."""
-    facts = [f"{_iri(obj)} {_iri('Delivered_at_task')} {seq}" for obj, seq in objects]
-    if robot is not None and at is not None:
-        facts.append(_robot_at(robot, at, at_ms))
-    return f"INSERT DATA {{ {' . '.join(facts)} }}"
+def delivered_update(objects: Iterable[tuple[str, int]]) -> str:
+    """The SPARQL Update of a delivery: each (object, task) delivered at the depot."""
+    facts = " . ".join(f"{_iri(obj)} {_iri('Delivered_at_task')} {seq}" for obj, seq in objects)
+    return f"INSERT DATA {{ {facts} }}"
 
 
 def robot_at_update(robot: str, at: tuple[int, int], at_ms: int) -> str:
-    """The SPARQL Update of where a robot is (Location) at ``at_ms``."""
-    return f"INSERT DATA {{ {_robot_at(robot, at, at_ms)} }}"
+    """The SPARQL Update of where a robot is (Location) at ``at_ms``: sent
+    after the facts it rides with, once (its properties are single-valued)."""
+    return (f"INSERT DATA {{ {_iri(robot)} {_iri('Robot_aisle_no')} {at[0]} ; {_iri('Robot_rack_no')} {at[1]} ; "
+            f"{_iri('Robot_updated_ms')} {at_ms} }}")
 
 
 def load_update(robot: str, load_kg: float, charge_wh: float, at_ms: int) -> str:

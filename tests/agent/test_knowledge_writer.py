@@ -100,14 +100,15 @@ def test_a_pick_takes_the_object_off_its_shelf(live: LiveKB) -> None:
 
 def test_a_pick_puts_its_robot_at_the_shelf(live: LiveKB) -> None:
     assert _position(live, "Robot2") == [("8", "16", None)]  # where the KB file starts it
-    live.update(_location(pick_update(BAG, "Robot2", 3, (3, 21), 1_700_000_000_123)))
+    live.update(_location(_joined(pick_update(BAG, "Robot2", 3),
+                                  robot_at_update("Robot2", (3, 21), 1_700_000_000_123))))
     assert _place(live, BAG) == [{"picked_by": "Robot2", "picked_task": "3"}]
     assert _position(live, "Robot2") == [("3", "21", "1700000000123")]
     assert _position(live, "Robot1") == [("9", "6", None)]
 
 
 def test_an_object_not_at_its_shelf_is_missing_since_the_task(live: LiveKB) -> None:
-    live.update(_location(missing_update(PASTA, "Robot1", 4, (5, 6), 2000)))
+    live.update(_location(_joined(missing_update(PASTA, "Robot1", 4), robot_at_update("Robot1", (5, 6), 2000))))
     assert _place(live, PASTA) == [{"missing_task": "4"}]
     assert _values(live, PASTA, "Reported_missing_by") == ["Robot1"]
     assert _position(live, "Robot1") == [("5", "6", "2000")]
@@ -116,7 +117,8 @@ def test_an_object_not_at_its_shelf_is_missing_since_the_task(live: LiveKB) -> N
 def test_a_delivery_names_each_object_and_its_task(live: LiveKB) -> None:
     live.update(_location(pick_update(BAG, "Robot2", 1)))
     live.update(_location(pick_update(TV, "Robot2", 2)))
-    live.update(_location(delivered_update([(BAG, 1), (TV, 2)], "Robot2", DEPOT, 3000)))
+    live.update(_location(_joined(delivered_update([(BAG, 1), (TV, 2)]),
+                                  robot_at_update("Robot2", DEPOT, 3000))))
     assert (_values(live, BAG, "Delivered_at_task"), _values(live, TV, "Delivered_at_task")) == (["1"], ["2"])
     assert _position(live, "Robot2") == [("1", "0", "3000")]  # at the depot now
     assert _place(live, BAG) == [{"picked_by": "Robot2", "picked_task": "1"}]  # delivered, still picked
@@ -159,8 +161,9 @@ async def test_the_controller_reads_back_why_nobody_picks_it() -> None:
     every = _writable(*ALL)
     controller = _controller(every, MemoryNetwork())
     assert not isinstance(await controller.gather(Task(1, BAG)), str)
-    every.update(_location(pick_update(BAG, "Robot2", 3, (3, 21), 1000)))
-    every.update(_location(missing_update(PASTA, "Robot3", 4, (5, 6), 2000)))
+    every.update(_location(_joined(pick_update(BAG, "Robot2", 3), robot_at_update("Robot2", (3, 21), 1000))))
+    every.update(_location(_joined(missing_update(PASTA, "Robot3", 4),
+                                   robot_at_update("Robot3", (5, 6), 2000))))
     # Task 1's place was read before the pick: read again for task 1, as first told.
     assert not isinstance(await controller.gather(Task(1, BAG)), str)
     assert await controller.gather(Task(5, BAG)) == "picked by Robot2 at task 3"
@@ -192,6 +195,12 @@ class Radio:
             raise QueryFailed(Response(Status.SERVICE_UNAVAILABLE, b"busy"))
         if self.apply is not None:
             self.apply(update)
+
+    async def called(self) -> None:
+        """Until the writer has sent something."""
+        while not self.calls:
+            self._changed.clear()
+            await self._changed.wait()
 
     async def wait(self, writer: KnowledgeWriter, timeout: float = 5.0) -> None:
         """Until ``writer`` has nothing left to send, what may wait included
@@ -351,8 +360,7 @@ async def test_closing_the_writer_stops_it(make: Callable) -> None:
     writer = make(radio, retry_s=60.0)  # stuck waiting to try again
     writer.picked(_job(1, BAG))
     async with asyncio.timeout(5):
-        while not radio.calls:
-            await asyncio.sleep(0.001)
+        await radio.called()
         await writer.aclose()
     assert len(radio.calls) == 1
 
