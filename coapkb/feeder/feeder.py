@@ -182,6 +182,8 @@ class Feeder:
         """Feed one cluster's share; returns its records and when its last task was decided."""
         channel, membership, watcher = self.channel, self.membership, self.channel.watcher
         records: list[TaskRecord] = []
+        #: (robot, task) -> record, for the tasks a robot reports not found.
+        assigned: dict[tuple[str, int], TaskRecord] = {}
         queue: list[tuple[str, int | None]] = [(name, None) for name in share]
         #: Tasks of a robot's previous process, found when it joins again.
         reruns: list[TaskRecord] = []
@@ -198,7 +200,9 @@ class Feeder:
                 record = await self._feed_task(index, cluster, seq, name, joining, reassigned_from)
                 record.reassigned_from = reassigned_from
                 records.append(record)
-                mark_not_found(records, watcher.states)
+                if record.assigned_to is not None:
+                    assigned[(record.assigned_to, record.seq)] = record
+                mark_not_found(assigned, watcher.states)
                 if progress is not None:
                     held = progress(record)
                     if held is not None:
@@ -211,7 +215,7 @@ class Feeder:
                 channel.settings.task_timeout_s * 4,
                 f"cluster {index + 1} to finish executing",
             )
-            mark_not_found(records, watcher.states)
+            mark_not_found(assigned, watcher.states)
             # Tasks assigned to robots that went down before executing them
             # go round again, in their order, to the survivors: once the
             # down robot can no longer pick them (the fence).

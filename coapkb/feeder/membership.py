@@ -108,8 +108,8 @@ class Membership:
                         robot_id, seen + 1)
             watcher.readmit(robot_id)
             for record in missed:  # the robot takes tasks strictly in order
-                await self.channel.post_task(robot_id, task_post(record.seq, record.object, record.joined, record.reassigned_from),
-                                             record.seq, record.object)
+                post = task_post(record.seq, record.object, record.joined, record.reassigned_from)
+                await self.channel.post_task(robot_id, post, record.seq, record.object)
 
     async def recover(self, cluster: Sequence[str], records: list[TaskRecord]) -> None:
         """Once the cluster's survivors are idle: fence off every down robot

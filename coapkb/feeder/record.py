@@ -126,10 +126,16 @@ def skip_kind(reason: str | None) -> str:
     return "missing"
 
 
-def mark_not_found(records: Sequence[TaskRecord], states: Mapping[str, Any]) -> None:
+def by_assignment(records: Sequence[TaskRecord]) -> dict[tuple[str, int], TaskRecord]:
+    """(robot, task) -> the record of each task given to a robot."""
+    return {(r.assigned_to, r.seq): r for r in records if r.assigned_to is not None}
+
+
+def mark_not_found(assigned: Mapping[tuple[str, int], TaskRecord], states: Mapping[str, Any]) -> None:
     """Mark the tasks whose robot did not find the object at the shelf, as its
-    live state names them (``missed``: the latest few)."""
-    assigned = {(r.assigned_to, r.seq): r for r in records if r.assigned_to is not None}
+    live state names them (``missed``: the latest few); ``assigned``: see
+    :func:`by_assignment` (kept up as tasks are decided, so a shift of
+    thousands of tasks is not indexed again after each one)."""
     for robot_id, state in states.items():
         for seq, why in state.live.missed:
             record = assigned.get((robot_id, seq))

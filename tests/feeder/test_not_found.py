@@ -9,7 +9,7 @@ from dataclasses import replace
 
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.feeder import FateCounts, TaskRecord
-from coapkb.feeder.record import mark_not_found, skip_kind
+from coapkb.feeder.record import by_assignment, mark_not_found, skip_kind
 from coapkb.harness.record import TeamRecord, summarise
 from coapkb.transport.base import TrafficCounters
 
@@ -39,7 +39,7 @@ def test_skip_kinds() -> None:
 def test_a_robots_missed_task_marks_its_record_not_found() -> None:
     four, five = _assigned(4), _assigned(5, robot="Robot2", obj="Canon_tv_538")
     records = [_skipped(3, "picked by Robot2 at task 1"), four, five]
-    mark_not_found(records, {"Robot1": _state("Robot1", (4, MISPLACED)), "Robot2": _state("Robot2"),
+    mark_not_found(by_assignment(records), {"Robot1": _state("Robot1", (4, MISPLACED)), "Robot2": _state("Robot2"),
                              "Robot3": _state("Robot3")})
     assert four.not_found == f"Robot1 did not find it: {MISPLACED}"
     assert (four.fate, five.fate, records[0].fate) == ("not-found", "assigned", "skipped")
@@ -49,22 +49,22 @@ def test_a_robots_missed_task_marks_its_record_not_found() -> None:
 def test_a_missed_task_names_only_the_robot_it_went_to() -> None:
     """Robot2 says it missed task 4, but task 4 went to Robot1: a mix-up, not Robot1's miss."""
     four = _assigned(4)
-    mark_not_found([four], {"Robot2": _state("Robot2", (4, MISPLACED))})
+    mark_not_found(by_assignment([four]), {"Robot2": _state("Robot2", (4, MISPLACED))})
     assert four.not_found is None and four.fate == "assigned"
 
 
 def test_the_first_reason_stands_and_old_tasks_are_ignored() -> None:
     four = _assigned(4)
-    mark_not_found([four], {"Robot1": _state("Robot1", (4, MISPLACED))})
+    mark_not_found(by_assignment([four]), {"Robot1": _state("Robot1", (4, MISPLACED))})
     # Read again after the next decision, with a task the records do not hold.
-    mark_not_found([four], {"Robot1": _state("Robot1", (2, "gone: picked by Robot4 at task 1"),
+    mark_not_found(by_assignment([four]), {"Robot1": _state("Robot1", (2, "gone: picked by Robot4 at task 1"),
                                                       (4, "gone: picked by Robot4 at task 3"))})
     assert four.not_found == f"Robot1 did not find it: {MISPLACED}"
 
 
 def test_a_reassigned_task_is_reassigned_though_its_robot_missed_it() -> None:
     four = replace(_assigned(4), orphaned="Robot1 went down before executing it")
-    mark_not_found([four], {"Robot1": _state("Robot1", (4, MISPLACED))})
+    mark_not_found(by_assignment([four]), {"Robot1": _state("Robot1", (4, MISPLACED))})
     assert four.fate == "reassigned"
 
 
