@@ -73,6 +73,8 @@ T = TypeVar("T")
 
 #: Reply size assumed for a resource never answered before: a small answer.
 DEFAULT_REPLY_BYTES = 128
+#: Outcomes on a path before its loss estimate decides the copies of a try.
+TRUSTED_OUTCOMES = 8
 #: Tries of one request that may fail outright (ICMP) before the error is raised.
 MAX_ERRORS = 2
 
@@ -242,8 +244,12 @@ class PeerPath:
 
     def copies(self, try_number: int) -> int:
         s = self.settings
-        if self.loss.observed < 8:  # too few outcomes to trust the estimate
-            return 1
+        if self.loss.observed < TRUSTED_OUTCOMES:
+            # Too few outcomes to trust the estimate: a try that went
+            # unanswered is the evidence there is.  Its retry goes out twice,
+            # so a new path's first exchanges (EDHOC, a task's first query)
+            # do not wait out loss after loss with one copy at a time.
+            return min(2, s.max_copies) if try_number > 0 else 1
         if self.loss.rate > s.hedge_all_above or (try_number > 0 and self.loss.rate > s.hedge_retries_above):
             return min(2, s.max_copies)
         return 1
