@@ -353,6 +353,14 @@ class Robot:
             self._get_claims)
         add(ResourceInfo(LEASE_PATH, rt="coapkb.lease", title="lease grants (the fence)"), self._get_lease)
 
+    async def join_team(self) -> tuple[int, int]:
+        """Wait, a bounded time, until every teammate has been heard from
+        (:meth:`TeamView.heard_from`): the security handshake and the first
+        round trip with each are then behind, not in the first task's
+        queries.  Returns (teammates heard from, teammates)."""
+        heard = await self.team.heard_from(self.team.join_wait_s)
+        return len(heard), sum(1 for r in self.config.team if r != self.config.robot_id)
+
     async def aclose(self) -> None:
         if self.directory is not None:
             await self.directory.aclose()

@@ -11,6 +11,7 @@ a restarted process is a new member, admitted at a task boundary."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from dataclasses import dataclass, replace
 from typing import Awaitable, Callable, Mapping, Sequence
@@ -218,6 +219,16 @@ class ObservedStates:
         self._joining[robot_id] = clock.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
+
+    async def heard_from_all(self, timeout: float) -> list[str]:
+        """Wait until every robot has been heard from once (its observation
+        answered: a security context and a round-trip sample with it), at
+        most ``timeout`` s; the robots heard from.  No robot is probed or
+        counted down for its silence here: one not up yet is only awaited."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout), self._changed:
+                await self._changed.wait_for(lambda: all(r in self.states for r in self._endpoints))
+        return [r for r in self._endpoints if r in self.states]
 
     async def record_failure(self, robot_id: str, exc: Exception) -> None:
         """A request to ``robot_id`` made elsewhere (a query) failed at the transport."""
@@ -445,6 +456,19 @@ class TeamView:
 
     def start(self) -> None:
         self._teammates.start()
+
+    async def heard_from(self, timeout: float) -> list[str]:
+        """The teammates heard from once :meth:`ObservedStates.heard_from_all`
+        returns (every one, or ``timeout`` passed)."""
+        return await self._teammates.heard_from_all(timeout)
+
+    @property
+    def join_wait_s(self) -> float:
+        """How long a starting robot waits to hear from its teammates: one
+        liveness timeout (two floors before any sample: a teammate still
+        starting, a lossy link's first exchanges); one that stays silent is
+        the liveness probes' to find."""
+        return self._teammates.liveness_timeout_s
 
     async def aclose(self) -> None:
         await self._teammates.aclose()

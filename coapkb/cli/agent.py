@@ -22,7 +22,11 @@ async def _agent(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     robot = await Robot.start(config, query_wire=args.query_wire)
     assert robot.server is not None  # Robot.start returns a serving robot
-    print(f"robot {config.robot_id} ready on {robot.server.endpoint}", flush=True)
+    # Ready once in touch with the team (or after a bound): the handshakes
+    # with the teammates are then not in the first task's queries.
+    heard, teammates = await robot.join_team()
+    print(f"robot {config.robot_id} ready on {robot.server.endpoint}, "
+          f"heard from {heard} of {teammates} teammates", flush=True)
     try:
         await until_signalled()
     finally:

@@ -183,3 +183,41 @@ async def test_a_readmitted_robot_has_a_grace_until_heard_from_and_waits_outlast
         assert abs(states.detection_s - plain) < 1e-6
     finally:
         await states.aclose()
+
+
+class OneTeammateNotUpYet:
+    """Robot2 answers its observation; Robot3's never comes (not started)."""
+
+    def __init__(self) -> None:
+        self.counters = TrafficCounters()
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        await asyncio.Event().wait()
+        raise AssertionError("unreachable")
+
+    async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        if peer.port == 3:
+            await asyncio.Event().wait()
+        yield Response(Status.CONTENT, state(0).encode_plan(), ContentFormat.CBOR)
+        await asyncio.Event().wait()
+
+    async def aclose(self) -> None:
+        pass
+
+
+async def test_a_starting_robot_waits_to_hear_from_its_teammates_a_bounded_time_and_suspects_nobody() -> None:
+    endpoints = {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)}
+    states = ObservedStates(OneTeammateNotUpYet(), endpoints, PLAN_PATH, liveness=True)
+    states.start()
+    try:
+        assert await states.heard_from_all(0.3) == ["Robot2"]
+        assert states.down == {}  # silence at start is awaited, not counted
+        only_robot2 = ObservedStates(OneTeammateNotUpYet(), {"Robot2": endpoints["Robot2"]}, PLAN_PATH)
+        only_robot2.start()
+        try:
+            async with asyncio.timeout(2):  # returns once every teammate is heard, not at the bound
+                assert await only_robot2.heard_from_all(60) == ["Robot2"]
+        finally:
+            await only_robot2.aclose()
+    finally:
+        await states.aclose()
