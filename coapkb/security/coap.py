@@ -74,21 +74,30 @@ _OWN_LABEL = ":own"
 #: EDHOC sessions a robot's server keeps as responder.  A session is half
 #: open from message_1 until a member's message_3 completes it: anyone on
 #: the link can open one, so at most ``HALF_OPEN_MAX`` are kept (enough for a
-#: central server's whole team keying at once), none for longer than
+#: central server's team of 99 keying at once: a central server for 60 robots
+#: that kept 32 dropped members' sessions before their message_3), none for longer than
 #: ``HALF_OPEN_S`` (a member's message_3 follows within a few round trips),
 #: the oldest dropped first.  Complete sessions belong to members: one per
 #: member is kept (a member that keys again replaces its older one), and
 #: half-open ones only get the identifiers complete ones leave, so a flood of
 #: message_1 never pushes a teammate's session out.
-HALF_OPEN_MAX = 32
+HALF_OPEN_MAX = 128
 HALF_OPEN_S = 30.0
-#: Connection identifiers aiocoap 0.4.17 gives its responder sessions
-#: (one-byte CBOR integers, -24..23; lakers takes no longer ones), less the
-#: one the initiator chose.  When complete sessions alone would take them
-#: all, the one used least recently goes (its member keys again on its next
-#: request): only a server with more than 46 members talking to it, a central
-#: server for a large team, gets there.
-RESPONDER_IDENTIFIERS = 47
+#: The connection identifiers (C_R, the OSCORE Recipient ID) a responder
+#: gives its sessions: every one-byte identifier (RFC 9528 section 3.3.2),
+#: those sent as a one-byte CBOR integer first, then those sent as a
+#: one-byte byte string (one byte more in message_2 and message_3; the
+#: OSCORE kid stays one byte).  aiocoap 0.4.17 offers only the 48 integers,
+#: and its message_3 parser refuses 23 (``-24 <= c_r < 23``): a central
+#: server with 60 robots ran out, and its EDHOC answered 5.00 "Too many
+#: contexts" or met a message_3 whose session had been given away.
+ONE_BYTE_IDENTIFIERS: tuple[bytes, ...] = tuple(
+    bytes([b]) for b in sorted(range(256), key=lambda b: not (b < 0x17 or 0x20 <= b < 0x38)) if b != 0x17
+)
+#: Identifiers a responder has for complete sessions, less the one the
+#: initiator chose.  When complete sessions alone would take them all, the
+#: one used least recently goes (its member keys again on its next request).
+RESPONDER_IDENTIFIERS = len(ONE_BYTE_IDENTIFIERS) - 1
 #: message_1 a responder takes on per second, in bursts of up to
 #: ``HALF_OPEN_MAX``.  Each costs it key generation and two ECDH operations
 #: (about a millisecond): a stranger sending a thousand per second would
@@ -105,6 +114,15 @@ EDHOC_BUSY_RETRIES = 6
 class EdhocFailed(SecurityError, TransportError):
     """EDHOC with a peer failed: refused, not a teammate, or a bad message.
     A transport failure too, so callers fail over as for a dead peer."""
+
+    def __init__(self, message: str, code: Any = None) -> None:
+        super().__init__(message)
+        #: The responder's error code, when it refused a message.
+        self.code = code
+
+
+class SessionGone(EdhocFailed):
+    """The responder refused message_3: it no longer had the session."""
 
 
 class MissingContext(SecurityError, aiocoap.error.Error):
@@ -124,6 +142,8 @@ CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid, MissingCo
 _INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
     (OscoreSiteWrapper, "_get_edhoc_identity"): ("origin",),
     (OscoreSiteWrapper, "render_to_pipe"): ("pipe",),
+    (OscoreSiteWrapper, "_process_edhoc_msg12"): ("pipe",),
+    (aiocoap_edhoc.EdhocResponderContext, "__init__"): ("responder", "c_i", "c_r", "server_credentials", "logger"),
     (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
     (TransportOSCORE, "__init__"): ("context", "forward_context"),
     (TransportOSCORE, "request"): ("request",),
@@ -263,6 +283,16 @@ class ClientSecurity:
             ctx.client_credentials.pop(key, None)
 
     async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost) -> None:
+        """EDHOC with ``peer``; once more from message_1 if the responder no
+        longer had the session when message_3 came (4.00: a server keying
+        with many members at once drops its oldest half-open sessions)."""
+        try:
+            await self._handshake(ctx, peer, post)
+        except SessionGone as exc:
+            log.info("%s; keying with %s again", exc, peer)
+            await self._handshake(ctx, peer, post)
+
+    async def _handshake(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost) -> None:
         loop = asyncio.get_running_loop()
         started = loop.time()
         stats = HandshakeStats(str(peer))
@@ -285,7 +315,12 @@ class ClientSecurity:
         context = _InitiatorContext(
             initiator, c_i, c_r, aiocoap_edhoc.OwnCredStyle.ByKeyId, logging.getLogger("coapkb.security.edhoc")
         )
-        message_4 = await self._post(post, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
+        try:
+            message_4 = await self._post(post, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
+        except EdhocFailed as exc:
+            if exc.code == aiocoap.BAD_REQUEST:
+                raise SessionGone(f"EDHOC with {peer}: message_3 refused (the session is gone there)") from None
+            raise
         try:
             context.complete_with_message_4(message_4)
         except Exception:
@@ -311,7 +346,7 @@ class ClientSecurity:
             await asyncio.sleep(min(float(response.opt.max_age or 1), EDHOC_RETRY_MAX_S))
         if not response.code.is_successful():
             detail = response.payload.decode("utf-8", "replace")[:80]
-            raise EdhocFailed(f"EDHOC with {peer} refused: {response.code} {detail}".rstrip())
+            raise EdhocFailed(f"EDHOC with {peer} refused: {response.code} {detail}".rstrip(), code=response.code)
         return response.payload
 
     def _responder(self, peer: Endpoint, id_cred_r: bytes) -> TeamMember:
@@ -503,6 +538,8 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         self._tokens_at = 0.0
         #: message_1 answered 5.03 for want of a token.
         self.refused_starts = 0
+        #: Identifiers of sessions dropped lately -> when (:meth:`_free_identifier`).
+        self._resting: dict[bytes, float] = {}
 
     def _get_edhoc_identity(self, origin: str) -> aiocoap_edhoc.EdhocCredentials | None:
         # One identity per robot, whatever host name the client asked for.
@@ -554,6 +591,29 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
                     return
         await super().render_to_pipe(pipe)
 
+    def _process_edhoc_msg12(self, pipe: Any) -> None:
+        """EDHOC message_1 as responder, with a connection identifier from
+        :data:`ONE_BYTE_IDENTIFIERS` (see there); the session is kept as
+        aiocoap keeps its own, and its message_3 goes through aiocoap."""
+        own = self._get_edhoc_identity("")
+        if own is None:
+            raise aiocoap.error.NotFound("no EDHOC identity here")
+        responder = lakers.EdhocResponder(r=own.own_key.d, cred_r=cbor2.dumps(own.own_cred[14], canonical=True))
+        try:
+            c_i, ead_1 = responder.process_message_1(pipe.request.payload[1:])
+        except Exception:  # lakers raises plain exceptions for malformed messages
+            raise aiocoap.error.BadRequest("malformed EDHOC message_1") from None
+        if any(item.is_critical() for item in ead_1):
+            raise aiocoap.error.BadRequest("critical EAD in message_1")
+        used = self.server_credentials.find_all_used_contextless_oscore_kid() | {bytes(c_i)}
+        c_r = self._free_identifier(used, asyncio.get_running_loop().time())
+        if c_r is None:  # _prune leaves one free; only a race gets here
+            raise aiocoap.error.ServiceUnavailable("no free connection identifier")
+        message_2 = responder.prepare_message_2(own.own_cred_style.as_lakers(), c_r, None)
+        session = aiocoap_edhoc.EdhocResponderContext(responder, bytes(c_i), c_r, self.server_credentials, self.log)
+        self.server_credentials[":" + secrets.token_hex(16)] = session
+        pipe.add_response(aiocoap.Message(code=aiocoap.CHANGED, payload=bytes(message_2)), is_last=True)
+
     def _take_start_token(self, now: float) -> int:
         """0 if a message_1 may be taken on now, else the seconds to wait (at least 1)."""
         self._start_tokens = min(float(HALF_OPEN_MAX),
@@ -569,8 +629,7 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         for label, entry in list(self.server_credentials.items()):
             if (isinstance(entry, aiocoap_edhoc.EdhocResponderContext) and entry._incomplete
                     and now - self._opened.get(label, now) >= HALF_OPEN_S):
-                self.server_credentials.pop(label)
-                self._opened.pop(label, None)
+                self._release(label, now)
 
     def _prune(self, now: float) -> None:
         """Make room for one more half-open session: complete sessions first
@@ -599,9 +658,29 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         room = min(HALF_OPEN_MAX, RESPONDER_IDENTIFIERS - len(complete)) - 1
         drop += half_open[: max(0, len(half_open) - room)]
         for label in drop:
-            entry = self.server_credentials.pop(label)
-            self._opened.pop(label, None)
-            self._used.pop(id(entry), None)
+            self._release(label, now)
+
+    def _release(self, label: str, now: float) -> None:
+        """Forget a responder session; its identifier rests (see :meth:`_free_identifier`)."""
+        entry = self.server_credentials.pop(label)
+        self._opened.pop(label, None)
+        self._used.pop(id(entry), None)
+        self._resting[bytes(entry.recipient_id)] = now
+
+    def _free_identifier(self, used: set[bytes], now: float) -> bytes | None:
+        """The first identifier of :data:`ONE_BYTE_IDENTIFIERS` no session
+        uses and none gave up within ``HALF_OPEN_S``: a message_3 still on
+        its way for a session that was dropped then finds no session, instead
+        of another member's half-open one (which it would break); the
+        longest resting one when every free one rests."""
+        for gone, since in list(self._resting.items()):
+            if now - since >= HALF_OPEN_S:
+                del self._resting[gone]
+        free = [c for c in ONE_BYTE_IDENTIFIERS if c not in used]
+        fresh = [c for c in free if c not in self._resting]
+        if fresh:
+            return fresh[0]
+        return min(free, key=lambda c: self._resting[c], default=None)
 
 
 @dataclass

@@ -413,9 +413,9 @@ async def test_a_flood_of_edhoc_message_1_leaves_teammates_keyed_and_its_session
 async def test_when_identifiers_run_short_the_least_recently_used_member_keys_again(
     team_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """aiocoap's responder has 47 connection identifiers; a server with more
-    members talking to it drops the session used least recently, and that
-    member keys again on its next request (here with room for two)."""
+    """A server with more members talking to it than connection identifiers
+    drops the session used least recently, and that member keys again on its
+    next request (here with room for two)."""
     from coapkb.security import coap as oscore_layer
 
     monkeypatch.setattr(oscore_layer, "RESPONDER_IDENTIFIERS", 2)
@@ -439,6 +439,35 @@ async def test_when_identifiers_run_short_the_least_recently_used_member_keys_ag
         assert security.responder_sessions() == (0, 2)
         assert await ask("Robot2") == 1
         assert await ask("Robot3") > 1  # its session was gone: it keys again
+    finally:
+        for client in clients.values():
+            await client.aclose()
+        await robot.stop()
+
+
+async def test_a_server_keys_with_more_members_than_cbor_integer_identifiers(tmp_path: Path) -> None:
+    """A central server for 60 robots: every member keys once and stays
+    keyed (aiocoap alone has 48 one-byte integer identifiers and answered
+    the 48th member 5.00).  Identifiers beyond them are one-byte byte strings."""
+    from coapkb.security import coap as oscore_layer
+
+    team = tmp_path / "team"
+    generate_team(team, default_members(60))
+    robot = Robot1(team)
+    security = ServerSecurity(load_identity(team, "central"), AccessPolicy())
+    robot.server = await serve(robot.router, Endpoint("coap", "127.0.0.1", 0), security=security)
+    peer = robot.server.endpoint
+    names = [f"Robot{i}" for i in range(1, 61)]
+    clients = {name: await _client(load_identity(team, name)) for name in names}
+    try:
+        first = await asyncio.gather(*(clients[n].request(peer, Request(Method.GET, "/tasks"), timeout=10) for n in names))
+        assert all(r.status == Status.CONTENT for r in first)
+        assert security.responder_sessions() == (0, 60)
+        sent = {n: clients[n].counters.messages_sent for n in names}
+        for name in names:  # every session still there: one message each, no new handshake
+            assert (await clients[name].request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+            assert clients[name].counters.messages_sent - sent[name] == 1
+        assert oscore_layer.RESPONDER_IDENTIFIERS > 60
     finally:
         for client in clients.values():
             await client.aclose()
