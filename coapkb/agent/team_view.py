@@ -249,9 +249,10 @@ class ObservedStates:
             return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
-            if isinstance(exc, PeerTimeout) and await self._reached_by_others(robot_id):
-                # Silence here, an answer there: this process's link or loop,
-                # not the robot (nobody listening, ICMP, needs no confirming).
+            if not isinstance(exc, PeerGone) and await self._reached_by_others(robot_id):
+                # Silence (or an error of this process's own making) here, an
+                # answer there: this process's link, loop or state, not the
+                # robot (nobody listening, ICMP, needs no confirming).
                 log.warning("%s is silent to this robot, but a teammate reaches it: not declared down", robot_id)
                 self._failures[robot_id] = 0
                 return

@@ -33,6 +33,9 @@ from .security import CoapClientSecurity
 MAX_SINGLE_BODY = 1024
 #: Block-wise transfers started over before giving up on an answer that keeps changing.
 MAX_TRANSFER_RESTARTS = 4
+#: Unanswered requests in a row to a peer after which its OSCORE context is
+#: dropped and the next request runs EDHOC again (see ``_secured``).
+REKEY_AFTER_UNANSWERED = 2
 #: Longest one EDHOC message may take with its retries (the request's own timeout usually ends it first).
 EDHOC_TIMEOUT_S = 60.0
 #: How long an Observe registration may take, retransmissions included, seconds.
@@ -86,6 +89,8 @@ class CoapClientTransport:
         self._ctx = ctx
         #: Protects every request (OSCORE by EDHOC to every peer), or None.
         self.security = security
+        #: Peer (host:port) -> its requests unanswered in a row under its current context.
+        self._unanswered: dict[str, int] = {}
         self._hooks = hooks
         self.reliability = reliability
         self.counters: TrafficCounters = hooks.counters
@@ -136,35 +141,51 @@ class CoapClientTransport:
     async def _secured(self, peer: Endpoint, exchange: Any, timeout: float | None = None) -> Any:
         """``exchange()`` under OSCORE when security is on, all within
         ``timeout``: EDHOC on first contact; a context the peer lost (it
-        restarted) is re-keyed once, at once when the peer says so, at the
-        next request when it was silent."""
+        restarted) is re-keyed once, at once when the peer says so, after
+        :data:`REKEY_AFTER_UNANSWERED` unanswered requests in a row when it
+        was silent."""
         if self.security is None:
             async with asyncio.timeout(timeout):
                 return await exchange()
         used = None
         try:
             async with asyncio.timeout(timeout):
-                for again in (False, True):
+                rekeyed = False
+                while True:
                     await self.security.ensure(self._ctx, peer, post=self._edhoc_post)
                     used = self.security.context(self._ctx, peer)
                     try:
-                        return await exchange()
+                        answer = await exchange()
                     except self.security.context_lost as exc:
-                        if again:
+                        if self.security.context(self._ctx, peer) is not used:
+                            # Dropped here meanwhile (a concurrent request
+                            # re-keyed): nothing is known of the peer; use
+                            # the context that replaced it.
+                            continue
+                        if rekeyed:
                             raise
                         logging.getLogger("coapkb.security").warning(
                             "%s: our OSCORE context is gone there (%s); running EDHOC again", peer, type(exc).__name__)
                         self.security.forget(self._ctx, peer, stale=used)
+                        rekeyed = True
+                        continue
+                    self._unanswered.pop(peer.hostport, None)
+                    return answer
         except (TimeoutError, ExchangeTimeout, *_NO_ANSWER):
             # A peer that restarted may have handed our old key id to another
             # client; our requests then fail to decrypt there and a NON one
-            # goes unanswered (RFC 8613 lets the server stay silent).  So the
-            # next request after an unanswered one re-keys instead of
-            # repeating the silence until the peer is declared down.
+            # goes unanswered (RFC 8613 lets the server stay silent).  So
+            # after unanswered requests in a row the next one re-keys instead
+            # of repeating the silence until the peer is declared down.  Not
+            # after one: a peer only slow (a loaded central server) would be
+            # re-keyed over and over, and every request in flight on the old
+            # context would fail with it.
             if used is not None:
-                self.security.forget(self._ctx, peer, stale=used)
+                unanswered = self._unanswered[peer.hostport] = self._unanswered.get(peer.hostport, 0) + 1
+                if unanswered >= REKEY_AFTER_UNANSWERED:
+                    self._unanswered.pop(peer.hostport, None)
+                    self.security.forget(self._ctx, peer, stale=used)
             raise
-        raise AssertionError("unreachable")
 
     async def _edhoc_post(self, peer: Endpoint, payload: bytes) -> aiocoap.Message:
         """One EDHOC message (POST /.well-known/edhoc, RFC 9528 appendix A.2),
