@@ -13,6 +13,7 @@ from ..agent.local_health import LoopHealth
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
 from ..host import Network, Sockets
+from ..transport import reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response
 from .tasks import FeederError
@@ -75,7 +76,14 @@ class Channel:
         and a watcher (with liveness: the feeder declares a robot down when
         its requests fail, and then waits for the survivors only)."""
         network = network or Sockets()
-        client = await network.open_client(settings.transport, security=security)  # type: ignore[arg-type]
+        # Every exchange with a robot crosses that robot's link both ways:
+        # its rate times the feeder's tries as it does the robots' own (the
+        # airtime of a state answer in the timeout).  Without it the feeder
+        # of a 60-robot team timed its tries as on loopback and sent 13,000
+        # retries whose answers filled the robots' links.
+        reliability = reliability_for(settings.transport, link_kbps=settings.link_kbps)
+        client = await network.open_client(settings.transport, reliability=reliability,
+                                           security=security)  # type: ignore[arg-type]
         # Local health: the feeder's own loop lateness, so it does not declare
         # robots down for its own busy CPU.
         health = LoopHealth()
