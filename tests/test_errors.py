@@ -51,3 +51,11 @@ def test_the_package_defines_errors_and_all_derive_from_the_root() -> None:
 ])
 def test_errors_keep_their_builtin_base_for_existing_callers(module: str, name: str, also: type) -> None:
     assert issubclass(getattr(importlib.import_module(module), name), also)
+
+
+def test_the_error_table_names_every_class_directly_under_the_root() -> None:
+    import coapkb.errors
+
+    table = coapkb.errors.__doc__ or ""
+    direct = {c.__name__ for c in _error_classes() if CoapkbError in c.__bases__}
+    assert {name for name in direct if f"``{name}``" not in table} == set()
