@@ -58,15 +58,16 @@ against the folder of the TOML file, not the working directory)::
 
 from __future__ import annotations
 
-import tomllib
 import dataclasses
+import tomllib
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
-from .errors import CoapkbError
 import tomli_w
 
+from .errors import CoapkbError
 from .security.settings import SecurityConfig, parse_security
 from .transport.base import Endpoint
 from .transport.registry import transport_for
@@ -191,6 +192,9 @@ class RobotConfig:
     #: The Unix socket of a simulated world shared by the team (``coapkb
     #: world``): what the robot finds at the shelf; None: the KB's word.
     world: Path | None = None
+    #: ``[transport.SCHEME]`` tables: scheme -> the tunables of that
+    #: transport's layer (CoAP's reliability layer: docs/configuration.md).
+    transport_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     @property
     def transport(self) -> str:
@@ -260,6 +264,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
                             for m in config.replicas.values()}
     if config.world is not None:
         data["world"] = str(config.world.resolve())
+    if config.transport_options:
+        data["transport"] = {scheme: dict(options) for scheme, options in config.transport_options.items()}
     return data
 
 
@@ -273,7 +279,7 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     known = {
         "robot_id", "bind", "kb", "team", "start", "strategy",
         "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
-        "discovery", "lease_s", "kb_writable", "replicas", "world",
+        "discovery", "lease_s", "kb_writable", "replicas", "world", "transport",
     }
     _no_unknown(data, known, "")
     robot_id = _get(data, "robot_id", str)
@@ -318,9 +324,32 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         kb_writable=_get(data, "kb_writable", bool, False),
         replicas=replicas,
         world=None if data.get("world") is None else base_dir / _get(data, "world", str),
+        transport_options=_transport_options(_get(data, "transport", dict, {}), bind.scheme),
     )
     _check_values(config)
     return config
+
+
+def _transport_options(table: Mapping[str, Any], scheme: str) -> dict[str, dict[str, Any]]:
+    """``[transport.SCHEME]`` tables, each checked by its transport's layer
+    (the robot's own transport's is the one used; another's is still checked,
+    so a typo does not wait for the day the robot changes transport)."""
+    from .transport import reliability_for
+
+    options: dict[str, dict[str, Any]] = {}
+    for name, section in table.items():
+        if not isinstance(section, dict):
+            raise ConfigError(f"transport.{name}: expected a table")
+        try:
+            transport_for(name)
+            reliability_for(name, options=section)
+        except ValueError as exc:
+            # "FIELD: why" names a field of the table; anything else is about the table.
+            field_name = str(exc).split(":", 1)[0]
+            where = f"transport.{name}." if field_name in section else f"transport.{name}: "
+            raise ConfigError(f"{where}{exc}") from None
+        options[name] = dict(section)
+    return options
 
 
 def _teammates(table: Mapping[str, Any], section: str, bind: Endpoint) -> dict[str, Teammate]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Any
 
@@ -275,3 +276,21 @@ def test_load_config_prefixes_errors_with_the_path(tmp_path: Path) -> None:
     path.write_text(missing_kb, encoding="utf-8")
     with pytest.raises(ConfigError, match=r"kb\[0\]: no such file"):
         load_config(path)
+
+
+def test_transport_tunables_reach_the_layer_and_bad_ones_name_their_field() -> None:
+    from coapkb.transport import reliability_for
+
+    base = {"robot_id": "Robot1", "bind": "coap://127.0.0.1:5701",
+            "team": {"Robot1": {"endpoint": "coap://127.0.0.1:5701", "kbs": ["Object", "Location", "Capability"]}}}
+    config = parse_config({**base, "link_kbps": 35, "transport": {"coap": {"silence_rto": 2, "window_max": 8}}})
+    layer = reliability_for(config.transport, link_kbps=config.link_kbps, options=config.transport_options["coap"])
+    assert (layer.settings.silence_rto, layer.settings.window_max, layer.settings.link_kbps) == (2.0, 8, 35.0)
+    for table, message in [
+        ({"coap": {"window_max": 1.5}}, "transport.coap.window_max: expected int"),
+        ({"coap": {"silence_rto": 99.0}}, "transport.coap: need min_rto <= silence_rto <= max_rto"),
+        ({"zmq": {"linger": 1}}, "transport.zmq.linger: unknown field (zmq has no tunables)"),
+        ({"carrier-pigeon": {}}, "transport.carrier-pigeon: unknown transport"),
+    ]:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            parse_config({**base, "transport": table})

@@ -19,39 +19,40 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, replace
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import cbor2
 
 from .. import clock
-from ..errors import CoapkbError
-from ..kb.client import KBClient, QueryFailed
-from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..config import KB_MODULES, ConfigError, RobotConfig
-from ..kb.named_queries import NAMED_QUERIES
+from ..errors import CoapkbError
+from ..host import Host, operating_system
+from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
+from ..kb.named_queries import NAMED_QUERIES
 from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase
-from ..transport.messages import ContentFormat, Method, Request, Response, Status
-from ..transport.router import Router
-from ..host import Host, operating_system
+from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.router import Router
+from ..world import Position, layout_from_row
+from ..world.service import WorldClient
 from .controller import CLAIMS_PATH, Claim, Controller, DecisionMessage, Task, decode_claims, encode_claims
+from .knowledge_writer import KnowledgeWriter
 from .lease import LEASE_PATH, Lease
 from .local_health import LoopHealth
 from .progress import ProgressPacing, acted_on
-from .knowledge_writer import KnowledgeWriter
 from .query_handler import QueryError, QueryHandler
 from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_assigner import robot_sort_key
 from .task_executor import TaskExecutor
 from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
-from ..world import Position, layout_from_row
-from ..world.service import WorldClient
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 
@@ -181,7 +182,7 @@ class Robot:
         self.knowledge: KnowledgeWriter | None = None
 
     @classmethod
-    async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> "Robot":
+    async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> Robot:
         """Start the robot ``config`` describes on ``host`` (the operating
         system unless a simulator gives one)."""
         host = host or operating_system()
@@ -204,14 +205,15 @@ class Robot:
         return robot
 
     @classmethod
-    async def _start(cls, config: RobotConfig, query_wire: str, host: Host) -> "Robot":
+    async def _start(cls, config: RobotConfig, query_wire: str, host: Host) -> Robot:
         secured = robot_security(config)  # first: a bad key stops the robot before the KB loads
         client_security = None if secured is None else secured[1]
         kb = host.load_kb(config.kb_files, config.kb_index) if config.kb_files else None
         check_start(config, kb)
         router = Router()
         # One reliability layer for the client and the server's notifications.
-        reliability = reliability_for(config.transport, link_kbps=config.link_kbps)
+        reliability = reliability_for(config.transport, link_kbps=config.link_kbps,
+                                      options=config.transport_options.get(config.transport))
         client = await host.network.open_client(config.transport, reliability=reliability, security=client_security)
         # Nonzero, so it is always sent: teammates tell a restart by it.
         boot = host.rng.randrange(1, 2**32)

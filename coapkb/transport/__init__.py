@@ -9,6 +9,9 @@ plugs in from above through the seams of :mod:`.security`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from .base import (
     ClientTransport,
     Endpoint,
@@ -25,14 +28,21 @@ from .registry import SCHEMES, Reliability, TransportInfo, secured_schemes, tran
 from .security import ClientSecurity, GuardedService, ServerSecurity
 
 
-def reliability_for(scheme: str, *, link_kbps: float | None = None) -> Reliability | None:
+def reliability_for(scheme: str, *, link_kbps: float | None = None,
+                    options: Mapping[str, Any] | None = None) -> Reliability | None:
     """The reliability layer a robot hands to both :func:`open_client` and
     :func:`serve`: for CoAP one shared layer (its server's notifications
     then use its client's path estimates), sized for a link of
-    ``link_kbps`` if known; None for a transport without one (TCP
-    retransmits by itself)."""
+    ``link_kbps`` if known and tuned by ``options`` (the robot's
+    ``[transport.SCHEME]`` table; ValueError naming a field it cannot
+    take); None for a transport without one (TCP retransmits by itself),
+    which takes no options."""
     make = transport_for(scheme).reliability
-    return None if make is None else make(link_kbps)
+    if make is None:
+        if options:
+            raise ValueError(f"{sorted(options)[0]}: unknown field ({scheme} has no tunables)")
+        return None
+    return make(link_kbps, options or {})
 
 
 async def open_client(scheme: str, *, reliability: Reliability | None = None,

@@ -14,8 +14,9 @@ loads aiocoap or Zenoh, and ``import coapkb.transport`` loads none of them.
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Awaitable, Callable, Protocol, cast
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from ..errors import CoapkbError
 
@@ -41,8 +42,10 @@ ClientFactory = Callable[["Reliability | None", "ClientSecurity | None"], Awaita
 #: ``serve``'s signature for one transport: (service, endpoint, reliability, security).
 ServerFactory = Callable[["Service", "Endpoint", "Reliability | None", "ServerSecurity | None"],
                          Awaitable["ServerTransport"]]
-#: Builds the reliability a robot's client and server share, from its link rate in kbit/s (None: unknown).
-ReliabilityFactory = Callable[["float | None"], Reliability]
+#: Builds the reliability a robot's client and server share, from its link
+#: rate in kbit/s (None: unknown) and its ``[transport.SCHEME]`` table
+#: (ValueError naming a field it cannot take).
+ReliabilityFactory = Callable[["float | None", "Mapping[str, Any]"], Reliability]
 
 
 class UnknownTransport(CoapkbError, ValueError):
@@ -104,10 +107,10 @@ async def _coap_server(service: Service, endpoint: Endpoint, reliability: Reliab
     return await CoapServerTransport.start(service, endpoint, reliability=layer, security=security)
 
 
-def _coap_reliability(link_kbps: float | None) -> Reliability:
+def _coap_reliability(link_kbps: float | None, options: Mapping[str, Any]) -> Reliability:
     from .coap.reliability import make_reliability
 
-    return make_reliability(link_kbps=link_kbps)
+    return make_reliability(link_kbps=link_kbps, options=options)
 
 
 async def _zmq_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:

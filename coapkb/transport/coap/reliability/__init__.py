@@ -10,6 +10,10 @@ measurements stay in ``experiments/results/`` (docs/retransmission.md).
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
 from .layer import ReliabilityLayer, ReliabilitySettings
 
 #: The layer's name, as records state it (its stats, the bench's
@@ -17,10 +21,35 @@ from .layer import ReliabilityLayer, ReliabilitySettings
 ROBUST = ReliabilityLayer.name
 
 
-def make_reliability(*, link_kbps: float | None = None) -> ReliabilityLayer:
+#: The settings a robot's ``[transport.coap]`` table may set: every policy
+#: knob but the link rate (the top-level ``link_kbps``).
+TUNABLES = tuple(f.name for f in dataclasses.fields(ReliabilitySettings) if f.name != "link_kbps")
+
+
+def settings_from(options: Mapping[str, Any], *, link_kbps: float | None = None) -> ReliabilitySettings:
+    """Settings from a ``[transport.coap]`` table (``options``: tunable ->
+    value, each of its default's type; an int stands for a float).  Raises
+    ValueError naming the first field that is unknown, of the wrong type, or
+    out of range together with the rest."""
+    defaults = ReliabilitySettings()
+    values: dict[str, Any] = {}
+    for name, value in options.items():
+        if name not in TUNABLES:
+            raise ValueError(f"{name}: unknown field (known: {', '.join(sorted(TUNABLES))})")
+        default = getattr(defaults, name)
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if type(value) is not type(default):
+            raise ValueError(f"{name}: expected {type(default).__name__}, got {value!r}")
+        values[name] = value
+    return ReliabilitySettings(link_kbps=link_kbps, **values)
+
+
+def make_reliability(*, link_kbps: float | None = None, options: Mapping[str, Any] | None = None) -> ReliabilityLayer:
     """The layer for one robot's CoAP client and server: shared, so the
-    server's notifications use the client's estimates."""
-    return ReliabilityLayer(ReliabilitySettings(link_kbps=link_kbps))
+    server's notifications use the client's estimates.  ``options``: the
+    robot's ``[transport.coap]`` table (:func:`settings_from`)."""
+    return ReliabilityLayer(settings_from(options or {}, link_kbps=link_kbps))
 
 
-__all__ = ["ROBUST", "ReliabilityLayer", "ReliabilitySettings", "make_reliability"]
+__all__ = ["ROBUST", "TUNABLES", "ReliabilityLayer", "ReliabilitySettings", "make_reliability", "settings_from"]
