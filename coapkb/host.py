@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import random
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Protocol
 
 from .transport import ClientSecurity, ClientTransport, Endpoint, Reliability, ServerTransport, Service
 from .transport import open_client as _open_client
@@ -51,7 +52,7 @@ class Sockets:
         return await _serve(service, endpoint, reliability=reliability, security=security)
 
 
-def _load_kb(files: Sequence[Path], index_dir: Path | None) -> "KnowledgeBase":
+def _load_kb(files: Sequence[Path], index_dir: Path | None) -> KnowledgeBase:
     from .kb.store import KnowledgeBase
 
     return KnowledgeBase.load(files, index_dir=index_dir)
@@ -65,7 +66,7 @@ class Host:
     #: Draws a robot's incarnation number (nonzero, different after a restart).
     rng: random.Random = field(default_factory=random.SystemRandom)
     #: Loads a robot's KB modules (``files``, the on-disk index directory or None).
-    load_kb: Callable[[Sequence[Path], Path | None], "KnowledgeBase"] = _load_kb
+    load_kb: Callable[[Sequence[Path], Path | None], KnowledgeBase] = _load_kb
     #: May blocking work (a SPARQL query) go to a worker thread?  Not in the
     #: simulator: its processes share one thread and replay from a seed.
     threads: bool = True

@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.feeder.record import FateCounts  # noqa: E402
-from coapkb.harness.team import Fault, Team, TeamSpec, draw_tasks  # noqa: E402
+from coapkb.feeder.record import FateCounts
+from coapkb.harness.team import Fault, Team, TeamSpec, draw_tasks
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "busy_cpu"
 VICTIM = "Robot2"

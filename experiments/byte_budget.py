@@ -51,7 +51,6 @@ import argparse
 import asyncio
 import contextlib
 import csv
-import dataclasses
 import importlib.util
 import json
 import math
@@ -71,7 +70,7 @@ from unittest import mock
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap  # noqa: E402
+from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap
 
 
 def _sibling(name: str) -> ModuleType:

@@ -1189,7 +1189,7 @@ def kind_table(rows: Sequence[Mapping[str, Any]]) -> str:
 def _reference(rows: Mapping[str, Sequence[Mapping[str, Any]]], row: Mapping[str, Any]) -> Mapping[str, Any] | None:
     """The CoAP setting a peer's compares with: same loss, security on or off alike."""
     secure = row["security"] != "none"
-    for name, rs in rows.items():
+    for rs in rows.values():
         r = rs[0]
         if r["system"] == "coap-distributed" and r["loss_pct"] == row["loss_pct"] and (r["security"] != "none") == secure:
             return next((x for x in rs if x["table"] == "total"), None)

@@ -44,8 +44,8 @@ from rdflib.term import Literal, URIRef
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.wire.codec import decode_cbor, decode_json, encode_cbor, encode_json  # noqa: E402 (after sys.path)
-from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult  # noqa: E402
+from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
+from coapkb.wire.codec import decode_cbor, decode_json, encode_cbor, encode_json
 
 OBJ = "http://www.tcs.org/2018/Object#"
 XSD = "http://www.w3.org/2001/XMLSchema#"

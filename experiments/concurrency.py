@@ -28,11 +28,11 @@ for _path in (ROOT, ROOT / "experiments"):
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
+import sweep
 
-import sweep  # noqa: E402
-from coapkb.bench.linkemu import available, cleanup_stale  # noqa: E402
-from coapkb.bench.row import read_rows  # noqa: E402
+from coapkb.bench.linkemu import available, cleanup_stale
+from coapkb.bench.row import read_rows
 
 OUT = ROOT / "experiments" / "results" / "concurrency.csv"
 

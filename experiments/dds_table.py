@@ -20,9 +20,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
-from coapkb.bench.row import BenchRow  # noqa: E402
-from coapkb.bench.run import SYSTEMS, read_rows  # noqa: E402
-from stats import median_ci, ratio_ci  # noqa: E402
+from stats import median_ci, ratio_ci
+
+from coapkb.bench.row import BenchRow
+from coapkb.bench.run import SYSTEMS, read_rows
 
 Setting = tuple[int, int, float, float]
 

@@ -42,8 +42,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import KB_FILES, ROOT, free_port, rss_mib, write_csv  # noqa: E402
-from server_load import cpu_seconds, object_names, start_server, stop_server  # noqa: E402
+from common import KB_FILES, ROOT, free_port, rss_mib, write_csv
+from server_load import cpu_seconds, object_names, start_server, stop_server
 
 CSV_FIELDS = ["period", "round", "queries", "failed", "p50_ms", "p99_ms", "max_ms", "server_cpu_pct", "rss_mib",
               "message_1", "replies"]

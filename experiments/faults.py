@@ -34,13 +34,13 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
+from common import prepare_link_emulation
 
-from coapkb.bench import run as bench  # noqa: E402
-from coapkb.bench.row import BenchRow, append_rows, read_rows  # noqa: E402
-from coapkb.bench.run import retransmission_label  # noqa: E402
-from coapkb.harness.team import Fault  # noqa: E402
-from common import prepare_link_emulation  # noqa: E402
+from coapkb.bench import run as bench
+from coapkb.bench.row import BenchRow, append_rows, read_rows
+from coapkb.bench.run import retransmission_label
+from coapkb.harness.team import Fault
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "faults"
 SYSTEMS = ("coap-distributed", "zmq-distributed")

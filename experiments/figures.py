@@ -40,8 +40,9 @@ HERE = str(Path(__file__).resolve().parent)
 if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests)
     sys.path.insert(0, HERE)
 
+from stats import Estimate, median_ci
+
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
-from stats import Estimate, median_ci  # noqa: E402  (experiments/ is the script's own folder)
 
 FAMILIES: dict[str, tuple[str, str]] = {
     # family: (distributed system, central system)
@@ -196,9 +197,9 @@ def fig6(data: Data, out: Path) -> Path | str:
     drawn = False
     for ax, (name, dist, cent) in zip(axes, fams):
         for robots in data.values("robots"):
-            losses = [l for l in data.values("loss") if data.get(dist, robots, tasks, bw, l) or data.get(cent, robots, tasks, bw, l)]
+            losses = [x for x in data.values("loss") if data.get(dist, robots, tasks, bw, x) or data.get(cent, robots, tasks, bw, x)]
             for system, style in ((dist, "-"), (cent, "--")):
-                ys = [(p.wire if (p := data.get(system, robots, tasks, bw, l)) else None) for l in losses]
+                ys = [(p.wire if (p := data.get(system, robots, tasks, bw, x)) else None) for x in losses]
                 drawn |= _line(ax, losses, ys, _kb, linestyle=style, color=ROBOT_COLOURS.get(robots),
                                label=f"{robots} robots, {SYSTEMS[system].mode}")
         ax.set(title=name, xlabel="loss (%)", ylabel="kB on the wire", xticks=data.values("loss"))

@@ -43,12 +43,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import KB_FILES, ROOT, free_port, rss_mib, write_csv  # noqa: E402
-from server_load import bw_query, checked_fetch, drive, object_names, start_server, stop_server  # noqa: E402
+import aiocoap
+from common import KB_FILES, ROOT, free_port, rss_mib, write_csv
+from server_load import bw_query, checked_fetch, drive, object_names, start_server, stop_server
 
-import aiocoap  # noqa: E402
-
-from coapkb.kb.store import KnowledgeBase  # noqa: E402
+from coapkb.kb.store import KnowledgeBase
 
 CSV_FIELDS = ["phase", "server", "rss_mib", "rate_1", "rate_16", "answered", "wrong", "failed", "datagrams",
               "seconds"]

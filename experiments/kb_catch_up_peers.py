@@ -75,7 +75,7 @@ for _path in (ROOT, ROOT / "experiments"):
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-from common import prepare_link_emulation, stop_processes, write_csv  # noqa: E402
+from common import prepare_link_emulation, stop_processes, write_csv
 
 LOC = "http://www.tcs.org/2018/Location#"
 PY = sys.executable

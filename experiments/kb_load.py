@@ -51,7 +51,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from common import write_csv  # noqa: E402  (experiments/ is the script's own folder)
+from common import write_csv
 
 SUFFIXES = {".owl": "RDF/XML", ".rdf": "RDF/XML", ".ttl": "Turtle", ".nt": "N-Triples"}
 

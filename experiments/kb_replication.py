@@ -47,7 +47,7 @@ for _path in (ROOT, ROOT / "experiments"):
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-from common import PORTS, prepare_link_emulation, rss_mib, write_csv  # noqa: E402
+from common import PORTS, prepare_link_emulation, rss_mib, write_csv
 
 LOCATION = ROOT / "ontologies" / "Location.owl"
 LOC = "http://www.tcs.org/2018/Location#"
@@ -68,7 +68,7 @@ async def node(args: argparse.Namespace) -> None:
     from rdflib import URIRef
 
     from coapkb.kb.live import LiveKB, wall_ms
-    from coapkb.kb.replication import Holder, Replicator, ReplicationSettings
+    from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
     from coapkb.kb.resources import KBResources
     from coapkb.kb.store import KnowledgeBase
     from coapkb.transport import open_client, reliability_for, serve
@@ -82,7 +82,7 @@ async def node(args: argparse.Namespace) -> None:
         def _show(self, effect) -> None:  # type: ignore[no-untyped-def]
             super()._show(effect)
             now = time.monotonic()
-            for s, p, o in effect.added:
+            for _s, p, o in effect.added:
                 if p == written and str(o) not in seen:
                     seen.add(str(o))
                     print(json.dumps({"has": str(o), "t": now}), flush=True)

@@ -35,7 +35,7 @@ import math
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,8 +43,9 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
     if str(_path) not in sys.path:          # the tests load this file by path)
         sys.path.insert(0, str(_path))
 
-from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed  # noqa: E402
-from common import prepare_link_emulation, write_csv  # noqa: E402
+from common import prepare_link_emulation, write_csv
+
+from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed
 
 PY = sys.executable
 PORT = 47000

@@ -29,9 +29,10 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
-from coapkb.feeder import FateCounts, TaskRecord  # noqa: E402
-from coapkb.harness.team import Team, TeamSpec, draw_tasks  # noqa: E402
-from common import rss_mib, write_csv  # noqa: E402  (experiments/ is the script's own folder)
+from common import rss_mib, write_csv
+
+from coapkb.feeder import FateCounts, TaskRecord
+from coapkb.harness.team import Team, TeamSpec, draw_tasks
 
 RESULTS = ROOT / "experiments" / "results"
 

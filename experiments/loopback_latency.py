@@ -24,10 +24,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.transport.messages import ContentFormat, Method, Request  # noqa: E402
-from coapkb.kb.named_queries import NAMED_QUERIES  # noqa: E402
-from coapkb.transport import open_client  # noqa: E402
-from common import start_loopback_kb_server  # noqa: E402  (experiments/ is the script's own folder)
+from common import start_loopback_kb_server
+
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.transport import open_client
+from coapkb.transport.messages import ContentFormat, Method, Request
 
 QUERIES = {
     "Query_1 object-exists": ("object-exists", {"name": "Gucci_bag_14"}),

@@ -49,10 +49,10 @@ for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' 
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
+from common import PORTS, prepare_link_emulation, query_plan, start_kb_server, stop_processes
 
-from coapkb.bench.stats import percentile  # noqa: E402
-from common import prepare_link_emulation, PORTS, query_plan, start_kb_server, stop_processes  # noqa: E402
+from coapkb.bench.stats import percentile
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "lossy_links"
 
@@ -264,7 +264,7 @@ def team_tables(t: pd.DataFrame) -> list[str]:
                             values=["completion_s", "wire_bytes", "query_p99_ms"])
     rows = []
     for cell, r in cells.iterrows():
-        def get(metric: str, label: str) -> float:
+        def get(metric: str, label: str, r: pd.Series = r) -> float:
             return float(r.get((metric, label), float("nan")))
         rows.append({
             "delay_ms": cell[0], "tasks": cell[1], "loss_pct": cell[2],

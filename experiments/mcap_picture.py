@@ -24,14 +24,14 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from mcap.reader import make_reader  # noqa: E402
+import matplotlib.pyplot as plt
+from mcap.reader import make_reader
 
-from coapkb.harness.recording import warehouse  # noqa: E402
-from coapkb.world import Position  # noqa: E402
+from coapkb.harness.recording import warehouse
+from coapkb.world import Position
 
 FATE_MARKS = {"assigned": ("o", "tab:green"), "skipped": ("s", "tab:gray"), "not-found": ("x", "tab:red"),
               "reassigned": ("^", "tab:orange"), "unassigned": ("v", "tab:purple"), "failed": ("*", "black"),

@@ -36,9 +36,10 @@ HERE = str(Path(__file__).resolve().parent)
 if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests)
     sys.path.insert(0, HERE)
 
+import matrix_time
+from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci
+
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
-from stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci  # noqa: E402  (experiments/ is this folder)
-import matrix_time  # noqa: E402
 
 #: The seed's headline (section V, Fig. 6): distributed uses ~42 % fewer bytes
 #: than centralised at 35 kbit/s, 5 tasks, 2 % loss, "not much" different at 20 %.
@@ -374,7 +375,8 @@ def section_tables(rows: Sequence[BenchRow]) -> list[str]:
     ):
         table = cell_estimates(df, column)
 
-        def cell(key: tuple[Any, ...], system: str, fmt: Callable[[float], str] = fmt) -> str:
+        def cell(key: tuple[Any, ...], system: str, fmt: Callable[[float], str] = fmt,
+                 table: pd.DataFrame = table) -> str:
             est = table["estimate"].get(system, pd.Series(dtype=object)).get(key)
             bad = table["failed"].get(system, pd.Series(dtype=float)).get(key)
             bad = 0 if bad is None or pd.isna(bad) else int(bad)
@@ -406,7 +408,7 @@ def section_cell_ratios(df: pd.DataFrame) -> list[str]:
             if not len(pairs):
                 continue
             per[header] = pairs.wide.groupby(level=list(CELL)).apply(
-                lambda w, a=a, b=b: ratio_ci(w[(column, a)].to_numpy(dtype=float),
+                lambda w, a=a, b=b, column=column: ratio_ci(w[(column, a)].to_numpy(dtype=float),
                                              w[(column, b)].to_numpy(dtype=float)))
         if not per:
             continue

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench.row import BenchRow, read_rows  # noqa: E402
+from coapkb.bench.row import BenchRow, read_rows
 
 RESULTS = ROOT / "experiments" / "results"
 STYLE = {

@@ -33,16 +33,16 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from common import KB_FILES, free_port, query_plan, write_csv  # noqa: E402  (experiments/ is the script's own folder)
+from common import KB_FILES, free_port, query_plan, write_csv
 
-from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks  # noqa: E402
-from coapkb.security import generate_team, load_identity  # noqa: E402
-from coapkb.security.coap import ClientSecurity, ServerSecurity  # noqa: E402
-from coapkb.security.keys import default_members  # noqa: E402
-from coapkb.transport import Endpoint, open_client, serve  # noqa: E402
-from coapkb.transport.base import ResourceInfo  # noqa: E402
-from coapkb.transport.messages import Method, Request, Response, Status  # noqa: E402
-from coapkb.transport.router import Router  # noqa: E402
+from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks
+from coapkb.security import generate_team, load_identity
+from coapkb.security.coap import ClientSecurity, ServerSecurity
+from coapkb.security.keys import default_members
+from coapkb.transport import Endpoint, open_client, serve
+from coapkb.transport.base import ResourceInfo
+from coapkb.transport.messages import Method, Request, Response, Status
+from coapkb.transport.router import Router
 
 CSV = ROOT / "experiments" / "results" / "security_overhead.csv"
 FIELDS = ["section", "security", "runs", "tasks", "bytes_per_task", "completion_s", "messages_per_task",
@@ -87,7 +87,7 @@ async def edhoc_section(team_dir: Path) -> list[dict[str, Any]]:
     try:
         before = client.counters.as_dict()
         started = time.perf_counter()
-        await client.security.ensure(client._ctx, server.endpoint)  # noqa: SLF001 -- the handshake alone
+        await client.security.ensure(client._ctx, server.endpoint)
         seconds = time.perf_counter() - started
         after = client.counters.as_dict()
         run = client.security.handshakes[0]

@@ -46,13 +46,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from common import free_port, write_csv  # noqa: E402  (experiments/ is the script's own folder)
+import aiocoap
+import aiocoap.resource
+from common import free_port, write_csv
 
-import aiocoap  # noqa: E402
-import aiocoap.resource  # noqa: E402
-
-from coapkb.kb.store import KnowledgeBase  # noqa: E402
-from coapkb.wire import codec  # noqa: E402
+from coapkb.kb.store import KnowledgeBase
+from coapkb.wire import codec
 
 KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
 OBJ = "http://www.tcs.org/2018/Object#"

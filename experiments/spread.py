@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from coapkb.bench.run import BenchRow, read_rows  # noqa: E402
+from coapkb.bench.run import BenchRow, read_rows
 
 
 def cell(row: BenchRow) -> tuple[str, int, int, float, float, str]:

@@ -49,13 +49,13 @@ class Estimate:
         """The interval covers less than :data:`CONFIDENCE` (too few values for more)."""
         return self.coverage is not None and self.coverage < CONFIDENCE - 1e-12
 
-    def map(self, f: Callable[[float], float]) -> "Estimate":
+    def map(self, f: Callable[[float], float]) -> Estimate:
         """``f`` applied to the median and both bounds; ``f`` must be increasing
         (a unit change, 1 - x needs :meth:`complement`)."""
         return Estimate(f(self.value), None if self.low is None else f(self.low),
                         None if self.high is None else f(self.high), self.n, self.coverage)
 
-    def complement(self) -> "Estimate":
+    def complement(self) -> Estimate:
         """1 - x (a ratio as a saving): the bounds swap."""
         return Estimate(1 - self.value, None if self.high is None else 1 - self.high,
                         None if self.low is None else 1 - self.low, self.n, self.coverage)

@@ -51,6 +51,9 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
+from tqdm import tqdm
+
+from coapkb.bench.linkemu import available, cleanup_stale
 from coapkb.bench.run import (
     CLUSTER_SIZE,
     SYSTEMS,
@@ -62,9 +65,7 @@ from coapkb.bench.run import (
     security_label,
     timeouts_for,
 )
-from coapkb.bench.linkemu import available, cleanup_stale
 from coapkb.errors import CoapkbError
-from tqdm import tqdm
 
 RESULTS = ROOT / "experiments" / "results"
 #: The Dask worker resource one run holds: its own network namespaces, and a
@@ -358,7 +359,7 @@ class Progress:
         self.bar = tqdm(total=self.units_total, initial=self.units_before, unit="task",
                         desc="sweep", file=sys.stderr, smoothing=0, disable=None)
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Progress:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -549,7 +550,7 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
                     if future.status != "cancelled":  # this sweep was cancelled (Ctrl-C), not the task
                         raise
                     progress.missing(run, "cancelled")
-                except Exception as exc:  # KilledWorker (it killed every worker it was tried on), a lost scheduler
+                except Exception as exc:  # noqa: BLE001 - KilledWorker (it killed every worker it was tried on), a lost scheduler
                     if client.status != "running" or "connection-lost" in str(exc):
                         # The scheduler is gone: every other future fails the same way, and the
                         # client's reconnection attempt would log a traceback when we close it.

@@ -46,11 +46,12 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(ROOT))
 
-from coapkb.feeder import FateCounts, Feeder  # noqa: E402
-from coapkb.harness.kbs import kbs_for_team  # noqa: E402
-from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks  # noqa: E402
-from common import rss_mib, write_csv  # noqa: E402  (experiments/ is the script's own folder)
-from coapkb.transport.base import TrafficCounters  # noqa: E402
+from common import rss_mib, write_csv
+
+from coapkb.feeder import FateCounts, Feeder
+from coapkb.harness.kbs import kbs_for_team
+from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks
+from coapkb.transport.base import TrafficCounters
 
 RESULTS = ROOT / "experiments" / "results"
 

@@ -31,9 +31,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.transport import open_client  # noqa: E402
-from coapkb.transport.messages import ContentFormat, Method, Request  # noqa: E402
-from common import start_loopback_kb_server  # noqa: E402  (experiments/ is the script's own folder)
+from common import start_loopback_kb_server
+
+from coapkb.transport import open_client
+from coapkb.transport.messages import ContentFormat, Method, Request
 
 NAMED = Request(Method.GET, "/kb/q/object-location", {"name": "Gucci_bag_14"}, accept=ContentFormat.CBOR)
 

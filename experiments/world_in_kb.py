@@ -44,12 +44,12 @@ for _path in (ROOT, ROOT / "experiments"):
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
+from common import prepare_link_emulation, write_csv
 
-from coapkb.bench import run as bench  # noqa: E402
-from coapkb.bench.row import append_rows, read_rows  # noqa: E402
-from coapkb.harness.team import DEFAULT_ONTOLOGIES, draw_tasks  # noqa: E402
-from common import prepare_link_emulation, write_csv  # noqa: E402
+from coapkb.bench import run as bench
+from coapkb.bench.row import append_rows, read_rows
+from coapkb.harness.team import DEFAULT_ONTOLOGIES, draw_tasks
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "world_in_kb"
 #: (label, system, writable)

@@ -18,8 +18,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from coapkb.bench.run import SYSTEMS, read_rows  # noqa: E402
-from coapkb.bench.row import BenchRow  # noqa: E402
+from coapkb.bench.row import BenchRow
+from coapkb.bench.run import SYSTEMS, read_rows
 
 
 def _median(rows: list[BenchRow], column: str) -> float | None:

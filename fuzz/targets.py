@@ -183,7 +183,7 @@ def zenoh_mapping_decode(data: bytes) -> None:
 def coap_mapping_decode(data: bytes) -> None:
     try:
         msg = aiocoap.Message.decode(data)
-    except Exception:  # aiocoap's own decoding: not coapkb's parser
+    except Exception:  # noqa: BLE001 - aiocoap's own decoding: not coapkb's parser
         return
     if msg.code.is_request():
         path = "/" + "/".join(msg.opt.uri_path)
@@ -250,7 +250,7 @@ def blockwise(data: bytes) -> None:
         chunk, data = data[2 : 2 + length], data[2 + length :]
         try:
             msg = aiocoap.Message.decode(chunk, remote=_Remote())
-        except Exception:  # aiocoap's own decoding
+        except Exception:  # noqa: BLE001 - aiocoap's own decoding
             continue
         if msg.code.is_request():  # only requests reach a resource
             messages.append(msg)

@@ -8,10 +8,11 @@ import os
 import shutil
 import socket
 import sys
+from collections.abc import AsyncIterator, Iterator, Mapping
 from decimal import Decimal
 from pathlib import Path
 from types import ModuleType
-from typing import AsyncIterator, Iterator, Mapping, NamedTuple
+from typing import NamedTuple
 
 import pytest
 
@@ -101,7 +102,7 @@ class ServerProcess:
         self.uri = uri
 
     @classmethod
-    async def start(cls, *args: str, timeout: float = 30.0) -> "ServerProcess":
+    async def start(cls, *args: str, timeout: float = 30.0) -> ServerProcess:
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "coapkb", "serve", *args,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
@@ -118,7 +119,7 @@ class ServerProcess:
             self.proc.terminate()
         try:
             return await asyncio.wait_for(self.proc.wait(), 10)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self.proc.kill()
             return await self.proc.wait()
 
@@ -162,7 +163,7 @@ async def coapkb(*args: str, stdin: str | None = None, timeout: float = 60) -> C
     )
     try:
         out, err = await asyncio.wait_for(proc.communicate(stdin.encode() if stdin is not None else None), timeout)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         proc.kill()
         await proc.wait()
         raise AssertionError(f"coapkb {' '.join(args)} did not exit within {timeout}s") from None

@@ -13,13 +13,12 @@ import io
 import json
 import re
 import socket
+from collections.abc import AsyncIterator
 from decimal import Decimal
 from pathlib import Path
-from typing import AsyncIterator
 
 import pytest
 import pytest_asyncio
-
 from support import GRIPPING_ROBOTS, KB_FILES, ONTOLOGIES, CliResult, ServerProcess, coapkb, free_udp_port
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")

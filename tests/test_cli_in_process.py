@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from support import KB_FILES, ONTOLOGIES, free_udp_port
 
 from coapkb.cli import main
 from coapkb.kb.resources import KBResources
@@ -19,8 +20,6 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import serve
 from coapkb.transport.base import Endpoint
 from coapkb.transport.router import Router
-
-from support import KB_FILES, ONTOLOGIES, free_udp_port
 
 
 def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

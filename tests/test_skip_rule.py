@@ -4,7 +4,6 @@ developer's machine, a failure in CI, whatever way the test asked to skip."""
 from __future__ import annotations
 
 import pytest
-
 from support import in_ci
 
 pytest_plugins = ["pytester"]

@@ -28,8 +28,8 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import OrderedDict, deque
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import asdict, dataclass, replace
-from typing import Awaitable, Callable, Mapping
 
 import cbor2
 
@@ -106,7 +106,7 @@ class DecisionMessage:
         }
 
     @classmethod
-    def from_dict(cls, raw: Mapping) -> "DecisionMessage":
+    def from_dict(cls, raw: Mapping) -> DecisionMessage:
         job = raw.get("job")
         return cls(
             decision=Decision(**raw["decision"]),
@@ -138,7 +138,7 @@ class Controller:
         publish: Callable[[RobotState], None],
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
         ask_decision: Callable[[str, int], Awaitable[DecisionMessage | None]] | None = None,
-        ask_claims: Callable[[str], Awaitable[dict[str, "Claim"]]] | None = None,
+        ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None,
     ) -> None:
         self.config = config
         self.queries = queries

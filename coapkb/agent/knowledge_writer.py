@@ -32,8 +32,9 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Awaitable, Callable, Iterable
+from typing import TYPE_CHECKING
 
 from ..errors import CoapkbError
 from ..world import CAPABILITY_NS, LOCATION_NS
@@ -164,15 +165,15 @@ class KnowledgeWriter:
         self.written = 0
         self.dropped = 0
 
-    def picked(self, job: "Job") -> None:
+    def picked(self, job: Job) -> None:
         self._wait("Location", latest=robot_at_update(self.robot, (job.aisle, job.rack), self._wall_ms()))
         self._now("Location", pick_update(job.object, self.robot, job.seq))
 
-    def missing(self, job: "Job") -> None:
+    def missing(self, job: Job) -> None:
         self._wait("Location", latest=robot_at_update(self.robot, (job.aisle, job.rack), self._wall_ms()))
         self._now("Location", missing_update(job.object, self.robot, job.seq))
 
-    def delivered(self, jobs: Iterable["Job"], depot: tuple[int, int]) -> None:
+    def delivered(self, jobs: Iterable[Job], depot: tuple[int, int]) -> None:
         self._wait("Location", fact=delivered_update((job.object, job.seq) for job in jobs),
                    latest=robot_at_update(self.robot, depot, self._wall_ms()))
 

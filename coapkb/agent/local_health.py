@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import asyncio
 import collections
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 from .. import clock
 
@@ -45,7 +46,7 @@ class LatenessStats:
         return {"ticks": self.ticks, "late_ticks": self.late_ticks, "max_s": self.max_s, "p99_s": self.p99_s}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "LatenessStats":
+    def from_dict(cls, data: Mapping[str, Any]) -> LatenessStats:
         return cls(int(data.get("ticks", 0)), int(data.get("late_ticks", 0)), float(data.get("max_s", 0.0)),
                    float(data.get("p99_s", 0.0)))
 

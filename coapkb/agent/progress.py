@@ -17,7 +17,7 @@ only for what it acts on: progress alone never reaches it.
 from __future__ import annotations
 
 import asyncio
-from typing import Callable
+from collections.abc import Callable
 
 from ..clock import monotonic as loop_clock
 from .robot_state import LiveState

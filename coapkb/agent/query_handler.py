@@ -10,20 +10,20 @@ failed over to the next, and a slow one is hedged.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Awaitable, Callable, Mapping
 
 from .. import clock
+from ..config import RobotConfig, Teammate
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed
-from ..config import RobotConfig, Teammate
 from ..kb.errors import KBError
 from ..kb.live import LiveKB
-from ..kb.store import KnowledgeBase
-from ..transport.messages import ContentFormat, Method
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.results import QueryResult
+from ..kb.store import KnowledgeBase
 from ..transport.base import TransportError
+from ..transport.messages import ContentFormat, Method
 from .task_assigner import robot_sort_key
 
 #: How queries travel: "compact" = named query resources with CBOR answers

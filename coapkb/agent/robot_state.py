@@ -90,7 +90,7 @@ class RobotState:
     #: from the process they knew even before it decides anything.
     boot: int = 0
 
-    def with_plan(self, plan: PlannedState, last: Decision) -> "RobotState":
+    def with_plan(self, plan: PlannedState, last: Decision) -> RobotState:
         return replace(self, plan=plan, last=last, prev=self.plan)
 
     def plan_at(self, seq: int) -> PlannedState | None:
@@ -158,7 +158,7 @@ class RobotState:
         )
 
     @classmethod
-    def decode(cls, data: bytes) -> "RobotState":
+    def decode(cls, data: bytes) -> RobotState:
         """Decode :meth:`encode` or :meth:`encode_plan` output (the latter with an idle live part).
 
         Raises ``ValueError`` for anything docs/robot-state.cddl does not

@@ -7,11 +7,12 @@ and use its fields, so the keys are spelled here only.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
-from .local_health import LatenessStats
 from ..transport.base import TrafficCounters
+from .local_health import LatenessStats
 from .query_handler import QueryStats
 
 
@@ -30,7 +31,7 @@ class Recharge:
                 "full_wh": round(self.full_wh, 6)}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "Recharge":
+    def from_dict(cls, data: Mapping[str, Any]) -> Recharge:
         aisle, rack = data["dock"]
         return cls(int(data["seq"]), (int(aisle), int(rack)), float(data["arrive_wh"]), float(data["full_wh"]))
 
@@ -98,7 +99,7 @@ class RobotStats:
         }
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "RobotStats":
+    def from_dict(cls, data: Mapping[str, Any]) -> RobotStats:
         """The inverse of :meth:`to_dict` (a decoded ``GET /robot/stats`` body)."""
         queries = data.get("queries") or {}
         server = data.get("server")

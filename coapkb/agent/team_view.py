@@ -13,12 +13,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Awaitable, Callable, Mapping, Sequence
 
 from .. import clock
-from ..transport.messages import ContentFormat, Method, Request
 from ..transport.base import ClientTransport, Endpoint, PeerGone, PeerTimeout, TransportError
+from ..transport.messages import ContentFormat, Method, Request
 from ..transport.rtt import RttEstimator
 from .local_health import LoopHealth
 from .robot_state import PlannedState, RobotState

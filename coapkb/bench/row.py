@@ -12,11 +12,11 @@ import contextlib
 import csv
 import dataclasses
 import typing
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ..feeder.record import FateCounts
@@ -120,7 +120,7 @@ class BenchRow:
     #: Tasks whose robot did not find the object at the shelf.  Empty in a CSV written before it.
     tasks_not_found: int | None = None
 
-    def fates(self) -> "FateCounts | None":
+    def fates(self) -> FateCounts | None:
         """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""
         from ..feeder.record import FateCounts  # the feeder package is heavy; report code reads rows without it
 
@@ -153,7 +153,7 @@ class BenchRow:
         return {name: "" if value is None else value for name, value in self.to_dict().items()}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "BenchRow":
+    def from_dict(cls, data: Mapping[str, Any]) -> BenchRow:
         """A row from CSV cells (text) or a ``--json`` line (typed values):
         each value parsed by its field's type; an empty or missing cell is the
         field's default; unknown columns are ignored."""

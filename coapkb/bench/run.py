@@ -55,8 +55,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import datetime as _dt
 import contextlib
+import datetime as _dt
 import json
 import logging
 import math
@@ -67,6 +67,22 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from ..errors import CoapkbError
+from ..feeder.record import FateCounts
+from ..harness.record import TeamRecord
+from ..harness.team import (
+    CLUSTER_SIZE,
+    DEFAULT_ONTOLOGIES,
+    Fault,
+    Placement,
+    Team,
+    TeamError,
+    TeamSpec,
+    draw_tasks,
+)
+from ..transport.base import Endpoint, TrafficCounters
+from ..transport.coap.reliability import ROBUST
+from ..transport.registry import find, transport_for
 from .linkemu import (
     LinkCounters,
     LinkSpec,
@@ -75,24 +91,8 @@ from .linkemu import (
     cleanup_stale,
     enter_netns,
 )
-from ..harness.team import (
-    CLUSTER_SIZE,
-    DEFAULT_ONTOLOGIES,
-    Placement,
-    Team,
-    TeamError,
-    TeamSpec,
-    draw_tasks,
-    Fault,
-)
-from ..feeder.record import FateCounts
-from ..harness.record import TeamRecord
-from ..errors import CoapkbError
 from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
 from .stats import percentile
-from ..transport.base import Endpoint, TrafficCounters
-from ..transport.coap.reliability import ROBUST
-from ..transport.registry import find, transport_for
 
 __all__ = [
     "COLUMNS",
@@ -497,7 +497,7 @@ async def run_once(
         row = replace(row, error=f"run did not finish within {limits.run_s:g} s")
     except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
         row = replace(row, error=f"{type(exc).__name__}: {exc}"[:500])
-    except Exception as exc:  # noqa: BLE001 -- a sweep must survive any one run's failure
+    except Exception as exc:
         log.error("%s failed unexpectedly", row.system, exc_info=True)  # a bug: its traceback helps
         row = replace(row, error=f"unexpected {type(exc).__name__}: {exc}"[:500])
     return replace(row, wall_s=round(time.monotonic() - started, 2))

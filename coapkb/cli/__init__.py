@@ -17,7 +17,7 @@ import asyncio
 import logging
 import sys
 import typing
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from ..errors import CoapkbError
 from . import agent, bench, feed, keys, query, serve, sim, team, update, world

@@ -7,11 +7,11 @@ import argparse
 import asyncio
 import signal
 import sys
-from typing import Any, Awaitable, Callable, TypeVar
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 from ..errors import CoapkbError
 from ..transport import ClientSecurity, Endpoint, ServerSecurity
-
 
 T = TypeVar("T")
 

@@ -12,7 +12,6 @@ from ..transport.messages import ContentFormat, Method, Request
 from .common import UserError, add_credentials, ask_robot, client_security, parse_endpoint
 from .render import render
 
-
 FORMAT_ACCEPT = {"cbor": ContentFormat.CBOR, "json": ContentFormat.JSON}
 
 

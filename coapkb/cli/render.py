@@ -10,7 +10,6 @@ from typing import Any
 from ..wire import codec
 from ..world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
 
-
 WELL_KNOWN_PREFIXES = {
     "obj": OBJECT_NS,
     "loc": LOCATION_NS,

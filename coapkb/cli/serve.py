@@ -29,8 +29,8 @@ async def _serve(args: argparse.Namespace) -> int:
     from ..kb.live import LiveKB, wall_ms
     from ..kb.resources import KBResources, QueryLimits
     from ..kb.store import KnowledgeBase
-    from ..transport.router import Router
     from ..transport import serve
+    from ..transport.router import Router
 
     endpoint = parse_endpoint(args.bind, args.transport)
     try:

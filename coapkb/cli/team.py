@@ -14,7 +14,6 @@ from pathlib import Path
 from ..transport import SCHEMES
 from .common import UserError
 
-
 #: The seed's example task (Fig. 4), a few more picks, and one object that
 #: does not exist, which every robot must skip.
 DEMO_TASKS = ("Gucci_bag_14", "Nonexistent_widget_1")
@@ -78,7 +77,7 @@ def add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 async def _demo(args: argparse.Namespace) -> int:
-    from ..harness.team import draw_tasks, DEFAULT_ONTOLOGIES
+    from ..harness.team import DEFAULT_ONTOLOGIES, draw_tasks
 
     drawn = draw_tasks(4, DEFAULT_ONTOLOGIES, seed=7, exclude=DEMO_TASKS)
     # The seed's bag, four more, the bag again (picked by then: skipped) and an object nobody has.

@@ -76,7 +76,7 @@ class DirectoryClient:
         self.registered = False
 
     @classmethod
-    async def open(cls, config: RobotConfig) -> "DirectoryClient":
+    async def open(cls, config: RobotConfig) -> DirectoryClient:
         security, trust = None, None
         if config.security is not None:
             from ..security.coap import ClientSecurity

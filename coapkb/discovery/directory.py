@@ -127,7 +127,7 @@ class DirectoryService:
             Endpoint.parse(base)
         except (UnicodeDecodeError, ValueError) as exc:
             return Response.error(Status.BAD_REQUEST, f"not a registration: {exc}")
-        except Exception as exc:  # the link-format parser's own errors
+        except Exception as exc:  # noqa: BLE001 - the link-format parser's own errors
             return Response.error(Status.BAD_REQUEST, f"not link-format: {exc}")
         known = self._rd._by_key.get((ep, request.query.get("d")))
         if known is not None and known.base == base and str(known.links) == str(links):
@@ -185,7 +185,7 @@ class ResourceDirectory:
     @classmethod
     async def start(
         cls, bind: Endpoint, identity: Any = None, multicast_port: int | None = None
-    ) -> "ResourceDirectory":
+    ) -> ResourceDirectory:
         """Serve on ``bind`` (port 0: any); ``identity``: the host's
         :class:`~coapkb.security.TeamIdentity` (OSCORE/EDHOC), or None;
         ``multicast_port``: also answer multicast discovery there, on

@@ -59,7 +59,7 @@ class _Responder(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: Any) -> None:
         try:
             request = aiocoap.Message.decode(data)
-        except Exception:  # not CoAP: nothing to answer (RFC 7252 section 4.2)
+        except Exception:  # noqa: BLE001 - not CoAP: nothing to answer (RFC 7252 section 4.2)
             return
         wanted = [q.partition("=")[2] for q in request.opt.uri_query if q.startswith("rt=")]
         asks_rd = all(RD_RT.startswith(rt.rstrip("*")) if rt.endswith("*") else rt == RD_RT for rt in wanted)
@@ -79,7 +79,7 @@ class MulticastAnnouncer:
         self._transport = transport
 
     @classmethod
-    async def start(cls, rd: Endpoint, interface: str, port: int = COAP_PORT) -> "MulticastAnnouncer":
+    async def start(cls, rd: Endpoint, interface: str, port: int = COAP_PORT) -> MulticastAnnouncer:
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(lambda: _Responder(rd), sock=_socket(interface, port))
         return cls(transport)
@@ -97,7 +97,7 @@ class _Asker(asyncio.DatagramProtocol):
         try:
             answer = aiocoap.Message.decode(data)
             links = parse(answer.payload.decode("utf-8")).links if answer.token == self.token else []
-        except Exception:  # not an answer to us
+        except Exception:  # noqa: BLE001 - not an answer to us
             return
         for link in links:
             if RD_RT in str(dict(link.attr_pairs).get("rt", "")).split():

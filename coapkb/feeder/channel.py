@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import AsyncIterator, Callable, Mapping, Sequence
 
 from .. import clock
 from ..agent.local_health import LoopHealth
@@ -71,7 +71,7 @@ class Channel:
     @classmethod
     @contextlib.asynccontextmanager
     async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
-                   network: Network | None = None) -> AsyncIterator["Channel"]:
+                   network: Network | None = None) -> AsyncIterator[Channel]:
         """A client (on ``network``: the sockets unless a simulator gives one)
         and a watcher (with liveness: the feeder declares a robot down when
         its requests fail, and then waits for the survivors only)."""

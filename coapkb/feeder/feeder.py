@@ -7,16 +7,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 
 import cbor2
 
 from .. import clock
 from ..agent.robot_state import RobotState
-from ..host import Network
 from ..agent.stats import RobotStats
 from ..agent.team_view import ObservedStates, States
+from ..host import Network
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
@@ -65,7 +65,7 @@ class Feeder:
     @classmethod
     @contextlib.asynccontextmanager
     async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
-                   network: Network | None = None) -> AsyncIterator["Feeder"]:
+                   network: Network | None = None) -> AsyncIterator[Feeder]:
         async with Channel.open(roster, settings, security, network) as channel:
             yield cls(channel)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from typing import Sequence
+from collections.abc import Sequence
 
 from .. import clock
 from ..agent.lease import LEASE_PATH

@@ -7,8 +7,9 @@
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 
 @dataclass
@@ -93,7 +94,7 @@ class TaskRecord:
         }
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "TaskRecord":
+    def from_dict(cls, data: Mapping[str, Any]) -> TaskRecord:
         return cls(
             object=str(data["object"]),
             cluster=int(data["cluster"]),
@@ -166,7 +167,7 @@ class FateCounts:
     skip_kinds: dict[str, int] = field(default_factory=dict)
 
     @classmethod
-    def of(cls, tasks: Sequence[TaskRecord]) -> "FateCounts":
+    def of(cls, tasks: Sequence[TaskRecord]) -> FateCounts:
         fates = Counter(t.fate for t in tasks)
         failed = [t for t in tasks if t.fate == "failed"]
         errors = sum(1 for t in failed if t.errors)

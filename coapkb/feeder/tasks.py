@@ -16,8 +16,8 @@ lists restarted robots that are members again from this task on.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import cbor2
 

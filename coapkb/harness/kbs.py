@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from ..feeder import FeederError
 from ..kb.named_queries import NAMED_QUERIES

@@ -12,8 +12,9 @@ harness knows; the feeder's part of it is the task records.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from ..agent.stats import RobotStats
 from ..agent.task_assigner import robot_sort_key
@@ -37,7 +38,7 @@ class FaultEvent:
                 "detected_after_s": self.detected_after_s}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "FaultEvent":
+    def from_dict(cls, data: Mapping[str, Any]) -> FaultEvent:
         detected = data.get("detected_after_s")
         return cls(str(data["action"]), str(data["robot"]), float(data["at_s"]),
                    None if detected is None else float(detected))
@@ -90,7 +91,7 @@ class TeamRecord:
         }
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "TeamRecord":
+    def from_dict(cls, data: Mapping[str, Any]) -> TeamRecord:
         """A record read back from ``coapkb team --record``'s JSON."""
         return cls(
             mode=str(data["mode"]),

@@ -28,8 +28,9 @@ import logging
 import platform
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import foxglove
 from foxglove import channels
@@ -45,6 +46,8 @@ if TYPE_CHECKING:
 
 #: The frame the warehouse is drawn in; each robot has a frame of its own name.
 WORLD_FRAME = "warehouse"
+#: Where robots start when the configuration gives no [start] (aisle 1, rack 0).
+DEPOT = Position(1, 0)
 #: Log lines at or above this level go to ``/log``.
 LOG_LEVEL = logging.WARNING
 
@@ -87,7 +90,7 @@ class RunRecorder:
     (``live``: host and port), one Foxglove context for both."""
 
     def __init__(self, path: Path | None, live: tuple[str, int] | None, robots: Sequence[str],
-                 layout: Layout | None, docks: Sequence[Position] = (), depot: Position = Position(1, 0),
+                 layout: Layout | None, docks: Sequence[Position] = (), depot: Position = DEPOT,
                  metadata: Mapping[str, str] | None = None) -> None:
         self._messages = foxglove.messages
         self.context = foxglove.Context()
@@ -100,7 +103,7 @@ class RunRecorder:
             if live is not None:
                 self.server = foxglove.start_server(name="coapkb", host=live[0], port=live[1],
                                                     context=self.context, server_listener=_Viewers(self))
-        except Exception as exc:  # the SDK's errors have no common class: a file or a port
+        except Exception as exc:  # noqa: BLE001 - the SDK's errors have no common class: a file or a port
             self.close()
             raise RecordingError(f"cannot record: {exc}") from None
         self.robots = list(robots)
@@ -179,7 +182,7 @@ class RunRecorder:
 
     # ------------------------------------------------------------ events
 
-    def robot_state(self, robot_id: str, state: "RobotState") -> None:
+    def robot_state(self, robot_id: str, state: RobotState) -> None:
         """A robot's state as the feeder observed it: its pose and its job."""
         m = self._messages
         live, plan = state.live, state.plan
@@ -195,24 +198,24 @@ class RunRecorder:
             "load_kg": plan.load_kg, "payload_kg": plan.payload_kg, "last_task": plan.seq,
         }, now)
 
-    def task(self, record: "TaskRecord") -> None:
+    def task(self, record: TaskRecord) -> None:
         data = record.to_dict()
         self._log_message(self._tasks, {key: data.get(key) for key in _TASK_SCHEMA["properties"]} | {
             "fate": record.fate})
 
-    def finished(self, record: "TeamRecord") -> None:
+    def finished(self, record: TeamRecord) -> None:
         """The run's end: every task's final fate, and each robot's traffic."""
         self.final_fates(record.tasks)
         self.traffic(record.robot_stats)
 
-    def final_fates(self, tasks: Sequence["TaskRecord"]) -> None:
+    def final_fates(self, tasks: Sequence[TaskRecord]) -> None:
         """The tasks whose fate changed after they were decided (not found at
         the shelf, sent round again), once more: the last word on a task."""
         for task in tasks:
             if task.fate in ("not-found", "reassigned"):
                 self.task(task)
 
-    def traffic(self, robot_stats: Mapping[str, "RobotStats"]) -> None:
+    def traffic(self, robot_stats: Mapping[str, RobotStats]) -> None:
         for robot_id, stats in sorted(robot_stats.items()):
             latencies = sorted(stats.queries.remote_latencies)
             self._log_message(self._traffic, {
@@ -269,7 +272,7 @@ class _LogHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         try:
             self._recorder.log_record(record)
-        except Exception:  # a log line must never stop the run
+        except Exception:  # noqa: BLE001 - a log line must never stop the run
             self.handleError(record)
 
 

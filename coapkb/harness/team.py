@@ -23,20 +23,21 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, AsyncIterator, Awaitable, Callable, Sequence
+from typing import Any
 
-from ..agent.query_handler import QUERY_WIRES
 from ..agent.lease import lease_duration_s
-from ..agent.team_view import liveness_floor_s
+from ..agent.query_handler import QUERY_WIRES
 from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
+from ..agent.team_view import liveness_floor_s
 from ..config import (
     DISCOVERY_METHODS,
     KB_MODULES,
-    DiscoveryConfig,
     STRATEGIES,
+    DiscoveryConfig,
     ExecutionModel,
     RobotConfig,
     StartState,
@@ -44,17 +45,17 @@ from ..config import (
     dump_config,
 )
 from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, TaskRecord, feeder_security
-from ..kb.store import KnowledgeBase
 from ..kb.named_queries import NAMED_QUERIES
+from ..kb.store import KnowledgeBase
+from ..security import SecurityConfig, generate_team, load_identity
+from ..security.keys import default_members
 from ..transport import SCHEMES, transport_for
+from ..transport.base import Endpoint, TrafficCounters, TransportError
 from ..world import CLUSTER_SIZE, OBJECT_NS
 from ..world.service import WorldServer
 from ..world.truth import WorldTruth
-from ..transport.base import Endpoint, TrafficCounters, TransportError
 from .kbs import kbs_for_team
 from .record import FaultEvent, TeamRecord
-from ..security import SecurityConfig, generate_team, load_identity
-from ..security.keys import default_members
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +86,7 @@ class Fault:
     at_task: int | None = None
 
     @classmethod
-    def parse(cls, action: str, text: str) -> "Fault":
+    def parse(cls, action: str, text: str) -> Fault:
         """``Robot4@12s`` (or ``Robot4@12``), or ``Robot4@task3``, for ``action``."""
         robot, sep, when = text.partition("@")
         if when.startswith("task"):
@@ -106,7 +107,7 @@ class Fault:
     def when(self) -> str:
         return f"task {self.at_task}" if self.at_task is not None else f"{self.at_s:g}s"
 
-    def before(self, other: "Fault") -> bool:
+    def before(self, other: Fault) -> bool:
         """Whether it is scheduled before ``other`` (both by time or both by task)."""
         if (self.at_task is None) != (other.at_task is None):
             return False
@@ -521,7 +522,7 @@ class Team:
         asyncio.create_task(_drain(proc.stderr, tail, log_file), name=f"stderr-{name}")
         try:
             line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode().strip()
-        except asyncio.TimeoutError:
+        except TimeoutError:
             line = ""
         if not line.startswith(ready_prefix):
             await proc.wait() if proc.returncode is not None else None
@@ -533,7 +534,7 @@ class Team:
     @contextlib.asynccontextmanager
     async def launch(
         cls, spec: TeamSpec, placement: Placement | None = None, notice: Callable[[str], None] = log.warning
-    ) -> AsyncIterator["Team"]:
+    ) -> AsyncIterator[Team]:
         """Start every process; on exit (normal, error or Ctrl-C) stop them all.
 
         When the spec's KBs do not know every robot of the team, the team runs
@@ -614,7 +615,7 @@ class Team:
         for name, proc in self.processes.items():
             try:
                 await asyncio.wait_for(proc.wait(), 10)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 log.warning("%s did not stop on SIGTERM; killing it", name)
                 with contextlib.suppress(ProcessLookupError):
                     proc.kill()
@@ -701,7 +702,7 @@ class Team:
         client = await open_client(self.spec.transport, security=self.feeder_security())
         try:
             kb = KBClient(client, timeout=self.spec.query_timeout_s, cache=False)
-            for index, cluster in enumerate(self.spec.clusters()):
+            for cluster in self.spec.clusters():
                 holder = next(r for i, r in enumerate(cluster) if "Location" in cluster_modules(i, self.spec))
                 rows = (await kb.named(self.endpoints[holder], "robot-positions")).as_dicts()  # type: ignore[union-attr]
                 positions.update({str(r["robo_id"]): (int(r["aisle_no"]), int(r["rack_no"]))

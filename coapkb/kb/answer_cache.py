@@ -12,12 +12,11 @@ of starting another.
 from __future__ import annotations
 
 import asyncio
-from typing import Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
 from ..clock import monotonic as loop_clock
 from ..transport.expiring import ExpiringMap
 from ..transport.messages import Response
-
 
 #: Bounds of a robot's answer cache (docs/flood.md).  Anyone who can send a
 #: query can fill it, so it must stay small beside the robot's ~70 MiB: a

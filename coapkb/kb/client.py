@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 from collections import OrderedDict
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Callable, Mapping
 
 from ..clock import monotonic as loop_clock
 from ..errors import CoapkbError
-from ..wire import codec
-from ..transport.messages import ContentFormat, Method, Request, Response, Status
-from .results import QueryResult
 from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..wire import codec
+from .results import QueryResult
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
 DEFAULT_MAX_AGE_S = 60

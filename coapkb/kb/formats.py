@@ -3,7 +3,6 @@ says it has not changed while it was loaded."""
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import xml.etree.ElementTree as ET

@@ -368,7 +368,7 @@ def _check_term_kinds(triple: Triple) -> None:
         raise UpdateUnsupported("a triple is an IRI subject, an IRI predicate and an IRI or literal object")
 
 
-def _no_deadline():  # noqa: ANN202 - the KB's own deadline type
+def _no_deadline():
     from .limits import Deadline
 
     return Deadline(None)

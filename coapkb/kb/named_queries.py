@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import re
 import string
-from dataclasses import dataclass
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 
 __all__ = ["NAMED_QUERIES", "SAFE_VALUE", "NamedQuery", "named_queries_for"]
 

@@ -113,7 +113,7 @@ class RdflibBackend:
             query = translateQuery(parsed)
         except ParseException as exc:
             raise refuse_or_syntax(text, QuerySyntaxError(short_message(exc.msg), exc.lineno, exc.col)) from None
-        except Exception as exc:  # broad on purpose: rdflib's translator raises plain Exceptions
+        except Exception as exc:  # noqa: BLE001 - broad on purpose: rdflib's translator raises plain Exceptions
             msg = short_message(exc)
             m = _UNKNOWN_PREFIX.search(msg)
             line, column = _locate(text, rf"(?<![\w<\"']){re.escape(m.group(1))}:") if m else (None, None)

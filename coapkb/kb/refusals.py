@@ -47,7 +47,7 @@ def _update_operations(text: str) -> tuple[str, ...] | None:
         return None  # spare pyparsing (~0.1 s on a long malformed query)
     try:
         parsed = parseUpdate(text)
-    except Exception:  # broad on purpose: any failure means "not a valid update"
+    except Exception:  # noqa: BLE001 - broad on purpose: any failure means "not a valid update"
         parsed = None
     if parsed is not None and "request" in parsed:  # an empty update (prologue only) is no update
         ops = tuple(_UPDATE_OPERATION_NAMES.get(r.name, r.name.upper()) for r in parsed["request"])

@@ -29,8 +29,8 @@ import asyncio
 import logging
 import random
 from collections.abc import Coroutine, Sequence
-from typing import Any
 from dataclasses import dataclass
+from typing import Any
 
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status

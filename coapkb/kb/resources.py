@@ -15,22 +15,21 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
 
 import cbor2
 
-from typing import TYPE_CHECKING, Protocol
-
+from ..transport.base import ResourceInfo
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.router import Router
 from ..wire import codec
+from .answer_cache import AnswerCache
 from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout, UpdateRefused
 from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written
-from .replica import ReplicaFull
-from .update import UpdateUnsupported, decode_patch, parse_update
-from ..transport.messages import ContentFormat, Method, Request, Response, Status
-from .answer_cache import AnswerCache
 from .named_queries import NamedQuery, named_queries_for
+from .replica import ReplicaFull
 from .results import QueryResult
-from ..transport.router import Router
-from ..transport.base import ResourceInfo
+from .update import UpdateUnsupported, decode_patch, parse_update
 
 if TYPE_CHECKING:
     from .replication import Replicator
@@ -356,7 +355,7 @@ class KBResources:
             return Response.error(Status.FORBIDDEN, f"refused: {exc}")
         except QueryRefused as exc:  # SERVICE/FROM that would fetch from the network
             return Response.error(Status.FORBIDDEN, f"refused: {exc}")
-        except (QueryTimeout, asyncio.TimeoutError):
+        except (TimeoutError, QueryTimeout):
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
                 f"query exceeded the {limits.time_budget_s}s time budget",
@@ -416,7 +415,7 @@ class KBResources:
             started = time.thread_time()
             try:
                 outcome = self.kb.query(text, row_limit=limits.row_limit, time_budget_s=limits.time_budget_s)
-            except BaseException as exc:  # delivered to the awaiting request
+            except BaseException as exc:  # noqa: BLE001 - delivered to the awaiting request
                 outcome = _without_frames(exc) if isinstance(exc, KBError) else exc
             try:
                 loop.call_soon_threadsafe(settle, outcome, time.thread_time() - started)

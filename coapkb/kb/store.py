@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import hashlib
 import threading
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Protocol
-from collections.abc import Sequence
 
 import pyoxigraph as ox
 

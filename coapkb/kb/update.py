@@ -243,7 +243,7 @@ def _check_syntax(text: str) -> None:
         ox.Store().update(text)
     except SyntaxError as exc:
         raise syntax_error(str(exc), text, UPDATE_FORMS) from None
-    except Exception:  # an evaluation error on an empty store: the syntax is fine
+    except Exception:  # noqa: BLE001 - an evaluation error on an empty store: the syntax is fine
         pass
 
 

@@ -43,8 +43,9 @@ import functools
 import logging
 import math
 import secrets
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import aiocoap
 import aiocoap.error
@@ -258,8 +259,8 @@ class ClientSecurity:
         # A caller's timeout must not cancel the run the others wait for.
         await asyncio.shield(run)
 
-    def _run_done(self, key: str) -> Callable[["asyncio.Task[Any]"], None]:
-        def done(task: "asyncio.Task[Any]") -> None:
+    def _run_done(self, key: str) -> Callable[[asyncio.Task[Any]], None]:
+        def done(task: asyncio.Task[Any]) -> None:
             if self._runs.get(key) is task:
                 del self._runs[key]
             # Its waiters may all have given up (their timeouts, a shutdown):
@@ -303,14 +304,14 @@ class ClientSecurity:
         message_2 = await self._post(post, peer, cbor2.dumps(True) + message_1, stats)
         try:
             c_r, id_cred_r, ead_2 = initiator.parse_message_2(message_2)
-        except Exception as exc:  # lakers raises plain exceptions for malformed messages
+        except Exception as exc:  # noqa: BLE001 - lakers raises plain exceptions for malformed messages
             raise EdhocFailed(f"EDHOC with {peer}: bad message_2 ({exc})") from None
         if any(item.is_critical() for item in ead_2):
             raise EdhocFailed(f"EDHOC with {peer}: critical EAD in message_2")
         member = self._responder(peer, id_cred_r)
         try:
             initiator.verify_message_2(self.identity.private_d, self.identity.member.ccs, member.ccs)
-        except Exception:
+        except Exception:  # noqa: BLE001 - lakers raises plain exceptions
             raise EdhocFailed(f"EDHOC with {peer}: message_2 does not verify against {member.name}'s credential") from None
         context = _InitiatorContext(
             initiator, c_i, c_r, aiocoap_edhoc.OwnCredStyle.ByKeyId, logging.getLogger("coapkb.security.edhoc")
@@ -323,7 +324,7 @@ class ClientSecurity:
             raise
         try:
             context.complete_with_message_4(message_4)
-        except Exception:
+        except Exception:  # noqa: BLE001 - lakers raises plain exceptions
             raise EdhocFailed(f"EDHOC with {peer}: bad message_4") from None
         stats.seconds = loop.time() - started
         self.handshakes.append(stats)
@@ -601,7 +602,7 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         responder = lakers.EdhocResponder(r=own.own_key.d, cred_r=cbor2.dumps(own.own_cred[14], canonical=True))
         try:
             c_i, ead_1 = responder.process_message_1(pipe.request.payload[1:])
-        except Exception:  # lakers raises plain exceptions for malformed messages
+        except Exception:  # noqa: BLE001 - lakers raises plain exceptions for malformed messages
             raise aiocoap.error.BadRequest("malformed EDHOC message_1") from None
         if any(item.is_critical() for item in ead_1):
             raise aiocoap.error.BadRequest("critical EAD in message_1")

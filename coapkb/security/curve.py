@@ -34,7 +34,7 @@ def _curve_keys(identity: TeamIdentity) -> tuple[bytes, bytes]:
 
 
 class _TeamAuthenticator(AsyncioAuthenticator):
-    def __init__(self, context: zmq.asyncio.Context, security: "ZmqServerSecurity") -> None:
+    def __init__(self, context: zmq.asyncio.Context, security: ZmqServerSecurity) -> None:
         super().__init__(context)
         self._security = security
 

@@ -35,9 +35,10 @@ from __future__ import annotations
 import json
 import os
 import stat
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING
 
 import cbor2
 
@@ -133,7 +134,7 @@ class TeamIdentity:
     def key_file(self) -> Path:
         return self.team_dir / f"{self.member.name}.key"
 
-    def tls(self) -> "TlsFiles":
+    def tls(self) -> TlsFiles:
         """The member's TLS certificate and key and the team CA (Zenoh's ``tls/``
         links), checked now: one :class:`SecurityError` line if not usable."""
         from .tls import check_tls

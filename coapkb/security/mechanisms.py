@@ -9,8 +9,8 @@ robot never loads aiocoap's OSCORE stack, a CoAP one never loads Zenoh.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from ..transport import secured_schemes, transport_for
 from ..transport.security import ClientSecurity, ServerSecurity

@@ -29,8 +29,8 @@ section 5.9.2.1/.4: the client is known but not permitted).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import Callable, Collection
 
 from ..transport.messages import Response, Status
 from .keys import TeamMember, TeamTrust

@@ -9,9 +9,10 @@ Without the section the robot runs unprotected (``coapkb team --insecure``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from .keys import TRUST_FILE
 

@@ -27,9 +27,9 @@ import datetime
 import hashlib
 import os
 import stat
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
 
 from .keys import SecurityError
 
@@ -64,7 +64,7 @@ def generate_tls(team_dir: Path, names: Iterable[str]) -> tuple[str, dict[str, s
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-    now = datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(minutes=5)  # clock skew
+    now = datetime.datetime.now(datetime.UTC) - datetime.timedelta(minutes=5)  # clock skew
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"coapkb team CA {os.urandom(4).hex()}")])
     ca = (

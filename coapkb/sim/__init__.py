@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from collections.abc import Iterable, Iterator
 from dataclasses import replace
-from typing import Iterable, Iterator, TextIO
+from typing import TextIO
 
 from ..feeder.record import FateCounts
 from .faults import FaultMix, FaultSpecError, Schedule

@@ -40,7 +40,7 @@ class FaultMix:
     jitter: float = 0.0
 
     @classmethod
-    def parse(cls, text: str) -> "FaultMix":
+    def parse(cls, text: str) -> FaultMix:
         """``kill,freeze,partition,loss=0.2,starve`` (``mixed``: every kind;
         ``none`` or empty: a fault-free run).  Amounts are probabilities
         (``loss=0.2`` or ``loss=20%``); ``jitter`` is in seconds."""

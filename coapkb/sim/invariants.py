@@ -15,7 +15,7 @@ here and list it in :data:`CHECKS`.
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
@@ -155,7 +155,7 @@ def check_epochs_grow(run: RunResult) -> Iterable[str]:
     record = run.record
     if record is None:
         return
-    for index, tasks in _by_cluster(record.tasks).items():
+    for tasks in _by_cluster(record.tasks).values():
         last: dict[str, tuple[int, int]] = {}
         for task in tasks:
             for robot in task.joined:

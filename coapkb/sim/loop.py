@@ -19,8 +19,9 @@ import asyncio.events
 import heapq
 import random
 import selectors
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
-from typing import Any, Callable, Coroutine, TypeVar
+from typing import Any, TypeVar
 
 from ..errors import CoapkbError
 
@@ -134,7 +135,7 @@ class Process:
             return at
         return end if start <= at < end else at
 
-    def hold(self, task: "asyncio.Task[T]") -> "asyncio.Task[T]":
+    def hold(self, task: asyncio.Task[T]) -> asyncio.Task[T]:
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
         return task
@@ -163,7 +164,7 @@ class Scheduler:
         self.processes.append(process)
         return process
 
-    def start(self, process: Process, coroutine: Coroutine[Any, Any, T]) -> "asyncio.Task[T]":
+    def start(self, process: Process, coroutine: Coroutine[Any, Any, T]) -> asyncio.Task[T]:
         """Start ``coroutine`` as a task of ``process``."""
         return process.hold(process.loop.create_task(coroutine))
 

@@ -25,12 +25,14 @@ the wire, and security.  Those are tested over real sockets.
 from __future__ import annotations
 
 import asyncio
+import functools
 import itertools
 import logging
 import random
 from collections import OrderedDict
+from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, AsyncIterator, Callable, Iterable
+from typing import TYPE_CHECKING
 
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH
@@ -192,14 +194,14 @@ class SimNetwork:
             deliver()
         return arrived
 
-    def server_at(self, endpoint: Endpoint) -> "SimServer | None":
+    def server_at(self, endpoint: Endpoint) -> SimServer | None:
         return self._servers.get(endpoint)
 
-    def for_process(self, process: Process) -> "ProcessNetwork":
+    def for_process(self, process: Process) -> ProcessNetwork:
         """The network as ``process`` sees it (its :class:`~coapkb.host.Network`)."""
         return ProcessNetwork(self, process)
 
-    def _bind(self, server: "SimServer") -> None:
+    def _bind(self, server: SimServer) -> None:
         old = self._servers.get(server.endpoint)
         if old is not None and old.process.alive and not old.closed:
             raise OSError(f"{server.endpoint} is already in use")
@@ -226,12 +228,12 @@ class ProcessNetwork:
         self.network = network
         self.process = process
 
-    async def open_client(self, scheme: str, *, reliability: "Reliability | None" = None,
-                          security: "ClientSecurity | None" = None) -> "SimClient":
+    async def open_client(self, scheme: str, *, reliability: Reliability | None = None,
+                          security: ClientSecurity | None = None) -> SimClient:
         return SimClient(self.network, self.process)
 
-    async def serve(self, service: Service, endpoint: Endpoint, *, reliability: "Reliability | None" = None,
-                    security: "ServerSecurity | None" = None) -> "SimServer":
+    async def serve(self, service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
+                    security: ServerSecurity | None = None) -> SimServer:
         server = SimServer(self.network, self.process, service, endpoint)
         self.network._bind(server)
         return server
@@ -255,7 +257,7 @@ class SimServer:
     def up(self) -> bool:
         return self.process.alive and not self.closed
 
-    def receive(self, client: "SimClient", xid: int, request: Request, observe: "_Observation | None") -> None:
+    def receive(self, client: SimClient, xid: int, request: Request, observe: _Observation | None) -> None:
         """A copy of request ``xid`` from ``client`` arrived."""
         counters = self.counters
         counters.messages_received += 1
@@ -272,8 +274,8 @@ class SimServer:
             self._exchanges.popitem(last=False)
         self.process.hold(self.process.loop.create_task(self._serve(key, client, xid, request, observe)))
 
-    async def _serve(self, key: tuple[int, int], client: "SimClient", xid: int, request: Request,
-                     observe: "_Observation | None") -> None:
+    async def _serve(self, key: tuple[int, int], client: SimClient, xid: int, request: Request,
+                     observe: _Observation | None) -> None:
         if observe is not None and observe.key not in self._observers:
             observer = _Observer(self, client, observe, request)
             self._observers[observe.key] = observer
@@ -283,7 +285,7 @@ class SimServer:
             self._exchanges[key] = (self._exchanges[key][0], response)
         self._reply(client, xid, request.path, response)
 
-    def _reply(self, client: "SimClient", xid: int, path: str, response: Response) -> None:
+    def _reply(self, client: SimClient, xid: int, path: str, response: Response) -> None:
         self.counters.messages_sent += 1
         self.counters.bytes_sent += len(response.payload) + HEADER_BYTES
         self.network.carry(self.process, client.process, f"ans#{xid} {path} {response.status.dotted}",
@@ -304,7 +306,7 @@ class SimServer:
 class _Observer:
     """The server's side of one observation: notifies each change, confirmably."""
 
-    def __init__(self, server: SimServer, client: "SimClient", observation: "_Observation", request: Request) -> None:
+    def __init__(self, server: SimServer, client: SimClient, observation: _Observation, request: Request) -> None:
         self.server = server
         self.client = client
         self.observation = observation
@@ -354,9 +356,10 @@ class _Observer:
                 server.counters.bytes_sent += len(response.payload) + HEADER_BYTES
                 if attempt:
                     server.counters.retransmissions += 1
-                observation, sent = self.observation, seq
+                # Bound now: this datagram delivers what it carried, even if a
+                # newer state replaces the notification before it lands.
                 network.carry(server.process, self.client.process, f"ntf {self.request.path} #{seq}",
-                              lambda: observation.notified(sent, response),
+                              functools.partial(self.observation.notified, seq, response),
                               response.payload if self.request.path == OUTCOME_PATH else None)
                 try:
                     async with asyncio.timeout(rto * 2 ** attempt):
@@ -382,7 +385,7 @@ class _Observer:
 class _Observation:
     """The client's side of one observation: the newest notification not yet taken."""
 
-    def __init__(self, client: "SimClient", peer: Endpoint) -> None:
+    def __init__(self, client: SimClient, peer: Endpoint) -> None:
         self.client = client
         self.peer = peer
         self.key = (client.id, client.network.next_id())

@@ -21,9 +21,10 @@ import sys
 import tempfile
 import time
 import weakref
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence, TextIO
+from typing import Any, TextIO
 
 from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
@@ -38,9 +39,9 @@ from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
 from ..kb.results import QueryResult
 from ..kb.store import KnowledgeBase
-from ..world.vocabulary import ONTOLOGIES
 from ..transport.base import Endpoint, TransportError
 from ..world.truth import WorldTruth
+from ..world.vocabulary import ONTOLOGIES
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
@@ -79,7 +80,7 @@ class SimSpec:
     #: These fault events instead of those drawn by the seed (the link faults still come from ``faults``).
     schedule: tuple[FaultEvent, ...] | None = None
     #: Called with each task's record once decided, and the run: a scenario's own faults (tests).
-    scenario: Callable[[TaskRecord, "SimulatedTeam"], None] | None = None
+    scenario: Callable[[TaskRecord, SimulatedTeam], None] | None = None
     #: An operator's writes to random robots' KBs during the run (0: the KBs stay read-only).
     writes: int = 0
 
@@ -272,7 +273,7 @@ def _capturing(handler: _History) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _asyncgen_hooks(owner: "weakref.WeakKeyDictionary[Any, SimLoop]") -> Iterator[None]:
+def _asyncgen_hooks(owner: weakref.WeakKeyDictionary[Any, SimLoop]) -> Iterator[None]:
     """Async generators closed on the loop that ran them, as ``run_forever``
     arranges for one real loop (the simulator steps many)."""
 
@@ -498,14 +499,14 @@ class SimulatedTeam:
                 # statistics are asked for, as a run's report would be.  Those run
                 # in other processes, whose tasks this loop cannot await: look
                 # again shortly (simulated time, free).
-                while not schedule.done() or not self._settled():
+                while not schedule.done() or not self._settled():  # noqa: ASYNC110 - other processes' state, no event to await
                     await asyncio.sleep(0.5)
                 if writer is not None:
                     # Quiescence for the KBs: the writes delivered and anti-entropy done.
-                    while not writer.done():
+                    while not writer.done():  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
                     deadline = asyncio.get_running_loop().time() + REPLICATION_SETTLE_S
-                    while not self._replicas_agree() and asyncio.get_running_loop().time() < deadline:
+                    while not self._replicas_agree() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]

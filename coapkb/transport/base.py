@@ -14,8 +14,9 @@ import abc
 import asyncio
 import logging
 import socket
+from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass, fields
-from typing import AsyncIterator, Callable, Mapping, Protocol
+from typing import Protocol
 
 from .. import clock
 from ..errors import CoapkbError
@@ -122,7 +123,7 @@ class Endpoint:
     port: int
 
     @classmethod
-    def parse(cls, uri: str, default_scheme: str = "coap") -> "Endpoint":
+    def parse(cls, uri: str, default_scheme: str = "coap") -> Endpoint:
         """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq), ``zenoh://h:p``,
         ``zenoh+udp://h:p``, ``zenoh+quic://h:p``, ``dds://h:p`` or bare ``h:p``."""
         scheme, sep, rest = uri.partition("://")
@@ -171,12 +172,12 @@ class TrafficCounters:
         return dict(vars(self))
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, int]) -> "TrafficCounters":
+    def from_dict(cls, data: Mapping[str, int]) -> TrafficCounters:
         """The inverse of :meth:`as_dict`; a counter missing from ``data`` is 0
         (a record written before that counter existed)."""
         return cls(**{f.name: int(data.get(f.name, 0)) for f in fields(cls)})
 
-    def __add__(self, other: "TrafficCounters") -> "TrafficCounters":
+    def __add__(self, other: TrafficCounters) -> TrafficCounters:
         return TrafficCounters(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
 
 

@@ -18,7 +18,7 @@ Block-wise transfer and the wire formats are tested on the real transports.
 from __future__ import annotations
 
 import asyncio
-from typing import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable
 
 from .base import Endpoint, PeerGone, PeerTimeout, PeerUnreachable, Service, TrafficCounters
 from .messages import Request, Response
@@ -30,7 +30,7 @@ class MemoryNetwork:
     def __init__(self) -> None:
         self._servers: dict[Endpoint, MemoryServerTransport] = {}
 
-    async def serve(self, service: Service, endpoint: Endpoint) -> "MemoryServerTransport":
+    async def serve(self, service: Service, endpoint: Endpoint) -> MemoryServerTransport:
         """Expose ``service`` on ``endpoint`` (the endpoint must be free)."""
         if endpoint in self._servers:
             raise OSError(f"{endpoint} is already in use")
@@ -38,16 +38,16 @@ class MemoryNetwork:
         self._servers[endpoint] = server
         return server
 
-    def client(self) -> "MemoryClientTransport":
+    def client(self) -> MemoryClientTransport:
         return MemoryClientTransport(self)
 
-    def server_at(self, peer: Endpoint) -> "MemoryServerTransport":
+    def server_at(self, peer: Endpoint) -> MemoryServerTransport:
         server = self._servers.get(peer)
         if server is None:
             raise PeerGone(f"{peer}: nobody listens there")
         return server
 
-    def _remove(self, server: "MemoryServerTransport") -> None:
+    def _remove(self, server: MemoryServerTransport) -> None:
         if self._servers.get(server.endpoint) is server:
             del self._servers[server.endpoint]
 

@@ -9,8 +9,8 @@ transport it talks through.
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 
 class Method(enum.StrEnum):
@@ -98,7 +98,7 @@ class Response:
     etag: bytes | None = None
 
     @classmethod
-    def error(cls, status: Status, message: str, max_age: int | None = None) -> "Response":
+    def error(cls, status: Status, message: str, max_age: int | None = None) -> Response:
         """An error with a UTF-8 diagnostic payload (RFC 7252 section 5.5.2)."""
         return cls(status, message.encode("utf-8"), ContentFormat.TEXT, max_age=max_age)
 

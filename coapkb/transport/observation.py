@@ -158,7 +158,7 @@ class ObservationRegistry:
 
         try:
             obs.unsubscribe = self._service.subscribe(request.path, on_change)
-        except Exception:
+        except Exception:  # noqa: BLE001 - a service's hook is its own code: the server goes on
             self._log.exception("Service.subscribe(%r) raised; answering without observation", request.path)
             self._stop(obs)
             await answer(await self._call(request), None)
@@ -226,7 +226,7 @@ class ObservationRegistry:
         if obs.unsubscribe is not None:
             try:
                 obs.unsubscribe()
-            except Exception:
+            except Exception:  # noqa: BLE001 - a service's hook is its own code: the server goes on
                 self._log.exception("cancelling the subscription to %r raised", obs.request.path)
         if obs.notifier is not None:
             obs.notifier.close()

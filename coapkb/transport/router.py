@@ -4,10 +4,10 @@ every robot exposes, whatever carries its messages."""
 from __future__ import annotations
 
 import logging
-from typing import Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
-from .messages import Request, Response, Status
 from .base import ResourceInfo, Service
+from .messages import Request, Response, Status
 
 Handler = Callable[[Request], Awaitable[Response]]
 

@@ -18,7 +18,8 @@ all of them share is here:
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 from .base import ResourceInfo, Service
 from .messages import Request, Response

@@ -28,7 +28,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 
-
 @dataclass(frozen=True, order=True)
 class Position:
     """A place on the aisle graph: an aisle and a rack bay along it.

@@ -5,10 +5,10 @@ rdflib graphs (:func:`build_graphs`) or as byte-stable RDF/XML
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from decimal import Decimal
 from pathlib import Path
-from collections.abc import Iterator
 from xml.sax.saxutils import escape, quoteattr
 
 import rdflib

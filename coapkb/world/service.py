@@ -74,7 +74,7 @@ class WorldServer:
             await self._server.wait_closed()
         self.path.unlink(missing_ok=True)
 
-    async def __aenter__(self) -> "WorldServer":
+    async def __aenter__(self) -> WorldServer:
         await self.start()
         return self
 

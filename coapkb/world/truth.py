@@ -15,8 +15,9 @@ run: in the simulator directly, between processes through
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Iterable, Protocol
+from typing import Protocol
 
 #: Objects taken so far that the truth remembers: a shift of 10,000 tasks
 #: takes at most that many; beyond this bound the oldest are forgotten
@@ -52,7 +53,7 @@ class WorldTruth:
     taken: dict[str, Taken] = field(default_factory=dict)
 
     @classmethod
-    def with_misplaced(cls, objects: Iterable[str]) -> "WorldTruth":
+    def with_misplaced(cls, objects: Iterable[str]) -> WorldTruth:
         return cls(misplaced=frozenset(objects))
 
     def take_now(self, obj: str, robot: str, seq: int) -> str | None:

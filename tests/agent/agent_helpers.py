@@ -3,8 +3,8 @@ teammates served through the in-memory transport (no processes, no sockets)."""
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator, Callable, Iterable
 from pathlib import Path
-from typing import AsyncIterator, Callable, Iterable
 
 import pytest
 

@@ -5,7 +5,7 @@ Teammates are routers on the in-memory transport; no processes."""
 from __future__ import annotations
 
 import asyncio
-from typing import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 
 import pytest
 from agent_helpers import config, endpoint

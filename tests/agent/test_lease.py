@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import AsyncIterator
+from collections.abc import AsyncIterator
 
 from coapkb.agent.lease import LEASE_PATH, Lease, lease_duration_s
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState

@@ -3,19 +3,18 @@ failure becomes a QueryError that names the query, the peer and the KB."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import asyncio
-from typing import Callable
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 from agent_helpers import config, endpoint
 
 from coapkb.agent.query_handler import ModuleUnavailable, QueryError, QueryHandler
 from coapkb.kb.client import KBClient
+from coapkb.kb.errors import QueryEvaluationError
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import SelectResult
-from coapkb.kb.errors import QueryEvaluationError
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.base import ResourceInfo
 from coapkb.transport.memory import MemoryNetwork

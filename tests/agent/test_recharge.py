@@ -13,14 +13,13 @@ from pathlib import Path
 
 import cbor2
 import pytest
+from support import ROOT
 
 from coapkb.agent.stats import Recharge, RobotStats
 from coapkb.harness.record import TeamRecord
 from coapkb.transport.base import TrafficCounters
 from coapkb.world.generator import WarehouseSpec
 from coapkb.world.ontologies import write_ontologies
-
-from support import ROOT
 
 SMALL_BATTERIES = WarehouseSpec(products=300, robots=3, battery_wh=(40.0, 60.0))
 TASKS = 90

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import AsyncIterator
+from collections.abc import AsyncIterator
 
 import cbor2
 import pytest
 import pytest_asyncio
+from support import KB_FILES, free_udp_port
 
 from coapkb.agent.robot import Robot
 from coapkb.agent.robot_state import RobotState
@@ -18,8 +19,6 @@ from coapkb.config import ExecutionModel, RobotConfig, StartState, Teammate
 from coapkb.transport import open_client
 from coapkb.transport.base import ClientTransport, Endpoint
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
-
-from support import KB_FILES, free_udp_port
 
 #: How long a test waits for the robot to get somewhere (generous: a loaded machine).
 PATIENCE_S = 30.0
@@ -139,7 +138,8 @@ async def test_tasks_in_order_are_decided_and_shown_in_stats(ask: Asker) -> None
 async def test_a_robot_keeps_its_latest_decisions_and_posts_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """A robot runs whole shifts: what it keeps per task is bounded (the decision
     listing of ``GET /tasks``, the posts whose repeat it recognises)."""
-    from coapkb.agent import controller, robot as robot_module
+    from coapkb.agent import controller
+    from coapkb.agent import robot as robot_module
 
     monkeypatch.setattr(controller, "DECISIONS_KEPT", 3)
     monkeypatch.setattr(robot_module, "POSTS_REMEMBERED", 2)

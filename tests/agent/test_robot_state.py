@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-
 from dataclasses import replace
 
 import cbor2
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from support import ROOT, require
 
 from coapkb.agent.robot_state import ACTIVITIES, Decision, LiveState, PlannedState, RobotState
-from support import ROOT, require
 
 CDDL = (ROOT / "docs" / "robot-state.cddl").read_text()
 PLAN = PlannedState(3, 21, 412.25, 0.8, 60.6, 5)

@@ -12,8 +12,8 @@ from coapkb.agent.robot_state import LiveState
 from coapkb.agent.stats import Recharge
 from coapkb.agent.task_assigner import ChargeStop
 from coapkb.agent.task_executor import Job, TaskExecutor
-from coapkb.world import Position
 from coapkb.config import ExecutionModel
+from coapkb.world import Position
 
 MODEL = ExecutionModel(speed_m_s=2.0, pick_s=4.0, time_scale=10.0)
 

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import asyncio
-from typing import AsyncIterator
+from collections.abc import AsyncIterator
 
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import PLAN_PATH, ObservedStates
-from coapkb.transport.messages import ContentFormat, Request, Response, Status
 from coapkb.transport.base import Endpoint, TrafficCounters
+from coapkb.transport.messages import ContentFormat, Request, Response, Status
 
 
 def state(seq: int) -> RobotState:
@@ -57,10 +57,10 @@ async def test_a_stale_observation_is_refreshed_and_registered_again() -> None:
 from agent_helpers import endpoint  # noqa: E402
 
 from coapkb.agent.team_view import TeamView, liveness_timeout_s  # noqa: E402
-from coapkb.transport.rtt import RttEstimator  # noqa: E402
 from coapkb.transport.base import ResourceInfo  # noqa: E402
 from coapkb.transport.memory import MemoryNetwork  # noqa: E402
 from coapkb.transport.router import Router  # noqa: E402
+from coapkb.transport.rtt import RttEstimator  # noqa: E402
 
 
 def robot(robot_id: str, seq: int, boot: int = 1) -> RobotState:

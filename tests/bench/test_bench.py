@@ -12,8 +12,8 @@ import csv
 import json
 import os
 import socket
-from pathlib import Path
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -21,13 +21,10 @@ from mcap.reader import make_reader
 from support import ROOT, coapkb, load_experiment, require
 
 from coapkb.bench import run as bench
-from coapkb.bench.stats import percentile
-from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
+from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
+from coapkb.bench.stats import percentile
 from coapkb.harness.team import Fault
-
-
-
 
 
 def _require_netns() -> None:

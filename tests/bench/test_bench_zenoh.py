@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from support import require
 
 from coapkb.bench import run as bench
 from coapkb.bench.linkemu import available
-from support import require
 
 
 @pytest.mark.root

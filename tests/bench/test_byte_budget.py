@@ -12,10 +12,10 @@ import aiocoap
 import pytest
 from aiocoap.numbers.codes import Code
 from aiocoap.numbers.types import ACK, CON, NON
+from support import load_experiment
 
 from coapkb.bench.linkemu.capture import CapturedFrame
 from coapkb.transport.coap.wire_trace import OSCORE_OPTION, split_coap
-from support import load_experiment
 
 bb = load_experiment("byte_budget")
 

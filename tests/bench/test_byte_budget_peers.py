@@ -11,9 +11,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support import load_experiment
 
 from coapkb.bench.linkemu.capture import CapturedFrame
-from support import load_experiment
 
 bb = load_experiment("byte_budget")
 pp = bb.peers
@@ -117,7 +117,7 @@ def test_long_headers_coalesced_and_short_headers_in_clear() -> None:
     with pytest.raises(ValueError):
         pp.parse_quic_datagram(bytes([0xC0]) + (0x1234).to_bytes(4, "big") + b"\0\0")  # not a QUIC version
     with pytest.raises(ValueError):
-        pp.parse_quic_datagram(initial[:-1] + b"", plaintext=True)[0].frames  # Length past the datagram
+        pp.parse_quic_datagram(initial[:-1] + b"", plaintext=True)[0].frames  # noqa: B018 - Length past the datagram
 
 
 def test_protected_packets_keep_their_number_frames_and_tag_hidden() -> None:

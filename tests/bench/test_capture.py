@@ -8,11 +8,10 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
+from support import load_experiment, require
 
 from coapkb.bench.linkemu import LinkSpec, Testbed, available
 from coapkb.bench.linkemu.capture import PacketCapture, read_frames
-
-from support import load_experiment, require
 
 accuracy = load_experiment("linkemu_accuracy")
 

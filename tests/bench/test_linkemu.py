@@ -23,11 +23,10 @@ import time
 from collections.abc import Iterator
 
 import pytest
+from support import load_experiment, require
 
 from coapkb.bench import linkemu
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, UdpRelay, available, cleanup_stale
-
-from support import load_experiment, require
 
 #: The traffic scripts and measurements, shared with the benchmark that reports the figures.
 accuracy = load_experiment("linkemu_accuracy")

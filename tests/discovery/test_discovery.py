@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from aiocoap.util.linkformat import parse
+from support import ONTOLOGIES, free_udp_port
 
 from coapkb.config import ConfigError, DiscoveryConfig, RobotConfig, Teammate, dump_config, load_config, parse_config
 from coapkb.discovery import DiscoveryError, ResourceDirectory, discover
@@ -23,8 +24,6 @@ from coapkb.security.coap import ClientSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
-
-from support import ONTOLOGIES, free_udp_port
 
 #: A discovery wait no test reaches: a test that gets there has waited for nothing.
 WAIT_FOREVER_S = 600.0
@@ -106,7 +105,7 @@ async def test_robots_knowing_only_themselves_find_each_other_and_the_modules() 
     try:
         async with asyncio.timeout(COMPLETE_WITHIN_S):
             found = await asyncio.gather(*(discover(c) for c in configs))
-        for config, directory in found:
+        for config, _directory in found:
             assert {r: m.kbs for r, m in config.team.items()} == holdings
             assert config.team["Robot2"].endpoint == Endpoint("coap", "127.0.0.1", 5801)
         # A fourth robot of another cluster sees nobody of c1 and cannot work alone.

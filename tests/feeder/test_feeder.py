@@ -12,6 +12,7 @@ from pathlib import Path
 import cbor2
 import pytest
 import tomli_w
+from support import ROOT
 
 from coapkb.config import ConfigError
 from coapkb.feeder import (
@@ -28,8 +29,6 @@ from coapkb.feeder.team_folder import read_team_folder
 from coapkb.harness.team import Team, TeamSpec
 from coapkb.transport.base import Endpoint
 from coapkb.transport.messages import ContentFormat, Method
-
-from support import ROOT
 
 EXAMPLE = ROOT / "examples" / "three-robots"
 

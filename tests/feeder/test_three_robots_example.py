@@ -16,15 +16,14 @@ import select
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 from mcap.reader import make_reader
+from support import ROOT
 
 from coapkb.feeder import read_tasks_file
-
-from support import ROOT
 
 EXAMPLE = ROOT / "examples" / "three-robots"
 ROBOTS = ("Robot1", "Robot2", "Robot3")

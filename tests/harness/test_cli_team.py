@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from support import ROOT
 
 TASKS = ["Gucci_bag_14", "Dell_monitor_986", "Nonexistent_thing_1", "Levis_jeans_234", "Canon_tv_995"]

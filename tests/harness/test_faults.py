@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 
 import pytest
+from fates import VICTIM, check_fates, check_joined_again
+from support import ROOT
 
 from coapkb.agent.robot_state import RobotState
 from coapkb.agent.team_view import STATE_PATH
@@ -16,9 +18,6 @@ from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tasks
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
-
-from fates import VICTIM, check_fates, check_joined_again
-from support import ROOT
 
 ONTOLOGIES = ROOT / "ontologies"
 

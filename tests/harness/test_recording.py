@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import websockets
 from mcap.reader import make_reader
+from support import ROOT
 
 from coapkb.feeder.record import TaskRecord
 from coapkb.harness.recording import RunRecorder, warehouse
-from support import ROOT
 
 TASKS = ["Gucci_bag_14", "Canon_tv_538", "Gucci_bag_14", "Barilla_pasta_1"]
 
@@ -54,7 +54,7 @@ def test_a_team_run_recorded_as_mcap_has_every_channel_task_and_its_metadata(tmp
         times: dict[str, list[int]] = defaultdict(list)
         tasks: dict[int, dict] = {}
         states = []
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
             times[channel.topic].append(message.log_time)
             if channel.topic == "/tasks":
                 task = json.loads(message.data)
@@ -120,7 +120,7 @@ def test_the_foxglove_layout_names_only_topics_the_recording_writes() -> None:
     layout = json.loads((ROOT / "examples" / "foxglove-layout.json").read_text())
     written = {"/warehouse", "/robots/markers", "/robots/poses", "/robots/state", "/tasks", "/robots/traffic", "/log"}
     named = set()
-    for panel, config in layout["configById"].items():
+    for _panel, config in layout["configById"].items():
         named |= set(config.get("topics", {}))
         named |= {path["value"].split("{")[0].split(".")[0] for path in config.get("paths", [])}
         named |= {config[key] for key in ("topicPath", "topicToRender") if key in config}

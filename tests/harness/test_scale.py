@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import ROOT
 
 from coapkb.feeder import FateCounts, TaskRecord
 from coapkb.harness.kbs import KnowledgeGap, generator_spec, kbs_for_team, known_robots
@@ -18,8 +19,6 @@ from coapkb.harness.team import DEFAULT_ONTOLOGIES, Placement, PortReservation, 
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.store import KnowledgeBase
 from coapkb.world.generator import WarehouseSpec
-
-from support import ROOT
 
 
 def _rows(owl: Path, query: str) -> dict[str, dict[str, str]]:

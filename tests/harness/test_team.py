@@ -16,26 +16,26 @@ import signal
 import subprocess
 import sys
 import time
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import cbor2
 import pytest
+from support import ROOT
 
 from coapkb.agent.controller import DEPOT
 from coapkb.agent.robot_state import PlannedState
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign
 from coapkb.config import CostModel
-from coapkb.kb.store import KnowledgeBase
-from coapkb.transport.messages import ContentFormat, Method, Request
-from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.harness.record import TeamRecord
 from coapkb.feeder import split_tasks
+from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Team, TeamSpec, draw_tasks, robot_starts
+from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import open_client
+from coapkb.transport.messages import ContentFormat, Method, Request
 from coapkb.world import layout_from_row, travel_distance
 
-from support import ROOT
 ONTOLOGIES = ROOT / "ontologies"
 
 MISSING = ("Nonexistent_thing_1", "Nonexistent_thing_2")
@@ -58,7 +58,7 @@ COUNTER_KEYS = {"bytes_sent", "bytes_received", "messages_sent", "messages_recei
 # --------------------------------------------------------------------------- ground truth from the KBs
 
 
-@lru_cache(maxsize=None)
+@cache
 def kb(module: str) -> KnowledgeBase:
     return KnowledgeBase.load([ONTOLOGIES / f"{module}.owl"])
 
@@ -67,7 +67,7 @@ def rows(module: str, query: str, **params: str) -> list[dict[str, Any]]:
     return kb(module).query(NAMED_QUERIES[query].render(params)).as_dicts()  # type: ignore[union-attr]
 
 
-@lru_cache(maxsize=None)
+@cache
 def facts_of(name: str) -> TaskFacts | None:
     """The four queries, asked of the KB files directly (capable: every robot in the KB)."""
     if not rows("Object", "object-exists", name=name):
@@ -80,7 +80,7 @@ def facts_of(name: str) -> TaskFacts | None:
                      float(features["weight"]), grip, capable)
 
 
-@lru_cache(maxsize=None)
+@cache
 def payloads() -> dict[str, float]:
     return {str(r["robo_id"]): float(r["payload"]) for r in rows("Capability", "robot-specs")}
 
@@ -452,7 +452,7 @@ def test_cli_team_interrupted_leaves_no_process(sig: int, to_group: bool, exit_c
         assert not os.path.exists(run_dir), "the team's temporary directory was left behind"
     finally:
         if proc.poll() is None:
-            with_group = getattr(os, "killpg")
+            with_group = os.killpg
             try:
                 with_group(proc.pid, signal.SIGKILL)
             except ProcessLookupError:

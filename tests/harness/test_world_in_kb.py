@@ -14,9 +14,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import ROOT
 
 from coapkb.world.service import WorldClient, WorldUnavailable
-from support import ROOT
 
 MISPLACED = "not where the KB says it is (misplaced)"
 #: Tasks 3 and 5 repeat tasks 1 and 2; task 4's object is not at its shelf.

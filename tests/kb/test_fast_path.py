@@ -8,12 +8,11 @@ import math
 import threading
 
 import pytest
+from support import KB_FILES
 
 from coapkb.kb.resources import KBResources, QueryLimits
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
-
-from support import KB_FILES
 
 
 def named(name: str) -> Request:

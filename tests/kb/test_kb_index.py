@@ -8,12 +8,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
+from support import ROOT
 
 from coapkb.config import parse_config
 from coapkb.kb.errors import KBLoadError
 from coapkb.kb.store import KnowledgeBase
-
-from support import ROOT
 
 ONTOLOGIES = ROOT / "ontologies"
 FILES = [ONTOLOGIES / "Object.owl", ONTOLOGIES / "Location.owl"]

@@ -6,13 +6,12 @@ import gc
 import sys
 
 import pytest
+from support import KB_FILES
 
 from coapkb.kb.resources import KBResources, QueryLimits
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import Method, Request, Status
 from coapkb.transport.router import Router
-
-from support import KB_FILES
 
 
 @pytest.fixture(scope="module")

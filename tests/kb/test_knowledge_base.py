@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from rdflib import BNode, Literal, URIRef
 from rdflib import namespace as rdfns
+from support import ROOT
 
 from coapkb.kb.errors import (
     FeatureRefused,
@@ -17,14 +18,13 @@ from coapkb.kb.errors import (
     QueryTimeout,
     UpdateRefused,
 )
-from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
+from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.world import OBJECT_NS
 from coapkb.world.generator import WarehouseSpec
 from coapkb.world.ontologies import build_graphs
 
-from support import ROOT
 KB_FILES = [ROOT / "ontologies" / f"{n}.owl" for n in ("Object", "Location", "Capability")]
 PARAMS = {"name": "Gucci_bag_14", "grip": "gripping", "cls": "PersonalItems", "robots": "Robot1,Robot2,Robot3"}
 

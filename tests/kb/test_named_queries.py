@@ -6,14 +6,14 @@ from decimal import Decimal
 
 import pytest
 from rdflib import Literal, URIRef
+from support import ROOT
 
-from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.kb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
+from coapkb.kb.store import BACKENDS, KnowledgeBase
 from coapkb.world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS, Position, layout_from_row
 from coapkb.world.generator import WarehouseSpec, generate
 from coapkb.world.vocabulary import GRIP_TYPES
 
-from support import ROOT
 WAREHOUSE = generate(WarehouseSpec())  # what ontologies/ was generated from (checked in test_warehouse)
 BAG = WAREHOUSE.product("Gucci_bag_14")
 

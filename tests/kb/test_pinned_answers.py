@@ -7,19 +7,18 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 
 import pytest
+from support import ONTOLOGIES
 
 from coapkb.kb.client import KBClient, decode
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.kb.results import QueryResult
 from coapkb.kb.resources import KBResources
+from coapkb.kb.results import QueryResult
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.base import Endpoint
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 from coapkb.transport.router import Router
-
-from support import ONTOLOGIES
 
 OBJECT = "Gucci_bag_14"
 PLACE = NAMED_QUERIES["pick-place"].render({"name": OBJECT})

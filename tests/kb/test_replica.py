@@ -197,7 +197,7 @@ class Team:
             while pending:
                 ready = [p for p in pending if self.deliverable(r, p[1])]
                 assert ready, "a delta waits on a dot no delta carries"
-                for delta, deps in ready:
+                for delta, _deps in ready:
                     r.apply(delta, self.is_base)
                 pending = [p for p in pending if all(p is not q for q in ready)]
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cbor2
 import pytest
+from support import ROOT, coapkb, free_udp_port
 
 from coapkb.config import dump_config
 from coapkb.harness.team import TeamSpec, robot_configs
@@ -22,8 +23,6 @@ from coapkb.security.settings import SecurityConfig
 from coapkb.transport import open_client
 from coapkb.transport.base import Endpoint
 from coapkb.transport.messages import Method, Request
-
-from support import ROOT, coapkb, free_udp_port
 
 LOC = "http://www.tcs.org/2018/Location#"
 MOVE = (f"PREFIX loc: <{LOC}> DELETE {{{{ loc:Robot1 loc:Robot_aisle_no ?a }}}} "
@@ -56,7 +55,7 @@ class Agents:
             proc.terminate()
             try:
                 await asyncio.wait_for(proc.wait(), 10)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 proc.kill()
                 await proc.wait()
 

@@ -20,6 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef
+from support import ONTOLOGIES
 
 from coapkb.kb.errors import QuerySyntaxError
 from coapkb.kb.live import LiveKB, NotHeld, PreconditionFailed, WriteLimits, WriteTooLarge
@@ -27,8 +28,6 @@ from coapkb.kb.results import SelectResult, Triple
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import Operation, UpdateUnsupported, decode_patch, encode_patch, parse_update
 from coapkb.wire.codec import CodecError
-
-from support import ONTOLOGIES
 
 LOC = "http://www.tcs.org/2018/Location#"
 OBJ = "http://www.tcs.org/2018/Object#"

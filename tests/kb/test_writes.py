@@ -10,10 +10,12 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 
 import pytest
+from rdflib import Literal, URIRef
+from support import ONTOLOGIES, free_tcp_port, free_udp_port
 
 from coapkb.kb.client import KBClient, QueryFailed, decode
 from coapkb.kb.live import LiveKB, wall_ms
-from coapkb.kb.replication import Holder, Replicator, ReplicationSettings
+from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
 from coapkb.kb.resources import KBResources, QueryLimits
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import encode_patch
@@ -21,9 +23,6 @@ from coapkb.transport import open_client, serve
 from coapkb.transport.base import Endpoint, ServerTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 from coapkb.transport.router import Router
-from rdflib import Literal, URIRef
-
-from support import ONTOLOGIES, free_tcp_port, free_udp_port
 
 LOC = "http://www.tcs.org/2018/Location#"
 PREFIX = f"PREFIX loc: <{LOC}>\n"

@@ -7,14 +7,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from support import recording_router
 
 from coapkb.security import AccessPolicy, TeamTrust, generate_team, load_identity
 from coapkb.security.curve import ZmqClientSecurity, ZmqServerSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, PeerUnreachable, open_client, serve
 from coapkb.transport.messages import Method, Request, Response, Status
-
-from support import recording_router
 
 
 @pytest.fixture

@@ -6,9 +6,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
-from typing import AsyncIterator
 
 import pytest
 
@@ -359,7 +359,7 @@ async def test_registrations_abandoned_before_their_answer_end_too(robot1, team_
     client = await _client(load_identity(team_dir, "Robot3"))
     try:
         await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)  # EDHOC first
-        tries = [client._ctx.request(message_from_request(peer, Request(Method.GET, "/state"), observe=True),  # noqa: SLF001
+        tries = [client._ctx.request(message_from_request(peer, Request(Method.GET, "/state"), observe=True),
                                      handle_blockwise=False) for _ in range(3)]
         await asyncio.sleep(0)
         for pending in tries:

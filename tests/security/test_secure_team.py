@@ -9,6 +9,7 @@ from pathlib import Path
 
 import cbor2
 import pytest
+from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 from coapkb.harness.team import Team, TeamSpec
 from coapkb.security import load_identity
@@ -17,8 +18,6 @@ from coapkb.security.curve import ZmqClientSecurity
 from coapkb.security.zenoh_tls import ZenohClientSecurity
 from coapkb.transport import PeerUnreachable, open_client
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
-
-from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 
 async def test_keys_command_and_a_missing_key_at_start_up(tmp_path: Path) -> None:

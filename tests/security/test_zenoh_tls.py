@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from support import ONTOLOGIES, ServerProcess, coapkb, free_tcp_port, recording_router
 
 from coapkb.security import AccessPolicy, SecurityError, generate_team, load_identity
 from coapkb.security.keys import default_members
@@ -19,8 +20,6 @@ from coapkb.transport import Endpoint, PeerUnreachable, open_client, serve
 from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.zenoh.mapping import RequestHeader, decode_response_header, encode_request_header
-
-from support import ONTOLOGIES, ServerProcess, coapkb, free_tcp_port, recording_router
 
 
 @pytest.fixture

@@ -11,7 +11,6 @@ import subprocess
 import sys
 
 import pytest
-
 from support import ROOT
 
 #: A profile's options, and seed -> what went wrong before the fix.

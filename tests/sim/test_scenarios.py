@@ -10,14 +10,13 @@ from __future__ import annotations
 import io
 
 import pytest
+from fates import VICTIM, check_fates, check_joined_again
 
 from coapkb.feeder import TaskRecord
 from coapkb.harness.record import TeamRecord
 from coapkb.sim import KBCache, SimSpec, run_checked
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.run import SimulatedTeam
-
-from fates import VICTIM, check_fates, check_joined_again
 
 
 @pytest.fixture(scope="module")

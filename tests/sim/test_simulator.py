@@ -12,13 +12,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import ROOT
 
 from coapkb.sim import FaultMix, FaultSpecError, KBCache, SimSpec, run_checked
 from coapkb.sim.faults import draw_schedule
 from coapkb.sim.loop import Scheduler, SimulationError
 from coapkb.sim.network import Link, LinkModel
-
-from support import ROOT
 
 
 @pytest.fixture(scope="module")

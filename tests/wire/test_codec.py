@@ -21,12 +21,12 @@ from types import SimpleNamespace
 
 import cbor2
 import pytest
-
-from support import ROOT, require
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef
+from support import ROOT, require
 
+from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
 from coapkb.wire.codec import (
     GRAPH_VARS,
     MAX_PREFIX_TABLE_CHARS,
@@ -39,7 +39,6 @@ from coapkb.wire.codec import (
     render_decimal,
     render_double,
 )
-from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
 
 # rdflib's XSD/RDF namespace objects warn when pytest inspects module globals.
 _X = "http://www.w3.org/2001/XMLSchema#"

@@ -11,6 +11,7 @@ import rdflib
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rdflib.namespace import OWL, RDF, RDFS
+from support import ROOT
 
 from coapkb.world import (
     CAPABILITY_NS,
@@ -26,7 +27,6 @@ from coapkb.world.generator import WarehouseSpec, cluster_grip_coverage, generat
 from coapkb.world.ontologies import build_graphs, ontology_bytes, write_ontologies
 from coapkb.world.vocabulary import GRIP_COMPONENT, GRIP_TYPES, PRODUCT_CLASSES
 
-from support import ROOT
 SMALL = WarehouseSpec(products=200, aisles=4, racks_per_aisle=6, bins_per_rack=3, seed=3)
 
 

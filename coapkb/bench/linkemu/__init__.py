@@ -66,6 +66,7 @@ must be labelled as such (it emulates a path, not a host's link).
 
 from __future__ import annotations
 
+from .hosts import Host
 from .netns import DEFAULT_PREFIX, available, cleanup_stale, enter_netns
 from .relay import UDP_IPV4_OVERHEAD, UdpRelay
 from .spec import (
@@ -76,7 +77,6 @@ from .spec import (
     LinkEmulationError,
     LinkSpec,
 )
-from .hosts import Host
 from .testbed import Testbed
 
 __all__ = [

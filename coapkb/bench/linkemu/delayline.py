@@ -272,8 +272,8 @@ class _Engine:
             return {
                 "ok": True,
                 "queues": {
-                    str(q): [l.packets, l.dropped, l.dropped_bytes, len(l.held), kernel.get(q, 0)]
-                    for q, l in self.links.items()
+                    str(q): [link.packets, link.dropped, link.dropped_bytes, len(link.held), kernel.get(q, 0)]
+                    for q, link in self.links.items()
                 },
             }
         return {"ok": False, "error": f"unknown op {op!r}"}

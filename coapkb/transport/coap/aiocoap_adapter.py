@@ -67,7 +67,8 @@ import asyncio
 import inspect
 import logging
 from collections import OrderedDict
-from typing import Any, Callable, Mapping, Protocol
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol
 
 import aiocoap
 import aiocoap.meta
@@ -270,7 +271,7 @@ class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
             msg = f"{msg}: {exception!r}"
         return msg, kwargs
 
-    def getChild(self, suffix: str) -> Any:  # noqa: N802 -- aiocoap calls it
+    def getChild(self, suffix: str) -> Any:
         child = self.logger.getChild(suffix)
         return _BlockwiseRunnerLog(child) if suffix == BLOCKWISE_LOGGER else child
 
@@ -363,7 +364,7 @@ class ContextHooks:
         self.trace = wire_trace.tracer()
 
     @classmethod
-    def of(cls, ctx: aiocoap.Context) -> "ContextHooks":
+    def of(cls, ctx: aiocoap.Context) -> ContextHooks:
         mm = _message_manager(ctx)
         hooks = mm.__dict__.get(_MARKER)
         if hooks is None:

@@ -43,18 +43,25 @@ if it carries its body.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any, Awaitable, Callable
+from typing import Any
 
 import aiocoap
 from aiocoap.numbers.codes import Code
 from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 
-from .aiocoap_adapter import (
-    MESSAGE_OVERHEAD, Block1Spool, Block2Cache, ContinueException, IncompleteException, block_key, extract_block,
-)
 from ..expiring import ExpiringMap
+from .aiocoap_adapter import (
+    MESSAGE_OVERHEAD,
+    Block1Spool,
+    Block2Cache,
+    ContinueException,
+    IncompleteException,
+    block_key,
+    extract_block,
+)
 
 #: A block transfer unused this long is forgotten: a CON block request is
 #: retried for at most MAX_TRANSMIT_WAIT (93 s with RFC 7252's defaults).

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any, AsyncIterator
+from collections.abc import AsyncIterator
+from typing import Any
 
 import aiocoap
 import aiocoap.error
@@ -98,7 +99,7 @@ class CoapClientTransport:
     @classmethod
     async def create(
         cls, reliability: ReliabilityLayer | None = None, security: CoapClientSecurity | None = None,
-    ) -> "CoapClientTransport":
+    ) -> CoapClientTransport:
         """``reliability``: a layer (shared with the robot's server), or None for one of its own.
         ``security``: OSCORE keyed by EDHOC, or None (unprotected)."""
         logger = logging.getLogger("coapkb.coap.client")

@@ -3,7 +3,8 @@ implemented in :mod:`coapkb.security.coap`)."""
 
 from __future__ import annotations
 
-from typing import Awaitable, Callable, Protocol
+from collections.abc import Awaitable, Callable
+from typing import Protocol
 
 import aiocoap
 import aiocoap.interfaces

@@ -228,7 +228,7 @@ class CoapServerTransport:
         cls, service: Service, endpoint: Endpoint,
         reliability: ReliabilityLayer | None = None,
         security: CoapServerSecurity | None = None,
-    ) -> "CoapServerTransport":
+    ) -> CoapServerTransport:
         """``security``: OSCORE + EDHOC (:mod:`coapkb.security.coap`) on every
         resource but ``/.well-known/core``, or None; ``service`` carries the
         access rules (:meth:`Service.admit`)."""

@@ -107,13 +107,20 @@ from ...wire.zmq_envelope import (
     encode_response,
 )
 from ..base import (
-    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port,
+    Endpoint,
+    PeerTimeout,
+    PeerUnreachable,
+    RateLimitedLog,
+    Service,
+    TrafficCounters,
+    TransportError,
+    free_port,
     handle_safely,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import ObservationRegistry, ObserverState, put_latest
-from .envelope import KEY_BYTES, Envelope
 from .config import DomainSettings, client_domain_xml, local_address_towards, server_domain_xml, topic_names
+from .envelope import KEY_BYTES, Envelope
 
 __all__ = ["DdsClientTransport", "DdsOptions", "DdsServerTransport", "Envelope"]
 

@@ -95,7 +95,7 @@ def _insert(config: zenoh.Config, key: str, value: object) -> None:
 
 def configure_listener(config: zenoh.Config) -> None:
     """Give a listening session an ephemeral key and a certificate the public CA signed."""
-    now = datetime.datetime.now(datetime.timezone.utc)
+    now = datetime.datetime.now(datetime.UTC)
     key = ec.generate_private_key(ec.SECP256R1())
     cert = _listener_certificate(public_ca_key(), key, now)
     key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
@@ -106,6 +106,6 @@ def configure_listener(config: zenoh.Config) -> None:
 
 def configure_connector(config: zenoh.Config) -> None:
     """Make a connecting session accept any listener the public CA signed, whatever its name."""
-    ca = _ca_certificate(public_ca_key(), datetime.datetime.now(datetime.timezone.utc))
+    ca = _ca_certificate(public_ca_key(), datetime.datetime.now(datetime.UTC))
     _insert(config, "root_ca_certificate_base64", _pem64(ca.public_bytes(serialization.Encoding.PEM)))
     _insert(config, "verify_name_on_connect", False)

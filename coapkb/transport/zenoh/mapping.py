@@ -248,7 +248,7 @@ def _array(data: bytes | None, max_len: int, what: str) -> list[Any]:
         return []
     try:
         items = cbor2.loads(data)
-    except Exception as exc:  # cbor2 raises several types on garbage
+    except Exception as exc:  # noqa: BLE001 - cbor2 raises several types on garbage
         raise MappingError(f"{what} attachment is not CBOR: {exc}") from None
     if not isinstance(items, list) or len(items) > max_len:
         raise MappingError(f"{what} attachment is not an array of at most {max_len} items")

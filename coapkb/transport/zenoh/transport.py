@@ -106,7 +106,14 @@ from typing import Any
 import zenoh
 
 from ..base import (
-    Endpoint, PeerTimeout, PeerUnreachable, RateLimitedLog, Service, TrafficCounters, TransportError, free_port,
+    Endpoint,
+    PeerTimeout,
+    PeerUnreachable,
+    RateLimitedLog,
+    Service,
+    TrafficCounters,
+    TransportError,
+    free_port,
     handle_safely,
 )
 from ..messages import Method, Request, Response, Status

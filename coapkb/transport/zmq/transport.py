@@ -76,12 +76,6 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from ..messages import Method, Request, Response, Status
-from ..base import (
-    Endpoint, PeerTimeout, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely,
-)
-from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
-from .security import ZmqClientSecurity, ZmqServerSecurity
 from ...wire.zmq_envelope import (
     MAX_TOKEN,
     Observe,
@@ -91,6 +85,18 @@ from ...wire.zmq_envelope import (
     encode_request,
     encode_response,
 )
+from ..base import (
+    Endpoint,
+    PeerTimeout,
+    RateLimitedLog,
+    Service,
+    TrafficCounters,
+    TransportError,
+    handle_safely,
+)
+from ..messages import Method, Request, Response, Status
+from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
+from .security import ZmqClientSecurity, ZmqServerSecurity
 
 __all__ = [
     "ZmqOptions",

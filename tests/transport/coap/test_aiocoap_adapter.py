@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import asyncio
 import socket
-from typing import Iterator
+from collections.abc import Iterator
 
 import aiocoap
-import aiocoap.resource
 import aiocoap.meta
+import aiocoap.resource
 import pytest
 
 from coapkb.transport.coap import aiocoap_adapter

@@ -16,8 +16,8 @@ import random
 import re
 import socket
 import struct
+from collections.abc import AsyncIterator
 from decimal import Decimal
-from typing import AsyncIterator
 
 import aiocoap
 import aiocoap.error
@@ -25,17 +25,16 @@ import cbor2
 import pytest
 import pytest_asyncio
 from rdflib import Literal, URIRef
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port, varied_query
 
-from coapkb.wire import codec
 from coapkb.kb.client import KBClient, QueryFailed, decode
-from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.kb.named_queries import NAMED_QUERIES, named_queries_for
 from coapkb.kb.results import SelectResult
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
-
-from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, free_udp_port, varied_query
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.wire import codec
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -682,7 +681,7 @@ async def _stop_quickly(srv: ServerProcess, grace: float) -> int:
         srv.proc.terminate()
     try:
         code = await asyncio.wait_for(srv.proc.wait(), grace)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         srv.proc.kill()
         code = await srv.proc.wait()
     return code

@@ -12,21 +12,20 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import AsyncIterator
 
 import pytest
 import pytest_asyncio
 from rdflib import URIRef
+from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap, varied_query
 
-from coapkb.wire import codec
-from coapkb.transport.messages import Method, Request, Status
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.results import SelectResult
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, open_client
-
-from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap, varied_query
+from coapkb.transport.messages import Method, Request, Status
+from coapkb.wire import codec
 
 pytestmark = [pytest.mark.libcoap, pytest.mark.asyncio(loop_scope="module")]
 
@@ -83,7 +82,7 @@ async def coap(binary: str, tmp_path: Path, *args: str, out: bool = True) -> Run
     )
     try:
         stdout, stderr = await asyncio.wait_for(proc.communicate(), 30)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         proc.kill()
         await proc.wait()
         raise

@@ -15,8 +15,8 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import AsyncIterator
 
 import pytest
 import pytest_asyncio
@@ -27,8 +27,8 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import Endpoint, PeerUnreachable, ResourceInfo, open_client, serve
 from coapkb.transport.coap import CoapClientTransport
 from coapkb.transport.coap.reliability import ReliabilityLayer, ReliabilitySettings
-from coapkb.transport.coap.reliability.layer import PeerPath
 from coapkb.transport.coap.reliability.estimator import LossEstimator, airtime
+from coapkb.transport.coap.reliability.layer import PeerPath
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.rtt import RttEstimator

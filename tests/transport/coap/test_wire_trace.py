@@ -15,11 +15,10 @@ import pytest
 from aiocoap.numbers.codes import Code
 from aiocoap.numbers.types import CON, NON
 from aiocoap.optiontypes import BlockOption
+from support import ROOT
 
 from coapkb.transport.coap import wire_trace
 from coapkb.transport.coap.wire_trace import OSCORE_OPTION, describe, split_coap
-
-from support import ROOT
 
 
 def _message(mtype: int = NON, **kwargs: object) -> aiocoap.Message:

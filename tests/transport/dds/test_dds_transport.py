@@ -16,6 +16,7 @@ import socket
 from collections.abc import Callable
 
 import pytest
+from support import KB_FILES, ServerProcess, free_udp_port
 
 from coapkb.transport import open_client, serve, transport_for
 from coapkb.transport.base import Endpoint, PeerUnreachable, ResourceInfo, Service, TransportError
@@ -24,7 +25,6 @@ from coapkb.transport.dds.envelope import Envelope
 from coapkb.transport.dds.transport import DdsClientTransport, DdsOptions, DdsServerTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.wire.codec import decode_cbor
-from support import KB_FILES, ServerProcess, free_udp_port
 
 LOCAL = Endpoint("dds", "127.0.0.1", 0)
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 from coapkb.security import AccessPolicy, SecurityError, generate_team, load_identity
 from coapkb.security.keys import default_members
@@ -28,8 +29,6 @@ from coapkb.transport.base import ResourceInfo, Service
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.zenoh.mapping import locator
 from coapkb.transport.zenoh.transport import ZenohClientTransport, ZenohOptions, ZenohServerTransport
-
-from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
 #: The two links this file is about; both listen on UDP.
 LINKS = ("zenoh+quic", "zenoh+udp")

@@ -16,6 +16,7 @@ from collections.abc import Callable
 import cbor2
 import pytest
 import zenoh
+from support import KB_FILES, ServerProcess, free_tcp_port
 
 from coapkb.transport import open_client, serve
 from coapkb.transport.base import Endpoint, PeerUnreachable, ResourceInfo, Service, TransportError
@@ -28,7 +29,6 @@ from coapkb.transport.zenoh.transport import (
     session_config,
 )
 from coapkb.wire.codec import decode_cbor
-from support import KB_FILES, ServerProcess, free_tcp_port
 
 LOCAL = Endpoint("zenoh", "127.0.0.1", 0)
 
@@ -232,7 +232,7 @@ async def test_garbage_gets_an_error_reply_and_the_server_lives(server, client, 
         with caplog.at_level(logging.WARNING, logger="coapkb.transport.zenoh.transport"):
             for _ in range(5):
                 for key, attachment in garbage:
-                    replies = await asyncio.to_thread(lambda: list(raw.get(key, attachment=attachment, timeout=2)))
+                    replies = await asyncio.to_thread(lambda key=key, attachment=attachment: list(raw.get(key, attachment=attachment, timeout=2)))
                     assert len(replies) == 1 and replies[0].err is not None, [(r.err.payload.to_bytes() if r.err else r.ok) for r in replies]
                     assert replies[0].err.payload.to_bytes().startswith(b"4.00")
         assert server.malformed == 5 * len(garbage)

@@ -21,8 +21,8 @@ import zmq
 import zmq.asyncio
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support import require
 
-from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.base import (
     Endpoint,
     PeerUnreachable,
@@ -30,6 +30,7 @@ from coapkb.transport.base import (
     Service,
     TransportError,
 )
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqOptions, ZmqServerTransport, zmtp_frame_bytes
 from coapkb.wire.zmq_envelope import (
     Observe,
@@ -39,8 +40,6 @@ from coapkb.wire.zmq_envelope import (
     encode_request,
     encode_response,
 )
-
-from support import require
 
 LOCAL = Endpoint("zmq", "127.0.0.1", 0)
 

@@ -59,8 +59,9 @@ import logging
 import math
 import time
 from collections import OrderedDict, deque
+from collections.abc import Awaitable, Callable, Hashable
 from dataclasses import asdict, dataclass, field
-from typing import Any, Awaitable, Callable, Generic, Hashable, TypeVar
+from typing import Any, Generic, TypeVar
 
 from ...rtt import RttEstimator
 from .estimator import LossEstimator, UplinkQueue, airtime
@@ -79,12 +80,12 @@ TRUSTED_OUTCOMES = 8
 MAX_ERRORS = 2
 
 
-def _answered(attempt: "Attempt[Any]") -> bool:
+def _answered(attempt: Attempt[Any]) -> bool:
     task = attempt.task
     return task is not None and task.done() and not task.cancelled() and task.exception() is None
 
 
-def _failed(attempt: "Attempt[Any]") -> bool:
+def _failed(attempt: Attempt[Any]) -> bool:
     task = attempt.task
     return task is not None and task.done() and not task.cancelled() and task.exception() is not None
 
@@ -339,7 +340,7 @@ class Attempt(Generic[T]):
     timeout: float = 0.0
     #: The transport's own handle of this try (an aiocoap request, say).
     handle: Any = field(default=None, repr=False)
-    task: "asyncio.Future[T] | None" = field(default=None, repr=False)
+    task: asyncio.Future[T] | None = field(default=None, repr=False)
 
 
 class ReliabilityLayer:

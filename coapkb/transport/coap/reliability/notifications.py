@@ -22,7 +22,7 @@ from typing import Any
 import aiocoap
 from aiocoap.numbers.constants import TransportTuning
 
-from .layer import ReliabilityLayer, PeerPath
+from .layer import PeerPath, ReliabilityLayer
 
 #: Size of the empty ACK that answers a notification.
 _ACK_BYTES = 4
