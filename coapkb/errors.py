@@ -17,7 +17,7 @@ class                          raised by                                        
 ``SecurityError``              :mod:`coapkb.security` (keys, EDHOC, policy)
 ``DiscoveryError``             :mod:`coapkb.discovery.client`
 ``CodecError``                 :mod:`coapkb.wire.codec`                                              ``ValueError``
-``WireError``                  :mod:`coapkb.wire.zmq_envelope`                                       ``ValueError``
+``WireError``                  :mod:`coapkb.transport.envelope`                                       ``ValueError``
 ``FeederError``                :mod:`coapkb.feeder` (tasks file, feeding)
 ``TeamError``                  :mod:`coapkb.harness.team`                                            ``FeederError``
 ``KnowledgeGap``               :mod:`coapkb.harness.kbs`                                             ``FeederError``

@@ -39,13 +39,14 @@ from coapkb.kb.replica import CausalContext, Delta, Dot, Stamp, WrittenState
 from coapkb.kb.resources import KBResources
 from coapkb.kb.results import AskResult, GraphResult, SelectResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.transport import envelope as zmq_envelope
 from coapkb.transport.base import Endpoint, TransportError
 from coapkb.transport.coap import mapping as coap_mapping
 from coapkb.transport.coap.blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.zenoh import mapping as zenoh_mapping
-from coapkb.wire import codec, sync, zmq_envelope
+from coapkb.wire import codec, sync
 
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"

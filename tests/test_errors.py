@@ -46,7 +46,7 @@ def test_the_package_defines_errors_and_all_derive_from_the_root() -> None:
 @pytest.mark.parametrize("module, name, also", [
     ("coapkb.config", "ConfigError", ValueError),
     ("coapkb.wire.codec", "CodecError", ValueError),
-    ("coapkb.wire.zmq_envelope", "WireError", ValueError),
+    ("coapkb.transport.envelope", "WireError", ValueError),
     ("coapkb.bench.linkemu", "LinkEmulationError", RuntimeError),
 ])
 def test_errors_keep_their_builtin_base_for_existing_callers(module: str, name: str, also: type) -> None:

@@ -85,3 +85,34 @@ def test_the_checks_see_what_they_look_for() -> None:
     imports = [n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert _imported(path, imports[0]) == ["security.coap"]
     assert _scheme_comparisons(path, tree, _scheme_names()) == ["transport/coap/example.py:3"]
+
+
+#: What wire/ (the KB payloads' pure codecs) may import: the error root and
+#: the KB's model it encodes, nothing of the transport or above.
+WIRE_MAY_IMPORT = frozenset({"errors", "kb.results", "kb.replica", "wire"})
+
+
+def test_wire_is_pure_codecs_over_the_kb_model() -> None:
+    found = []
+    for path, tree in _sources(PACKAGE / "wire"):
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                found += [f"{path.relative_to(PACKAGE)}:{node.lineno} imports {module}"
+                          for module in _imported(path, node)
+                          if _inside_package(module)
+                          and not any(module == m or module.startswith(m + ".") for m in WIRE_MAY_IMPORT)]
+    assert found == []
+
+
+def _inside_package(module: str) -> bool:
+    return (PACKAGE / module.split(".")[0]).exists() or (PACKAGE / f"{module.split('.')[0]}.py").exists()
+
+
+def test_no_module_of_security_imports_one_that_imports_it() -> None:
+    imports: dict[str, set[str]] = {}
+    for path, tree in _sources(PACKAGE / "security"):
+        module = "security." + path.stem if path.stem != "__init__" else "security"
+        imports[module] = {m for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom))
+                           for m in _imported(path, node) if m.startswith("security.")}
+    cycles = sorted(f"{a} <-> {b}" for a, deps in imports.items() for b in deps if a in imports.get(b, set()) and a < b)
+    assert cycles == []

@@ -16,7 +16,8 @@ Only :mod:`.coap` imports aiocoap's OSCORE stack (:mod:`.curve` pyzmq,
 :mod:`.zenoh_tls` Zenoh), each when its mechanism is built; the rest is light.
 """
 
-from .keys import SecurityError, TeamIdentity, TeamMember, TeamTrust, generate_team, load_identity, load_trust
+from .errors import SecurityError
+from .keys import TeamIdentity, TeamMember, TeamTrust, generate_team, load_identity, load_trust
 from .mechanisms import client_security, mechanism_for, server_security
 from .policy import AccessPolicy, Verdict
 from .settings import SecurityConfig

@@ -62,7 +62,8 @@ from aiocoap.transports.oscore import OSCOREAddress, TransportOSCORE
 
 from ..transport.base import Endpoint, RateLimitFilter, TransportError
 from ..transport.coap.security import HandshakePost
-from .keys import CIPHER_SUITE, EDHOC_METHOD, SecurityError, TeamIdentity, TeamMember
+from .errors import SecurityError
+from .keys import CIPHER_SUITE, EDHOC_METHOD, TeamIdentity, TeamMember
 from .policy import AccessPolicy, TeamRules
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,8 @@ import zmq.asyncio
 from zmq.auth.asyncio import AsyncioAuthenticator
 
 from ..transport.base import Endpoint
-from .keys import SecurityError, TeamIdentity
+from .errors import SecurityError
+from .keys import TeamIdentity
 from .policy import AccessPolicy, TeamRules
 
 ZAP_DOMAIN = "coapkb"

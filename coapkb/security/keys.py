@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 
 import cbor2
 
-from ..errors import CoapkbError
+from .errors import SecurityError
 
 if TYPE_CHECKING:
     from .tls import TlsFiles
@@ -62,10 +62,6 @@ EDHOC_METHOD = 3
 _KTY, _KID, _CRV, _X, _Y, _D = 1, 2, -1, -2, -3, -4
 _KTY_EC2, _CRV_P256 = 2, 1
 _CWT_SUB, _CWT_CNF, _CNF_COSE_KEY = 2, 8, 1
-
-
-class SecurityError(CoapkbError):
-    """Key material missing, unreadable or malformed; a request not allowed."""
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 from ..transport import secured_schemes, transport_for
 from ..transport.security import ClientSecurity, ServerSecurity
-from .keys import SecurityError, TeamIdentity
+from .errors import SecurityError
+from .keys import TeamIdentity
 from .policy import AccessPolicy
 
 #: Which member serves at an endpoint (``host:port`` -> name), where known.

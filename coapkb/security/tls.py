@@ -31,7 +31,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from .keys import SecurityError
+from .errors import SecurityError
 
 CA_FILE = "team-ca.pem"
 #: Long enough for a fleet's life; a team re-keys by making a new directory.

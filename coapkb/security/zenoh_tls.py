@@ -58,7 +58,8 @@ import zenoh
 
 from ..transport.base import Endpoint, PeerUnreachable
 from ..transport.zenoh.mapping import key_for_path
-from .keys import SecurityError, TeamIdentity
+from .errors import SecurityError
+from .keys import TeamIdentity
 from .policy import ROLE_RULES, AccessPolicy, TeamRules
 from .tls import TlsFiles
 

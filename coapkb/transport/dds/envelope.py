@@ -16,7 +16,7 @@ KEY_BYTES = 8
 @dataclass
 class Envelope(IdlStruct, typename="coapkb::Envelope"):
     """Every coapkb sample: a 64-bit key and a CBOR envelope
-    (:mod:`coapkb.wire.zmq_envelope`) as an octet sequence."""
+    (:mod:`coapkb.transport.envelope`) as an octet sequence."""
 
     id: uint64
     key("id")

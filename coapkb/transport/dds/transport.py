@@ -8,7 +8,7 @@ endpoint becomes a Cyclone domain (ports, peers, discovery) is :mod:`.config`.
 
 Topics and QoS
     Every sample is one :class:`Envelope`: a 64-bit key and the very CBOR
-    envelope ZeroMQ carries (:mod:`coapkb.wire.zmq_envelope`: token, CoAP
+    envelope ZeroMQ carries (:mod:`coapkb.transport.envelope`: token, CoAP
     method or status code, options, payload), so the comparison is about
     the middleware, not the encoding.  Between server ``S`` and client ``C``:
 
@@ -98,14 +98,6 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from ...wire.zmq_envelope import (
-    Observe,
-    WireError,
-    decode_request,
-    decode_response,
-    encode_request,
-    encode_response,
-)
 from ..base import (
     Endpoint,
     PeerTimeout,
@@ -116,6 +108,14 @@ from ..base import (
     TransportError,
     free_port,
     handle_safely,
+)
+from ..envelope import (
+    Observe,
+    WireError,
+    decode_request,
+    decode_response,
+    encode_request,
+    encode_response,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import ObservationRegistry, ObserverState, put_latest

@@ -76,15 +76,6 @@ from typing import Any
 import zmq
 import zmq.asyncio
 
-from ...wire.zmq_envelope import (
-    MAX_TOKEN,
-    Observe,
-    WireError,
-    decode_request,
-    decode_response,
-    encode_request,
-    encode_response,
-)
 from ..base import (
     Endpoint,
     PeerTimeout,
@@ -93,6 +84,15 @@ from ..base import (
     TrafficCounters,
     TransportError,
     handle_safely,
+)
+from ..envelope import (
+    MAX_TOKEN,
+    Observe,
+    WireError,
+    decode_request,
+    decode_response,
+    encode_request,
+    encode_response,
 )
 from ..messages import Method, Request, Response, Status
 from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest

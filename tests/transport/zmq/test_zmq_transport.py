@@ -30,9 +30,7 @@ from coapkb.transport.base import (
     Service,
     TransportError,
 )
-from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
-from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqOptions, ZmqServerTransport, zmtp_frame_bytes
-from coapkb.wire.zmq_envelope import (
+from coapkb.transport.envelope import (
     Observe,
     WireError,
     decode_request,
@@ -40,6 +38,8 @@ from coapkb.wire.zmq_envelope import (
     encode_request,
     encode_response,
 )
+from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqOptions, ZmqServerTransport, zmtp_frame_bytes
 
 LOCAL = Endpoint("zmq", "127.0.0.1", 0)
 
@@ -607,7 +607,7 @@ def test_encode_rejects_what_the_envelope_cannot_carry() -> None:
 
 
 def test_wire_carries_etags_with_and_without_observe() -> None:
-    from coapkb.wire.zmq_envelope import Observe, decode_request, encode_request
+    from coapkb.transport.envelope import Observe, decode_request, encode_request
 
     request = Request(Method.GET, "/kb/q/x", {"name": "y"}, accept=60, etags=(b"\x01\x02", b"abcdefgh"))
     for observe in (Observe.NONE, Observe.REGISTER):

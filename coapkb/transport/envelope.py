@@ -1,4 +1,4 @@
-"""Wire codec of the ZeroMQ transport: one CBOR array per ZeroMQ message.
+"""The CBOR envelope of the transports without CoAP's own framing (ZeroMQ, DDS): one CBOR array per message.
 
 Pure functions, no I/O, so the envelope can be fuzzed and measured on its own.
 Every request and response travels as exactly one ZeroMQ frame holding one
@@ -50,7 +50,7 @@ from typing import Any
 import cbor2
 
 from ..errors import CoapkbError
-from ..transport.messages import Method, Request, Response, Status
+from .messages import Method, Request, Response, Status
 
 __all__ = [
     "WireError",
