@@ -40,6 +40,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import functools
+import io
 import logging
 import math
 import secrets
@@ -111,6 +112,9 @@ EDHOC_STARTS_PER_S = 20.0
 #: How long a member's initiator waits at most when told to come back later.
 EDHOC_RETRY_MAX_S = 5.0
 EDHOC_BUSY_RETRIES = 6
+#: Handshakes started again from message_1 when message_3 met no session
+#: (or a broken one) at the responder; the request's own time bounds them too.
+HANDSHAKE_RESTARTS = 3
 
 
 class EdhocFailed(SecurityError, TransportError):
@@ -145,6 +149,7 @@ _INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
     (OscoreSiteWrapper, "_get_edhoc_identity"): ("origin",),
     (OscoreSiteWrapper, "render_to_pipe"): ("pipe",),
     (OscoreSiteWrapper, "_process_edhoc_msg12"): ("pipe",),
+    (OscoreSiteWrapper, "_process_edhoc_msg34"): ("pipe",),
     (aiocoap_edhoc.EdhocResponderContext, "__init__"): ("responder", "c_i", "c_r", "server_credentials", "logger"),
     (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
     (TransportOSCORE, "__init__"): ("context", "forward_context"),
@@ -208,6 +213,18 @@ def _con_post(ctx: aiocoap.Context) -> HandshakePost:
         return await ctx.request(request).response
 
     return post
+
+
+def _message_3_identifier(payload: bytes) -> bytes | None:
+    """The C_R a message_3 request names (RFC 9528 appendix A.2: it comes
+    first, a one-byte integer as its byte, else a byte string)."""
+    try:
+        c_r = cbor2.load(io.BytesIO(payload))  # the first item only
+    except Exception:  # noqa: BLE001 - garbage names no session
+        return None
+    if isinstance(c_r, int) and not isinstance(c_r, bool):
+        return cbor2.dumps(c_r)
+    return c_r if isinstance(c_r, bytes) else None
 
 
 def _encode_c_r(c_r: bytes) -> bytes:
@@ -285,14 +302,18 @@ class ClientSecurity:
             ctx.client_credentials.pop(key, None)
 
     async def _establish(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost) -> None:
-        """EDHOC with ``peer``; once more from message_1 if the responder no
-        longer had the session when message_3 came (4.00: a server keying
-        with many members at once drops its oldest half-open sessions)."""
-        try:
-            await self._handshake(ctx, peer, post)
-        except SessionGone as exc:
-            log.info("%s; keying with %s again", exc, peer)
-            await self._handshake(ctx, peer, post)
+        """EDHOC with ``peer``; again from message_1 (up to
+        :data:`HANDSHAKE_RESTARTS` times) if the responder no longer had the
+        session when message_3 came, or could not complete it (4.00, 5.00: a
+        central server keying with 99 robots at once, on a lossy link)."""
+        for restart in range(HANDSHAKE_RESTARTS + 1):
+            try:
+                await self._handshake(ctx, peer, post)
+                return
+            except SessionGone as exc:
+                if restart == HANDSHAKE_RESTARTS:
+                    raise
+                log.info("%s; keying with %s again", exc, peer)
 
     async def _handshake(self, ctx: aiocoap.Context, peer: Endpoint, post: HandshakePost) -> None:
         loop = asyncio.get_running_loop()
@@ -320,8 +341,9 @@ class ClientSecurity:
         try:
             message_4 = await self._post(post, peer, _encode_c_r(c_r) + context.take_message_3(), stats)
         except EdhocFailed as exc:
-            if exc.code == aiocoap.BAD_REQUEST:
-                raise SessionGone(f"EDHOC with {peer}: message_3 refused (the session is gone there)") from None
+            if exc.code in (aiocoap.BAD_REQUEST, aiocoap.INTERNAL_SERVER_ERROR):
+                raise SessionGone(f"EDHOC with {peer}: message_3 refused ({exc.code}: the session is gone or "
+                                  f"broken there)") from None
             raise
         try:
             context.complete_with_message_4(message_4)
@@ -615,6 +637,21 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         session = aiocoap_edhoc.EdhocResponderContext(responder, bytes(c_i), c_r, self.server_credentials, self.log)
         self.server_credentials[":" + secrets.token_hex(16)] = session
         pipe.add_response(aiocoap.Message(code=aiocoap.CHANGED, payload=bytes(message_2)), is_last=True)
+
+    def _process_edhoc_msg34(self, pipe: Any) -> None:
+        """EDHOC message_3 through aiocoap; one that does not complete its
+        session (lakers: a MAC that does not verify, a session in another
+        state) ends that session and is answered 4.00, not 5.00 with a
+        traceback: the initiator starts over from message_1."""
+        try:
+            super()._process_edhoc_msg34(pipe)
+        except (ValueError, RuntimeError) as exc:  # lakers raises these for a message_3 that does not fit
+            c_r = _message_3_identifier(pipe.request.payload)
+            for label, entry in list(self.server_credentials.items()):
+                if (isinstance(entry, aiocoap_edhoc.EdhocResponderContext) and entry._incomplete
+                        and bytes(entry.recipient_id) == c_r):
+                    self._release(label, asyncio.get_running_loop().time())
+            raise aiocoap.error.BadRequest(f"message_3 does not complete its session ({exc})") from None
 
     def _take_start_token(self, now: float) -> int:
         """0 if a message_1 may be taken on now, else the seconds to wait (at least 1)."""
