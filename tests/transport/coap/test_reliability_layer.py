@@ -78,8 +78,8 @@ def test_settings_are_validated() -> None:
 
 def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
     """Random loss leaves a live peer silent for a second now and then: its
-    tries then wait at most ``silence_rto``.  Only a rising round trip (a
-    queue) doubles them up to ``max_rto``."""
+    tries then wait at most ``silence_rto``.  A rising round trip (a queue),
+    or a silence past ``long_silence_s``, doubles them up to ``max_rto``."""
     settings = ReliabilitySettings(link_kbps=35.0)
     path = PeerPath(settings, now=0.0)
     for _ in range(8):
@@ -96,12 +96,18 @@ def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
     assert path.congested()
     assert path.try_timeout(6, 60, None, now=3.0) == pytest.approx(settings.max_rto + path.extra_airtime(188))
     # A path never answered (on a link of known rate) waits half a second
-    # first, and a second a try however long it stays silent.
+    # first, then a second a try while the silence is short...
     fresh = PeerPath(settings, now=0.0)
-    fresh.last_send = 10.0
-    assert fresh.silent(10.0)
-    waits = [fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) for n in range(6)]
+    fresh.last_send = 3.0
+    assert fresh.silent(3.0)
+    waits = [fresh.try_timeout(n, 60, None, now=3.0) - fresh.extra_airtime(188) for n in range(6)]
     assert waits == pytest.approx([settings.initial_rto_known_link] + [settings.silence_rto] * 5)
+    # ...and doubling to the ceiling once it lasts past long_silence_s (a
+    # queue: a server a whole team keeps busy), with no hedge copies.
+    fresh.last_send = 10.0
+    waits = [fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) for n in range(6)]
+    assert waits == pytest.approx([0.5, 1.0, 2.0, 4.0, 8.0, 8.0])
+    assert fresh.copies(1, now=10.0) == 1
     assert PeerPath(ReliabilitySettings(), now=0.0).rto() == 1.0  # nothing known of the link: RFC 6298
 
 

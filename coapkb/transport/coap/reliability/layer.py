@@ -34,7 +34,9 @@ that loses a fifth of the datagrams, four or five losses in a row happen
 in one run out of a few, and doubling up to ``max_rto`` then left a live
 teammate unasked for 8 s a try (the runs that took three times the
 others); a dead one is the team view's business (its liveness probes),
-and one try a second costs it about 1 kbit/s.
+and one try a second costs it about 1 kbit/s.  A silence longer than
+``long_silence_s`` backs off to ``max_rto`` again: that long is a queue, a
+central server's link kept full by a whole team's tries, not bad luck.
 
 **Several exchanges in flight per peer**, bounded by a window of about one
 bandwidth-delay product of the link (at least ``window_min``), and cut to
@@ -123,8 +125,13 @@ class ReliabilitySettings:
     congestion_slack: float = 0.3
     #: Silence evidence: no answer from the path for this many timeouts (and at least 1 s).
     silence_timeouts: float = 4.0
-    #: The most a try waits on a silent (not congested) path.
+    #: The most a try waits on a silent (not congested) path...
     silence_rto: float = 1.0
+    #: ...while the silence is shorter than this; past it the tries back off
+    #: by doubling to ``max_rto``: a silence that long is a queue (a server
+    #: shared by a whole team) far more often than random loss, and one try
+    #: a second from each of 99 robots kept a central server's link full.
+    long_silence_s: float = 5.0
     window_min: int = 2
     window_max: int = 16
     max_tries: int = 30
@@ -137,6 +144,8 @@ class ReliabilitySettings:
             raise ValueError("need 0 < min_rto <= initial_rto, initial_rto_known_link <= max_rto")
         if not self.min_rto <= self.silence_rto <= self.max_rto:
             raise ValueError("need min_rto <= silence_rto <= max_rto")
+        if not self.long_silence_s > 0:
+            raise ValueError("long_silence_s must be positive")
         if not 0 <= self.hedge_retries_above <= self.hedge_all_above <= 1:
             raise ValueError("need 0 <= hedge_retries_above <= hedge_all_above <= 1")
         if not 1 <= self.window_min <= self.window_max:
@@ -243,8 +252,12 @@ class PeerPath:
         bdp_bytes = s.link_bps / 8 * self.rtt.srtt
         return max(s.window_min, min(s.window_max, math.ceil(bdp_bytes / exchange_bytes) + 1))
 
-    def copies(self, try_number: int) -> int:
+    def copies(self, try_number: int, now: float) -> int:
         s = self.settings
+        if self.silent(now):
+            # Nothing answered for several timeouts: more copies would only
+            # add to a queue, if that is what holds the answers.
+            return 1
         if self.loss.observed < TRUSTED_OUTCOMES:
             # Too few outcomes to trust the estimate: a try that went
             # unanswered is the evidence there is.  Its retry goes out twice,
@@ -260,9 +273,12 @@ class PeerPath:
         if try_number and self.congested():
             base *= 2 ** min(try_number, 8)
             self.stats.backoffs += 1
-        elif try_number and self.silent(now) and base < self.settings.silence_rto:
-            base = min(base * 2 ** min(try_number, 8), self.settings.silence_rto)
-            self.stats.backoffs += 1
+        elif try_number and self.silent(now):
+            quiet = now - self.last_answer
+            cap = self.settings.silence_rto if quiet < self.settings.long_silence_s else self.settings.max_rto
+            if base < cap:
+                base = min(base * 2 ** min(try_number, 8), cap)
+                self.stats.backoffs += 1
         return self.exchange_timeout(base, request_bytes + self.expected_reply(reply_key))
 
     def extra_airtime(self, exchange_bytes: float) -> float:
@@ -451,7 +467,7 @@ class ReliabilityLayer:
 
     async def _send_try(self, path: PeerPath, send: Callable[[int], Attempt[T]], try_number: int,
                         try_timeout: float, attempts: list[Attempt[T]]) -> None:
-        copies = path.copies(try_number)
+        copies = path.copies(try_number, self.clock())
         for copy in range(copies):
             if copy:
                 # Spaced apart, so one burst of loss is less likely to take both.
