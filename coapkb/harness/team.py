@@ -573,23 +573,31 @@ class Team:
                 team.world = WorldServer(WorldTruth.with_misplaced(spec.misplaced), Path(tmp) / "world.sock")
                 await team.world.start()
                 configs = team.write_configs()
-                # A few robots start at a time: a robot's start-up is CPU work
-                # (imports, KBs, keys), and 99 at once on two cores would make
-                # each take longer than _spawn waits for its ready line.  In
-                # cluster order, so robots waiting for their cluster (rd) have
-                # their mates starting with them.  A TaskGroup cancels the other
-                # start-ups as soon as one fails.
-                slots = asyncio.Semaphore(max(CLUSTER_SIZE, 2 * (os.cpu_count() or 1)))
+                # A few clusters start at a time: a robot's start-up is CPU
+                # work (imports, KBs, keys), and 99 at once on two cores would
+                # make each take longer than _spawn waits for its ready line.
+                # A whole cluster at once: a robot says it is ready once it has
+                # heard from its teammates (or after a bound), so a teammate
+                # left waiting for a slot would hold its mates' slots for that
+                # bound (10 s a robot at 30 robots on slow links).  A TaskGroup
+                # cancels the other start-ups as soon as one fails.
+                slots = asyncio.Semaphore(max(1, 2 * (os.cpu_count() or 1) // CLUSTER_SIZE))
 
-                async def start(robot_id: str, path: Path) -> None:
+                async def start(cluster: list[str]) -> None:
                     async with slots:
-                        argv = ["agent", "--config", str(path), "--query-wire", spec.query_wire]
-                        await team._spawn(robot_id, argv, "robot")
+                        try:
+                            async with asyncio.TaskGroup() as mates:
+                                for robot_id in cluster:
+                                    argv = ["agent", "--config", str(configs[robot_id]),
+                                            "--query-wire", spec.query_wire]
+                                    mates.create_task(team._spawn(robot_id, argv, "robot"))
+                        except ExceptionGroup as failed:
+                            raise failed.exceptions[0] from None
 
                 try:
                     async with asyncio.TaskGroup() as starting:
-                        for robot_id, path in configs.items():
-                            starting.create_task(start(robot_id, path))
+                        for cluster in spec.clusters():
+                            starting.create_task(start(list(cluster)))
                 except ExceptionGroup as failed:
                     raise failed.exceptions[0] from None
                 yield team
