@@ -58,7 +58,6 @@ against the folder of the TOML file, not the working directory)::
 
 from __future__ import annotations
 
-import dataclasses
 import tomllib
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -71,6 +70,7 @@ from .errors import CoapkbError
 from .security.settings import SecurityConfig, parse_security
 from .transport.base import Endpoint
 from .transport.registry import transport_for
+from .typed_fields import typed_fields
 
 KB_MODULES = ("Object", "Location", "Capability")
 STRATEGIES = ("compute-by-all", "compute-and-communicate")
@@ -341,8 +341,7 @@ def _transport_options(table: Mapping[str, Any], scheme: str) -> dict[str, dict[
         if not isinstance(section, dict):
             raise ConfigError(f"transport.{name}: expected a table")
         try:
-            transport_for(name)
-            reliability_for(name, options=section)
+            reliability_for(name, options=section)  # an unknown scheme raises too
         except ValueError as exc:
             # "FIELD: why" names a field of the table; anything else is about the table.
             field_name = str(exc).split(":", 1)[0]
@@ -482,14 +481,8 @@ def _section(data: Mapping[str, Any], key: str, cls: type) -> Any:
     section = data.get(key, {})
     if not isinstance(section, dict):
         raise ConfigError(f"{key}: expected a table")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    _no_unknown(section, set(fields), key + ".")
-    values = {}
-    for name, value in section.items():
-        default = fields[name].default
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if type(value) is not type(default):
-            raise ConfigError(f"{key}.{name}: expected {type(default).__name__}, got {value!r}")
-        values[name] = value
+    try:
+        values = typed_fields(cls, section)
+    except ValueError as exc:  # names the field
+        raise ConfigError(f"{key}.{exc}") from None
     return cls(**values)

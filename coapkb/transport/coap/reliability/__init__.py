@@ -14,6 +14,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from ....typed_fields import typed_fields
 from .layer import ReliabilityLayer, ReliabilitySettings
 
 #: The layer's name, as records state it (its stats, the bench's
@@ -31,18 +32,7 @@ def settings_from(options: Mapping[str, Any], *, link_kbps: float | None = None)
     value, each of its default's type; an int stands for a float).  Raises
     ValueError naming the first field that is unknown, of the wrong type, or
     out of range together with the rest."""
-    defaults = ReliabilitySettings()
-    values: dict[str, Any] = {}
-    for name, value in options.items():
-        if name not in TUNABLES:
-            raise ValueError(f"{name}: unknown field (known: {', '.join(sorted(TUNABLES))})")
-        default = getattr(defaults, name)
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if type(value) is not type(default):
-            raise ValueError(f"{name}: expected {type(default).__name__}, got {value!r}")
-        values[name] = value
-    return ReliabilitySettings(link_kbps=link_kbps, **values)
+    return ReliabilitySettings(link_kbps=link_kbps, **typed_fields(ReliabilitySettings, options, TUNABLES))
 
 
 def make_reliability(*, link_kbps: float | None = None, options: Mapping[str, Any] | None = None) -> ReliabilityLayer:
