@@ -86,9 +86,8 @@ import os
 import socket
 import threading
 from collections import OrderedDict
-from collections.abc import AsyncIterator, Callable, Coroutine
-from dataclasses import dataclass, replace
-from typing import Any
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
 
 from cyclonedds.core import DDSException, Entity, Listener, Policy, Qos
 from cyclonedds.domain import Domain, DomainParticipant
@@ -102,23 +101,20 @@ from ..base import (
     Endpoint,
     PeerTimeout,
     PeerUnreachable,
-    RateLimitedLog,
     Service,
-    TrafficCounters,
     TransportError,
     free_port,
-    handle_safely,
 )
+from ..core import ClientCore, CoreOptions, ServerCore, check_scheme, post
 from ..envelope import (
     Observe,
     WireError,
     decode_request,
     decode_response,
     encode_request,
-    encode_response,
 )
-from ..messages import Method, Request, Response, Status
-from ..observation import ObservationRegistry, ObserverState, put_latest
+from ..messages import Request, Response
+from ..observation import ObserverState, put_latest
 from .config import DomainSettings, client_domain_xml, local_address_towards, server_domain_xml, topic_names
 from .envelope import KEY_BYTES, Envelope
 
@@ -131,28 +127,15 @@ log = logging.getLogger(__name__)
 _DDS_LC_FATAL, _DDS_LC_ERROR = 1, 2
 load_cyclonedds().dds_set_log_mask(_DDS_LC_FATAL | _DDS_LC_ERROR)
 
-_OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
-
-
 @dataclass(frozen=True)
-class DdsOptions:
+class DdsOptions(CoreOptions):
     """Limits shared by client and server."""
 
-    #: Server: requests handled at once; further ones wait their turn.
-    max_concurrent_requests: int = 64
-    #: Server: observations held per client.
-    max_observations: int = 256
     #: Server: clients it keeps reply writers for (the least recently heard-from goes first).
     max_clients: int = 256
-    #: Client: undelivered notifications kept per observation (oldest dropped first).
-    observe_queue: int = 64
-    #: Time an observe iterator waits for the first answer.
-    observe_timeout_s: float = 10.0
     #: Client: first and longest pause between SPDP re-announcements while a peer is not yet discovered.
     rediscover_first_s: float = 0.25
     rediscover_max_s: float = 4.0
-    #: At most one "malformed message" warning per this many seconds.
-    malformed_log_interval_s: float = 10.0
     #: Requests and replies kept per writer (KEEP_LAST) until acknowledged.
     history_depth: int = 64
     settings: DomainSettings = DomainSettings()
@@ -164,11 +147,6 @@ def _qos(depth: int, *, transient: bool) -> Qos:
         Policy.History.KeepLast(depth),
         Policy.Durability.TransientLocal if transient else Policy.Durability.Volatile,
     )
-
-
-def _check_scheme(endpoint: Endpoint) -> None:
-    if endpoint.scheme != "dds":
-        raise ValueError(f"{endpoint} is not a dds:// endpoint")
 
 
 def _resolve(host: str) -> str:
@@ -189,12 +167,6 @@ def _delete(entity: Entity | None) -> None:
         return
     with contextlib.suppress(DDSException):
         entity._delete(ref)
-
-
-def _post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: Any) -> None:
-    """From a Cyclone thread to the loop; a loop that is gone has nobody to tell."""
-    with contextlib.suppress(RuntimeError):
-        loop.call_soon_threadsafe(callback, *args)
 
 
 class _Domains:
@@ -280,7 +252,7 @@ class _ClientWriters:
         loop = server._loop
         self.notifications = DataWriter(
             part.participant, part.topic(names.notifications), qos=_qos(1, transient=True),
-            listener=Listener(on_publication_matched=lambda _w, status: _post(
+            listener=Listener(on_publication_matched=lambda _w, status: post(
                 loop, server._notifications_matched, client, status.current_count, status.total_count)),
         )
         self.closed = False
@@ -301,7 +273,7 @@ class _Notifier:
 
     async def notify(self, response: Response, seq: int) -> bool:
         return self.server._write(self.writers, self.writers.notifications, self.token,
-                                  self.server._encode(self.token, response, seq))
+                                  self.server._encoded(self.token, response, seq))
 
     def close(self) -> None:
         if not self.writers.closed:
@@ -309,39 +281,25 @@ class _Notifier:
                 self.writers.notifications.unregister_instance(Envelope(id=self.token, body=[]))
 
 
-class DdsServerTransport:
+class DdsServerTransport(ServerCore):
     """Serves a :class:`Service` to the clients that write on its request topic.
 
     Create with :meth:`start`.  Requests are handled concurrently (at most
     ``options.max_concurrent_requests`` at once).  Samples that are not a
     coapkb request are counted in :attr:`malformed` and dropped."""
 
-    counters: TrafficCounters
-    endpoint: Endpoint
-
     def __init__(self, service: Service, endpoint: Endpoint, participant: _Participant, options: DdsOptions) -> None:
         """Private: use :meth:`start`."""
-        self.counters = TrafficCounters()
-        self.endpoint = endpoint
-        #: Samples dropped because they were not a coapkb request.
-        self.malformed = 0
-        self._service = service
+        super().__init__(service, endpoint, options, log, "dds server")
         self._participant = participant
         self._options = options
         self._loop = asyncio.get_running_loop()
-        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._observations = ObservationRegistry(
-            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations, log=log
-        )
         self._clients: OrderedDict[int, _ClientWriters] = OrderedDict()
-        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._draining = False
-        self._closed = False
         names = topic_names(endpoint.host, endpoint.port, 0)
         self._reader = DataReader(
             participant.participant, participant.topic(names.requests), qos=_qos(options.history_depth, transient=False),
-            listener=Listener(on_data_available=lambda _r: _post(self._loop, self._wake)),
+            listener=Listener(on_data_available=lambda _r: post(self._loop, self._wake)),
         )
         self._wake()  # anything that arrived before the listener was set
 
@@ -350,7 +308,7 @@ class DdsServerTransport:
         """Start a participant on ``endpoint`` and serve.  Port 0 picks a free
         port; the returned transport's :attr:`endpoint` has it.  Raises
         :class:`TransportError` if Cyclone cannot take the port."""
-        _check_scheme(endpoint)
+        check_scheme(endpoint, "dds")
         options = options or DdsOptions()
         address = _resolve(endpoint.host)
         if endpoint.port == 0:
@@ -365,29 +323,7 @@ class DdsServerTransport:
             participant.close()
             raise
 
-    @property
-    def observation_count(self) -> int:
-        """Observations currently registered (all clients)."""
-        return len(self._observations)
-
-    async def __aenter__(self) -> DdsServerTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
-
     # ------------------------------------------------------------------ receiving
-
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
-        task = asyncio.ensure_future(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            log.error("dds server %s: handler crashed", self.endpoint, exc_info=task.exception())
 
     def _wake(self) -> None:
         if not self._draining and not self._closed:
@@ -402,12 +338,11 @@ class DdsServerTransport:
                 if not samples:
                     return
                 for client, body in samples:
-                    self.counters.messages_received += 1
-                    self.counters.bytes_received += KEY_BYTES + len(body)
+                    self._count_received(KEY_BYTES + len(body))
                     try:
                         token, request, observe = decode_request(body)
                     except WireError as exc:
-                        self._malformed(client, str(exc))
+                        self._malformed(f"client {client:016x}", str(exc))
                         continue
                     if observe is Observe.DEREGISTER:
                         self._observations.deregister(client, token)
@@ -417,33 +352,20 @@ class DdsServerTransport:
         finally:
             self._draining = False
 
-    def _malformed(self, client: int, why: str) -> None:
-        self.malformed += 1
-        self._bad_log.warning("dds server %s: dropped malformed sample from client %016x: %s (%d dropped so far)",
-                              self.endpoint, client, why[:200], self.malformed)
-
     # ------------------------------------------------------------------ answering
 
     async def _serve(self, client: int, token: int, request: Request, observe: Observe) -> None:
         try:
-            refused = self._service.admit(None, str(request.method.value), request.path)
             writers = self._writers(client)
             if writers is None:
                 return
-            if refused is not None:
-                self._write(writers, writers.replies, client, self._encode(token, refused))
-                return
-            request = replace(request, peer=None)
-            if observe is Observe.REGISTER and request.method in _OBSERVABLE_METHODS:
-                async def answer(response: Response, seq: int | None) -> bool:
-                    return self._write(writers, writers.replies, client, self._encode(token, response, seq))
 
-                await self._observations.register(
-                    client, token, request, answer, lambda gone: _Notifier(self, writers, token)
-                )
-            else:
-                response = await handle_safely(self._service, request, log)
-                self._write(writers, writers.replies, client, self._encode(token, response))
+            async def answer(response: Response, seq: int | None) -> bool:
+                return self._write(writers, writers.replies, client, self._encoded(token, response, seq))
+
+            await self._answer(request, answer, sender=None,
+                               observe=(client, token) if observe is Observe.REGISTER else None,
+                               notifier=lambda gone: _Notifier(self, writers, token))
         finally:
             self._slots.release()
 
@@ -476,13 +398,6 @@ class DdsServerTransport:
             del self._clients[client]
             self._forget(writers)
 
-    def _encode(self, token: int, response: Response, seq: int | None = None) -> bytes:
-        try:
-            return encode_response(token, response, seq=seq)
-        except ValueError as exc:
-            log.error("dds server %s: service returned an unencodable response: %s", self.endpoint, exc)
-            return encode_response(token, Response.error(Status.INTERNAL_SERVER_ERROR, "internal error"), seq=seq)
-
     def _write(self, writers: _ClientWriters, writer: DataWriter, key_value: int, body: bytes) -> bool:
         if writers.closed or self._closed:
             return False
@@ -491,20 +406,11 @@ class DdsServerTransport:
         except DDSException as exc:
             log.warning("dds server %s: write to client %016x failed: %s", self.endpoint, writers.client, exc)
             return False
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += KEY_BYTES + len(body)
+        self._count_sent(KEY_BYTES + len(body))
         return True
 
-    async def aclose(self) -> None:
-        """Stop serving and leave the domain (peers see the participant go at once).  Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._observations.stop_all()
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+    async def _close_transport(self) -> None:
+        """Leave the domain (peers see the participant go at once)."""
         for writers in self._clients.values():
             writers.close()
         self._clients.clear()
@@ -541,15 +447,15 @@ class _PeerLink:
             self._discovery_waiters = 0
             self.replies = DataReader(
                 part.participant, part.topic(names.replies), qos=_qos(depth, transient=True),
-                listener=Listener(on_data_available=lambda _r: _post(loop, self._drain_replies)),
+                listener=Listener(on_data_available=lambda _r: post(loop, self._drain_replies)),
             )
             self.notifications = DataReader(
                 part.participant, part.topic(names.notifications), qos=_qos(1, transient=True),
-                listener=Listener(on_data_available=lambda _r: _post(loop, self._drain_notifications)),
+                listener=Listener(on_data_available=lambda _r: post(loop, self._drain_notifications)),
             )
             self.requests = DataWriter(
                 part.participant, part.topic(names.requests), qos=_qos(depth, transient=False),
-                listener=Listener(on_publication_matched=lambda _w, status: _post(
+                listener=Listener(on_publication_matched=lambda _w, status: post(
                     loop, self._set_matched, status.current_count)),
             )
             self._set_matched(self.requests.get_publication_matched_status().current_count)
@@ -591,15 +497,12 @@ class _PeerLink:
             self.requests.write(Envelope(id=self._client.id, body=body))
         except DDSException as exc:
             raise TransportError(f"cannot send to {self.peer}: {exc}") from None
-        self._client.counters.messages_sent += 1
-        self._client.counters.bytes_sent += KEY_BYTES + len(body)
+        self._client._count_sent(KEY_BYTES + len(body))
 
     def _decoded(self, samples: list[tuple[int, bytes]]) -> list[tuple[int, Response, int | None]]:
         out = []
-        counters = self._client.counters
         for _, body in samples:
-            counters.messages_received += 1
-            counters.bytes_received += KEY_BYTES + len(body)
+            self._client._count_received(KEY_BYTES + len(body))
             try:
                 out.append(decode_response(body))
             except WireError as exc:
@@ -628,33 +531,20 @@ class _PeerLink:
         self.participant.close()
 
 
-class DdsClientTransport:
+class DdsClientTransport(ClientCore):
     """Sends requests to robots serving over DDS; one participant per peer, opened on first use."""
 
-    counters: TrafficCounters
-
     def __init__(self, *, options: DdsOptions | None = None) -> None:
-        self.counters = TrafficCounters()
-        #: Answers and notifications dropped because they could not be decoded.
-        self.malformed = 0
         self._options = options or DdsOptions()
+        super().__init__(self._options, log, "dds client")
         #: This client's key on every server's request topic and the suffix of its reply topics.
         self.id = int.from_bytes(os.urandom(8), "big")
         self._links: dict[Endpoint, _PeerLink] = {}
         self._tokens = itertools.count(int.from_bytes(os.urandom(4), "big"))
-        self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
-        self._closed = False
-
-    async def __aenter__(self) -> DdsClientTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
 
     def _link(self, peer: Endpoint) -> _PeerLink:
-        if self._closed:
-            raise TransportError("the dds client transport is closed")
-        _check_scheme(peer)
+        self._check_open()
+        check_scheme(peer, "dds")
         link = self._links.get(peer)
         if link is None:
             try:
@@ -662,10 +552,6 @@ class DdsClientTransport:
             except OSError as exc:  # no route to the peer's address
                 raise PeerUnreachable(f"cannot reach {peer}: {exc}") from None
         return link
-
-    def _malformed(self, peer: Endpoint, why: str) -> None:
-        self.malformed += 1
-        self._bad_log.warning("dds client: dropped malformed answer from %s: %s", peer, why[:200])
 
     async def _exchange(self, link: _PeerLink, request: Request, token: int, observe: Observe | bool,
                         timeout: float) -> tuple[Response, int | None]:

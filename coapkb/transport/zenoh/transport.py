@@ -98,10 +98,9 @@ import os
 import socket
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import dataclass
 
 import zenoh
 
@@ -109,15 +108,13 @@ from ..base import (
     Endpoint,
     PeerTimeout,
     PeerUnreachable,
-    RateLimitedLog,
     Service,
-    TrafficCounters,
     TransportError,
     free_port,
-    handle_safely,
 )
+from ..core import ClientCore, CoreOptions, ServerCore, check_scheme, post
 from ..messages import Method, Request, Response, Status
-from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
+from ..observation import Delivery, ObserverState, put_latest
 from . import anonymous_tls
 from .mapping import (
     KEY_ROOT,
@@ -143,23 +140,11 @@ __all__ = ["ZenohClientTransport", "ZenohOptions", "ZenohServerTransport", "sess
 
 log = logging.getLogger(__name__)
 
-_OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
-
-
 @dataclass(frozen=True)
-class ZenohOptions:
-    """Limits shared by client and server."""
+class ZenohOptions(CoreOptions):
+    """Limits shared by client and server.  Observations are not told apart
+    by client: ``max_observations`` holds for the server."""
 
-    #: Server: requests handled at once; further ones wait their turn.
-    max_concurrent_requests: int = 64
-    #: Server: observations held at once (all clients).
-    max_observations: int = 256
-    #: Client: undelivered notifications kept per observation (oldest dropped first).
-    observe_queue: int = 64
-    #: Time an observe iterator waits for the first answer.
-    observe_timeout_s: float = 10.0
-    #: At most one "malformed message" warning per this many seconds.
-    malformed_log_interval_s: float = 10.0
     #: Client: how long one attempt to open a session may take (Zenoh's
     #: ``transport/unicast/open_timeout``); None: Zenoh's own, 10 s.  A dead
     #: peer refuses a TCP connection at once, but a QUIC (or reliable-UDP)
@@ -176,11 +161,6 @@ def session_config(mode: str, *, listen: tuple[str, ...] = (), connect: tuple[st
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     return config
-
-
-def _check_scheme(endpoint: Endpoint) -> None:
-    if endpoint.scheme not in LINK_PROTOCOLS:
-        raise ValueError(f"{endpoint} is not a zenoh endpoint ({', '.join(s + '://' for s in LINK_PROTOCOLS)})")
 
 
 def _secured_locator(endpoint: Endpoint, security: ZenohClientSecurity | ZenohServerSecurity | None) -> str:
@@ -229,16 +209,10 @@ def _close_in_thread(session: zenoh.Session) -> asyncio.Future[None]:
 
     def run() -> None:
         _close(session)
-        _post(loop, _resolve, closed)
+        post(loop, _resolve, closed)
 
     threading.Thread(target=run, name="zenoh close", daemon=True).start()
     return closed
-
-
-def _post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: Any) -> None:
-    """From a Zenoh thread to the loop; a loop that is gone has nobody to tell."""
-    with contextlib.suppress(RuntimeError):
-        loop.call_soon_threadsafe(callback, *args)
 
 
 # =========================================================================== server
@@ -269,16 +243,13 @@ class _Incoming:
         return selector + len(self.payload) + len(self.attachment or b"")
 
 
-class ZenohServerTransport:
+class ZenohServerTransport(ServerCore):
     """Serves a :class:`Service` as the queryable ``coapkb/**`` of a peer-mode session.
 
     Create with :meth:`start`.  Requests are handled concurrently (at most
     ``options.max_concurrent_requests`` at once).  Queries that are not a
     coapkb request are counted in :attr:`malformed` and get an error reply.
     """
-
-    counters: TrafficCounters
-    endpoint: Endpoint
 
     def __init__(
         self,
@@ -290,26 +261,12 @@ class ZenohServerTransport:
         security: ZenohServerSecurity | None = None,
     ) -> None:
         """Private: use :meth:`start`, which opens the session first."""
+        super().__init__(service, endpoint, options, log, "zenoh server")
         #: Authenticates clients (mTLS), or None.
         self._security = security
-        self.counters = TrafficCounters()
-        self.endpoint = endpoint
-        #: Queries answered with an error reply because they were not a coapkb request.
-        self.malformed = 0
-        self._service = service
         self._session = session
         self._executor = executor
-        self._options = options
         self._loop = asyncio.get_running_loop()
-        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
-        self._tasks: set[asyncio.Task[None]] = set()
-        #: Observations by notification key; they are not told apart by client,
-        #: so ``max_observations`` holds for the server.
-        self._observations = ObservationRegistry(
-            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations, log=log
-        )
-        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
-        self._closed = False
         self._queryable = session.declare_queryable(f"{KEY_ROOT}/**", zenoh.handlers.Callback(self._on_query))
 
     @classmethod
@@ -323,7 +280,7 @@ class ZenohServerTransport:
         has it.  Raises :class:`TransportError` if Zenoh cannot listen there
         (port in use, no such address).  ``security``: mTLS
         (:mod:`coapkb.security.zenoh_tls`), or None."""
-        _check_scheme(endpoint)
+        check_scheme(endpoint, *LINK_PROTOCOLS)
         _secured_locator(endpoint, security)  # zenoh+udp with security: refused before a port is taken
         if endpoint.port == 0:
             kind = socket.SOCK_DGRAM if link_for(endpoint).datagram else socket.SOCK_STREAM
@@ -341,28 +298,11 @@ class ZenohServerTransport:
             raise TransportError(f"cannot listen on {endpoint}: {exc}") from None
         return cls(service, endpoint, session, executor, options or ZenohOptions(), security)
 
-    @property
-    def observation_count(self) -> int:
-        return len(self._observations)
-
-    async def __aenter__(self) -> ZenohServerTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
-
-    async def aclose(self) -> None:
-        """Stop serving: end observations, cancel handlers, close the session.  Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
+    def _stop_receiving(self) -> None:
         with contextlib.suppress(zenoh.ZError):
             self._queryable.undeclare()
-        self._observations.stop_all()
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def _close_transport(self) -> None:
         await self._loop.run_in_executor(self._executor, _close, self._session)
         self._executor.shutdown(wait=False)
 
@@ -380,20 +320,18 @@ class ZenohServerTransport:
             _bytes(query.attachment),
             None if source is None else str(source.source_id.zid),
         )
-        _post(self._loop, self._accept, query, incoming)
+        post(self._loop, self._accept, query, incoming)
 
     def _accept(self, query: zenoh.Query, incoming: _Incoming) -> None:
         if self._closed:
             return
-        self.counters.messages_received += 1
-        self.counters.bytes_received += incoming.size
+        self._count_received(incoming.size)
         try:
             request, header = request_from_query(
                 incoming.key, incoming.parameters, incoming.payload, incoming.encoding, incoming.attachment
             )
         except MappingError as exc:
-            self.malformed += 1
-            self._bad_log.warning("zenoh server %s: malformed query on %r: %s", self.endpoint, incoming.key[:80], exc)
+            self._malformed(f"a query on {incoming.key[:80]!r}", str(exc))
             self._reply_error(query, f"4.00 not a coapkb request: {exc}")
             _finish(query)
             return
@@ -406,46 +344,35 @@ class ZenohServerTransport:
                 _finish(query)
                 return
             sender = self._security.sender(self._session, incoming.source)
-        # A deregistration only ends an observation: any member may send one.
-        method = Method.GET if header.observe is Observe.DEREGISTER else request.method
-        refused = self._service.admit(sender, str(method.value), request.path)
-        if refused is not None:  # before the service: a refused request changes nothing
-            self._reply(query, refused)
-            _finish(query)
-            return
-        request = replace(request, peer=sender)
         if header.observe is Observe.DEREGISTER:
-            self._observations.deregister(None, header.notify_key or "")
-            self._reply(query, Response(Status.DELETED))
+            # A deregistration only ends an observation: any member may send one.
+            refused = self._refusal(sender, Method.GET, request.path)
+            if refused is None:
+                self._observations.deregister(None, header.notify_key or "")
+            self._reply(query, refused or Response(Status.DELETED))
             _finish(query)
             return
-        self._spawn(self._serve(query, request, header))
-
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            log.error("zenoh server %s: handler crashed", self.endpoint, exc_info=task.exception())
+        self._spawn(self._serve(query, request, header, sender))
 
     # ------------------------------------------------------------------ answering
 
-    async def _serve(self, query: zenoh.Query, request: Request, header: RequestHeader) -> None:
+    async def _serve(self, query: zenoh.Query, request: Request, header: RequestHeader, sender: str | None) -> None:
+        async def answer(response: Response, seq: int | None) -> bool:
+            # The first answer rides on the query, not on the observer's key: whether
+            # notifications reach the observer is for the publisher's matching status to tell.
+            self._reply(query, response, seq)
+            return True
+
+        notify_key = header.notify_key
         try:
             async with self._slots:
-                if header.observe is Observe.REGISTER and header.notify_key and request.method in _OBSERVABLE_METHODS:
-                    await self._register(query, request, header.notify_key)
-                else:
-                    self._reply(query, await self._call(request))
+                await self._answer(
+                    request, answer, sender=sender,
+                    observe=(None, notify_key) if header.observe is Observe.REGISTER and notify_key else None,
+                    notifier=lambda gone: self._publication(notify_key or "", gone),
+                )
         finally:
             _finish(query)
-
-    async def _call(self, request: Request) -> Response:
-        return await handle_safely(self._service, request, log)
 
     @staticmethod
     def _header(response: Response, seq: int | None = None) -> bytes | None:
@@ -460,8 +387,7 @@ class ZenohServerTransport:
         except zenoh.ZError as exc:  # the session is closing, or the querier's key is odd
             log.debug("zenoh server %s: reply failed: %s", self.endpoint, exc)
             return
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += len(str(key)) + len(response.payload) + len(attachment or b"")
+        self._count_sent(len(str(key)) + len(response.payload) + len(attachment or b""))
 
     def _reply_error(self, query: zenoh.Query, message: str) -> None:
         data = message.encode("utf-8")
@@ -470,21 +396,9 @@ class ZenohServerTransport:
         except zenoh.ZError as exc:
             log.debug("zenoh server %s: error reply failed: %s", self.endpoint, exc)
             return
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += len(data)
+        self._count_sent(len(data))
 
     # ------------------------------------------------------------------ observe
-
-    async def _register(self, query: zenoh.Query, request: Request, notify_key: str) -> None:
-        async def answer(response: Response, seq: int | None) -> bool:
-            # The first answer rides on the query, not on the observer's key: whether
-            # notifications reach the observer is for the publisher's matching status to tell.
-            self._reply(query, response, seq)
-            return True
-
-        await self._observations.register(
-            None, notify_key, request, answer, lambda gone: self._publication(notify_key, gone)
-        )
 
     def _publication(self, notify_key: str, gone: Callable[[], None]) -> _Publication | None:
         """A publisher on ``notify_key``, or None if Zenoh refuses one."""
@@ -517,7 +431,7 @@ class _Publication:
         self._matched = False
         loop = server._loop
         self._listener = publisher.declare_matching_listener(
-            zenoh.handlers.Callback(lambda status: _post(loop, self._matching, status.matching))
+            zenoh.handlers.Callback(lambda status: post(loop, self._matching, status.matching))
         )
 
     def _matching(self, matching: bool) -> None:
@@ -534,9 +448,7 @@ class _Publication:
         except zenoh.ZError as exc:
             log.debug("zenoh server %s: notification to %s failed: %s", self._server.endpoint, self._notify_key, exc)
             return False
-        counters = self._server.counters
-        counters.messages_sent += 1
-        counters.bytes_sent += len(self._notify_key) + len(response.payload) + len(attachment or b"")
+        self._server._count_sent(len(self._notify_key) + len(response.payload) + len(attachment or b""))
         return True
 
     def close(self) -> None:
@@ -589,22 +501,18 @@ def _copy_sample(sample: zenoh.Sample) -> _Reply:
     return _Reply(True, str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), _bytes(sample.attachment))
 
 
-class ZenohClientTransport:
+class ZenohClientTransport(ClientCore):
     """Sends requests to Zenoh peers; one client-mode session per peer, opened lazily.
 
     Many requests may be in flight to the same peer; each is its own Zenoh
     query, so answers come back in any order."""
 
-    counters: TrafficCounters
-
     def __init__(self, *, options: ZenohOptions | None = None, security: ZenohClientSecurity | None = None) -> None:
         """``security``: mTLS with the team's certificates
         (:mod:`coapkb.security.zenoh_tls`), or None."""
-        self.counters = TrafficCounters()
-        self._security = security
-        #: Replies and notifications dropped because they were not a coapkb response.
-        self.malformed = 0
         self._options = options or ZenohOptions()
+        super().__init__(self._options, log, "zenoh client")
+        self._security = security
         # Threads start on first use, from the loop's thread: see the module doc.
         self._executor = ThreadPoolExecutor(max_workers=4, thread_name_prefix="zenoh client")
         self._sessions: dict[Endpoint, asyncio.Future[zenoh.Session]] = {}
@@ -612,23 +520,14 @@ class ZenohClientTransport:
         self._id = os.urandom(6).hex()
         self._tokens = itertools.count()
         self._source_sn = itertools.count()
-        self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
-        self._closed = False
-
-    async def __aenter__(self) -> ZenohClientTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
 
     # ------------------------------------------------------------------ sessions
 
     async def _session(self, peer: Endpoint) -> zenoh.Session:
         """The session to ``peer``, opened once however many wait for it.  A
         waiter that gives up (timeout) does not abort the opening."""
-        if self._closed:
-            raise TransportError("the zenoh client transport is closed")
-        _check_scheme(peer)
+        self._check_open()
+        check_scheme(peer, *LINK_PROTOCOLS)
         opening = self._sessions.get(peer)
         if opening is None or (opening.done() and (opening.cancelled() or opening.exception() is not None)):
             loop = asyncio.get_running_loop()
@@ -680,16 +579,6 @@ class ZenohClientTransport:
                 raise
         return session
 
-    def _closed_error(self) -> TransportError | None:
-        task = asyncio.current_task()
-        if self._closed and (task is None or not task.cancelling()):
-            return TransportError("the zenoh client transport was closed")
-        return None
-
-    def _malformed(self, peer: Endpoint, why: str) -> None:
-        self.malformed += 1
-        self._bad_log.warning("zenoh client: dropped malformed answer from %s: %s", peer, why[:200])
-
     # ------------------------------------------------------------------ one query
 
     def _query(
@@ -706,8 +595,8 @@ class ZenohClientTransport:
         session.get(
             selector,
             zenoh.handlers.Callback(
-                lambda reply: _post(loop, replies.put_nowait, _copy_reply(reply)),
-                lambda: _post(loop, replies.put_nowait, None),
+                lambda reply: post(loop, replies.put_nowait, _copy_reply(reply)),
+                lambda: post(loop, replies.put_nowait, None),
             ),
             payload=request.payload or None,
             encoding=encoding_for(request.content_format),
@@ -717,13 +606,11 @@ class ZenohClientTransport:
             # holds to the team's policy (coapkb.security.zenoh_tls).
             source_info=None if self._security is None else zenoh.SourceInfo(session.id, next(self._source_sn)),
         )
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += len(selector) + len(request.payload) + len(attachment or b"")
+        self._count_sent(len(selector) + len(request.payload) + len(attachment or b""))
         return replies
 
     def _response(self, peer: Endpoint, reply: _Reply) -> Delivery:
-        self.counters.messages_received += 1
-        self.counters.bytes_received += reply.size
+        self._count_received(reply.size)
         if not reply.ok:  # the server could not read our query
             return Response(Status.BAD_REQUEST, reply.payload, 0), None
         try:
@@ -831,7 +718,7 @@ class ZenohClientTransport:
                 raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
             try:
                 subscriber = session.declare_subscriber(
-                    notify_key, zenoh.handlers.Callback(lambda sample: _post(loop, put_latest, notifications, _copy_sample(sample)))
+                    notify_key, zenoh.handlers.Callback(lambda sample: post(loop, put_latest, notifications, _copy_sample(sample)))
                 )
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None

@@ -69,9 +69,8 @@ import errno
 import itertools
 import logging
 import os
-from collections.abc import AsyncIterator, Coroutine
-from dataclasses import dataclass, replace
-from typing import Any
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
 
 import zmq
 import zmq.asyncio
@@ -81,10 +80,9 @@ from ..base import (
     PeerTimeout,
     RateLimitedLog,
     Service,
-    TrafficCounters,
     TransportError,
-    handle_safely,
 )
+from ..core import ClientCore, CoreOptions, ServerCore, check_scheme
 from ..envelope import (
     MAX_TOKEN,
     Observe,
@@ -92,10 +90,9 @@ from ..envelope import (
     decode_request,
     decode_response,
     encode_request,
-    encode_response,
 )
-from ..messages import Method, Request, Response, Status
-from ..observation import Delivery, ObservationRegistry, ObserverState, put_latest
+from ..messages import Request, Response
+from ..observation import Delivery, ObserverState, put_latest
 from .security import ZmqClientSecurity, ZmqServerSecurity
 
 __all__ = [
@@ -107,9 +104,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-_OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
-
-
 def zmtp_frame_bytes(size: int) -> int:
     """Bytes a message frame of ``size`` bytes takes in a ZMTP 3 stream
     (flags octet plus a 1-octet length, or an 8-octet one above 255)."""
@@ -117,7 +111,7 @@ def zmtp_frame_bytes(size: int) -> int:
 
 
 @dataclass(frozen=True)
-class ZmqOptions:
+class ZmqOptions(CoreOptions):
     """Socket tuning shared by client and server.  Defaults suit robots on Wi-Fi."""
 
     #: First reconnect after a lost/refused connection, then doubling up to the max.
@@ -158,16 +152,8 @@ class ZmqOptions:
     max_request_bytes: int = 1 << 20
     #: Largest response a client accepts (-1: no limit; results can be big).
     max_response_bytes: int = -1
-    #: Server: requests handled at once; further ones wait in the socket queue.
-    max_concurrent_requests: int = 64
     #: Server: observations one client identity may hold.
-    max_observations_per_client: int = 16
-    #: Client: undelivered notifications kept per observation (oldest dropped first).
-    observe_queue: int = 64
-    #: At most one "malformed message" warning per this many seconds.
-    malformed_log_interval_s: float = 10.0
-    #: Time an observe iterator waits for the first answer.
-    observe_timeout_s: float = 10.0
+    max_observations: int = 16
 
 
 def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None:
@@ -193,11 +179,6 @@ def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None
         sock.setsockopt(zmq.IPV6, 1)
 
 
-def _check_scheme(endpoint: Endpoint) -> None:
-    if endpoint.scheme != "zmq":
-        raise ValueError(f"{endpoint} is not a zmq:// endpoint")
-
-
 def _tcp_uri(host: str, port: int | str) -> str:
     return f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
 
@@ -205,7 +186,7 @@ def _tcp_uri(host: str, port: int | str) -> str:
 # =========================================================================== server
 
 
-class ZmqServerTransport:
+class ZmqServerTransport(ServerCore):
     """Serves a :class:`Service` on a ZeroMQ ROUTER socket.
 
     Create with :meth:`start`.  Requests are handled concurrently (at most
@@ -214,9 +195,6 @@ class ZmqServerTransport:
     the server buffering without bound).  Malformed messages are counted in
     :attr:`malformed` and dropped.
     """
-
-    counters: TrafficCounters
-    endpoint: Endpoint
 
     def __init__(
         self,
@@ -229,26 +207,13 @@ class ZmqServerTransport:
         security: ZmqServerSecurity | None = None,
     ) -> None:
         """Private: use :meth:`start`, which binds the socket first."""
+        super().__init__(service, endpoint, options, log, "zmq server")
         #: Authenticates clients (CurveZMQ), or None.
         self._security = security
-        self.counters = TrafficCounters()
-        self.endpoint = endpoint
-        #: Messages dropped because they were not a valid request envelope.
-        self.malformed = 0
-        self._service = service
         self._sock = sock
         self._ctx = context
         self._owns_context = owns_context
-        self._options = options
-        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
-        self._tasks: set[asyncio.Task[None]] = set()
-        #: Observations by client identity and token.
-        self._observations = ObservationRegistry(
-            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations_per_client, log=log
-        )
-        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
         self._send_log = RateLimitedLog(log, options.malformed_log_interval_s)
-        self._closed = False
         self._receiver = asyncio.create_task(self._receive_loop(), name=f"zmq server {endpoint}")
 
     @classmethod
@@ -271,7 +236,7 @@ class ZmqServerTransport:
         :class:`TransportError` if the address cannot be bound (port in use,
         no such interface).
         """
-        _check_scheme(endpoint)
+        check_scheme(endpoint, "zmq")
         options = options or ZmqOptions()
         ctx = context if context is not None else zmq.asyncio.Context()
         sock = ctx.socket(zmq.ROUTER)
@@ -295,29 +260,12 @@ class ZmqServerTransport:
         port = int(bound.rsplit(":", 1)[1])
         return cls(service, Endpoint("zmq", endpoint.host, port), sock, ctx, context is None, options, security)
 
-    @property
-    def observation_count(self) -> int:
-        """Observations currently registered (all clients)."""
-        return len(self._observations)
-
-    async def __aenter__(self) -> ZmqServerTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
-
-    async def aclose(self) -> None:
-        """Stop serving: cancel handlers and observations, close the socket
-        (linger 0: unsent answers are discarded).  Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
+    def _stop_receiving(self) -> None:
         self._receiver.cancel()
-        self._observations.stop_all()
-        tasks = [self._receiver, *self._tasks]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def _close_transport(self) -> None:
+        """Close the socket (linger 0: unsent answers are discarded)."""
+        await asyncio.gather(self._receiver, return_exceptions=True)
         self._sock.close(linger=0)
         if self._security is not None:
             self._security.stop()
@@ -345,15 +293,14 @@ class ZmqServerTransport:
                 self._bad_log.warning("zmq server %s: receive failed: %s", self.endpoint, exc)
                 continue
             identity, body = frames[0], frames[1:]
-            self.counters.messages_received += 1
-            self.counters.bytes_received += sum(zmtp_frame_bytes(len(f)) for f in body)
+            self._count_received(sum(zmtp_frame_bytes(len(f)) for f in body))
             if len(body) != 1:
-                self._malformed(identity, f"{len(body)} frames, expected 1")
+                self._malformed(f"peer {identity.hex()}", f"{len(body)} frames, expected 1")
                 continue
             try:
                 token, request, observe = decode_request(body[0])
             except WireError as exc:
-                self._malformed(identity, str(exc))
+                self._malformed(f"peer {identity.hex()}", str(exc))
                 continue
             if observe is Observe.DEREGISTER:
                 self._observations.deregister(identity, token)
@@ -361,56 +308,19 @@ class ZmqServerTransport:
             await self._slots.acquire()
             self._spawn(self._serve(identity, token, request, observe, user))
 
-    def _malformed(self, identity: bytes, why: str) -> None:
-        self.malformed += 1
-        self._bad_log.warning(
-            "zmq server %s: dropped malformed message from peer %s: %s (%d dropped so far)",
-            self.endpoint,
-            identity.hex(),
-            why[:200],
-            self.malformed,
-        )
-
-    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
-        task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            log.error("zmq server %s: handler crashed", self.endpoint, exc_info=task.exception())
-
     # ------------------------------------------------------------------ answering
 
     async def _serve(self, identity: bytes, token: int, request: Request, observe: Observe,
                      user: str | None = None) -> None:
         """One request; holds a concurrency slot (taken by the receive loop)."""
         try:
+            push = _Push(self, identity, token)
             sender = None if self._security is None else self._security.sender(user)
-            refused = self._service.admit(sender, str(request.method.value), request.path)
-            if refused is not None:  # before the service: a refused request changes nothing
-                await self._send(identity, self._encode(token, refused))
-                return
-            request = replace(request, peer=sender)
-            if observe is Observe.REGISTER and request.method in _OBSERVABLE_METHODS:
-                await self._register(identity, token, request)
-            else:
-                response = await self._call(request)
-                await self._send(identity, self._encode(token, response))
+            await self._answer(request, push.send, sender=sender,
+                               observe=(identity, token) if observe is Observe.REGISTER else None,
+                               notifier=lambda gone: push)
         finally:
             self._slots.release()
-
-    async def _call(self, request: Request) -> Response:
-        return await handle_safely(self._service, request, log)
-
-    def _encode(self, token: int, response: Response, seq: int | None = None) -> bytes:
-        try:
-            return encode_response(token, response, seq=seq)
-        except ValueError as exc:
-            log.error("zmq server %s: service returned an unencodable response: %s", self.endpoint, exc)
-            return encode_response(token, Response.error(Status.INTERNAL_SERVER_ERROR, "internal error"), seq=seq)
 
     async def _send(self, identity: bytes, data: bytes) -> bool:
         """Queue one message for ``identity``; never waits.
@@ -434,15 +344,8 @@ class ZmqServerTransport:
             elif not self._closed:
                 self._send_log.warning("zmq server %s: send to %s failed: %s", self.endpoint, identity.hex(), exc)
             return False
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += zmtp_frame_bytes(len(data))
+        self._count_sent(zmtp_frame_bytes(len(data)))
         return True
-
-    # ------------------------------------------------------------------ observe
-
-    async def _register(self, identity: bytes, token: int, request: Request) -> None:
-        push = _Push(self, identity, token)
-        await self._observations.register(identity, token, request, push.send, lambda gone: push)
 
 
 @dataclass(frozen=True)
@@ -458,7 +361,7 @@ class _Push:
 
     async def send(self, response: Response, seq: int | None) -> bool:
         """Queue one answer; False if it could not be (see :meth:`ZmqServerTransport._send`)."""
-        return await self.server._send(self.identity, self.server._encode(self.token, response, seq=seq))
+        return await self.server._send(self.identity, self.server._encoded(self.token, response, seq))
 
     async def notify(self, response: Response, seq: int) -> bool:
         # A notification that could not be queued is dropped like a lost
@@ -506,7 +409,6 @@ class _PeerLink:
         self.sock.close(linger=0)
 
     async def _read(self) -> None:
-        counters = self._client.counters
         while True:
             try:
                 frames = await self.sock.recv_multipart()
@@ -515,8 +417,7 @@ class _PeerLink:
                     return
                 self._client._bad_log.warning("zmq client: receive from %s failed: %s", self.peer, exc)
                 continue
-            counters.messages_received += 1
-            counters.bytes_received += sum(zmtp_frame_bytes(len(f)) for f in frames)
+            self._client._count_received(sum(zmtp_frame_bytes(len(f)) for f in frames))
             if len(frames) != 1:
                 self._client._malformed(self.peer, f"{len(frames)} frames, expected 1")
                 continue
@@ -534,14 +435,12 @@ class _PeerLink:
                 log.debug("zmq client: late answer for token %d from %s dropped", token, self.peer)
 
 
-class ZmqClientTransport:
+class ZmqClientTransport(ClientCore):
     """Sends requests to ZeroMQ peers; one DEALER socket per peer, opened lazily.
 
     Many requests may be in flight to the same peer; answers are matched by
     token, so they may come back in any order.
     """
-
-    counters: TrafficCounters
 
     def __init__(
         self,
@@ -553,30 +452,19 @@ class ZmqClientTransport:
         """A shared ``context`` is left open on :meth:`aclose`; otherwise the
         transport owns and terminates its own.  ``security``: CurveZMQ
         (:mod:`coapkb.security.curve`), or None."""
-        self._security = security
-        self.counters = TrafficCounters()
-        #: Messages dropped because they were not a valid response envelope.
-        self.malformed = 0
         self._options = options or ZmqOptions()
+        super().__init__(self._options, log, "zmq client")
+        self._security = security
         self._owns_context = context is None
         self._ctx = context if context is not None else zmq.asyncio.Context()
         self._links: dict[Endpoint, _PeerLink] = {}
         self._closing_readers: set[asyncio.Task[None]] = set()
-        self._bad_log = RateLimitedLog(log, self._options.malformed_log_interval_s)
-        self._closed = False
-
-    async def __aenter__(self) -> ZmqClientTransport:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
 
     # ------------------------------------------------------------------ sockets
 
     def _link(self, peer: Endpoint) -> _PeerLink:
-        if self._closed:
-            raise TransportError("the zmq client transport is closed")
-        _check_scheme(peer)
+        self._check_open()
+        check_scheme(peer, "zmq")
         link = self._links.get(peer)
         if link is not None:
             return link
@@ -613,22 +501,6 @@ class ZmqClientTransport:
         self._closing_readers.add(link.reader)
         link.reader.add_done_callback(self._closing_readers.discard)
 
-    def _malformed(self, peer: Endpoint, why: str) -> None:
-        self.malformed += 1
-        self._bad_log.warning("zmq client: dropped malformed message from %s: %s", peer, why[:200])
-
-    def _count_sent(self, data: bytes) -> None:
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += zmtp_frame_bytes(len(data))
-
-    def _closed_error(self) -> TransportError | None:
-        """If our socket was closed under an await, say so instead of leaking
-        a CancelledError that nobody asked for."""
-        task = asyncio.current_task()
-        if self._closed and (task is None or not task.cancelling()):
-            return TransportError("the zmq client transport was closed")
-        return None
-
     # ------------------------------------------------------------------ API
 
     async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
@@ -649,7 +521,7 @@ class ZmqClientTransport:
             async with asyncio.timeout(timeout):
                 await link.sock.send(data)  # waits for a connection (ZMQ_IMMEDIATE)
                 got_out = True
-                self._count_sent(data)
+                self._count_sent(zmtp_frame_bytes(len(data)))
                 response, _ = await fut
                 return response
         except TimeoutError:
@@ -693,7 +565,7 @@ class ZmqClientTransport:
                     data = encode_request(request, token=token, observe=Observe.REGISTER)
                     await link.sock.send(data)
                     got_out = True
-                    self._count_sent(data)
+                    self._count_sent(zmtp_frame_bytes(len(data)))
                     item = await queue.get()
             except TimeoutError:
                 raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
@@ -736,7 +608,7 @@ class ZmqClientTransport:
         except (zmq.ZMQError, TimeoutError) as exc:
             log.debug("zmq client: deregistration to %s not sent: %s", link.peer, exc)
         else:
-            self._count_sent(data)
+            self._count_sent(zmtp_frame_bytes(len(data)))
 
     async def aclose(self) -> None:
         """Fail pending requests and observations with :class:`TransportError`

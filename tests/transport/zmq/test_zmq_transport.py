@@ -378,7 +378,7 @@ async def test_observe_error_is_one_item(server, client) -> None:
 
 async def test_observe_cap_per_client(service) -> None:
     async with (
-        await ZmqServerTransport.start(service, LOCAL, options=ZmqOptions(max_observations_per_client=1)) as srv,
+        await ZmqServerTransport.start(service, LOCAL, options=ZmqOptions(max_observations=1)) as srv,
         ZmqClientTransport() as cli,
     ):
         req = Request(Method.GET, "/counter")

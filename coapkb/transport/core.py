@@ -1,0 +1,245 @@
+"""The server and client core of the transports without CoAP's machinery.
+
+ZeroMQ, Zenoh and DDS carry coapkb's requests in messages of their own
+(docs/protocol.md); what each keeps is how those messages get in and out.
+What they share lives here, once:
+
+* :class:`CoreOptions`, the limits every one of them takes, under one name
+  each; a transport's options class adds its own fields;
+* :class:`ServerCore`: the counters, the handler tasks and their slots,
+  malformed-message counting, the admission check before the service, the
+  observation registry and the order of shutting down;
+* :class:`ClientCore`: the counters, malformed-answer counting, the closed
+  state, and the error a request cut short by :meth:`aclose` raises.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable, Coroutine, Hashable
+from dataclasses import dataclass, replace
+from typing import Any, Self
+
+from .base import Endpoint, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely
+from .envelope import encode_response
+from .messages import Method, Request, Response, Status
+from .observation import Answer, Notifier, ObservationRegistry
+
+__all__ = ["OBSERVABLE_METHODS", "ClientCore", "CoreOptions", "ServerCore", "check_scheme", "post"]
+
+#: Methods an observation may be registered with (RFC 7641 and 8132).
+OBSERVABLE_METHODS = (Method.GET, Method.FETCH)
+
+
+@dataclass(frozen=True)
+class CoreOptions:
+    """Limits every transport built on the core takes."""
+
+    #: Server: requests handled at once; further ones wait their turn.
+    max_concurrent_requests: int = 64
+    #: Server: observations one client may hold (a transport that tells no
+    #: clients apart registers all under one: then a limit for the server).
+    max_observations: int = 256
+    #: Client: undelivered notifications kept per observation (oldest dropped first).
+    observe_queue: int = 64
+    #: Client: time an observe iterator waits for the first answer.
+    observe_timeout_s: float = 10.0
+    #: At most one "malformed message" warning per this many seconds.
+    malformed_log_interval_s: float = 10.0
+
+
+def check_scheme(endpoint: Endpoint, *schemes: str) -> None:
+    """ValueError unless ``endpoint`` has one of ``schemes``."""
+    if endpoint.scheme not in schemes:
+        raise ValueError(f"{endpoint} is not a {' or '.join(f'{s}://' for s in schemes)} endpoint")
+
+
+def post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: Any) -> None:
+    """Run ``callback(*args)`` on ``loop`` from a library's own thread; a loop
+    already closed (the transport is shutting down) has nobody to tell."""
+    with contextlib.suppress(RuntimeError):
+        loop.call_soon_threadsafe(callback, *args)
+
+
+class ServerCore:
+    """What a server of a transport without CoAP's machinery shares.
+
+    A subclass receives messages its own way, counts them with
+    :meth:`_count_received` (and :meth:`_malformed` when they are not a
+    request), takes a slot, and hands each request to :meth:`_answer` in a
+    task started by :meth:`_spawn`.  It sends through its own ``reply``
+    callbacks and releases what it holds in :meth:`_close_transport`.
+    """
+
+    counters: TrafficCounters
+    endpoint: Endpoint
+
+    def __init__(self, service: Service, endpoint: Endpoint, options: CoreOptions, log: logging.Logger,
+                 name: str) -> None:
+        self.counters = TrafficCounters()
+        self.endpoint = endpoint
+        #: Messages dropped (or answered with an error) because they were not a request.
+        self.malformed = 0
+        self._service = service
+        self._log = log
+        #: Who logs: ``"zmq server"``, ...
+        self._name = name
+        self._slots = asyncio.Semaphore(options.max_concurrent_requests)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._observations = ObservationRegistry(
+            service, slots=self._slots, spawn=self._spawn, limit=options.max_observations, log=log
+        )
+        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
+        self._closed = False
+
+    @property
+    def observation_count(self) -> int:
+        """Observations currently registered (all clients)."""
+        return len(self._observations)
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Stop serving: end observations, cancel and await handlers, then
+        release the transport's own resources.  Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop_receiving()
+        self._observations.stop_all()
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await self._close_transport()
+
+    def _stop_receiving(self) -> None:
+        """Take no more requests (before the handlers are cancelled)."""
+
+    async def _close_transport(self) -> None:
+        """Release sockets, sessions or participants (after the handlers ended)."""
+
+    # ------------------------------------------------------------------ receiving
+
+    def _count_received(self, size: int) -> None:
+        self.counters.messages_received += 1
+        self.counters.bytes_received += size
+
+    def _count_sent(self, size: int) -> None:
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += size
+
+    def _malformed(self, source: str, why: str) -> None:
+        self.malformed += 1
+        self._bad_log.warning("%s %s: dropped malformed message from %s: %s (%d dropped so far)",
+                              self._name, self.endpoint, source, why[:200], self.malformed)
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> asyncio.Task[None]:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            self._log.error("%s %s: handler crashed", self._name, self.endpoint, exc_info=task.exception())
+
+    # ------------------------------------------------------------------ answering
+
+    def _refusal(self, sender: str | None, method: Method, path: str) -> Response | None:
+        """The service's answer to a request it does not admit, else None."""
+        return self._service.admit(sender, str(method.value), path)
+
+    async def _call(self, request: Request) -> Response:
+        return await handle_safely(self._service, request, self._log)
+
+    def _encoded(self, token: int, response: Response, seq: int | None = None) -> bytes:
+        """``response`` in the CBOR envelope (ZeroMQ, DDS); one the envelope
+        cannot carry is the service's bug, answered 5.00."""
+        try:
+            return encode_response(token, response, seq=seq)
+        except ValueError as exc:
+            self._log.error("%s %s: service returned an unencodable response: %s", self._name, self.endpoint, exc)
+            return encode_response(token, Response.error(Status.INTERNAL_SERVER_ERROR, "internal error"), seq=seq)
+
+    async def _answer(
+        self,
+        request: Request,
+        reply: Answer,
+        *,
+        sender: str | None,
+        observe: tuple[Hashable, Hashable] | None = None,
+        notifier: Callable[[Callable[[], None]], Notifier | None] | None = None,
+    ) -> None:
+        """Admit ``request`` from ``sender`` and answer it through ``reply``.
+
+        With ``observe`` (the observer's client and key) and ``notifier`` (the
+        way to it) an observable request registers an observation.  A refused
+        request never reaches the service, so it changes nothing."""
+        refused = self._refusal(sender, request.method, request.path)
+        if refused is not None:
+            await reply(refused, None)
+            return
+        request = replace(request, peer=sender)
+        if observe is not None and notifier is not None and request.method in OBSERVABLE_METHODS:
+            client, key = observe
+            await self._observations.register(client, key, request, reply, notifier)
+        else:
+            await reply(await self._call(request), None)
+
+
+class ClientCore:
+    """What a client of a transport without CoAP's machinery shares."""
+
+    counters: TrafficCounters
+
+    def __init__(self, options: CoreOptions, log: logging.Logger, name: str) -> None:
+        self.counters = TrafficCounters()
+        #: Answers and notifications dropped because they could not be decoded.
+        self.malformed = 0
+        self._log = log
+        #: Who logs: ``"zmq client"``, ...
+        self._name = name
+        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
+        self._closed = False
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Close (a subclass releases what it holds).  Idempotent."""
+        self._closed = True
+
+    def _count_received(self, size: int) -> None:
+        self.counters.messages_received += 1
+        self.counters.bytes_received += size
+
+    def _count_sent(self, size: int) -> None:
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += size
+
+    def _malformed(self, peer: Endpoint, why: str) -> None:
+        self.malformed += 1
+        self._bad_log.warning("%s: dropped malformed answer from %s: %s", self._name, peer, why[:200])
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise TransportError(f"the {self._name} transport is closed")
+
+    def _closed_error(self) -> TransportError | None:
+        """If :meth:`aclose` cut a request short, the error that says so, instead
+        of a CancelledError nobody asked for (None: a real cancellation)."""
+        task = asyncio.current_task()
+        if self._closed and (task is None or not task.cancelling()):
+            return TransportError(f"the {self._name} transport was closed")
+        return None
