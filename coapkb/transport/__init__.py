@@ -74,6 +74,7 @@ async def serve(
 
 __all__ = [
     "SCHEMES",
+    "ClientSecurity",
     "ClientTransport",
     "Endpoint",
     "PeerGone",
@@ -81,6 +82,7 @@ __all__ = [
     "PeerUnreachable",
     "Reliability",
     "ResourceInfo",
+    "ServerSecurity",
     "ServerTransport",
     "Service",
     "TrafficCounters",

@@ -63,7 +63,41 @@ def post(loop: asyncio.AbstractEventLoop, callback: Callable[..., None], *args: 
         loop.call_soon_threadsafe(callback, *args)
 
 
-class ServerCore:
+class _Endpoint:
+    """What both ends count, and their closed state."""
+
+    counters: TrafficCounters
+
+    def __init__(self, options: CoreOptions, log: logging.Logger, name: str) -> None:
+        self.counters = TrafficCounters()
+        #: Messages dropped (or answered with an error) because they could not be decoded.
+        self.malformed = 0
+        self._log = log
+        #: Who logs: ``"zmq server"``, ``"dds client"``, ...
+        self._name = name
+        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
+        self._closed = False
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Close.  Idempotent."""
+        self._closed = True
+
+    def _count_received(self, size: int) -> None:
+        self.counters.messages_received += 1
+        self.counters.bytes_received += size
+
+    def _count_sent(self, size: int) -> None:
+        self.counters.messages_sent += 1
+        self.counters.bytes_sent += size
+
+
+class ServerCore(_Endpoint):
     """What a server of a transport without CoAP's machinery shares.
 
     A subclass receives messages its own way, counts them with
@@ -73,37 +107,23 @@ class ServerCore:
     callbacks and releases what it holds in :meth:`_close_transport`.
     """
 
-    counters: TrafficCounters
     endpoint: Endpoint
 
     def __init__(self, service: Service, endpoint: Endpoint, options: CoreOptions, log: logging.Logger,
                  name: str) -> None:
-        self.counters = TrafficCounters()
+        super().__init__(options, log, name)
         self.endpoint = endpoint
-        #: Messages dropped (or answered with an error) because they were not a request.
-        self.malformed = 0
         self._service = service
-        self._log = log
-        #: Who logs: ``"zmq server"``, ...
-        self._name = name
         self._slots = asyncio.Semaphore(options.max_concurrent_requests)
         self._tasks: set[asyncio.Task[None]] = set()
         self._observations = ObservationRegistry(
             service, slots=self._slots, spawn=self._spawn, limit=options.max_observations, log=log
         )
-        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
-        self._closed = False
 
     @property
     def observation_count(self) -> int:
         """Observations currently registered (all clients)."""
         return len(self._observations)
-
-    async def __aenter__(self) -> Self:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
 
     async def aclose(self) -> None:
         """Stop serving: end observations, cancel and await handlers, then
@@ -126,14 +146,6 @@ class ServerCore:
         """Release sockets, sessions or participants (after the handlers ended)."""
 
     # ------------------------------------------------------------------ receiving
-
-    def _count_received(self, size: int) -> None:
-        self.counters.messages_received += 1
-        self.counters.bytes_received += size
-
-    def _count_sent(self, size: int) -> None:
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += size
 
     def _malformed(self, source: str, why: str) -> None:
         self.malformed += 1
@@ -195,38 +207,9 @@ class ServerCore:
             await reply(await self._call(request), None)
 
 
-class ClientCore:
-    """What a client of a transport without CoAP's machinery shares."""
-
-    counters: TrafficCounters
-
-    def __init__(self, options: CoreOptions, log: logging.Logger, name: str) -> None:
-        self.counters = TrafficCounters()
-        #: Answers and notifications dropped because they could not be decoded.
-        self.malformed = 0
-        self._log = log
-        #: Who logs: ``"zmq client"``, ...
-        self._name = name
-        self._bad_log = RateLimitedLog(log, options.malformed_log_interval_s)
-        self._closed = False
-
-    async def __aenter__(self) -> Self:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.aclose()
-
-    async def aclose(self) -> None:
-        """Close (a subclass releases what it holds).  Idempotent."""
-        self._closed = True
-
-    def _count_received(self, size: int) -> None:
-        self.counters.messages_received += 1
-        self.counters.bytes_received += size
-
-    def _count_sent(self, size: int) -> None:
-        self.counters.messages_sent += 1
-        self.counters.bytes_sent += size
+class ClientCore(_Endpoint):
+    """What a client of a transport without CoAP's machinery shares; a
+    subclass's :meth:`aclose` releases what it holds."""
 
     def _malformed(self, peer: Endpoint, why: str) -> None:
         self.malformed += 1

@@ -185,7 +185,7 @@ def _uncached_member(cls: type[ExtensibleIntEnum], value: int) -> ExtensibleIntE
 def _install_uncached_members() -> None:
     if "_value2member_map_[value] = new_member" not in inspect.getsource(ExtensibleIntEnum._missing_):
         raise UnsupportedAiocoapVersion("aiocoap's ExtensibleIntEnum no longer caches unknown members as 0.4.17 did")
-    ExtensibleIntEnum._missing_ = classmethod(_uncached_member)  # type: ignore[assignment]
+    ExtensibleIntEnum._missing_ = classmethod(_uncached_member)
 
 
 def verify() -> None:
@@ -345,7 +345,7 @@ class ContextHooks:
         self.interface = self.mm.message_interface
         self.counters = TrafficCounters()
         self.con_policy: ConPolicy | None = None
-        self._originals: dict[tuple[Any, str], Any] = {}
+        self._originals: dict[tuple[Any, str], Callable[..., Any]] = {}
         self._instance_attributes: dict[int, set[str]] = {}
         #: (remote, mid) -> policy record, for CON exchanges aiocoap has active.
         self._pending: dict[tuple[Any, int], Any] = {}
@@ -366,7 +366,7 @@ class ContextHooks:
     @classmethod
     def of(cls, ctx: aiocoap.Context) -> ContextHooks:
         mm = _message_manager(ctx)
-        hooks = mm.__dict__.get(_MARKER)
+        hooks: ContextHooks | None = mm.__dict__.get(_MARKER)
         if hooks is None:
             verify()
             hooks = cls(ctx)
@@ -504,7 +504,7 @@ class ContextHooks:
         recent = self.mm._recent_messages
         key = (message.remote, message.mid)
         if key in recent:
-            return self._original(self.mm, "_deduplicate_message")(message)
+            return bool(self._original(self.mm, "_deduplicate_message")(message))
         self.forget_duplicates(room_for=1)
         self._remembered_at[key] = self.mm.loop.time()
         recent[key] = None
@@ -514,7 +514,7 @@ class ContextHooks:
         """Drop the duplicate memory's entries past its bounds (oldest first),
         leaving room for ``room_for`` more; returns the bytes dropped."""
         recent = self.mm._recent_messages
-        before = recent.answer_bytes
+        before: int = recent.answer_bytes
         remembered = self._remembered_at
         horizon = self.mm.loop.time() - DUPLICATE_HORIZON_S
         while remembered:
@@ -524,7 +524,7 @@ class ContextHooks:
                 break
             del remembered[oldest]
             recent.pop(oldest, None)
-        return before - recent.answer_bytes
+        return before - int(recent.answer_bytes)
 
     # ------------------------------------------------------------ late events
 
