@@ -80,6 +80,7 @@ from aiocoap.util import ExtensibleIntEnum
 from ...errors import CoapkbError
 from ..base import TrafficCounters
 from . import wire_trace
+from .bounds import MESSAGE_OVERHEAD, StateBounds
 
 __all__ = [
     "SUPPORTED_AIOCOAP_VERSION",
@@ -94,7 +95,6 @@ __all__ = [
     "Block2Cache",
     "ContinueException",
     "IncompleteException",
-    "MESSAGE_OVERHEAD",
 ]
 
 log = logging.getLogger(__name__)
@@ -117,25 +117,6 @@ _WRAPPED = {
 }
 _MARKER = "_coapkb_hooks"
 
-#: The requests a context remembers to recognise a duplicate (and answer it
-#: again), at most this many and none for longer than ``DUPLICATE_HORIZON_S``.
-#: aiocoap keeps each for RFC 7252's EXCHANGE_LIFETIME, 247 s, with a timer
-#: and the answer: a robot deciding tasks quickly, or anyone sending it
-#: garbage requests, grew its memory by kilobytes per task for four minutes.
-#: Duplicates come from a CON sender's retransmissions, which end within
-#: MAX_TRANSMIT_SPAN (45 s with RFC 7252's defaults); the reliability layer's
-#: own tries are new messages and never duplicates.  A duplicate arriving
-#: after its entry went is handled again: every robot resource is idempotent
-#: or keyed by task (docs/reliability.md).
-DUPLICATES_REMEMBERED = 4096
-DUPLICATE_HORIZON_S = 60.0
-#: ... and while what they keep stays under this many bytes: the answers to
-#: send again, and what each entry costs by itself (``MESSAGE_OVERHEAD``).
-#: 4,096 block-wise answers would be 10 MiB and more.
-DUPLICATE_ANSWER_BYTES = 1024 * 1024
-#: What a kept message costs beyond its payload (its object, options and
-#: key), roughly: the unit of every byte bound on kept messages.
-MESSAGE_OVERHEAD = 512
 
 
 class _DuplicateMemory(dict):  # type: ignore[type-arg]
@@ -335,12 +316,14 @@ class ConPolicy(Protocol):
 class ContextHooks:
     """All per-context patches of one aiocoap context, installed once.
 
-    ``ContextHooks.of(ctx)`` installs them on first use and returns the same
-    object afterwards; :meth:`remove` takes every patch off again (call it
-    before ``ctx.shutdown()``)."""
+    ``ContextHooks.of(ctx, bounds)`` installs them on first use and returns
+    the same object afterwards; :meth:`remove` takes every patch off again
+    (call it before ``ctx.shutdown()``).  ``bounds`` limits the duplicate
+    memory."""
 
-    def __init__(self, ctx: aiocoap.Context) -> None:
+    def __init__(self, ctx: aiocoap.Context, bounds: StateBounds = StateBounds()) -> None:
         self.ctx = ctx
+        self.bounds = bounds
         self.mm = _message_manager(ctx)
         self.interface = self.mm.message_interface
         self.counters = TrafficCounters()
@@ -364,12 +347,12 @@ class ContextHooks:
         self.trace = wire_trace.tracer()
 
     @classmethod
-    def of(cls, ctx: aiocoap.Context) -> ContextHooks:
+    def of(cls, ctx: aiocoap.Context, bounds: StateBounds = StateBounds()) -> ContextHooks:
         mm = _message_manager(ctx)
         hooks: ContextHooks | None = mm.__dict__.get(_MARKER)
         if hooks is None:
             verify()
-            hooks = cls(ctx)
+            hooks = cls(ctx, bounds)
             hooks._install()
             setattr(mm, _MARKER, hooks)
         return hooks
@@ -500,7 +483,7 @@ class ContextHooks:
 
     def _deduplicate_message(self, message: aiocoap.Message) -> bool:
         """aiocoap's duplicate detection, with its memory bounded in size and
-        age (``DUPLICATES_REMEMBERED``, ``DUPLICATE_HORIZON_S``) and no timer per request."""
+        age (:attr:`bounds`: ``duplicates``, ``duplicate_horizon_s``) and no timer per request."""
         recent = self.mm._recent_messages
         key = (message.remote, message.mid)
         if key in recent:
@@ -516,11 +499,12 @@ class ContextHooks:
         recent = self.mm._recent_messages
         before: int = recent.answer_bytes
         remembered = self._remembered_at
-        horizon = self.mm.loop.time() - DUPLICATE_HORIZON_S
+        bounds = self.bounds
+        horizon = self.mm.loop.time() - bounds.duplicate_horizon_s
         while remembered:
             oldest, born = next(iter(remembered.items()))
-            if (len(remembered) + room_for <= DUPLICATES_REMEMBERED and born > horizon
-                    and recent.answer_bytes <= DUPLICATE_ANSWER_BYTES):
+            if (len(remembered) + room_for <= bounds.duplicates and born > horizon
+                    and recent.answer_bytes <= bounds.duplicate_answer_bytes):
                 break
             del remembered[oldest]
             recent.pop(oldest, None)

@@ -33,7 +33,8 @@ How :class:`BodyAwareBlock2Cache` matches a follow-up to its answer:
 
 Both kinds of state are bounded (:class:`~coapkb.transport.expiring.ExpiringMap`):
 a server shares one spool and one cache among its resources, each holding at most
-the bytes and entries below, and none unused for ``TRANSFER_IDLE_S``.  A
+the bytes and entries its :class:`.StateBounds` allow, and none unused for
+``transfer_idle_s``.  A
 flood of large answers therefore costs a few MiB for a minute and a half,
 not memory that grows with the flood (docs/flood.md); a follow-up whose
 transfer was evicted gets 4.08, as after any expiry, or is answered afresh
@@ -49,12 +50,10 @@ from typing import Any
 
 import aiocoap
 from aiocoap.numbers.codes import Code
-from aiocoap.numbers.constants import TransportTuning
 from aiocoap.optiontypes import BlockOption
 
 from ..expiring import ExpiringMap
 from .aiocoap_adapter import (
-    MESSAGE_OVERHEAD,
     Block1Spool,
     Block2Cache,
     ContinueException,
@@ -62,33 +61,22 @@ from .aiocoap_adapter import (
     block_key,
     extract_block,
 )
-
-#: A block transfer unused this long is forgotten: a CON block request is
-#: retried for at most MAX_TRANSMIT_WAIT (93 s with RFC 7252's defaults).
-TRANSFER_IDLE_S = TransportTuning().MAX_TRANSMIT_WAIT
-#: Multi-block answers kept for their follow-ups, per server: a robot's
-#: largest answer (1,000 rows) is 21 kB in compact CBOR, 236 kB in SPARQL
-#: JSON, so this holds about a hundred, or eight, in transfer at once.
-BLOCK2_BYTES = 2 * 1024 * 1024
-BLOCK2_KEYS = 1024
-#: Requests being received block by block (Block1), per server: a SPARQL
-#: text is a few kB at most.
-BLOCK1_BYTES = 1024 * 1024
-BLOCK1_ASSEMBLIES = 256
+from .bounds import MESSAGE_OVERHEAD, StateBounds
 
 
 class GapSafeBlock1Spool(Block1Spool):
-    """aiocoap's Block1 spool, bounded (``BLOCK1_BYTES``, ``BLOCK1_ASSEMBLIES``,
-    ``TRANSFER_IDLE_S``); a gap in the blocks, which aiocoap answers with a
-    5.00 and a logged traceback, is the client's error: 4.08 Incomplete."""
+    """aiocoap's Block1 spool, bounded (:class:`.StateBounds`'s ``block1_*``
+    and ``transfer_idle_s``); a gap in the blocks, which aiocoap answers with
+    a 5.00 and a logged traceback, is the client's error: 4.08 Incomplete."""
 
-    def __init__(self) -> None:
+    def __init__(self, bounds: StateBounds = StateBounds()) -> None:
         super().__init__()
         self._assemblies: ExpiringMap[Any, aiocoap.Message] = ExpiringMap(
-            TRANSFER_IDLE_S, BLOCK1_ASSEMBLIES, BLOCK1_BYTES, lambda m: len(m.payload) + MESSAGE_OVERHEAD)
+            bounds.transfer_idle_s, bounds.block1_assemblies, bounds.block1_bytes,
+            lambda m: len(m.payload) + MESSAGE_OVERHEAD)
 
     def purge(self) -> int:
-        """Forget the assemblies idle for ``TRANSFER_IDLE_S``; returns the bytes forgotten."""
+        """Forget the assemblies idle for ``transfer_idle_s``; returns the bytes forgotten."""
         return self._assemblies.purge()
 
     def feed_and_take(self, req: aiocoap.Message) -> aiocoap.Message:
@@ -136,21 +124,22 @@ class BodyAwareBlock2Cache(Block2Cache):
     docstring describes.
 
     ``max_per_key`` bounds the answers kept per client endpoint and request
-    options; all of them together are bounded by ``max_bytes`` and
-    ``BLOCK2_KEYS``, and forgotten ``TRANSFER_IDLE_S`` after their last use."""
+    options; all of them together are bounded by :class:`.StateBounds`'s
+    ``block2_bytes`` and ``block2_keys``, and forgotten ``transfer_idle_s``
+    after their last use."""
 
-    def __init__(self, max_per_key: int = 4, max_bytes: int = BLOCK2_BYTES) -> None:
+    def __init__(self, max_per_key: int = 4, bounds: StateBounds = StateBounds()) -> None:
         super().__init__()
         if max_per_key < 1:
             raise ValueError(f"max_per_key must be at least 1, got {max_per_key}")
         self.max_per_key = max_per_key
         #: block key -> transfers under it, the most recent last.
         self._transfers: ExpiringMap[Any, list[_Transfer]] = ExpiringMap(
-            TRANSFER_IDLE_S, BLOCK2_KEYS, max_bytes,
+            bounds.transfer_idle_s, bounds.block2_keys, bounds.block2_bytes,
             lambda transfers: sum(len(t.answer.payload) + MESSAGE_OVERHEAD for t in transfers))
 
     def purge(self) -> int:
-        """Forget the answers idle for ``TRANSFER_IDLE_S``; returns the bytes forgotten."""
+        """Forget the answers idle for ``transfer_idle_s``; returns the bytes forgotten."""
         return self._transfers.purge()
 
     async def extract_or_insert(

@@ -26,6 +26,7 @@ from ..base import Endpoint, RateLimitFilter, ResourceInfo, Service, TrafficCoun
 from ..messages import Response, Status
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
+from .bounds import StateBounds
 from .heap import trim_heap
 from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
 from .reliability import ReliabilityLayer, make_reliability
@@ -34,17 +35,6 @@ from .security import CoapServerSecurity
 
 log = logging.getLogger(__name__)
 
-#: How often a server forgets the state that has aged out (duplicate memory,
-#: block-wise transfers), so an idle robot gives it back too.
-STATE_SWEEP_S = 10.0
-#: Observations a resource keeps (RFC 7641): each costs a CON notification
-#: per change.  A robot's state is observed by its cluster mates and the
-#: feeder; past this many, a registration is answered without Observe
-#: (section 4.1: the client is told it is not observing).
-OBSERVERS_MAX = 64
-#: When a sweep forgot at least this much, the freed memory goes back to the
-#: system (:mod:`.heap`): a flood's state leaves no lasting RSS.
-TRIM_AFTER_BYTES = 256 * 1024
 
 
 class _ServiceResource(aiocoap.resource.ObservableResource):
@@ -52,8 +42,10 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
 
     def __init__(self, service: Service, info: ResourceInfo, tuning_for: Any,
                  security: CoapServerSecurity | None,
-                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache]) -> None:
+                 blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache], observers: int) -> None:
         super().__init__()
+        #: Observations this resource keeps (:class:`.StateBounds`).
+        self._observers_max = observers
         #: Tells who sent a request (OSCORE/EDHOC), or None (unprotected).
         self._security = security
         # One spool and one cache per server (block keys name the path), so
@@ -107,7 +99,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         return message
 
     async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
-        if self.info.obs and len(self._observations) < OBSERVERS_MAX:
+        if self.info.obs and len(self._observations) < self._observers_max:
             await super().add_observation(request, serverobservation)
             if self.info.quiet:
                 self._watched[serverobservation] = request
@@ -202,8 +194,9 @@ class CoapServerTransport:
 
     def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy,
                  blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache],
-                 security: CoapServerSecurity | None = None) -> None:
+                 bounds: StateBounds, security: CoapServerSecurity | None = None) -> None:
         self._ctx = ctx
+        self.bounds = bounds
         self._hooks = hooks
         self.endpoint = endpoint
         self.counters: TrafficCounters = hooks.counters
@@ -214,13 +207,13 @@ class CoapServerTransport:
 
     async def _sweep(self) -> None:
         while True:
-            await asyncio.sleep(STATE_SWEEP_S)  # a period, not a wait for an event
+            await asyncio.sleep(self.bounds.sweep_every_s)  # a period, not a wait for an event
             dropped = self._hooks.forget_duplicates()
             for state in self.blocks:
                 dropped += state.purge()
             if self._security is not None:
                 self._security.sweep()
-            if dropped >= TRIM_AFTER_BYTES:
+            if dropped >= self.bounds.trim_after_bytes:
                 trim_heap()
 
     @classmethod
@@ -228,10 +221,13 @@ class CoapServerTransport:
         cls, service: Service, endpoint: Endpoint,
         reliability: ReliabilityLayer | None = None,
         security: CoapServerSecurity | None = None,
+        bounds: StateBounds | None = None,
     ) -> CoapServerTransport:
         """``security``: OSCORE + EDHOC (:mod:`coapkb.security.coap`) on every
         resource but ``/.well-known/core``, or None; ``service`` carries the
-        access rules (:meth:`Service.admit`)."""
+        access rules (:meth:`Service.admit`).  ``bounds``: how much state the
+        server keeps (default :class:`.StateBounds`'s)."""
+        bounds = bounds or StateBounds()
         host = _resolve_host(endpoint.host)
         _check_port_free(host, endpoint.port)
         layer = make_reliability() if reliability is None else reliability
@@ -246,10 +242,10 @@ class CoapServerTransport:
             aiocoap.resource.WKCResource(site.get_resources_as_linkheader, impl_info=None),
         )
         parents: set[tuple[str, ...]] = set()
-        blocks = (GapSafeBlock1Spool(), BodyAwareBlock2Cache())
+        blocks = (GapSafeBlock1Spool(bounds), BodyAwareBlock2Cache(bounds=bounds))
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
-            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security, blocks))
+            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security, blocks, bounds.observers))
             parents.add(tuple(segments[:-1]))
         for parent in sorted(parents - {()}):
             site.add_resource(list(parent), _UnknownPaths(service, "/" + "/".join(parent)))
@@ -262,10 +258,10 @@ class CoapServerTransport:
             )
         except OSError as exc:
             raise TransportError(f"cannot serve CoAP on {endpoint.hostport}: {exc.strerror or exc}") from None
-        hooks = ContextHooks.of(ctx)
+        hooks = ContextHooks.of(ctx, bounds)
         hooks.set_con_policy(policy)
         hooks.on_datagram = layer.on_datagram
-        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks, security)
+        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks, bounds, security)
 
     def describe(self) -> dict[str, Any]:
         return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}

@@ -14,6 +14,7 @@ import pytest
 
 from coapkb.transport.coap import aiocoap_adapter
 from coapkb.transport.coap.aiocoap_adapter import ContextHooks, UnsupportedAiocoapVersion, verify
+from coapkb.transport.coap.bounds import StateBounds
 
 
 def test_every_private_name_is_where_the_adapter_expects_it() -> None:
@@ -139,7 +140,7 @@ class _Counting(aiocoap.resource.Resource):
         return aiocoap.Message(payload=str(self.calls).encode())
 
 
-async def _counting_server() -> tuple[aiocoap.Context, _Counting, int]:
+async def _counting_server(bounds: StateBounds = StateBounds()) -> tuple[aiocoap.Context, _Counting, int]:
     from tests.support import free_udp_port
 
     resource = _Counting()
@@ -147,7 +148,7 @@ async def _counting_server() -> tuple[aiocoap.Context, _Counting, int]:
     site.add_resource(["n"], resource)
     port = free_udp_port()
     ctx = await aiocoap.Context.create_server_context(site, bind=("127.0.0.1", port), transports=["udp6"])
-    ContextHooks.of(ctx)
+    ContextHooks.of(ctx, bounds)
     return ctx, resource, port
 
 
@@ -177,8 +178,7 @@ def client_socket() -> Iterator[socket.socket]:
 async def test_the_duplicate_memory_is_bounded_in_size_and_answers_a_recent_duplicate_again(
     monkeypatch: pytest.MonkeyPatch, client_socket: socket.socket
 ) -> None:
-    monkeypatch.setattr(aiocoap_adapter, "DUPLICATES_REMEMBERED", 32)
-    ctx, resource, port = await _counting_server()
+    ctx, resource, port = await _counting_server(StateBounds(duplicates=32))
     try:
         mm = ContextHooks.of(ctx).mm
         timers = len(asyncio.get_running_loop()._scheduled)  # type: ignore[attr-defined]
@@ -199,8 +199,8 @@ async def test_the_duplicate_memory_is_bounded_in_size_and_answers_a_recent_dupl
 async def test_the_duplicate_memory_forgets_a_request_older_than_its_horizon(
     monkeypatch: pytest.MonkeyPatch, client_socket: socket.socket
 ) -> None:
-    monkeypatch.setattr(aiocoap_adapter, "DUPLICATE_HORIZON_S", 0.0)  # every entry is old at the next request
-    ctx, resource, port = await _counting_server()
+    # every entry is old at the next request
+    ctx, resource, port = await _counting_server(StateBounds(duplicate_horizon_s=0.0))
     try:
         assert await _ask(client_socket, port, 7) == b"1"
         assert await _ask(client_socket, port, 7) == b"1"  # nothing newer came: still remembered

@@ -12,9 +12,10 @@ import aiocoap
 import pytest
 from aiocoap.optiontypes import BlockOption
 
-from coapkb.transport.coap import aiocoap_adapter, blockwise
+from coapkb.transport.coap import aiocoap_adapter
 from coapkb.transport.coap.aiocoap_adapter import ContextHooks, ContinueException, IncompleteException
 from coapkb.transport.coap.blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
+from coapkb.transport.coap.bounds import MESSAGE_OVERHEAD, StateBounds
 from coapkb.transport.expiring import ExpiringMap
 
 
@@ -90,9 +91,8 @@ def _fetch(mid: int, payload: bytes, block1: tuple[int, bool, int] | None = None
     return msg.encode()
 
 
-async def test_block1_assemblies_are_bounded_in_number_and_a_dropped_one_is_4_08(monkeypatch) -> None:
-    monkeypatch.setattr(blockwise, "BLOCK1_ASSEMBLIES", 4)
-    spool = GapSafeBlock1Spool()
+async def test_block1_assemblies_are_bounded_in_number_and_a_dropped_one_is_4_08() -> None:
+    spool = GapSafeBlock1Spool(StateBounds(block1_assemblies=4))
     ctx, port = await _server_context()
     try:
         first_blocks = []
@@ -116,7 +116,7 @@ async def test_block1_assemblies_are_bounded_in_number_and_a_dropped_one_is_4_08
 
 
 async def test_block2_answers_are_bounded_in_bytes() -> None:
-    cache = BodyAwareBlock2Cache(max_bytes=3 * (2048 + blockwise.MESSAGE_OVERHEAD))
+    cache = BodyAwareBlock2Cache(bounds=StateBounds(block2_bytes=3 * (2048 + MESSAGE_OVERHEAD)))
     ctx, port = await _server_context()
     try:
         for mid in range(5):  # five different 2 kB answers, each from its own source port
@@ -133,10 +133,9 @@ async def test_block2_answers_are_bounded_in_bytes() -> None:
         await ctx.shutdown()
 
 
-async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes(monkeypatch) -> None:
-    monkeypatch.setattr(aiocoap_adapter, "DUPLICATE_ANSWER_BYTES", 4096)
+async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes() -> None:
     ctx, port = await _server_context()
-    hooks = ContextHooks.of(ctx)
+    hooks = ContextHooks.of(ctx, StateBounds(duplicate_answer_bytes=4096))
     try:
         recent = hooks.mm._recent_messages
         for mid in range(8):
@@ -144,29 +143,28 @@ async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes(monkeypatch) 
             assert hooks._deduplicate_message(req) is False
             recent[(req.remote, req.mid)] = aiocoap.Message(code=aiocoap.CONTENT, payload=b"x" * 1024)
         hooks.forget_duplicates()
-        assert recent.answer_bytes <= 4096 and len(recent) == 4096 // (1024 + aiocoap_adapter.MESSAGE_OVERHEAD)
+        assert recent.answer_bytes <= 4096 and len(recent) == 4096 // (1024 + MESSAGE_OVERHEAD)
         assert len(hooks._remembered_at) == len(recent)
     finally:
         hooks.remove()
         await ctx.shutdown()
 
 
-async def test_a_resource_keeps_at_most_observers_max_observations(monkeypatch) -> None:
-    """Past OBSERVERS_MAX, a registration gets the state without Observe (RFC 7641 section 4.1)."""
-    from coapkb.transport import Endpoint, serve
+async def test_a_resource_keeps_at_most_its_bound_of_observations() -> None:
+    """Past ``observers``, a registration gets the state without Observe (RFC 7641 section 4.1)."""
+    from coapkb.transport import Endpoint
     from coapkb.transport.base import ResourceInfo
-    from coapkb.transport.coap import server as coap_server
+    from coapkb.transport.coap import CoapServerTransport
     from coapkb.transport.messages import Response, Status
     from coapkb.transport.router import Router
 
-    monkeypatch.setattr(coap_server, "OBSERVERS_MAX", 3)
     router = Router()
 
     async def state(request) -> Response:  # type: ignore[no-untyped-def]
         return Response(Status.CONTENT, b"idle")
 
     router.add(ResourceInfo("/state", obs=True), state)
-    server = await serve(router, Endpoint("coap", "127.0.0.1", 0))
+    server = await CoapServerTransport.start(router, Endpoint("coap", "127.0.0.1", 0), bounds=StateBounds(observers=3))
     observed = []
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -185,16 +183,13 @@ async def test_a_resource_keeps_at_most_observers_max_observations(monkeypatch) 
 
 async def test_an_idle_server_forgets_aged_block_transfers_and_trims_its_heap(monkeypatch) -> None:
     """The server's sweep, not a new request, ages state out."""
-    from coapkb.transport import Endpoint, open_client, serve
+    from coapkb.transport import Endpoint, open_client
     from coapkb.transport.base import ResourceInfo
-    from coapkb.transport.coap import heap
+    from coapkb.transport.coap import CoapServerTransport, heap
     from coapkb.transport.coap import server as coap_server
     from coapkb.transport.messages import Method, Request, Response, Status
     from coapkb.transport.router import Router
 
-    monkeypatch.setattr(blockwise, "TRANSFER_IDLE_S", 0.3)
-    monkeypatch.setattr(coap_server, "STATE_SWEEP_S", 0.1)
-    monkeypatch.setattr(coap_server, "TRIM_AFTER_BYTES", 1)
     trims = []
     monkeypatch.setattr(coap_server, "trim_heap", lambda: trims.append(heap.trim_heap()))
     router = Router()
@@ -203,7 +198,8 @@ async def test_an_idle_server_forgets_aged_block_transfers_and_trims_its_heap(mo
         return Response(Status.CONTENT, bytes(range(256)) * 12)
 
     router.add(ResourceInfo("/big"), big)
-    server = await serve(router, Endpoint("coap", "127.0.0.1", 0))
+    bounds = StateBounds(transfer_idle_s=0.3, sweep_every_s=0.1, trim_after_bytes=1)
+    server = await CoapServerTransport.start(router, Endpoint("coap", "127.0.0.1", 0), bounds=bounds)
     client = await open_client("coap")
     try:
         answer = await client.request(server.endpoint, Request(Method.GET, "/big"), timeout=5)
@@ -241,3 +237,9 @@ async def test_unknown_option_numbers_and_content_formats_leave_nothing_behind()
         assert OptionNumber(2000) == 2000 and OptionNumber(11) is OptionNumber.URI_PATH
     finally:
         await ctx.shutdown()
+
+
+def test_a_bound_that_keeps_nothing_is_refused() -> None:
+    with pytest.raises(ValueError, match="StateBounds.observers must be positive"):
+        StateBounds(observers=0)
+    assert StateBounds(duplicate_horizon_s=0.0).duplicate_horizon_s == 0.0  # remember only until the next request
