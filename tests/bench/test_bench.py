@@ -21,9 +21,10 @@ from mcap.reader import make_reader
 from support import ROOT, coapkb, load_experiment, require
 
 from coapkb.bench import run as bench
-from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
+from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, available, enter_netns
 from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.stats import percentile
+from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Fault
 
 
@@ -60,12 +61,39 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
     assert (coap.security, zmq.security) == ("oscore", "curve")  # on by default, as in coapkb team
 
 
+class _Watch:
+    """A :class:`coapkb.bench.run.RunObserver` that keeps what it is shown."""
+
+    def __init__(self) -> None:
+        self.records: list[tuple[BenchRow, TeamRecord]] = []
+
+    def team_recorded(self, row: BenchRow, record: TeamRecord) -> None:
+        self.records.append((row, record))
+
+
+class _CountingTestbed(Testbed):
+    """A testbed that counts the bench's counter readings."""
+
+    readings = 0
+
+    async def acounters(self) -> dict[str, LinkCounters]:
+        type(self).readings += 1
+        return await super().acounters()
+
+
 @pytest.mark.root
 @pytest.mark.timeout(120)
 async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(tmp_path: Path) -> None:
     _require_netns()
-    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False, trace_dir=tmp_path)
+    watch = _Watch()
+    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False, trace_dir=tmp_path,
+                                 observer=watch, testbed_class=_CountingTestbed)
     assert plain.ok, plain.error
+    # The hooks: the observer got the team's record once, the testbed class built the testbed.
+    [(seen, record)] = watch.records
+    assert seen.system == "coap-distributed" and seen.tasks_agreed == 2 and seen.wire_bytes is None
+    assert len(record.tasks) == 2
+    assert _CountingTestbed.readings >= 2  # the two counter readings around the team's work
     # --trace: each robot's log at INFO level and the team's record, in a folder named after the run.
     [run] = tmp_path.iterdir()
     assert run.name == "coap-distributed-3r2t-512k-2pct-none-rep0"
