@@ -1,10 +1,10 @@
 """The byte budget: every datagram of one benchmark run, by kind and by part.
 
-    sudo .venv/bin/python experiments/byte_budget.py [--loss 2] [--tasks 10] [--reps 1] [--insecure] [--keep DIR]
-    sudo .venv/bin/python experiments/byte_budget.py --doc     # the runs of docs/byte-budget.md: CSVs and its tables
-    .venv/bin/python experiments/byte_budget.py --read DIR ... # a kept run again (no root)
-    .venv/bin/python experiments/byte_budget.py --from-csv [--doc]   # the tables from the committed CSVs
-    sudo .venv/bin/python experiments/byte_budget.py --peers --doc [--reps 3]   # CoAP against its peers, by packets
+    sudo .venv/bin/python -m experiments.byte_budget [--loss 2] [--tasks 10] [--reps 1] [--insecure] [--keep DIR]
+    sudo .venv/bin/python -m experiments.byte_budget --doc     # the runs of docs/byte-budget.md: CSVs and its tables
+    .venv/bin/python -m experiments.byte_budget --read DIR ... # a kept run again (no root)
+    .venv/bin/python -m experiments.byte_budget --from-csv [--doc]   # the tables from the committed CSVs
+    sudo .venv/bin/python -m experiments.byte_budget --peers --doc [--reps 3]   # CoAP against its peers, by packets
 
 One run is ``coapkb bench``'s own run (:func:`coapkb.bench.run.run_once`,
 ``coap-distributed``, by default 3 robots, 10 tasks, 35 kbit/s, 2 % loss,
@@ -52,7 +52,6 @@ import argparse
 import asyncio
 import contextlib
 import csv
-import importlib.util
 import json
 import math
 import os
@@ -64,35 +63,18 @@ from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
 from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap
+from experiments import byte_budget_peers as peers  # the peers' protocols (QUIC, RTPS): packets alone, no traces
 
 if TYPE_CHECKING:
     from coapkb.bench.linkemu import Testbed
     from coapkb.bench.row import BenchRow
     from coapkb.harness.record import TeamRecord
 
+ROOT = Path(__file__).resolve().parent.parent
 
-def _sibling(name: str) -> ModuleType:
-    """``experiments/NAME.py`` beside this file, as a module (the experiments are scripts, not a package)."""
-    key = f"experiments_{name}"
-    if key in sys.modules:
-        return sys.modules[key]
-    spec = importlib.util.spec_from_file_location(key, Path(__file__).resolve().with_name(f"{name}.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[key] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-#: The parsers of the peers' protocols (QUIC, RTPS): packets alone, no traces.
-peers = _sibling("byte_budget_peers")
 
 RESULTS = ROOT / "experiments" / "results"
 CSV_RUNS = RESULTS / "byte_budget.csv"
@@ -1492,7 +1474,7 @@ async def run_settings(plan: Sequence[tuple[str, str, float, bool]], args: argpa
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.byte_budget", description=__doc__.split("\n\n")[0])
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--tasks", type=int, default=10)
     p.add_argument("--bandwidth", type=float, default=35.0, metavar="KBPS")

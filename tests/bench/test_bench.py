@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 from mcap.reader import make_reader
-from support import ROOT, coapkb, load_experiment, require
+from support import ROOT, coapkb, require
 
 from coapkb.bench import run as bench
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, available, enter_netns
@@ -316,7 +316,7 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     assert (back.delay_ms, back.jitter_ms, back.loss_model, back.burst_len) == (0.0, 0.0, "random", 0.0)
     assert back.key() == _row(delay_ms=0, loss_model="random", security="none").key() in done_keys(path)
     assert _row(delay_ms=100, security="none").key() not in done_keys(path)
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, security=False)
     assert plain.key() == back.key()
     # Rows from before the security column were unprotected runs: not a secure run's key.
@@ -338,7 +338,7 @@ def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
 
 
 def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> None:
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     quick = sweep.PROFILES["quick"]
     runs = sweep.plan(quick)
     assert len(runs) == len({r.key() for r in runs})
@@ -360,7 +360,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
 async def test_sweep_appends_each_row_and_prints_count_and_eta(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     runs = sweep.plan(sweep.PROFILES["quick"])[:3]
 
     async def child(run: Any, limit_s: float) -> dict[str, Any]:  # no root, no namespaces: the row only
@@ -399,7 +399,7 @@ def _synthetic(path: Path) -> None:
 
 
 def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
-    figures = load_experiment("figures")
+    from experiments import figures
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     outdir = tmp_path / "figs"
@@ -416,7 +416,7 @@ def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
 
 
 def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
-    report = load_experiment("report")
+    from experiments import report
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     out = tmp_path / "report.md"
@@ -440,7 +440,7 @@ def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> No
 
 
 def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.CaptureFixture[str]) -> None:
-    spread = load_experiment("spread")
+    from experiments import spread
     row = BenchRow(system="coap-distributed", robots=3, tasks=10, bandwidth_kbps=35, loss_pct=20, rep=0,
                    retransmission_profile="robust", ok=True, completion_s=6.0, coordination_s=5.5,
                    query_p50_ms=10.0, query_p99_ms=900.0, wire_bytes=62_000, security="oscore")
@@ -452,7 +452,7 @@ def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.Capt
 
 def test_dds_table_pairs_runs_by_setting_and_repetition() -> None:
     """CoAP ÷ DDS per pair (same setting and repetition); a failed run drops its pair."""
-    table = load_experiment("dds_table")
+    from experiments import dds_table as table
     rows = [
         *(_row("coap-distributed", rep=r, wire_bytes=1000, completion_s=2.0, security="none") for r in range(3)),
         *(_row("dds-distributed", rep=r, wire_bytes=4000 * (r + 1), completion_s=4.0) for r in range(3)),
