@@ -244,6 +244,24 @@ async def test_a_bad_configuration_is_a_failed_row_not_an_exception() -> None:
     assert row.ok is False and "unknown system" in row.error
 
 
+async def test_run_once_builds_its_testbed_with_the_class_given() -> None:
+    """``testbed_class`` gets the run's hosts and links (here a testbed that
+    refuses to start, so no root is needed); without a team record the
+    observer is not called, and the row says why."""
+    built: list[list[str]] = []
+
+    class Refusing(Testbed):
+        def setup(self) -> None:
+            built.append(list(self.hosts))
+            raise OSError("no testbed here")
+
+    watch = _Watch()
+    row = await bench.run_once("coap-central", 3, 2, 512, 2, observer=watch, testbed_class=Refusing)
+    assert built == [["Robot1", "Robot2", "Robot3", "central", "feeder"]]
+    assert row.ok is False and row.error == "OSError: no testbed here"
+    assert watch.records == []
+
+
 def test_parse_retrans_segs_and_percentile() -> None:
     snmp = ("Ip: Forwarding DefaultTTL\nIp: 1 64\n"
             "Tcp: RtoAlgorithm RtoMin ActiveOpens RetransSegs InErrs\nTcp: 1 200 4 17 0\n")
