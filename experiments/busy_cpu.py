@@ -11,8 +11,8 @@ unavailable, disagreements, and the worst loop lateness a robot measured
 (its ``/robot/stats``).  The kill runs kill one robot (SIGKILL) at
 ``--kill-at-task`` under the same load: the death must still be found.
 
-    .venv/bin/python experiments/busy_cpu.py                 # 5 runs under load, 1 with a kill
-    .venv/bin/python experiments/busy_cpu.py --reps 1 --kill-reps 0 --tasks 20
+    .venv/bin/python -m experiments.busy_cpu                 # 5 runs under load, 1 with a kill
+    .venv/bin/python -m experiments.busy_cpu --reps 1 --kill-reps 0 --tasks 20
 
 Writes ``runs.csv`` in ``--out`` (default ``experiments/results/busy_cpu/``)
 and prints one line per run.
@@ -30,12 +30,10 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 from coapkb.feeder.record import FateCounts
 from coapkb.harness.team import Fault, Team, TeamSpec, draw_tasks
+
+ROOT = Path(__file__).resolve().parent.parent
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "busy_cpu"
 VICTIM = "Robot2"
@@ -104,7 +102,7 @@ async def one_run(kind: str, rep: int, args: argparse.Namespace) -> RunRow:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.busy_cpu", description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=6)
     parser.add_argument("--tasks", type=int, default=80)
     parser.add_argument("--busy", type=int, default=2, help="spinning processes (default 2: both cores)")

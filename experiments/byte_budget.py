@@ -1,15 +1,16 @@
 """The byte budget: every datagram of one benchmark run, by kind and by part.
 
-    sudo .venv/bin/python experiments/byte_budget.py [--loss 2] [--tasks 10] [--reps 1] [--insecure] [--keep DIR]
-    sudo .venv/bin/python experiments/byte_budget.py --doc     # the runs of docs/byte-budget.md: CSVs and its tables
-    .venv/bin/python experiments/byte_budget.py --read DIR ... # a kept run again (no root)
-    .venv/bin/python experiments/byte_budget.py --from-csv [--doc]   # the tables from the committed CSVs
-    sudo .venv/bin/python experiments/byte_budget.py --peers --doc [--reps 3]   # CoAP against its peers, by packets
+    sudo .venv/bin/python -m experiments.byte_budget [--loss 2] [--tasks 10] [--reps 1] [--insecure] [--keep DIR]
+    sudo .venv/bin/python -m experiments.byte_budget --doc     # the runs of docs/byte-budget.md: CSVs and its tables
+    .venv/bin/python -m experiments.byte_budget --read DIR ... # a kept run again (no root)
+    .venv/bin/python -m experiments.byte_budget --from-csv [--doc]   # the tables from the committed CSVs
+    sudo .venv/bin/python -m experiments.byte_budget --peers --doc [--reps 3]   # CoAP against its peers, by packets
 
 One run is ``coapkb bench``'s own run (:func:`coapkb.bench.run.run_once`,
 ``coap-distributed``, by default 3 robots, 10 tasks, 35 kbit/s, 2 % loss,
-security on), with two observers added for it only (the testbed class and
-the function that reads the team's record are swapped for this process):
+security on), watched through the bench's own hooks (``run_once``'s
+``testbed_class``, a testbed that also captures, and its ``observer``,
+:class:`coapkb.bench.run.RunObserver`, which keeps the team's record):
 
 * a packet capture in the testbed's bridge namespace
   (:class:`coapkb.bench.linkemu.capture.PacketCapture`): every frame each
@@ -51,7 +52,6 @@ import argparse
 import asyncio
 import contextlib
 import csv
-import importlib.util
 import json
 import math
 import os
@@ -63,31 +63,18 @@ from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
-from typing import Any
-from unittest import mock
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from typing import TYPE_CHECKING, Any
 
 from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap
+from experiments import byte_budget_peers as peers  # the peers' protocols (QUIC, RTPS): packets alone, no traces
 
+if TYPE_CHECKING:
+    from coapkb.bench.linkemu import Testbed
+    from coapkb.bench.row import BenchRow
+    from coapkb.harness.record import TeamRecord
 
-def _sibling(name: str) -> ModuleType:
-    """``experiments/NAME.py`` beside this file, as a module (the experiments are scripts, not a package)."""
-    key = f"experiments_{name}"
-    if key in sys.modules:
-        return sys.modules[key]
-    spec = importlib.util.spec_from_file_location(key, Path(__file__).resolve().with_name(f"{name}.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[key] = module
-    spec.loader.exec_module(module)
-    return module
+ROOT = Path(__file__).resolve().parent.parent
 
-
-#: The parsers of the peers' protocols (QUIC, RTPS): packets alone, no traces.
-peers = _sibling("byte_budget_peers")
 
 RESULTS = ROOT / "experiments" / "results"
 CSV_RUNS = RESULTS / "byte_budget.csv"
@@ -774,16 +761,20 @@ def load_run(directory: Path, name: str | None = None) -> Run:
 
 
 class _CaptureSetup:
-    """What the traced run adds to a bench run: where its files go, and the
-    counter readings (with their times) the bench takes."""
+    """What the traced run adds to a bench run: where its files go, the
+    counter readings (with their times) the bench takes, and the team's
+    record (a :class:`coapkb.bench.run.RunObserver`)."""
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
         self.readings: list[dict[str, Any]] = []
         self.hosts: dict[str, str] = {}
-        self.record: Any = None
+        self.record: TeamRecord | None = None
 
-    def testbed_class(self) -> type:
+    def team_recorded(self, row: BenchRow, record: TeamRecord) -> None:
+        self.record = record
+
+    def testbed_class(self) -> type[Testbed]:
         from coapkb.bench.linkemu import Testbed
         from coapkb.bench.linkemu.capture import PacketCapture
 
@@ -817,22 +808,15 @@ async def traced_run(directory: Path, *, system: str = "coap-distributed", robot
                      bandwidth: float = 35.0, loss: float = 2.0, rep: int = 0, security: bool = True) -> dict[str, Any]:
     """One ``coapkb bench`` run with the capture and the wire traces on; its
     files in ``directory``; returns its row."""
-    from coapkb.bench import run as bench
+    from coapkb.bench.run import run_once
 
     directory.mkdir(parents=True, exist_ok=True)
     setup = _CaptureSetup(directory)
-    original_with_record = bench._with_record
-
-    def keep_record(row: Any, record: Any, n: int) -> Any:
-        setup.record = record
-        return original_with_record(row, record, n)
-
     previous = os.environ.get(ENV)
     os.environ[ENV] = str(directory / "wire")
     try:
-        with mock.patch.object(bench, "Testbed", setup.testbed_class()), \
-                mock.patch.object(bench, "_with_record", keep_record):
-            row = await bench.run_once(system, robots, tasks, bandwidth, loss, rep, security=security)
+        row = await run_once(system, robots, tasks, bandwidth, loss, rep, security=security,
+                             observer=setup, testbed_class=setup.testbed_class())
     finally:
         if previous is None:
             os.environ.pop(ENV, None)
@@ -1490,7 +1474,7 @@ async def run_settings(plan: Sequence[tuple[str, str, float, bool]], args: argpa
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.byte_budget", description=__doc__.split("\n\n")[0])
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--tasks", type=int, default=10)
     p.add_argument("--bandwidth", type=float, default=35.0, metavar="KBPS")

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python experiments/codec_sizes.py [--backend oxigraph|rdflib] [--synthetic]
+    .venv/bin/python -m experiments.codec_sizes [--backend oxigraph|rdflib] [--synthetic]
 
 Answers come from the warehouse KB (``ontologies/Object.owl`` through
 ``coapkb.kb.store``) when it is there, else from synthetic results of
@@ -41,11 +41,10 @@ from pathlib import Path
 import cbor2
 from rdflib.term import Literal, URIRef
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
 from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
 from coapkb.wire.codec import decode_cbor, decode_json, encode_cbor, encode_json
+
+ROOT = Path(__file__).resolve().parent.parent
 
 OBJ = "http://www.tcs.org/2018/Object#"
 XSD = "http://www.w3.org/2001/XMLSchema#"
@@ -256,7 +255,7 @@ def measure(label: str, query: str, result: QueryResult) -> dict[str, object]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.codec_sizes", description=__doc__.split("\n\n")[0])
     parser.add_argument("--backend", default="oxigraph", choices=("oxigraph", "rdflib"))
     parser.add_argument("--synthetic", action="store_true", help="use synthetic answers even if the KB is there")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "codec_sizes.csv")

@@ -29,6 +29,14 @@ QUERY_MIX: tuple[tuple[str, str], ...] = (
 )
 
 
+def experiment_argv(name: str, *args: str) -> list[str]:
+    """The command line of ``python -m experiments.NAME ARGS``: an experiment
+    run again as a child process (one of its roles, in its own process or
+    namespace).  Start it with ``cwd=ROOT``, where ``-m`` finds the
+    ``experiments`` package and this checkout's ``coapkb``."""
+    return [sys.executable, "-m", f"experiments.{name}", *args]
+
+
 def prepare_link_emulation() -> str | None:
     """None when the kernel testbed can run here (after removing what crashed
     runs left behind), else the reason it cannot."""

@@ -1,9 +1,8 @@
-#!/usr/bin/env python3
 """How many benchmark runs one machine takes at once without disturbing
 their timing: the same runs one, two and three at a time.
 
-    sudo .venv/bin/python experiments/concurrency.py                 # 3 robots, 10 tasks, 35 kbit/s, 2 %: ~3 min
-    sudo .venv/bin/python experiments/concurrency.py --robots 9 --reps 2
+    sudo .venv/bin/python -m experiments.concurrency                 # 3 robots, 10 tasks, 35 kbit/s, 2 %: ~3 min
+    sudo .venv/bin/python -m experiments.concurrency --robots 9 --reps 2
 
 Each level runs the same list (``--systems`` x ``--reps``, the sweep's own
 child processes) through ``sweep.sweep`` with ``jobs`` at a time, and writes
@@ -23,22 +22,20 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
-
 import pandas as pd
-import sweep
 
 from coapkb.bench.linkemu import available, cleanup_stale
 from coapkb.bench.row import read_rows
+from experiments import sweep
+
+ROOT = Path(__file__).resolve().parent.parent
 
 OUT = ROOT / "experiments" / "results" / "concurrency.csv"
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.concurrency",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--tasks", type=int, default=10)
     p.add_argument("--bandwidth", type=float, default=35.0)

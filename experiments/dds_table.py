@@ -1,6 +1,6 @@
 """The DDS comparison's tables (docs/dds.md) from its benchmark rows.
 
-    .venv/bin/python experiments/dds_table.py experiments/results/dds/*.csv
+    .venv/bin/python -m experiments.dds_table experiments/results/dds/*.csv
 
 Per link setting: each system's runs ok / runs and the medians (with their
 distribution-free 95 % intervals, experiments/stats.py) of wire bytes,
@@ -12,18 +12,15 @@ both runs are ok.
 
 from __future__ import annotations
 
-import sys
+import argparse
 from collections import defaultdict
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
-
-from stats import median_ci, ratio_ci
-
 from coapkb.bench.row import BenchRow
 from coapkb.bench.run import SYSTEMS, read_rows
+from experiments.stats import median_ci, ratio_ci
+
+ROOT = Path(__file__).resolve().parent.parent
 
 Setting = tuple[int, int, float, float]
 
@@ -78,7 +75,10 @@ def ratios(rows: list[BenchRow], a: str = "coap-distributed", b: str = "dds-dist
 
 
 def main() -> None:
-    paths = sys.argv[1:] or sorted(str(p) for p in (ROOT / "experiments" / "results" / "dds").glob("*.csv"))
+    p = argparse.ArgumentParser(prog="python -m experiments.dds_table", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("csv", nargs="*", help="benchmark CSVs (default: experiments/results/dds/*.csv)")
+    paths = p.parse_args().csv or sorted(str(p) for p in (ROOT / "experiments" / "results" / "dds").glob("*.csv"))
     rows = [r for path in paths for r in read_rows(path, latest_only=True)]
     print("\n".join(medians(rows)))
     print()

@@ -1,6 +1,6 @@
 """Teammates' queries while strangers flood a robot with EDHOC and OSCORE garbage, on loopback.
 
-    .venv/bin/python experiments/edhoc_flood.py [--strangers 1000] [--seconds 20] [--rounds 3]
+    .venv/bin/python -m experiments.edhoc_flood [--strangers 1000] [--seconds 20] [--rounds 3]
 
 One ``coapkb serve`` of the three warehouse KBs with the team's keys
 (``--credentials``, as Robot1: OSCORE keyed by EDHOC), its own OS process.
@@ -40,10 +40,8 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from common import KB_FILES, ROOT, free_port, rss_mib, write_csv
-from server_load import cpu_seconds, object_names, start_server, stop_server
+from experiments.common import KB_FILES, ROOT, experiment_argv, free_port, rss_mib, write_csv
+from experiments.server_load import cpu_seconds, object_names, start_server, stop_server
 
 CSV_FIELDS = ["period", "round", "queries", "failed", "p50_ms", "p99_ms", "max_ms", "server_cpu_pct", "rss_mib",
               "message_1", "replies"]
@@ -259,7 +257,7 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
                     flood = None
                     if period == "flooded":
                         flood = await asyncio.create_subprocess_exec(
-                            sys.executable, __file__, "--flood", str(mates.peer.port), "--strangers",
+                            *experiment_argv("edhoc_flood"), "--flood", str(mates.peer.port), "--strangers",
                             str(args.strangers), "--oscore-rate", str(args.oscore_rate), "--seconds",
                             str(args.seconds), "--protected", protected.hex(), stdout=asyncio.subprocess.PIPE,
                             cwd=ROOT)
@@ -299,7 +297,8 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.edhoc_flood",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--strangers", type=int, default=1000, help="source ports, each sending a message_1 a second")
     p.add_argument("--oscore-rate", type=int, default=100,
                    help="replayed, cut and unknown-key-id protected requests per second (each)")

@@ -12,9 +12,9 @@ network namespace behind the emulated link), for CoAP and ZeroMQ alike:
 * ``r2-kill2``: ``r2`` with Robot1 and Robot2 killed, the two holders of the
   Object KB in cluster 1: the tasks that need it are reported unavailable.
 
-    sudo .venv/bin/python experiments/faults.py                      # 6 and 9 robots, 35 kbit/s, 10 % (~15 min)
-    sudo .venv/bin/python experiments/faults.py --robots 6 --reps 1
-    .venv/bin/python experiments/faults.py --report-only
+    sudo .venv/bin/python -m experiments.faults                      # 6 and 9 robots, 35 kbit/s, 10 % (~15 min)
+    sudo .venv/bin/python -m experiments.faults --robots 6 --reps 1
+    .venv/bin/python -m experiments.faults --report-only
 
 Writes ``runs.csv`` (one ``BenchRow`` per run, the bench's own schema) and
 ``table.md`` in ``--out`` (default ``experiments/results/faults/``).
@@ -29,18 +29,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' shared helpers
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
-
 import pandas as pd
-from common import prepare_link_emulation
 
 from coapkb.bench import run as bench
 from coapkb.bench.row import BenchRow, append_rows, read_rows
 from coapkb.bench.run import retransmission_label
 from coapkb.harness.team import Fault
+from experiments.common import prepare_link_emulation
+
+ROOT = Path(__file__).resolve().parent.parent
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "faults"
 SYSTEMS = ("coap-distributed", "zmq-distributed")
@@ -128,7 +125,8 @@ async def amain(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.faults",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, nargs="+", default=[6, 9])
     p.add_argument("--tasks", type=int, default=20)
     p.add_argument("--bandwidth", type=float, default=35.0, metavar="KBPS")

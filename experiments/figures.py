@@ -1,7 +1,6 @@
-#!/usr/bin/env python3
 """Figures from a benchmark CSV: the seed paper's Figs. 6-12 and the transport comparison.
 
-    .venv/bin/python experiments/figures.py experiments/results/quick.csv
+    .venv/bin/python -m experiments.figures experiments/results/quick.csv
 
 Writes PNGs into ``experiments/results/figures/`` (``--outdir`` to change).
 Each figure is drawn from whatever subset of the matrix the CSV holds; a
@@ -33,16 +32,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-HERE = str(Path(__file__).resolve().parent)
-if HERE not in sys.path:  # experiments/stats.py, when loaded by path (the tests)
-    sys.path.insert(0, HERE)
-
-from stats import Estimate, median_ci
-
 from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
+from experiments.stats import Estimate, median_ci
+
+ROOT = Path(__file__).resolve().parent.parent
 
 FAMILIES: dict[str, tuple[str, str]] = {
     # family: (distributed system, central system)
@@ -453,7 +446,8 @@ def draw_all(rows: Iterable[BenchRow], outdir: Path) -> dict[str, Path | str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="Figures from a coapkb benchmark CSV.")
+    p = argparse.ArgumentParser(prog="python -m experiments.figures",
+                                description="Figures from a coapkb benchmark CSV.")
     p.add_argument("csv", type=Path, nargs="?", default=ROOT / "experiments" / "results" / "quick.csv")
     p.add_argument("--outdir", type=Path, help="default: figures/ next to the CSV")
     args = p.parse_args(argv)

@@ -1,6 +1,6 @@
 """What a flood leaves behind in a robot's KB server, on loopback, in one run.
 
-    .venv/bin/python experiments/flood.py [--storm-clients 16] [--storm-queries 150]
+    .venv/bin/python -m experiments.flood [--storm-clients 16] [--storm-queries 150]
         [--garbage 100000] [--settle 100] [--rounds 5]
 
 Two ``coapkb serve`` processes of the three warehouse KBs (plain CoAP, as a
@@ -41,13 +41,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import aiocoap
-from common import KB_FILES, ROOT, free_port, rss_mib, write_csv
-from server_load import bw_query, checked_fetch, drive, object_names, start_server, stop_server
 
 from coapkb.kb.store import KnowledgeBase
+from experiments.common import KB_FILES, ROOT, free_port, rss_mib, write_csv
+from experiments.server_load import bw_query, checked_fetch, drive, object_names, start_server, stop_server
 
 CSV_FIELDS = ["phase", "server", "rss_mib", "rate_1", "rate_16", "answered", "wrong", "failed", "datagrams",
               "seconds"]
@@ -201,7 +199,8 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.flood",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--storm-clients", type=int, default=16)
     p.add_argument("--storm-queries", type=int, default=150, help="FETCHes in flight per storm client")
     p.add_argument("--garbage", type=int, default=100_000, help="garbage datagrams after the storm")

@@ -2,7 +2,7 @@
 pays, on the same slow lossy link, to get W changes it missed -- the
 counterpart of ``kb_replication.py catch-up`` for Zenoh and DDS.
 
-    sudo .venv/bin/python experiments/kb_catch_up_peers.py [--missed 10,100,1000] [--peers zenoh,dds]
+    sudo .venv/bin/python -m experiments.kb_catch_up_peers [--missed 10,100,1000] [--peers zenoh,dds]
 
 The changes are the ones ``kb_replication.py catch-up`` makes: W one-triple
 writes ``loc:M{i} loc:written "M{i}"``, each carried as the bytes coapkb
@@ -70,15 +70,11 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
+from experiments.common import experiment_argv, prepare_link_emulation, stop_processes, write_csv
 
-from common import prepare_link_emulation, stop_processes, write_csv
+ROOT = Path(__file__).resolve().parent.parent
 
 LOC = "http://www.tcs.org/2018/Location#"
-PY = sys.executable
 RESULTS = ROOT / "experiments" / "results"
 KEY = "coapkb/kb/Location/changes"
 TOPIC = "coapkb_kb_Location_changes"
@@ -407,18 +403,18 @@ def _roles(peer: str, tb, args: argparse.Namespace, count: int) -> tuple[list[st
         batch = ["--batch", str(args.zenoh_batch)] if args.zenoh_batch else []
         if args.zenoh_block_wait:
             batch += ["--block-wait", str(args.zenoh_block_wait)]
-        pub = [PY, __file__, "zenoh-pub", "--locator", locator, "--count", str(count),
+        pub = [*experiment_argv("kb_catch_up_peers"), "zenoh-pub", "--locator", locator, "--count", str(count),
                "--heartbeat", str(args.heartbeat), *batch]
         if peer == "zenoh-get":
-            return pub, [PY, __file__, "zenoh-get", "--locator", locator, "--count", str(count), *batch,
+            return pub, [*experiment_argv("kb_catch_up_peers"), "zenoh-get", "--locator", locator, "--count", str(count), *batch,
                          "--query-timeout", str(args.timeout)], locator
-        sub = [PY, __file__, "zenoh-sub", "--locator", locator, "--count", str(count), *batch]
+        sub = [*experiment_argv("kb_catch_up_peers"), "zenoh-sub", "--locator", locator, "--count", str(count), *batch]
         if args.detect_late_publishers:
             sub.append("--detect-late-publishers")
         return pub, sub, locator
     if peer == "dds":
-        writer = [PY, __file__, "dds-writer", "--address", robot1, "--port", str(DDS_PORT), "--count", str(count)]
-        reader = [PY, __file__, "dds-reader", "--peer", f"{robot1}:{DDS_PORT}", "--count", str(count)]
+        writer = [*experiment_argv("kb_catch_up_peers"), "dds-writer", "--address", robot1, "--port", str(DDS_PORT), "--count", str(count)]
+        reader = [*experiment_argv("kb_catch_up_peers"), "dds-reader", "--peer", f"{robot1}:{DDS_PORT}", "--count", str(count)]
         return writer, reader, f"udp {robot1}:{DDS_PORT} (unicast peer)"
     raise ValueError(f"unknown peer {peer!r}")
 
@@ -441,7 +437,7 @@ async def one_case(peer: str, count: int, loss: float, args: argparse.Namespace)
             holder_argv, joiner_argv, locator = _roles(peer, tb, args, count)
             holder_events: asyncio.Queue[dict] = asyncio.Queue()
             holder = await tb.spawn("robot1", holder_argv, stdout=asyncio.subprocess.PIPE,
-                                    stderr=asyncio.subprocess.PIPE)
+                                    stderr=asyncio.subprocess.PIPE, cwd=ROOT)
             procs.append(holder)
             tasks += [asyncio.ensure_future(_lines(holder, holder_events, logs["robot1"])),
                       asyncio.ensure_future(_drain(holder, tails["robot1"], logs["robot1"]))]
@@ -453,7 +449,7 @@ async def one_case(peer: str, count: int, loss: float, args: argparse.Namespace)
             before = await tb.acounters()
             started = time.monotonic()
             joiner = await tb.spawn("robot3", joiner_argv, stdout=asyncio.subprocess.PIPE,
-                                    stderr=asyncio.subprocess.PIPE)
+                                    stderr=asyncio.subprocess.PIPE, cwd=ROOT)
             procs.append(joiner)
             tasks += [asyncio.ensure_future(_lines(joiner, joiner_events, logs["robot3"])),
                       asyncio.ensure_future(_drain(joiner, tails["robot3"], logs["robot3"]))]
@@ -516,7 +512,8 @@ async def run(args: argparse.Namespace) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.kb_catch_up_peers",
+                                     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--missed", default="10,100,1000", help="W: the changes the late joiner missed")
     parser.add_argument("--peers", default="zenoh,dds", help="of zenoh, dds and zenoh-get (see above)")
     parser.add_argument("--loss", default="2,20", help="loss percentages, every host's link")

@@ -3,7 +3,7 @@
     .venv/bin/python tools/gen_warehouse.py --products 100000 --out /tmp/kb100k
     .venv/bin/python tools/gen_warehouse.py --products 100000 --format ttl --out /tmp/kb100k-ttl
     .venv/bin/python tools/gen_warehouse.py --products 100000 --format nt --out /tmp/kb100k-nt
-    .venv/bin/python experiments/kb_load.py --dirs /tmp/kb100k /tmp/kb100k-ttl /tmp/kb100k-nt
+    .venv/bin/python -m experiments.kb_load --dirs /tmp/kb100k /tmp/kb100k-ttl /tmp/kb100k-nt
 
 Every measurement runs in a fresh process (its peak RSS is its own); each is
 repeated ``--repeat`` times, interleaved, and the minimum kept (the machine
@@ -48,10 +48,9 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from experiments.common import experiment_argv, write_csv
 
-from common import write_csv
+ROOT = Path(__file__).resolve().parent.parent
 
 SUFFIXES = {".owl": "RDF/XML", ".rdf": "RDF/XML", ".ttl": "Turtle", ".nt": "N-Triples"}
 
@@ -168,13 +167,14 @@ def inline_below_us() -> int:
 
 
 def run_one(variant: str, directory: Path, index_dir: Path) -> dict[str, float]:
-    out = subprocess.run([sys.executable, __file__, "--one", variant, str(directory), str(index_dir)], check=True,
+    out = subprocess.run(experiment_argv("kb_load", "--one", variant, str(directory), str(index_dir)), check=True,
                          capture_output=True, text=True, cwd=ROOT)
     return json.loads(out.stdout)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.kb_load",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dirs", type=Path, nargs="+", default=[Path("/tmp/kb100k")])
     p.add_argument("--variants", nargs="+", default=VARIANTS, choices=VARIANTS, metavar="VARIANT")
     p.add_argument("--repeat", type=int, default=3, help="runs per variant and directory (minimum kept)")

@@ -2,9 +2,9 @@
 write, the time until every holder has it, and catching up after missing
 writes.
 
-    sudo .venv/bin/python experiments/kb_replication.py spread [--transports coap,zmq,zenoh,dds]
-    sudo .venv/bin/python experiments/kb_replication.py catch-up [--missed 10,100,1000]
-    .venv/bin/python experiments/kb_replication.py soak [--writes 10000]
+    sudo .venv/bin/python -m experiments.kb_replication spread [--transports coap,zmq,zenoh,dds]
+    sudo .venv/bin/python -m experiments.kb_replication catch-up [--missed 10,100,1000]
+    .venv/bin/python -m experiments.kb_replication soak [--writes 10000]
 
 Every holder is a process of its own (``node`` below: the Location module,
 a :class:`~coapkb.kb.replication.Replicator` and the KB's resources on one
@@ -42,16 +42,12 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
+from experiments.common import PORTS, experiment_argv, prepare_link_emulation, rss_mib, write_csv
 
-from common import PORTS, prepare_link_emulation, rss_mib, write_csv
+ROOT = Path(__file__).resolve().parent.parent
 
 LOCATION = ROOT / "ontologies" / "Location.owl"
 LOC = "http://www.tcs.org/2018/Location#"
-PY = sys.executable
 RESULTS = ROOT / "experiments" / "results"
 
 
@@ -168,12 +164,13 @@ class Holders:
         return f"{self.scheme}://{self.tb.address(name)}:{PORTS[self.scheme]}"
 
     async def start(self, name: str) -> None:
-        argv = [PY, __file__, "node", "--name", name, "--bind", self.uri(name), "--link-kbps", str(self.link_kbps),
+        argv = [*experiment_argv("kb_replication"), "node", "--name", name, "--bind", self.uri(name), "--link-kbps", str(self.link_kbps),
                 "--sync-every", str(self.sync_every)]
         mates, ring = self.peers[name]
         argv += [a for p in mates for a in ("--peer", f"{p}={self.uri(p)}")]
         argv += [a for p in ring for a in ("--remote", f"{p}={self.uri(p)}")]
-        proc = await self.tb.spawn(name, argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await self.tb.spawn(name, argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+                                   cwd=ROOT)
         line = json.loads(await asyncio.wait_for(proc.stdout.readline(), 60))
         assert line.get("ready") == name, line
         self.procs[name] = proc
@@ -191,9 +188,10 @@ class Holders:
         await proc.wait()
 
     async def write(self, count: int, every: float, to: list[str], prefix: str, seed: int = 1) -> list[dict]:
-        argv = [PY, __file__, "operator", "--count", str(count), "--every", str(every), "--prefix", prefix,
+        argv = [*experiment_argv("kb_replication"), "operator", "--count", str(count), "--every", str(every), "--prefix", prefix,
                 "--seed", str(seed), "--link-kbps", str(self.link_kbps), *(a for n in to for a in ("--to", self.uri(n)))]
-        proc = await self.tb.spawn("operator", argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await self.tb.spawn("operator", argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+                                   cwd=ROOT)
         out, err = await proc.communicate()
         if proc.returncode:
             raise RuntimeError(f"operator failed: {err.decode()[-2000:]}")
@@ -394,7 +392,8 @@ def soak(args: argparse.Namespace) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.kb_replication",
+                                     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="what", required=True)
     p = sub.add_parser("spread")
     p.add_argument("--transports", default="coap,zmq,zenoh,dds")

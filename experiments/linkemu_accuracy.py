@@ -2,7 +2,7 @@
 rate, delay and jitter it is set to: the figures its tests do not assert
 (they depend on how loaded the machine is), measured and written down.
 
-    sudo .venv/bin/python experiments/linkemu_accuracy.py [--repeat 3]
+    sudo .venv/bin/python -m experiments.linkemu_accuracy [--repeat 3]
 
 Each measurement runs tiny Python UDP senders and receivers inside the
 testbed's namespaces (only to the 10.77.0.0/24 addresses of the namespaces it
@@ -38,14 +38,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' shared helpers (also when
-    if str(_path) not in sys.path:          # the tests load this file by path)
-        sys.path.insert(0, str(_path))
-
-from common import prepare_link_emulation, write_csv
-
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed
+from experiments.common import prepare_link_emulation, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 PY = sys.executable
 PORT = 47000
@@ -291,7 +287,8 @@ def one_round(round_no: int) -> list[dict[str, object]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.linkemu_accuracy",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--repeat", type=int, default=3, help="rounds of every measurement")
     p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "linkemu_accuracy.csv")
     args = p.parse_args(argv)

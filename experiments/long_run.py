@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python experiments/long_run.py [--robots 3] [--tasks 10000] [--time-scale 5000]
+    .venv/bin/python -m experiments.long_run [--robots 3] [--tasks 10000] [--time-scale 5000]
         [--every 1000] [--out experiments/results/long_run.csv]
 
 A CoAP team (OSCORE keyed by EDHOC, as ``coapkb team`` runs by default) on
@@ -25,14 +25,11 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
-    sys.path.insert(0, str(ROOT))
-
-from common import rss_mib, write_csv
-
 from coapkb.feeder import FateCounts, TaskRecord
 from coapkb.harness.team import Team, TeamSpec, draw_tasks
+from experiments.common import rss_mib, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -52,7 +49,7 @@ class Sample:
 
 
 async def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.long_run", description=__doc__.splitlines()[0])
     parser.add_argument("--robots", type=int, default=3)
     parser.add_argument("--tasks", type=int, default=10_000)
     parser.add_argument("--time-scale", type=float, default=5000.0)

@@ -3,7 +3,7 @@ warehouse KBs in its own process, one client asking the seed's four queries.
 
 Prints a table and writes ``experiments/results/loopback_latency.csv``.
 
-    .venv/bin/python experiments/loopback_latency.py [--requests 300] [--transports coap,zmq,zenoh]
+    .venv/bin/python -m experiments.loopback_latency [--requests 300] [--transports coap,zmq,zenoh]
 
 For each transport (CoAP, ZeroMQ; Zenoh with ``--transports``), wire form (named query vs the whole SPARQL
 text by FETCH/POST) and answer format (compact CBOR, SPARQL-JSON) it
@@ -17,18 +17,15 @@ import argparse
 import asyncio
 import csv
 import statistics
-import sys
 import time
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from common import start_loopback_kb_server
 
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
+from experiments.common import start_loopback_kb_server
+
+ROOT = Path(__file__).resolve().parent.parent
 
 QUERIES = {
     "Query_1 object-exists": ("object-exists", {"name": "Gucci_bag_14"}),
@@ -92,7 +89,8 @@ async def measure(transport: str, requests: int, warmup: int) -> list[dict]:
 
 
 async def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.loopback_latency",
+                                     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)
     parser.add_argument("--out", default=str(ROOT / "experiments" / "results" / "loopback_latency.csv"))

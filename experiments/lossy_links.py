@@ -24,9 +24,9 @@ layer's window (about one bandwidth-delay product per peer) is compared
 with the same layer without it (``robust-nowindow``): goodput (answers per second), tail latency, and drops in the
 shaper's queue.
 
-    sudo .venv/bin/python experiments/lossy_links.py                 # the matrix (~25 min)
-    sudo .venv/bin/python experiments/lossy_links.py --bottleneck 9 --bandwidths 35 --losses 2 --delays 0
-    .venv/bin/python experiments/lossy_links.py --report-only         # table and figure from the CSVs
+    sudo .venv/bin/python -m experiments.lossy_links                 # the matrix (~25 min)
+    sudo .venv/bin/python -m experiments.lossy_links --bottleneck 9 --bandwidths 35 --losses 2 --delays 0
+    .venv/bin/python -m experiments.lossy_links --report-only         # table and figure from the CSVs
 
 Outputs in ``--out`` (default ``experiments/results/lossy_links/``):
 ``queries.csv``, ``summary.csv``, ``bottleneck.csv``, ``table.md`` and
@@ -44,15 +44,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):  # the package, and the experiments' shared helpers
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
-
 import pandas as pd
-from common import PORTS, prepare_link_emulation, query_plan, start_kb_server, stop_processes
 
 from coapkb.bench.stats import percentile
+from experiments.common import PORTS, prepare_link_emulation, query_plan, start_kb_server, stop_processes
+
+ROOT = Path(__file__).resolve().parent.parent
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "lossy_links"
 
@@ -362,7 +359,8 @@ async def amain(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.lossy_links",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--bandwidths", default="35,256", help="link rates, kbit/s")
     p.add_argument("--losses", default="2,10,20", help="loss per datagram, %%")
     p.add_argument("--delays", default="0,100", help="one-way delay per host, ms")

@@ -1,7 +1,7 @@
 """A picture of a recorded run, drawn from its MCAP file alone.
 
     .venv/bin/coapkb team --robots 3 --tasks 30 --writable --record /tmp/run.mcap --quiet
-    .venv/bin/python experiments/mcap_picture.py /tmp/run.mcap --out docs/figures/run.png
+    .venv/bin/python -m experiments.mcap_picture /tmp/run.mcap --out docs/figures/run.png
 
 Left, the warehouse seen from above: its racks, charging docks and the depot
 (the geometry from the recording's metadata and the KB it names) and each
@@ -20,10 +20,6 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 import matplotlib
 
 matplotlib.use("Agg")
@@ -32,6 +28,8 @@ from mcap.reader import make_reader
 
 from coapkb.harness.recording import warehouse
 from coapkb.world import Position
+
+ROOT = Path(__file__).resolve().parent.parent
 
 FATE_MARKS = {"assigned": ("o", "tab:green"), "skipped": ("s", "tab:gray"), "not-found": ("x", "tab:red"),
               "reassigned": ("^", "tab:orange"), "unassigned": ("v", "tab:purple"), "failed": ("*", "black"),
@@ -110,7 +108,8 @@ def _xy(layout, aisle: float, rack: float) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.mcap_picture",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("mcap", type=Path)
     p.add_argument("--out", type=Path, default=Path("/tmp/run.png"))
     p.add_argument("--ontologies", type=Path, default=ROOT / "ontologies", help="the KBs the run used")

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python experiments/replication_rss.py [--transport coap|zmq] [--tasks 20]
+    .venv/bin/python -m experiments.replication_rss [--transport coap|zmq] [--tasks 20]
 
 Starts a cluster of three robots (real processes on loopback) with replication
 1, then 2, reads ``VmRSS`` from ``/proc/PID/status`` once all are up (idle)
@@ -37,7 +37,7 @@ async def measure(replication: int, transport: str, tasks: list[str]) -> list[tu
 
 
 async def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.replication_rss", description=__doc__.splitlines()[0])
     parser.add_argument("--transport", choices=("coap", "zmq"), default="coap")
     parser.add_argument("--tasks", type=int, default=20)
     args = parser.parse_args()

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python experiments/robot_rss.py [--robots 3] [--tasks 10] [--replication 1 2]
+    .venv/bin/python -m experiments.robot_rss [--robots 3] [--tasks 10] [--replication 1 2]
         [--out experiments/results/robot_rss.csv]
 
 First the import-only cost, each in a fresh interpreter: ``import
@@ -87,7 +87,7 @@ async def team_figures(robots: int, tasks: list[str], replication: int) -> list[
 
 
 async def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.robot_rss", description=__doc__.splitlines()[0])
     parser.add_argument("--robots", type=int, default=3)
     parser.add_argument("--tasks", type=int, default=10)
     parser.add_argument("--replication", type=int, nargs="+", default=[1, 2],

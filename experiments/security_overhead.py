@@ -1,6 +1,6 @@
 """What OSCORE keyed by EDHOC costs, on loopback.
 
-    .venv/bin/python experiments/security_overhead.py [--tasks 20] [--reps 3] [--requests 2000]
+    .venv/bin/python -m experiments.security_overhead [--tasks 20] [--reps 3] [--requests 2000]
 
 Three sections, each printed as a table and written to
 ``experiments/results/security_overhead.csv``:
@@ -30,11 +30,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from common import KB_FILES, free_port, query_plan, write_csv
-
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks
 from coapkb.security import generate_team, load_identity
 from coapkb.security.coap import ClientSecurity, ServerSecurity
@@ -43,6 +38,9 @@ from coapkb.transport import Endpoint, open_client, serve
 from coapkb.transport.base import ResourceInfo
 from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
+from experiments.common import KB_FILES, free_port, query_plan, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 CSV = ROOT / "experiments" / "results" / "security_overhead.csv"
 FIELDS = ["section", "security", "runs", "tasks", "bytes_per_task", "completion_s", "messages_per_task",
@@ -150,7 +148,8 @@ def _print(rows: list[dict[str, Any]]) -> None:
 
 
 async def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.security_overhead",
+                                     description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", type=int, default=20)
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--requests", type=int, default=2000)

@@ -2,7 +2,7 @@
 side by side in one run, plus block-wise FETCHes from many aiocoap clients and
 the load time of a large KB.
 
-    .venv/bin/python experiments/server_load.py [--seconds 3] [--kb-dir /tmp/kb100k]
+    .venv/bin/python -m experiments.server_load [--seconds 3] [--kb-dir /tmp/kb100k]
 
 Three servers' worth of work, each server in its own OS process:
 
@@ -43,15 +43,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
 import aiocoap
 import aiocoap.resource
-from common import free_port, write_csv
 
 from coapkb.kb.store import KnowledgeBase
 from coapkb.wire import codec
+from experiments.common import experiment_argv, free_port, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 KB_FILES = [str(ROOT / "ontologies" / f"{n}.owl") for n in ("Object", "Location", "Capability")]
 OBJ = "http://www.tcs.org/2018/Object#"
@@ -234,7 +233,7 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
     rows: list[dict[str, object]] = []
     kb = KnowledgeBase.load(KB_FILES)
     names = object_names(kb)
-    bare, bare_uri = await start_server(sys.executable, __file__, "--serve-bare", str(free_port()))
+    bare, bare_uri = await start_server(*experiment_argv("server_load", "--serve-bare", str(free_port())))
     robot, robot_uri = await start_server(sys.executable, "-m", "coapkb", "serve", "--kb", *KB_FILES,
                                           "--bind", f"127.0.0.1:{free_port()}")
     try:
@@ -270,7 +269,7 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
         await stop_server(bare)
         await stop_server(robot)
     if args.kb_dir is not None:
-        proc = await asyncio.create_subprocess_exec(sys.executable, __file__, "--load-kb", str(args.kb_dir),
+        proc = await asyncio.create_subprocess_exec(*experiment_argv("server_load", "--load-kb", str(args.kb_dir)),
                                                     stdout=asyncio.subprocess.PIPE, cwd=ROOT)
         out, _ = await proc.communicate()
         loaded = json.loads(out)
@@ -283,7 +282,8 @@ async def run(args: argparse.Namespace) -> list[dict[str, object]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.server_load",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=3.0, help="measured seconds per throughput run")
     p.add_argument("--warmup", type=float, default=0.5)
     p.add_argument("--rounds", type=int, default=3, help="alternating rounds per client count (median kept)")

@@ -1,7 +1,7 @@
 """What the simulator costs, and what its profiles find.
 
-    .venv/bin/python experiments/sim_profiles.py                 # cost of a 9-robot, 100-task run; the CI profile
-    .venv/bin/python experiments/sim_profiles.py --long         # and the long profile (10,000 seeds, about 10 min)
+    .venv/bin/python -m experiments.sim_profiles                 # cost of a 9-robot, 100-task run; the CI profile
+    .venv/bin/python -m experiments.sim_profiles --long         # and the long profile (10,000 seeds, about 10 min)
 
 Cost: one 9-robot, 100-task run with mixed faults, seed after seed in this
 process (the KBs loaded once, as in a worker): CPU seconds per run, with the
@@ -66,7 +66,7 @@ def profile(name: str) -> dict[str, object]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.sim_profiles", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=20, help="runs for the cost (default 20)")
     parser.add_argument("--long", action="store_true", help="also the 10,000-seed profile")
     args = parser.parse_args()

@@ -1,9 +1,8 @@
-#!/usr/bin/env python3
 """The spread of repeated runs of one cell: is there a long tail?
 
     sudo .venv/bin/python -m coapkb bench --robots 3 --tasks 10 --bandwidth 35 --loss 20 \
         --systems coap-distributed --reps 10 --out experiments/results/tail/after.csv
-    .venv/bin/python experiments/spread.py experiments/results/tail/after.csv [more.csv ...]
+    .venv/bin/python -m experiments.spread experiments/results/tail/after.csv [more.csv ...]
 
 For every cell (system, robots, tasks, bandwidth, loss, security) of the
 CSVs, one line per run (completion, coordination, query p99, wire bytes per
@@ -21,11 +20,9 @@ from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
 from coapkb.bench.run import BenchRow, read_rows
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def cell(row: BenchRow) -> tuple[str, int, int, float, float, str]:
@@ -68,7 +65,7 @@ def report(rows: Sequence[tuple[str, BenchRow]]) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.spread", description=__doc__.split("\n\n")[0])
     p.add_argument("csv", type=Path, nargs="+", help="coapkb bench --out CSVs")
     args = p.parse_args(argv)
     rows = [(path.stem, row) for path in args.csv for row in read_rows(path)]

@@ -1,9 +1,8 @@
-#!/usr/bin/env python3
 """The seed paper's experiment matrix, system by system, into one CSV.
 
-    sudo .venv/bin/python experiments/sweep.py --profile quick --jobs 2  # ~45 min on 2 cores
-    sudo .venv/bin/python experiments/sweep.py --profile paper --jobs 1  # the full matrix: days
-    .venv/bin/python experiments/sweep.py --profile paper --engine dask://HOST:8786  # on a Dask cluster
+    sudo .venv/bin/python -m experiments.sweep --profile quick --jobs 2  # ~45 min on 2 cores
+    sudo .venv/bin/python -m experiments.sweep --profile paper --jobs 1  # the full matrix: days
+    .venv/bin/python -m experiments.sweep --profile paper --engine dask://HOST:8786  # on a Dask cluster
 
 Each run is one ``coapkb bench --json`` child process (its own testbed, its
 own namespaces), so a crash, a hang or a leaked thread in one run cannot
@@ -47,10 +46,6 @@ from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
-    sys.path.insert(0, str(ROOT))
-
 from tqdm import tqdm
 
 from coapkb.bench.linkemu import available, cleanup_stale
@@ -66,6 +61,8 @@ from coapkb.bench.run import (
     timeouts_for,
 )
 from coapkb.errors import CoapkbError
+
+ROOT = Path(__file__).resolve().parent.parent
 
 RESULTS = ROOT / "experiments" / "results"
 #: The Dask worker resource one run holds: its own network namespaces, and a
@@ -482,9 +479,10 @@ def _link_emulation_gate() -> Any:
 
 class _Shipped:
     """A call that travels to the workers *by value*: Dask pickles tasks with
-    plain pickle, which would name this script's module (the workers cannot
-    import a script, nor the name the tests load it under), so the call
-    pickles as its cloudpickle bytes and arrives as the bare call."""
+    plain pickle, which would name this module (``__main__`` when run with
+    ``-m``; a worker has neither that nor, necessarily, this checkout's
+    ``experiments``), so the call pickles as its cloudpickle bytes and
+    arrives as the bare call."""
 
     def __init__(self, call: Callable[[], Any]) -> None:
         self.call = call
@@ -512,8 +510,8 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
         from distributed import Client, as_completed
     except ImportError:
         raise EngineError("--engine dask:// needs Dask: .venv/bin/pip install -e '.[bench]'") from None
-    # The workers cannot import this script (it is not a package, and the test
-    # loads it under another name): cloudpickle ships its functions and Run by value.
+    # The workers cannot import this module (``__main__`` under ``-m``, and a worker
+    # needs only coapkb): cloudpickle ships its functions and Run by value.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     try:
         client = await Client(address, asynchronous=True, timeout=CONNECT_TIMEOUT_S)
@@ -563,7 +561,8 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.sweep",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", choices=tuple(PROFILES), default="quick")
     p.add_argument("--jobs", type=int, default=1, help="runs at once (default 1; more distorts timings); local engine")
     p.add_argument("--engine", default="local", metavar="local|dask://HOST:PORT",

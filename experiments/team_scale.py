@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python experiments/team_scale.py [--sizes 9 99] [--tasks 200] [--reps 1]
+    .venv/bin/python -m experiments.team_scale [--sizes 9 99] [--tasks 200] [--reps 1]
         [--out experiments/results/team_scale.csv]
 
 Each size runs the same task list (``--tasks`` objects drawn with seed
@@ -42,16 +42,13 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # run as a script from a checkout without installing
-    sys.path.insert(0, str(ROOT))
-
-from common import rss_mib, write_csv
-
 from coapkb.feeder import FateCounts, Feeder
 from coapkb.harness.kbs import kbs_for_team
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, Team, TeamSpec, draw_tasks
 from coapkb.transport.base import TrafficCounters
+from experiments.common import rss_mib, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 RESULTS = ROOT / "experiments" / "results"
 
@@ -111,7 +108,7 @@ async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> Sc
 
 
 async def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.team_scale", description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[9, 99], help="team sizes, multiples of 3")
     parser.add_argument("--tasks", type=int, default=200)
     parser.add_argument("--reps", type=int, default=1)

@@ -2,7 +2,7 @@
 per transport: bytes and packets the loopback interface of a private network
 namespace carried (so nothing else on the machine is counted).
 
-    sudo unshare -n .venv/bin/python experiments/wire_cost.py [--queries 100] [--idle 20]
+    sudo unshare -n .venv/bin/python -m experiments.wire_cost [--queries 100] [--idle 20]
 
 One ``coapkb serve`` process holds the three warehouse KBs; this process is
 its client.  For each transport it measures, from ``lo``'s transmit counters
@@ -25,16 +25,13 @@ import argparse
 import asyncio
 import csv
 import subprocess
-import sys
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from common import start_loopback_kb_server
 
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
+from experiments.common import start_loopback_kb_server
+
+ROOT = Path(__file__).resolve().parent.parent
 
 NAMED = Request(Method.GET, "/kb/q/object-location", {"name": "Gucci_bag_14"}, accept=ContentFormat.CBOR)
 
@@ -80,7 +77,8 @@ async def measure(transport: str, queries: int, idle_s: float) -> dict[str, obje
 
 
 async def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.wire_cost",
+                                     description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--queries", type=int, default=100)
     parser.add_argument("--idle", type=float, default=20.0, metavar="SECONDS")
     parser.add_argument("--transports", default="coap,zmq,zenoh,zenoh+udp")

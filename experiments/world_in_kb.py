@@ -1,9 +1,9 @@
 """The world in the KB on slow lossy links: what writing every pick costs,
 and whether every robot skips an object picked before.
 
-    sudo .venv/bin/python experiments/world_in_kb.py costs      # 3 robots, 10 tasks, 35 kbit/s, 2 and 20 % (~10 min)
-    sudo .venv/bin/python experiments/world_in_kb.py repeats    # 9 robots, 60 tasks, repeats in and across clusters
-    .venv/bin/python experiments/world_in_kb.py report
+    sudo .venv/bin/python -m experiments.world_in_kb costs      # 3 robots, 10 tasks, 35 kbit/s, 2 and 20 % (~10 min)
+    sudo .venv/bin/python -m experiments.world_in_kb repeats    # 9 robots, 60 tasks, repeats in and across clusters
+    .venv/bin/python -m experiments.world_in_kb report
 
 Each run is one ``coapkb bench`` run (:func:`coapkb.bench.run.run_once`:
 real processes, each robot in its own network namespace behind the
@@ -39,17 +39,14 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-for _path in (ROOT, ROOT / "experiments"):
-    if str(_path) not in sys.path:
-        sys.path.insert(0, str(_path))
-
 import pandas as pd
-from common import prepare_link_emulation, write_csv
 
 from coapkb.bench import run as bench
 from coapkb.bench.row import append_rows, read_rows
 from coapkb.harness.team import DEFAULT_ONTOLOGIES, draw_tasks
+from experiments.common import prepare_link_emulation, write_csv
+
+ROOT = Path(__file__).resolve().parent.parent
 
 DEFAULT_OUT = ROOT / "experiments" / "results" / "world_in_kb"
 #: (label, system, writable)
@@ -188,7 +185,8 @@ async def amain(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.world_in_kb",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("what", choices=("costs", "repeats", "report"))
     p.add_argument("--tasks", type=int, default=10, help="tasks of a costs run (default 10)")
     p.add_argument("--bandwidth", type=float, default=35.0, metavar="KBPS")

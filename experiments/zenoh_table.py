@@ -1,6 +1,6 @@
 """The Zenoh comparison's table (docs/zenoh.md) from its benchmark rows.
 
-    .venv/bin/python experiments/zenoh_table.py [experiments/results/zenoh.csv]
+    .venv/bin/python -m experiments.zenoh_table [experiments/results/zenoh.csv]
 
 One line per link setting and system: runs ok / runs, and the medians over
 the ok repetitions of wire bytes, wire packets, completion time and query
@@ -10,16 +10,15 @@ p50/p99, with each system's wire bytes and completion relative to CoAP's
 
 from __future__ import annotations
 
+import argparse
 import statistics
-import sys
 from collections import defaultdict
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
 from coapkb.bench.row import BenchRow
 from coapkb.bench.run import SYSTEMS, read_rows
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _median(rows: list[BenchRow], column: str) -> float | None:
@@ -59,7 +58,11 @@ def table(rows: list[BenchRow]) -> list[str]:
 
 
 def main() -> None:
-    path = sys.argv[1] if len(sys.argv) > 1 else str(ROOT / "experiments" / "results" / "zenoh.csv")
+    p = argparse.ArgumentParser(prog="python -m experiments.zenoh_table", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("csv", nargs="?", default=str(ROOT / "experiments" / "results" / "zenoh.csv"),
+                   help="benchmark CSV (default: experiments/results/zenoh.csv)")
+    path = p.parse_args().csv
     print("\n".join(table(read_rows(path, latest_only=True))))
 
 

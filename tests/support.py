@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import os
 import shutil
 import socket
@@ -11,7 +10,6 @@ import sys
 from collections.abc import AsyncIterator, Iterator, Mapping
 from decimal import Decimal
 from pathlib import Path
-from types import ModuleType
 from typing import NamedTuple
 
 import pytest
@@ -134,16 +132,6 @@ async def kb_server() -> AsyncIterator[ServerProcess]:
     )
     yield server
     await server.stop()
-
-
-def load_experiment(name: str) -> ModuleType:
-    """``experiments/NAME.py`` as a module (the experiments are scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(f"experiments_{name}", ROOT / "experiments" / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 class CliResult(NamedTuple):

@@ -65,7 +65,7 @@ import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from ..errors import CoapkbError
 from ..feeder.record import FateCounts
@@ -100,6 +100,7 @@ __all__ = [
     "SYSTEMS",
     "BenchRow",
     "NetnsPlacement",
+    "RunObserver",
     "SystemDef",
     "Timeouts",
     "append_rows",
@@ -294,6 +295,41 @@ class NetnsPlacement(Placement):
 # --------------------------------------------------------------------------- one run
 
 
+class RunObserver(Protocol):
+    """What a caller of :func:`run_once` is shown of a run, without changing it.
+
+    Pass one as ``run_once(..., observer=...)``.  For a run whose team ran to
+    the end, :meth:`team_recorded` is called once, in the benchmark's own
+    process, after the team stopped and before ``run_once`` returns: the
+    team's :class:`~coapkb.harness.record.TeamRecord` (every task's fate,
+    each robot's statistics and retransmission counters) is what the CSV row
+    only sums up.  A run that fails before its team has a record (bad
+    configuration, no namespaces, a timeout, a crash) calls nothing; its row
+    says why, as without an observer.
+
+    ``experiments/byte_budget.py`` keeps the robots' per-peer reliability
+    counters this way.  An observer should not raise: an exception from it
+    ends the run as a failed row (``ok=False``, its message in ``error``).
+
+    Example::
+
+        class KeepRecords:
+            def __init__(self) -> None:
+                self.records: list[TeamRecord] = []
+
+            def team_recorded(self, row: BenchRow, record: TeamRecord) -> None:
+                self.records.append(record)
+
+        keep = KeepRecords()
+        row = await run_once("coap-distributed", 3, 10, 35, 2, observer=keep)
+    """
+
+    def team_recorded(self, row: BenchRow, record: TeamRecord) -> None:
+        """The team's record of the run.  ``row`` is the run's row with what
+        the record tells filled in (times, queries, task fates, ``ok`` and
+        ``error``); the link counters' columns are not yet."""
+
+
 async def _tcp_counters(testbed: Testbed, hosts: Iterable[str]) -> dict[str, tuple[int, int]]:
     """``(RetransSegs, TCPAbortOnTimeout)`` of each host's namespace, from
     ``/proc/net/snmp`` and ``/proc/net/netstat`` read inside it."""
@@ -442,6 +478,8 @@ async def run_once(
     kb_writable: bool = False,
     misplaced: Sequence[str] = (),
     task_list: Sequence[str] | None = None,
+    observer: RunObserver | None = None,
+    testbed_class: type[Testbed] = Testbed,
 ) -> BenchRow:
     """Run ``system`` once and return its row.
 
@@ -460,6 +498,15 @@ async def run_once(
     the robots write their picks into the KB (distributed systems only);
     ``misplaced``: objects not where the KB says; ``task_list``: these
     ``tasks`` objects instead of a draw.
+
+    ``observer`` is shown the team's record of the run (:class:`RunObserver`).
+    ``testbed_class`` builds the run's testbed, as
+    ``testbed_class(hosts, links)``: :class:`~coapkb.bench.linkemu.Testbed`
+    by default; a subclass may add to it (``experiments/byte_budget.py``
+    starts a packet capture in its bridge namespace and keeps the times of
+    its counter readings) but must keep what the run reads: the hosts'
+    addresses, namespaces, ``exec_args`` and ``acounters``.  Neither changes
+    the row.
     """
     seed = 1 + rep if seed is None else seed
     row = _base_row(system, robots, tasks, bandwidth_kbps, loss_pct, rep, seed, security)
@@ -491,8 +538,8 @@ async def run_once(
     links[FEEDER] = LinkSpec()  # the external task source: unshaped, lossless
     try:
         async with asyncio.timeout(limits.run_s):
-            async with Testbed(hosts, links) as testbed:
-                row = await _measure(testbed, row, spec, task_list, hosts)
+            async with testbed_class(hosts, links) as testbed:
+                row = await _measure(testbed, row, spec, task_list, hosts, observer)
     except TimeoutError:
         row = replace(row, error=f"run did not finish within {limits.run_s:g} s")
     except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
@@ -503,7 +550,8 @@ async def run_once(
     return replace(row, wall_s=round(time.monotonic() - started, 2))
 
 
-async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str]) -> BenchRow:
+async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str],
+                   observer: RunObserver | None = None) -> BenchRow:
     """``row`` with what one team run measured: link counters and the team's record."""
     # The kernel's retransmissions (RetransSegs) count only TCP's; QUIC's are Zenoh's business.
     tcp = transport_for(spec.transport).recovery == "tcp"
@@ -548,6 +596,8 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
     delta = {h: after["counters"][h] - before["counters"][h] for h in hosts}
     total = _sum_counters(delta)
     row, coap_retx = _with_record(row, record, row.tasks)
+    if observer is not None:
+        observer.team_recorded(row, record)
     if spec.log_dir is not None:
         (spec.log_dir / "record.json").write_text(json.dumps(record.to_dict(), indent=1) + "\n", encoding="utf-8")
     if tcp:

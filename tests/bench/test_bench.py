@@ -18,12 +18,13 @@ from typing import Any
 
 import pytest
 from mcap.reader import make_reader
-from support import ROOT, coapkb, load_experiment, require
+from support import ROOT, coapkb, require
 
 from coapkb.bench import run as bench
-from coapkb.bench.linkemu import LinkSpec, Testbed, available, enter_netns
+from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, available, enter_netns
 from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
 from coapkb.bench.stats import percentile
+from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Fault
 
 
@@ -60,12 +61,39 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
     assert (coap.security, zmq.security) == ("oscore", "curve")  # on by default, as in coapkb team
 
 
+class _Watch:
+    """A :class:`coapkb.bench.run.RunObserver` that keeps what it is shown."""
+
+    def __init__(self) -> None:
+        self.records: list[tuple[BenchRow, TeamRecord]] = []
+
+    def team_recorded(self, row: BenchRow, record: TeamRecord) -> None:
+        self.records.append((row, record))
+
+
+class _CountingTestbed(Testbed):
+    """A testbed that counts the bench's counter readings."""
+
+    readings = 0
+
+    async def acounters(self) -> dict[str, LinkCounters]:
+        type(self).readings += 1
+        return await super().acounters()
+
+
 @pytest.mark.root
 @pytest.mark.timeout(120)
 async def test_insecure_runs_are_their_own_rows_and_the_seeds_wire_stays_plain(tmp_path: Path) -> None:
     _require_netns()
-    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False, trace_dir=tmp_path)
+    watch = _Watch()
+    plain = await bench.run_once("coap-distributed", 3, 2, 512, 2, rep=0, security=False, trace_dir=tmp_path,
+                                 observer=watch, testbed_class=_CountingTestbed)
     assert plain.ok, plain.error
+    # The hooks: the observer got the team's record once, the testbed class built the testbed.
+    [(seen, record)] = watch.records
+    assert seen.system == "coap-distributed" and seen.tasks_agreed == 2 and seen.wire_bytes is None
+    assert len(record.tasks) == 2
+    assert _CountingTestbed.readings >= 2  # the two counter readings around the team's work
     # --trace: each robot's log at INFO level and the team's record, in a folder named after the run.
     [run] = tmp_path.iterdir()
     assert run.name == "coap-distributed-3r2t-512k-2pct-none-rep0"
@@ -216,6 +244,24 @@ async def test_a_bad_configuration_is_a_failed_row_not_an_exception() -> None:
     assert row.ok is False and "unknown system" in row.error
 
 
+async def test_run_once_builds_its_testbed_with_the_class_given() -> None:
+    """``testbed_class`` gets the run's hosts and links (here a testbed that
+    refuses to start, so no root is needed); without a team record the
+    observer is not called, and the row says why."""
+    built: list[list[str]] = []
+
+    class Refusing(Testbed):
+        def setup(self) -> None:
+            built.append(list(self.hosts))
+            raise OSError("no testbed here")
+
+    watch = _Watch()
+    row = await bench.run_once("coap-central", 3, 2, 512, 2, observer=watch, testbed_class=Refusing)
+    assert built == [["Robot1", "Robot2", "Robot3", "central", "feeder"]]
+    assert row.ok is False and row.error == "OSError: no testbed here"
+    assert watch.records == []
+
+
 def test_parse_retrans_segs_and_percentile() -> None:
     snmp = ("Ip: Forwarding DefaultTTL\nIp: 1 64\n"
             "Tcp: RtoAlgorithm RtoMin ActiveOpens RetransSegs InErrs\nTcp: 1 200 4 17 0\n")
@@ -288,7 +334,7 @@ def test_csv_without_link_columns_reads_as_no_delay_random_loss(tmp_path: Path) 
     assert (back.delay_ms, back.jitter_ms, back.loss_model, back.burst_len) == (0.0, 0.0, "random", 0.0)
     assert back.key() == _row(delay_ms=0, loss_model="random", security="none").key() in done_keys(path)
     assert _row(delay_ms=100, security="none").key() not in done_keys(path)
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     plain = sweep.Run("coap-distributed", 3, 5, 35.0, 2.0, 0, security=False)
     assert plain.key() == back.key()
     # Rows from before the security column were unprotected runs: not a secure run's key.
@@ -310,7 +356,7 @@ def test_resume_keys_and_retry_of_failed_runs(tmp_path: Path) -> None:
 
 
 def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> None:
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     quick = sweep.PROFILES["quick"]
     runs = sweep.plan(quick)
     assert len(runs) == len({r.key() for r in runs})
@@ -332,7 +378,7 @@ def test_sweep_plans_every_run_once_and_skips_the_done_ones(tmp_path: Path) -> N
 async def test_sweep_appends_each_row_and_prints_count_and_eta(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    sweep = load_experiment("sweep")
+    from experiments import sweep
     runs = sweep.plan(sweep.PROFILES["quick"])[:3]
 
     async def child(run: Any, limit_s: float) -> dict[str, Any]:  # no root, no namespaces: the row only
@@ -371,7 +417,7 @@ def _synthetic(path: Path) -> None:
 
 
 def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
-    figures = load_experiment("figures")
+    from experiments import figures
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     outdir = tmp_path / "figs"
@@ -388,7 +434,7 @@ def test_figures_script_writes_pngs_from_a_small_csv(tmp_path: Path) -> None:
 
 
 def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
-    report = load_experiment("report")
+    from experiments import report
     path = tmp_path / "synthetic.csv"
     _synthetic(path)
     out = tmp_path / "report.md"
@@ -412,7 +458,7 @@ def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> No
 
 
 def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.CaptureFixture[str]) -> None:
-    spread = load_experiment("spread")
+    from experiments import spread
     row = BenchRow(system="coap-distributed", robots=3, tasks=10, bandwidth_kbps=35, loss_pct=20, rep=0,
                    retransmission_profile="robust", ok=True, completion_s=6.0, coordination_s=5.5,
                    query_p50_ms=10.0, query_p99_ms=900.0, wire_bytes=62_000, security="oscore")
@@ -424,7 +470,7 @@ def test_the_spread_script_shows_the_slow_run_a_median_hides(capsys: pytest.Capt
 
 def test_dds_table_pairs_runs_by_setting_and_repetition() -> None:
     """CoAP ÷ DDS per pair (same setting and repetition); a failed run drops its pair."""
-    table = load_experiment("dds_table")
+    from experiments import dds_table as table
     rows = [
         *(_row("coap-distributed", rep=r, wire_bytes=1000, completion_s=2.0, security="none") for r in range(3)),
         *(_row("dds-distributed", rep=r, wire_bytes=4000 * (r + 1), completion_s=4.0) for r in range(3)),

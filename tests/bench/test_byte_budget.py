@@ -12,12 +12,10 @@ import aiocoap
 import pytest
 from aiocoap.numbers.codes import Code
 from aiocoap.numbers.types import ACK, CON, NON
-from support import load_experiment
 
 from coapkb.bench.linkemu.capture import CapturedFrame
 from coapkb.transport.coap.wire_trace import OSCORE_OPTION, split_coap
-
-bb = load_experiment("byte_budget")
+from experiments import byte_budget as bb
 
 HOSTS = {"10.77.0.1": "Robot1", "10.77.0.2": "Robot2", "10.77.0.3": "Robot3", "10.77.0.4": "feeder"}
 IP = {name: ip for ip, name in HOSTS.items()}

@@ -11,11 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from support import load_experiment
 
 from coapkb.bench.linkemu.capture import CapturedFrame
+from experiments import byte_budget as bb
 
-bb = load_experiment("byte_budget")
 pp = bb.peers
 
 HOSTS = {"10.77.0.1": "Robot1", "10.77.0.2": "Robot2", "10.77.0.3": "Robot3", "10.77.0.4": "feeder"}

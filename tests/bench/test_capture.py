@@ -8,12 +8,11 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from support import load_experiment, require
+from support import require
 
 from coapkb.bench.linkemu import LinkSpec, Testbed, available
 from coapkb.bench.linkemu.capture import PacketCapture, read_frames
-
-accuracy = load_experiment("linkemu_accuracy")
+from experiments import linkemu_accuracy as accuracy
 
 
 @pytest.mark.root

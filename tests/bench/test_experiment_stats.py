@@ -10,18 +10,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from support import load_experiment
 
 from coapkb.bench.run import append_rows, read_rows
+from experiments import matrix_time, stats
 
 #: A one-repetition quick-profile CSV from before the security column (an
 #: earlier committed result), so the tests do not move with new results.
 QUICK = Path(__file__).parent / "data" / "quick-1rep.csv"
-
-
-
-
-stats = load_experiment("stats")
 
 
 def test_median_rank_matches_the_binomial_tables() -> None:
@@ -92,7 +87,7 @@ def _three_reps(path: Path) -> None:
 
 @pytest.mark.parametrize("reps", [1, 3])
 def test_report_and_figures_on_the_quick_csv(tmp_path: Path, reps: int) -> None:
-    report, figures = load_experiment("report"), load_experiment("figures")
+    from experiments import figures, report
     path = QUICK
     if reps == 3:
         path = tmp_path / "three.csv"
@@ -117,7 +112,7 @@ def test_report_and_figures_on_the_quick_csv(tmp_path: Path, reps: int) -> None:
 
 
 def test_figures_draw_the_interval_as_an_error_bar(tmp_path: Path) -> None:
-    figures = load_experiment("figures")
+    from experiments import figures
     path = tmp_path / "three.csv"
     _three_reps(path)
     data = figures.Data(read_rows(path))
@@ -128,8 +123,6 @@ def test_figures_draw_the_interval_as_an_error_bar(tmp_path: Path) -> None:
 
 
 # --------------------------------------------------------------------------- how long a matrix takes
-
-matrix_time = load_experiment("matrix_time")
 
 #: Known coefficients (setup, per_robot, per_task, serial, per_loss), seconds.
 TRUE = {"a": (4.0, 1.5, 0.5, 0.3, 0.6), "b": (9.0, 0.5, 1.2, 0.8, 0.1)}

@@ -23,13 +23,12 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from support import load_experiment, require
+from support import require
 
 from coapkb.bench import linkemu
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, UdpRelay, available, cleanup_stale
+from experiments import linkemu_accuracy as accuracy  # the traffic scripts, shared with the benchmark's figures
 
-#: The traffic scripts and measurements, shared with the benchmark that reports the figures.
-accuracy = load_experiment("linkemu_accuracy")
 PY = sys.executable
 UDP_IPV4_OVERHEAD = accuracy.UDP_IPV4_OVERHEAD
 

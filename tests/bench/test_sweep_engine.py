@@ -1,4 +1,4 @@
-"""experiments/sweep.py --engine: parsing, the one-line errors, the row
+"""``python -m experiments.sweep --engine``: parsing, the one-line errors, the row
 de-duplication, and a tiny matrix through a local Dask cluster of two workers
 (root: real runs in network namespaces; a skip on a laptop, a failure in CI)."""
 
@@ -13,12 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from support import load_experiment, require
+from support import require
 
 from coapkb.bench.linkemu import available
 from coapkb.bench.run import read_rows
-
-sweep = load_experiment("sweep")
+from experiments import sweep
 
 
 def test_engine_urls() -> None:
