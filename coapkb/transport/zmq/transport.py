@@ -27,11 +27,13 @@ Unreachable peers
     every ``reconnect_ivl_max`` on the radio) until the peer is asked again.
 
 Liveness
-    TCP keep-alive (idle 5 s, then 10 probes 1 s apart) and ``TCP_USER_TIMEOUT``
-    (via ``ZMQ_TCP_MAXRT``, 60 s) let both ends notice a robot that drove out of
-    range instead of waiting for the kernel's defaults (2 h / ~15 min), without
-    cutting healthy connections on a link that loses 20 % of its packets (a
-    cut connection loses the request in flight).
+    TCP keep-alive (a client after 30 s idle, a server after 120 s, then 10
+    probes 1 s apart) and ``TCP_USER_TIMEOUT`` (via ``ZMQ_TCP_MAXRT``, 60 s)
+    let both ends notice a robot that drove out of range instead of waiting
+    for the kernel's defaults (2 h / ~15 min), without cutting healthy
+    connections on a link that loses 20 % of its packets (a cut connection
+    loses the request in flight), and without filling a slow link with
+    probes.
     Reconnects start after 100 ms and back off to 2 s.  Clients set a random
     routing id and the server sets ``ROUTER_HANDOVER`` so a client that
     reconnects before the server noticed its old connection die takes over its
@@ -127,8 +129,14 @@ class ZmqOptions(CoreOptions):
     #: Kernel keep-alive: first probe after idle seconds, then every intvl, give up after cnt.
     #: At 20 % loss each way a probe's round trip fails 36 % of the time, so 3
     #: probes would kill ~5 % of healthy idle connections (and the request in
-    #: flight with them); 10 probes kill 4e-5.
-    tcp_keepalive_idle_s: int = 5
+    #: flight with them); 10 probes kill 4e-5.  Each probe and its answer
+    #: cross the link: at 5 s idle, a central server's 100 connections spent
+    #: about 40 % of its 35 kbit/s uplink on them, and at 99 robots the queue
+    #: behind them made every query outlast its timeout.  A client probes
+    #: after 30 s, a server (which only needs to forget a vanished client's
+    #: observations) after ``server_tcp_keepalive_idle_s``.
+    tcp_keepalive_idle_s: int = 30
+    server_tcp_keepalive_idle_s: int = 120
     tcp_keepalive_intvl_s: int = 1
     tcp_keepalive_cnt: int = 10
     #: TCP_USER_TIMEOUT: drop a connection whose sent data stays unacknowledged
@@ -156,7 +164,7 @@ class ZmqOptions(CoreOptions):
     max_observations: int = 16
 
 
-def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None:
+def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str, *, keepalive_idle_s: int) -> None:
     """Options common to both ends; must run before bind/connect.
 
     IPv6 is enabled only for IPv6 literals: with it on, libzmq may resolve a
@@ -167,7 +175,7 @@ def _configure(sock: zmq.asyncio.Socket, options: ZmqOptions, host: str) -> None
     sock.setsockopt(zmq.RECONNECT_IVL_MAX, options.reconnect_ivl_max_ms)
     sock.setsockopt(zmq.HANDSHAKE_IVL, options.handshake_ivl_ms)
     sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
-    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, options.tcp_keepalive_idle_s)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, keepalive_idle_s)
     sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, options.tcp_keepalive_intvl_s)
     sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, options.tcp_keepalive_cnt)
     sock.setsockopt(zmq.TCP_MAXRT, options.tcp_user_timeout_ms)
@@ -241,7 +249,7 @@ class ZmqServerTransport(ServerCore):
         ctx = context if context is not None else zmq.asyncio.Context()
         sock = ctx.socket(zmq.ROUTER)
         try:
-            _configure(sock, options, endpoint.host)
+            _configure(sock, options, endpoint.host, keepalive_idle_s=options.server_tcp_keepalive_idle_s)
             sock.setsockopt(zmq.SNDHWM, options.server_sndhwm)
             sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
             sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
@@ -470,7 +478,7 @@ class ZmqClientTransport(ClientCore):
             return link
         sock = self._ctx.socket(zmq.DEALER)
         try:
-            _configure(sock, self._options, peer.host)
+            _configure(sock, self._options, peer.host, keepalive_idle_s=self._options.tcp_keepalive_idle_s)
             sock.setsockopt(zmq.IMMEDIATE, 1)
             sock.setsockopt(zmq.SNDHWM, self._options.client_sndhwm)
             sock.setsockopt(zmq.ROUTING_ID, _new_routing_id())
