@@ -334,14 +334,14 @@ def _transport_options(table: Mapping[str, Any], scheme: str) -> dict[str, dict[
     """``[transport.SCHEME]`` tables, each checked by its transport's layer
     (the robot's own transport's is the one used; another's is still checked,
     so a typo does not wait for the day the robot changes transport)."""
-    from .transport import reliability_for
+    from .transport import check_table
 
     options: dict[str, dict[str, Any]] = {}
     for name, section in table.items():
         if not isinstance(section, dict):
             raise ConfigError(f"transport.{name}: expected a table")
         try:
-            reliability_for(name, options=section)  # an unknown scheme raises too
+            check_table(name, section)  # an unknown scheme raises too
         except ValueError as exc:
             # "FIELD: why" names a field of the table; anything else is about the table.
             field_name = str(exc).split(":", 1)[0]

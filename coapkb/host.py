@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import random
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from .transport import ClientSecurity, ClientTransport, Endpoint, Reliability, ServerTransport, Service
 from .transport import open_client as _open_client
@@ -34,22 +34,26 @@ class Network(Protocol):
     """Opens the transports a process talks through."""
 
     async def open_client(self, scheme: str, *, reliability: Reliability | None = None,
-                          security: ClientSecurity | None = None) -> ClientTransport: ...
+                          security: ClientSecurity | None = None,
+                          options: Mapping[str, Any] | None = None) -> ClientTransport: ...
 
     async def serve(self, service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
-                    security: ServerSecurity | None = None) -> ServerTransport: ...
+                    security: ServerSecurity | None = None,
+                    options: Mapping[str, Any] | None = None) -> ServerTransport: ...
 
 
 class Sockets:
     """The real network: the transport the endpoint's scheme names (:mod:`coapkb.transport`)."""
 
     async def open_client(self, scheme: str, *, reliability: Reliability | None = None,
-                          security: ClientSecurity | None = None) -> ClientTransport:
-        return await _open_client(scheme, reliability=reliability, security=security)
+                          security: ClientSecurity | None = None,
+                          options: Mapping[str, Any] | None = None) -> ClientTransport:
+        return await _open_client(scheme, reliability=reliability, security=security, options=options)
 
     async def serve(self, service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
-                    security: ServerSecurity | None = None) -> ServerTransport:
-        return await _serve(service, endpoint, reliability=reliability, security=security)
+                    security: ServerSecurity | None = None,
+                    options: Mapping[str, Any] | None = None) -> ServerTransport:
+        return await _serve(service, endpoint, reliability=reliability, security=security, options=options)
 
 
 def _load_kb(files: Sequence[Path], index_dir: Path | None) -> KnowledgeBase:

@@ -1,11 +1,15 @@
 """A table of settings (as read from TOML) checked against a dataclass's
-defaults: every key a field, every value of its default's type (an int
-stands for a float).  One check for a robot's configuration sections and
-for a transport's tunables; pure, below every package that uses it."""
+fields: every key a field, every value of its default's type (an int
+stands for a float; a field whose default is None takes what its
+annotation names beside None).  One check for a robot's configuration
+sections and for a transport's tunables; pure, below every package that
+uses it."""
 
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from collections.abc import Collection, Mapping
 from typing import Any
 
@@ -20,10 +24,19 @@ def typed_fields(cls: type, table: Mapping[str, Any], settable: Collection[str] 
         raise ValueError(f"{unknown[0]}: unknown field (known: {', '.join(sorted(defaults))})")
     values: dict[str, Any] = {}
     for name, value in table.items():
-        default = defaults[name]
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        kind = type(defaults[name]) if defaults[name] is not None else _optional_of(cls, name)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
-        if type(value) is not type(default):
-            raise ValueError(f"{name}: expected {type(default).__name__}, got {value!r}")
+        if type(value) is not kind:
+            raise ValueError(f"{name}: expected {kind.__name__}, got {value!r}")
         values[name] = value
     return values
+
+
+def _optional_of(cls: type, name: str) -> type:
+    """``X`` for a field annotated ``X | None``."""
+    hint = typing.get_type_hints(cls)[name]
+    kinds = [k for k in typing.get_args(hint) if k is not type(None)]
+    if not isinstance(hint, types.UnionType) or len(kinds) != 1 or not isinstance(kinds[0], type):
+        raise TypeError(f"{cls.__name__}.{name}: a None default needs an `X | None` annotation")
+    return kinds[0]

@@ -289,7 +289,9 @@ def test_transport_tunables_reach_the_layer_and_bad_ones_name_their_field() -> N
     for table, message in [
         ({"coap": {"window_max": 1.5}}, "transport.coap.window_max: expected int"),
         ({"coap": {"silence_rto": 99.0}}, "transport.coap: need min_rto <= silence_rto <= max_rto"),
-        ({"zmq": {"linger": 1}}, "transport.zmq.linger: unknown field (zmq has no tunables)"),
+        ({"zmq": {"linger": 1}}, "transport.zmq.linger: unknown field (known: client_sndhwm,"),
+        ({"zmq": {"observe_queue": 0}}, "transport.zmq.observe_queue: must be positive, got 0"),
+        ({"zenoh": {"open_timeout_s": "soon"}}, "transport.zenoh.open_timeout_s: expected float, got 'soon'"),
         ({"carrier-pigeon": {}}, "transport.carrier-pigeon: unknown transport"),
     ]:
         with pytest.raises(ConfigError, match=re.escape(message)):

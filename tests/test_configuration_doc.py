@@ -26,6 +26,9 @@ from coapkb.config import (
 )
 from coapkb.security.settings import SecurityConfig
 from coapkb.transport.coap.reliability import ReliabilitySettings
+from coapkb.transport.dds.transport import DdsOptions
+from coapkb.transport.zenoh.transport import ZenohOptions
+from coapkb.transport.zmq.transport import ZmqOptions
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
 
@@ -39,6 +42,9 @@ SECTIONS: dict[str, tuple[str, type]] = {
     "`[discovery]`": ("discovery", DiscoveryConfig),
     "`[team.NAME]`": ("team.Robot1", Teammate),
     "`[transport.coap]`": ("transport.coap", ReliabilitySettings),
+    "`[transport.zmq]`": ("transport.zmq", ZmqOptions),
+    "`[transport.zenoh]`": ("transport.zenoh", ZenohOptions),
+    "`[transport.dds]`": ("transport.dds", DdsOptions),
 }
 #: Top-level keys that are tables, each with a section of its own.
 TABLES = {"start", "cost", "execution", "security", "discovery", "team", "replicas", "transport"}
@@ -47,7 +53,7 @@ RENAMED = {"kb": "kb_files", "transport": "transport_options"}
 #: Defaults the loader gives where the dataclass has none.
 LOADER_DEFAULTS: dict[str, Any] = {"kb_files": []}
 #: Dataclass fields that are not TOML keys (the table's key names the teammate).
-NOT_KEYS: dict[type, set[str]] = {Teammate: {"robot_id"}, ReliabilitySettings: {"link_kbps"}}
+NOT_KEYS: dict[type, set[str]] = {Teammate: {"robot_id"}, ReliabilitySettings: {"link_kbps"}, DdsOptions: {"settings"}}
 
 MINIMAL: dict[str, Any] = {
     "robot_id": "Robot1",

@@ -212,9 +212,11 @@ class Robot:
         check_start(config, kb)
         router = Router()
         # One reliability layer for the client and the server's notifications.
-        reliability = reliability_for(config.transport, link_kbps=config.link_kbps,
-                                      options=config.transport_options.get(config.transport))
-        client = await host.network.open_client(config.transport, reliability=reliability, security=client_security)
+        # The [transport.SCHEME] table: CoAP's layer takes it; another transport its options.
+        table = config.transport_options.get(config.transport, {})
+        reliability = reliability_for(config.transport, link_kbps=config.link_kbps, options=table)
+        client = await host.network.open_client(config.transport, reliability=reliability, security=client_security,
+                                                options=table)
         # Nonzero, so it is always sent: teammates tell a restart by it.
         boot = host.rng.randrange(1, 2**32)
         replicator = None
@@ -324,7 +326,8 @@ class Robot:
                 # Decisions only from whom this robot's Controller waits for.
                 deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
                 server_side = server_security(config.transport, secured[0], AccessPolicy(deciders))
-            robot.server = await host.network.serve(router, config.bind, reliability=reliability, security=server_side)
+            robot.server = await host.network.serve(router, config.bind, reliability=reliability, security=server_side,
+                                                    options=table)
         except BaseException:
             await client.aclose()
             raise

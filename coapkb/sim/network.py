@@ -30,9 +30,9 @@ import itertools
 import logging
 import random
 from collections import OrderedDict
-from collections.abc import AsyncIterator, Callable, Iterable
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH
@@ -229,11 +229,13 @@ class ProcessNetwork:
         self.process = process
 
     async def open_client(self, scheme: str, *, reliability: Reliability | None = None,
-                          security: ClientSecurity | None = None) -> SimClient:
+                          security: ClientSecurity | None = None,
+                          options: Mapping[str, Any] | None = None) -> SimClient:
         return SimClient(self.network, self.process)
 
     async def serve(self, service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
-                    security: ServerSecurity | None = None) -> SimServer:
+                    security: ServerSecurity | None = None,
+                    options: Mapping[str, Any] | None = None) -> SimServer:
         server = SimServer(self.network, self.process, service, endpoint)
         self.network._bind(server)
         return server

@@ -34,42 +34,55 @@ def reliability_for(scheme: str, *, link_kbps: float | None = None,
     :func:`serve`: for CoAP one shared layer (its server's notifications
     then use its client's path estimates), sized for a link of
     ``link_kbps`` if known and tuned by ``options`` (the robot's
-    ``[transport.SCHEME]`` table; ValueError naming a field it cannot
-    take); None for a transport without one (TCP retransmits by itself),
-    which takes no options."""
+    ``[transport.coap]`` table; ValueError naming a field it cannot
+    take); None for a transport without one (TCP, QUIC or RTPS
+    retransmits by itself: its table goes to :func:`open_client` and
+    :func:`serve` instead)."""
     make = transport_for(scheme).reliability
-    if make is None:
-        if options:
-            raise ValueError(f"{sorted(options)[0]}: unknown field ({scheme} has no tunables)")
-        return None
-    return make(link_kbps, options or {})
+    return None if make is None else make(link_kbps, options or {})
+
+
+def check_table(scheme: str, table: Mapping[str, Any]) -> None:
+    """ValueError naming the field of a ``[transport.SCHEME]`` table that
+    ``scheme``'s transport cannot take (``FIELD: why``), or saying that it
+    takes none; an unknown scheme raises :class:`UnknownTransport`."""
+    info = transport_for(scheme)
+    if info.reliability is not None:
+        info.reliability(None, table)
+    elif info.options is not None:
+        info.options(table)
+    elif table:
+        raise ValueError(f"{sorted(table)[0]}: unknown field ({scheme} has no tunables)")
 
 
 async def open_client(scheme: str, *, reliability: Reliability | None = None,
-                      security: ClientSecurity | None = None) -> ClientTransport:
+                      security: ClientSecurity | None = None,
+                      options: Mapping[str, Any] | None = None) -> ClientTransport:
     """A client transport for ``scheme``.
 
     ``reliability``: what :func:`reliability_for` returned, or None for a
-    layer of the transport's own; transports without one (ZeroMQ, Zenoh)
-    ignore it.  ``security``: the client side of the transport's security
-    mechanism (:func:`coapkb.security.client_security`), or None."""
-    return await transport_for(scheme).open_client(reliability, security)
+    layer of the transport's own; transports without one (ZeroMQ, Zenoh,
+    DDS) ignore it.  ``security``: the client side of the transport's
+    security mechanism (:func:`coapkb.security.client_security`), or None.
+    ``options``: the robot's ``[transport.SCHEME]`` table (:func:`check_table`),
+    for a transport without a reliability layer."""
+    return await transport_for(scheme).open_client(reliability, security, options or {})
 
 
 async def serve(
     service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
-    security: ServerSecurity | None = None,
+    security: ServerSecurity | None = None, options: Mapping[str, Any] | None = None,
 ) -> ServerTransport:
     """Expose ``service`` on ``endpoint`` (its scheme picks the transport).
     ``reliability`` times CoAP's confirmable notifications (None: a layer
     of the server's own); ``security`` is the server side of the
     transport's security mechanism (:func:`coapkb.security.server_security`),
-    or None.  With security every request is held to its access rules
-    before the service sees it."""
+    or None; ``options`` as for :func:`open_client`.  With security every
+    request is held to its access rules before the service sees it."""
     serves = transport_for(endpoint.scheme).serve
     if security is not None:
         service = GuardedService(service, security.rules)
-    return await serves(service, endpoint, reliability, security)
+    return await serves(service, endpoint, reliability, security, options or {})
 
 
 __all__ = [
@@ -88,6 +101,7 @@ __all__ = [
     "TrafficCounters",
     "TransportError",
     "TransportInfo",
+    "check_table",
     "open_client",
     "reliability_for",
     "secured_schemes",

@@ -49,6 +49,15 @@ class CoreOptions:
     #: At most one "malformed message" warning per this many seconds.
     malformed_log_interval_s: float = 10.0
 
+    def __post_init__(self) -> None:
+        # ValueError "FIELD: why", as a robot's [transport.SCHEME] table reports it.
+        for name in ("max_concurrent_requests", "observe_queue", "observe_timeout_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name}: must be positive, got {getattr(self, name)}")
+        for name in ("max_observations", "malformed_log_interval_s"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: must not be negative, got {getattr(self, name)}")
+
 
 def check_scheme(endpoint: Endpoint, *schemes: str) -> None:
     """ValueError unless ``endpoint`` has one of ``schemes``."""

@@ -19,11 +19,15 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from ..errors import CoapkbError
+from ..typed_fields import typed_fields
 
 if TYPE_CHECKING:
     from .base import ClientTransport, Endpoint, ServerTransport, Service
     from .coap.reliability import ReliabilityLayer
+    from .dds.transport import DdsOptions
     from .security import ClientSecurity, ServerSecurity
+    from .zenoh.transport import ZenohOptions
+    from .zmq.transport import ZmqOptions
 
 
 class Reliability(Protocol):
@@ -37,15 +41,20 @@ class Reliability(Protocol):
         ...
 
 
-#: ``open_client``'s signature for one transport: (reliability, security).
-ClientFactory = Callable[["Reliability | None", "ClientSecurity | None"], Awaitable["ClientTransport"]]
-#: ``serve``'s signature for one transport: (service, endpoint, reliability, security).
-ServerFactory = Callable[["Service", "Endpoint", "Reliability | None", "ServerSecurity | None"],
+#: A robot's ``[transport.SCHEME]`` table, as read from its TOML.
+Table = Mapping[str, Any]
+#: ``open_client``'s signature for one transport: (reliability, security, table).
+ClientFactory = Callable[["Reliability | None", "ClientSecurity | None", Table], Awaitable["ClientTransport"]]
+#: ``serve``'s signature for one transport: (service, endpoint, reliability, security, table).
+ServerFactory = Callable[["Service", "Endpoint", "Reliability | None", "ServerSecurity | None", Table],
                          Awaitable["ServerTransport"]]
 #: Builds the reliability a robot's client and server share, from its link
 #: rate in kbit/s (None: unknown) and its ``[transport.SCHEME]`` table
 #: (ValueError naming a field it cannot take).
-ReliabilityFactory = Callable[["float | None", "Mapping[str, Any]"], Reliability]
+ReliabilityFactory = Callable[["float | None", Table], Reliability]
+#: Builds the options record of a transport without a reliability layer
+#: from its ``[transport.SCHEME]`` table (ValueError naming a field).
+OptionsFactory = Callable[[Table], object]
 
 
 class UnknownTransport(CoapkbError, ValueError):
@@ -66,6 +75,10 @@ class TransportInfo:
     #: Builds the reliability layer a robot hands to both its client and its
     #: server; None: the transport has none of its own to share.
     reliability: ReliabilityFactory | None = None
+    #: Builds its options from a robot's ``[transport.SCHEME]`` table (a
+    #: transport with a reliability layer gives the table to the layer);
+    #: None: it has no tunables.
+    options: OptionsFactory | None = None
     #: The security mechanism protecting it (a name :mod:`coapkb.security`
     #: implements: ``oscore``, ``curve``, ``tls``); None: it cannot be secured.
     security: str | None = None
@@ -92,7 +105,8 @@ class TransportInfo:
 
 # CoAP's factories are handed what _coap_reliability built (or None), so the
 # casts hold.
-async def _coap_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
+async def _coap_client(reliability: Reliability | None, security: ClientSecurity | None,
+                       table: Table) -> ClientTransport:
     from .coap import CoapClientTransport
 
     layer = cast("ReliabilityLayer | None", reliability)
@@ -100,56 +114,86 @@ async def _coap_client(reliability: Reliability | None, security: ClientSecurity
 
 
 async def _coap_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
-                       security: ServerSecurity | None) -> ServerTransport:
+                       security: ServerSecurity | None, table: Table) -> ServerTransport:
     from .coap import CoapServerTransport
 
     layer = cast("ReliabilityLayer | None", reliability)
     return await CoapServerTransport.start(service, endpoint, reliability=layer, security=security)
 
 
-def _coap_reliability(link_kbps: float | None, options: Mapping[str, Any]) -> Reliability:
+def _coap_reliability(link_kbps: float | None, table: Table) -> Reliability:
     from .coap.reliability import make_reliability
 
-    return make_reliability(link_kbps=link_kbps, options=options)
+    return make_reliability(link_kbps=link_kbps, options=table)
 
 
-async def _zmq_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
+# The transports built on the core (transport/core.py): their options
+# records come from the table; the CoAP layer's table is its own.
+def _zmq_options(table: Table) -> ZmqOptions:
+    from .zmq.transport import ZmqOptions
+
+    return ZmqOptions(**typed_fields(ZmqOptions, table))
+
+
+def _zenoh_options(table: Table) -> ZenohOptions:
+    from .zenoh.transport import ZenohOptions
+
+    return ZenohOptions(**typed_fields(ZenohOptions, table))
+
+
+def _dds_options(table: Table) -> DdsOptions:
+    from .dds.transport import DdsOptions
+
+    return DdsOptions(**typed_fields(DdsOptions, table, settable=_DDS_TABLE_FIELDS))
+
+
+#: DdsOptions's fields a table may set (its domain settings are a record of their own).
+_DDS_TABLE_FIELDS = frozenset({
+    "max_concurrent_requests", "max_observations", "max_clients", "observe_queue", "observe_timeout_s",
+    "rediscover_first_s", "rediscover_max_s", "malformed_log_interval_s", "history_depth",
+})
+
+
+async def _zmq_client(reliability: Reliability | None, security: ClientSecurity | None,
+                      table: Table) -> ClientTransport:
     from .zmq.transport import ZmqClientTransport
 
-    return ZmqClientTransport(security=security)
+    return ZmqClientTransport(security=security, options=_zmq_options(table))
 
 
 async def _zmq_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
-                      security: ServerSecurity | None) -> ServerTransport:
+                      security: ServerSecurity | None, table: Table) -> ServerTransport:
     from .zmq.transport import ZmqServerTransport
 
-    return await ZmqServerTransport.start(service, endpoint, security=security)
+    return await ZmqServerTransport.start(service, endpoint, security=security, options=_zmq_options(table))
 
 
-async def _zenoh_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
+async def _zenoh_client(reliability: Reliability | None, security: ClientSecurity | None,
+                        table: Table) -> ClientTransport:
     from .zenoh.transport import ZenohClientTransport
 
-    return ZenohClientTransport(security=security)
+    return ZenohClientTransport(security=security, options=_zenoh_options(table))
 
 
 async def _zenoh_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
-                        security: ServerSecurity | None) -> ServerTransport:
+                        security: ServerSecurity | None, table: Table) -> ServerTransport:
     from .zenoh.transport import ZenohServerTransport
 
-    return await ZenohServerTransport.start(service, endpoint, security=security)
+    return await ZenohServerTransport.start(service, endpoint, security=security, options=_zenoh_options(table))
 
 
-async def _dds_client(reliability: Reliability | None, security: ClientSecurity | None) -> ClientTransport:
+async def _dds_client(reliability: Reliability | None, security: ClientSecurity | None,
+                      table: Table) -> ClientTransport:
     from .dds.transport import DdsClientTransport
 
-    return DdsClientTransport()
+    return DdsClientTransport(options=_dds_options(table))
 
 
 async def _dds_server(service: Service, endpoint: Endpoint, reliability: Reliability | None,
-                      security: ServerSecurity | None) -> ServerTransport:
+                      security: ServerSecurity | None, table: Table) -> ServerTransport:
     from .dds.transport import DdsServerTransport
 
-    return await DdsServerTransport.start(service, endpoint)
+    return await DdsServerTransport.start(service, endpoint, options=_dds_options(table))
 
 
 # ----------------------------------------------------------------- the registrations
@@ -160,22 +204,24 @@ REGISTERED: tuple[TransportInfo, ...] = (
                   reliability=_coap_reliability, security="oscore", resource_directory=True),
     # ZeroMQ over TCP, the seed's transport.
     TransportInfo("zmq", datagram=False, default_port=5555, open_client=_zmq_client, serve=_zmq_server,
-                  security="curve", aliases=("tcp",), recovery="tcp"),
+                  options=_zmq_options, security="curve", aliases=("tcp",), recovery="tcp"),
     # Zenoh over TCP.
     TransportInfo("zenoh", datagram=False, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
-                  security="tls", recovery="tcp"),
+                  options=_zenoh_options, security="tls", recovery="tcp"),
     # Zenoh's reliable UDP: QUIC streams without TLS, so nothing to secure it with
     # (and no DTLS link exists in Zenoh 1.x).
     TransportInfo("zenoh+udp", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
-                  recovery="quic", unsecurable_because="it is Zenoh's reliable UDP, QUIC without encryption or "
-                  "authentication, and Zenoh has no DTLS"),
+                  options=_zenoh_options, recovery="quic",
+                  unsecurable_because="it is Zenoh's reliable UDP, QUIC without encryption or authentication, "
+                  "and Zenoh has no DTLS"),
     # Zenoh over QUIC: TLS 1.3 in its handshake, mutual with the team's certificates.
     TransportInfo("zenoh+quic", datagram=True, default_port=7447, open_client=_zenoh_client, serve=_zenoh_server,
-                  security="tls", recovery="quic"),
+                  options=_zenoh_options, security="tls", recovery="quic"),
     # DDS (Cyclone DDS): RTPS over UDP, whose reliable QoS retransmits (heartbeats
     # and ACKNACKs); the PyPI wheel has no DDS Security plugins.
     TransportInfo("dds", datagram=True, default_port=7400, open_client=_dds_client, serve=_dds_server,
-                  recovery="rtps", unsecurable_because="the cyclonedds wheel carries no DDS Security plugins "
+                  options=_dds_options, recovery="rtps",
+                  unsecurable_because="the cyclonedds wheel carries no DDS Security plugins "
                   "(authentication, access control, cryptography), so DDS runs only --insecure"),
 )
 

@@ -6,7 +6,7 @@ import pytest
 
 from coapkb.security import SecurityError, mechanism_for
 from coapkb.security.mechanisms import MECHANISMS
-from coapkb.transport import Endpoint, reliability_for
+from coapkb.transport import Endpoint, check_table, open_client, reliability_for, serve
 from coapkb.transport.registry import REGISTERED, SCHEMES, UnknownTransport, find, secured_schemes, transport_for
 
 
@@ -66,3 +66,27 @@ def test_each_secured_transport_has_its_mechanism() -> None:
     with pytest.raises(SecurityError, match="the dds transport cannot be secured: the cyclonedds wheel carries no "
                                             "DDS Security plugins"):
         mechanism_for("dds")
+
+
+def test_every_transport_takes_a_table_of_tunables() -> None:
+    """A robot's ``[transport.SCHEME]``: the CoAP layer's policy, or the options of a transport without a layer."""
+    assert all(t.reliability is not None or t.options is not None for t in REGISTERED)
+    for t in REGISTERED:
+        check_table(t.scheme, {})
+        with pytest.raises(ValueError, match="^no_such_field: unknown field"):
+            check_table(t.scheme, {"no_such_field": 1})
+
+
+async def test_a_table_reaches_the_transport_it_tunes() -> None:
+    from coapkb.transport.router import Router
+    from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqServerTransport
+
+    table = {"tcp_keepalive_idle_s": 45, "server_tcp_keepalive_idle_s": 90, "max_observations": 3}
+    client = await open_client("zmq", options=table)
+    server = await serve(Router(), Endpoint("zmq", "127.0.0.1", 0), options=table)
+    try:
+        assert isinstance(client, ZmqClientTransport) and isinstance(server, ZmqServerTransport)
+        assert (client._options.tcp_keepalive_idle_s, server._observations._limit) == (45, 3)
+    finally:
+        await client.aclose()
+        await server.aclose()
