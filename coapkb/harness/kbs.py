@@ -19,8 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..feeder import FeederError
-from ..kb.named_queries import NAMED_QUERIES
-from ..kb.store import KnowledgeBase
+from ..kb.store import KnowledgeBase, named_rows
 from ..world.generator import WarehouseSpec
 from ..world.ontologies import write_ontologies
 
@@ -48,7 +47,7 @@ class TeamKBs:
 def known_robots(ontologies: Path) -> set[str]:
     """The robots the Capability KB in ``ontologies`` describes."""
     capability = KnowledgeBase.load([ontologies / "Capability.owl"])
-    rows = capability.query(NAMED_QUERIES["robot-specs"].render({})).as_dicts()  # type: ignore[union-attr]
+    rows = named_rows(capability, "robot-specs")
     return {str(row["robo_id"]) for row in rows}
 
 

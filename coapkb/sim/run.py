@@ -37,7 +37,7 @@ from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_co
 from ..host import Host
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
-from ..kb.results import QueryResult
+from ..kb.results import QueryResult, expect_ask
 from ..kb.store import KnowledgeBase
 from ..transport.base import Endpoint, TransportError
 from ..world.truth import WorldTruth
@@ -472,7 +472,7 @@ class SimulatedTeam:
                     continue
                 ask = f"ASK {{ <{ns}{label}> ?p ?o }}"
                 for robot_id, live in holders.items():
-                    if not live.query(ask).value:  # type: ignore[union-attr]
+                    if not expect_ask(live.query(ask), ask).value:
                         missing.setdefault(robot_id, []).append(label)
         return versions, missing
 
