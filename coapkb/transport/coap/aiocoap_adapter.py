@@ -138,7 +138,7 @@ DUPLICATE_ANSWER_BYTES = 1024 * 1024
 MESSAGE_OVERHEAD = 512
 
 
-class _DuplicateMemory(dict):  # type: ignore[type-arg]
+class _DuplicateMemory(dict[Any, aiocoap.Message | None]):
     """aiocoap's ``_recent_messages`` (request key -> its answer, or None
     while it is being handled), counting the payload bytes of the answers."""
 
@@ -185,7 +185,7 @@ def _uncached_member(cls: type[ExtensibleIntEnum], value: int) -> ExtensibleIntE
 def _install_uncached_members() -> None:
     if "_value2member_map_[value] = new_member" not in inspect.getsource(ExtensibleIntEnum._missing_):
         raise UnsupportedAiocoapVersion("aiocoap's ExtensibleIntEnum no longer caches unknown members as 0.4.17 did")
-    ExtensibleIntEnum._missing_ = classmethod(_uncached_member)  # type: ignore[assignment]
+    ExtensibleIntEnum._missing_ = classmethod(_uncached_member)
 
 
 def verify() -> None:
@@ -248,7 +248,7 @@ def extract_block(message: aiocoap.Message, number: int, size_exp: int, max_payl
     return message._extract_block(number, size_exp, max_payload)
 
 
-class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
+class _PipeSafeLogger(logging.LoggerAdapter[logging.Logger]):
     """A context's logger that takes aiocoap's ``exception=`` keyword.
 
     One error it logs is no error here: a request this client abandoned (a
@@ -280,7 +280,7 @@ class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
 BLOCKWISE_LOGGER = "blockwise-requester"
 
 
-class _BlockwiseRunnerLog(logging.LoggerAdapter):  # type: ignore[type-arg]
+class _BlockwiseRunnerLog(logging.LoggerAdapter[logging.Logger]):
     """The block-wise requester's logger, without one false alarm.
 
     When the caller cancels a block-wise request, aiocoap 0.4.17 cancels its

@@ -261,6 +261,6 @@ def _install_oscore_notes() -> None:
         setattr(protected_message, _PLAIN, describe(plain))
         return plain, request_id
 
-    oscore.CanProtect.protect = noting_protect  # type: ignore[method-assign]
-    oscore.CanUnprotect.unprotect = noting_unprotect  # type: ignore[method-assign]
+    oscore.CanProtect.protect = noting_protect
+    oscore.CanUnprotect.unprotect = noting_unprotect
     _NOTES_INSTALLED = True
