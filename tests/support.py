@@ -7,6 +7,7 @@ import os
 import shutil
 import socket
 import sys
+import tokenize
 from collections.abc import AsyncIterator, Iterator, Mapping
 from decimal import Decimal
 from pathlib import Path
@@ -21,6 +22,16 @@ from coapkb.transport.router import Router
 ROOT = Path(__file__).resolve().parent.parent
 ONTOLOGIES = ROOT / "ontologies"
 KB_FILES = [str(ONTOLOGIES / f"{n}.owl") for n in ("Object", "Location", "Capability")]
+
+
+def comments(root: Path) -> Iterator[tuple[str, str]]:
+    """Every comment in the Python files under ``root``: (file:line, text)."""
+    for path in sorted(root.rglob("*.py")):
+        with tokenize.open(path) as f:
+            for token in tokenize.generate_tokens(f.readline):
+                if token.type == tokenize.COMMENT:
+                    yield f"{path.relative_to(ROOT)}:{token.start[0]}", token.string
+
 
 #: Robots of the committed ontologies that can pick by gripping (Query_4), and their payloads.
 GRIPPING_ROBOTS = {

@@ -153,8 +153,8 @@ class QueryHandler:
             assert self.kb is not None
             try:
                 text = query.render(params)
-                if pinned and isinstance(self.kb, LiveKB):
-                    return self.kb.query_at(at, text)  # type: ignore[arg-type]
+                if at is not None and pinned and isinstance(self.kb, LiveKB):
+                    return self.kb.query_at(at, text)
                 return self.kb.query(text)
             except KBError as exc:
                 self.stats.failed += 1

@@ -31,10 +31,9 @@ from ..errors import CoapkbError
 from ..host import Host, operating_system
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
-from ..kb.named_queries import NAMED_QUERIES
 from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
-from ..kb.store import KnowledgeBase
+from ..kb.store import KnowledgeBase, named_rows
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
 from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, ResourceInfo, ServerTransport, TransportError
@@ -85,7 +84,7 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
     loading already refuses aisle 0 and negative racks)."""
     if kb is None:
         return
-    rows = kb.query(NAMED_QUERIES["warehouse-layout"].render({})).as_dicts()  # type: ignore[union-attr]
+    rows = named_rows(kb, "warehouse-layout")
     if not rows:
         return  # not the Location KB
     layout = layout_from_row(rows[0])

@@ -17,7 +17,7 @@ Two parts with different jobs:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from typing import Any, overload
 
 import cbor2
 
@@ -198,29 +198,43 @@ def _plan_array(plan: PlannedState | None) -> list | None:
     return [plan.aisle, plan.rack, float(plan.battery_wh), float(plan.load_kg), float(plan.payload_kg), plan.seq]
 
 
+def _invalid(what: str, value: object) -> ValueError:
+    return ValueError(f"{what}, got {value!r}")
+
+
 def _check(ok: bool, what: str, value: object) -> None:
     if not ok:
-        raise ValueError(f"{what}, got {value!r}")
+        raise _invalid(what, value)
 
+
+# Each reader returns its value as it is, narrowed by the test it passes.
 
 def _uint(value: object, what: str) -> int:
-    _check(type(value) is int and value >= 0, f"{what} must be a uint", value)  # type() is int: no bool
-    return value  # type: ignore[return-value]
+    if type(value) is int and value >= 0:  # type() is int: no bool
+        return value
+    raise _invalid(f"{what} must be a uint", value)
 
 
 def _float(value: object, what: str) -> float:
-    _check(type(value) in (float, int), f"{what} must be a number", value)
-    return value  # type: ignore[return-value]
+    if type(value) is float or type(value) is int:
+        return value
+    raise _invalid(f"{what} must be a number", value)
 
 
+@overload
+def _text(value: object, what: str) -> str: ...
+@overload
+def _text(value: object, what: str, *, null: bool) -> str | None: ...
 def _text(value: object, what: str, *, null: bool = False) -> str | None:
-    _check(type(value) is str or null and value is None, f"{what} must be text{' or null' if null else ''}", value)
-    return value  # type: ignore[return-value]
+    if type(value) is str or null and value is None:
+        return value
+    raise _invalid(f"{what} must be text{' or null' if null else ''}", value)
 
 
-def _list(value: object, what: str) -> list:
-    _check(type(value) is list, f"{what} must be an array", value)
-    return value  # type: ignore[return-value]
+def _list(value: object, what: str) -> list[Any]:
+    if type(value) is list:
+        return value
+    raise _invalid(f"{what} must be an array", value)
 
 
 def _missed(raw: object) -> tuple[tuple[int, str], ...]:
@@ -254,8 +268,8 @@ def _decision(raw: list) -> Decision:
     _check(type(reasons) is dict and all(type(k) is str and type(v) is str for k, v in reasons.items()),
            "reasons must map text to text", reasons)
     return Decision(
-        _uint(seq, "seq"), _text(obj, "object"), skipped, _text(assigned_to, "assigned-to", null=True), costs,  # type: ignore[arg-type]
+        _uint(seq, "seq"), _text(obj, "object"), skipped, _text(assigned_to, "assigned-to", null=True), costs,
         _text(error, "error", null=True), _float(coordination_s, "coordination-s"), reasons, _uint(epoch, "epoch"),
-        tuple(_text(m, "members") for m in _list(members, "members")),  # type: ignore[misc]
+        tuple(_text(m, "members") for m in _list(members, "members")),
         _text(unavailable, "unavailable", null=True), _text(skip_reason, "skip-reason", null=True),
     )

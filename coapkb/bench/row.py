@@ -124,18 +124,19 @@ class BenchRow:
         """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""
         from ..feeder.record import FateCounts  # the feeder package is heavy; report code reads rows without it
 
-        counts = (self.tasks_assigned, self.tasks_skipped, self.tasks_unassigned, self.tasks_unavailable,
-                  self.tasks_reassigned, self.tasks_errors, self.tasks_disagreements)
-        if any(n is None for n in counts):
+        columns = (self.tasks_assigned, self.tasks_skipped, self.tasks_unassigned, self.tasks_unavailable,
+                   self.tasks_reassigned, self.tasks_errors, self.tasks_disagreements)
+        counts = [n for n in columns if n is not None]
+        if len(counts) < len(columns):
             return None
         assigned, skipped, unassigned, unavailable, reassigned, errors, disagreements = counts
         reason = self.unassigned_reason or None
         not_found = self.tasks_not_found or 0
         return FateCounts(
-            tasks=sum(counts) + not_found, assigned=assigned, skipped=skipped,  # type: ignore[arg-type]
-            unassigned=unassigned, unavailable=unavailable, reassigned=reassigned,  # type: ignore[arg-type]
-            not_found=not_found, errors=errors,  # type: ignore[arg-type]
-            disagreements=disagreements, unassigned_reason=reason,  # type: ignore[arg-type]
+            tasks=sum(counts) + not_found, assigned=assigned, skipped=skipped,
+            unassigned=unassigned, unavailable=unavailable, reassigned=reassigned,
+            not_found=not_found, errors=errors,
+            disagreements=disagreements, unassigned_reason=reason,
             unassigned_reason_tasks=self.unassigned_reason_tasks or 0,
         )
 

@@ -392,7 +392,8 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
     given = [t for t in record.tasks if t.reassigned_from is None]  # re-runs of a dead robot's tasks come on top
     if len(given) != tasks:
         problems.insert(0, f"{len(given)} of {tasks} tasks recorded")
-    detected = [f.detected_after_s for f in record.faults if f.action == "kill"]
+    kills = [f.detected_after_s for f in record.faults if f.action == "kill"]
+    detected = [s for s in kills if s is not None]  # the longest, or none if a kill went undetected
     fates = FateCounts.of(record.tasks)
     row = replace(
         row,
@@ -406,7 +407,7 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
         app_bytes=record.feeder_traffic.bytes_sent + robots_traffic.bytes_sent,
         spurious_retransmissions=sum(s.spurious_retransmissions for s in stats),
         tasks_agreed=sum(1 for t in record.tasks if t.agreed),
-        fault_detected_s=max(detected) if detected and None not in detected else None,  # type: ignore[type-var]
+        fault_detected_s=max(detected) if detected and len(detected) == len(kills) else None,
         tasks_reassigned=fates.reassigned,
         tasks_unavailable=fates.unavailable,
         tasks_assigned=fates.assigned,

@@ -8,10 +8,13 @@ import asyncio
 import signal
 import sys
 from collections.abc import Awaitable, Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 from ..errors import CoapkbError
 from ..transport import ClientSecurity, Endpoint, ServerSecurity
+
+if TYPE_CHECKING:
+    from ..kb.client import KBClient
 
 T = TypeVar("T")
 
@@ -94,7 +97,7 @@ def server_security(args: argparse.Namespace) -> ServerSecurity | None:
     return server_security(args.transport, load_identity(args.credentials, args.identity))
 
 
-async def ask_robot(args: argparse.Namespace, peer: Endpoint, call: Callable[[Any], Awaitable[T]]) -> T | None:
+async def ask_robot(args: argparse.Namespace, peer: Endpoint, call: Callable[[KBClient], Awaitable[T]]) -> T | None:
     """``call`` with a :class:`~coapkb.kb.client.KBClient` to ``peer`` (the
     command's credentials and ``--timeout``); a refusal or an unreachable
     robot is printed as one line and gives None."""

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
-from ..transport.base import Endpoint
+from ..transport.base import ClientTransport, Endpoint
 from ..transport.messages import ContentFormat, Method, Request
 from .common import UserError, add_credentials, ask_robot, client_security, parse_endpoint
 from .render import render
@@ -58,7 +58,7 @@ def split_robot_uri(uri: str) -> tuple[Endpoint, str]:
 
 
 async def _query(args: argparse.Namespace) -> int:
-    from ..kb.results import GraphResult
+    from ..kb.results import AskResult, GraphResult
     from ..transport import open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")
@@ -93,15 +93,15 @@ async def _query(args: argparse.Namespace) -> int:
     if result is None:
         return 1
     sys.stdout.write(render(result, args.format))
-    if args.format == "csv" and getattr(result, "truncated", False):
+    if args.format == "csv" and not isinstance(result, AskResult) and result.truncated:
         # The table's footer and SPARQL-JSON's "truncated" say so; CSV has no room for it.
-        shown = len(result.triples if isinstance(result, GraphResult) else result.rows)  # type: ignore[union-attr]
+        shown = len(result.triples if isinstance(result, GraphResult) else result.rows)
         print(f"coapkb: {peer} truncated the answer at its row limit: the CSV holds its first {shown} rows",
               file=sys.stderr)
     return 0
 
 
-async def _observe(transport: object, peer: Endpoint, request: Request, args: argparse.Namespace) -> int:
+async def _observe(transport: ClientTransport, peer: Endpoint, request: Request, args: argparse.Namespace) -> int:
     """Print the answer, then again at every notification, until interrupted
     or the robot ends the observation."""
     from ..kb.client import decode
@@ -109,7 +109,7 @@ async def _observe(transport: object, peer: Endpoint, request: Request, args: ar
 
     count = 0
     try:
-        async for response in transport.observe(peer, request):  # type: ignore[attr-defined]
+        async for response in transport.observe(peer, request):
             if not response.status.is_success:
                 print(f"coapkb: {peer} answered {response.status.dotted} {response.text()}", file=sys.stderr)
                 return 1

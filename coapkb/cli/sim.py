@@ -8,8 +8,12 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .common import UserError
+
+if TYPE_CHECKING:
+    from ..sim import RunResult
 
 
 def add_sim(sub: argparse._SubParsersAction) -> None:
@@ -102,7 +106,7 @@ async def _sim(args: argparse.Namespace) -> int:
     return 1 if violating else 0
 
 
-def _report(run, quiet: bool) -> None:  # type: ignore[no-untyped-def]
+def _report(run: RunResult, quiet: bool) -> None:
     if run.violations:
         print(f"seed {run.seed} ({run.schedule}): VIOLATION " + " | ".join(run.violations), flush=True)
     elif run.excused and not quiet:

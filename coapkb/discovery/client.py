@@ -113,8 +113,7 @@ class DirectoryClient:
         found: dict[str, Endpoint] = {}
         try:
             async with asyncio.timeout(discovery.wait_s):
-                # observe() is an async generator: it has aclose (typed as an iterator).
-                async with contextlib.aclosing(self._client.observe(self.rd, request)) as answers:  # type: ignore[type-var]
+                async with contextlib.aclosing(self._client.observe(self.rd, request)) as answers:  # type: ignore[type-var]  # observe() is an async generator (it has aclose), typed an AsyncIterator
                     async for response in answers:
                         if not response.status.is_success:
                             raise DiscoveryError(f"endpoint lookup at {self.rd}: {response.status.dotted} {response.text()}")

@@ -13,7 +13,7 @@ from ..agent.local_health import LoopHealth
 from ..agent.robot_state import RobotState
 from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
 from ..host import Network, Sockets
-from ..transport import reliability_for
+from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response
 from .tasks import FeederError
@@ -70,7 +70,7 @@ class Channel:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
+    async def open(cls, roster: Roster, settings: FeederSettings, security: ClientSecurity | None = None,
                    network: Network | None = None) -> AsyncIterator[Channel]:
         """A client (on ``network``: the sockets unless a simulator gives one)
         and a watcher (with liveness: the feeder declares a robot down when
@@ -83,7 +83,7 @@ class Channel:
         # retries whose answers filled the robots' links.
         reliability = reliability_for(settings.transport, link_kbps=settings.link_kbps)
         client = await network.open_client(settings.transport, reliability=reliability,
-                                           security=security)  # type: ignore[arg-type]
+                                           security=security)
         # Local health: the feeder's own loop lateness, so it does not declare
         # robots down for its own busy CPU.
         health = LoopHealth()

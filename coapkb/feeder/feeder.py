@@ -17,6 +17,7 @@ from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
 from ..agent.team_view import ObservedStates, States
 from ..host import Network
+from ..transport import ClientSecurity
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
@@ -64,7 +65,7 @@ class Feeder:
 
     @classmethod
     @contextlib.asynccontextmanager
-    async def open(cls, roster: Roster, settings: FeederSettings, security: object = None,
+    async def open(cls, roster: Roster, settings: FeederSettings, security: ClientSecurity | None = None,
                    network: Network | None = None) -> AsyncIterator[Feeder]:
         async with Channel.open(roster, settings, security, network) as channel:
             yield cls(channel)

@@ -19,8 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..feeder import FeederError
-from ..kb.named_queries import NAMED_QUERIES
-from ..kb.store import KnowledgeBase
+from ..kb.store import KnowledgeBase, named_rows
 from ..world.generator import WarehouseSpec
 from ..world.ontologies import write_ontologies
 
@@ -48,7 +47,7 @@ class TeamKBs:
 def known_robots(ontologies: Path) -> set[str]:
     """The robots the Capability KB in ``ontologies`` describes."""
     capability = KnowledgeBase.load([ontologies / "Capability.owl"])
-    rows = capability.query(NAMED_QUERIES["robot-specs"].render({})).as_dicts()  # type: ignore[union-attr]
+    rows = named_rows(capability, "robot-specs")
     return {str(row["robo_id"]) for row in rows}
 
 
@@ -59,15 +58,27 @@ def generator_spec(ontologies: Path) -> WarehouseSpec | None:
         match = _GENERATED.search(f.read(_HEADER_CHARS))
     if match is None:
         return None
-    fields = {f.name: f.type for f in dataclasses.fields(WarehouseSpec)}
     values: dict[str, int] = {}
     for pair in match[1].split():
         name, _, value = pair.partition("=")
-        if name in fields and value.isdigit():
+        if value.isdigit():
             values[name] = int(value)
+    # The spec's numeric fields, each given or its default (the line names
+    # the counts and the seed; a value that is not a whole number is not read).
+    default = WarehouseSpec()
     try:
-        return WarehouseSpec(**values)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
+        return WarehouseSpec(
+            products=values.get("products", default.products),
+            aisles=values.get("aisles", default.aisles),
+            racks_per_aisle=values.get("racks_per_aisle", default.racks_per_aisle),
+            bins_per_rack=values.get("bins_per_rack", default.bins_per_rack),
+            robots=values.get("robots", default.robots),
+            seed=values.get("seed", default.seed),
+            rack_length_m=values.get("rack_length_m", default.rack_length_m),
+            aisle_spacing_m=values.get("aisle_spacing_m", default.aisle_spacing_m),
+            cross_aisle_margin_m=values.get("cross_aisle_margin_m", default.cross_aisle_margin_m),
+        )
+    except ValueError:
         return None
 
 

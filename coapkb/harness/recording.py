@@ -279,13 +279,12 @@ class _LogHandler(logging.Handler):
 def warehouse(location_kb: Path) -> tuple[Layout | None, list[Position]]:
     """The layout and the charging docks, from the Location KB's file (or a
     folder holding ``Location.owl``)."""
-    from ..kb.named_queries import NAMED_QUERIES
-    from ..kb.store import KnowledgeBase
+    from ..kb.store import KnowledgeBase, named_rows
     from ..world import layout_from_row
 
     location = KnowledgeBase.load([location_kb / "Location.owl" if location_kb.is_dir() else location_kb])
-    rows = location.query(NAMED_QUERIES["warehouse-layout"].render({})).as_dicts()  # type: ignore[union-attr]
-    docks = location.query(NAMED_QUERIES["charging-docks"].render({})).as_dicts()  # type: ignore[union-attr]
+    rows = named_rows(location, "warehouse-layout")
+    docks = named_rows(location, "charging-docks")
     layout = layout_from_row(rows[0]) if rows else None
     return layout, [Position(int(r["aisle_no"]), int(r["rack_no"])) for r in docks]
 

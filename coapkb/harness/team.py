@@ -26,7 +26,7 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 from ..agent.lease import lease_duration_s
 from ..agent.query_handler import QUERY_WIRES
@@ -45,8 +45,8 @@ from ..config import (
     dump_config,
 )
 from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, TaskRecord, feeder_security
-from ..kb.named_queries import NAMED_QUERIES
-from ..kb.store import KnowledgeBase
+from ..kb.results import expect_select
+from ..kb.store import KnowledgeBase, named_rows
 from ..security import SecurityConfig, generate_team, load_identity
 from ..security.keys import default_members
 from ..transport import SCHEMES, transport_for
@@ -179,7 +179,8 @@ class TeamSpec:
     @property
     def security_scheme(self) -> str:
         """What protects the team's messages (the registry's mechanism name: ``oscore``, ``curve``, ``tls``), or ``none``."""
-        return transport_for(self.transport).security if self.secure else "none"  # type: ignore[return-value]
+        security = transport_for(self.transport).security
+        return security if self.security and security is not None else "none"
 
     def __post_init__(self) -> None:
         if self.robots < CLUSTER_SIZE or self.robots % CLUSTER_SIZE:
@@ -239,7 +240,7 @@ def product_names(object_kb: KnowledgeBase) -> list[str]:
         f"PREFIX o: <{OBJECT_NS}> SELECT ?name WHERE {{ ?p o:Product_name ?name }} ORDER BY ?name",
         row_limit=10_000_000,
     )
-    return [str(row[0]) for row in result.rows]  # type: ignore[union-attr]
+    return [str(row[0]) for row in expect_select(result, "the product names").rows]
 
 
 def draw_tasks(
@@ -337,15 +338,24 @@ async def _sample(feeder: Feeder, every_s: float, sink: Callable[[dict[str, Robo
         sink(stats)
 
 
-def robot_starts(ontologies: Path) -> dict[str, dict[str, float | int]]:
+class RobotStart(TypedDict):
+    """A robot's start as the KBs give it: :class:`~coapkb.config.StartState`'s fields."""
+
+    aisle: int
+    rack: int
+    battery_wh: NotRequired[float]
+    payload_kg: NotRequired[float]
+
+
+def robot_starts(ontologies: Path) -> dict[str, RobotStart]:
     """Initial position, battery and payload of every robot, from the Location and
     Capability KBs (the generator puts the robots' homes and specs there)."""
     location = KnowledgeBase.load([ontologies / "Location.owl"])
     capability = KnowledgeBase.load([ontologies / "Capability.owl"])
-    starts: dict[str, dict[str, float | int]] = {}
-    for row in location.query(NAMED_QUERIES["robot-positions"].render({})).as_dicts():  # type: ignore[union-attr]
+    starts: dict[str, RobotStart] = {}
+    for row in named_rows(location, "robot-positions"):
         starts[str(row["robo_id"])] = {"aisle": int(row["aisle_no"]), "rack": int(row["rack_no"])}
-    for row in capability.query(NAMED_QUERIES["robot-specs"].render({})).as_dicts():  # type: ignore[union-attr]
+    for row in named_rows(capability, "robot-specs"):
         entry = starts.setdefault(str(row["robo_id"]), {"aisle": 1, "rack": 0})
         entry["battery_wh"] = float(row["battery"])
         entry["payload_kg"] = float(row["payload"])
@@ -392,7 +402,7 @@ def robot_configs(
                 team=team if discovery is None else {robot_id: team[robot_id]},
                 discovery=found,
                 lease_s=spec.lease_s,
-                start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),  # type: ignore[arg-type]
+                start=StartState(**starts.get(robot_id, {"aisle": 1, "rack": 0})),
                 strategy=spec.strategy,
                 central=central,
                 query_timeout_s=spec.query_timeout_s,
@@ -712,7 +722,7 @@ class Team:
             kb = KBClient(client, timeout=self.spec.query_timeout_s, cache=False)
             for cluster in self.spec.clusters():
                 holder = next(r for i, r in enumerate(cluster) if "Location" in cluster_modules(i, self.spec))
-                rows = (await kb.named(self.endpoints[holder], "robot-positions")).as_dicts()  # type: ignore[union-attr]
+                rows = expect_select(await kb.named(self.endpoints[holder], "robot-positions"), "robot-positions").as_dicts()
                 positions.update({str(r["robo_id"]): (int(r["aisle_no"]), int(r["rack_no"]))
                                   for r in rows if str(r["robo_id"]) in cluster})
         finally:

@@ -15,6 +15,7 @@ __all__ = [
     "QueryRefused",
     "QuerySyntaxError",
     "QueryTimeout",
+    "UnexpectedResult",
     "UpdateRefused",
     "short_message",
 ]
@@ -87,6 +88,11 @@ class QueryTimeout(KBError):
 
 class QueryEvaluationError(KBError):
     """The query parsed but failed while being evaluated."""
+
+
+class UnexpectedResult(KBError):
+    """A query answered with another kind of result than its caller reads
+    (an ASK's answer or a graph where SELECT rows were wanted)."""
 
 
 def short_message(exc: BaseException | str) -> str:

@@ -73,9 +73,9 @@ def _xml_root(path: Path, size: int) -> dict[str, str]:
         with path.open("rb") as f:
             for event, item in ET.iterparse(f, events=("start-ns", "start")):
                 if event == "start":
-                    root = item.tag  # type: ignore[union-attr]
+                    root = item.tag
                     break
-                prefix, uri = item  # type: ignore[misc]
+                prefix, uri = item
                 if prefix:
                     found.setdefault(prefix, uri)
                 else:

@@ -190,7 +190,7 @@ class LiveKB:
 
         # A subject and a predicate are never literals: the single-valued properties' keys.
         return [_from_ox(q.object)
-                for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]
+                for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]  # s, p: never literals
 
     def _is_base(self, triple: Triple) -> bool:
         return _quad(triple) in self._base_store

@@ -204,9 +204,9 @@ def _unique(triples: Iterable[Triple]) -> Iterator[Triple]:
             yield t
 
 
-def _triples_from_ox(result: Iterable[object], convert: Callable[[object], Term]) -> Iterator[Triple]:
+def _triples_from_ox(result: Iterable[ox.Triple], convert: Callable[[object], Term]) -> Iterator[Triple]:
     for triple in result:
-        yield convert(triple.subject), convert(triple.predicate), convert(triple.object)  # type: ignore[attr-defined]
+        yield convert(triple.subject), convert(triple.predicate), convert(triple.object)
 
 
 def _from_ox(term: object) -> Term:
@@ -215,19 +215,18 @@ def _from_ox(term: object) -> Term:
     xsd:string literals become rdflib plain literals: the same RDF 1.1 term,
     and the form rdflib's parsers produce, so both backends compare equal.
     """
-    cls = type(term)
-    if cls is ox.NamedNode:
-        return URIRef(term.value)  # type: ignore[attr-defined]
-    if cls is ox.Literal:
-        datatype = term.datatype.value  # type: ignore[attr-defined]
+    if type(term) is ox.NamedNode:
+        return URIRef(term.value)
+    if type(term) is ox.Literal:
+        datatype = term.datatype.value
         if datatype == _XSD_STRING:
-            return Literal(term.value)  # type: ignore[attr-defined]
+            return Literal(term.value)
         if datatype == _RDF_LANGSTRING:
-            return Literal(term.value, lang=term.language)  # type: ignore[attr-defined]
-        return Literal(term.value, datatype=URIRef(datatype))  # type: ignore[attr-defined]
-    if cls is ox.BlankNode:
-        return BNode(term.value)  # type: ignore[attr-defined]
-    raise QueryEvaluationError(f"cannot represent {cls.__name__} terms (RDF-star) in results")
+            return Literal(term.value, lang=term.language)
+        return Literal(term.value, datatype=URIRef(datatype))
+    if type(term) is ox.BlankNode:
+        return BNode(term.value)
+    raise QueryEvaluationError(f"cannot represent {type(term).__name__} terms (RDF-star) in results")
 
 
 def _to_ox(term: object) -> ox.NamedNode | ox.BlankNode | ox.Literal:

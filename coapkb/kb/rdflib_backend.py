@@ -9,10 +9,11 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from decimal import Decimal
 from pathlib import Path
+from typing import overload
 
 import rdflib
 from rdflib.plugins.sparql.sparql import Query as SparqlQuery
-from rdflib.term import Literal
+from rdflib.term import Literal, Node
 
 from .errors import KBError, KBLoadError, QueryEvaluationError, QuerySyntaxError, short_message
 from .limits import Deadline, take
@@ -51,14 +52,20 @@ def _canonical_lexical(datatype: str, lexical: str) -> str | None:
             d = Decimal(lexical)
             if d == 0:
                 return "0"
-            if abs(d) < Decimal("1.7e20") and -d.normalize().as_tuple().exponent <= 18:  # type: ignore[operator]
-                return format(d.normalize(), "f")
+            if abs(d) < Decimal("1.7e20"):
+                exponent = d.normalize().as_tuple().exponent  # an int: the lexical form is a finite number
+                if isinstance(exponent, int) and -exponent <= 18:
+                    return format(d.normalize(), "f")
     elif datatype == _XSD + "boolean":
         return {"1": "true", "0": "false", "true": "true", "false": "false"}.get(lexical)
     return None
 
 
-def _norm_rdflib(term: object) -> Term | None:
+@overload
+def _norm_rdflib(term: Node) -> Term: ...
+@overload
+def _norm_rdflib(term: Node | None) -> Term | None: ...
+def _norm_rdflib(term: Node | None) -> Term | None:
     """rdflib result term -> the term Oxigraph returns for the same data:
     xsd:string literals as plain literals, numbers and booleans canonical."""
     if type(term) is Literal and term.datatype is not None:
@@ -69,7 +76,7 @@ def _norm_rdflib(term: object) -> Term | None:
         canonical = _canonical_lexical(datatype, lexical)
         if canonical is not None and canonical != lexical:
             return Literal(canonical, datatype=term.datatype)
-    return term  # type: ignore[return-value]
+    return term  # type: ignore[return-value]  # rdflib says Node; a Graph's terms are URIRef, Literal, BNode
 
 
 @dataclass(frozen=True)
@@ -154,7 +161,7 @@ class RdflibBackend:
                 row_limit,
                 deadline,
             )
-            return GraphResult(tuple(triples), truncated)  # type: ignore[arg-type]
+            return GraphResult(tuple(triples), truncated)
         except KBError:
             raise
         except Exception as exc:  # broad on purpose: evaluation errors are the client's query's fault

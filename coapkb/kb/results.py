@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 from rdflib.term import BNode, Literal, URIRef
 
+from .errors import UnexpectedResult
+
 Term = URIRef | Literal | BNode
 Row = tuple[Term | None, ...]
 Triple = tuple[Term, Term, Term]
@@ -52,3 +54,19 @@ class GraphResult:
 
 
 QueryResult = SelectResult | AskResult | GraphResult
+
+
+def expect_select(result: QueryResult, what: str) -> SelectResult:
+    """``result`` as a SELECT's rows; :class:`~.errors.UnexpectedResult`
+    naming ``what`` (the query) if it is an ASK's answer or a graph."""
+    if not isinstance(result, SelectResult):
+        raise UnexpectedResult(f"{what}: expected SELECT rows, got {type(result).__name__}")
+    return result
+
+
+def expect_ask(result: QueryResult, what: str) -> AskResult:
+    """``result`` as an ASK's answer; :class:`~.errors.UnexpectedResult`
+    naming ``what`` (the query) if it is SELECT rows or a graph."""
+    if not isinstance(result, AskResult):
+        raise UnexpectedResult(f"{what}: expected an ASK answer, got {type(result).__name__}")
+    return result

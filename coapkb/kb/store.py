@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Protocol
@@ -32,11 +32,12 @@ from .errors import FeatureRefused
 from .formats import KBFile
 from .index import open_or_build_index
 from .limits import Deadline
+from .named_queries import NAMED_QUERIES
 from .oxigraph_backend import OxigraphBackend
 from .refusals import refused_feature
-from .results import QueryResult
+from .results import QueryResult, Term, expect_select
 
-__all__ = ["BACKENDS", "KnowledgeBase"]
+__all__ = ["BACKENDS", "KnowledgeBase", "named_rows"]
 
 BACKENDS = ("oxigraph", "rdflib")
 
@@ -206,3 +207,12 @@ class KnowledgeBase:
         if feature is not None:
             raise FeatureRefused(feature)
         return engine.query(sparql, row_limit, Deadline(time_budget_s))
+
+
+def named_rows(kb: KnowledgeBase, name: str, params: Mapping[str, str] | None = None) -> list[dict[str, Term]]:
+    """The rows of the named SELECT query ``name`` (:data:`~.named_queries.NAMED_QUERIES`)
+    on ``kb``, as :meth:`~.results.SelectResult.as_dicts` gives them.
+
+    Raises what :meth:`KnowledgeBase.query` raises, and
+    :class:`~.errors.UnexpectedResult` if the query is not a SELECT."""
+    return expect_select(kb.query(NAMED_QUERIES[name].render(params or {})), name).as_dicts()

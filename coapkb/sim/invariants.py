@@ -43,16 +43,16 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
         if seqs != list(range(seqs[0], seqs[0] + len(seqs))):
             yield f"cluster {index}: task numbers {seqs} have gaps or repeats"
         by_seq = {t.seq: t for t in cluster_records}
-        reruns = [t for t in cluster_records if t.reassigned_from is not None]
-        origins = [t.reassigned_from for t in reruns]
+        reruns = [(t, t.reassigned_from) for t in cluster_records if t.reassigned_from is not None]
+        origins = [origin for _, origin in reruns]
         for origin in {o for o in origins if origins.count(o) > 1}:
             yield f"cluster {index}: task {origin} went round more than once"
-        for rerun in reruns:
-            original = by_seq.get(rerun.reassigned_from)  # type: ignore[arg-type]
+        for rerun, from_seq in reruns:
+            original = by_seq.get(from_seq)
             # Sent round (orphaned): its fate says "reassigned", or "failed" when
             # its robots also disagreed (a split the schedule may excuse).
             if original is None or original.object != rerun.object or original.orphaned is None:
-                yield f"cluster {index}: task {rerun.seq} re-runs task {rerun.reassigned_from}, which was not reassigned"
+                yield f"cluster {index}: task {rerun.seq} re-runs task {from_seq}, which was not reassigned"
         for task in cluster_records:
             if task.fate == "reassigned" and task.seq not in origins:
                 yield f"cluster {index}: task {task.seq} ({task.object}) was reassigned and never ran again"

@@ -24,7 +24,7 @@ import weakref
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, cast
 
 from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
@@ -37,7 +37,7 @@ from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_co
 from ..host import Host
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
-from ..kb.results import QueryResult
+from ..kb.results import QueryResult, expect_ask
 from ..kb.store import KnowledgeBase
 from ..transport.base import Endpoint, TransportError
 from ..world.truth import WorldTruth
@@ -238,14 +238,15 @@ class _History(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            process = self.names.get(asyncio.get_running_loop())  # type: ignore[call-overload]
+            loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
         except RuntimeError:
-            process = None
+            loop = None
+        process = self.names.get(loop) if isinstance(loop, SimLoop) else None
         name = process.name if process is not None else "-"
         if record.msg is PICKED and isinstance(record.args, tuple):
-            obj, seq = record.args
+            obj, seq = cast("tuple[object, int]", record.args)  # PICKED's: the object, the task's number (%d)
             incarnation = process.incarnation if process is not None else 0
-            self.picks.append(Pick(name, incarnation, int(seq), str(obj),  # type: ignore[call-overload]
+            self.picks.append(Pick(name, incarnation, int(seq), str(obj),
                                    round(self.clock(), 6)))
             if self.trace is not None:
                 self.trace(f"pick {name} task {seq} {obj}")
@@ -273,12 +274,12 @@ def _capturing(handler: _History) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _asyncgen_hooks(owner: weakref.WeakKeyDictionary[Any, SimLoop]) -> Iterator[None]:
+def _asyncgen_hooks(owner: weakref.WeakKeyDictionary[Any, asyncio.AbstractEventLoop]) -> Iterator[None]:
     """Async generators closed on the loop that ran them, as ``run_forever``
     arranges for one real loop (the simulator steps many)."""
 
     def first(agen: Any) -> None:
-        owner[agen] = asyncio.get_running_loop()  # type: ignore[assignment]
+        owner[agen] = asyncio.get_running_loop()
 
     def finalize(agen: Any) -> None:
         loop = owner.pop(agen, None)
@@ -472,7 +473,7 @@ class SimulatedTeam:
                     continue
                 ask = f"ASK {{ <{ns}{label}> ?p ?o }}"
                 for robot_id, live in holders.items():
-                    if not live.query(ask).value:  # type: ignore[union-attr]
+                    if not expect_ask(live.query(ask), ask).value:
                         missing.setdefault(robot_id, []).append(label)
         return versions, missing
 
@@ -531,7 +532,7 @@ class SimulatedTeam:
         self.note(f"seed {self.seed}: {spec.robots} robots, {len(self.tasks)} tasks, {spec.strategy}; "
                   f"schedule: {self.schedule}")
         self.note(f"tasks: {' '.join(self.tasks)}")
-        owner: weakref.WeakKeyDictionary[Any, SimLoop] = weakref.WeakKeyDictionary()
+        owner: weakref.WeakKeyDictionary[Any, asyncio.AbstractEventLoop] = weakref.WeakKeyDictionary()
         error: str | None = None
         record: TeamRecord | None = None
         bounds: dict[str, tuple[int, int]] = {}

@@ -300,8 +300,9 @@ def _check_vars(variables: Sequence[str]) -> None:
         raise CodecError(f"duplicate variable names in {list(variables)!r}")
 
 
-def _check_triple(triple: Sequence[object], where: str) -> None:
-    """RDF well-formedness: both codecs refuse what the other could not carry."""
+def _check_triple(triple: Sequence[object], where: str) -> Triple:
+    """RDF well-formedness: both codecs refuse what the other could not carry.
+    Returns the three terms, typed."""
     if len(triple) != 3:
         raise CodecError(f"{where}: a triple needs 3 terms, got {len(triple)}")
     subject, predicate, obj = triple
@@ -311,6 +312,7 @@ def _check_triple(triple: Sequence[object], where: str) -> None:
         raise CodecError(f"{where}: predicate must be an IRI, got {predicate!r}")
     if not isinstance(obj, (URIRef, BNode, Literal)):
         raise CodecError(f"{where}: object must be an RDF term, got {obj!r}")
+    return subject, predicate, obj
 
 
 def _pays_off(prefix: str, uses: int) -> bool:
@@ -597,7 +599,7 @@ def _emit(
         for term in row:
             kind = type(term)
             if kind is Literal:
-                literal: Literal = term  # type: ignore[assignment]
+                literal: Literal = term  # type: ignore[assignment]  # kind is type(term), taken once a term; mypy does not narrow through it
             elif kind is URIRef:
                 iri(str(term), b"\x82")
                 continue
@@ -798,17 +800,17 @@ class _TermDecoder:
             return Literal("true" if item else "false", datatype=_DT_BOOLEAN, normalize=False)
         if kind is int:
             return Literal(str(item), datatype=_DT_INTEGER, normalize=False)
-        if kind is float:
-            return Literal(render_double(item), datatype=_DT_DOUBLE, normalize=False)  # type: ignore[arg-type]
-        if kind is _DecimalFraction:
-            exponent, mantissa = item.exponent, item.mantissa  # type: ignore[attr-defined]
+        if type(item) is float:
+            return Literal(render_double(item), datatype=_DT_DOUBLE, normalize=False)
+        if type(item) is _DecimalFraction:
+            exponent, mantissa = item.exponent, item.mantissa
             if type(exponent) is not int or type(mantissa) is not int:
                 raise CodecError(f"decimal fraction needs integer exponent and mantissa, got {[exponent, mantissa]!r}")
             if not -MAX_DECIMAL_SCALE <= exponent <= 0:
                 raise CodecError(f"decimal exponent {exponent} outside -{MAX_DECIMAL_SCALE}..0")
             return Literal(render_decimal(exponent, mantissa), datatype=_DT_DECIMAL, normalize=False)
-        if kind is list:
-            return self._structured(item)  # type: ignore[arg-type]
+        if type(item) is list:
+            return self._structured(item)
         raise CodecError(f"unexpected {type(item).__name__} where an RDF term belongs: {item!r}")
 
     def _structured(self, item: list[object]) -> Term:
@@ -1092,11 +1094,12 @@ def decode_json(data: bytes) -> QueryResult:
     if graph:
         if tuple(variables) != GRAPH_VARS:
             raise CodecError(f"a graph result must bind {list(GRAPH_VARS)}, got {variables!r}")
+        triples = []
         for i, triple in enumerate(rows):
             if None in triple:
                 raise CodecError(f"triple {i} leaves a position unbound")
-            _check_triple(triple, f"triple {i}")
-        return GraphResult(tuple(rows), truncated)  # type: ignore[arg-type]
+            triples.append(_check_triple(triple, f"triple {i}"))
+        return GraphResult(tuple(triples), truncated)
     return SelectResult(tuple(variables), tuple(rows), truncated)
 
 
@@ -1106,9 +1109,9 @@ def decode_json(data: bytes) -> QueryResult:
 EMBEDDED_CBOR: Final = 24
 
 
-def graph_item(triples: Sequence[Sequence[object]]) -> cbor2.CBORTag:
+def graph_item(triples: Iterable[Triple]) -> cbor2.CBORTag:
     """Triples as a compact graph embedded in a bigger message (a patch, a delta)."""
-    return cbor2.CBORTag(EMBEDDED_CBOR, encode_cbor(GraphResult(tuple(tuple(t) for t in triples))))  # type: ignore[misc]
+    return cbor2.CBORTag(EMBEDDED_CBOR, encode_cbor(GraphResult(tuple(triples))))
 
 
 def decode_graph_item(item: object, what: str) -> tuple[Triple, ...]:

@@ -8,8 +8,10 @@ import pytest
 from rdflib import Literal, URIRef
 from support import ROOT
 
+from coapkb.kb.errors import KBError, UnexpectedResult
 from coapkb.kb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
-from coapkb.kb.store import BACKENDS, KnowledgeBase
+from coapkb.kb.results import AskResult, GraphResult, SelectResult, expect_ask, expect_select
+from coapkb.kb.store import BACKENDS, KnowledgeBase, named_rows
 from coapkb.world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS, Position, layout_from_row
 from coapkb.world.generator import WarehouseSpec, generate
 from coapkb.world.vocabulary import GRIP_TYPES
@@ -28,8 +30,7 @@ def team(request: pytest.FixtureRequest) -> dict[str, KnowledgeBase]:
 
 
 def ask(team: dict[str, KnowledgeBase], query_name: str, /, **params: str) -> list[dict]:
-    query = NAMED_QUERIES[query_name]
-    return team[query.kb].query(query.render(params)).as_dicts()
+    return named_rows(team[NAMED_QUERIES[query_name].kb], query_name, params)
 
 
 def test_query1_object_exists(team: dict[str, KnowledgeBase]) -> None:
@@ -140,6 +141,20 @@ def test_robot_positions_and_specs(team: dict[str, KnowledgeBase]) -> None:
         )
         assert p["e_loaded"].toPython() == r.energy_per_m_loaded_wh
         assert p["e_pick"].toPython() == r.energy_per_pick_wh
+
+
+def test_a_result_of_another_kind_than_the_caller_reads_is_a_kb_error(team: dict[str, KnowledgeBase]) -> None:
+    rows = SelectResult(("x",), ((None,),))
+    assert expect_select(rows, "q") is rows
+    assert expect_ask(AskResult(True), "q").value is True
+    with pytest.raises(UnexpectedResult, match="robot-specs: expected SELECT rows, got AskResult") as info:
+        expect_select(AskResult(False), "robot-specs")
+    assert isinstance(info.value, KBError)
+    with pytest.raises(UnexpectedResult, match="q: expected an ASK answer, got GraphResult"):
+        expect_ask(GraphResult(), "q")
+    answer = team["Location"].query("ASK { ?s ?p ?o }")
+    with pytest.raises(UnexpectedResult, match="ASK"):
+        expect_select(answer, "ASK { ?s ?p ?o }")
 
 
 def test_layout_from_the_kb(team: dict[str, KnowledgeBase]) -> None:

@@ -119,7 +119,7 @@ _MARKER = "_coapkb_hooks"
 
 
 
-class _DuplicateMemory(dict):  # type: ignore[type-arg]
+class _DuplicateMemory(dict[Any, aiocoap.Message | None]):
     """aiocoap's ``_recent_messages`` (request key -> its answer, or None
     while it is being handled), counting the payload bytes of the answers."""
 
@@ -229,7 +229,7 @@ def extract_block(message: aiocoap.Message, number: int, size_exp: int, max_payl
     return message._extract_block(number, size_exp, max_payload)
 
 
-class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
+class _PipeSafeLogger(logging.LoggerAdapter[logging.Logger]):
     """A context's logger that takes aiocoap's ``exception=`` keyword.
 
     One error it logs is no error here: a request this client abandoned (a
@@ -261,7 +261,7 @@ class _PipeSafeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
 BLOCKWISE_LOGGER = "blockwise-requester"
 
 
-class _BlockwiseRunnerLog(logging.LoggerAdapter):  # type: ignore[type-arg]
+class _BlockwiseRunnerLog(logging.LoggerAdapter[logging.Logger]):
     """The block-wise requester's logger, without one false alarm.
 
     When the caller cancels a block-wise request, aiocoap 0.4.17 cancels its

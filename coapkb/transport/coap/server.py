@@ -235,7 +235,9 @@ class CoapServerTransport:
         notification, answer = NotificationTuning(), TransportTuning()
         # Only an observation's answers are CON; an answer to a NON try is
         # NON (the client's layer repeats the try if it is lost).
-        tuning_for: Any = lambda request: notification if request.opt.observe == 0 else answer  # noqa: E731
+        def tuning_for(request: Any) -> Any:
+            return notification if request.opt.observe == 0 else answer
+
         site = aiocoap.resource.Site()
         site.add_resource(
             [".well-known", "core"],

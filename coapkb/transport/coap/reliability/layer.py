@@ -92,6 +92,19 @@ def _failed(attempt: Attempt[Any]) -> bool:
     return task is not None and task.done() and not task.cancelled() and task.exception() is not None
 
 
+def _answer(attempt: Attempt[T]) -> T:
+    """What an answered try (:func:`_answered`) returned."""
+    assert attempt.task is not None
+    return attempt.task.result()
+
+
+def _error(attempt: Attempt[Any]) -> BaseException:
+    """What a failed try (:func:`_failed`) raised."""
+    error = attempt.task.exception() if attempt.task is not None else None
+    assert error is not None
+    return error
+
+
 @dataclass(frozen=True)
 class ReliabilitySettings:
     """Policy knobs of the layer (validated; times in seconds)."""
@@ -436,13 +449,13 @@ class ReliabilityLayer:
                     answered = [a for a in attempts if _answered(a)]
                     if answered:
                         winner = answered[0]
-                        answer = winner.task.result()  # type: ignore[union-attr]
+                        answer = _answer(winner)
                         self._on_answer(path, winner, attempts, reply_key, reply_size(answer), request_bytes)
                         return answer, winner
                     failed = [a for a in attempts if _failed(a) and id(a) not in counted]
                     if failed:
                         counted.update(id(a) for a in failed)
-                        errors.extend(a.task.exception() for a in failed)  # type: ignore[union-attr,misc]
+                        errors.extend(_error(a) for a in failed)
                         if len(errors) >= MAX_ERRORS:
                             raise errors[-1]
                         break  # the next try, at once
