@@ -330,20 +330,30 @@ class RunObserver(Protocol):
         ``error``); the link counters' columns are not yet."""
 
 
-async def _tcp_counters(testbed: Testbed, hosts: Iterable[str]) -> dict[str, tuple[int, int]]:
-    """``(RetransSegs, TCPAbortOnTimeout)`` of each host's namespace, from
-    ``/proc/net/snmp`` and ``/proc/net/netstat`` read inside it."""
+async def _tcp_counters(testbed: Testbed, hosts: Iterable[str]) -> dict[str, dict[str, int]]:
+    """The kernel's TCP counters of each host's namespace (``Tcp`` and
+    ``TcpExt`` of ``/proc/net/snmp`` and ``/proc/net/netstat`` read inside
+    it), by name."""
 
-    async def one(host: str) -> tuple[str, tuple[int, int]]:
+    async def one(host: str) -> tuple[str, dict[str, int]]:
         proc = await asyncio.create_subprocess_exec(
             *testbed.exec_args(host, ["cat", "/proc/net/snmp", "/proc/net/netstat"]),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
         )
         out, _ = await proc.communicate()
-        text = out.decode()
-        return host, (parse_proc_counter(text, "Tcp", "RetransSegs"), parse_proc_counter(text, "TcpExt", "TCPAbortOnTimeout"))
+        return host, proc_counters(out.decode(), ("Tcp", "TcpExt"))
 
     return dict(await asyncio.gather(*(one(h) for h in hosts)))
+
+
+def proc_counters(text: str, groups: Iterable[str]) -> dict[str, int]:
+    """Every counter of ``groups`` in ``/proc/net/snmp``-style text, by name."""
+    found: dict[str, int] = {}
+    for group in groups:
+        lines = [line.split()[1:] for line in text.splitlines() if line.startswith(f"{group}:")]
+        for names, values in zip(lines[::2], lines[1::2]):
+            found.update((name, int(value)) for name, value in zip(names, values) if value.lstrip("-").isdigit())
+    return found
 
 
 def parse_proc_counter(text: str, group: str, name: str) -> int:
@@ -602,8 +612,12 @@ async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: l
     if spec.log_dir is not None:
         (spec.log_dir / "record.json").write_text(json.dumps(record.to_dict(), indent=1) + "\n", encoding="utf-8")
     if tcp:
-        retransmissions = sum(after["tcp"][h][0] - before["tcp"][h][0] for h in hosts)
-        tcp_aborts: int | None = sum(after["tcp"][h][1] - before["tcp"][h][1] for h in hosts)
+        kernel = {h: {name: n - before["tcp"][h].get(name, 0) for name, n in after["tcp"][h].items()} for h in hosts}
+        retransmissions = sum(k.get("RetransSegs", 0) for k in kernel.values())
+        tcp_aborts: int | None = sum(k.get("TCPAbortOnTimeout", 0) for k in kernel.values())
+        if spec.log_dir is not None:  # what TCP did on each host, for a trace
+            changed = {h: {name: n for name, n in k.items() if n} for h, k in kernel.items()}
+            (spec.log_dir / "tcp_counters.json").write_text(json.dumps(changed, indent=1) + "\n", encoding="utf-8")
     else:
         retransmissions, tcp_aborts = coap_retx, None
     return replace(
