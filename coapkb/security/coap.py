@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-import functools
 import io
 import logging
 import math
@@ -142,43 +141,13 @@ class MissingContext(SecurityError, aiocoap.error.Error):
 CONTEXT_LOST = (oscore.NotAProtectedMessage, oscore.ProtectionInvalid, MissingContext)
 
 
-#: aiocoap's OSCORE/EDHOC internals this module relies on (aiocoap 0.4.17,
-#: pinned), with their parameters; :func:`verify` checks them, as
-#: :func:`coapkb.transport.coap.aiocoap_adapter.verify` does for the rest.
-_INTERNALS: dict[tuple[type, str], tuple[str, ...]] = {
-    (OscoreSiteWrapper, "_get_edhoc_identity"): ("origin",),
-    (OscoreSiteWrapper, "render_to_pipe"): ("pipe",),
-    (OscoreSiteWrapper, "_process_edhoc_msg12"): ("pipe",),
-    (OscoreSiteWrapper, "_process_edhoc_msg34"): ("pipe",),
-    (aiocoap_edhoc.EdhocResponderContext, "__init__"): ("responder", "c_i", "c_r", "server_credentials", "logger"),
-    (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
-    (TransportOSCORE, "__init__"): ("context", "forward_context"),
-    (TransportOSCORE, "request"): ("request",),
-    (TransportOSCORE, "_request"): ("request",),
-    (aiocoap_edhoc.EdhocInitiatorContext, "__init__"): ("initiator", "c_ours", "c_theirs", "cred_i_mode", "logger"),
-    (aiocoap_edhoc.EdhocInitiatorContext, "message_3_to_include"): (),
-    (aiocoap_edhoc.EdhocInitiatorContext, "complete_with_message_4"): ("message_4",),
-    (CredentialsMap, "find_oscore"): ("unprotected",),
-}
-
-
-@functools.cache  # once per process: reading aiocoap's source costs 20 ms of CPU each time
 def verify() -> None:
-    """Check aiocoap's version and every internal name used here; raises
-    :class:`~coapkb.transport.coap.aiocoap_adapter.UnsupportedAiocoapVersion`."""
-    import inspect
+    """Check aiocoap's version and every internal name used here (the
+    adapter keeps the list: :func:`~coapkb.transport.coap.aiocoap_adapter.verify_oscore`);
+    raises :class:`~coapkb.transport.coap.aiocoap_adapter.UnsupportedAiocoapVersion`."""
+    from ..transport.coap.aiocoap_adapter import verify_oscore
 
-    from ..transport.coap.aiocoap_adapter import SUPPORTED_AIOCOAP_VERSION, UnsupportedAiocoapVersion, check_methods
-
-    if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
-        raise UnsupportedAiocoapVersion(f"coapkb.security is verified against aiocoap {SUPPORTED_AIOCOAP_VERSION}")
-    check_methods(_INTERNALS)
-    # The replay check reads this attribute, which EDHOC contexts lack (see _TeamSiteWrapper).
-    if "echo_recovery" not in inspect.getsource(oscore.CanUnprotect.unprotect):
-        raise UnsupportedAiocoapVersion("aiocoap's OSCORE replay check changed (echo_recovery)")
-    # A responder session is half open until message_3 (see _TeamSiteWrapper._prune).
-    if "self._incomplete = False" not in inspect.getsource(aiocoap_edhoc.EdhocResponderContext):
-        raise UnsupportedAiocoapVersion("aiocoap's EDHOC responder no longer marks a session complete")
+    verify_oscore()
 
 
 def _edhoc_credentials(identity: TeamIdentity | None, peer: TeamMember | None) -> aiocoap_edhoc.EdhocCredentials:

@@ -64,6 +64,7 @@ remote without calling ``_remove_exchange``.
 from __future__ import annotations
 
 import asyncio
+import functools
 import inspect
 import logging
 from collections import OrderedDict
@@ -199,6 +200,88 @@ def verify() -> None:
         raise UnsupportedAiocoapVersion("aiocoap's MessageManager keeps its empty-ACK timers elsewhere")
     if f'getChild("{BLOCKWISE_LOGGER}")' not in inspect.getsource(aiocoap.protocol.BlockwiseRequest.__init__):
         raise UnsupportedAiocoapVersion("aiocoap's block-wise requester logs elsewhere")
+
+
+# --------------------------------------------------------------------- OSCORE and EDHOC
+# coapkb.security's classes subclass aiocoap's OSCORE site and transport and
+# its EDHOC contexts (they carry the team's policy, so they live there); the
+# private names they rely on are declared and checked here with the rest.
+
+
+def _oscore_internals() -> dict[tuple[type, str], tuple[str, ...]]:
+    from aiocoap import edhoc
+    from aiocoap.credentials import CredentialsMap
+    from aiocoap.oscore_sitewrapper import OscoreSiteWrapper
+    from aiocoap.transports.oscore import TransportOSCORE
+
+    return {
+        (OscoreSiteWrapper, "_get_edhoc_identity"): ("origin",),
+        (OscoreSiteWrapper, "render_to_pipe"): ("pipe",),
+        (OscoreSiteWrapper, "_process_edhoc_msg12"): ("pipe",),
+        (OscoreSiteWrapper, "_process_edhoc_msg34"): ("pipe",),
+        (edhoc.EdhocResponderContext, "__init__"): ("responder", "c_i", "c_r", "server_credentials", "logger"),
+        (OscoreSiteWrapper, "__init__"): ("inner_site", "server_credentials"),
+        (TransportOSCORE, "__init__"): ("context", "forward_context"),
+        (TransportOSCORE, "request"): ("request",),
+        (TransportOSCORE, "_request"): ("request",),
+        (edhoc.EdhocInitiatorContext, "__init__"): ("initiator", "c_ours", "c_theirs", "cred_i_mode", "logger"),
+        (edhoc.EdhocInitiatorContext, "message_3_to_include"): (),
+        (edhoc.EdhocInitiatorContext, "complete_with_message_4"): ("message_4",),
+        (CredentialsMap, "find_oscore"): ("unprotected",),
+    }
+
+
+@functools.cache  # once per process: reading aiocoap's source costs 20 ms of CPU each time
+def verify_oscore() -> None:
+    """Check every OSCORE/EDHOC internal coapkb.security uses, as
+    :func:`verify` does for the transport's; raises
+    :class:`UnsupportedAiocoapVersion` naming the first mismatch."""
+    from aiocoap import edhoc, oscore
+
+    if aiocoap.meta.version != SUPPORTED_AIOCOAP_VERSION:
+        raise UnsupportedAiocoapVersion(f"coapkb.security is verified against aiocoap {SUPPORTED_AIOCOAP_VERSION}")
+    check_methods(_oscore_internals())
+    # The replay check reads this attribute, which EDHOC contexts lack (coapkb.security sets it).
+    if "echo_recovery" not in inspect.getsource(oscore.CanUnprotect.unprotect):
+        raise UnsupportedAiocoapVersion("aiocoap's OSCORE replay check changed (echo_recovery)")
+    # A responder session is half open until message_3 (coapkb.security prunes by it).
+    if "self._incomplete = False" not in inspect.getsource(edhoc.EdhocResponderContext):
+        raise UnsupportedAiocoapVersion("aiocoap's EDHOC responder no longer marks a session complete")
+
+
+_PROTECTION_NOTED: set[str] = set()
+
+
+def note_protection(attribute: str, describe: Callable[[Any], Any]) -> None:
+    """Wrap OSCORE's protect and unprotect, on the classes and once per
+    process, so that every outer (protected) message carries
+    ``describe(its plaintext)`` as ``attribute``: a packet trace then names
+    what a ciphertext holds."""
+    if attribute in _PROTECTION_NOTED:
+        return
+    from aiocoap import oscore
+
+    protect, unprotect = oscore.CanProtect.protect, oscore.CanUnprotect.unprotect
+    if (tuple(inspect.signature(protect).parameters) != ("self", "message", "request_id", "kid_context")
+            or tuple(inspect.signature(unprotect).parameters) != ("self", "protected_message", "request_id")):
+        raise UnsupportedAiocoapVersion("aiocoap's OSCORE protect/unprotect changed; plaintexts cannot be noted")
+
+    # functools.wraps: inspection (verify_oscore) sees the originals.
+    @functools.wraps(protect)
+    def noting_protect(self: Any, message: Any, request_id: Any = None, *, kid_context: Any = True) -> Any:
+        outer, request_id = protect(self, message, request_id, kid_context=kid_context)
+        setattr(outer, attribute, describe(message))
+        return outer, request_id
+
+    @functools.wraps(unprotect)
+    def noting_unprotect(self: Any, protected_message: Any, request_id: Any = None) -> Any:
+        plain, request_id = unprotect(self, protected_message, request_id)
+        setattr(protected_message, attribute, describe(plain))
+        return plain, request_id
+
+    oscore.CanProtect.protect = noting_protect
+    oscore.CanUnprotect.unprotect = noting_unprotect
+    _PROTECTION_NOTED.add(attribute)
 
 
 # --------------------------------------------------------------------- small accessors

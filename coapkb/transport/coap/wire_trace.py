@@ -31,8 +31,6 @@ the byte budget's analysis.
 
 from __future__ import annotations
 
-import functools
-import inspect
 import json
 import os
 import threading
@@ -232,35 +230,9 @@ def tracer() -> WireTrace | None:
         return _TRACER
 
 
-_NOTES_INSTALLED = False
-
-
 def _install_oscore_notes() -> None:
-    """Wrap OSCORE's protect and unprotect so an outer message carries its
-    plaintext's description (see the module doc); once per process."""
-    global _NOTES_INSTALLED
-    if _NOTES_INSTALLED:
-        return
-    from aiocoap import oscore
+    """Have OSCORE's protect and unprotect note each outer message's
+    plaintext (see the module doc), through the adapter."""
+    from .aiocoap_adapter import note_protection
 
-    protect, unprotect = oscore.CanProtect.protect, oscore.CanUnprotect.unprotect
-    if (tuple(inspect.signature(protect).parameters) != ("self", "message", "request_id", "kid_context")
-            or tuple(inspect.signature(unprotect).parameters) != ("self", "protected_message", "request_id")):
-        raise RuntimeError("aiocoap's OSCORE protect/unprotect changed; the wire trace cannot note plaintexts")
-
-    # functools.wraps: inspection (coapkb.security's checks of aiocoap) sees the originals.
-    @functools.wraps(protect)
-    def noting_protect(self: Any, message: Any, request_id: Any = None, *, kid_context: Any = True) -> Any:
-        outer, request_id = protect(self, message, request_id, kid_context=kid_context)
-        setattr(outer, _PLAIN, describe(message))
-        return outer, request_id
-
-    @functools.wraps(unprotect)
-    def noting_unprotect(self: Any, protected_message: Any, request_id: Any = None) -> Any:
-        plain, request_id = unprotect(self, protected_message, request_id)
-        setattr(protected_message, _PLAIN, describe(plain))
-        return plain, request_id
-
-    oscore.CanProtect.protect = noting_protect
-    oscore.CanUnprotect.unprotect = noting_unprotect
-    _NOTES_INSTALLED = True
+    note_protection(_PLAIN, describe)
