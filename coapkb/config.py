@@ -2,58 +2,15 @@
 
 Read once at start-up and never changed while running, as in the seed.  It
 holds the robot-vs-KB map of the team, so the Query Handler knows where each
-knowledge base lives.  Every field is validated; a mistake is reported as a
-:class:`ConfigError` naming the field.
+knowledge base lives.  Every field is validated into frozen dataclasses
+(:class:`RobotConfig` and its sections); a mistake is reported as a
+:class:`ConfigError` naming the field.  Relative paths (``kb``,
+``kb_index``, ``[security] credentials``) resolve against the folder of the
+TOML file, not the working directory.
 
-Example ``Robot1.toml`` (``examples/three-robots/`` holds a whole team of
-three; relative paths, ``kb`` and ``[security] credentials``, resolve
-against the folder of the TOML file, not the working directory)::
-
-    robot_id = "Robot1"
-    bind = "coap://127.0.0.1:5721"
-    kb = ["../../ontologies/Location.owl", "../../ontologies/Object.owl"]
-    # kb_index = "/var/lib/coapkb/index"   # optional: keep the KB as an on-disk index
-    strategy = "compute-by-all"
-    # lease_s = 3.0          # picks only under a lease from a majority of the cluster; 0 = off
-    # kb_writable = true     # take writes (PATCH /kb) and replicate them with the module's holders
-    # world = "/tmp/world.sock"  # a simulated world shared with teammates (coapkb world PATH)
-
-    [start]                  # initial state; left out: the depot (aisle 1, rack 0)
-    aisle = 9                # aisles are numbered from 1; racks 0..R+1 (0, R+1: the cross-aisles)
-    rack = 6                 # checked at start-up against the Location KB (if held here)
-    battery_wh = 556.0
-    payload_kg = 60.6
-
-    [security]               # optional: OSCORE keyed by EDHOC, the team's access policy
-    credentials = "keys"     # made by: coapkb keys --team-dir DIR/keys
-
-    [team.Robot1]            # every teammate, this robot included
-    endpoint = "coap://127.0.0.1:5721"
-    kbs = ["Location", "Object"]
-    [team.Robot2]
-    endpoint = "coap://127.0.0.1:5722"
-    kbs = ["Object", "Capability"]
-    [team.Robot3]
-    endpoint = "coap://127.0.0.1:5723"
-    kbs = ["Capability", "Location"]
-
-    # Optional, with kb_writable: holders of this robot's modules in other
-    # clusters, each write passed on to them (docs/knowledge.md).
-    # [replicas.Robot4]
-    # endpoint = "coap://127.0.0.1:5724"
-    # kbs = ["Location", "Object"]
-
-    # Optional: find the teammates in a Resource Directory (RFC 9176) instead;
-    # the team table then needs this robot only, and other entries are the
-    # fallback when the directory does not answer (docs/discovery.md).
-    [discovery]
-    method = "rd"                       # "static" (default): the team table only
-    rd = "coap://127.0.0.1:5690"        # the directory; leave out to find it by multicast
-    rd_identity = "feeder"              # whose team credential it must show (OSCORE)
-    cluster = "cluster1"                # registered as the sector (d=); teammates share it
-    members = 3                         # robots of the cluster, this one included
-    lifetime_s = 60                     # registration lifetime, renewed at half of it
-    wait_s = 30.0                       # how long to wait for the whole cluster
+docs/configuration.md is the reference: an example, and every field with
+its type, default and meaning (``tests/test_configuration_doc.py`` holds it
+to this module).  ``examples/three-robots/`` holds a whole team of three.
 """
 
 from __future__ import annotations

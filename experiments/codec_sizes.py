@@ -13,7 +13,7 @@ Columns:
 * ``json``: SPARQL 1.1 Query Results JSON as ``coapkb.wire.codec.encode_json``
   writes it (no whitespace; rdflib's serialiser adds ~10 %).
 * ``cbor(json)``: the same JSON document encoded as CBOR (cbor2).
-* ``anchor``: the layout measured in docs/performance.md section 3,
+* ``anchor``: the layout measured in docs/reports/2026-11-22-performance-anchors.md section 3,
   ``[vars, prefixes, rows]`` with prefixes from the query's PREFIX lines,
   IRIs as ``[index, local]`` and native literals, rebuilt here so the 955 B
   reference can be compared on the same answer.
@@ -53,7 +53,7 @@ PREFIX = f"PREFIX ns_2: <{OBJ}>\n"
 #: (label, SPARQL).  Query_3 as in the seed paper (6 variables) and as the
 #: named query ``object-features`` (plus ?weight); 20-row answers in the
 #: 7-variable shape of a product's full record and in a 3-variable shape whose JSON is the
-#: size of the Q20 of docs/performance.md (about 5 KB).
+#: size of the Q20 of docs/reports/2026-11-22-performance-anchors.md (about 5 KB).
 QUERIES: tuple[tuple[str, str], ...] = (
     (
         "Q3 paper (1 row, 6 vars)",
@@ -172,13 +172,13 @@ def synthetic_answers() -> list[tuple[str, str, QueryResult]]:
 
 
 # --------------------------------------------------------------------------
-# The layout of docs/performance.md section 3, for comparison
+# The layout of docs/reports/2026-11-22-performance-anchors.md section 3, for comparison
 
 
 def anchor_layout(result: QueryResult, query: str) -> bytes:
     """``[vars, prefixes, rows]``, prefixes from the query's PREFIX lines.
 
-    As described in docs/performance.md section 3 (not lossless for every term:
+    As described in docs/reports/2026-11-22-performance-anchors.md section 3 (not lossless for every term:
     it was a size experiment): IRIs under a declared prefix as ``[index,
     local]``, other IRIs as text, decimals as tag 4, numbers and booleans
     native, other literals as their text.

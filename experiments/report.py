@@ -433,10 +433,10 @@ def section_notes(rows: Sequence[BenchRow]) -> list[str]:
     lines = [
         "## Where each choice wins or loses (from this data)",
         "",
-        "Why (packet traces, kernel counters, the failure modes): "
-        "[`docs/benchmarks.md`, \"What we found, and why\"](../../docs/benchmarks.md#what-we-found-and-why); "
-        "for Zenoh, [`docs/zenoh.md`, \"Where each wins and loses, and why\"]"
-        "(../../docs/zenoh.md#where-each-wins-and-loses-and-why).",
+        "Why (packet traces, kernel counters, the failure modes): the reports listed in "
+        "[`docs/results.md`](../../docs/results.md); for Zenoh, "
+        "[`docs/reports/2026-11-23-zenoh.md`, \"Where each wins and loses, and why\"]"
+        "(../../docs/reports/2026-11-23-zenoh.md#where-each-wins-and-loses-and-why).",
         "",
     ]
     df = frame(rows)

@@ -1,37 +1,19 @@
 """The fence for a robot that was only cut off: it picks only
 while it holds a lease from a majority of its cluster.
 
-A robot that was stopped (SIGSTOP, a long GC pause, a radio shadow) or cut
-off by a partition is declared down by the others, which then give its
-unexecuted tasks to survivors.  When it comes back, its Task Executor still
-holds those jobs.  The lease keeps the two from overlapping:
+A robot that was stopped or cut off is declared down by the others, which
+give its unexecuted tasks to survivors; when it comes back its Task
+Executor still holds those jobs.  :class:`Lease` keeps the two from
+overlapping: before each pick, and again when the pick is over, the robot
+needs grants from a majority of its cluster (itself counted) to a round of
+``GET /robot/lease?r=ME`` sent at ``t``, valid until ``t + lease_s`` on its
+own monotonic clock.  A teammate grants only a robot it counts as an up
+member; a robot no majority will grant drops its jobs unexecuted and says
+so in its live state (``fenced``).
 
-* **Holder.**  Before each pick the robot needs a lease covering the pick: a
-  round of ``GET /robot/lease?r=ME`` to its teammates, sent at ``t``, with
-  grants from a majority of the cluster (itself counted) makes it valid
-  until ``t + lease_s`` on its own monotonic clock, which runs on while the
-  process is stopped.  So after a stop longer than the lease it must ask
-  again before picking anything.
-* **Granter.**  A teammate grants only a robot it counts as up and as a
-  member (not declared down, not excluded, not given up on).  Once it has
-  declared the robot down it never grants that process again (a restarted
-  robot is a new process, admitted at a task boundary).
-* **Re-assigner.**  The feeder re-feeds a down robot's tasks only after every
-  survivor of its cluster has said it no longer grants it (``GET
-  /robot/lease?r=X&check``: the survivor first probes X itself), and
-  ``lease_s`` has passed since the last such answer.  Any lease the robot
-  holds was granted before that answer, was sent earlier still, and so has
-  run out: the robot cannot pick a re-assigned task's object while a
-  survivor does.
-* **Refused.**  A robot refused by so many teammates (or finding them down
-  itself) that no majority can grant it drops its jobs without executing
-  them and says so in its live state (``fenced``): the feeder sends those
-  tasks round again.
-
-A robot whose teammates are all down can no longer pick at all: it cannot
-tell "they died" from "I am cut off", and a cut-off robot picking what the
-others re-assigned is exactly what the fence prevents.  The team's record
-then says which tasks could not be done and why.
+docs/failover.md ("The fence") specifies the holder, the granter, when the
+feeder may re-feed a down robot's tasks, and why a robot whose teammates
+are all down picks nothing.
 """
 
 from __future__ import annotations

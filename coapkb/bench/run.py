@@ -5,50 +5,18 @@ This reproduces the seed paper's experiment (section IV: 3/6/9 robots,
 bytes exchanged and task completion time) on real processes and kernel
 links, and adds the comparison the seed could not make: CoAP/UDP with
 compact CBOR answers against the seed's own ZeroMQ/TCP with SPARQL text and
-SPARQL-JSON answers.
+SPARQL-JSON answers, and the other transports beside them (:data:`SYSTEMS`).
 
-Every process of a run lives in its own network namespace of a
-:class:`coapkb.bench.linkemu.Testbed`: each robot (``Robot1`` ..), the central
-server (``central``, centralised systems only) and the task feeder
-(``feeder``).  Robots and the central server get the run's
-``LinkSpec(rate_kbit=B, loss_pct=L)``; the feeder stands for the seed's
-external task source and gets an unshaped, lossless link.  The feeder itself
-is :meth:`coapkb.harness.team.Team.run`, which runs in this process; it is moved into
-its namespace with :func:`coapkb.bench.linkemu.enter_netns` for the duration of the
-run, so its sockets are created there.
+:func:`run_once` puts every process of a run in its own network namespace of
+a :class:`coapkb.bench.linkemu.Testbed`: each robot and the central server
+behind the run's ``LinkSpec``, the feeder (:meth:`coapkb.harness.team.Team.run`,
+in this process, moved into its namespace with
+:func:`coapkb.bench.linkemu.enter_netns`) on an unshaped, lossless link.  It
+reads the link counters between "team up" and "all tasks done" and returns
+one :class:`BenchRow`; it never raises, so a sweep goes on.
 
-What a row measures (see ``docs/benchmarks.md``):
-
-``wire_bytes`` / ``wire_packets``
-    Sum over every host (robots, central, feeder) of what its ``eth0`` put on
-    its link between "team up" and "all tasks done": Ethernet frames with
-    IP/UDP/TCP headers, TCP handshakes, ACKs and retransmissions, CoAP
-    retransmissions and the packets the loss rule then dropped.  The
-    benchmark's own statistics download at the end is excluded (the counters
-    are read just before it).
-``app_bytes``
-    What the robots' and the feeder's transports counted as sent (CoAP
-    datagram payloads, ZMTP frames; for Zenoh the key expressions, payloads
-    and attachments handed to it, without its own framing).  The central server keeps no counters,
-    so its replies are missing here; ``app_bytes`` is for seeing the header
-    and retransmission overhead within one row, not for comparing systems.
-``retransmissions``
-    CoAP: retransmitted confirmable messages (robots' clients, robots'
-    servers' confirmable notifications, the feeder's client).  ZeroMQ and
-    Zenoh/TCP: the kernel's ``TcpRetransSegs`` summed over every host's namespace
-    (``tcp_aborts``: its ``TCPAbortOnTimeout``, connections the kernel gave
-    up on -- keep-alive or ``TCP_USER_TIMEOUT`` -- which ZeroMQ then re-opens).
-    Zenoh over QUIC and Zenoh's reliable UDP (QUIC too): 0, QUIC retransmits
-    inside Zenoh, which does not count it.
-``security``
-    What protected the messages, as in ``coapkb team``: ``oscore`` (CoAP,
-    OSCORE keyed by EDHOC, with the team's access policy), ``curve``
-    (ZeroMQ, CurveZMQ), ``tls`` (Zenoh over TCP or QUIC, mutual TLS), or
-    ``none`` (``--insecure``, Zenoh's reliable UDP, the seed's systems).  Handshakes are on
-    the wire and counted.
-``coordination_s`` / ``completion_s``
-    From :meth:`Team.run`: feeding the first task until every cluster decided
-    its last one / until every robot also finished executing.
+docs/benchmarks.md specifies what one run is, the systems, and what every
+column of a row measures.
 """
 
 from __future__ import annotations

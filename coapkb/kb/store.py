@@ -5,7 +5,7 @@ Two interchangeable backends give identical :mod:`coapkb.kb.results`:
 * ``"oxigraph"`` (default, :mod:`.oxigraph_backend`): a pyoxigraph in-memory
   ``Store``, or an on-disk index (:mod:`.index`).  About 0.03 ms per lookup
   query, flat in the KB size, and ~20x faster loading than rdflib
-  (``docs/performance.md``).
+  (``docs/reports/2026-11-22-performance-anchors.md``, section 1).
 * ``"rdflib"`` (:mod:`.rdflib_backend`): a plain ``rdflib.Graph``, the seed
   paper's library.  Parsing a query string costs ~3 ms, so prepared queries
   are cached by query text.

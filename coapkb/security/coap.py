@@ -1,38 +1,21 @@
 """OSCORE (RFC 8613) keyed by EDHOC (RFC 9528) on coapkb's CoAP transport.
 
 aiocoap 0.4.17 does OSCORE and both EDHOC roles; coapkb adds what a team
-needs around them:
+needs around them.  :class:`ClientSecurity` runs EDHOC once per peer on
+first contact (concurrent first requests share the run), through the
+client's reliability layer, with message_3 in its own exchange, and keeps
+the OSCORE context; a peer that lost its context answers an unprotected
+4.01 and the client keys again (:meth:`ClientSecurity.forget`).
+:class:`ServerSecurity` wraps aiocoap's OSCORE site: one identity per robot,
+a 4.01 also to a NON request in an unknown context, bounded and aging
+EDHOC responder state with a rate on message_1, replays refused; it names
+the member behind each request's context (:meth:`ServerSecurity.sender`)
+and carries the team's rules (:mod:`.policy`), which the transport holds
+every resource but ``/.well-known/core`` to.
 
-Client (:class:`ClientSecurity`)
-    One EDHOC run per peer, on first contact, then the OSCORE context is
-    kept (aiocoap 0.4.17's own client path re-runs EDHOC for every request:
-    ``TransportOSCORE._request`` caches the run on itself, not on the
-    credential).  Concurrent first requests share one run.  The responder's
-    credential is looked up in the team's trust list by the key id it sends
-    (so ``coapkb query`` needs no per-robot setup), and a robot checks that
-    the endpoint it asked is the teammate its configuration puts there.
-    Message 3 travels in its own exchange (RFC 9528 appendix A.2's
-    message_4 flow), not combined with the first request (RFC 9668): the
-    ``robust`` profile retries a lost request as a new OSCORE request, which
-    would lack message 3.  The EDHOC messages go through the client's
-    reliability profile like any request (the robust layer's NON tries).  When a peer lost its context (restarted)
-    the request fails with an unprotected 4.01; the client forgets the
-    context and runs EDHOC again (:meth:`ClientSecurity.forget`).
-
-Server (:class:`ServerSecurity`)
-    aiocoap's :class:`~aiocoap.oscore_sitewrapper.OscoreSiteWrapper`
-    (unprotects, runs EDHOC as responder, protects answers and Observe
-    notifications), with: one identity per robot whatever Uri-Host the
-    client used; a 4.01 also to a NON request in an unknown context (aiocoap
-    drops it silently; the robust client would then wait out its whole
-    timeout instead of re-keying: RFC 8613 section 8.2 allows the answer);
-    a bound on responder contexts (aiocoap 0.4.17 has 47 connection
-    identifiers and never frees one); a replay refused with 4.01 (aiocoap
-    0.4.17's EDHOC contexts fail its replay check with an AttributeError).
-    It names the member behind each request's context
-    (:meth:`ServerSecurity.sender`) and carries the team's rules
-    (:mod:`.policy`), which the transport holds every resource but
-    ``/.well-known/core`` to.
+docs/security.md ("How it works, and what aiocoap 0.4.17 needed")
+specifies each of these and why; docs/aiocoap.md lists the aiocoap
+internals touched here; docs/flood.md the bounds.
 """
 
 from __future__ import annotations

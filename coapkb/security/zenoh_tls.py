@@ -2,51 +2,20 @@
 team's key material (:mod:`.tls`): the Zenoh counterpart of OSCORE on CoAP
 and CurveZMQ on ZeroMQ, so a secured benchmark compares like with like.
 
-* ``zenoh://`` endpoints become Zenoh ``tls/host:port`` links (TLS 1.3 over
-  TCP, rustls); ``zenoh+quic://`` endpoints stay ``quic/host:port`` links,
-  whose QUIC handshake is TLS 1.3 with the same configuration keys
-  (``transport/link/tls/...``), so the same certificates, checks and access
-  control hold.  ``zenoh+udp://`` has no security: Zenoh's reliable UDP is
-  QUIC with neither encryption nor authentication (and no DTLS link exists
-  in Zenoh 1.x); a secured team refuses it.
-* Both sides present their member certificate and accept only a peer whose
-  certificate the team CA issued (``enable_mtls``), so a process without a
-  team certificate, or with one from another CA, cannot open a session at
-  all: the handshake fails and the client reports the peer unreachable.
-* Host names are not checked (``verify_name_on_connect`` false): a
-  certificate names a member, not a host, and robots are addressed by IP.
-  Instead, as with CurveZMQ and EDHOC, the client checks *which* member
-  serves an endpoint: once a session is open, its link's certificate name
-  (``Link.auth_identifier``) must be the member its configuration puts at
-  that endpoint, or the session is closed and the peer is unreachable.
+A ``zenoh://`` endpoint becomes a ``tls/host:port`` link and a
+``zenoh+quic://`` endpoint keeps its ``quic/`` link with the same TLS
+configuration; ``zenoh+udp://`` cannot be secured.  Both sides present their
+member certificate and accept only the team CA's; host names are not
+checked, but the client checks that the member serving an endpoint is the
+one its configuration puts there.  Authorisation per resource
+(:class:`~.policy.AccessPolicy`) holds in two layers: Zenoh's own access
+control, keyed by the certificate's common name
+(:data:`~.policy.ROLE_RULES`), and the team's policy per request, applied to
+the member whose certificate authenticated the session the query names in
+its ``source_info``.
 
-Authorisation per resource (:class:`~.policy.AccessPolicy`), in two layers:
-
-1. **Zenoh's access control**, keyed by the certificate's common name, from
-   the rows of the team's access table that admit by role
-   (:data:`~.policy.ROLE_RULES`): a query on ``coapkb/tasks`` from anyone
-   but the feeder, or on ``coapkb/decisions`` from anyone but a robot, is
-   dropped by Zenoh itself
-   (the querier gets no reply: its client reports the peer unreachable).
-   This is bound to the TLS certificate, so no member can get round it; but
-   it sees key expressions, not coapkb's methods (they travel in the
-   attachment), so it also keeps other members from *reading* ``/tasks``,
-   stricter than the table in :mod:`.policy`.  The server refuses keys that
-   are not the canonical form of their path (a wildcard, a re-encoded
-   segment), which would otherwise reach ``/tasks`` under another key.
-   Nor may a member's session publish, declare a queryable or send replies
-   into this robot's session: Zenoh routes for a peer's clients, so a
-   member could otherwise answer queries meant for this robot, or forge
-   notifications on another observer's key.
-2. **The team's policy, per request**: Zenoh reports a link's certificate
-   name (``Link.auth_identifier``) but not which link a query came in on, so
-   the client sends its session id in the query's ``source_info`` and the
-   server takes the member whose certificate authenticated that session.
-   This binds a query to a certificate only as far as the querier tells the
-   truth about its session id: a member that rewrote its Zenoh client could
-   claim a connected teammate's id, so "only the *deciding* robot posts
-   decisions" holds against unmodified clients, while layer 1 still keeps
-   non-robots out.  OSCORE binds every request to the sender's key.
+docs/security.md ("Zenoh: mTLS") specifies both layers, what each binds a
+request to, and why; docs/zenoh.md the links and what TLS costs.
 """
 
 from __future__ import annotations

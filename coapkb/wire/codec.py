@@ -5,39 +5,18 @@ Pure functions over :mod:`coapkb.kb.results`.  Both codecs are *lossless*:
 language tag of every literal.  Decoders raise :class:`CodecError` and
 nothing else on malformed input.
 
-Compact CBOR, specified in ``docs/compact-results.cddl`` (structure) and
-``docs/compact-results.md`` (semantics, examples, sizes)::
+Compact CBOR is ``[vars, prefixes, rows]`` (SELECT), ``[null, prefixes,
+triples]`` (CONSTRUCT, DESCRIBE) or a bool (ASK), with a ``true`` fourth
+element when truncated and optionally wrapped in a stringref namespace; a
+term is a native CBOR item only when the decoder's rendering
+(:func:`render_double`, :func:`render_decimal`) gives its lexical form back
+exactly, else an explicit array.  The structure is specified in
+``docs/compact-results.cddl``, the semantics, examples, sizes and the
+alternatives considered in ``docs/compact-results.md``.
 
-    ask    = bool
-    select = [vars, prefixes, rows, ? true]        ; true = truncated
-    graph  = [null, prefixes, triples, ? true]
-    ; select/graph may be wrapped in tag 256 (stringref namespace)
-
-A term in a row is one of:
-
-================================  ==============================================
-CBOR                              RDF term
-================================  ==============================================
-``null``                          unbound (SELECT rows only)
-text                              literal without datatype (``Literal(s)``)
-int                               xsd:integer in canonical lexical form
-bool                              xsd:boolean ``"true"`` / ``"false"``
-float                             xsd:double spelled as :func:`render_double`
-``4([e, m])``                     xsd:decimal spelled as :func:`render_decimal`
-``[p, local]``                    IRI ``prefixes[p] + local``
-``[label]``                       blank node
-``[lexical, lang]``               language-tagged string
-``[lexical, code]``               literal of a :data:`WELL_KNOWN_DATATYPES` type
-``[lexical, p, local]``           literal of any other datatype
-================================  ==============================================
-
-A native form is used only when the decoder's rendering gives the lexical
-form back exactly, so ``"01"^^xsd:integer`` travels as ``["01", 3]``.
-
-The encoder is hand-written rather than built on ``cbor2.dumps``: cbor2 6.x
-costs about 1 us per nested array, which alone would exceed the budget of a
-20-row answer, and writing bytes directly gives full control of preferred
-serialisation and of stringref numbering.  Decoding uses cbor2 (C),
+The encoder is hand-written rather than built on ``cbor2.dumps`` (cbor2
+costs about 1 us per nested array, and writing bytes directly controls
+preferred serialisation and stringref numbering); decoding uses cbor2 (C),
 restricted to the tags the format allows.
 """
 

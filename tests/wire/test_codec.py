@@ -667,7 +667,7 @@ def test_json_errors_say_what_is_wrong(data: bytes, message: str) -> None:
 
 
 # --------------------------------------------------------------------------
-# Size targets (docs/performance.md section 3)
+# Size targets (docs/reports/2026-11-22-performance-anchors.md section 3)
 
 
 def test_twenty_row_warehouse_answer_fits_one_datagram() -> None:

@@ -1,40 +1,23 @@
 """User-space delay line: propagation delay, jitter and burst loss per link.
 
-The kernel here has no ``sch_netem`` (nor ``fq``/``etf``), so no qdisc can
-hold a packet for a time.  Instead the bridge namespace sends the packets of
-every host whose :class:`~.spec.LinkSpec` needs it to a netfilter queue
-(iptables ``NFQUEUE`` in the ``FORWARD`` chain, reached through
-``br_netfilter``; queue number = host index), *after* the host's uplink
-shaper and the random-loss rule, and this process gives each packet its
-verdict:
-
-* **delay and jitter** -- packet ``k`` of a link is accepted at
-  ``max(t_k + delay + U(-jitter, +jitter), release_{k-1})``, where ``t_k`` is
-  when it was read from the queue.  The ``max`` keeps each link FIFO (no
-  reordering, as on a real link and as TCP expects); under back-to-back
-  traffic it skews the jitter upwards (a packet may wait for a slower one).
-* **burst loss** -- Gilbert's two-state model per link (``Good`` loses
-  nothing, ``Bad`` loses everything; ``p`` = Good->Bad, ``r`` = Bad->Good,
-  mean loss ``p/(p+r)``, mean burst ``1/r``).  A lost packet is dropped at
-  once (it has used the sender's link, like a random loss).
-
-The verdicts go over an ``AF_NETLINK``/``NETLINK_NETFILTER`` socket spoken
-directly with the standard library -- the protocol is a few fixed structs --
-rather than through the ``NetfilterQueue`` binding, which ships only as a
-Cython source package needing a compiler and ``libnetfilter-queue-dev`` at
-install time.  Because each link is FIFO, all packets due at once are
-released with one ``NFQNL_MSG_VERDICT_BATCH`` message.
-
-The loop is ``select()`` with microsecond timeouts (asyncio's epoll selector
-rounds timeouts up to whole milliseconds) and a 1 us timer slack, in its own
-OS process per testbed, started by :class:`DelayLine` with ``ip netns exec``
-in the bridge namespace.  It therefore dies with the namespace's teardown
-(``ip netns pids``), with :func:`~.netns.cleanup_stale`, and on its own when
-its control pipe (stdin) closes, i.e. when the owning process is gone.
+The kernel here has no ``sch_netem``, so the bridge namespace sends the
+packets of every host whose :class:`~.spec.LinkSpec` needs it to a netfilter
+queue (iptables ``NFQUEUE``; queue number = host index), after the host's
+uplink shaper and the random-loss rule, and this process gives each packet
+its verdict: accepted after ``delay +- jitter`` with each link kept FIFO, or
+dropped by a Gilbert two-state burst model.  Verdicts go over an
+``AF_NETLINK`` socket spoken with the standard library, all packets due at
+once in one batch.  One process per testbed, started by :class:`DelayLine`
+with ``ip netns exec`` in the bridge namespace; it exits when its control
+pipe (stdin) closes, and dies with the namespaces.
 
 Control protocol (one JSON object per line on stdin, one reply line on
 stdout): ``{"op": "set", "queue": N, "delay_ms": .., "jitter_ms": ..,
 "p": .., "r": ..}`` and ``{"op": "stats"}``.
+
+docs/link-emulation.md ("Delay, jitter and burst loss: the delay line")
+specifies the release rule, the Gilbert mapping from a loss rate and a mean
+burst, why netlink by hand and why ``select()``, and the lifecycle.
 """
 
 from __future__ import annotations

@@ -2,63 +2,22 @@
 
 aiocoap is kept for messages, resources, Observe, block-wise transfer and
 interop; everything else coapkb needs from it (per-context traffic counters,
-per-peer retransmission timers, tolerance of late events, the block-wise
-cache's key and block extraction) reaches into names aiocoap does not
-promise to keep.  They are all here, behind one version pin, and
+per-peer retransmission timers through a :class:`ConPolicy`, tolerance of
+late events and of a pending ICMP error met by another peer's send, the
+block-wise cache's key and block extraction) reaches into names aiocoap
+does not promise to keep.  They are all here, behind one version pin, and
 :func:`verify` checks every one of them, so an upgrade fails loudly in one
 test (``tests/transport/coap/test_aiocoap_adapter.py``) instead of quietly
 reverting to stock behaviour.
 
-What is hooked, per context (never on a class, so other contexts in the
-process keep stock behaviour), by :class:`ContextHooks`:
+:class:`ContextHooks` installs the hooks per context, never on a class, so
+other contexts in the process keep stock behaviour.  The one fix made on a
+class, once, at import, is :func:`_uncached_member`: aiocoap's extensible
+enums would otherwise keep a member for every unknown value a datagram
+names, for the life of the process.
 
-* the UDP message interface's ``send`` and ``datagram_msg_received``:
-  traffic counters, and dropping datagrams whose string options are not
-  UTF-8 (aiocoap 0.4.17 lets that UnicodeDecodeError escape);
-* the UDP message interface's ``error_received``, during a send: with
-  ``IP_RECVERR`` on, an ICMP error from one peer (say, port unreachable from
-  a dead robot) also sets the socket's pending error, and Linux reports it
-  from the *next* ``sendmsg``, whoever that goes to.  aiocoap blames the
-  peer being sent to and fails its requests, and the datagram is not sent:
-  a dead robot made a live one look dead.  The error is still queued for
-  the right peer on the error queue, so here the send is simply tried
-  again; only an error the retry repeats is the destination's own;
-* the MessageManager's ``dispatch_message`` / ``dispatch_error``: a
-  response or ICMP error for a request the caller already abandoned raises
-  InvalidStateError inside aiocoap's socket callback; it is dropped;
-* the MessageManager's ``send_message``: a CON notification queued behind
-  an unacknowledged one (aiocoap keeps NSTART=1 per peer) replaces any
-  older notification of the same observation still in that queue (RFC 7641
-  section 4.5.2: only the newest state matters); on a lossy link the queue
-  otherwise grows, and a robot's decision waits behind stale live states;
-* the context's logger: aiocoap 0.4.17's ``Pipe`` logs a discarded
-  exception with ``log.error(..., exception=...)``, which ``logging``
-  rejects with a TypeError; it happens when a request the caller abandoned
-  meets the context's shutdown, and the TypeError escapes as "Task
-  exception was never retrieved";
-* the MessageManager's CON exchange methods (``_add_exchange``,
-  ``_schedule_retransmit``, ``_retransmit``, ``_remove_exchange``): a
-  :class:`ConPolicy` (Californium's layer shape: on_send / timeout /
-  on_reply / on_give_up) sets each retransmission timeout instead of
-  aiocoap's ``uniform(ACK_TIMEOUT, ACK_TIMEOUT*1.5)`` doubling.
-
-One fix is made on a class, once, at import, because the state it bounds
-is the class's: aiocoap's extensible enums (option numbers, content
-formats, codes) cache a new member for every unknown value they decode, in
-the enum's own value map, for the life of the process.  Any datagram can
-name new ones (option deltas add up past 65,535; a Content-Format or
-Accept option holds up to four bytes), so a stranger's garbage grew every
-robot's memory by megabytes, for good.  :func:`_uncached_member` makes
-the same member without keeping it; they compare as integers, as before.
-
-The call graph the CON hooks rely on (checked against aiocoap 0.4.17's
-``messagemanager.py``): ``_send_initially`` calls ``_add_exchange`` just
-before a CON's first transmission (after any NSTART backlog wait);
-``_add_exchange`` and ``_retransmit`` call ``_schedule_retransmit``, the only
-place a timeout becomes a timer; ``_retransmit`` gives up when its counter
-reaches ``MAX_RETRANSMIT``; ``dispatch_message`` calls ``_remove_exchange``
-for every incoming ACK and RST; ``dispatch_error`` drops every exchange to a
-remote without calling ``_remove_exchange``.
+docs/aiocoap.md lists every touch, why it is there, the upstream change
+that would remove it, and the call graph the CON hooks rely on.
 """
 
 from __future__ import annotations

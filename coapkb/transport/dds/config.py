@@ -3,36 +3,16 @@
 Pure functions (no Cyclone import), so the mapping can be tested and read
 on its own; :mod:`.transport` hands the XML to ``cyclonedds.domain.Domain``.
 
-Addressing
-    ``dds://HOST:PORT`` names the UDP port on which a robot's participant
-    takes *all* its RTPS traffic: discovery (SPDP/SEDP) and data.  Cyclone
-    derives a participant's ports from the DDSI port mapping (``PB + DG *
-    domain + d1 + PG * participant index``); a server sets base ``PORT``,
-    both gains 0, both unicast offsets 0 and participant index 0, so its
-    discovery and data locators are the one socket ``HOST:PORT``.  A client
-    participant takes an ephemeral port (participant index ``none``) and
-    finds the server because the server's address is its only configured
-    peer.
+A server's participant takes all its RTPS traffic, discovery and data, on
+the one port ``HOST:PORT`` (:func:`server_domain_xml`: base port ``PORT``,
+gains, offsets and participant index 0); a client's participant takes an
+ephemeral port and has that server as its only configured peer, pinged for
+ever (:func:`client_domain_xml`).  Multicast is off, every domain uses
+external domain id 0 on the wire, and :class:`DomainSettings` holds the
+slow-radio settings (heartbeat, lease, one Ethernet frame per datagram).
 
-Discovery
-    Multicast is off (the emulated radio has no multicast, and nor would a
-    robot team across access points); the client's unicast peer list holds
-    exactly the peer it talks to, with an infinite prune delay (Cyclone stops
-    pinging a configured peer after 30 s by default, which lost robots that
-    started late).  The server lists no peers: it learns each client from its
-    SPDP and answers it directly.  Every domain uses external domain id 0 on
-    the wire, so one process can hold one Cyclone domain per peer
-    (``Discovery/ExternalDomainId``) while all of them are one DDS domain.
-
-Heartbeats and lease
-    See :class:`DomainSettings`: a slow radio needs a slower heartbeat than
-    Cyclone's default.
-
-Message size
-    Cyclone's default maximum message is 14 720 bytes: one UDP datagram can
-    pack many submessages, which IP then fragments on a 1500-byte link; one
-    lost fragment loses them all.  ``MaxMessageSize`` keeps every datagram
-    within one Ethernet frame.
+docs/dds.md specifies the addressing, discovery and those settings, with
+their reasons.
 """
 
 from __future__ import annotations

@@ -1,79 +1,24 @@
 """DDS transport: a robot's resources behind DDS topics (Cyclone DDS).
 
-The agent and the benchmarks talk to :class:`~coapkb.transport.base.ClientTransport`
-and :class:`~coapkb.transport.base.ServerTransport`; this module implements both
-over Cyclone DDS (``cyclonedds``, what ROS 2 runs on by default), so the
-benchmark can compare CoAP with DDS with everything else held equal.  How an
+:class:`DdsServerTransport` is one participant in a Cyclone domain of its
+own, on its endpoint's port; it reads every client's requests from
+``coapkb_rq_S`` and answers each client on ``coapkb_rp_S_C`` and, for
+observations, ``coapkb_nt_S_C``.  :class:`DdsClientTransport` opens one
+participant per peer, lazily, whose only configured peer is that server,
+and waits for its writer to match (re-announcing itself with a back-off
+meanwhile) before it sends.  Every sample is one :class:`Envelope`: a 64-bit
+key and the CBOR envelope ZeroMQ carries (:mod:`coapkb.transport.envelope`).
+Reliability is RTPS's own; the transport never repeats a request.  How an
 endpoint becomes a Cyclone domain (ports, peers, discovery) is :mod:`.config`.
 
-Topics and QoS
-    Every sample is one :class:`Envelope`: a 64-bit key and the very CBOR
-    envelope ZeroMQ carries (:mod:`coapkb.transport.envelope`: token, CoAP
-    method or status code, options, payload), so the comparison is about
-    the middleware, not the encoding.  Between server ``S`` and client ``C``:
+Cyclone calls listeners from its own threads; they only hand the event to
+the loop (``call_soon_threadsafe``).  Domains are created on the loop's
+thread, so Cyclone's sockets belong to that thread's network namespace.
 
-    ``coapkb_rq_S`` (requests; key: the client's id)
-        RELIABLE, KEEP_LAST 64 per client, VOLATILE: a restarted server is
-        not sent old requests.  The server's one reader takes them all.
-    ``coapkb_rp_S_C`` (replies to ``C``)
-        RELIABLE, KEEP_LAST 64, TRANSIENT_LOCAL.  The server creates its
-        writer on ``C``'s first request; a reply written before ``C`` has
-        discovered that writer is delivered from its history when it has.
-    ``coapkb_nt_S_C`` (notifications; key: the observation's token)
-        RELIABLE, KEEP_LAST 1, TRANSIENT_LOCAL: per observation only the
-        newest state is kept, and a newer one replaces an older one still
-        unacknowledged on a lossy link -- RFC 7641's "latest state".
-
-    Replies and notifications thus cross the link only to the client they
-    are for.  Reliability is DDS's own (heartbeats, ACKNACKs, retransmits):
-    the transport never repeats a request.
-
-Participants and discovery
-    A server is one participant in a domain of its own, on its endpoint's
-    port.  A client opens one participant per peer, lazily on first use (as
-    the Zenoh client opens a session per peer): its own Cyclone domain whose
-    only peer is that server, so SPDP goes only where the robot talks.
-    A request first waits until its writer is matched with the server's
-    reader (DDS's publication-matched status, not a sleep).  While it waits,
-    the client re-sends its SPDP announcement with a back-off (0.25 s,
-    doubling to 4 s): Cyclone otherwise pings a peer it has not found yet
-    only every 30 s, so a robot that started before its teammate, or whose
-    first announcement was lost, stayed alone for up to 30 s.  (A
-    participant QoS update makes Cyclone republish its SPDP at once; the
-    client changes its user data to a counter.)  The server answers each
-    newly discovered client at once and repeats that for 4 s.
-
-Threads
-    Cyclone calls listeners from its own threads; they only hand the event
-    to the loop with ``call_soon_threadsafe``, and the loop takes the
-    samples.  Domains are created on the loop's thread, so Cyclone's sockets
-    and threads belong to its network namespace (the benchmark's feeder
-    moves the loop thread into a host's namespace).
-
-Errors
-    No participant discovered at the peer's address, or no reply within
-    the timeout: :class:`PeerUnreachable`.  A sample whose envelope cannot
-    be decoded is counted in ``malformed`` and dropped; a datagram that is
-    not RTPS never reaches coapkb (Cyclone drops it; its per-datagram
-    warnings are switched off, as they have no rate limit).
-
-Observe
-    The client registers with an observe request on ``rq``; the server's
-    :class:`~coapkb.transport.observation.ObservationRegistry` answers on
-    ``rp`` (``seq`` 0) and writes each later state on ``nt`` under the
-    registration's token.  Closing the iterator sends a deregistration; a
-    client whose notification reader disappears (its participant closed, or
-    its lease expired) loses all its observations.
-
-Security
-    None: the ``cyclonedds`` wheel carries no DDS Security plugins, so a
-    ``dds://`` robot can only run ``--insecure`` (the registry says why).
-
-Traffic counters
-    What this transport handed to and took from DDS: per sample the 8-byte
-    key and the envelope.  Not counted: RTPS headers and submessages,
-    discovery, heartbeats, ACKNACKs and retransmissions -- the benchmark's
-    link counters see those.
+docs/dds.md specifies the rest, with the reasons: addressing, topics and
+QoS, discovery, the settings for a slow radio, errors
+(:class:`PeerUnreachable`), Observe, security (none: the wheel has no DDS
+Security) and what the traffic counters hold.
 """
 
 from __future__ import annotations

@@ -1,90 +1,23 @@
 """Zenoh transport: a robot's resources as a Zenoh queryable, behind coapkb's interface.
 
-The agent and the benchmarks talk to :class:`~coapkb.transport.base.ClientTransport`
-and :class:`~coapkb.transport.base.ServerTransport`; this module implements both
-over Zenoh (``eclipse-zenoh``, the Rust core behind ROS 2's rmw_zenoh), so the
-benchmark can compare CoAP and ZeroMQ against the middleware robot teams pick
-today with everything else held equal.  How messages map onto Zenoh's
-queries, replies and samples is :mod:`.mapping`.
+:class:`ZenohServerTransport` opens a session in peer mode listening on its
+endpoint and declares one queryable, ``coapkb/**``.
+:class:`ZenohClientTransport` opens one client-mode session per peer, lazily,
+scouting off; when a query finds no route it closes that session and tries
+once more on a fresh one (:meth:`ZenohClientTransport._exchange`).  How
+messages map onto Zenoh's queries, replies and samples, and which locator a
+scheme becomes, is :mod:`.mapping`; mutual TLS is :mod:`.security`, a QUIC
+link without the team's keys :mod:`.anonymous_tls`.
 
-Topology: explicit endpoints, no scouting
-    A server opens a session in **peer** mode that listens on its endpoint
-    (``zenoh://h:p`` -> ``tcp/h:p``; ``zenoh+udp://`` -> ``udp/h:p?rel=1``,
-    Zenoh's reliable UDP; ``zenoh+quic://`` -> ``quic/h:p``: the table is
-    :data:`.mapping.LINK_PROTOCOLS`) and declares one queryable,
-    ``coapkb/**``.  A client opens one session per peer, in **client** mode,
-    connected to that peer's endpoint only, lazily on first use -- like ZeroMQ's DEALER per peer -- so a query reaches
-    exactly the robot it is addressed to, and nobody routes for anybody.
-    Multicast and gossip scouting are off: the emulated network has no
-    multicast, and a team's endpoints are configured anyway.  When a query
-    finds no route (its peer went away), the client closes that session --
-    which also ends Zenoh's reconnect attempts, SYNs on the radio -- and
-    tries once more on a fresh one (see :meth:`ZenohClientTransport._exchange`).
+Zenoh calls back from its own threads: every callback only copies what it
+got into Python values and hands them to the event loop
+(``call_soon_threadsafe``).  Sessions open and close on a small executor
+whose threads start from the loop's thread, so a link's socket lives in the
+loop thread's network namespace.
 
-Threads
-    Zenoh runs its own (Rust) threads and calls back into Python from them.
-    Every callback only copies what it got into Python values and hands them
-    to the event loop with ``call_soon_threadsafe``; everything else runs on
-    the loop.  Opening and closing sessions can block (a TCP connect on a
-    slow link), so those run on a small executor owned by the transport.
-    Zenoh opens a session's link on the thread that calls ``zenoh.open``,
-    and the executor's threads start from the loop's thread, so the link's
-    socket belongs to the loop thread's network namespace -- the benchmark's
-    feeder moves it there (:func:`coapkb.bench.linkemu.enter_netns`), and a
-    new transport per run follows each run's feeder namespace although
-    Zenoh's own runtime threads are started once per process
-    (``tests/bench/test_bench_zenoh.py``).  A link Zenoh re-opened by
-    itself would come from those threads: another reason the client opens
-    a fresh session instead (below).
-
-Errors
-    A peer that cannot be connected to (over TCP a dead peer refuses at once;
-    a QUIC or reliable-UDP handshake with one fails only at
-    :attr:`ZenohOptions.open_timeout_s`), that is not reachable on its
-    session (Zenoh ends the query at once without replies) even on a fresh
-    one, or that gives no answer within the timeout raises
-    :class:`PeerUnreachable`.  A query the server cannot decode gets a Zenoh
-    error reply, which the client returns as a 4.00 response.
-
-Observe
-    The client declares a subscriber on a fresh key ``coapkb-obs/<id>/<n>``,
-    then queries the resource with the observe flag and that key.  The
-    server (its :class:`~coapkb.transport.observation.ObservationRegistry`)
-    answers with the current representation (``seq`` 0) and, after
-    each change :meth:`Service.subscribe` reports, re-runs the request and
-    publishes the answer on the client's key with the next ``seq``; changes
-    arriving while one is computed are coalesced (RFC 7641's "latest state").
-    An error answer ends the observation.  The client ends it by undeclaring
-    its subscriber and sending a deregistration; the server also ends it when
-    its publisher's matching status falls to false (the observer's session
-    closed or it undeclared).
-
-Security
-    With ``security=`` (mTLS, :mod:`.security`) a ``zenoh://``
-    endpoint becomes a ``tls/`` link, and a ``zenoh+quic://`` endpoint's QUIC
-    link takes the same TLS configuration, with mutual authentication by the
-    team's certificates; the client names its session in each query's
-    ``source_info`` and the server holds the member whose certificate
-    authenticated that session to the team's access policy (refused: an
-    answer with the policy's 4.01/4.03, before the service sees it); the
-    server's Zenoh access control drops queries on ``/tasks`` and
-    ``/decisions`` from certificates whose role may not post there, and a
-    key that is not its path's canonical form gets 4.00.
-    ``zenoh+udp://`` cannot be secured (Zenoh's reliable UDP is QUIC
-    without TLS).  Without ``security=`` a QUIC link still needs TLS
-    material: :mod:`.anonymous_tls` gives the listener an ephemeral
-    certificate from a public CA that every client accepts (no authentication).
-
-Traffic counters
-    Zenoh does not expose socket byte counts, so the counters hold what this
-    transport handed to and got from Zenoh: per request the key expression
-    with its parameters, the payload and the attachment; per reply or
-    notification the key, payload and attachment.  Not counted: Zenoh's own
-    framing (a few bytes per message, batched), its session handshake,
-    declarations, keep-alives (every 2.5 s per session by default), and
-    TCP/IP -- the benchmark's link counters see those.  TCP retransmits
-    invisibly, so ``retransmissions`` stays 0.  Nor TLS's records and
-    handshake, or a secured query's ``source_info`` (a session id).
+docs/zenoh.md specifies the rest, with the reasons: the mapping and Observe,
+errors (:class:`PeerUnreachable`), the link protocols, security and what the
+traffic counters hold.
 """
 
 from __future__ import annotations

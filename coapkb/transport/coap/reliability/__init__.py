@@ -4,8 +4,8 @@
 over unambiguous samples, a window of exchanges in flight per peer, hedged
 copies when the path loses much.  :mod:`.notifications` times the server's
 CON notifications from it.  The CON profiles it was measured against
-(``rfc7252``, ``lossy-fixed``, CoCoA ``adaptive``) were retired; their
-measurements stay in ``experiments/results/`` (docs/retransmission.md).
+(``rfc7252``, ``lossy-fixed``, CoCoA ``adaptive``) were retired; what they
+measured: docs/reports/2026-11-22-con-retransmission-profiles.md.
 """
 
 from __future__ import annotations

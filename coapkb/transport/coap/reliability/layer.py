@@ -1,57 +1,22 @@
 """The reliability layer for robot-to-robot exchanges on slow, lossy links.
 
-RFC 7252's confirmable retransmission was designed for congestion, and it
-treats every loss as congestion: a 2-3 s first timeout, doubled on each
-retry, one exchange at a time per peer (NSTART=1).  On a radio link that
-loses 20 % of datagrams at random, that turns one loss into seconds of
-silence and queues every other request behind it, while TCP on the same link
-recovers in about a round trip.  This layer keeps CoAP's messages and
-options and changes how they are retried:
+RFC 7252's confirmable retransmission treats every loss as congestion (a
+2-3 s first timeout, doubled per retry, one exchange at a time per peer);
+on a radio link that loses datagrams at random, one loss becomes seconds of
+silence.  This layer keeps CoAP's messages and options and changes how they
+are retried: each try is a new NON exchange with a fresh token (so every
+answer is an unambiguous RTT sample, and the request must be idempotent);
+the timeout follows RFC 6298 over those samples plus the exchange's extra
+airtime, and grows only on evidence of a queue or of a long silence, never
+on a loss; a window of exchanges in flight per peer; and retries sent as
+two copies when the measured loss is high.  :class:`ReliabilitySettings`
+holds every knob (a robot's ``[transport.coap]`` table),
+:class:`PeerPath` one path's estimates, :class:`ReliabilityLayer` the
+exchange loop; the server's CON notifications follow the same estimates
+(:mod:`.notifications`).
 
-**Each try is a new exchange.**  A retry is a new NON message with a fresh
-token (and Message ID) carrying the same request, so the answer names the
-try it answers: every answered exchange gives an unambiguous RTT sample
-(no Karn's rule, no "weak" samples that ratchet the timeout up), a late
-answer to an earlier try still completes the request, and a try that was
-sent after that earlier try left is counted as a spurious retransmission,
-exactly.  The request must be idempotent: robots' GET/FETCH answers come
-from the server's answer cache (a query never runs twice), and their POSTs
-(tasks, decisions) are keyed by task number.
-
-**A timeout near the real round trip.**  RFC 6298 over the clean samples,
-plus, for an exchange larger than the path's usual one, the airtime of the
-extra bytes at the known link rate (a 1 KB answer at 35 kbit/s takes 0.2 s
-longer than a 100-byte one); no 0.5 s floor.  Samples are kept raw, not
-with the airtime taken out: a shaper's burst allowance (and a radio's
-frame aggregation) lets some datagrams through faster than the line rate,
-and samples cut to zero would hide the variance the timeout must cover.  The timeout does not grow on a loss: random loss is not
-congestion.  It backs off (doubling per try) only on evidence that more
-sending would hurt: the smoothed RTT has risen well above the path's
-minimum (a queue is building: FASOR's point that the round trip, not loss,
-tells congestion), or the peer has been silent for several timeouts (down,
-or cut off).  Silence backs off only up to ``silence_rto``: on a link
-that loses a fifth of the datagrams, four or five losses in a row happen
-in one run out of a few, and doubling up to ``max_rto`` then left a live
-teammate unasked for 8 s a try (the runs that took three times the
-others); a dead one is the team view's business (its liveness probes),
-and one try a second costs it about 1 kbit/s.  A silence longer than
-``long_silence_s`` backs off to ``max_rto`` again: that long is a queue, a
-central server's link kept full by a whole team's tries, not bad luck.
-
-**Several exchanges in flight per peer**, bounded by a window of about one
-bandwidth-delay product of the link (at least ``window_min``), and cut to
-``window_min`` while the path shows queueing, so robots that share a
-bottleneck do not fill it.
-
-**Redundancy that follows the measured loss.**  Above a round-trip loss of
-``hedge_retries_above`` every retry goes out as two copies spaced apart;
-above ``hedge_all_above`` the first try too.  Each copy is one more
-exchange; the first answer wins.  At 20 % loss per direction a single try
-fails 36 % of the time, a pair 13 %.
-
-Observe notifications (sent by the server as CON) follow the same path
-estimates through :class:`NotificationPolicy`: a lost notification costs
-about one timeout of that path, not RFC 7252's seconds.
+docs/reliability.md gives each choice with its reason and the measured
+figures; docs/configuration.md the settings and their defaults.
 """
 
 from __future__ import annotations
