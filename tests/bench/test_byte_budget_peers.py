@@ -1,7 +1,7 @@
 """experiments/byte_budget_peers.py and the peers' path through
 experiments/byte_budget.py: QUIC headers and frames, RTPS submessages,
 IPv4 fragments, the rows, tables and CSV of the comparison (crafted bytes,
-no root)."""
+and small loopback captures of each peer in data/peers/; no root)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import struct
 from pathlib import Path
 from typing import Any
 
+import dpkt
 import pytest
 
 from coapkb.bench.linkemu.capture import CapturedFrame
@@ -442,3 +443,44 @@ def test_tls_records_over_tcp_are_split_into_headers_tags_and_data() -> None:
     assert "crypto" not in z and pp.peer_parts(sent[4])["payload"] == 11
     for d in sent:
         assert sum(pp.peer_parts(d).values()) == d.frame
+
+
+# --------------------------------------------------------------------------- real captures
+
+PEER_CAPTURES = Path(__file__).parent / "data" / "peers"
+#: Each capture's UDP protocol (byte_budget.UDP_PROTOCOL's names); Zenoh over TLS is TCP.
+CAPTURE_UDP = {"zenoh-udp": "quic-plain", "zenoh-quic": "quic", "zenoh-tls": "coap", "dds": "rtps"}
+
+
+def classified(name: str) -> list[Any]:
+    """A capture of data/peers/ (made by make_peer_captures.py) read and
+    classified as the budget reads a run's: every frame one a host sent."""
+    with (PEER_CAPTURES / f"{name}.pcap").open("rb") as f:
+        frames = [CapturedFrame(t, "lo", "in", bytes(buf)) for t, buf in dpkt.pcap.Reader(f)]
+    sent, others = bb.datagrams_from_capture(frames, {"127.0.0.1": "lo"}, CAPTURE_UDP[name])
+    assert not others
+    bb.classify(sent, others, CAPTURE_UDP[name])
+    return sent
+
+
+def summary(datagrams: list[Any]) -> dict[str, Any]:
+    """What the budget's tables are made of: each datagram's kind, detail,
+    copy, stream bytes sent again and parts; the RTPS submessages and QUIC
+    packets by type."""
+    out = {"datagrams": [[d.kind, d.detail, d.copy, d.quic_again, [pp.peer_parts(d)[p] for p in pp.PEER_PARTS]]
+                         for d in datagrams],
+           "rtps-submessages": pp.submessage_rows(datagrams, 1), "quic-packets": pp.quic_packet_table(datagrams, 1)}
+    return json.loads(json.dumps(out))
+
+
+@pytest.mark.parametrize("name", CAPTURE_UDP)
+def test_each_real_capture_is_classified_as_the_hand_written_dissectors_did(name: str) -> None:
+    """data/peers/NAME.json: the classification of NAME.pcap by the budget's
+    hand-written dissectors (QUIC, TLS records, RTPS, Ethernet/IPv4/UDP/TCP)
+    before the kept ones replaced those that one covers; the same, datagram by datagram."""
+    expected = json.loads((PEER_CAPTURES / f"{name}.json").read_text(encoding="utf-8"))
+    got = summary(classified(name))
+    assert len(got["datagrams"]) == len(expected["datagrams"])
+    for i, (g, e) in enumerate(zip(got["datagrams"], expected["datagrams"])):
+        assert g == e, f"datagram {i + 1}"
+    assert got == expected
