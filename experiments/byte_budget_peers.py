@@ -35,6 +35,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import dpkt
+
 #: A peer datagram's bytes, by part (they add up to the frame):
 #: ``headers`` Ethernet, IPv4, UDP or TCP; ``transport`` the protocol's own
 #: headers (QUIC packet headers, packet numbers where visible, STREAM frame
@@ -545,7 +547,8 @@ def split_tls(segments: Sequence[Any]) -> None:
     ``crypto`` and the rest ``payload`` (the handshake's last flights are
     application-data records too in TLS 1.3, and count as payload here); a
     handshake, change-cipher-spec or alert record's content ``crypto``.
-    The sender's stream is read in sequence-number order (the capture holds
+    The records are dpkt's; the sender's stream they are read from is put
+    together here, in sequence-number order (the capture holds
     what each host sent, before any loss, so it has no holes); a segment
     sent again gets the split of the bytes it repeats.  A flow whose stream
     does not start with a TLS handshake record is left alone."""
@@ -583,16 +586,20 @@ def split_tls(segments: Sequence[Any]) -> None:
 
 
 def _tls_labels(stream: bytes) -> list[tuple[int, int, str]]:
+    """A sender's TLS stream by part: its records as dpkt reads them, up to
+    the first that is not TLS or that the capture holds only part of."""
     labels: list[tuple[int, int, str]] = []
     pos = 0
     while pos + TLS_HEADER <= len(stream):
-        kind, major = stream[pos], stream[pos + 1]
-        length = int.from_bytes(stream[pos + 3:pos + 5], "big")
-        if kind not in (20, 21, 22, 23) or major != 3:
+        try:
+            record = dpkt.ssl.TLSRecord(stream[pos:])
+        except dpkt.NeedData:
+            break  # cut short: the rest stays payload
+        if record.type not in (20, 21, 22, 23) or record.version >> 8 != 3:
             break  # not TLS from here on: the rest stays payload
         labels.append((pos, pos + TLS_HEADER, "transport"))
-        body, end = pos + TLS_HEADER, pos + TLS_HEADER + length
-        if kind == 23 and length >= TLS_SEALED_TAIL:
+        body, end = pos + TLS_HEADER, pos + TLS_HEADER + record.length
+        if record.type == 23 and record.length >= TLS_SEALED_TAIL:
             labels += [(body, end - TLS_SEALED_TAIL, "payload"), (end - TLS_SEALED_TAIL, end, "crypto")]
         else:
             labels.append((body, end, "crypto"))
