@@ -19,11 +19,15 @@ venv: $(VENV)/.installed
 
 # Debian packages used by the interop and link-emulation tests (needs root; skipped otherwise).
 # iptables: its NFQUEUE target feeds the link emulator's delay line (this kernel's nftables has no queue).
+# tshark: Wireshark's dissectors, for the byte budget's RTPS (experiments/byte_budget_peers.py); asked
+# whether non-root users may capture, it is told no.
 system-deps:
 	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  command -v coap-client-notls >/dev/null && command -v nft >/dev/null && command -v tc >/dev/null \
-	    && command -v iptables >/dev/null || { \
-	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 iptables >/dev/null; }; \
+	    && command -v iptables >/dev/null && command -v tshark >/dev/null || { \
+	    echo "wireshark-common wireshark-common/install-setuid boolean false" | debconf-set-selections; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libcoap3-bin nftables iproute2 iptables \
+	      tshark >/dev/null; }; \
 	else echo "system-deps: not root or no apt-get; interop/netns tests will skip"; fi
 
 demo: venv

@@ -55,6 +55,7 @@ import csv
 import json
 import math
 import os
+import socket
 import statistics
 import sys
 import tempfile
@@ -64,6 +65,8 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import dpkt
 
 from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap
 from experiments import byte_budget_peers as peers  # the peers' protocols (QUIC, RTPS): packets alone, no traces
@@ -181,22 +184,29 @@ class Datagram:
         return self.coap is not None and self.coap.code >= 64
 
 
+def ipv4(frame: bytes) -> dpkt.ip.IP | None:
+    """The IPv4 packet of an Ethernet frame, dissected by dpkt (its UDP or
+    TCP segment too, unless it is a fragment after the first), else None."""
+    try:
+        ip = dpkt.ethernet.Ethernet(frame).data
+    except dpkt.Error:
+        return None
+    return ip if isinstance(ip, dpkt.ip.IP) else None
+
+
+def _udp(ip: dpkt.ip.IP) -> tuple[str, str, int, int, int, bytes] | None:
+    udp = ip.data
+    if not isinstance(udp, dpkt.udp.UDP):
+        return None
+    return (socket.inet_ntoa(ip.src), socket.inet_ntoa(ip.dst), udp.sport, udp.dport,
+            ETH_HEADER + ip.hl * 4 + UDP_HEADER, bytes(udp.data))
+
+
 def parse_frame(frame: bytes) -> tuple[str, str, int, int, int, bytes] | None:
     """(source IP, destination IP, source port, destination port, header
     bytes, UDP payload) of an Ethernet/IPv4/UDP frame, else None."""
-    if len(frame) < ETH_HEADER + 20 or frame[12:14] != b"\x08\x00" or frame[ETH_HEADER] >> 4 != 4:
-        return None
-    ihl = (frame[ETH_HEADER] & 0x0F) * 4
-    if frame[ETH_HEADER + 9] != 17:
-        return None
-    ip_len = int.from_bytes(frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
-    udp = ETH_HEADER + ihl
-    src = ".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16])
-    dst = ".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20])
-    sport = int.from_bytes(frame[udp:udp + 2], "big")
-    dport = int.from_bytes(frame[udp + 2:udp + 4], "big")
-    payload = frame[udp + UDP_HEADER:ETH_HEADER + ip_len]
-    return src, dst, sport, dport, udp + UDP_HEADER, bytes(payload)
+    ip = ipv4(frame)
+    return None if ip is None else _udp(ip)
 
 
 @dataclass(frozen=True)
@@ -210,41 +220,10 @@ class OtherFrame:
     icmp: bool
 
 
-def parse_tcp(frame: bytes) -> tuple[str, str, int, int, int, int, int, bytes] | None:
-    """(source IP, destination IP, source port, destination port, header
-    bytes (Ethernet, IPv4, TCP with options), flags, sequence number, payload)
-    of an Ethernet/IPv4/TCP frame, else None."""
-    if len(frame) < ETH_HEADER + 40 or frame[12:14] != b"\x08\x00" or frame[ETH_HEADER] >> 4 != 4:
-        return None
-    if frame[ETH_HEADER + 9] != 6:
-        return None
-    ihl = (frame[ETH_HEADER] & 0x0F) * 4
-    ip_len = int.from_bytes(frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
-    tcp = ETH_HEADER + ihl
-    offset = (frame[tcp + 12] >> 4) * 4
-    src = ".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16])
-    dst = ".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20])
-    return (src, dst, int.from_bytes(frame[tcp:tcp + 2], "big"), int.from_bytes(frame[tcp + 2:tcp + 4], "big"),
-            tcp + offset, frame[tcp + 13], int.from_bytes(frame[tcp + 4:tcp + 8], "big"),
-            bytes(frame[tcp + offset:ETH_HEADER + ip_len]))
-
-
 _SYN, _FIN, _RST = 0x02, 0x01, 0x04
 
 #: What a run's UDP datagrams carry, by the bench's transport scheme (CoAP's otherwise).
 UDP_PROTOCOL = {"zenoh+quic": "quic", "zenoh+udp": "quic-plain", "dds": "rtps"}
-
-
-def ip_fragment(frame: bytes) -> tuple[int, bool, int] | None:
-    """(identification, more fragments, offset in bytes) of an IPv4 frame
-    that is a fragment, else None."""
-    if len(frame) < ETH_HEADER + 20 or frame[12:14] != b"\x08\x00":
-        return None
-    word = int.from_bytes(frame[ETH_HEADER + 6:ETH_HEADER + 8], "big")
-    more, offset = bool(word & 0x2000), (word & 0x1FFF) * 8
-    if not more and not offset:
-        return None
-    return int.from_bytes(frame[ETH_HEADER + 4:ETH_HEADER + 6], "big"), more, offset
 
 
 def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str],
@@ -255,7 +234,8 @@ def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str],
     carry (``coap``, ``quic``, ``quic-plain``, ``rtps``; see
     :data:`UDP_PROTOCOL`).  An IPv4 fragment after a datagram's first is a
     datagram of its own (``fragment_of`` the first), and the first's
-    ``data`` the whole datagram once every fragment was seen."""
+    ``data`` the whole datagram once every fragment was seen.  Ethernet,
+    IPv4, UDP and TCP are dissected by dpkt."""
     sent: list[Datagram] = []
     waiting: dict[bytes, list[Datagram]] = defaultdict(list)
     other: list[OtherFrame] = []
@@ -263,38 +243,36 @@ def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str],
     proto = udp.split("-")[0]
     for f in sorted(frames, key=lambda f: f.t):
         if f.direction == "in":
-            fragment = ip_fragment(f.frame)
-            if fragment is not None and fragment[2] > 0:
-                d = _continuation(f, fragment, hosts, pieces, proto)
+            ip = ipv4(f.frame)
+            parsed = None if ip is None or ip.offset else _udp(ip)
+            if ip is not None and ip.offset:  # an IPv4 fragment after the first
+                d = _continuation(f, ip, hosts, pieces, proto)
                 if d is None:
-                    other.append(_other_frame(f, hosts))
+                    other.append(_other_frame(f, ip, hosts))
                     continue
+            elif ip is not None and isinstance(ip.data, dpkt.tcp.TCP):
+                tcp = ip.data
+                src, dst = socket.inet_ntoa(ip.src), socket.inet_ntoa(ip.dst)
+                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), tcp.sport, tcp.dport, len(f.frame),
+                             ETH_HEADER + ip.hl * 4 + tcp.off * 4, bytes(tcp.data), tcp=(tcp.flags, tcp.seq),
+                             proto="tcp")
+            elif ip is None or parsed is None:
+                other.append(_other_frame(f, ip, hosts))
+                continue
             else:
-                parsed = parse_frame(f.frame)
-                segment = parse_tcp(f.frame) if parsed is None else None
-                if segment is not None:
-                    src, dst, sport, dport, headers, flags, seq, data = segment
-                    d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers,
-                                 data, tcp=(flags, seq), proto="tcp")
-                elif parsed is None:
-                    other.append(_other_frame(f, hosts))
-                    continue
-                else:
-                    src, dst, sport, dport, headers, data = parsed
-                    d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers,
-                                 data, proto=proto)
-                    if fragment is not None:  # the first fragment: its UDP header and the start
-                        ihl = (f.frame[ETH_HEADER] & 0x0F) * 4
-                        ip_len = int.from_bytes(f.frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
-                        d.whole = False
-                        p = pieces.setdefault((src, dst, fragment[0]), {"head": None, "parts": {}, "end": None})
-                        p["head"] = d
-                        p["parts"][0] = bytes(f.frame[ETH_HEADER + ihl:ETH_HEADER + ip_len])
-                    elif proto == "coap":
-                        try:
-                            d.coap = split_coap(data)
-                        except ValueError:
-                            d.coap = None
+                src, dst, sport, dport, headers, data = parsed
+                d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), sport, dport, len(f.frame), headers,
+                             data, proto=proto)
+                if ip.mf:  # the first fragment: its UDP header and the start
+                    d.whole = False
+                    p = pieces.setdefault((src, dst, ip.id), {"head": None, "parts": {}, "end": None})
+                    p["head"] = d
+                    p["parts"][0] = ip.data.pack_hdr() + data
+                elif proto == "coap":
+                    try:
+                        d.coap = split_coap(data)
+                    except ValueError:
+                        d.coap = None
             sent.append(d)
             waiting[f.frame].append(d)
         else:
@@ -318,25 +296,22 @@ def datagrams_from_capture(frames: Iterable[Any], hosts: Mapping[str, str],
     return sent, other
 
 
-def _continuation(f: Any, fragment: tuple[int, bool, int], hosts: Mapping[str, str],
+def _continuation(f: Any, ip: dpkt.ip.IP, hosts: Mapping[str, str],
                   pieces: dict[tuple[Any, ...], dict[str, Any]], proto: str) -> Datagram | None:
     """An IPv4 fragment after the first, as a datagram of its own (no UDP header)."""
-    frame = f.frame
-    if frame[ETH_HEADER + 9] != 17:
+    if ip.p != dpkt.ip.IP_PROTO_UDP:
         return None
-    ihl = (frame[ETH_HEADER] & 0x0F) * 4
-    ip_len = int.from_bytes(frame[ETH_HEADER + 2:ETH_HEADER + 4], "big")
-    src = ".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16])
-    dst = ".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20])
-    ident, more, offset = fragment
-    p = pieces.setdefault((src, dst, ident), {"head": None, "parts": {}, "end": None})
-    piece = bytes(frame[ETH_HEADER + ihl:ETH_HEADER + ip_len])
+    src, dst = socket.inet_ntoa(ip.src), socket.inet_ntoa(ip.dst)
+    offset = ip.offset * 8
+    p = pieces.setdefault((src, dst, ip.id), {"head": None, "parts": {}, "end": None})
+    piece = bytes(ip.data)
     p["parts"][offset] = piece
-    if not more:
+    if not ip.mf:
         p["end"] = offset + len(piece)
     head = p["head"]
     d = Datagram(f.t, hosts.get(src, src), hosts.get(dst, dst), 0 if head is None else head.sport,
-                 0 if head is None else head.dport, len(frame), ETH_HEADER + ihl, b"", proto=proto, fragment_of=head)
+                 0 if head is None else head.dport, len(f.frame), ETH_HEADER + ip.hl * 4, b"", proto=proto,
+                 fragment_of=head)
     if head is not None:
         head.fragments += 1
     else:
@@ -344,15 +319,11 @@ def _continuation(f: Any, fragment: tuple[int, bool, int], hosts: Mapping[str, s
     return d
 
 
-def _other_frame(f: Any, hosts: Mapping[str, str]) -> OtherFrame:
-    frame = f.frame
-    src = dst = "?"
-    icmp = False
-    if len(frame) >= ETH_HEADER + 20 and frame[12:14] == b"\x08\x00":
-        src = hosts.get(".".join(str(b) for b in frame[ETH_HEADER + 12:ETH_HEADER + 16]), "?")
-        dst = hosts.get(".".join(str(b) for b in frame[ETH_HEADER + 16:ETH_HEADER + 20]), "?")
-        icmp = frame[ETH_HEADER + 9] == 1
-    return OtherFrame(f.t, src, dst, len(frame), icmp)
+def _other_frame(f: Any, ip: dpkt.ip.IP | None, hosts: Mapping[str, str]) -> OtherFrame:
+    if ip is None:
+        return OtherFrame(f.t, "?", "?", len(f.frame), False)
+    return OtherFrame(f.t, hosts.get(socket.inet_ntoa(ip.src), "?"), hosts.get(socket.inet_ntoa(ip.dst), "?"),
+                      len(f.frame), ip.p == dpkt.ip.IP_PROTO_ICMP)
 
 
 # --------------------------------------------------------------------------- traces

@@ -1,8 +1,9 @@
 """The byte budget of the peers of 2026: QUIC (Zenoh over QUIC and over its
 reliable UDP) and RTPS (DDS), from the packets alone.
 
-A sibling of ``experiments/byte_budget.py``, which runs, captures and joins;
-this module only reads bytes (``struct`` and slicing, no dependency):
+A sibling of ``experiments/byte_budget.py``, which runs, captures and joins
+(and reads Ethernet, IPv4, UDP and TCP with dpkt); this module tells what the
+peers' datagrams hold:
 
 * **QUIC** (RFC 9000): every UDP datagram split into its QUIC packets
   (several when coalesced), each by its header: long (Initial, 0-RTT,
@@ -24,16 +25,38 @@ this module only reads bytes (``struct`` and slicing, no dependency):
 
 Each datagram gets a kind (the budget's line) and its bytes split into
 :data:`PEER_PARTS`, which add up to the frame.
+
+Dissected by a kept dissector where one covers the protocol:
+
+* RTPS, its parameter lists and their strings (SEDP's topic names):
+  Wireshark's RTPS dissector, one tshark run over a capture's RTPS datagrams
+  (:func:`rtps_messages`; Debian's ``tshark``, which ``make test`` installs);
+* TLS records over TCP: dpkt's (``dpkt.ssl``).
+
+Hand-written, because none covers them:
+
+* QUIC headers and frames: Wireshark tries to decrypt Zenoh's reliable UDP (its no-op protection is not QUIC's) and finds it malformed, and on Zenoh's QUIC loses the short headers whose connection id came in an encrypted frame (half of them); dpkt has no QUIC.
+* Zenoh's batches in QUIC stream data (:func:`zenoh_batches`): neither Wireshark 4.0 nor dpkt has a dissector of Zenoh.
+* The sender's TCP stream that TLS records are read from: dpkt does not reassemble TCP, and tshark places records in the stream it reassembles, not in the segments the budget splits.
+* coapkb's own sample in an RTPS DATA (:func:`user_sample_body`): a type of coapkb's, which no dissector knows.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
 import statistics
 import struct
+import subprocess
+import tempfile
+import xml.etree.ElementTree as ET
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
+
+import dpkt
 
 #: A peer datagram's bytes, by part (they add up to the frame):
 #: ``headers`` Ethernet, IPv4, UDP or TCP; ``transport`` the protocol's own
@@ -545,7 +568,8 @@ def split_tls(segments: Sequence[Any]) -> None:
     ``crypto`` and the rest ``payload`` (the handshake's last flights are
     application-data records too in TLS 1.3, and count as payload here); a
     handshake, change-cipher-spec or alert record's content ``crypto``.
-    The sender's stream is read in sequence-number order (the capture holds
+    The records are dpkt's; the sender's stream they are read from is put
+    together here, in sequence-number order (the capture holds
     what each host sent, before any loss, so it has no holes); a segment
     sent again gets the split of the bytes it repeats.  A flow whose stream
     does not start with a TLS handshake record is left alone."""
@@ -583,16 +607,20 @@ def split_tls(segments: Sequence[Any]) -> None:
 
 
 def _tls_labels(stream: bytes) -> list[tuple[int, int, str]]:
+    """A sender's TLS stream by part: its records as dpkt reads them, up to
+    the first that is not TLS or that the capture holds only part of."""
     labels: list[tuple[int, int, str]] = []
     pos = 0
     while pos + TLS_HEADER <= len(stream):
-        kind, major = stream[pos], stream[pos + 1]
-        length = int.from_bytes(stream[pos + 3:pos + 5], "big")
-        if kind not in (20, 21, 22, 23) or major != 3:
+        try:
+            record = dpkt.ssl.TLSRecord(stream[pos:])
+        except dpkt.NeedData:
+            break  # cut short: the rest stays payload
+        if record.type not in (20, 21, 22, 23) or record.version >> 8 != 3:
             break  # not TLS from here on: the rest stays payload
         labels.append((pos, pos + TLS_HEADER, "transport"))
-        body, end = pos + TLS_HEADER, pos + TLS_HEADER + length
-        if kind == 23 and length >= TLS_SEALED_TAIL:
+        body, end = pos + TLS_HEADER, pos + TLS_HEADER + record.length
+        if record.type == 23 and record.length >= TLS_SEALED_TAIL:
             labels += [(body, end - TLS_SEALED_TAIL, "payload"), (end - TLS_SEALED_TAIL, end, "crypto")]
         else:
             labels.append((body, end, "crypto"))
@@ -602,6 +630,7 @@ def _tls_labels(stream: bytes) -> list[tuple[int, int, str]]:
 
 # =========================================================================== RTPS
 
+#: The budget's name of each submessage id (the ids as Wireshark reads them).
 RTPS_SUBMESSAGES = {0x01: "PAD", 0x06: "ACKNACK", 0x07: "HEARTBEAT", 0x08: "GAP", 0x09: "INFO_TS",
                     0x0C: "INFO_SRC", 0x0D: "INFO_REPLY_IP4", 0x0E: "INFO_DST", 0x0F: "INFO_REPLY",
                     0x12: "NACK_FRAG", 0x13: "HEARTBEAT_FRAG", 0x15: "DATA", 0x16: "DATA_FRAG",
@@ -621,8 +650,6 @@ BUILTIN_ENTITIES = {
 }
 DISCOVERY = ("SPDP", "SEDP publications", "SEDP subscriptions", "SEDP topics", "participant message", "type lookup",
              "other builtin")
-
-PID_TOPIC_NAME, PID_ENDPOINT_GUID, PID_SENTINEL, PID_STATUS_INFO = 0x0005, 0x005A, 0x0001, 0x0071
 
 
 @dataclass
@@ -647,10 +674,9 @@ class Submessage:
     source: bytes = b""
     #: The GUID prefix of the participant it is for (an INFO_DST's), if named.
     dest: bytes = b""
-
-    @property
-    def little(self) -> bool:
-        return bool(self.flags & 0x01)
+    #: A discovery sample's topic name and endpoint GUID (its parameters PID_TOPIC_NAME, PID_ENDPOINT_GUID).
+    topic: str | None = None
+    endpoint: bytes = b""
 
 
 @dataclass
@@ -663,102 +689,123 @@ class RtpsMessage:
 
 RTPS_HEADER = 20
 
-
-def parse_rtps(data: bytes) -> RtpsMessage:
-    """An RTPS message: header and submessages.  ValueError if it is not RTPS."""
-    if len(data) < RTPS_HEADER or data[:4] != b"RTPS":
-        raise ValueError("no RTPS header")
-    msg = RtpsMessage((data[4], data[5]), int.from_bytes(data[6:8], "big"), bytes(data[8:20]))
-    source, dest = msg.guid_prefix, b""
-    i = RTPS_HEADER
-    while i < len(data):
-        if i + 4 > len(data):
-            raise ValueError("submessage header cut short")
-        sid, flags = data[i], data[i + 1]
-        little = bool(flags & 0x01)
-        length = struct.unpack_from("<H" if little else ">H", data, i + 2)[0]
-        name = RTPS_SUBMESSAGES.get(sid, f"vendor {sid:#04x}" if sid >= 0x80 else f"unknown {sid:#04x}")
-        body = i + 4
-        if length == 0 and name not in ("PAD", "INFO_TS"):
-            end = len(data)  # the last submessage: to the end of the message
-        else:
-            end = body + length
-        if end > len(data):
-            raise ValueError(f"{name} past the end of the message")
-        sub = Submessage(sid, name, flags, end - i, source=source, dest=dest)
-        if name == "INFO_SRC" and end - body >= 20:
-            source = bytes(data[body + 8:body + 20])
-        elif name == "INFO_DST" and end - body >= 12:
-            dest = bytes(data[body:body + 12])
-            dest = b"" if dest == bytes(12) else dest
-        elif name in _ENTITY_SUBMESSAGES:
-            _entity_fields(sub, bytes(data[body:end]))
-        msg.submessages.append(sub)
-        i = end
-    return msg
+#: tshark's arguments: RTPS's heuristic tried before any dissector of the ports, the tree as PDML (the
+#: positions and sizes of the fields), only RTPS's part of it.
+TSHARK_RTPS = ("-n", "-o", "udp.try_heuristic_first:TRUE", "--enable-heuristic", "rtps_udp", "-T", "pdml",
+               "-J", "rtps")
 
 
-def _entity_fields(sub: Submessage, body: bytes) -> None:
-    e = "<" if sub.little else ">"
-    if sub.name in ("DATA", "DATA_FRAG"):
-        if len(body) < 20:
-            raise ValueError(f"{sub.name} cut short")
-        to_qos = struct.unpack_from(e + "H", body, 2)[0]
-        sub.reader, sub.writer = int.from_bytes(body[4:8], "big"), int.from_bytes(body[8:12], "big")
-        high, low = struct.unpack_from(e + "iI", body, 12)
-        sub.sn = (high << 32) | low
-        start = 4 + to_qos  # inline QoS (or the payload) starts octetsToInlineQos after that field
-        if sub.name == "DATA_FRAG":
-            sub.fragment = struct.unpack_from(e + "I", body, 20)[0] if len(body) >= 24 else 0
-        qos_flag = 0x02
-        if sub.flags & qos_flag:
-            qos_end = _parameter_list_end(body, start, e)
-            sub.inline_qos = qos_end - start
-            start = qos_end
-        if sub.name == "DATA":
-            sub.key_only = not sub.flags & 0x04  # no sample: an unregister or dispose (a key, or inline QoS only)
-            has_payload = bool(sub.flags & 0x0C)
-        else:
-            has_payload = True
-        sub.payload = body[start:] if has_payload else b""
-    elif len(body) >= 8:
-        sub.reader, sub.writer = int.from_bytes(body[0:4], "big"), int.from_bytes(body[4:8], "big")
-        if sub.name in ("HEARTBEAT", "GAP", "HEARTBEAT_FRAG", "NACK_FRAG") and len(body) >= 16:
-            high, low = struct.unpack_from(e + "iI", body, 8)
-            sub.sn = (high << 32) | low
-
-
-def _parameter_list_end(body: bytes, i: int, e: str) -> int:
-    while i + 4 <= len(body):
-        pid, length = struct.unpack_from(e + "HH", body, i)
-        i += 4 + length
-        if pid == PID_SENTINEL:
-            return i
-    raise ValueError("parameter list without sentinel")
-
-
-def parameters(payload: bytes) -> dict[int, bytes]:
-    """The parameters of a serialized parameter list (PL_CDR_BE/LE, as SPDP
-    and SEDP samples are), by id (the first of each)."""
-    if len(payload) < 4:
-        return {}
-    e = "<" if payload[1] in (0x03, 0x0B) else ">"
-    out: dict[int, bytes] = {}
-    i = 4
-    while i + 4 <= len(payload):
-        pid, length = struct.unpack_from(e + "HH", payload, i)
-        if pid == PID_SENTINEL:
-            break
-        out.setdefault(pid & 0x3FFF, bytes(payload[i + 4:i + 4 + length]))
-        i += 4 + length
+def rtps_messages(payloads: Sequence[bytes], ports: Sequence[tuple[int, int]] = ()) -> list[RtpsMessage | None]:
+    """The RTPS message of each UDP payload, dissected by Wireshark's RTPS
+    dissector (one tshark run over a pcap of them, ``ports`` their UDP
+    ports); None for one that is not RTPS, or that Wireshark finds malformed."""
+    if not payloads:
+        return []
+    tshark = shutil.which("tshark")
+    if tshark is None:
+        raise RuntimeError("RTPS is dissected by Wireshark's: install tshark (Debian: apt-get install tshark)")
+    with tempfile.TemporaryDirectory() as tmp:
+        pcap, errors = Path(tmp) / "rtps.pcap", Path(tmp) / "stderr"
+        with pcap.open("wb") as f:
+            w = dpkt.pcap.Writer(f)
+            for i, payload in enumerate(payloads):
+                sport, dport = ports[i] if ports else (7400, 7400)
+                udp = dpkt.udp.UDP(sport=sport, dport=dport, data=payload)
+                udp.ulen = len(udp)
+                ip = dpkt.ip.IP(src=b"\n\0\0\1", dst=b"\n\0\0\2", p=dpkt.ip.IP_PROTO_UDP, data=udp)
+                w.writepkt(dpkt.ethernet.Ethernet(data=ip), ts=i)
+        out: list[RtpsMessage | None] = []
+        env = {**os.environ, "WIRESHARK_CONFIG_DIR": tmp}  # Wireshark's defaults, not a user's preferences
+        with errors.open("wb") as err, subprocess.Popen([tshark, *TSHARK_RTPS, "-r", str(pcap)],
+                                                        stdout=subprocess.PIPE, stderr=err, env=env) as proc:
+            assert proc.stdout is not None
+            try:
+                for _event, elem in ET.iterparse(proc.stdout):  # the packets' trees, one at a time
+                    if elem.tag == "packet":
+                        out.append(_message(elem, payloads[len(out)]))
+                        elem.clear()
+            except ET.ParseError:
+                if not proc.wait():
+                    raise
+        if proc.returncode:
+            raise RuntimeError(f"tshark failed: {errors.read_text(errors='replace').strip()}")
+    if len(out) != len(payloads):
+        raise RuntimeError(f"tshark dissected {len(out)} of {len(payloads)} datagrams")
     return out
 
 
-def cdr_string(value: bytes, little: bool = True) -> str:
-    if len(value) < 4:
-        return ""
-    n = int.from_bytes(value[:4], "little" if little else "big")
-    return value[4:4 + n].rstrip(b"\0").decode("utf-8", "replace")
+def _child(e: ET.Element, name: str) -> ET.Element | None:
+    return next((c for c in e if c.get("name") == name), None)
+
+
+def _int(e: ET.Element | None, base: int = 10) -> int:
+    return 0 if e is None else int(e.get("show", "0"), base)
+
+
+def _message(packet: ET.Element, data: bytes) -> RtpsMessage | None:
+    """A packet of tshark's PDML as an RTPS message (``data``: its UDP payload)."""
+    rtps = next((p for p in packet if p.get("name") == "rtps"), None)
+    if rtps is None or any(p.get("name") == "_ws.malformed" for p in packet) or any(
+            e.get("name", "").endswith(".error") for e in rtps.iter("field")):
+        return None  # malformed: an error Wireshark reports (such as a submessage length it rejects)
+    version = _child(rtps, "rtps.version")
+    prefix = _child(rtps, "rtps.guidPrefix.src")
+    if version is None or prefix is None:
+        return None
+    msg = RtpsMessage((_int(_child(version, "rtps.version.major")), _int(_child(version, "rtps.version.minor"))),
+                      _int(_child(rtps, "rtps.vendorId"), 16), bytes.fromhex(prefix.get("value", "")))
+    base = int(rtps.get("pos", "0"))
+    source, dest = msg.guid_prefix, b""
+    for sm in rtps:
+        if sm.get("name") != "rtps.sm.id":
+            continue
+        sid = _int(sm, 16)
+        name = RTPS_SUBMESSAGES.get(sid, f"vendor {sid:#04x}" if sid >= 0x80 else f"unknown {sid:#04x}")
+        start = int(sm.get("pos", "0")) - base
+        length = _int(_child(sm, "rtps.sm.octetsToNextHeader"))
+        if length and int(sm.get("size", "0")) != 4 + length:
+            return None  # past the end of the message (Wireshark cuts it at the end)
+        sub = Submessage(sid, name, _int(_child(sm, "rtps.sm.flags"), 16), int(sm.get("size", "0")),
+                         source=source, dest=dest)
+        if name == "INFO_SRC":
+            found = _child(sm, "rtps.guidPrefix.src")
+            source = source if found is None else bytes.fromhex(found.get("value", ""))
+        elif name == "INFO_DST":
+            found = _child(sm, "rtps.guidPrefix.dst")
+            dest = b"" if found is None else bytes.fromhex(found.get("value", ""))
+            dest = b"" if dest == bytes(12) else dest
+        elif name in _ENTITY_SUBMESSAGES:
+            _entity_fields(sub, sm, data[start:start + sub.size])
+        msg.submessages.append(sub)
+    return msg
+
+
+def _entity_fields(sub: Submessage, sm: ET.Element, raw: bytes) -> None:
+    """An entity submessage's fields from its PDML element ``sm`` (``raw``: its bytes)."""
+    sub.reader, sub.writer = _int(_child(sm, "rtps.sm.rdEntityId"), 16), _int(_child(sm, "rtps.sm.wrEntityId"), 16)
+    if sub.name in ("DATA", "DATA_FRAG", "HEARTBEAT", "GAP", "HEARTBEAT_FRAG", "NACK_FRAG"):
+        sub.sn = _int(_child(sm, "rtps.sm.seqNumber"))
+    if sub.name not in ("DATA", "DATA_FRAG"):
+        return
+    # The payload (or the inline QoS) starts octetsToInlineQos after that field.
+    start = 4 + 4 + _int(_child(sm, "rtps.octets_to_inline_qos"))
+    sub.fragment = _int(_child(sm, "rtps.data_frag.number"))
+    qos = next((c for c in sm if c.get("show", "").startswith("inlineQos")), None)
+    if qos is not None and sub.flags & 0x02:
+        sub.inline_qos = int(qos.get("size", "0"))
+        start += sub.inline_qos
+    if sub.name == "DATA":
+        sub.key_only = not sub.flags & 0x04  # no sample: an unregister or dispose (a key, or inline QoS only)
+        if not sub.flags & 0x0C:
+            return
+    sub.payload = raw[start:]
+    if sub.writer != 0x000003C2:  # the SEDP publications' writer
+        return
+    for e in sm.iter("field"):  # a writer's topic and GUID (not Wireshark's own note of the topic)
+        if e.get("name") == "rtps.param.topicName" and e.get("size") != "0" and sub.topic is None:
+            sub.topic = e.get("show", "")
+        elif e.get("name") == "rtps.param.endpoint_guid" and not sub.endpoint:
+            sub.endpoint = bytes.fromhex(e.get("value", ""))
 
 
 def entity_category(entity: int) -> str:
@@ -821,11 +868,8 @@ class RtpsTopics:
 
     def learn(self, msg: RtpsMessage) -> None:
         for sub in msg.submessages:
-            if sub.name == "DATA" and sub.writer == 0x000003C2 and sub.payload:
-                p = parameters(sub.payload)
-                guid, name = p.get(PID_ENDPOINT_GUID), p.get(PID_TOPIC_NAME)
-                if guid and name is not None and len(guid) == 16:
-                    self.topic[guid] = cdr_string(name, sub.payload[1] in (0x03, 0x0B))
+            if sub.name == "DATA" and sub.writer == 0x000003C2 and sub.topic is not None and len(sub.endpoint) == 16:
+                self.topic[sub.endpoint] = sub.topic
 
     def role(self, prefix: bytes, writer: int) -> str:
         """``request``, ``reply`` or ``data`` for the user writer ``prefix:writer``
@@ -868,14 +912,12 @@ def classify_rtps(datagrams: Sequence[Any]) -> None:
     host before is a retransmission; a datagram of only such is one."""
     topics = RtpsTopics()
     ordered = sorted(datagrams, key=lambda d: d.t)
-    for d in ordered:
-        try:
-            d.rtps = parse_rtps(d.data)
-        except ValueError as exc:
-            d.rtps = None
-            d.detail = f"not RTPS: {exc}"
+    for d, msg in zip(ordered, rtps_messages([d.data for d in ordered], [(d.sport, d.dport) for d in ordered])):
+        d.rtps = msg
+        if msg is None:
+            d.detail = "not RTPS (or malformed, to Wireshark)"
             continue
-        topics.learn(d.rtps)
+        topics.learn(msg)
     sent: set[tuple[Any, ...]] = set()
     for d in ordered:
         parts = dict.fromkeys(PEER_PARTS, 0)
