@@ -119,18 +119,20 @@ class ZmqOptions(CoreOptions):
     #: First reconnect after a lost/refused connection, then doubling up to the max.
     reconnect_ivl_ms: int = 100
     reconnect_ivl_max_ms: int = 2000
-    #: Give up a TCP connect after this long (the kernel default is ~2 min of
-    #: SYNs) and start again.  At 3 s, 99 robots' connects to a central
-    #: server on a 35 kbit/s link gave up while its SYN-ACKs waited in its
-    #: queue, and started again every few seconds: 8,305 attempts, whose
-    #: 13,304 SYN-ACK retransmissions filled its uplink (163 of 165 tasks
-    #: unavailable).  A request to a peer that refuses fails at once anyway.
-    connect_timeout_ms: int = 30000
-    #: A connection must finish the ZMTP handshake within this time
-    #: (libzmq's default).  At 5 s, 30 clients' CurveZMQ handshakes through a
-    #: central server's 35 kbit/s link ran out, were dropped and started
-    #: again, and 29 of them never carried an answer.
-    handshake_ivl_ms: int = 30000
+    #: Give up a TCP connect after this long and start again (the kernel
+    #: retries the SYN meanwhile, 1, 3, 7 ... 63 s after it).  Every attempt
+    #: given up costs the server the SYN-ACKs it keeps sending for it: at
+    #: 3 s, 99 robots' connects to a central server on a 35 kbit/s link gave
+    #: up while its SYN-ACKs waited in its queue, 8,305 attempts whose 13,304
+    #: SYN-ACK retransmissions filled its uplink (163 of 165 tasks
+    #: unavailable); at 30 s, 1,318 attempts and 9,341 (140 unavailable).
+    #: A request to a peer that refuses fails at once anyway.
+    connect_timeout_ms: int = 120_000
+    #: A connection must finish the ZMTP handshake within this time.  At 5 s,
+    #: 30 clients' CurveZMQ handshakes through a central server's 35 kbit/s
+    #: link ran out, were dropped and started again, and 29 of them never
+    #: carried an answer; libzmq's 30 s ran out for 99.
+    handshake_ivl_ms: int = 120_000
     #: Kernel keep-alive: first probe after idle seconds, then every intvl, give up after cnt.
     #: At 20 % loss each way a probe's round trip fails 36 % of the time, so 3
     #: probes would kill ~5 % of healthy idle connections (and the request in
