@@ -132,6 +132,8 @@ class ContractService(Service):
 
     def __init__(self) -> None:
         self.counter = 0
+        #: /counter answers 4.04 from now on.
+        self.broken = False
         self.seen: list[Request] = []
         self.asked: list[tuple[str | None, str, str]] = []
         #: Paths ``admit`` refuses with :data:`REFUSAL`.
@@ -201,7 +203,7 @@ class ContractService(Service):
             return Response(Status.CONTENT, b"too late")
         if request.path == "/large":
             return Response(Status.CONTENT, LARGE, ContentFormat.CBOR)
-        if request.path in ("/counter", "/guarded"):
+        if request.path in ("/counter", "/guarded") and not self.broken:
             return Response(Status.CONTENT, str(self.counter).encode(), ContentFormat.TEXT)
         return Response.error(Status.NOT_FOUND, f"no resource {request.path}")
 
@@ -485,27 +487,59 @@ async def test_two_observers_see_the_same_changes(
         ):
             assert [(await anext(a)).payload, (await anext(b)).payload] == [b"0", b"0"]
             assert observation_count(server) == 2
+            for expected in (b"1", b"2"):
+                service.bump()
+                assert [(await anext(a)).payload, (await anext(b)).payload] == [expected, expected]
+            await a.aclose()  # one goes; the other stays
             service.bump()
-            assert [(await anext(a)).payload, (await anext(b)).payload] == [b"1", b"1"]
+            assert (await anext(b)).payload == b"3"
     finally:
         await other.aclose()
+
+
+async def test_a_burst_of_changes_reaches_a_slow_reader_as_increasing_states(
+    server: ServerTransport, client: ClientTransport, service: ContractService
+) -> None:
+    async with contextlib.aclosing(observe(client, server.endpoint, Request(Method.GET, "/counter"))) as updates:
+        assert (await anext(updates)).payload == b"0"
+        for _ in range(20):
+            service.bump()
+        seen = [int((await anext(updates)).payload)]
+        while seen[-1] != 20:
+            seen.append(int((await asyncio.wait_for(anext(updates), ANSWER_S)).payload))
+    assert seen == sorted(set(seen))
+
+
+async def test_an_error_notification_ends_the_iteration_and_the_observation(
+    server: ServerTransport, client: ClientTransport, service: ContractService
+) -> None:
+    updates = observe(client, server.endpoint, Request(Method.GET, "/counter"))
+    assert (await anext(updates)).payload == b"0"
+    service.broken = True
+    service.bump()
+    async with asyncio.timeout(ANSWER_S):
+        rest = [r.status async for r in updates]
+    assert rest == [Status.NOT_FOUND]
+    await until(lambda: observation_count(server) == 0, "the observation ended by an error is dropped", FORGET_S)
 
 
 async def test_closing_the_iterator_deregisters(
     server: ServerTransport, client: ClientTransport, service: ContractService
 ) -> None:
-    """Both ways of closing (``break`` under ``aclosing``, ``aclose()``): the
-    server holds no observation afterwards, and the service no subscription
-    made for one."""
+    """Both ways of closing (``break`` under ``aclosing``, ``aclose()``), one
+    observation after the other: the server holds one, then none, and the
+    service no subscription made for one."""
     subscriptions = len(service._subscribers)
     request = Request(Method.GET, "/counter")
-    async with contextlib.aclosing(observe(client, server.endpoint, request)) as a:
-        async for _ in a:
-            break
     b = observe(client, server.endpoint, request)
     assert (await anext(b)).payload == b"0"
+    async with contextlib.aclosing(observe(client, server.endpoint, request)) as a:
+        async for _ in a:
+            assert observation_count(server) == 2
+            break
+    await until(lambda: observation_count(server) == 1, "the first observation is deregistered", FORGET_S)
     await b.aclose()
-    await until(lambda: observation_count(server) == 0, "both observations are deregistered", FORGET_S)
+    await until(lambda: observation_count(server) == 0, "the second observation is deregistered", FORGET_S)
     assert len(service._subscribers) == subscriptions
 
 

@@ -144,6 +144,7 @@ async def test_dead_peer_is_unreachable_at_the_timeout(client) -> None:
 
 
 async def test_port_in_use_is_a_transport_error(server, service) -> None:
+    """Kept while the contract's case is an expected failure on DDS (its message says nothing of the port in use)."""
     with pytest.raises(TransportError, match="cannot serve"):
         await DdsServerTransport.start(service, server.endpoint)
 
