@@ -27,7 +27,7 @@ import asyncio
 import contextlib
 import inspect
 import json
-import os
+import random
 import socket
 import time
 from collections.abc import AsyncIterator, Callable
@@ -145,6 +145,7 @@ class ContractService(Service):
 
     def reset(self) -> None:
         """Forget the requests seen and the refusals; let what was held go."""
+        self.counter, self.broken = 0, False
         self.seen.clear()
         self.asked.clear()
         self.refused.clear()
@@ -590,24 +591,25 @@ async def test_an_observer_whose_client_closes_is_forgotten(
 # =========================================================================== 3. garbage
 
 
+_noise = random.Random(7252).randbytes  # the same garbage every run
 #: What a stranger may send to a server's port: noise, and what other
 #: protocols (CoAP, RTPS, QUIC, ZMTP, HTTP) look like, broken.
 GARBAGE: list[bytes] = [
     b"",
     b"\x00" * 3,
     b"\xff",
-    os.urandom(200),
-    os.urandom(1200),
+    _noise(200),
+    _noise(1200),
     bytes(1500),
     b"\xff" * 2000,
     b"\x40\x01\x00\x01",  # a CoAP GET header, no options
     b"\x44\x01\x00\x01\x01\x02\x03\x04\xf0",  # CoAP, reserved option delta
     b"RTPS",  # a truncated RTPS header
-    b"RTPS\x02\x01\x01\x10" + os.urandom(12) + os.urandom(64),  # RTPS header, junk after it
-    b"\xc0\x00\x00\x00\x01" + os.urandom(1195),  # a QUIC v1 long header ("Initial"), then noise
-    b"\xc0\x0a\x0a\x0a\x0a\x08" + os.urandom(8) + b"\x08" + os.urandom(8) + bytes(1180),  # unknown QUIC version
-    b"\x40" + os.urandom(40),  # a QUIC short header for a connection nobody has
-    b"\xff" + bytes(8) + b"\x7f\x09" + os.urandom(54),  # a ZMTP greeting of an unknown version
+    b"RTPS\x02\x01\x01\x10" + _noise(12) + _noise(64),  # RTPS header, junk after it
+    b"\xc0\x00\x00\x00\x01" + _noise(1195),  # a QUIC v1 long header ("Initial"), then noise
+    b"\xc0\x0a\x0a\x0a\x0a\x08" + _noise(8) + b"\x08" + _noise(8) + bytes(1180),  # unknown QUIC version
+    b"\x40" + _noise(40),  # a QUIC short header for a connection nobody has
+    b"\xff" + bytes(8) + b"\x7f\x09" + _noise(54),  # a ZMTP greeting of an unknown version
     b"GET / HTTP/1.1\r\nHost: robot\r\n\r\n",
 ]
 
@@ -890,3 +892,12 @@ async def test_a_refused_observation_is_one_item(pair: Pair) -> None:
     assert items == [REFUSAL]
     assert service.seen == []
     assert observation_count(server) == 0
+
+
+# =========================================================================== the list of known bugs
+
+
+async def test_each_known_bug_names_a_case_and_a_transport() -> None:
+    cases = {name for name in globals() if name.startswith("test_")}
+    assert set(KNOWN_BUGS) <= cases and SLOW_TO_FAIL <= set(KNOWN_BUGS)
+    assert {scheme for bugs in KNOWN_BUGS.values() for scheme in bugs} <= {t.scheme for t in REGISTERED}
