@@ -92,7 +92,7 @@ KNOWN_BUGS: dict[str, dict[str, str]] = {
         "the envelope (ZeroMQ, DDS) and the Zenoh mapping have no If-Match: a conditional write arrives unconditional"),
     "test_closing_the_iterator_deregisters": {
         "coap": "closing the CoAP observe iterator sends no deregistration: the server keeps the observation "
-                "(and notifies) while the client lives",
+                "(and its slot) until a notification after it is refused, the first one still sent and acknowledged",
     },
     "test_a_closed_observation_frees_its_slot": {
         "coap": "closed CoAP observations keep the resource's OBSERVERS_MAX slots: past 64, observers are refused",
