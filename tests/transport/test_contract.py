@@ -55,7 +55,6 @@ from coapkb.transport.base import (
 )
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.registry import REGISTERED, TransportInfo
-from coapkb.transport.zenoh.transport import ZenohClientTransport, ZenohOptions
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -235,7 +234,7 @@ def unused_port(transport: TransportInfo) -> int:
 
 
 async def start(transport: TransportInfo, service: Service, port: int = 0) -> ServerTransport:
-    return await transport.serve(service, local(transport, port), None, None)
+    return await transport.serve(service, local(transport, port), None, None, {})
 
 
 async def open_for_dead_peers(transport: TransportInfo) -> ClientTransport:
@@ -244,11 +243,8 @@ async def open_for_dead_peers(transport: TransportInfo) -> ClientTransport:
     opening, which to a dead QUIC peer takes Zenoh's 10 s (a bug:
     :func:`test_a_client_closes_promptly_after_an_unreachable_peer`, which
     uses the registry's own)."""
-    client = await transport.open_client(None, None)
-    if isinstance(client, ZenohClientTransport):
-        await client.aclose()
-        client = ZenohClientTransport(options=ZenohOptions(open_timeout_s=0.3))
-    return client
+    table = {"open_timeout_s": 0.3} if transport.scheme.startswith("zenoh") else {}
+    return await transport.open_client(None, None, table)
 
 
 def observe(client: ClientTransport, peer: Endpoint, request: Request,
@@ -330,7 +326,7 @@ class Pair:
 async def standing(transport: TransportInfo) -> AsyncIterator[Pair]:
     service = ContractService()
     server = await start(transport, service)
-    client = await transport.open_client(None, None)
+    client = await transport.open_client(None, None, {})
     yield Pair(server, client, service)
     await client.aclose()
     await server.aclose()
@@ -358,7 +354,7 @@ async def server(transport: TransportInfo, service: ContractService) -> AsyncIte
 
 @pytest_asyncio.fixture(loop_scope="module")
 async def client(transport: TransportInfo) -> AsyncIterator[ClientTransport]:
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     yield cli
     await cli.aclose()
 
@@ -489,7 +485,7 @@ async def test_observe_gives_the_first_value_then_each_change(
 async def test_two_observers_see_the_same_changes(
     transport: TransportInfo, server: ServerTransport, client: ClientTransport, service: ContractService
 ) -> None:
-    other = await transport.open_client(None, None)
+    other = await transport.open_client(None, None, {})
     try:
         request = Request(Method.GET, "/counter")
         async with (
@@ -583,7 +579,7 @@ async def test_an_observer_whose_client_closes_is_forgotten(
 ) -> None:
     """No deregistration can be sent: the server finds out (its connection
     closed, the subscriber went, or a notification could not be delivered)."""
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     updates = observe(cli, server.endpoint, Request(Method.GET, "/counter"))
     assert (await anext(updates)).payload == b"0"
     assert observation_count(server) == 1
@@ -659,7 +655,7 @@ async def test_garbage_at_the_port_leaves_the_server_answering(
         await _spray(transport, server.endpoint)
         # The client that asked before the garbage, and a new one, are both answered.
         again = await ask(client, server, Request(Method.GET, "/echo", payload=b"again"))
-        fresh_client = await transport.open_client(None, None)
+        fresh_client = await transport.open_client(None, None, {})
         try:
             fresh = await ask(fresh_client, server, Request(Method.GET, "/echo", payload=b"fresh"))
         finally:
@@ -725,7 +721,7 @@ async def test_observing_a_port_nobody_listens_on_is_unreachable(
 async def test_a_client_closes_promptly_after_an_unreachable_peer(transport: TransportInfo) -> None:
     """The registry's own client: whatever it was still trying towards a
     peer that never answered, closing does not wait for it."""
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     closing: asyncio.Task[None] | None = None
     try:
         await unreachable(cli, local(transport, unused_port(transport)), Request(Method.GET, "/echo"))
@@ -765,7 +761,7 @@ async def test_a_request_that_timed_out_is_not_delivered_later(
 async def test_a_closed_client_fails_its_pending_request_and_refuses_more(
     transport: TransportInfo, server: ServerTransport, service: ContractService
 ) -> None:
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     pending = asyncio.create_task(cli.request(server.endpoint, Request(Method.GET, "/hold"), timeout=ANSWER_S))
     await asyncio.wait_for(service.handling.wait(), ANSWER_S)  # the request reached the server
     await cli.aclose()
@@ -776,7 +772,7 @@ async def test_a_closed_client_fails_its_pending_request_and_refuses_more(
 
 
 async def test_a_closed_client_says_so(transport: TransportInfo, pair: Pair) -> None:
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     await cli.aclose()
     with pytest.raises(TransportError, match="closed"):
         await cli.request(pair.server.endpoint, Request(Method.GET, "/echo"), timeout=SHORT_S)
@@ -787,7 +783,7 @@ async def test_a_closed_clients_observation_ends(
 ) -> None:
     """Whoever iterates over an observation of a client that closes gets a
     TransportError, not a wait for ever."""
-    cli = await transport.open_client(None, None)
+    cli = await transport.open_client(None, None, {})
     updates = observe(cli, server.endpoint, Request(Method.GET, "/counter"))
     try:
         assert (await anext(updates)).payload == b"0"
