@@ -96,23 +96,9 @@ KNOWN_BUGS: dict[str, dict[str, str]] = {
     "test_a_closed_observation_frees_its_slot": {
         "coap": "closed CoAP observations keep the resource's OBSERVERS_MAX slots: past 64, observers are refused",
     },
-    "test_a_closed_clients_observation_ends": {
-        "coap": "aiocoap's LibraryShutdown escapes the observe iterator instead of a TransportError",
-        **dict.fromkeys(("zenoh", "zenoh+udp", "zenoh+quic", "dds"),
-                        "the observe iterator of a closed client waits for ever (aclose does not end it)"),
-    },
-    "test_a_closed_client_says_so": {
-        "coap": "a request on a closed CoAP client fails with 'request to ... failed: ' (aiocoap's empty error)",
-    },
-    "test_port_in_use_is_a_transport_error": {
-        "dds": "Cyclone's refusal says 'Non specific error', not that the port is in use",
-    },
-    "test_a_client_closes_promptly_after_an_unreachable_peer": dict.fromkeys(
-        ("zenoh+udp", "zenoh+quic"),
-        "the Zenoh client's aclose waits for a session still opening to a dead QUIC peer (its open timeout, 10 s)"),
 }
 #: Known bugs whose failing run takes long: not run unless asked (``--runxfail``).
-SLOW_TO_FAIL = {"test_a_client_closes_promptly_after_an_unreachable_peer"}
+SLOW_TO_FAIL: set[str] = set()
 
 
 @pytest.fixture(autouse=True)
