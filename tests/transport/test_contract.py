@@ -86,9 +86,6 @@ CLOSE_S = 2.0
 #: there (strictly: once the bug is fixed it passes, and its entry must go).
 #: ``pytest --runxfail`` shows the failures.
 KNOWN_BUGS: dict[str, dict[str, str]] = {
-    "test_if_match_arrives": dict.fromkeys(
-        ("zmq", "zenoh", "zenoh+udp", "zenoh+quic", "dds"),
-        "the envelope (ZeroMQ, DDS) and the Zenoh mapping have no If-Match: a conditional write arrives unconditional"),
     "test_closing_the_iterator_deregisters": {
         "coap": "closing the CoAP observe iterator sends no deregistration: the server keeps the observation "
                 "(and its slot) until a notification after it is refused, the first one still sent and acknowledged",

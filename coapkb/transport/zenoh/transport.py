@@ -620,7 +620,7 @@ class ZenohClientTransport(ClientCore):
         or no answer arrives within ``timeout`` seconds, and
         :class:`TransportError` for other failures (transport closed, a
         malformed answer)."""
-        header = RequestHeader(request.method, request.accept, request.etags)
+        header = RequestHeader(request.method, request.accept, request.etags, if_match=request.if_match)
         response, _ = await self._exchange(peer, request, header, timeout)
         return response
 
