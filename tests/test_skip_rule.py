@@ -1,5 +1,6 @@
 """The one rule for skips (support.require and the report hook): a skip on a
-developer's machine, a failure in CI, whatever way the test asked to skip."""
+developer's machine, a failure in CI, whatever way the test asked to skip;
+but a case that cannot apply (support.not_applicable) is skipped in CI too."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ CONFTEST = "from support import pytest_runtest_makereport  # noqa: F401\n"
 INI = "[pytest]\nasyncio_default_fixture_loop_scope = function\n"
 SKIPPING = """
 import pytest
-from support import require
+from support import not_applicable, require
 
 @pytest.fixture(scope="module")
 def missing_tool():
@@ -35,6 +36,9 @@ def test_fixture_a(missing_tool):
 
 def test_fixture_b(missing_tool):
     pass
+
+def test_not_applicable():
+    not_applicable("DDS cannot be secured")
 
 @pytest.mark.xfail(reason="known bug", strict=True)
 def test_expected_failure():
@@ -57,8 +61,8 @@ def test_skips_skip_outside_ci(pytester: pytest.Pytester, monkeypatch: pytest.Mo
     pytester.makeconftest(CONFTEST)
     pytester.makepyfile(SKIPPING)
     result = pytester.runpytest("-p", "no:cacheprovider", "-rs")
-    result.assert_outcomes(passed=1, skipped=4, xfailed=1)
-    result.stdout.fnmatch_lines(["*no IPv6 loopback*"])
+    result.assert_outcomes(passed=1, skipped=5, xfailed=1)
+    result.stdout.fnmatch_lines(["*no IPv6 loopback*", "*does not apply: DDS cannot be secured*"])
 
 
 def test_every_kind_of_skip_fails_in_ci(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -66,11 +70,13 @@ def test_every_kind_of_skip_fails_in_ci(pytester: pytest.Pytester, monkeypatch: 
     pytester.makeini(INI)
     pytester.makeconftest(CONFTEST)
     pytester.makepyfile(SKIPPING)
-    result = pytester.runpytest("-p", "no:cacheprovider")
-    # a skip in the test fails it; one in set-up (a marker, a fixture) is an error; an expected failure stays one
-    result.assert_outcomes(passed=1, failed=1, errors=3, xfailed=1)
+    result = pytester.runpytest("-p", "no:cacheprovider", "-rs")
+    # a skip in the test fails it; one in set-up (a marker, a fixture) is an error; an expected failure stays
+    # one, and a case that does not apply stays skipped
+    result.assert_outcomes(passed=1, failed=1, errors=3, skipped=1, xfailed=1)
     result.stdout.fnmatch_lines([
-        "*required in CI: no IPv6 loopback*",
         "*required in CI: a marker*",
         "*required in CI: the tool is not installed*",
+        "*required in CI: no IPv6 loopback*",
+        "SKIPPED *test_every_kind_of_skip_fails_in_ci.py:*: does not apply: DDS cannot be secured",
     ])

@@ -18,14 +18,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable, Coroutine, Hashable
+from collections.abc import Callable, Coroutine, Hashable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Self
 
 from .base import Endpoint, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely
 from .envelope import encode_response
 from .messages import Method, Request, Response, Status
-from .observation import Answer, Notifier, ObservationRegistry
+from .observation import Answer, Notifier, ObservationRegistry, put_latest
 
 __all__ = ["OBSERVABLE_METHODS", "ClientCore", "CoreOptions", "ServerCore", "check_scheme", "post"]
 
@@ -218,7 +218,28 @@ class ServerCore(_Endpoint):
 
 class ClientCore(_Endpoint):
     """What a client of a transport without CoAP's machinery shares; a
-    subclass's :meth:`aclose` releases what it holds."""
+    subclass's :meth:`aclose` releases what it holds and calls
+    :meth:`_end_observations`."""
+
+    def __init__(self, options: CoreOptions, log: logging.Logger, name: str) -> None:
+        super().__init__(options, log, name)
+        #: The notification queues of the observations running on this client.
+        self._observing: set[asyncio.Queue[Any]] = set()
+
+    @contextlib.contextmanager
+    def _observation(self, queue: asyncio.Queue[Any]) -> Iterator[asyncio.Queue[Any]]:
+        """``queue`` gets a :class:`TransportError` if the client closes
+        while the observation runs (its reader raises it: never a wait for ever)."""
+        self._observing.add(queue)
+        try:
+            yield queue
+        finally:
+            self._observing.discard(queue)
+
+    def _end_observations(self) -> None:
+        closed = TransportError(f"the {self._name} transport was closed")
+        for queue in self._observing:
+            put_latest(queue, closed)
 
     def _malformed(self, peer: Endpoint, why: str) -> None:
         self.malformed += 1

@@ -19,6 +19,7 @@ Layout (CDDL, RFC 8610)::
         payload:        bstr,
         ? observe:      0 / 1 / null,     ; RFC 7641 values: 0 register, 1 deregister
         ? etags:        [* bstr .size (1..8)],  ; RFC 7252 ETag options (validation)
+        ? if-match:     [* bstr .size (0..8)],  ; RFC 7252 If-Match options (a conditional write)
     ]
 
     response = [
@@ -141,10 +142,13 @@ def encode_request(req: Request, *, observe: bool | Observe = False, token: int)
     ]
     obs = Observe(int(observe))
     etags = [bytes(e) for e in req.etags]
-    if obs is not Observe.NONE or etags:
+    if_match = [bytes(m) for m in req.if_match]
+    if obs is not Observe.NONE or etags or if_match:
         fields.append(_OBSERVE_TO_WIRE[obs] if obs is not Observe.NONE else None)
-    if etags:
+    if etags or if_match:
         fields.append(etags)
+    if if_match:
+        fields.append(if_match)
     return cbor2.dumps(fields)
 
 
@@ -212,7 +216,7 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
     Raises :class:`WireError` for anything that is not a valid envelope.
     """
     what = "request"
-    f = _load_array(data, what, (_REQUEST_FIELDS, _REQUEST_FIELDS + 1, _REQUEST_FIELDS + 2))
+    f = _load_array(data, what, (_REQUEST_FIELDS, _REQUEST_FIELDS + 1, _REQUEST_FIELDS + 2, _REQUEST_FIELDS + 3))
     token = _uint(what, "token", f[0])
     if isinstance(f[1], bool) or not isinstance(f[1], int) or f[1] not in _METHODS_BY_CODE:
         raise WireError(f"{what}: unknown method code {f[1]!r}"[:200])
@@ -232,6 +236,12 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
         if not isinstance(raw, list) or not all(isinstance(e, bytes) and len(e) <= 8 for e in raw):
             raise WireError(f"{what}: etags must be an array of byte strings of at most 8 bytes")
         etags = tuple(raw)
+    if_match: tuple[bytes, ...] = ()
+    if len(f) > _REQUEST_FIELDS + 2:
+        raw = f[_REQUEST_FIELDS + 2]
+        if not isinstance(raw, list) or not all(isinstance(m, bytes) and len(m) <= 8 for m in raw):
+            raise WireError(f"{what}: if-match must be an array of byte strings of at most 8 bytes")
+        if_match = tuple(raw)
     request = Request(
         method=_METHODS_BY_CODE[f[1]],
         path=f[2],
@@ -240,6 +250,7 @@ def decode_request(data: bytes | bytearray | memoryview) -> tuple[int, Request, 
         accept=_opt(what, "accept", f[5]),
         payload=_bstr(what, "payload", f[6]),
         etags=etags,
+        if_match=if_match,
     )
     return token, request, observe
 

@@ -1,5 +1,6 @@
-"""The observation registry that ZeroMQ and Zenoh share: in-process against a
-recording notifier, then through both real transports on 127.0.0.1.
+"""The observation registry that ZeroMQ, Zenoh and DDS share, in-process
+against a recording notifier.  What observing does through each real
+transport is the transport contract's (tests/transport/test_contract.py).
 
 Every test that waits for something waits on the thing itself (an answer, a
 notification, an event set by the service), never on a sleep.
@@ -8,7 +9,6 @@ notification, an event set by the service), never on a sleep.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import threading
 from collections.abc import AsyncIterator, Callable, Coroutine, Hashable
@@ -16,11 +16,9 @@ from typing import Any
 
 import pytest
 
-from coapkb.transport.base import Endpoint, ResourceInfo, Service
+from coapkb.transport.base import ResourceInfo, Service
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.observation import ObservationRegistry, ObserverState, put_latest
-from coapkb.transport.zenoh.transport import ZenohClientTransport, ZenohServerTransport
-from coapkb.transport.zmq.transport import ZmqClientTransport, ZmqServerTransport
 
 log = logging.getLogger(__name__)
 COUNTER = Request(Method.GET, "/counter")
@@ -300,72 +298,3 @@ def test_put_latest_drops_the_oldest() -> None:
     for item in range(4):
         put_latest(queue, item)
     assert [queue.get_nowait(), queue.get_nowait()] == [2, 3]
-
-
-# =========================================================================== real transports
-
-TRANSPORTS = {
-    "zmq": (ZmqServerTransport, ZmqClientTransport),
-    "zenoh": (ZenohServerTransport, ZenohClientTransport),
-}
-
-
-@pytest.fixture(params=sorted(TRANSPORTS))
-async def real(request: pytest.FixtureRequest) -> AsyncIterator[tuple[CounterService, Any, Any, Any]]:
-    """A counter served on a real transport, and two clients of it."""
-    server_cls, client_cls = TRANSPORTS[request.param]
-    service = CounterService()
-    server = await server_cls.start(service, Endpoint(request.param, "127.0.0.1", 0))
-    a, b = client_cls(), client_cls()
-    try:
-        yield service, server, a, b
-    finally:
-        await a.aclose()
-        await b.aclose()
-        await server.aclose()
-
-
-async def test_two_observers_see_every_change_in_order_and_deregister(real) -> None:
-    service, server, a, b = real
-    async with (
-        contextlib.aclosing(a.observe(server.endpoint, COUNTER)) as first,
-        contextlib.aclosing(b.observe(server.endpoint, COUNTER)) as second,
-    ):
-        assert [(await anext(first)).payload, (await anext(second)).payload] == [b"0", b"0"]
-        assert server.observation_count == 2
-        for expected in (b"1", b"2"):
-            service.bump()
-            assert [(await anext(first)).payload, (await anext(second)).payload] == [expected, expected]
-        await first.aclose()
-        await asyncio.wait_for(service.unsubscribed.wait(), 5)
-        assert server.observation_count == 1
-        service.bump()
-        assert (await anext(second)).payload == b"3"
-    while server.observation_count:
-        service.unsubscribed.clear()
-        await asyncio.wait_for(service.unsubscribed.wait(), 5)
-    assert service.subscribers == []
-
-
-async def test_a_burst_of_changes_reaches_a_slow_reader_as_increasing_states(real) -> None:
-    service, server, a, _ = real
-    async with contextlib.aclosing(a.observe(server.endpoint, COUNTER)) as updates:
-        assert (await anext(updates)).payload == b"0"
-        for _ in range(20):
-            service.bump()
-        seen = [int((await anext(updates)).payload)]
-        while seen[-1] != 20:
-            seen.append(int((await asyncio.wait_for(anext(updates), 5)).payload))
-    assert seen == sorted(set(seen))
-
-
-async def test_an_error_notification_ends_the_iteration_and_the_observation(real) -> None:
-    service, server, a, _ = real
-    updates = a.observe(server.endpoint, COUNTER)
-    assert (await anext(updates)).payload == b"0"
-    service.broken = True
-    service.bump()
-    rest = [r.status async for r in updates]
-    assert rest == [Status.NOT_FOUND]
-    await asyncio.wait_for(service.unsubscribed.wait(), 5)
-    assert server.observation_count == 0

@@ -95,6 +95,7 @@ class CoapClientTransport:
         self._hooks = hooks
         self.reliability = reliability
         self.counters: TrafficCounters = hooks.counters
+        self._closed = False
 
     @classmethod
     async def create(
@@ -122,8 +123,12 @@ class CoapClientTransport:
     # ------------------------------------------------------------ requests
 
     async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        if self._closed:
+            raise TransportError("the coap client transport is closed")
         try:
             message = await self._secured(peer, lambda: self._request_any(peer, request, timeout), timeout)
+        except aiocoap.error.LibraryShutdown:
+            raise TransportError("the coap client transport was closed") from None
         except (TimeoutError, ExchangeTimeout):
             raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
         except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
@@ -131,7 +136,7 @@ class CoapClientTransport:
         except _NO_ANSWER as exc:
             raise PeerUnreachable(f"no answer from {peer}: {exc}") from None
         except aiocoap.error.Error as exc:
-            raise TransportError(f"request to {peer} failed: {exc}") from None
+            raise TransportError(f"request to {peer} failed: {str(exc) or type(exc).__name__}") from None
         return response_from_message(message)
 
     async def _request_any(self, peer: Endpoint, request: Request, timeout: float) -> aiocoap.Message:
@@ -266,8 +271,12 @@ class CoapClientTransport:
         raise TransportError(f"the answer from {peer} kept changing during its block-wise transfer")
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        if self._closed:
+            raise TransportError("the coap client transport is closed")
         try:
             first, pending = await self._secured(peer, lambda: self._register(peer, request), REGISTRATION_TIMEOUT_S)
+        except aiocoap.error.LibraryShutdown:
+            raise TransportError("the coap client transport was closed") from None
         except (TimeoutError, ExchangeTimeout):
             raise PeerTimeout(f"no answer from {peer} to the observation") from None
         except aiocoap.error.NetworkError as exc:  # ICMP: nobody listens there
@@ -278,8 +287,11 @@ class CoapClientTransport:
             yield response_from_message(first)
             if pending.observation is None:
                 return
-            async for notification in pending.observation:
-                yield response_from_message(notification)
+            try:
+                async for notification in pending.observation:
+                    yield response_from_message(notification)
+            except aiocoap.error.LibraryShutdown:
+                raise TransportError("the coap client transport was closed") from None
         finally:
             _abandon(pending)
 
@@ -303,6 +315,7 @@ class CoapClientTransport:
             raise
 
     async def aclose(self) -> None:
+        self._closed = True
         try:
             await self._ctx.shutdown()
         except (RuntimeError, asyncio.InvalidStateError) as exc:

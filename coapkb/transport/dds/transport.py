@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import itertools
 import logging
 import os
@@ -59,7 +60,7 @@ from ..envelope import (
     encode_request,
 )
 from ..messages import Request, Response
-from ..observation import ObserverState, put_latest
+from ..observation import Delivery, ObserverState, put_latest
 from .config import DomainSettings, client_domain_xml, local_address_towards, server_domain_xml, topic_names
 from .envelope import KEY_BYTES, Envelope
 
@@ -92,6 +93,17 @@ def _qos(depth: int, *, transient: bool) -> Qos:
         Policy.History.KeepLast(depth),
         Policy.Durability.TransientLocal if transient else Policy.Durability.Volatile,
     )
+
+
+def _port_taken(address: str, port: int) -> bool:
+    """Whether another socket holds UDP ``port`` on ``address``."""
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((address, port))
+        except OSError as exc:
+            return exc.errno == errno.EADDRINUSE
+    return False
 
 
 def _resolve(host: str) -> str:
@@ -261,7 +273,9 @@ class DdsServerTransport(ServerCore):
         try:
             participant = _Participant(server_domain_xml(address, endpoint.port, options.settings))
         except TransportError as exc:
-            raise TransportError(f"cannot serve on {endpoint}: {exc}") from None
+            # Cyclone says only "Non specific error": tell the common cause apart.
+            why = f"UDP port {endpoint.port} is already in use" if _port_taken(address, endpoint.port) else str(exc)
+            raise TransportError(f"cannot serve on {endpoint}: {why}") from None
         try:
             return cls(service, endpoint, participant, options)
         except BaseException:
@@ -387,7 +401,7 @@ class _PeerLink:
             #: Pending requests (and observations' first answers) by token.
             self.waiting: dict[int, asyncio.Future[tuple[Response, int | None]]] = {}
             #: Notification queues of running observations, by token.
-            self.observers: dict[int, asyncio.Queue[tuple[Response, int | None]]] = {}
+            self.observers: dict[int, asyncio.Queue[Delivery | TransportError]] = {}
             self._announcer: asyncio.Task[None] | None = None
             self._discovery_waiters = 0
             self.replies = DataReader(
@@ -542,18 +556,23 @@ class DdsClientTransport(ClientCore):
         timeout = self._options.observe_timeout_s if timeout is None else timeout
         link = self._link(peer)
         token = next(self._tokens) % 2**64
-        queue: asyncio.Queue[tuple[Response, int | None]] = asyncio.Queue(maxsize=self._options.observe_queue)
+        queue: asyncio.Queue[Delivery | TransportError] = asyncio.Queue(maxsize=self._options.observe_queue)
         link.observers[token] = queue
         state: ObserverState | None = None
         try:
-            response, seq = await self._exchange(link, request, token, Observe.REGISTER, timeout)
-            state = ObserverState(response, seq)
-            yield response
-            while state.registered:
-                response, seq = await queue.get()
-                # A notification that arrived before the registration's answer is stale.
-                if state.accept(response, seq):
-                    yield response
+            with self._observation(queue):
+                response, seq = await self._exchange(link, request, token, Observe.REGISTER, timeout)
+                state = ObserverState(response, seq)
+                yield response
+                while state.registered:
+                    item = await queue.get()
+                    if isinstance(item, TransportError):  # the client closed
+                        state.registered = False
+                        raise item
+                    response, seq = item
+                    # A notification that arrived before the registration's answer is stale.
+                    if state.accept(response, seq):
+                        yield response
         finally:
             link.observers.pop(token, None)
             if state is not None and state.registered and not self._closed and link is self._links.get(peer):
@@ -569,3 +588,4 @@ class DdsClientTransport(ClientCore):
         links, self._links = list(self._links.values()), {}
         for link in links:
             link.close()
+        self._end_observations()

@@ -213,6 +213,8 @@ class RequestHeader:
     observe: Observe | None = None
     #: Where the server publishes an observation's notifications (observe requests only).
     notify_key: str | None = None
+    #: If-Match (RFC 7252 section 5.10.8.1): a conditional write.
+    if_match: tuple[bytes, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -239,8 +241,9 @@ def encode_request_header(header: RequestHeader) -> bytes | None:
         list(header.etags),
         None if header.observe is None else int(header.observe),
         header.notify_key,
+        list(header.if_match),
     ]
-    return _trimmed(items, [1, None, [], None, None])
+    return _trimmed(items, [1, None, [], None, None, []])
 
 
 def _array(data: bytes | None, max_len: int, what: str) -> list[Any]:
@@ -264,13 +267,15 @@ def _optional_uint(value: Any, limit: int, what: str) -> int | None:
 
 
 def decode_request_header(data: bytes | None) -> RequestHeader:
-    items = _array(data, 5, "request")
-    items += [1, None, [], None, None][len(items) :]
-    method_code, accept, etags, observe, notify_key = items
+    items = _array(data, 6, "request")
+    items += [1, None, [], None, None, []][len(items) :]
+    method_code, accept, etags, observe, notify_key, if_match = items
     if type(method_code) is not int or method_code not in _METHODS_BY_CODE:
         raise MappingError(f"unknown method code {method_code!r}")
     if not isinstance(etags, list) or not all(isinstance(e, bytes) and 1 <= len(e) <= 8 for e in etags):
         raise MappingError("etags must be an array of 1-8 byte strings")
+    if not isinstance(if_match, list) or not all(isinstance(m, bytes) and len(m) <= 8 for m in if_match):
+        raise MappingError("if-match must be an array of 0-8 byte strings")
     if observe is not None and observe not in (0, 1):
         raise MappingError(f"observe must be 0 or 1, got {observe!r}")
     if observe is not None and not (isinstance(notify_key, str) and notify_key.startswith(NOTIFY_ROOT + "/")):
@@ -281,6 +286,7 @@ def decode_request_header(data: bytes | None) -> RequestHeader:
         tuple(etags),
         None if observe is None else Observe(observe),
         notify_key if observe is not None else None,
+        tuple(if_match),
     )
 
 
@@ -320,6 +326,7 @@ def request_from_query(
         content_format_of(encoding),
         header.accept,
         header.etags,
+        header.if_match,
     )
     return request, header
 

@@ -504,6 +504,9 @@ class ZenohClientTransport(ClientCore):
                 if attempt == OPEN_ATTEMPTS - 1 or self._closed:
                     raise
                 time.sleep(OPEN_BACKOFF_S * 2**attempt)  # on an executor thread: a back-off, not a wait
+        if self._closed:  # the client closed while this session opened
+            _close(session)
+            raise TransportError("the zenoh client transport was closed")
         if self._security is not None:
             try:
                 self._security.check_peer(session, peer)
@@ -617,7 +620,7 @@ class ZenohClientTransport(ClientCore):
         or no answer arrives within ``timeout`` seconds, and
         :class:`TransportError` for other failures (transport closed, a
         malformed answer)."""
-        header = RequestHeader(request.method, request.accept, request.etags)
+        header = RequestHeader(request.method, request.accept, request.etags, if_match=request.if_match)
         response, _ = await self._exchange(peer, request, header, timeout)
         return response
 
@@ -637,54 +640,56 @@ class ZenohClientTransport(ClientCore):
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         notify_key = f"{NOTIFY_ROOT}/{self._id}/{next(self._tokens)}"
-        notifications: asyncio.Queue[_Reply] = asyncio.Queue(maxsize=self._options.observe_queue)
-
-        header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
-        session, subscriber, response, seq = None, None, None, None
-        # As in _exchange: once more on a fresh session if the first had no
-        # route; the subscriber must live on the session the query goes out on.
-        for attempt in range(2):
-            try:
-                async with asyncio.timeout(max(deadline - loop.time(), 0.0)):
-                    session = await self._session(peer)
-            except TimeoutError:
-                raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
-            try:
-                subscriber = session.declare_subscriber(
-                    notify_key, zenoh.handlers.Callback(lambda sample: post(loop, put_latest, notifications, _copy_sample(sample)))
-                )
-            except zenoh.ZError as exc:
-                raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
-            try:
-                response, seq = await self._exchange(peer, request, header, max(deadline - loop.time(), 0.0), session)
-                break
-            except _NoRoute:
-                with contextlib.suppress(zenoh.ZError):
-                    subscriber.undeclare()
-                if attempt:
-                    raise
-            except BaseException:
-                with contextlib.suppress(zenoh.ZError):
-                    subscriber.undeclare()
-                raise
-        assert session is not None and subscriber is not None and response is not None
-        state = ObserverState(response, seq)
-        try:
-            yield response
-            while state.registered:
-                sample = await notifications.get()
+        notifications: asyncio.Queue[_Reply | TransportError] = asyncio.Queue(maxsize=self._options.observe_queue)
+        with self._observation(notifications):
+            header = RequestHeader(request.method, request.accept, request.etags, Observe.REGISTER, notify_key)
+            session, subscriber, response, seq = None, None, None, None
+            # As in _exchange: once more on a fresh session if the first had no
+            # route; the subscriber must live on the session the query goes out on.
+            for attempt in range(2):
                 try:
-                    response, seq = self._response(peer, sample)
-                except TransportError:
-                    continue  # counted; a garbled notification is skipped like a lost one
-                # A notification that arrived before the registration's answer is stale.
-                if state.accept(response, seq):
-                    yield response
-        finally:
-            with contextlib.suppress(zenoh.ZError):
-                subscriber.undeclare()
-            if state.registered and not self._closed:
-                self._deregister(session, request, notify_key)
+                    async with asyncio.timeout(max(deadline - loop.time(), 0.0)):
+                        session = await self._session(peer)
+                except TimeoutError:
+                    raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
+                try:
+                    subscriber = session.declare_subscriber(notify_key, zenoh.handlers.Callback(
+                        lambda sample: post(loop, put_latest, notifications, _copy_sample(sample))))
+                except zenoh.ZError as exc:
+                    raise TransportError(f"cannot subscribe to notifications from {peer}: {exc}") from None
+                try:
+                    response, seq = await self._exchange(peer, request, header, max(deadline - loop.time(), 0.0), session)
+                    break
+                except _NoRoute:
+                    with contextlib.suppress(zenoh.ZError):
+                        subscriber.undeclare()
+                    if attempt:
+                        raise
+                except BaseException:
+                    with contextlib.suppress(zenoh.ZError):
+                        subscriber.undeclare()
+                    raise
+            assert session is not None and subscriber is not None and response is not None
+            state = ObserverState(response, seq)
+            try:
+                yield response
+                while state.registered:
+                    sample = await notifications.get()
+                    if isinstance(sample, TransportError):  # the client closed
+                        state.registered = False
+                        raise sample
+                    try:
+                        response, seq = self._response(peer, sample)
+                    except TransportError:
+                        continue  # counted; a garbled notification is skipped like a lost one
+                    # A notification that arrived before the registration's answer is stale.
+                    if state.accept(response, seq):
+                        yield response
+            finally:
+                with contextlib.suppress(zenoh.ZError):
+                    subscriber.undeclare()
+                if state.registered and not self._closed:
+                    self._deregister(session, request, notify_key)
 
     def _deregister(self, session: zenoh.Session, request: Request, notify_key: str) -> None:
         """Best effort, not awaited: the server also ends the observation when it
@@ -701,9 +706,12 @@ class ZenohClientTransport(ClientCore):
         self._closed = True
         sessions = []
         for opening in self._sessions.values():
-            with contextlib.suppress(Exception):
-                sessions.append(await opening)
+            # One still opening is not waited for (to a dead QUIC peer that is
+            # Zenoh's open timeout, 10 s): _open closes it when it comes.
+            if opening.done() and not opening.cancelled() and opening.exception() is None:
+                sessions.append(opening.result())
         self._sessions.clear()
+        self._end_observations()
         closing = [_close_in_thread(session) for session in sessions if not session.is_closed()]
         if closing:
             # Live peers are told goodbye within milliseconds; a session still
