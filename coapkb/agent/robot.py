@@ -21,7 +21,7 @@ import json
 import re
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cbor2
 
@@ -52,6 +52,9 @@ from .stats import RobotStats
 from .task_assigner import robot_sort_key
 from .task_executor import TaskExecutor
 from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
+
+if TYPE_CHECKING:  # discovery is imported only when a robot uses it
+    from ..discovery.client import DirectoryClient
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 
@@ -172,7 +175,7 @@ class Robot:
         #: (a repeated post is recognised: the feeder repeats only its latest).
         self._accepted: dict[int, str] = {}
         #: Its registration in the team's Resource Directory (``[discovery] method = "rd"``).
-        self.directory: Any = None
+        self.directory: DirectoryClient | None = None
         #: How late its own event loop runs (set at start).
         self.health: LoopHealth | None = None
         #: Spreads its KB's writes to the other holders (``kb_writable``).

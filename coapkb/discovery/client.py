@@ -14,7 +14,6 @@ import asyncio
 import contextlib
 import logging
 from dataclasses import replace
-from typing import Any
 
 from aiocoap.util.linkformat import Link, LinkFormat, parse
 from aiocoap.util.vendored.link_header import ParseException
@@ -22,6 +21,7 @@ from aiocoap.util.vendored.link_header import ParseException
 from ..config import KB_MODULES, RobotConfig, Teammate
 from ..errors import CoapkbError
 from ..security import load_identity
+from ..security.keys import TeamTrust
 from ..transport import open_client, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
@@ -55,7 +55,7 @@ class DirectoryClient:
     """One robot's registration in the directory, on a client of its own
     (its only peer is the directory, whose identity it expects)."""
 
-    def __init__(self, config: RobotConfig, client: ClientTransport, trust: Any = None) -> None:
+    def __init__(self, config: RobotConfig, client: ClientTransport, trust: TeamTrust | None = None) -> None:
         discovery = config.discovery
         if discovery.rd is None:
             raise ValueError("no directory configured")
@@ -141,7 +141,8 @@ class DirectoryClient:
             ep, base = attrs.get("ep"), attrs.get("base")
             if not ep or not base:
                 continue
-            if self._trust is not None and getattr(self._trust.by_name(ep), "role", None) != "robot":
+            member = None if self._trust is None else self._trust.by_name(ep)
+            if self._trust is not None and (member is None or member.role != "robot"):
                 log.warning("directory lists %s, not a robot of the team: ignored", ep)
                 continue
             try:

@@ -26,7 +26,7 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NotRequired, TypedDict
+from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from ..agent.lease import lease_duration_s
 from ..agent.query_handler import QUERY_WIRES
@@ -56,6 +56,10 @@ from ..world.service import WorldServer
 from ..world.truth import WorldTruth
 from .kbs import kbs_for_team
 from .record import FaultEvent, TeamRecord
+
+if TYPE_CHECKING:  # discovery is imported only when a team uses it
+    from ..discovery import ResourceDirectory
+    from ..transport import ClientSecurity
 
 log = logging.getLogger(__name__)
 
@@ -479,7 +483,7 @@ class Team:
         #: The team's key directory (``coapkb keys``'s layout) when the spec is secure.
         self.team_dir: Path | None = None
         #: The Resource Directory the feeder hosts (``discovery="rd"``).
-        self.directory: Any = None
+        self.directory: ResourceDirectory | None = None
         #: Stopped robots let go on again: alive, though the team has them down.
         self._resumed: set[str] = set()
         #: The one world the robots find objects in (:mod:`coapkb.world.service`).
@@ -494,6 +498,7 @@ class Team:
         directory = self.directory
 
         def registration(cluster_no: int, cluster: Sequence[str]) -> DiscoveryConfig:
+            assert directory is not None  # asked for only when the feeder hosts one
             return DiscoveryConfig(
                 "rd", rd=directory.endpoint, rd_identity="feeder", cluster=f"cluster{cluster_no}",
                 members=len(cluster), lifetime_s=spec.rd_lifetime_s, wait_s=spec.task_timeout_s,
@@ -729,7 +734,7 @@ class Team:
             await client.aclose()
         return positions
 
-    def feeder_security(self) -> Any:
+    def feeder_security(self) -> ClientSecurity | None:
         """The feeder's client side for this team (None for an insecure team)."""
         expected = {e.hostport: r for r, e in self.endpoints.items()}
         if self.central is not None:
