@@ -15,11 +15,12 @@ to this module).  ``examples/three-robots/`` holds a whole team of three.
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import tomli_w
 
@@ -231,14 +232,15 @@ def dump_config(config: RobotConfig) -> str:
     return tomli_w.dumps(config_to_dict(config))
 
 
+#: :class:`RobotConfig`'s fields whose TOML key is another.
+_TOML_KEYS = {"kb_files": "kb", "transport_options": "transport"}
+#: Top-level settings of a plain type: typed and defaulted by their declaration in :class:`RobotConfig`.
+_PLAIN = ("strategy", "query_timeout_s", "link_kbps", "lease_s", "kb_writable")
+
+
 def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotConfig:
     """Validate a configuration mapping (as read from TOML)."""
-    known = {
-        "robot_id", "bind", "kb", "team", "start", "strategy",
-        "central", "query_timeout_s", "link_kbps", "cost", "execution", "security", "kb_index",
-        "discovery", "lease_s", "kb_writable", "replicas", "world", "transport",
-    }
-    _no_unknown(data, known, "")
+    _no_unknown(data, {_TOML_KEYS.get(f.name, f.name) for f in dataclasses.fields(RobotConfig)}, "")
     robot_id = _get(data, "robot_id", str)
     if not robot_id:
         raise ConfigError("robot_id: must not be empty")
@@ -247,9 +249,10 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
     kb_index = data.get("kb_index")
     if kb_index is not None and not isinstance(kb_index, str):
         raise ConfigError(f"kb_index: expected a directory path, got {type(kb_index).__name__}")
-    strategy = _get(data, "strategy", str, "compute-by-all")
-    if strategy not in STRATEGIES:
-        raise ConfigError(f"strategy: {strategy!r} is not one of {', '.join(STRATEGIES)}")
+    try:
+        plain = typed_fields(RobotConfig, {k: data[k] for k in _PLAIN if k in data}, _PLAIN)
+    except ValueError as exc:  # names the field
+        raise ConfigError(str(exc)) from None
     team = _teammates(_get(data, "team", dict), "team", bind)
     replicas = _teammates(_get(data, "replicas", dict, {}), "replicas", bind)
     if robot_id in replicas or set(replicas) & set(team):
@@ -268,20 +271,16 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         kb_files=kb_files,
         team=team,
         start=_section(data, "start", StartState),
-        strategy=strategy,
         central=central_ep,
-        query_timeout_s=float(_get(data, "query_timeout_s", (int, float), 20.0)),
-        link_kbps=None if data.get("link_kbps") is None else float(_get(data, "link_kbps", (int, float))),
         cost=_section(data, "cost", CostModel),
         execution=_section(data, "execution", ExecutionModel),
         security=security,
         kb_index=None if kb_index is None else (base_dir / kb_index),
-        discovery=_discovery(data.get("discovery", {})),
-        lease_s=float(_get(data, "lease_s", (int, float), 3.0)),
-        kb_writable=_get(data, "kb_writable", bool, False),
+        discovery=_discovery(data),
         replicas=replicas,
         world=None if data.get("world") is None else base_dir / _get(data, "world", str),
         transport_options=_transport_options(_get(data, "transport", dict, {}), bind.scheme),
+        **plain,
     )
     _check_values(config)
     return config
@@ -327,6 +326,8 @@ def _teammates(table: Mapping[str, Any], section: str, bind: Endpoint) -> dict[s
 
 
 def _check_values(c: RobotConfig) -> None:
+    if c.strategy not in STRATEGIES:
+        raise ConfigError(f"strategy: {c.strategy!r} is not one of {', '.join(STRATEGIES)}")
     if c.query_timeout_s <= 0:
         raise ConfigError("query_timeout_s: must be positive")
     if c.lease_s < 0:
@@ -361,26 +362,12 @@ def _check_values(c: RobotConfig) -> None:
         raise ConfigError(f"central: {c.central.scheme} server, but this robot uses {c.bind.scheme}")
 
 
-def _discovery(section: Any) -> DiscoveryConfig:
-    if not isinstance(section, dict):
-        raise ConfigError("discovery: expected a table")
-    _no_unknown(section, set(DiscoveryConfig.__dataclass_fields__), "discovery.")
-    method = _get(section, "method", str, "static", where="discovery")
-    if method not in DISCOVERY_METHODS:
-        raise ConfigError(f"discovery.method: {method!r} is not one of {', '.join(DISCOVERY_METHODS)}")
-    rd = None if section.get("rd") is None else _endpoint(section["rd"], "discovery.rd")
-    if rd is not None and not transport_for(rd.scheme).resource_directory:
-        raise ConfigError(f"discovery.rd: a Resource Directory is a coap:// endpoint, got {rd}")
-    discovery = DiscoveryConfig(
-        method=method,
-        rd=rd,
-        rd_identity=_get(section, "rd_identity", str, "feeder", where="discovery"),
-        cluster=_get(section, "cluster", str, "team", where="discovery"),
-        members=_get(section, "members", int, 3, where="discovery"),
-        lifetime_s=_get(section, "lifetime_s", int, 60, where="discovery"),
-        wait_s=float(_get(section, "wait_s", (int, float), 30.0, where="discovery")),
-        multicast_port=_get(section, "multicast_port", int, 5683, where="discovery"),
-    )
+def _discovery(data: Mapping[str, Any]) -> DiscoveryConfig:
+    discovery = _section(data, "discovery", DiscoveryConfig, convert={"rd": _endpoint_value})
+    if discovery.method not in DISCOVERY_METHODS:
+        raise ConfigError(f"discovery.method: {discovery.method!r} is not one of {', '.join(DISCOVERY_METHODS)}")
+    if discovery.rd is not None and not transport_for(discovery.rd.scheme).resource_directory:
+        raise ConfigError(f"discovery.rd: a Resource Directory is a coap:// endpoint, got {discovery.rd}")
     if not 0 < discovery.multicast_port < 65536:
         raise ConfigError("discovery.multicast_port: must be a UDP port (1-65535)")
     if not discovery.cluster or not all(c.isalnum() or c in "-_." for c in discovery.cluster):
@@ -416,11 +403,16 @@ def _get(data: Mapping[str, Any], key: str, kind: Any, default: Any = _MISSING, 
     return value
 
 
-def _endpoint(text: str, name: str) -> Endpoint:
+def _endpoint_value(text: Any) -> Endpoint:
+    """ValueError saying why ``text`` is not an endpoint."""
     if not isinstance(text, str):
-        raise ConfigError(f"{name}: expected a URI string like coap://127.0.0.1:5683")
+        raise ValueError("expected a URI string like coap://127.0.0.1:5683")
+    return Endpoint.parse(text)
+
+
+def _endpoint(text: Any, name: str) -> Endpoint:
     try:
-        return Endpoint.parse(text)
+        return _endpoint_value(text)
     except ValueError as exc:
         raise ConfigError(f"{name}: {exc}") from None
 
@@ -434,12 +426,16 @@ def _path(base_dir: Path, value: Any, name: str) -> Path:
     return path
 
 
-def _section(data: Mapping[str, Any], key: str, cls: type) -> Any:
+T = TypeVar("T")
+
+
+def _section(data: Mapping[str, Any], key: str, cls: type[T],
+             convert: Mapping[str, Callable[[Any], Any]] | None = None) -> T:
     section = data.get(key, {})
     if not isinstance(section, dict):
         raise ConfigError(f"{key}: expected a table")
     try:
-        values = typed_fields(cls, section)
+        values = typed_fields(cls, section, convert=convert)
     except ValueError as exc:  # names the field
         raise ConfigError(f"{key}.{exc}") from None
     return cls(**values)

@@ -10,20 +10,30 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
 
-def typed_fields(cls: type, table: Mapping[str, Any], settable: Collection[str] | None = None) -> dict[str, Any]:
+def typed_fields(cls: type, table: Mapping[str, Any], settable: Collection[str] | None = None,
+                 convert: Mapping[str, Callable[[Any], Any]] | None = None) -> dict[str, Any]:
     """``table``'s values for ``cls``'s fields (only those in ``settable``,
-    when given).  Raises ValueError naming the field: ``NAME: unknown field
-    (known: ...)`` or ``NAME: expected TYPE, got VALUE``."""
+    when given); a field in ``convert`` is that function's result instead
+    (for a type a table cannot hold: an endpoint, a path).  Raises
+    ValueError naming the field: ``NAME: unknown field (known: ...)``,
+    ``NAME: expected TYPE, got VALUE``, or ``NAME: `` and what ``convert``
+    raised."""
     defaults = {f.name: f.default for f in dataclasses.fields(cls) if settable is None or f.name in settable}
     unknown = sorted(set(table) - set(defaults))
     if unknown:
         raise ValueError(f"{unknown[0]}: unknown field (known: {', '.join(sorted(defaults))})")
     values: dict[str, Any] = {}
     for name, value in table.items():
+        if convert is not None and name in convert:
+            try:
+                values[name] = convert[name](value)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+            continue
         kind = type(defaults[name]) if defaults[name] is not None else _optional_of(cls, name)
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
