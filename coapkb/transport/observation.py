@@ -30,9 +30,9 @@ import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Coroutine, Hashable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
-from .base import Service, handle_safely
+from .base import Service, TransportError, handle_safely
 from .messages import Request, Response
 
 __all__ = [
@@ -43,6 +43,8 @@ __all__ = [
     "ObserverState",
     "put_latest",
 ]
+
+_T = TypeVar("_T")
 
 #: A response and its ``seq`` (None: not part of an observation).
 Delivery = tuple[Response, int | None]
@@ -251,6 +253,14 @@ class ObserverState:
     def __init__(self, response: Response, seq: int | None) -> None:
         self.registered = seq is not None and response.status.is_success
         self.last = seq
+
+    def delivered(self, item: _T | TransportError) -> _T:
+        """``item`` from the notification queue, or the :class:`TransportError`
+        a closing client queued raised (the observation is then over)."""
+        if isinstance(item, TransportError):
+            self.registered = False
+            raise item
+        return item
 
     def accept(self, response: Response, seq: int | None) -> bool:
         """Whether to deliver ``response`` to the reader."""

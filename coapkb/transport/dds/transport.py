@@ -565,11 +565,7 @@ class DdsClientTransport(ClientCore):
                 state = ObserverState(response, seq)
                 yield response
                 while state.registered:
-                    item = await queue.get()
-                    if isinstance(item, TransportError):  # the client closed
-                        state.registered = False
-                        raise item
-                    response, seq = item
+                    response, seq = state.delivered(await queue.get())
                     # A notification that arrived before the registration's answer is stale.
                     if state.accept(response, seq):
                         yield response

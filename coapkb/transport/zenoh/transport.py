@@ -674,10 +674,7 @@ class ZenohClientTransport(ClientCore):
             try:
                 yield response
                 while state.registered:
-                    sample = await notifications.get()
-                    if isinstance(sample, TransportError):  # the client closed
-                        state.registered = False
-                        raise sample
+                    sample = state.delivered(await notifications.get())
                     try:
                         response, seq = self._response(peer, sample)
                     except TransportError:

@@ -600,11 +600,7 @@ class ZmqClientTransport(ClientCore):
             state = ObserverState(response, seq)
             yield response
             while state.registered:
-                item = await queue.get()
-                if isinstance(item, TransportError):
-                    state.registered = False
-                    raise item
-                response, seq = item
+                response, seq = state.delivered(await queue.get())
                 if state.accept(response, seq):
                     yield response
         finally:
