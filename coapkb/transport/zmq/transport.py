@@ -574,39 +574,41 @@ class ZmqClientTransport(ClientCore):
         link.users += 1
         got_out = False
         state: ObserverState | None = None
-        try:
+        # An observation of a client that closes ends with its TransportError (ClientCore).
+        with self._observation(queue):
             try:
-                async with asyncio.timeout(timeout):
-                    data = encode_request(request, token=token, observe=Observe.REGISTER)
-                    await link.sock.send(data)
-                    got_out = True
-                    self._count_sent(zmtp_frame_bytes(len(data)))
-                    item = await queue.get()
-            except TimeoutError:
-                raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
-            except asyncio.CancelledError:
-                if (err := self._closed_error()) is not None:
-                    raise err from None
-                raise
-            except zmq.ZMQError as exc:
-                raise TransportError(f"observe request to {peer} failed: {exc}") from exc
+                try:
+                    async with asyncio.timeout(timeout):
+                        data = encode_request(request, token=token, observe=Observe.REGISTER)
+                        await link.sock.send(data)
+                        got_out = True
+                        self._count_sent(zmtp_frame_bytes(len(data)))
+                        item = await queue.get()
+                except TimeoutError:
+                    raise PeerTimeout(f"no answer from {peer} within {timeout:g}s") from None
+                except asyncio.CancelledError:
+                    if (err := self._closed_error()) is not None:
+                        raise err from None
+                    raise
+                except zmq.ZMQError as exc:
+                    raise TransportError(f"observe request to {peer} failed: {exc}") from exc
+                finally:
+                    if not got_out:
+                        link.observers.pop(token, None)  # so _release may close the socket
+                    self._release(link, got_out=got_out)
+                if isinstance(item, TransportError):
+                    raise item
+                response, seq = item
+                state = ObserverState(response, seq)
+                yield response
+                while state.registered:
+                    response, seq = state.delivered(await queue.get())
+                    if state.accept(response, seq):
+                        yield response
             finally:
-                if not got_out:
-                    link.observers.pop(token, None)  # so _release may close the socket
-                self._release(link, got_out=got_out)
-            if isinstance(item, TransportError):
-                raise item
-            response, seq = item
-            state = ObserverState(response, seq)
-            yield response
-            while state.registered:
-                response, seq = state.delivered(await queue.get())
-                if state.accept(response, seq):
-                    yield response
-        finally:
-            link.observers.pop(token, None)
-            if state is not None and state.registered and not link.closed:
-                await self._deregister(link, token, request)
+                link.observers.pop(token, None)
+                if state is not None and state.registered and not link.closed:
+                    await self._deregister(link, token, request)
 
     async def _deregister(self, link: _PeerLink, token: int, request: Request) -> None:
         """Best effort: a lost deregistration is cleaned up by the server at the
@@ -633,11 +635,10 @@ class ZmqClientTransport(ClientCore):
             for fut in link.pending.values():
                 if not fut.done():
                     fut.set_exception(closed)
-            for queue in link.observers.values():
-                put_latest(queue, closed)
             link.close()
             readers.append(link.reader)
         self._links.clear()
+        self._end_observations()
         await asyncio.gather(*readers, return_exceptions=True)
         if self._owns_context:
             self._ctx.term()
