@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
+from .observed import Take
 from .run import Pick, RunResult
 
 
@@ -241,7 +242,6 @@ def _by_cluster(tasks: list[TaskRecord]) -> dict[int, list[TaskRecord]]:
     return clusters
 
 
-#: Every invariant, in the order their findings are printed.
 def check_repeats_skipped(run: RunResult) -> Iterable[str]:
     """An object a cluster gave to a robot is never given again by that
     cluster (every robot skips the repeat: "picked by ... at task ..."),
@@ -262,22 +262,129 @@ def check_repeats_skipped(run: RunResult) -> Iterable[str]:
 
 
 def check_replicas(run: RunResult) -> Iterable[str]:
-    """The KB's replicas converge and keep what they acknowledged: at the end
-    (every fault healed, the writes answered, anti-entropy given its time),
-    the running holders of each module hold the same version, and each has
-    every insert a holder acknowledged (2.04) -- the run removes none."""
+    """The KB's replicas converge, triple for triple: at the end (every fault
+    healed, the writes answered, anti-entropy given its time) the running
+    holders of each module are at one version and their queries see the
+    same triples; and at no moment did two holders at one version show
+    different triples (checked at every change of a holder's view)."""
     for module, versions in run.versions.items():
         if len(set(versions.values())) > 1:
             yield f"the holders of {module} disagree at the end: " + ", ".join(
                 f"{robot} {version}" for robot, version in versions.items()
             )
-    for robot, labels in run.missing.items():
-        yield f"{robot} lacks acknowledged writes {', '.join(labels)}"
+    for module, found in run.differences.items():
+        for difference in found:
+            yield f"the holders of {module} hold different triples at the end: {difference}"
+    yield from run.split_versions[:3]
 
 
+def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
+    """Every acknowledged insert is seen by every running holder at the end,
+    unless a delete of the same value was sent after it; and a value removed
+    by a delete that had seen every insert of it (every holder up, at one
+    version, showing it, no insert of it on its way) never comes back,
+    unless inserted again later."""
+    for op in run.writes:
+        seen_by = run.values.get(op.module, {})
+        if op.kind == "insert" and op.status == "2.04":
+            if any(d.kind == "delete" and d.module == op.module and d.value == op.value and d.sent_s >= op.sent_s
+                   for d in run.writes):
+                continue
+            lacking = [r for r, values in seen_by.items() if op.value not in values]
+            if lacking:
+                yield (f"{', '.join(lacking)} lack{'s' if len(lacking) == 1 else ''} acknowledged write {op.label} "
+                       f"({op.module} value {op.value}, answered {op.robot} 2.04 at {op.answered_s:.3f}s)")
+        elif op.kind == "delete" and op.status == "2.04" and op.settled:
+            # An insert sent later, or still on its way when the delete was
+            # sent (it may land after it), may bring the value back.
+            if any(i.kind == "insert" and i.module == op.module and i.value == op.value
+                   and (i.sent_s > op.sent_s or i.answered_s > op.sent_s or i.status != "2.04")
+                   for i in run.writes):
+                continue
+            back = [r for r, values in seen_by.items() if op.value in values]
+            if back:
+                yield (f"{op.module} value {op.value}, removed by {op.label} at {op.robot} (2.04 at "
+                       f"{op.answered_s:.3f}s), is back on {', '.join(back)}")
+
+
+def check_shelf(run: RunResult) -> Iterable[str]:
+    """Each object comes off its shelf at most once in a run (the simulated
+    warehouse never restocks), whatever the world's own bookkeeping says:
+    counted from every take the robots made."""
+    first: dict[str, Take] = {}
+    for take in run.takes:
+        if not take.taken:
+            continue
+        before = first.setdefault(take.object, take)
+        if before is not take:
+            yield (f"{take.object} taken off its shelf twice: by {before.robot} as task {before.seq} at "
+                   f"{before.at_s:.3f}s and by {take.robot} as task {take.seq} at {take.at_s:.3f}s")
+
+
+def check_leases(run: RunResult) -> Iterable[str]:
+    """No robot reaches for an object without a lease from a majority of its
+    cluster at that instant: read from the grants its teammates' servers
+    really sent (a grant at ``g`` covers at most ``[g, g + lease])``), not
+    from what the robot believed."""
+    record = run.record
+    if record is None or run.lease_s <= 0:
+        return
+    cluster_of = {r: c for c in record.clusters for r in c}
+    grants: dict[str, list[tuple[float, str]]] = defaultdict(list)
+    for grant in run.grants:
+        grants[grant.grantee].append((grant.at_s, grant.granter))
+    for take in run.takes:
+        teammates = [r for r in cluster_of.get(take.robot, ()) if r != take.robot]
+        needed = (len(teammates) + 1) // 2
+        granters = {g for at, g in grants[take.robot]
+                    if take.at_s - run.lease_s <= at <= take.at_s and g in teammates}
+        if len(granters) < needed:
+            yield (f"{take.robot} reached for {take.object} (task {take.seq}) at {take.at_s:.3f}s holding grants "
+                   f"from {len(granters)} of the {needed} teammates a lease needs within the last "
+                   f"{run.lease_s:g}s")
+
+
+def check_not_after_rerun(run: RunResult) -> Iterable[str]:
+    """No robot reaches for a task's object once the task was sent round
+    again and decided anew (only the re-run's robot may)."""
+    record = run.record
+    if record is None:
+        return
+    cluster_of = {r: i for i, c in enumerate(record.clusters, 1) for r in c}
+    rerun_of: dict[tuple[int, int], TaskRecord] = {}
+    for task in record.tasks:
+        if task.reassigned_from is not None:
+            rerun_of[(task.cluster, task.reassigned_from)] = task
+    for take in run.takes:
+        key = (cluster_of.get(take.robot, 0), take.seq)
+        rerun = rerun_of.get(key)
+        decided = run.decided_at.get((rerun.cluster, rerun.seq)) if rerun is not None else None
+        if rerun is not None and decided is not None and run.fed_at + decided < take.at_s:
+            yield (f"{take.robot} reached for {take.object} as task {take.seq} at {take.at_s:.3f}s, after it went "
+                   f"round again as task {rerun.seq} (decided at {run.fed_at + decided:.3f}s)")
+
+
+def check_liveness(run: RunResult) -> Iterable[str]:
+    """Once the last fault healed (and the last task was decided), every task
+    settles within the bound, and the replicas agree within it too."""
+    if run.record is None or run.settled_at is None or not run.settle_bound_s:
+        return
+    since = max(run.healed_at, max(run.decided_at.values(), default=0.0))
+    if run.settled_at - since > run.settle_bound_s:
+        yield (f"the tasks settled {run.settled_at - since:.1f}s after the last fault healed and the last task was "
+               f"decided (bound {run.settle_bound_s:.1f}s)")
+    if run.writes and run.converged_at is None:
+        yield "the replicas never agreed after the last fault healed"
+    elif run.converged_at is not None and run.converged_at - max(since, run.settled_at) > run.settle_bound_s:
+        yield (f"the replicas agreed {run.converged_at - since:.1f}s after the last fault healed "
+               f"(bound {run.settle_bound_s:.1f}s)")
+
+
+#: Every invariant, in the order their findings are printed.
 CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
-    check_finished, check_one_fate, check_executed_once, check_agreement, check_epochs_grow, check_bounded,
-    check_repeats_skipped, check_replicas,
+    check_finished, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
+    check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
+    check_acknowledged_writes, check_liveness,
 )
 
 

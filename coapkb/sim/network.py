@@ -137,6 +137,9 @@ class SimNetwork:
         #: (robot, incarnation) -> when each of its outcome reports (notification
         #: or answer) reached the feeder, and the jobs done it told.
         self.reports: dict[tuple[str, int], list[tuple[float, int]]] = {}
+        #: Called with every answer a server gives (once per exchange, not per
+        #: retransmission): the checker's view of what a process really said.
+        self.answer_hooks: list[Callable[[Process, Request, Response], None]] = []
 
     # ------------------------------------------------------------- faults
 
@@ -145,6 +148,10 @@ class SimNetwork:
         pairs = {(a, b) for a in side for b in other}
         self._partitions[name] = pairs | {(b, a) for a, b in pairs}
         self._cut = set().union(*self._partitions.values())
+
+    def isolated(self, process: str) -> bool:
+        """Whether a partition in force cuts ``process`` off from anyone."""
+        return any(a == process for a, _ in self._cut)
 
     def heal(self, name: str) -> None:
         self._partitions.pop(name, None)
@@ -283,6 +290,8 @@ class SimServer:
             self._observers[observe.key] = observer
             observer.start()
         response = await handle_safely(self.service, request, log)
+        for hook in self.network.answer_hooks:
+            hook(self.process, request, response)
         if key in self._exchanges:
             self._exchanges[key] = (self._exchanges[key][0], response)
         self._reply(client, xid, request.path, response)

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, TextIO, cast
 
 from ..agent.robot import Robot
+from ..agent.team_view import liveness_floor_s
 from ..agent.task_executor import PICKED
 from ..config import RobotConfig
 from ..feeder import Feeder, FeederError, Roster, TaskRecord
@@ -37,7 +38,7 @@ from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_co
 from ..host import Host
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
-from ..kb.results import QueryResult, expect_ask
+from ..kb.results import QueryResult, expect_ask, expect_select
 from ..kb.store import KnowledgeBase
 from ..transport.base import Endpoint, TransportError
 from ..world.truth import WorldTruth
@@ -45,6 +46,7 @@ from ..world.vocabulary import ONTOLOGIES
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
+from .observed import Grant, GrantLog, Shelf, Take, module_triples, written_view
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +55,9 @@ DEFAULT_LIMIT_S = 3600.0
 #: How long the holders may take, once the last write is answered and the
 #: faults healed, to agree (anti-entropy rounds every few seconds).
 REPLICATION_SETTLE_S = 60.0
+#: The subject of each module's write log: the operator's writes add and
+#: remove values of its multi-valued ``written`` property.
+WRITE_LOG = "WriteLog"
 MOVE_ROBOT = (
     "PREFIX loc: <http://www.tcs.org/2018/Location#> DELETE {{ loc:{robot} loc:Robot_aisle_no ?a }} "
     "INSERT {{ loc:{robot} loc:Robot_aisle_no {aisle} }} WHERE {{ loc:{robot} loc:Robot_aisle_no ?a }}"
@@ -112,6 +117,27 @@ class Pick:
     at_s: float
 
 
+@dataclass(frozen=True)
+class WriteOp:
+    """One of the operator's writes, as sent and answered.
+
+    ``kind``: ``insert`` or ``delete`` of the value ``value`` of the
+    multi-valued log property of ``module``, or ``move`` (a robot's aisle,
+    single-valued).  ``settled``: a delete sent while every holder of its
+    module ran, reachable, at one version and showing the value: it saw
+    every insert of it, so the value must stay gone unless inserted again."""
+
+    label: str
+    robot: str
+    status: str
+    module: str
+    kind: str
+    value: int
+    sent_s: float
+    answered_s: float
+    settled: bool = False
+
+
 @dataclass
 class RunResult:
     """What one seed's run gave (picklable: runs travel between worker processes)."""
@@ -140,12 +166,30 @@ class RunResult:
     reports: dict[tuple[str, int], list[tuple[float, int]]] = field(default_factory=dict)
     #: The fate counts in one line (kept when the record is dropped).
     fates: str = ""
-    #: The operator's writes: (label, robot written to, status, the triple's module).
-    writes: list[tuple[str, str, str, str]] = field(default_factory=list)
-    #: At the end, per module: each running holder's version of it, and the
-    #: acknowledged inserts it lacks (filled when the run wrote).
+    #: The operator's writes, as they were answered.
+    writes: list[WriteOp] = field(default_factory=list)
+    #: At the end, per module: each running holder's version of it.
     versions: dict[str, dict[str, str]] = field(default_factory=dict)
-    missing: dict[str, list[str]] = field(default_factory=dict)
+    #: At the end, per module and running holder: the log values its queries see.
+    values: dict[str, dict[str, frozenset[int]]] = field(default_factory=dict)
+    #: At the end, per module: the holders whose triples differ from the first
+    #: holder's, with a few of the differing triples (empty: equal).
+    differences: dict[str, list[str]] = field(default_factory=dict)
+    #: Moments two holders of a module were at one version with different triples.
+    split_versions: list[str] = field(default_factory=list)
+    #: Every take at a shelf and every lease granted, from outside the robots.
+    takes: list[Take] = field(default_factory=list)
+    grants: list[Grant] = field(default_factory=list)
+    #: The robots' lease, seconds (0: no fence).
+    lease_s: float = 0.0
+    #: (cluster, seq) -> when the feeder had the task's decision (simulated s).
+    decided_at: dict[tuple[int, int], float] = field(default_factory=dict)
+    #: Liveness: when the last fault healed, when every task was settled and
+    #: when the replicas agreed (simulated s; None: never), and the bounds.
+    healed_at: float = 0.0
+    settled_at: float | None = None
+    converged_at: float | None = None
+    settle_bound_s: float = 0.0
     sim_s: float = 0.0
     cpu_s: float = 0.0
     steps: int = 0
@@ -325,7 +369,15 @@ class SimulatedTeam:
         self.robots: dict[str, Robot] = {}
         #: The one warehouse every robot of the run finds objects in (or not).
         self.world = WorldTruth()
-        self.history = _History(self.processes, lambda: self.scheduler.clock.now, self.note if trace else None)
+        clock = lambda: self.scheduler.clock.now  # noqa: E731 - read at each event
+        self.shelf = Shelf(self.world, self.processes, clock)
+        self.grants = GrantLog(clock)
+        self.network.answer_hooks.append(self.grants.answered)
+        self.history = _History(self.processes, clock, self.note if trace else None)
+        self.decided_at: dict[tuple[int, int], float] = {}
+        self.split_versions: list[str] = []
+        self.settled_at: float | None = None
+        self.converged_at: float | None = None
         self.feeder: Feeder | None = None
         self.fed_at: float | None = None
         self.resumed: set[str] = set()
@@ -333,7 +385,7 @@ class SimulatedTeam:
         #: Set once every task is done: from then on the schedule only heals (no new faults after the run).
         self.ending = False
         #: The operator's writes (``spec.writes``), as they were answered.
-        self.write_log: list[tuple[str, str, str, str]] = []
+        self.write_log: list[WriteOp] = []
         self._write_seed = rng.random()
 
     def note(self, text: str) -> None:
@@ -352,10 +404,32 @@ class SimulatedTeam:
     async def _start_robot(self, robot_id: str, process: Process) -> Robot:
         clock = self.scheduler.clock
         host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
-                    threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.world)
+                    threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf)
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
+        live = robot.replicator.live if robot.replicator is not None else None
+        if live is not None:
+            live.listeners.append(lambda modules: self._compare_at_version(robot_id, modules))
         return robot
+
+    def _compare_at_version(self, robot_id: str, modules: frozenset[str]) -> None:
+        """After ``robot_id``'s view changed: every other running holder at the
+        same version of a changed module must show the same triples."""
+        holders = self._live_holders()
+        for module in sorted(modules):
+            mine = holders.get(module, {}).get(robot_id)
+            if mine is None:
+                continue
+            version = mine.module_version(module)
+            view = written_view(mine, module)
+            for other_id, other in sorted(holders[module].items()):
+                if other_id != robot_id and other.module_version(module) == version:
+                    theirs = written_view(other, module)
+                    if theirs != view:
+                        differ = sorted(str(t) for t in view ^ theirs)[:3]
+                        self.split_versions.append(
+                            f"{robot_id} and {other_id} at version {version.hex()} of {module} show different "
+                            f"triples at {self.elapsed_s:.3f}s: {'; '.join(differ)}")
 
     # ------------------------------------------------------------- faults
 
@@ -411,37 +485,81 @@ class SimulatedTeam:
 
     async def _write(self, operator: Process, rng: random.Random) -> None:
         """The operator's writes: at random times over the run, each to a
-        random robot, adding a triple of its own to a module that robot
-        holds, or moving a robot (a single value: the latest write wins)."""
+        random robot and a module it holds.  A write adds a value to the
+        module's log (a multi-valued property), adds the same value at two
+        holders at once, removes a value added before, adds a value at one
+        holder while another removes it, or moves a robot (a single value:
+        the latest write wins)."""
         client = KBClient(await self.network.for_process(operator).open_client("coap"), timeout=10.0)
         times = sorted(rng.uniform(0, self.spec.horizon_s) for _ in range(self.spec.writes))
         loop = asyncio.get_running_loop()
-        pending = []
+        pending: list[asyncio.Task[None]] = []
+        inserted: dict[str, list[int]] = {}
         for i, at in enumerate(times):
             await asyncio.sleep(max(0.0, (self.fed_at or 0.0) + at - loop.time()))
             robot = rng.choice(sorted(self.configs))
-            modules = self.configs[robot].team[robot].kbs
-            module = rng.choice(modules)
-            if module == "Location" and rng.random() < 0.5:
-                label = f"move{i}"
-                text = MOVE_ROBOT.format(robot=rng.choice(sorted(self.configs)), aisle=rng.randint(1, 9))
+            module = rng.choice(self.configs[robot].team[robot].kbs)
+            others = [r for r in self._holders(module) if r != robot]
+            draw = rng.random()
+            ops: list[tuple[str, str, int]] = []  # (robot, kind, value)
+            if module == "Location" and draw < 0.25:
+                ops.append((robot, "move", rng.randint(1, 9)))
+            elif draw < 0.55 or (draw < 0.85 and not inserted.get(module)):
+                ops.append((robot, "insert", i))
+            elif draw < 0.65 and others:
+                ops += [(robot, "insert", i), (rng.choice(others), "insert", i)]
+            elif draw < 0.85:
+                ops.append((robot, "delete", rng.choice(inserted[module])))
+            elif others:
+                ops += [(robot, "insert", i), (rng.choice(others), "delete", i)]
             else:
-                label = f"W{i}"
-                ns = ONTOLOGIES[module][1]
-                text = f"INSERT DATA {{ <{ns}{label}> <{ns}written> {i} }}"
-            pending.append(asyncio.ensure_future(self._send_write(client, robot, module, label, text)))
+                ops.append((robot, "insert", i))
+            for to, kind, value in ops:
+                if kind == "insert":
+                    inserted.setdefault(module, []).append(value)
+                task = loop.create_task(self._send_write(client, to, module, f"w{i}", kind, value))
+                pending.append(task)
         await asyncio.gather(*pending)
 
-    async def _send_write(self, client: KBClient, robot: str, module: str, label: str, text: str) -> None:
+    def _holders(self, module: str) -> list[str]:
+        return [r for r, c in sorted(self.configs.items()) if module in c.team[r].kbs]
+
+    def _write_text(self, module: str, kind: str, value: int) -> str:
+        if kind == "move":
+            return MOVE_ROBOT.format(robot=sorted(self.configs)[value % len(self.configs)], aisle=value)
+        ns = ONTOLOGIES[module][1]
+        verb = "INSERT" if kind == "insert" else "DELETE"
+        return f"{verb} DATA {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
+
+    def _shows(self, live: LiveKB, module: str, value: int) -> bool:
+        ns = ONTOLOGIES[module][1]
+        ask = f"ASK {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
+        return expect_ask(live.query(ask), ask).value
+
+    def _all_holders_settled(self, module: str, value: int) -> bool:
+        """Every holder of ``module`` runs, reachable, at one version, showing
+        ``value``: a delete sent now has seen every insert of it."""
+        live = self._live_holders().get(module, {})
+        holders = self._holders(module)
+        if sorted(live) != holders or any(self.network.isolated(r) for r in holders):
+            return False
+        if len({kb.module_version(module) for kb in live.values()}) != 1:
+            return False
+        return all(self._shows(kb, module, value) for kb in live.values())
+
+    async def _send_write(self, client: KBClient, robot: str, module: str, label: str, kind: str, value: int) -> None:
+        sent = self.scheduler.clock.now
+        settled = kind == "delete" and self._all_holders_settled(module, value)
         try:
-            await client.update(self.configs[robot].bind, text)
+            await client.update(self.configs[robot].bind, self._write_text(module, kind, value))
             status = "2.04"
         except QueryFailed as exc:
             status = exc.response.status.dotted
         except TransportError:
             status = "lost"
-        self.note(f"write {label} to {robot} ({module}): {status}")
-        self.write_log.append((label, robot, status, module))
+        self.note(f"write {label} {kind} {value} to {robot} ({module}): {status}")
+        self.write_log.append(WriteOp(label, robot, status, module, kind, value, round(sent, 6),
+                                      round(self.scheduler.clock.now, 6), settled))
 
     def _live_holders(self) -> dict[str, dict[str, LiveKB]]:
         """Module -> running robot -> its LiveKB."""
@@ -460,22 +578,30 @@ class SimulatedTeam:
             for module, holders in self._live_holders().items()
         )
 
-    def _replication_outcome(self) -> tuple[dict[str, dict[str, str]], dict[str, list[str]]]:
-        versions = {
-            module: {r: live.module_version(module).hex() for r, live in sorted(holders.items())}
-            for module, holders in self._live_holders().items()
-        }
-        missing: dict[str, list[str]] = {}
-        for module, holders in self._live_holders().items():
+    def _replication_outcome(self) -> tuple[dict[str, dict[str, str]], dict[str, dict[str, frozenset[int]]],
+                                            dict[str, list[str]]]:
+        """Per module at the end: each running holder's version, the log
+        values its queries see, and the holders whose triples differ."""
+        versions: dict[str, dict[str, str]] = {}
+        values: dict[str, dict[str, frozenset[int]]] = {}
+        differences: dict[str, list[str]] = {}
+        for module, holders in sorted(self._live_holders().items()):
             ns = ONTOLOGIES[module][1]
-            for label, _, status, written_to in self.write_log:
-                if status != "2.04" or written_to != module or not label.startswith("W"):
-                    continue
-                ask = f"ASK {{ <{ns}{label}> ?p ?o }}"
-                for robot_id, live in holders.items():
-                    if not expect_ask(live.query(ask), ask).value:
-                        missing.setdefault(robot_id, []).append(label)
-        return versions, missing
+            select = f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
+            versions[module] = {r: live.module_version(module).hex() for r, live in sorted(holders.items())}
+            values[module] = {
+                r: frozenset(int(str(row[0])) for row in expect_select(live.query(select), select).rows)
+                for r, live in sorted(holders.items())
+            }
+            first_id, *rest = sorted(holders)
+            first = module_triples(holders[first_id], module)
+            for other_id in rest:
+                other = module_triples(holders[other_id], module)
+                if other != first:
+                    differ = sorted(str(t) for t in first ^ other)
+                    differences.setdefault(module, []).append(
+                        f"{first_id} and {other_id} differ by {len(differ)} triples, e.g. {'; '.join(differ[:2])}")
+        return versions, values, differences
 
     # ------------------------------------------------------------- the run
 
@@ -492,7 +618,11 @@ class SimulatedTeam:
                 operator = self._spawn("operator")
                 writer = self.scheduler.start(operator, self._write(operator, random.Random(self._write_seed)))
             scenario = self.spec.scenario
-            progress = None if scenario is None else (lambda record: scenario(record, self))
+
+            def progress(record: TaskRecord) -> None:
+                self.decided_at[(record.cluster, record.seq)] = round(self.elapsed_s, 6)
+                if scenario is not None:
+                    scenario(record, self)
             try:
                 outcome = await feeder.feed(self.tasks, progress, started)
                 self.ending = True
@@ -502,6 +632,7 @@ class SimulatedTeam:
                 # again shortly (simulated time, free).
                 while not schedule.done() or not self._settled():  # noqa: ASYNC110 - other processes' state, no event to await
                     await asyncio.sleep(0.5)
+                self.settled_at = round(self.elapsed_s, 6)
                 if writer is not None:
                     # Quiescence for the KBs: the writes delivered and anti-entropy done.
                     while not writer.done():  # noqa: ASYNC110 - as above
@@ -509,6 +640,7 @@ class SimulatedTeam:
                     deadline = asyncio.get_running_loop().time() + REPLICATION_SETTLE_S
                     while not self._replicas_agree() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
+                    self.converged_at = round(self.elapsed_s, 6) if self._replicas_agree() else None
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]
                 maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
@@ -516,6 +648,17 @@ class SimulatedTeam:
             finally:
                 schedule.cancel()
             return team_record(team, outcome, stats, feeder.traffic, self.recorded, dict(watcher.down))
+
+    def _healed_at(self) -> float:
+        """When the schedule's last fault ended (s after the first task was fed)."""
+        return max((e.until_s if e.action == "starve" else e.at_s for e in self.schedule.events), default=0.0)
+
+    @property
+    def settle_bound_s(self) -> float:
+        """How long after the last fault healed (or the last task was decided,
+        whichever is later) every task may take to settle: see
+        docs/simulation.md, "Liveness"."""
+        return settle_bound_s(self.team.lease_s, self.spec.query_timeout_s, liveness_floor_s(self.team.link_kbps))
 
     def _settled(self) -> bool:
         """Every running robot has executed what it holds and sent what it wrote of it."""
@@ -554,7 +697,7 @@ class SimulatedTeam:
                 except (SimulationError, FeederError, TransportError, TimeoutError) as exc:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
-                versions, missing = self._replication_outcome() if spec.writes else ({}, {})
+                versions, values, differences = self._replication_outcome() if spec.writes else ({}, {}, {})
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
         finally:
             if gc_was_enabled:
@@ -565,8 +708,30 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), versions=versions, missing=missing,
+            writes=list(self.write_log), versions=versions, values=values, differences=differences,
+            split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
+            lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
+            settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
         )
+
+
+def settle_bound_s(lease_s: float, query_timeout_s: float, floor_s: float) -> float:
+    """How long a healed team may take to settle its last tasks and agree.
+
+    Once every fault has healed, what can still be outstanding is one task
+    a fenced or suspected robot dropped: the feeder finds it down (a few
+    liveness floors), waits the lease out (``lease_s``), feeds it again,
+    its cluster decides it (every question within ``query_timeout_s``,
+    asked at most twice), and its robot carries it out.  Twice that sum
+    leaves room for one more round of the same (a second task of the same
+    robot) and the statistics' collection; the replicas' anti-entropy
+    rounds fit well inside it."""
+    return 2 * (4 * floor_s + lease_s + 2 * query_timeout_s + EXECUTION_S)
+
+
+#: The longest a task's execution takes in simulated time (travel, pick and
+#: delivery at ``time_scale`` 50).
+EXECUTION_S = 5.0
 
 
 def run_seed(spec: SimSpec, seed: int, kbs: KBCache, trace: TextIO | None = None) -> RunResult:

@@ -7,7 +7,8 @@ from coapkb.feeder.record import TaskRecord
 from coapkb.harness.record import TeamRecord
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.invariants import check
-from coapkb.sim.run import Pick, RunResult
+from coapkb.sim.observed import Grant, Take
+from coapkb.sim.run import Pick, RunResult, WriteOp
 from coapkb.transport.base import TrafficCounters
 
 CLUSTER = ["Robot1", "Robot2", "Robot3"]
@@ -95,3 +96,53 @@ def test_a_hang_a_crash_and_unbounded_state_are_found() -> None:
     found = " | ".join(run.violations)
     assert "did not finish: SimulationError: hung" in found and "exception escaped a task" in found
     assert "Robot1 tasks: 500, above its bound 100" in found
+
+
+# --------------------------------------------------------------------------- what really happened
+
+
+def _take(robot: str, seq: int, obj: str, at_s: float, taken: bool = True) -> Take:
+    return Take(robot, 0, seq, obj, at_s, taken, None if taken else "gone")
+
+
+def test_an_object_taken_off_its_shelf_twice_is_found_across_tasks() -> None:
+    """Two tasks of one object, each picked once: the per-task check is
+    satisfied, the shelf is not."""
+    tasks = [_task(1, "A"), _task(2, "A", "Robot2")]
+    picks = [_pick("Robot1", 1, "A"), _pick("Robot2", 2, "A", 2.0)]
+    run = _run(tasks, picks, takes=[_take("Robot1", 1, "A", 1.0), _take("Robot2", 2, "A", 2.0)])
+    assert any("taken off its shelf twice" in v for v in run.violations), run.violations
+    refused = _run(tasks, picks[:1], takes=[_take("Robot1", 1, "A", 1.0), _take("Robot2", 2, "A", 2.0, False)])
+    assert not any("shelf" in v for v in refused.violations)
+
+
+def test_a_take_without_a_majority_s_grant_in_the_lease_is_found() -> None:
+    tasks = [_task(1, "A")]
+    takes = [_take("Robot1", 1, "A", 10.0)]
+    fresh = _run(tasks, [_pick("Robot1", 1, "A", 10.0)], takes=takes, lease_s=3.0,
+                 grants=[Grant("Robot2", "Robot1", 8.0)])
+    assert fresh.violations == []
+    stale = _run(tasks, [_pick("Robot1", 1, "A", 10.0)], takes=takes, lease_s=3.0,
+                 grants=[Grant("Robot2", "Robot1", 6.5), Grant("Robot1", "Robot1", 9.0)])
+    assert any("grants from 0 of the 1" in v for v in stale.violations), stale.violations
+
+
+def test_a_take_after_its_task_went_round_again_is_found() -> None:
+    tasks = [_task(1, "A", orphaned="Robot1 down"), _task(2, "A", "Robot2", reassigned_from=1)]
+    run = _run(tasks, [_pick("Robot1", 1, "A", 9.0)], takes=[_take("Robot1", 1, "A", 9.0)],
+               decided_at={(1, 1): 0.5, (1, 2): 6.0})
+    assert any("after it went round again as task 2" in v for v in run.violations), run.violations
+
+
+def test_replicas_unequal_triple_for_triple_or_losing_writes_are_found() -> None:
+    insert = WriteOp("w1", "Robot1", "2.04", "Object", "insert", 1, 1.0, 1.2)
+    delete = WriteOp("w2", "Robot2", "2.04", "Object", "delete", 1, 3.0, 3.2, settled=True)
+    lost = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], writes=[insert],
+                values={"Object": {"Robot1": frozenset({1}), "Robot2": frozenset()}})
+    assert any("Robot2 lacks acknowledged write w1" in v for v in lost.violations), lost.violations
+    back = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], writes=[insert, delete],
+                values={"Object": {"Robot1": frozenset({1}), "Robot2": frozenset({1})}})
+    assert any("is back on Robot1, Robot2" in v for v in back.violations), back.violations
+    split = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], differences={"Object": ["Robot1 and Robot2 differ"]},
+                 split_versions=["Robot1 and Robot2 at version 00 of Object show different triples"])
+    assert len([v for v in split.violations if "Robot1 and Robot2" in v]) == 2, split.violations
