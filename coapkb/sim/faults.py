@@ -23,6 +23,11 @@ EVENT_KINDS = ("kill", "freeze", "partition", "starve")
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
 #: Everything at once, with default amounts.
 MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
+#: Swarm testing: each seed draws which of the mix's kinds are on, how
+#: often, for how long, and its links' amounts (up to three times the default).
+SWARM = "swarm"
+#: The most fault events a swarm schedule draws.
+SWARM_EVENTS = 10
 
 
 class FaultSpecError(CoapkbError, ValueError):
@@ -38,6 +43,8 @@ class FaultMix:
     burst: float = 0.0
     dup: float = 0.0
     jitter: float = 0.0
+    #: Each seed draws its own mix from these kinds (:data:`SWARM`).
+    swarm: bool = False
 
     @classmethod
     def parse(cls, text: str) -> FaultMix:
@@ -46,18 +53,21 @@ class FaultMix:
         (``loss=0.2`` or ``loss=20%``); ``jitter`` is in seconds."""
         events: list[str] = []
         amounts: dict[str, float] = {}
+        swarm = False
         items = [i.strip() for i in text.replace("mixed", MIXED).split(",") if i.strip() and i.strip() != "none"]
         for item in items:
             name, sep, value = item.partition("=")
-            if name in EVENT_KINDS and not sep:
+            if name == SWARM and not sep:
+                swarm = True
+            elif name in EVENT_KINDS and not sep:
                 if name not in events:
                     events.append(name)
             elif name in LINK_KINDS:
                 amounts[name] = _amount(name, value) if sep else LINK_KINDS[name]
             else:
-                known = ", ".join([*EVENT_KINDS, *(f"{k}[=P]" for k in LINK_KINDS), "mixed"])
+                known = ", ".join([*EVENT_KINDS, *(f"{k}[=P]" for k in LINK_KINDS), "mixed", SWARM])
                 raise FaultSpecError(f"unknown fault {item!r} (choose from {known})")
-        return cls(tuple(events), **amounts)
+        return cls(tuple(events), **amounts, swarm=swarm)
 
     @property
     def lossy(self) -> bool:
@@ -73,7 +83,22 @@ class FaultMix:
     def describe(self) -> str:
         parts = list(self.events)
         parts += [f"{k}={getattr(self, k):g}" for k in LINK_KINDS if getattr(self, k)]
+        parts += [SWARM] if self.swarm else []
         return ",".join(parts) or "none"
+
+    def drawn(self, rng: random.Random) -> FaultMix:
+        """One seed's mix in swarm testing: each kind on or off, each link
+        amount between none and three times the given one (a lossy mix stays
+        lossy: the robots are configured for it)."""
+        if not self.swarm:
+            return self
+        kinds = tuple(k for k in self.events if rng.random() < 0.6) or (rng.choice(self.events),) if self.events else ()
+        amounts = {k: round(rng.uniform(0, 3 * getattr(self, k)), 4) if rng.random() < 0.7 else 0.0
+                   for k in LINK_KINDS}
+        if self.lossy and not (amounts["loss"] or amounts["burst"]):
+            amounts["loss"] = round(rng.uniform(0, 3 * max(self.loss, self.burst)), 4)
+        amounts["burst"] = min(amounts["burst"], 0.5)
+        return FaultMix(kinds, **amounts)
 
 
 def _amount(name: str, value: str) -> float:
@@ -91,9 +116,13 @@ class FaultEvent:
     """One scheduled fault: ``action`` on ``targets`` at ``at_s`` (simulated seconds)."""
 
     at_s: float
-    action: str  # kill, restart, freeze, resume, cut, heal, starve
+    #: kill, restart, freeze, resume, cut, heal, starve; freeze-picking and
+    #: cut-picking: from ``at_s`` until ``until_s``, the moment the robot
+    #: starts a pick, freeze it (or cut it off from everyone) for ``amount`` s.
+    action: str
     targets: tuple[str, ...]
-    #: starve: the mean lateness of each loop turn, seconds; cut: the other side.
+    #: starve: the mean lateness of each loop turn, seconds; freeze-picking,
+    #: cut-picking: how long the robot stays frozen or cut off; cut: the other side.
     amount: float = 0.0
     other: tuple[str, ...] = ()
     until_s: float = 0.0
@@ -104,6 +133,8 @@ class FaultEvent:
             return f"cut {who}|{'+'.join(self.other)}@{self.at_s:.2f}s"
         if self.action == "starve":
             return f"starve {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount * 1000:.0f}ms)"
+        if self.action.endswith("-picking"):
+            return f"{self.action} {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount:.2f}s)"
         return f"{self.action} {who}@{self.at_s:.2f}s"
 
 
@@ -127,7 +158,13 @@ class Schedule:
 def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rng: random.Random) -> Schedule:
     """The faults of one run: up to three events drawn from ``mix``'s kinds
     over the first ``horizon_s`` simulated seconds, at most one robot of a
-    cluster out at a time."""
+    cluster out at a time.  In swarm testing the seed first draws its own
+    mix (:meth:`FaultMix.drawn`), up to :data:`SWARM_EVENTS` events, outages
+    up to three times as long as the run (long enough for the others to send
+    a robot's tasks round again), and traps that freeze or cut off a robot
+    at the moment it starts a pick."""
+    swarm = mix.swarm
+    mix = mix.drawn(rng)
     events: list[FaultEvent] = []
     #: Robot -> until when it is out (dead, frozen or cut off): None = for good.
     out: dict[str, float | None] = {}
@@ -140,10 +177,11 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
         )
 
     robots = [r for c in clusters for r in c]
-    for _ in range(rng.randint(1, 3) if mix.events else 0):
+    for _ in range(rng.randint(1, SWARM_EVENTS if swarm else 3) if mix.events else 0):
         kind = rng.choice(mix.events)
         at = round(rng.uniform(0.05, horizon_s), 3)
-        lasting = round(rng.uniform(0.5, max(1.0, horizon_s / 2)), 3)
+        longest = max(1.0, horizon_s * (3 if swarm and rng.random() < 0.5 else 0.5))
+        lasting = round(rng.uniform(0.5, longest), 3)
         if kind == "starve":
             target = rng.choice(["feeder", *robots])
             events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.1, 1.5), 3),
@@ -158,6 +196,13 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
         if not candidates:
             continue
         victim = rng.choice(candidates)
+        if swarm and kind in ("freeze", "partition") and rng.random() < 0.4:
+            # A trap: armed for ``lasting``, it springs at the robot's next pick.
+            held = round(rng.uniform(0.5, longest), 3)
+            out[victim] = at + lasting + held
+            action = "freeze-picking" if kind == "freeze" else "cut-picking"
+            events.append(FaultEvent(at, action, (victim,), amount=held, until_s=round(at + lasting, 3)))
+            continue
         if kind == "kill":
             restart = rng.random() < 0.5
             out[victim] = at + lasting if restart else None

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any, TextIO, cast
 
 from ..agent.robot import Robot
-from ..agent.team_view import liveness_floor_s
 from ..agent.task_executor import PICKED
+from ..agent.team_view import liveness_floor_s
 from ..config import RobotConfig
 from ..feeder import Feeder, FeederError, Roster, TaskRecord
 from ..harness.kbs import kbs_for_team
@@ -375,6 +375,8 @@ class SimulatedTeam:
         self.network.answer_hooks.append(self.grants.answered)
         self.history = _History(self.processes, clock, self.note if trace else None)
         self.decided_at: dict[tuple[int, int], float] = {}
+        #: The faults the schedule's traps injected when they sprang.
+        self.sprung: list[FaultEvent] = []
         self.split_versions: list[str] = []
         self.settled_at: float | None = None
         self.converged_at: float | None = None
@@ -462,7 +464,31 @@ class SimulatedTeam:
             self.network.heal(target)
         elif action == "starve":
             process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
-        self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
+        elif action.endswith("-picking"):
+            self.scheduler.start(self.current["faults"], self._trap(event))
+        if not action.endswith("-picking"):
+            self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
+
+    async def _trap(self, event: FaultEvent) -> None:
+        """Spring ``event``'s trap the moment its robot starts a pick (looked
+        at every 10 ms of simulated time until the trap expires)."""
+        target = event.targets[0]
+        while self.elapsed_s < event.until_s and not self.ending:
+            robot = self.robots.get(target)
+            if (robot is not None and self.current[target].status == "running"
+                    and robot.executor.live.activity == "picking"):
+                if event.action == "freeze-picking":
+                    start, end = FaultEvent(round(self.elapsed_s, 3), "freeze", (target,)), "resume"
+                else:
+                    everyone = tuple(r for r in ["feeder", *self.team.robot_ids] if r != target)
+                    start, end = FaultEvent(round(self.elapsed_s, 3), "cut", (target,), other=everyone), "heal"
+                self.sprung.append(start)
+                self.inject(start)
+                await asyncio.sleep(event.amount)
+                self.sprung.append(FaultEvent(round(self.elapsed_s, 3), end, (target,)))
+                self.inject(self.sprung[-1])
+                return
+            await asyncio.sleep(0.01)
 
     @property
     def elapsed_s(self) -> float:
@@ -651,7 +677,11 @@ class SimulatedTeam:
 
     def _healed_at(self) -> float:
         """When the schedule's last fault ended (s after the first task was fed)."""
-        return max((e.until_s if e.action == "starve" else e.at_s for e in self.schedule.events), default=0.0)
+        def ended(e: FaultEvent) -> float:
+            if e.action.endswith("-picking"):
+                return e.until_s + e.amount  # sprung at the latest as it expires
+            return e.until_s if e.action == "starve" else e.at_s
+        return max((ended(e) for e in self.schedule.events), default=0.0)
 
     @property
     def settle_bound_s(self) -> float:
@@ -704,7 +734,8 @@ class SimulatedTeam:
                 gc.enable()
         return RunResult(
             seed=self.seed, schedule=str(self.schedule), record=record, error=error, picks=self.history.picks,
-            crashes=list(scheduler.crashes), bounds=bounds, events=list(self.schedule.events),
+            crashes=list(scheduler.crashes), bounds=bounds,
+            events=sorted([*self.schedule.events, *self.sprung], key=lambda e: e.at_s),
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
