@@ -1,0 +1,253 @@
+"""Planted bugs: the simulator's checker must catch every one.
+
+Each mutant breaks one thing the protocols promise (a lease, the fence,
+the shelf, an epoch, a delta, a tombstone, a tie-break...) by patching the
+production code from here, so production can never reach it.  A mutant
+names the profile and seed that catch it; ``test_mutants.py`` replays them
+and ``experiments/mutation_score.py`` searches a profile's seeds for the
+score.
+
+Run one by hand (the patch applied, then ``coapkb`` as usual)::
+
+    PYTHONHASHSEED=0 python tests/sim/mutants.py lease-never-held sim --robots 3 --tasks 10 --seeds 1-20
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import sys
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from unittest import mock
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from coapkb.agent import controller as controller_module
+from coapkb.agent.controller import Controller
+from coapkb.agent.lease import Lease
+from coapkb.agent.task_assigner import Assignment
+from coapkb.agent.task_executor import Job, TaskExecutor
+from coapkb.agent.team_view import Membership, TeamView
+from coapkb.feeder.membership import Membership as FeederMembership
+from coapkb.kb.live import LiveKB
+from coapkb.kb.replica import CausalContext, Delta, Replica, WrittenState
+from coapkb.kb.replication import Replicator
+from coapkb.world.truth import Taken, WorldTruth
+
+#: The profiles mutants are caught in: a CI profile's options.
+MIXED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm")
+WRITES = (*MIXED, "--writes", "20")
+NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
+
+
+@dataclass(frozen=True)
+class Mutant:
+    name: str
+    #: The bug, in a line.
+    what: str
+    plant: Callable[[], contextlib.AbstractContextManager[Any]]
+    #: The profile it is searched in, and the seeds that caught it.
+    profile: tuple[str, ...]
+    seeds: tuple[int, ...] = ()
+
+
+def _patch(target: object, name: str, new: object) -> contextlib.AbstractContextManager[Any]:
+    return mock.patch.object(target, name, new)
+
+
+# ------------------------------------------------------------------ the fence
+
+
+async def _always_held(self: Lease, for_s: float) -> str | None:
+    return None
+
+
+async def _verdict_ignored(self: TaskExecutor, job: Job, for_s: float) -> bool:
+    if self._lease is not None:
+        await self._lease(for_s)
+    return True
+
+
+def _grant_anyone(self: TeamView, robot_id: str) -> str | None:
+    return None
+
+
+async def _no_lease_wait(self: FeederMembership, cluster: Any, robot_id: str) -> bool:
+    return True
+
+
+# ------------------------------------------------------------------ decisions
+
+
+_apply = Controller._apply
+
+
+def _claims_forgotten(self: Controller, message: Any) -> None:
+    _apply(self, message)
+    self.claims.clear()
+
+
+_admit = TeamView.admit
+
+
+def _admit_same_epoch(self: TeamView, robot_id: str) -> None:
+    before = self.epoch
+    _admit(self, robot_id)
+    self.epoch = before
+
+
+_adopt = TeamView.adopt
+
+
+def _adopt_any(self: TeamView, membership: Membership, seq: int) -> None:
+    _adopt(self, membership, seq)
+    if membership.members:
+        self.epoch = membership.epoch  # an older one too: epochs go back
+
+
+_assign = controller_module.assign
+
+
+def _tie_to_the_first_asked(task: Any, states: Any, *args: Any) -> Assignment:
+    """Ties go to the first robot in the order this robot lists the team's
+    plans (its own first), not in the agreed natural order."""
+    result = _assign(task, states, *args)
+    costs = [c for c in result.costs.values() if c is not None]
+    if not costs:
+        return result
+    tied = [r for r in states if result.costs.get(r) == min(costs)]
+    if len(tied) < 2 or tied[0] == result.assigned_to:
+        return result
+    alone = _assign(task, {tied[0]: states[tied[0]]}, *args)
+    return dataclasses.replace(result, assigned_to=tied[0], plan=alone.plan)
+
+
+# ------------------------------------------------------------------ the shelf
+
+
+def _take_unchecked(self: WorldTruth, obj: str, robot: str, seq: int) -> str | None:
+    if obj in self.misplaced:
+        return "not where the KB says it is (misplaced)"
+    self.taken[obj] = Taken(robot, seq)
+    return None
+
+
+# ------------------------------------------------------------------ replication
+
+
+def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
+    push = Replicator._push
+    count = [0]
+
+    async def dropping(self: Replicator, holder: Any, module: str, changes: Any) -> bool:
+        count[0] += 1
+        if count[0] % 5 == 0 and isinstance(changes, list):
+            return True  # said sent, never sent
+        return await push(self, holder, module, changes)
+    return _patch(Replicator, "_push", dropping)
+
+
+_live_apply = LiveKB.apply
+
+
+def _contents_dropped(self: LiveKB, module: str, deltas: Any) -> bool:
+    kept = [dataclasses.replace(d, added=()) if d.dot.seq % 8 == 0 and d.added else d for d in deltas]
+    return _live_apply(self, module, kept)
+
+
+_join = Replica.join
+
+
+def _context_ignored(self: Replica, other: WrittenState, is_base: Any) -> Any:
+    return _join(self, dataclasses.replace(other, context=CausalContext(), tombstones=frozenset()), is_base)
+
+
+_replica_apply = Replica.apply
+
+
+def _no_tombstones(self: Replica, delta: Delta, is_base: Any) -> Any:
+    effect = _replica_apply(self, delta, is_base)
+    self.tombstones.clear()
+    return effect
+
+
+def _latest_arrival_wins() -> contextlib.AbstractContextManager[Any]:
+    """A single value chosen by what arrived last here, not by its stamp."""
+    tag = Replica._tag
+    arrived: dict[int, dict[Any, int]] = {}
+
+    def tagging(self: Replica, triple: Any, dot: Any, stamp: Any) -> None:
+        order = arrived.setdefault(id(self), {})
+        order[triple] = len(order)
+        tag(self, triple, dot, stamp)
+
+    def winners(self: Replica, s: Any, p: Any) -> frozenset[Any]:
+        values = self._values.get((s, p), set())
+        order = arrived.get(id(self), {})
+        live = [o for o in values if self.entries.get((s, p, o))]
+        if not live:
+            return frozenset(self._base_values(s, p))
+        return frozenset({max(live, key=lambda o: order.get((s, p, o), -1))})
+
+    stack = contextlib.ExitStack()
+    stack.enter_context(_patch(Replica, "_tag", tagging))
+    stack.enter_context(_patch(Replica, "_winners", winners))
+    return stack
+
+
+MUTANTS: dict[str, Mutant] = {m.name: m for m in (
+    Mutant("lease-never-held", "a robot's lease check always passes: it never asks its teammates",
+           lambda: _patch(Lease, "hold", _always_held), MIXED, (1,)),
+    Mutant("fence-verdict-ignored", "the executor asks for its lease and picks whatever the answer",
+           lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), NINE, (3, 6)),
+    Mutant("lease-granted-by-anyone", "a robot grants a lease to any teammate, down or not",
+           lambda: _patch(TeamView, "grant", _grant_anyone), NINE, (3,)),
+    Mutant("feeder-skips-the-fence", "the feeder sends a down robot's tasks round at once, without the lease wait",
+           lambda: _patch(FeederMembership, "fence", _no_lease_wait), NINE, (2,)),
+    Mutant("claims-forgotten", "a robot forgets the cluster's claims: an object given once is given again",
+           lambda: _patch(Controller, "_apply", _claims_forgotten), MIXED, (8,)),
+    Mutant("shelf-unchecked", "the shelf lets an object be taken twice",
+           lambda: _patch(WorldTruth, "take_now", _take_unchecked), NINE, (1,)),
+    Mutant("admit-keeps-the-epoch", "a robot admitting a restarted teammate keeps its membership epoch",
+           lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED),
+    Mutant("adopt-older-epochs", "a robot adopts a decision's membership even when it is older than its own",
+           lambda: _patch(TeamView, "adopt", _adopt_any), ("--strategy", "compute-and-communicate", *MIXED)),
+    Mutant("ties-to-the-first-asked", "a cost tie goes to the first robot in this robot's own order",
+           lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), MIXED),
+    Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
+           _every_fifth_push_dropped, WRITES),
+    Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
+           lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1,)),
+    Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",
+           lambda: _patch(Replica, "join", _context_ignored), WRITES, (3,)),
+    Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
+           lambda: _patch(Replica, "apply", _no_tombstones), WRITES),
+    Mutant("latest-arrival-wins", "a single-valued property shows the value that arrived last, not the newest stamp",
+           _latest_arrival_wins, WRITES, (8,)),
+)}
+
+
+@contextlib.contextmanager
+def planted(name: str) -> Iterator[Mutant]:
+    mutant = MUTANTS[name]
+    with mutant.plant():
+        yield mutant
+
+
+def main(argv: list[str]) -> int:
+    """``mutants.py NAME ARGS...``: run ``coapkb ARGS`` with mutant NAME planted."""
+    from coapkb.cli import main as coapkb_main
+
+    if not argv or argv[0] not in MUTANTS:
+        print(f"usage: mutants.py {{{','.join(MUTANTS)}}} coapkb-args...", file=sys.stderr)
+        return 2
+    with planted(argv[0]):
+        return coapkb_main(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
