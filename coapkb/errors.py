@@ -26,6 +26,7 @@ class                          raised by                                        
 ``LinkEmulationError``         :mod:`coapkb.bench.linkemu`                                           ``RuntimeError``
 ``FaultSpecError``             :mod:`coapkb.sim.faults`                                              ``ValueError``
 ``SimulationError``            :mod:`coapkb.sim.loop`
+``CaseFileError``              :mod:`coapkb.sim.case` (a ``--replay`` file)                          ``ValueError``
 ``UserError``                  :mod:`coapkb.cli`
 =============================  ====================================================================  ================
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .common import UserError
+from .sim_case import add_case_options, replay_case, run_defaults, shrink_seed
 
 if TYPE_CHECKING:
     from ..sim import RunResult
@@ -33,6 +34,7 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: the cores)")
     p.add_argument("--trace", metavar="FILE", help="with --seed: write every message, fault and pick in order")
     p.add_argument("--quiet", action="store_true", help="only violating seeds and the summary line")
+    add_case_options(p)
     p.set_defaults(run=_sim)
 
 
@@ -66,6 +68,9 @@ async def _sim(args: argparse.Namespace) -> int:
     from ..sim import FaultMix, KBCache, SimSpec, run_checked, run_many, summary
 
     _replayable(args)
+    if args.replay is not None:
+        return replay_case(args)
+    run_defaults(args)
     if args.robots < 3 or args.robots % 3:
         raise UserError(f"--robots must be a multiple of 3, got {args.robots}")
     if args.tasks < 1:
@@ -78,6 +83,8 @@ async def _sim(args: argparse.Namespace) -> int:
                    writes=args.writes,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
     started = time.monotonic()
+    if args.shrink:
+        return shrink_seed(args, spec, started)
     if args.seed is not None:
         kbs = KBCache()
         if args.trace:
