@@ -213,14 +213,21 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
     cluster = set(record.clusters[task.cluster - 1]) if record is not None else set()
     out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
     texts = [task.unavailable or "", *task.errors.values()]
-    blamed = {w.rstrip(",:;()") for text in texts for w in text.split() if w.startswith("Robot")}
+    blamed = {w.strip(",:;()") for text in texts for w in text.split() if w.strip(",:;()").startswith("Robot")}
     suspected_alive = blamed - out
+    cut_off = sorted(r for e in run.events if e.action == "cut" for r in e.targets if r in cluster)
     if not suspected_alive:
+        # The other way round: the ones who decided apart are the ones cut
+        # off from their cluster, deciding alone on what they last knew.
+        decided = list(task.decisions.values())
+        majority = max(decided, key=lambda d: (decided.count(d), d or ""), default=None)
+        apart = {r for r, d in task.decisions.items() if d != majority}
+        if apart and apart <= set(cut_off) and len(apart) < len(decided) / 2:
+            return f"a robot cut off from its cluster ({', '.join(sorted(apart))}) decided alone"
         return None
     starved = sorted({t for e in run.events if e.action == "starve" for t in e.targets if t in cluster | {"feeder"}})
     if starved:
         return f"a false suspicion under CPU starvation ({', '.join(starved)} starved)"
-    cut_off = sorted(r for e in run.events if e.action == "cut" for r in e.targets if r in cluster)
     if cut_off:
         return f"a false suspicion of a robot cut off from its cluster ({', '.join(cut_off)}): it decided alone"
     if run.lossy and any("no answer" in t or "no state for task" in t for t in texts):

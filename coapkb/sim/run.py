@@ -17,6 +17,7 @@ import dataclasses
 import gc
 import logging
 import random
+import re
 import sys
 import tempfile
 import time
@@ -88,6 +89,9 @@ class SimSpec:
     scenario: Callable[[TaskRecord, SimulatedTeam], None] | None = None
     #: An operator's writes to random robots' KBs during the run (0: the KBs stay read-only).
     writes: int = 0
+    #: Every robot of a cluster starts where its first robot does, with the
+    #: same battery and load: equal costs, so the tie-break decides.
+    ties: bool = False
 
     def team(self) -> TeamSpec:
         return TeamSpec(
@@ -230,7 +234,7 @@ class KBCache:
         self._kbs: dict[tuple[Path, ...], KnowledgeBase] = {}
         self._configs: dict[TeamSpec, dict[str, RobotConfig]] = {}
         self._products: dict[Path, list[str]] = {}
-        self._ontologies: dict[tuple[Path, int], Path] = {}
+        self._ontologies: dict[tuple[Path, int, bool], Path] = {}
         self._generated: tempfile.TemporaryDirectory[str] | None = None
 
     def load(self, files: Sequence[Path], index_dir: Path | None = None) -> KnowledgeBase:
@@ -251,13 +255,15 @@ class KBCache:
         per worker for a team larger than the given KBs know, as ``coapkb
         team`` does (:func:`~coapkb.harness.kbs.kbs_for_team`)."""
         team = spec.team()
-        known = self._ontologies.get((spec.ontologies, spec.robots))
+        known = self._ontologies.get((spec.ontologies, spec.robots, spec.ties))
         if known is None:
             if self._generated is None:
                 self._generated = tempfile.TemporaryDirectory(prefix="coapkb-sim-")
             into = Path(self._generated.name) / f"robots-{spec.robots}"
             known = kbs_for_team(spec.ontologies, team.robot_ids, into).ontologies
-            self._ontologies[(spec.ontologies, spec.robots)] = known
+            if spec.ties:
+                known = uniform_robots(known, Path(self._generated.name) / f"ties-{spec.robots}")
+            self._ontologies[(spec.ontologies, spec.robots, spec.ties)] = known
         return dataclasses.replace(team, ontologies=known)
 
     def configs(self, spec: TeamSpec) -> dict[str, RobotConfig]:
@@ -338,6 +344,28 @@ def _asyncgen_hooks(owner: weakref.WeakKeyDictionary[Any, asyncio.AbstractEventL
         sys.set_asyncgen_hooks(*saved)
 
 
+_ROBOT_INDIVIDUAL = re.compile(
+    r'(<owl:NamedIndividual rdf:about="[^"]*#(Robot\d+)">.*?</owl:NamedIndividual>)', re.S)
+
+
+def uniform_robots(ontologies: Path, into: Path) -> Path:
+    """``ontologies`` with every robot of the Capability KB made a copy of
+    the first one (its grips, payload, battery, speed and energy use): with
+    one start for a cluster, every robot costs the same, and the tie-break
+    decides every task (``SimSpec.ties``)."""
+    into.mkdir(parents=True, exist_ok=True)
+    for name in ("Object.owl", "Location.owl"):
+        (into / name).write_bytes((ontologies / name).read_bytes())
+    text = (ontologies / "Capability.owl").read_text(encoding="utf-8")
+    robots = _ROBOT_INDIVIDUAL.findall(text)
+    if robots:
+        model, first = robots[0]
+        text = _ROBOT_INDIVIDUAL.sub(lambda m: model.replace(first + "<", m[2] + "<").replace(
+            f"#{first}\"", f"#{m[2]}\""), text)
+    (into / "Capability.owl").write_text(text, encoding="utf-8")
+    return into
+
+
 def draw_tasks(names: list[str], count: int, rng: random.Random) -> list[str]:
     return [rng.choice(names) for _ in range(count)]
 
@@ -364,6 +392,9 @@ class SimulatedTeam:
         self.scheduler = Scheduler(scheduler_rng, self.note)
         self.network = SimNetwork(self.scheduler, network_rng, schedule.link, self.note if trace else None)
         self.configs = kbs.configs(self.team)
+        if spec.ties:
+            first = {r: self.configs[c[0]].start for c in self.team.clusters() for r in c}
+            self.configs = {r: dataclasses.replace(c, start=first[r]) for r, c in self.configs.items()}
         self.processes: dict[SimLoop, Process] = {}
         self.current: dict[str, Process] = {}
         self.robots: dict[str, Robot] = {}
