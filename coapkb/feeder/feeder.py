@@ -216,11 +216,13 @@ class Feeder:
                 channel.settings.task_timeout_s * 4,
                 f"cluster {index + 1} to finish executing",
             )
-            mark_not_found(assigned, watcher.states)
             # Tasks assigned to robots that went down before executing them
             # go round again, in their order, to the survivors: once the
             # down robot can no longer pick them (the fence).
             await membership.recover(cluster, records)
+            # After the recovery, which reads a down robot's final state: one
+            # still granted (settled) reports there what it did not find.
+            mark_not_found(assigned, watcher.states)
             found = {r.seq: r for r in reruns + membership.orphans(records)}
             reruns = []
             queue = [(found[s].object, s) for s in sorted(found)]
