@@ -11,11 +11,12 @@ from dataclasses import dataclass, field
 from .. import clock
 from ..agent.local_health import LoopHealth
 from ..agent.robot_state import RobotState
-from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
+from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..host import Network, Sockets
 from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response
+from .reach import Reach
 from .tasks import FeederError
 
 #: What the feeder reads of a robot: its outcome (RobotState.encode_outcome),
@@ -67,6 +68,11 @@ class Channel:
     settings: FeederSettings
     #: Robot -> its task posts in flight (see :meth:`forget_posts`).
     _posting: dict[str, set[asyncio.Future[Response]]] = field(default_factory=dict)
+    #: Whether the feeder itself is cut off from its robots.
+    reach: Reach = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.reach = Reach(self.client, self.watcher, self.roster, OUTCOME_REQUEST)
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -93,12 +99,12 @@ class Channel:
                 client, roster.endpoints, OUTCOME_PATH, liveness=True,
                 liveness_floor_s=liveness_floor_s(settings.link_kbps), health=health,
             )
-            watcher.confirm_silence = lambda robot_id: indirect_probe(
-                client, [roster.endpoints[r] for r in roster.cluster_of(robot_id)
-                         if r != robot_id and r not in watcher.down], robot_id, watcher.request_timeout_s)
+            channel = cls(client, watcher, roster, settings)
+            watcher.confirm_silence = channel.reach.silent_to_the_feeder_only
+            watcher.listeners.append(channel.reach.heard_from)
             watcher.start()
             try:
-                yield cls(client, watcher, roster, settings)
+                yield channel
             finally:
                 await watcher.aclose()
         finally:

@@ -158,14 +158,20 @@ class Membership:
         request = Request(Method.GET, LEASE_PATH, {"r": robot_id, "check": ""})
 
         async def refused_at(survivor: str) -> float | None:
-            """When ``survivor`` said it no longer grants ``robot_id`` (now if it is down)."""
+            """When ``survivor`` said it no longer grants ``robot_id`` (now if it is down).
+            A survivor neither answering nor found down (the feeder cut off
+            itself) is asked again until the task timeout, as a task's wait."""
+            deadline = clock.monotonic() + channel.settings.task_timeout_s
             while survivor not in watcher.down:
                 try:
                     response = await channel.client.request(
                         channel.endpoint(survivor), request, timeout=channel.settings.task_timeout_s
                     )
-                except TransportError:
+                except TransportError as exc:
                     await watcher.probe(survivor)
+                    if survivor not in watcher.down and clock.monotonic() > deadline:
+                        raise FeederError(f"{survivor} did not say whether it grants {robot_id} a lease "
+                                          f"within {channel.settings.task_timeout_s:g}s: {exc}") from None
                     continue
                 if response.status == Status.FORBIDDEN:
                     return clock.monotonic()

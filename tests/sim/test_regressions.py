@@ -67,6 +67,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
     (("--robots", "9", "--tasks", "100", "--faults", "freeze,partition"), {
         20005: "a robot cut off dropped a task under its fence; granted again once the partition healed, it was "
                "settled, but the state showing the dropped task was never kept: the task never went round again",
+        20001: "the feeder, cut off from every robot for 10 s, declared all nine down and gave the run up",
+        20052: "the same as seed 20001, cut off twice",
+        20060: "the same as seed 20001",
     }),
     (("--robots", "9", "--tasks", "90", "--faults", "freeze,partition"), {
         20017: "a robot back from a freeze, still granted, was settled: the object it did not find, shown only in "

@@ -164,3 +164,45 @@ def test_one_broken_link_declares_nobody_down(kbs: KBCache) -> None:
     # Drawn again, an object is skipped (the simulator draws with replacement).
     assert {t.fate for t in run.record.tasks} <= {"assigned", "skipped"}
     assert all((t.skip_reason or "").startswith("picked by") for t in run.record.tasks if t.fate == "skipped")
+
+
+def _feeder_cut_off(at_s: float, until_s: float, robots: int) -> tuple[FaultEvent, FaultEvent]:
+    everyone = tuple(f"Robot{i}" for i in range(1, robots + 1))
+    return FaultEvent(at_s, "cut", ("feeder",), other=everyone), FaultEvent(until_s, "heal", ("feeder",))
+
+
+def test_a_feeder_cut_off_from_every_robot_waits_and_resumes(kbs: KBCache) -> None:
+    """The feeder is cut off from every robot for a minute.  Silence from
+    every robot of every cluster at once is its own link (the fault model has
+    at most one robot of a cluster out): it declares nobody down, asks again
+    with backoff, and resumes once the link is back (before, it declared all
+    six down and gave the run up: "every robot of cluster 2 is down")."""
+    cut, heal = _feeder_cut_off(0.5, 60.5, 6)
+    spec = SimSpec(robots=6, tasks=30, schedule=(cut, heal))
+    trace = io.StringIO()
+    run = run_checked(spec, 3, kbs, trace)
+    assert run.error is None and run.violations == [], run.violations
+    assert run.record is not None and not run.record.down
+    check_fates(run.record, [t.object for t in run.record.tasks if t.reassigned_from is None], spec.team(),
+                victims=frozenset(), fates=("assigned", "skipped", "not-found"), new_epoch=False)
+    lines = trace.getvalue().splitlines()
+    assert any("it is cut off itself" in line for line in lines)
+    assert any("reaches its robots again" in line for line in lines)
+    # With backoff: the cut's last 20 s carry far fewer of the feeder's requests than its first 20 s.
+    sent = [float(line.split()[0]) for line in lines if " feeder>Robot" in line]
+    first, last = (sum(1 for at in sent if start <= at < start + 20) for start in (cut.at_s, heal.at_s - 20))
+    assert last < first / 2, (first, last)
+
+
+@pytest.mark.parametrize("fault", ["kill", "freeze"])
+def test_a_robot_lost_while_the_feeder_is_cut_off_is_found_down_once_it_is_back(kbs: KBCache, fault: str) -> None:
+    """While the feeder is cut off, Robot2 is killed (or frozen until well
+    after): once the feeder reaches the others again, it finds Robot2 down,
+    and only Robot2."""
+    cut, heal = _feeder_cut_off(0.5, 12.5, 6)
+    events = (cut, FaultEvent(2.0, fault, (VICTIM,)), heal)
+    if fault == "freeze":
+        events += (FaultEvent(30.0, "resume", (VICTIM,)),)
+    spec = SimSpec(robots=6, tasks=30, schedule=events)
+    run, record = _run(kbs, spec)
+    assert set(record.down) == {VICTIM}, record.down
