@@ -103,7 +103,7 @@ def shrink_seed(args: argparse.Namespace, spec: SimSpec, started: float) -> int:
     if violation is None:
         print(f"sim: seed {args.seed} breaks no invariant: nothing to shrink")
         return _closing([run], started)
-    case = replace(SimCase.of(spec, args.seed, run), violates=violation.check, finding=violation.finding)
+    case = replace(SimCase.drawn(spec, args.seed, kbs), violates=violation.check, finding=violation.finding)
     return _shrink(args, case, kbs, started, expect=violation.check)
 
 

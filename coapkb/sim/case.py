@@ -31,7 +31,7 @@ from typing import Any
 from ..errors import CoapkbError
 from ..harness.team import DEFAULT_ONTOLOGIES
 from .faults import LINK_KINDS, SWARM, FaultEvent, FaultMix, FaultSpecError
-from .run import RunResult, SimSpec
+from .run import KBCache, SimSpec, SimulatedTeam
 
 FORMAT = "coapkb-sim-case"
 VERSION = 1
@@ -91,16 +91,19 @@ class SimCase:
     hash_seed: str | None = None
 
     @classmethod
-    def of(cls, spec: SimSpec, seed: int, run: RunResult) -> SimCase:
-        """The case that replays ``run``, seed ``seed``'s run of ``spec``:
-        its tasks and schedule as the run drew them."""
+    def drawn(cls, spec: SimSpec, seed: int, kbs: KBCache | None = None) -> SimCase:
+        """The case of seed ``seed``'s run of ``spec``: the tasks and the
+        fault schedule the seed draws (or the spec gives), as the run will
+        carry them out.  (A run's ``events`` are not the schedule: they also
+        hold the faults its traps sprang.)"""
         if spec.scenario is not None:
             raise ValueError("a scenario's faults (SimSpec.scenario) cannot be written to a case")
+        team = SimulatedTeam(spec, seed, kbs or KBCache())
         settings = {name: getattr(spec, name) for name, default in settings_defaults().items()
                     if getattr(spec, name) != default}
         return cls(
             seed=seed, robots=spec.robots, strategy=spec.strategy, faults=mix_text(spec.faults),
-            tasks=tuple(run.fed), events=tuple(run.events), writes=spec.writes,
+            tasks=tuple(team.tasks), events=tuple(team.schedule.events), writes=spec.writes,
             ontologies=None if spec.ontologies == DEFAULT_ONTOLOGIES else str(spec.ontologies),
             settings=settings, hash_seed=os.environ.get("PYTHONHASHSEED"),
         )

@@ -107,7 +107,7 @@ def shrink(spec: SimSpec, seed: int, *, kbs: KBCache | None = None, budget_s: fl
     violation = first_violation(run)
     if violation is None:
         return None
-    case = SimCase.of(spec, seed, run)
+    case = SimCase.drawn(spec, seed, kbs)
     return shrink_case(case, kbs=kbs, budget_s=budget_s - (time.monotonic() - started), progress=progress,
                        expect=violation.check)
 
@@ -228,7 +228,7 @@ class _Shrinker:
         low, high = 1, len(self.best.tasks)
         while low < high:
             middle = (low + high) // 2
-            if self._try(replace(self.best, tasks=self.best.tasks[:middle]), f"the first {middle} tasks"):
+            if self._try(replace(self.best, tasks=self.best.tasks[:middle]), f"the first {middle} task{'s' * (middle != 1)}"):
                 high = middle
             else:
                 low = middle + 1

@@ -18,7 +18,7 @@ import pytest
 
 from coapkb.agent.team_view import ObservedStates
 from coapkb.cli import main
-from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, invariants
+from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, invariants, run_checked
 from coapkb.sim import shrink as shrinking
 from coapkb.sim.case import CaseFileError, SimCase, mix_text
 from coapkb.sim.faults import FaultEvent
@@ -177,14 +177,26 @@ def test_a_case_file_holds_the_whole_run(tmp_path: Path) -> None:
         "until_s": 0.0}
 
 
-def test_a_case_keeps_a_swarm_mix_and_the_settings_that_differ() -> None:
+def test_a_case_is_what_the_seed_draws_with_a_swarm_mix_and_the_settings_that_differ(kbs: KBCache) -> None:
     mix = FaultMix.parse("mixed,swarm,loss=0.2")
     assert FaultMix.parse(mix_text(mix)) == mix and "swarm" in mix_text(mix)
-    run = RunResult(5, "", None, None, [], [], fed=["Apple"])
-    spec = SimSpec(faults=mix, replication=3, query_timeout_s=2.0)
-    case = SimCase.of(spec, 5, run)
-    assert case.settings == {"replication": 3, "query_timeout_s": 2.0}
-    assert case.spec().replication == 3 and case.spec().faults == mix and case.spec().task_list == ("Apple",)
+    spec = SimSpec(tasks=4, faults=mix, replication=3, query_timeout_s=2.0)
+    case = SimCase.drawn(spec, 5, kbs)
+    assert case.settings == {"replication": 3, "query_timeout_s": 2.0} and len(case.tasks) == 4 and case.events
+    again = case.spec()
+    assert again.replication == 3 and again.faults == mix and again.task_list == case.tasks
+    assert SimCase.drawn(again, 5, kbs) == case  # the explicit schedule is the one the seed drew
+
+
+def test_a_case_replays_its_seed_exactly_traps_and_all(kbs: KBCache) -> None:
+    """Seed 16 draws a trap that springs: the run's events hold the freeze
+    it sprang, the case only the trap, and the case's run is the seed's."""
+    spec = SimSpec(robots=3, tasks=6, faults=FaultMix.parse("mixed,swarm"))
+    case = SimCase.drawn(spec, 16, kbs)
+    seed_run, case_run = run_checked(spec, 16, kbs), replay(case, kbs)
+    assert any(e.action.endswith("-picking") for e in case.events) and len(seed_run.events) > len(case.events)
+    assert (case_run.events, case_run.picks, case_run.sim_s, case_run.messages, case_run.violations) == (
+        seed_run.events, seed_run.picks, seed_run.sim_s, seed_run.messages, seed_run.violations)
 
 
 def _case_text(**changes: object) -> str:
