@@ -98,7 +98,8 @@ class FaultMix:
         if self.lossy and not (amounts["loss"] or amounts["burst"]):
             amounts["loss"] = round(rng.uniform(0, 3 * max(self.loss, self.burst)), 4)
         amounts["burst"] = min(amounts["burst"], 0.5)
-        return FaultMix(kinds, **amounts)
+        return FaultMix(kinds, loss=amounts["loss"], burst=amounts["burst"], dup=amounts["dup"],
+                        jitter=amounts["jitter"])
 
 
 def _amount(name: str, value: str) -> float:
