@@ -132,6 +132,9 @@ class LiveKB:
         self.listeners: list[Callable[[frozenset[str]], None]] = []
         #: (task, query) -> the answer first given for that task (:meth:`query_at`).
         self._pinned: OrderedDict[tuple[int, str], QueryResult] = OrderedDict()
+        #: Told every change the replicas took, before anyone hears of it
+        #: (a data folder: :mod:`.durable`); None: kept in memory only.
+        self.keeper: Callable[[Sequence[tuple[str, Sequence[Delta] | WrittenState]]], None] | None = None
 
     def __repr__(self) -> str:
         return f"<LiveKB {'+'.join(self.names)} of {self.writer}>"
@@ -304,10 +307,15 @@ class LiveKB:
             by_module.setdefault(self.module_of(triple), ([], []))[1].append(triple)
         deltas: dict[str, Delta] = {}
         now = self._wall_ms()
-        for module, (gone, new) in by_module.items():
-            delta, effect = self.replicas[module].write(gone, new, now, self._is_base)
-            deltas[module] = delta
-            self._show(effect)
+        try:
+            for module, (gone, new) in by_module.items():
+                delta, effect = self.replicas[module].write(gone, new, now, self._is_base)
+                deltas[module] = delta
+                self._show(effect)
+        finally:
+            # What was written is kept, even if a later module refused its part.
+            if self.keeper is not None and deltas:
+                self.keeper([(module, [delta]) for module, delta in deltas.items()])
         self._changed(frozenset(deltas))
         return Written(deltas, self.etag, len(removes), len(adds))
 
@@ -317,15 +325,25 @@ class LiveKB:
         """Join teammates' deltas of ``module``; whether the view changed."""
         replica = self.replicas[module]
         changed = False
+        taken: list[Delta] = []
         for delta in deltas:
+            new, refused = delta.dot not in replica.context, replica.refused
             effect = replica.apply(delta, self._is_base)
+            if new and replica.refused == refused:
+                taken.append(delta)
             changed |= bool(effect)
             self._show(effect)
+        if taken and self.keeper is not None:
+            self.keeper([(module, taken)])
         self._changed(frozenset({module}) if changed else frozenset())
         return changed
 
     def join(self, module: str, state: WrittenState) -> bool:
-        effect = self.replicas[module].join(state, self._is_base)
+        replica = self.replicas[module]
+        new = not replica.context.covers(state.context) or not state.removed_base <= replica.removed_base
+        effect = replica.join(state, self._is_base)
+        if new and self.keeper is not None:
+            self.keeper([(module, state)])
         self._show(effect)
         self._changed(frozenset({module}) if effect else frozenset())
         return bool(effect)
