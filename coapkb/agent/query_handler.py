@@ -184,7 +184,8 @@ class QueryHandler:
                     self.stats.hedged += 1
                     ask_next()
                     continue
-                for task in done:
+                # In the order they were asked: ``done`` is a set, ordered by id().
+                for task in [t for t in pending if t in done]:
                     mate = pending.pop(task)
                     exc = task.exception()
                     if exc is None:

@@ -79,7 +79,10 @@ async def indirect_probe(transport: ClientTransport, helpers: Sequence[Endpoint]
             return False
         return response.status.is_success
 
-    for done in asyncio.as_completed([via(h) for h in helpers[:INDIRECT_PROBES]]):
+    # Tasks made here, in the helpers' order: as_completed would wrap bare
+    # coroutines from a set, starting them in an order that follows id().
+    probes = [asyncio.create_task(via(h)) for h in helpers[:INDIRECT_PROBES]]
+    for done in asyncio.as_completed(probes):
         if await done:
             return True
     return False

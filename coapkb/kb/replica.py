@@ -6,7 +6,8 @@ triples, after the ORSWOT of Riak and the delta CRDTs of Almeida et al.:
 
 * Every triple a write adds gets a *dot* ``(writer, seq)`` of its own (a
   write that adds nothing takes one dot too); a writer is one incarnation of
-  one holder, and its sequence numbers count up from 1.
+  one holder, and its sequence numbers count up from 1, never taking a dot
+  under its name it has already seen (a forged or replayed one).
 * A triple is live while it carries at least one dot.  A write that removes
   a triple drops the dots it saw on it.  What the writer did not see (a
   concurrent add) survives: add wins.
@@ -353,12 +354,30 @@ class Replica:
                 removed_dots.update(self.entries.get(t, {}))
                 if is_base(t) and t not in self.removed_base:
                     removed_base[t] = None
-        delta = Delta(
-            Dot(self.writer, self._seq + 1), self.stamp(now_ms), adds, tuple(sorted(removed_dots)),
-            tuple(removed_base),
-        )
-        self._seq += len(delta.dots)
+        first = Dot(self.writer, self._next_seq(max(1, len(adds))))
+        delta = Delta(first, self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base))
+        self._seq = delta.dots[-1].seq
         return delta, self.apply(delta, is_base)
+
+    def _next_seq(self, count: int) -> int:
+        """The first of ``count`` sequence numbers for the next local write,
+        none of them a dot under this writer's name already seen: past the
+        context's version vector, and clear of its dots past a gap and of its
+        tombstones.  A dot under this name that it did not make (a forged or
+        replayed delta, or one from a life it forgot) would otherwise take a
+        real write's place: the write would be dropped as a duplicate (or
+        hidden by the tombstone) here and at every holder.  A far dot past a
+        gap is stepped over, not jumped to: the writes fill the gap below it,
+        so the others' contexts do not keep a gap that never closes."""
+        seq = max(self._seq, self.context.vv.get(self.writer, 0)) + 1
+        taken = {d.seq for d in self.context.cloud if d.writer == self.writer and d.seq >= seq}
+        taken.update(d.seq for d in self.tombstones if d.writer == self.writer and d.seq >= seq)
+        while taken:
+            clash = [s for s in range(seq, seq + count) if s in taken]
+            if not clash:
+                break
+            seq = clash[-1] + 1
+        return seq
 
     def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a delta (idempotent, in any order); what it changed in view."""

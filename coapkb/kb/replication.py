@@ -19,6 +19,21 @@ peer), so it runs over every transport and under its security.
   right after.  What it costs grows with what was missed, not with the KB.
 * **Compaction.**  A delta every peer's last known context holds leaves the
   journal.
+* **Who may replicate.**  A sync carrying changes of a module is taken only
+  from a robot known to hold that module (the security layer authenticated
+  it: :attr:`Request.peer`), and only if every writer it names is an
+  incarnation of such a robot; else 4.03 and nothing changes.  A question
+  (a context alone) is a read, answered to any robot not known to lack the
+  module.  A writer ``Robot1.<boot>`` is robot ``Robot1``'s incarnation.
+  Without ``team`` (every holder of each module) a robot knows the holders
+  its configuration names (its cluster's, its replicas); a writer of another
+  cluster is then taken on the word of the holder that sends it.  An
+  unprotected sender (``peer`` None) is not checked: there is nobody to
+  check; writers known not to hold the module are still refused.
+  (``docs/knowledge.md`` section 7, ``docs/security.md``.)
+* **Refused at the bound.**  A delta the replica does not take (its dots past
+  a gap would pass ``cloud_max``) is answered 5.03 with Max-Age, never 2.04:
+  the sender must not count it as held here; it comes again at catch-up.
 
 Messages: :mod:`coapkb.wire.sync`.  Model: :mod:`.replica`.
 """
@@ -27,8 +42,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import random
-from collections.abc import Coroutine, Sequence
+from collections.abc import Collection, Coroutine, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,13 +56,37 @@ from ..wire.sync import SyncMessage, decode_sync, encode_sync
 from .live import LiveKB, Written
 from .replica import CausalContext, Delta, WrittenState
 
-__all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings"]
+__all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings", "writer_robot"]
 
 SYNC_PATH = "/kb/sync"
 #: Exchanges one catch-up may chain while the holder has more to send.
 MAX_FOLLOW_UPS = 1000
 
 log = logging.getLogger(__name__)
+
+
+def writer_robot(writer: str) -> str:
+    """The robot a writer is an incarnation of: ``Robot1.<boot>`` is
+    ``Robot1`` (a name without a numeric incarnation is its own robot)."""
+    robot, dot, boot = writer.rpartition(".")
+    return robot if dot and robot and boot.isdigit() else writer
+
+
+def _writers(message: SyncMessage) -> Iterator[str]:
+    """Every writer a sync message names: its context's, its deltas' and
+    the dots they remove, or a whole state's."""
+    yield from message.context.vv
+    yield from (d.writer for d in message.context.cloud)
+    changes = message.changes
+    if isinstance(changes, WrittenState):
+        yield from changes.context.vv
+        yield from (d.writer for d in changes.context.cloud)
+        yield from (d.writer for dots in changes.entries.values() for d in dots)
+        yield from (d.writer for d in changes.tombstones)
+    elif changes:
+        for delta in changes:
+            yield delta.dot.writer
+            yield from (d.writer for d in delta.removed)
 
 
 @dataclass(frozen=True)
@@ -90,7 +130,11 @@ class Replicator:
         *,
         settings: ReplicationSettings | None = None,
         rng: random.Random | None = None,
+        team: Mapping[str, Collection[str]] | None = None,
     ) -> None:
+        """``team``: every robot holding each module, across the team; a
+        robot it does not list holds nothing.  None: the holders ``live``
+        and ``holders`` name (see the module docstring)."""
         self.live = live
         self.client = client
         self.settings = settings or ReplicationSettings()
@@ -98,12 +142,29 @@ class Replicator:
         self.holders: dict[str, list[Holder]] = {
             module: [h for h in holders if module in h.modules] for module in live.names
         }
+        self.me = writer_robot(live.writer)
+        self.team = team
+        #: module -> the robots known to hold it
+        self._holding: dict[str, frozenset[str]] = {
+            module: frozenset(team.get(module, ())) if team is not None
+            else frozenset(live.holders.get(module, ())) | {h.name for h in self.holders[module]}
+            for module in live.names
+        }
+        #: The robots whose modules this robot knows (the others' are unknown).
+        self._known_robots = frozenset(
+            {self.me, *(h.name for h in holders), *(r for robots in live.holders.values() for r in robots)}
+        )
+        #: (sender or holder, module, status) already logged at warning level.
+        self._warned: set[tuple[str, str, int]] = set()
         #: (module, holder) -> the last context it told us
         self.known: dict[tuple[str, str], CausalContext] = {}
         self._turn = 0
         self._task: asyncio.Task[None] | None = None
-        self._pushes: set[asyncio.Task[bool]] = set()
-        self.stats = {"pushed": 0, "push_failed": 0, "rounds": 0, "deltas_in": 0, "states_in": 0, "malformed": 0}
+        #: The pushes in flight, in the order they started (a dict: a set's order
+        #: follows id(), and aclose cancels them in this order).
+        self._pushes: dict[asyncio.Task[bool], None] = {}
+        self.stats = {"pushed": 0, "push_failed": 0, "rounds": 0, "deltas_in": 0, "states_in": 0, "malformed": 0,
+                      "forbidden": 0, "not_taken": 0}
 
     # -------------------------------------------------------------- serving
 
@@ -122,20 +183,79 @@ class Replicator:
         except CodecError as exc:
             self.stats["malformed"] += 1
             return Response.error(Status.BAD_REQUEST, f"malformed sync message: {exc}")
-        if message.module not in self.live.replicas:
-            return Response.error(Status.NOT_FOUND, f"this robot does not hold the {message.module} module")
-        fresh = self._fresh(message)
+        module = message.module
+        if module not in self.live.replicas:
+            return Response.error(Status.NOT_FOUND, f"this robot does not hold the {module} module")
+        refusal = self.refusal(message, request.peer)
+        if refusal is not None:
+            self.stats["forbidden"] += 1
+            self._log_once(request.peer or "an unprotected sender", module, Status.FORBIDDEN,
+                           "refused a sync of %s from %s: %s", module, request.peer, refusal)
+            return Response.error(Status.FORBIDDEN, refusal)
+        replica = self.live.replicas[module]
+        refused = replica.refused
+        new = self._new(message)
         self._take(message)
+        # Passed on only once taken here: a delta refused at the bound comes again at catch-up.
+        fresh = [d for d in new if d.dot in replica.context]
         if fresh:
-            for holder in self.holders[message.module]:
-                self._spawn(self._push(holder, message.module, fresh))
-        if request.peer is not None:
-            self.known[(message.module, request.peer)] = message.context
-        answer = self._answer_for(message.module, message.context)
+            for holder in self.holders[module]:
+                self._spawn(self._push(holder, module, fresh))
+        if request.peer is not None and self.holds(request.peer, module):
+            self.known[(module, request.peer)] = message.context
+        if replica.refused > refused:
+            # Not 2.04: a push's sender would count the write as held here.
+            # The gap fills at the next exchanges; the rest may come then.
+            self.stats["not_taken"] += replica.refused - refused
+            return Response.error(
+                Status.SERVICE_UNAVAILABLE,
+                f"{replica.refused - refused} of the changes not taken: this robot waits for "
+                f"{replica.gaps()} missing writes (at most {replica.limits.cloud_max}); it catches up first",
+                max_age=max(1, math.ceil(self.settings.sync_every_s)),
+            )
+        answer = self._answer_for(module, message.context)
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
 
-    def _fresh(self, message: SyncMessage) -> list[Delta]:
-        """The deltas of a forwarded push that are new here: to pass on."""
+    # ------------------------------------------------------- who replicates
+
+    def holds(self, robot: str, module: str) -> bool | None:
+        """Whether ``robot`` holds ``module``: True, False, or None when this
+        robot does not know (a robot of another cluster its configuration
+        does not name, without ``team``)."""
+        if robot == self.me or robot in self._holding.get(module, ()):
+            return True
+        if self.team is not None or robot in self._known_robots:
+            return False
+        return None
+
+    def refusal(self, message: SyncMessage, sender: str | None) -> str | None:
+        """Why ``message`` from ``sender`` (the authenticated member; None:
+        unprotected) is not taken, in one line; None if it is."""
+        module = message.module
+        held = None if sender is None else self.holds(sender, module)
+        if held is False:
+            return f"{sender} does not hold the {module} module: only its holders replicate it"
+        if message.changes is None and held is not True:
+            return None  # a question: nothing is taken, nothing kept
+        if held is None and sender is not None:
+            return (f"{sender} is not a holder of the {module} module that this robot knows: "
+                    "only its holders replicate it")
+        for writer in set(_writers(message)):
+            robot = writer_robot(writer)
+            if self.holds(robot, module) is False:
+                return f"a change written by {writer}: {robot} does not hold the {module} module"
+        return None
+
+    def _log_once(self, who: str, module: str, status: Status, text: str, *args: object) -> None:
+        """A warning the first time, debug after: a misconfigured peer is
+        said once, not at every round."""
+        key = (who, module, int(status))
+        level = logging.DEBUG if key in self._warned else logging.WARNING
+        self._warned.add(key)
+        log.log(level, text, *args)
+
+    def _new(self, message: SyncMessage) -> list[Delta]:
+        """The deltas of a forwarded push that are new here: to pass on (once taken)."""
         if not message.forward or not isinstance(message.changes, list):
             return []
         context = self.live.replicas[message.module].context
@@ -195,8 +315,8 @@ class Replicator:
 
     def _spawn(self, coro: Coroutine[Any, Any, bool]) -> asyncio.Task[bool]:
         task = asyncio.ensure_future(coro)
-        self._pushes.add(task)
-        task.add_done_callback(self._pushes.discard)
+        self._pushes[task] = None
+        task.add_done_callback(lambda done: self._pushes.pop(done, None))
         return task
 
     async def _push(self, holder: Holder, module: str, changes: Sequence[Delta] | WrittenState) -> bool:
@@ -220,8 +340,8 @@ class Replicator:
             log.debug("sync with %s failed: %s", holder.name, exc)
             return None
         if response.status != Status.CHANGED:
-            log.warning("%s refused a sync of %s: %s %s", holder.name, message.module, response.status.dotted,
-                        response.text())
+            self._log_once(holder.name, message.module, response.status, "%s refused a sync of %s: %s %s",
+                           holder.name, message.module, response.status.dotted, response.text())
             return None
         try:
             answer = decode_sync(response.payload)
@@ -229,6 +349,13 @@ class Replicator:
             log.warning("%s answered a malformed sync message: %s", holder.name, exc)
             return None
         if answer.module != message.module:
+            return None
+        # The answer comes from the holder asked (the client's security checks who answers).
+        refusal = self.refusal(answer, holder.name)
+        if refusal is not None:
+            self.stats["forbidden"] += 1
+            self._log_once(holder.name, message.module, Status.FORBIDDEN, "not taking %s's answer on %s: %s",
+                           holder.name, message.module, refusal)
             return None
         self.known[(message.module, holder.name)] = answer.context
         self._take(answer)
