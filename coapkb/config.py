@@ -150,6 +150,10 @@ class RobotConfig:
     #: The Unix socket of a simulated world shared by the team (``coapkb
     #: world``): what the robot finds at the shelf; None: the KB's word.
     world: Path | None = None
+    #: Where a writable robot keeps its modules' writes (a journal and
+    #: snapshots, docs/knowledge.md): a restart reads them back; None: in
+    #: memory only, lost when the process stops.
+    data_dir: Path | None = None
     #: ``[transport.SCHEME]`` tables: scheme -> the tunables of that
     #: transport's layer (CoAP's reliability layer: docs/configuration.md).
     transport_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
@@ -222,6 +226,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
                             for m in config.replicas.values()}
     if config.world is not None:
         data["world"] = str(config.world.resolve())
+    if config.data_dir is not None:
+        data["data_dir"] = str(config.data_dir.resolve())
     if config.transport_options:
         data["transport"] = {scheme: dict(options) for scheme, options in config.transport_options.items()}
     return data
@@ -279,11 +285,24 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         discovery=_discovery(data),
         replicas=replicas,
         world=None if data.get("world") is None else base_dir / _get(data, "world", str),
+        data_dir=_data_dir(data, base_dir),
         transport_options=_transport_options(_get(data, "transport", dict, {}), bind.scheme),
         **plain,
     )
     _check_values(config)
     return config
+
+
+def _data_dir(data: Mapping[str, Any], base_dir: Path) -> Path | None:
+    if data.get("data_dir") is None:
+        return None
+    text = _get(data, "data_dir", str)
+    if not text:
+        raise ConfigError("data_dir: must not be empty (leave it out to keep writes in memory only)")
+    path = base_dir / text
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"data_dir: {path} is not a folder")
+    return path
 
 
 def _transport_options(table: Mapping[str, Any], scheme: str) -> dict[str, dict[str, Any]]:

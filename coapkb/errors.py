@@ -9,6 +9,7 @@ class                          raised by                                        
 ``ConfigError``                :mod:`coapkb.config` (a robot's TOML)                                 ``ValueError``
 ``KBError`` and subclasses     :mod:`coapkb.kb.store` (load, query), :mod:`coapkb.kb.live` (writes)
 ``QueryFailed``                :mod:`coapkb.kb.client` (a 4.xx/5.xx answer)
+``DataDirError``               :mod:`coapkb.kb.journal` (a data folder corrupt, in use, another's)
 ``QueryError``                 :mod:`coapkb.agent.query_handler`
 ``TransportError``             :mod:`coapkb.transport` (``PeerUnreachable``)
 ``UnknownTransport``           :mod:`coapkb.transport.registry`                                      ``ValueError``

@@ -30,6 +30,7 @@ from ..config import KB_MODULES, ConfigError, RobotConfig
 from ..errors import CoapkbError
 from ..host import Host, operating_system
 from ..kb.client import KBClient, QueryFailed
+from ..kb.durable import Keeper, open_live
 from ..kb.live import LiveKB
 from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
@@ -182,6 +183,8 @@ class Robot:
         self.replicator: Replicator | None = None
         #: Writes what the executor did into the Location KB (a writable team).
         self.knowledge: KnowledgeWriter | None = None
+        #: Keeps its KB's writes in its data folder (``data_dir``).
+        self.keeper: Keeper | None = None
 
     @classmethod
     async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> Robot:
@@ -222,13 +225,21 @@ class Robot:
         # Nonzero, so it is always sent: teammates tell a restart by it.
         boot = host.rng.randrange(1, 2**32)
         replicator = None
+        keeper: Keeper | None = None
         served: KnowledgeBase | LiveKB | None = kb
         if kb is not None:
             served = kb
             if config.kb_writable:
-                # Each incarnation writes as a writer of its own: its counts start again at 1.
+                # In memory, each incarnation writes as a writer of its own (its
+                # counts start again at 1); with a data folder, it restores what
+                # the folder holds and writes on as the folder's writer.
                 known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
-                served = LiveKB(kb, f"{config.robot_id}.{boot}", wall_ms=host.wall_ms, holders=known)
+                try:
+                    served, keeper = open_live(kb, config.robot_id, boot, config.data_dir, wall_ms=host.wall_ms,
+                                               holders=known)
+                except BaseException:
+                    await client.aclose()
+                    raise
                 replicator = Replicator(served, client, module_holders(config, served.names), rng=host.rng)
             KBResources(served, threads=host.threads, replicator=replicator).mount(router)
         start = config.start
@@ -320,6 +331,7 @@ class Robot:
         robot.progress = (state_changed, outcome_changed)
         robot.health = health
         robot.replicator = replicator
+        robot.keeper = keeper
         robot.knowledge = knowledge
         robot._mount()  # before serving: the transport publishes the resource list
         try:
@@ -332,6 +344,8 @@ class Robot:
                                                     options=table)
         except BaseException:
             await client.aclose()
+            if keeper is not None:
+                keeper.close()
             raise
         health.start()
         if replicator is not None:
@@ -385,6 +399,8 @@ class Robot:
         if self.server is not None:
             await self.server.aclose()
         await self.client.aclose()
+        if self.keeper is not None:
+            self.keeper.close()
 
     # ---------------------------------------------------------------- resources
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from pathlib import Path
 
 from .common import until_signalled
 
@@ -12,6 +14,9 @@ def add_agent(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", required=True, metavar="FILE", help="the robot's TOML file")
     p.add_argument("--query-wire", choices=("compact", "seed"), default="compact",
                    help="compact: named queries + CBOR; seed: full SPARQL text + JSON, like the seed paper")
+    p.add_argument("--data-dir", metavar="DIR",
+                   help="keep the KB's writes in DIR and restore them at the next start "
+                        "(default: the TOML's data_dir; without it, in memory only)")
     p.set_defaults(run=_agent)
 
 
@@ -20,6 +25,8 @@ async def _agent(args: argparse.Namespace) -> int:
     from ..config import load_config
 
     config = load_config(args.config)
+    if args.data_dir is not None:
+        config = dataclasses.replace(config, data_dir=Path(args.data_dir))
     robot = await Robot.start(config, query_wire=args.query_wire)
     assert robot.server is not None  # Robot.start returns a serving robot
     # Ready once in touch with the team (or after a bound): the handshakes

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import secrets
+from pathlib import Path
 
 from ..transport import SCHEMES
 from .common import UserError, add_credentials, parse_endpoint, server_security, until_signalled
@@ -20,12 +21,16 @@ def add_serve(sub: argparse._SubParsersAction) -> None:
     add_credentials(p, "central")
     p.add_argument("--writable", action="store_true",
                    help="take writes (PATCH /kb) without credentials; with --credentials, the team's access table decides")
+    p.add_argument("--data-dir", metavar="DIR",
+                   help="keep the writes in DIR (a journal and snapshots) and restore them at the next start; "
+                        "default: in memory only")
     p.add_argument("--row-limit", type=int, default=1000)
     p.add_argument("--time-budget", type=float, default=2.0, metavar="SECONDS")
     p.set_defaults(run=_serve)
 
 
 async def _serve(args: argparse.Namespace) -> int:
+    from ..kb.durable import open_live
     from ..kb.live import LiveKB, wall_ms
     from ..kb.resources import KBResources, QueryLimits
     from ..kb.store import KnowledgeBase
@@ -42,12 +47,20 @@ async def _serve(args: argparse.Namespace) -> int:
     writable = args.writable or args.credentials is not None
     if writable and (args.backend != "oxigraph" or args.index_dir is not None):
         raise UserError("a writable KB needs the in-memory oxigraph backend (no --index-dir, no --backend rdflib)")
+    if args.data_dir is not None and not writable:
+        raise UserError("--data-dir keeps writes: it needs --writable or --credentials")
     base = KnowledgeBase.load(args.kb, backend=args.backend, index_dir=args.index_dir)
-    kb = LiveKB(base, f"{args.identity}.{secrets.randbelow(2**32)}", wall_ms=wall_ms) if writable else base
+    keeper = None
+    kb: KnowledgeBase | LiveKB = base
+    if writable:
+        data_dir = None if args.data_dir is None else Path(args.data_dir)
+        kb, keeper = open_live(base, args.identity, secrets.randbelow(2**32), data_dir, wall_ms=wall_ms)
     router = Router()
     KBResources(kb, limits).mount(router)
     server = await serve(router, endpoint, security=server_security(args))
     mode = "writable" if writable else "read-only"
+    if keeper is not None:
+        mode += f", kept in {keeper.path}"
     if args.credentials is not None:
         mode += f", OSCORE/EDHOC as {args.identity}, team access policy"
     print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) on {server.endpoint}",
@@ -56,4 +69,6 @@ async def _serve(args: argparse.Namespace) -> int:
         await until_signalled()
     finally:
         await server.aclose()
+        if keeper is not None:
+            keeper.close()
     return 0

@@ -59,6 +59,9 @@ def add_team(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--writable", action="store_true",
                    help="the robots' KBs take writes (coapkb update) and replicate them among the holders; "
                         "the robots write their picks and what they do not find")
+    p.add_argument("--data-dir", metavar="DIR",
+                   help="with --writable: keep each robot's writes in DIR/ROBOT (kept after the run; "
+                        "default: in the run's temporary folder)")
     p.add_argument("--misplace", action="append", default=[], metavar="OBJECT",
                    help="the object is not where the KB says: the robot sent finds the shelf empty (repeatable)")
     p.add_argument("--insecure", action="store_true",
@@ -118,6 +121,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             discovery=getattr(args, "discovery", "static"),
             kb_writable=getattr(args, "writable", False),
             misplaced=tuple(getattr(args, "misplace", None) or ()),
+            data_dir=None if getattr(args, "data_dir", None) is None else Path(args.data_dir),
         )
         if getattr(args, "task_list", None):
             tasks = list(args.task_list)
@@ -129,6 +133,8 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
     except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
+    if spec.data_dir is not None and not spec.kb_writable:
+        raise UserError("--data-dir keeps the robots' writes: it needs --writable")
     if not tasks:
         raise UserError("no tasks to run")
     return spec, tasks

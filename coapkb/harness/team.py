@@ -168,6 +168,11 @@ class TeamSpec:
     #: Objects that are not where the KB says (``--misplace``): the robot sent
     #: finds the shelf empty, the task ends as not found.
     misplaced: tuple[str, ...] = ()
+    #: Where a writable team's robots keep their writes, one folder per
+    #: robot (``DIR/Robot1``...), kept after the run; None: in the run's
+    #: own folder, gone with it (a robot killed and restarted during the
+    #: run still comes back with what it had).
+    data_dir: Path | None = None
 
     @property
     def lease_s(self) -> float:
@@ -512,10 +517,16 @@ class Team:
         )
         paths: dict[str, Path] = {}
         for robot_id, config in configs.items():
+            if config.kb_writable:
+                config = dataclasses.replace(config, data_dir=self.data_dir(robot_id))
             path = self.workdir / f"{robot_id}.toml"
             path.write_text(dump_config(config), encoding="utf-8")
             paths[robot_id] = path
         return paths
+
+    def data_dir(self, robot_id: str) -> Path:
+        """Where writable robot ``robot_id`` keeps its writes (TeamSpec.data_dir)."""
+        return (self.spec.data_dir or self.workdir / "data") / robot_id
 
     async def _spawn(self, name: str, argv: list[str], ready_prefix: str) -> str:
         self._argv[name] = argv

@@ -155,10 +155,10 @@ def restore(live: LiveKB, recovered: Recovered) -> int:
 
 
 def resume_writer(replica: Replica) -> None:
-    """The replica's own writes go on above the highest dot it holds under
-    its writer's name: no dot is ever used twice."""
-    context = replica.context
-    top = max([context.vv.get(replica.writer, 0), *(d.seq for d in context.cloud if d.writer == replica.writer)])
+    """The replica's own writes go on above its writes on disk: every one
+    of them was kept before the next was made, so they run without a gap
+    from 1 to the context's count for its writer, and no dot is used twice."""
+    top = replica.context.vv.get(replica.writer, 0)
     replica._seq = max(replica._seq, top)  # noqa: SLF001 - the replica's count, restored from its own context
 
 

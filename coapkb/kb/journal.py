@@ -9,6 +9,7 @@ messages of :mod:`coapkb.wire.sync` (pure codecs, no I/O).  The format
 ::
 
     DIR/lock            held (flock) while a process uses the folder
+    DIR/.gitignore      "*": a folder made inside a repository stays out of it
     DIR/journal.G       journal of generation G: magic "coapkbJ\\x01", then records
     DIR/snapshot.G      the whole state before journal G: magic "coapkbS\\x01", then records
     record  = length: u32 | crc32(payload): u32 | crc32(the 8 bytes before): u32 | payload
@@ -328,6 +329,11 @@ class Journal:
                 (journals if named[1] == "journal" else snapshots)[int(named[2])] = entry
         if not journals and not snapshots:
             writer = new_writer
+            # A folder made inside a repository (``data_dir = "data"`` beside
+            # the TOML) is never committed by mistake.
+            ignore = path / ".gitignore"
+            if not ignore.exists():
+                ignore.write_text("# coapkb's data folder: a robot's writes, never committed\n*\n", encoding="utf-8")
             _write_file(path / "journal.0", [JOURNAL_MAGIC, encode_record(_meta(robot, writer, 0))])
             return Recovered(writer, fresh=True), 0
         base = max(snapshots, default=0)

@@ -186,7 +186,7 @@ def test_compaction_writes_a_snapshot_and_drops_the_old_journal(base, tmp_path) 
     assert keeper.stats["snapshots"] >= 2
     names = sorted(p.name for p in tmp_path.iterdir())
     generation = keeper.journal.generation
-    assert names == ["journal." + str(generation), "lock", "snapshot." + str(generation)]
+    assert names == [".gitignore", "journal." + str(generation), "lock", "snapshot." + str(generation)]
     expected = _labels(live)
     state = live.replicas["Location"]
     keeper.close()
@@ -210,7 +210,7 @@ def test_a_compaction_cut_short_leaves_what_it_would_replace(base, tmp_path) -> 
     assert not list(tmp_path.glob("*.tmp"))
     keeper.compact()
     keeper.close()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["journal.2", "lock", "snapshot.2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".gitignore", "journal.2", "lock", "snapshot.2"]
     third, keeper = _open(base, tmp_path)
     assert _labels(third) == {f"w{i}" for i in range(5)}
     keeper.close()
