@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -25,6 +26,8 @@ from .membership import Membership
 from .orphans import idle
 from .record import TaskRecord, mark_not_found
 from .tasks import FeederError, split_tasks, task_post
+
+log = logging.getLogger(__name__)
 
 STATS_PATH = "/robot/stats"
 #: Requests for one robot's statistics before the feeder gives up on them.
@@ -228,6 +231,25 @@ class Feeder:
             queue = [(found[s].object, s) for s in sorted(found)]
         return records, decided_at
 
+    async def _post_to_joiners(self, request: Request, seq: int, name: str, joining: Sequence[str]) -> list[str]:
+        """Post task ``seq`` to the robots joining at it, before their
+        teammates; the joiners it reached.  One it did not reach (found down:
+        the process that was to join died, and another may have started since)
+        is not named to its teammates: they would admit it at this task and
+        wait for a plan after the previous one, which no process of it
+        publishes, until their wait ran out and they decided nothing (found in
+        the simulator: a robot killed again soon after its restart, and
+        restarted once more just after the feeder posted its join).  It
+        joins at a later task, once the feeder is told of its restart."""
+        channel, watcher = self.channel, self.channel.watcher
+        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in joining))
+        missed = [r for r in joining if r in watcher.down]
+        if missed:
+            log.warning("%s did not take task %d, at which %s to join: %s not named to the teammates",
+                        ", ".join(missed), seq, "it was" if len(missed) == 1 else "they were",
+                        "it is" if len(missed) == 1 else "they are")
+        return [r for r in joining if r not in watcher.down]
+
     async def _feed_task(
         self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = (),
         again: int | None = None,
@@ -241,7 +263,10 @@ class Feeder:
             others = len(watcher.down) - len(cluster)
             raise FeederError(f"every robot of cluster {index + 1} is down ({why})"
                               + (f"; {others} robots of other clusters too" if others else ""))
-        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live))
+        joined = await self._post_to_joiners(request, seq, name, joining)
+        if joined != list(joining):
+            request = task_post(seq, name, joined, again)
+        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live if r not in joining))
 
         def decided(states: States, robot_id: str) -> bool:
             last = states[robot_id].last if robot_id in states else None
@@ -253,7 +278,7 @@ class Feeder:
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
         )
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
-                            joined=list(joining))
+                            joined=joined)
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
         if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
             # Robots that differ may have decided and then died before the

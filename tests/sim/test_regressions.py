@@ -39,6 +39,11 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         7315: "the same as seed 5571: three tasks picked twice",
         3291: "a retransmitted task post of a killed robot reached its restarted process, which took it as its "
               "own task: picked there and again where it went round",
+        4156: "a robot killed again soon after its restart and restarted once more just after the feeder posted "
+              "its join: the post reached no process, the teammates admitted it anyway and decided nothing while "
+              "they waited for its plan",
+        4389: "the same as seed 4156",
+        4786: "the same as seed 4156",
     }),
     (("--robots", "6", "--tasks", "12", "--faults", "mixed", "--strategy", "compute-and-communicate"), {
         49: "the leader's decision was lost in a burst and never sent again: the follower decided nothing",
