@@ -17,7 +17,8 @@ messages of :mod:`coapkb.wire.sync` (pure codecs, no I/O).  The format
               "M" meta      CBOR {"format": 1, "robot": tstr, "writer": tstr, "generation": uint}
               "C" change    a sync message: one delta, or a whole state a peer sent
               "S" head      a sync message: a module's context, removed files' triples, tombstones
-              "E" entries   a sync message: up to 10,000 of a module's written triples with their dots
+              "E" entries   a sync message: a module's written triples (about 10,000) as
+                            deltas, one per run of a writer's consecutive dots with one stamp
               "Z" end       CBOR uint: the snapshot's records before it, meta excluded
 
 Every file starts with its magic and a meta record.  A journal's records
@@ -62,7 +63,7 @@ SNAPSHOT_MAGIC = b"coapkbS\x01"
 HEAD = struct.Struct(">III")
 #: A record longer than this is garbage (a whole state of 100,000 triples is about 5 MB).
 MAX_RECORD = 256 << 20
-#: Written triples per snapshot record: well inside what the sync decoder takes.
+#: Written triples per snapshot record (about): well inside what the sync decoder takes.
 ENTRIES_PER_RECORD = 10_000
 
 META, CHANGE, HEAD_KIND, ENTRIES, END = b"M", b"C", b"S", b"E", b"Z"
@@ -191,26 +192,54 @@ def _decode(payload: bytes, name: str) -> SyncMessage:
     return message
 
 
+def _runs(entries: Mapping[Triple, Mapping[Dot, Stamp]]) -> list[Delta]:
+    """Written triples as the writes that added them: runs of one writer's
+    consecutive dots with one stamp, each a delta adding its triples (as
+    the write did, or its part still live).  Far smaller to encode and to
+    read back than a dot list for each triple."""
+    tagged = sorted((dot, stamp, triple) for triple, dots in entries.items() for dot, stamp in dots.items())
+    runs: list[Delta] = []
+    first: tuple[Dot, Stamp] | None = None
+    added: list[Triple] = []
+    for dot, stamp, triple in tagged:
+        if first is not None and (dot.writer, stamp) == (first[0].writer, first[1]) \
+                and dot.seq == first[0].seq + len(added):
+            added.append(triple)
+            continue
+        if first is not None:
+            runs.append(Delta(first[0], first[1], tuple(added)))
+        first, added = (dot, stamp), [triple]
+    if first is not None:
+        runs.append(Delta(first[0], first[1], tuple(added)))
+    return runs
+
+
 def snapshot_payloads(states: Mapping[str, WrittenState]) -> Iterator[bytes]:
     """A snapshot's records after its meta: per module a head and its
-    entries in parts, then the end."""
+    written triples in parts, then the end."""
     count = 0
     for module, state in states.items():
         head = WrittenState(state.context, {}, state.removed_base, state.tombstones)
         yield HEAD_KIND + encode_sync(SyncMessage(module, CausalContext(), head))
         count += 1
-        triples = list(state.entries)
-        for start in range(0, len(triples), ENTRIES_PER_RECORD):
-            part = {t: state.entries[t] for t in triples[start : start + ENTRIES_PER_RECORD]}
-            yield ENTRIES + encode_sync(SyncMessage(module, CausalContext(), WrittenState(CausalContext(), part,
-                                                                                           frozenset())))
+        part: list[Delta] = []
+        size = 0
+        for run in _runs(state.entries):
+            part.append(run)
+            size += len(run.added)
+            if size >= ENTRIES_PER_RECORD:
+                yield ENTRIES + encode_sync(SyncMessage(module, CausalContext(), part))
+                count += 1
+                part, size = [], 0
+        if part:
+            yield ENTRIES + encode_sync(SyncMessage(module, CausalContext(), part))
             count += 1
     yield END + cbor2.dumps(count)
 
 
 def _snapshot_states(records: list[bytes], name: str) -> dict[str, WrittenState]:
     heads: dict[str, WrittenState] = {}
-    entries: dict[str, dict[Triple, Mapping[Dot, Stamp]]] = {}
+    entries: dict[str, dict[Triple, dict[Dot, Stamp]]] = {}
     if not records or records[-1][:1] != END:
         raise DataDirError(f"{name}: corrupt: the snapshot does not end with its end record")
     try:
@@ -222,18 +251,21 @@ def _snapshot_states(records: list[bytes], name: str) -> dict[str, WrittenState]
     for payload in records[:-1]:
         kind = payload[:1]
         message = _decode(payload, name)
-        state = message.changes
-        if kind not in (HEAD_KIND, ENTRIES) or not isinstance(state, WrittenState):
-            raise DataDirError(f"{name}: corrupt: a record of kind {kind!r} in a snapshot")
-        if kind == HEAD_KIND:
+        changes = message.changes
+        if kind == HEAD_KIND and isinstance(changes, WrittenState):
             if message.module in heads:
                 raise DataDirError(f"{name}: corrupt: two heads for {message.module}")
-            heads[message.module] = state
+            heads[message.module] = changes
             entries[message.module] = {}
-        elif message.module not in heads:
-            raise DataDirError(f"{name}: corrupt: entries of {message.module} before its head")
+        elif kind == ENTRIES and isinstance(changes, list):
+            if message.module not in heads:
+                raise DataDirError(f"{name}: corrupt: written triples of {message.module} before its head")
+            into = entries[message.module]
+            for run in changes:
+                for triple, dot in run.tagged():
+                    into.setdefault(triple, {})[dot] = run.stamp
         else:
-            entries[message.module].update(state.entries)
+            raise DataDirError(f"{name}: corrupt: a record of kind {kind!r} in a snapshot")
     return {m: WrittenState(h.context, entries[m], h.removed_base, h.tombstones) for m, h in heads.items()}
 
 

@@ -268,3 +268,40 @@ def test_many_written_triples_go_in_several_snapshot_records(base, tmp_path) -> 
     assert again.replicas["Location"].equal_to(live.replicas["Location"])
     keeper.close()
     assert Literal("11_999") in {o for _, _, o in again.replicas["Location"].entries}
+
+
+def test_a_snapshot_keeps_concurrent_adds_shadowed_values_and_tombstones(base, tmp_path) -> None:
+    move = PREFIX + ("DELETE { loc:Robot1 loc:Robot_aisle_no ?a } INSERT { loc:Robot1 loc:Robot_aisle_no %d } "
+                     "WHERE { loc:Robot1 loc:Robot_aisle_no ?a }")
+    aisle = PREFIX + "SELECT ?a WHERE { loc:Robot1 loc:Robot_aisle_no ?a }"
+
+    def deltas(kb: LiveKB) -> list:
+        return list(kb.replicas["Location"].journal.values())
+
+    peer, other = LiveKB(base, "Robot2.1", wall_ms=wall_ms), LiveKB(base, "Robot3.1", wall_ms=wall_ms)
+    _insert(peer, "same")
+    _insert(other, "same")  # one triple, two dots
+    peer.update(move % 4)
+    other.update(move % 6)  # concurrent: one value shows, the other is shadowed
+    ghost, remover = LiveKB(base, "Robot4.1", wall_ms=wall_ms), LiveKB(base, "Robot5.1", wall_ms=wall_ms)
+    _insert(ghost, "ghost")
+    remover.apply("Location", deltas(ghost))
+    removal = remover.update(PREFIX + 'DELETE DATA { loc:ghost loc:written "ghost" }').deltas["Location"]
+
+    live, keeper = _open(base, tmp_path)
+    live.apply("Location", deltas(peer) + deltas(other))
+    live.apply("Location", [removal])  # before the write it removes: a tombstone
+    _insert(live, "mine")
+    state = live.replicas["Location"]
+    assert state.tombstones and len(state.entries) > len({t for t in state.entries if len(state.entries[t]) == 1})
+    assert len(live.query(aisle).rows) == 1  # type: ignore[union-attr]
+    keeper.compact()
+    keeper.close()
+    again, keeper = _open(base, tmp_path)
+    assert again.replicas["Location"].equal_to(state)
+    assert again.query(aisle).rows == live.query(aisle).rows  # type: ignore[union-attr]
+    assert _labels(again) == _labels(live) == {"same", "mine"}
+    again.apply("Location", deltas(ghost))
+    live.apply("Location", deltas(ghost))
+    assert again.replicas["Location"].equal_to(live.replicas["Location"]) and "ghost" not in _labels(again)
+    keeper.close()
