@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import random
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 
 import pytest
 from rdflib import Literal, URIRef
@@ -307,3 +308,56 @@ async def test_a_delta_refused_at_the_bound_is_answered_5_03_not_2_04() -> None:
 
 async def _settle(replicator: Replicator) -> None:
     await asyncio.gather(*list(replicator._pushes), return_exceptions=True)
+
+
+class Network(ClientTransport):
+    """In memory: a request reaches the replicator at the endpoint's port,
+    sent by ``me`` as a security layer would authenticate it."""
+
+    def __init__(self, me: str, robots: dict[int, Replicator]) -> None:
+        self.me, self.robots = me, robots
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        return await self.robots[peer.port].handle_sync(replace(request, peer=self.me))
+
+    def observe(self, peer: Endpoint, request: Request):  # type: ignore[no-untyped-def]
+        raise NotImplementedError
+
+    async def aclose(self) -> None:
+        pass
+
+
+def ring(team: Mapping[str, Sequence[str]] | None) -> dict[int, Replicator]:
+    """Three clusters of one holder each: A1 -> B1 -> C1 -> A1, each
+    configured with the next only (as the harness does)."""
+    robots: dict[int, Replicator] = {}
+    names = ["A1", "B1", "C1"]
+    for port, name in enumerate(names):
+        nxt = names[(port + 1) % 3]
+        live = LiveKB(KnowledgeBase.load([ONTOLOGIES / "Location.owl"]), f"{name}.1", wall_ms=lambda: 1_000,
+                      holders={"Location": [name]})
+        robots[port] = Replicator(live, Network(name, robots), [Holder(nxt, ep((port + 1) % 3), ("Location",),
+                                                                       remote=True)],
+                                  rng=random.Random(port), team=team)
+    return robots
+
+
+@pytest.mark.parametrize("listed", [False, True])
+async def test_a_ring_of_three_clusters_converges_with_or_without_the_teams_list(listed: bool) -> None:
+    """Without the team's list a robot does not know the previous cluster's
+    holder: its push is refused, and the write crosses by the questions of
+    anti-entropy (each robot asks the next).  With the list it is taken at once."""
+    robots = ring({"Location": ["A1", "B1", "C1"]} if listed else None)
+    a1 = robots[0]
+    written = a1.live.update(f"PREFIX loc: <{LOC}> INSERT DATA {{ loc:X loc:note 'a' }}")
+    assert await a1.replicate(written) == (1 if listed else 0)
+    await asyncio.gather(*(_settle(r) for r in robots.values()))
+    rounds = 0
+    while len({r.live.etag for r in robots.values()}) > 1:
+        rounds += 1
+        assert rounds <= 3, [r.live.replicas["Location"].context for r in robots.values()]
+        for robot in robots.values():
+            await robot.sync_once()
+        await asyncio.gather(*(_settle(r) for r in robots.values()))
+    assert rounds == (0 if listed else 2)
+    assert (robots[1].stats["forbidden"] > 0) is not listed  # A1's pushes, refused
