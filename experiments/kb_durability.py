@@ -254,9 +254,13 @@ def fill(folder: Path, triples: int, snapshot: bool) -> float:
     return took
 
 
-async def serve_once(folder: Path | None) -> tuple[float, float, int]:
+async def serve_once(folder: Path | None) -> tuple[float, float, int, float]:
     """Start ``coapkb serve`` (on ``folder``): seconds to its serving line,
-    to an answer counting the written triples, and that count."""
+    to an answer counting the written triples, that count, and the CPU
+    seconds the process used in all (on a loaded machine, the wall time
+    is more than the work)."""
+    import resource
+
     from coapkb.kb.client import KBClient
     from coapkb.kb.results import expect_select
     from coapkb.transport import open_client
@@ -266,6 +270,7 @@ async def serve_once(folder: Path | None) -> tuple[float, float, int]:
     argv = ["serve", "--kb", str(LOCATION), "--writable", "--bind", f"127.0.0.1:{port}"]
     if folder is not None:
         argv += ["--data-dir", str(folder)]
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.monotonic()
     proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "coapkb", *argv, cwd=ROOT,
                                                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
@@ -284,16 +289,18 @@ async def serve_once(folder: Path | None) -> tuple[float, float, int]:
         await client.aclose()
         proc.send_signal(signal.SIGKILL)
         await proc.wait()
-    return serving, answered, count
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = used.ru_utime + used.ru_stime - children.ru_utime - children.ru_stime
+    return serving, answered, count, cpu
 
 
 async def big(args: argparse.Namespace) -> None:
     scratch = _scratch()
     rows = []
     try:
-        serving, answered, count = await serve_once(None)
+        serving, answered, count, cpu = await serve_once(None)
         rows.append({"folder": "none", "written_triples": count, "bytes": 0, "serving_s": round(serving, 2),
-                     "answer_s": round(answered, 2)})
+                     "answer_s": round(answered, 2), "cpu_s": round(cpu, 2)})
         print(rows[-1], flush=True)
         for snapshot in (True, False):
             folder = scratch / ("snapshot" if snapshot else "journal")
@@ -301,9 +308,9 @@ async def big(args: argparse.Namespace) -> None:
             size = sum(p.stat().st_size for p in folder.iterdir())
             print(f"filled {folder.name}: {args.triples} triples in {took:.1f} s, {size} bytes", flush=True)
             for _ in range(args.repeat):
-                serving, answered, count = await serve_once(folder)
+                serving, answered, count, cpu = await serve_once(folder)
                 rows.append({"folder": folder.name, "written_triples": count, "bytes": size,
-                             "serving_s": round(serving, 2), "answer_s": round(answered, 2)})
+                             "serving_s": round(serving, 2), "answer_s": round(answered, 2), "cpu_s": round(cpu, 2)})
                 print(rows[-1], flush=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
