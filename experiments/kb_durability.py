@@ -111,7 +111,6 @@ def latency(args: argparse.Namespace) -> None:
 
         timed("oxigraph store, flushed", flushed)
         timed("oxigraph store, not flushed", lambda label: store.add(quad(label)))
-        del store
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     write_csv(RESULTS / "kb_durability_latency.csv", list(rows[0]), rows)

@@ -159,7 +159,8 @@ def resume_writer(replica: Replica) -> None:
     of them was kept before the next was made, so they run without a gap
     from 1 to the context's count for its writer, and no dot is used twice."""
     top = replica.context.vv.get(replica.writer, 0)
-    replica._seq = max(replica._seq, top)  # noqa: SLF001 - the replica's count, restored from its own context
+    # The replica's own count, restored from its own context.
+    replica._seq = max(replica._seq, top)
 
 
 def open_live(

@@ -306,7 +306,7 @@ class Journal:
         #: The current journal's generation.
         self.generation = generation
         self._lock = lock
-        self._file = open(self._journal(generation), "ab")  # noqa: SIM115 - open until close()
+        self._file = open(self._journal(generation), "ab")  # open until close()
         #: Bytes in the current journal.
         self.journal_bytes = self._file.tell()
         #: Bytes of the last snapshot written or read.
@@ -360,14 +360,13 @@ class Journal:
             if named:
                 (journals if named[1] == "journal" else snapshots)[int(named[2])] = entry
         if not journals and not snapshots:
-            writer = new_writer
             # A folder made inside a repository (``data_dir = "data"`` beside
             # the TOML) is never committed by mistake.
             ignore = path / ".gitignore"
             if not ignore.exists():
                 ignore.write_text("# coapkb's data folder: a robot's writes, never committed\n*\n", encoding="utf-8")
-            _write_file(path / "journal.0", [JOURNAL_MAGIC, encode_record(_meta(robot, writer, 0))])
-            return Recovered(writer, fresh=True), 0
+            _write_file(path / "journal.0", [JOURNAL_MAGIC, encode_record(_meta(robot, new_writer, 0))])
+            return Recovered(new_writer, fresh=True), 0
         base = max(snapshots, default=0)
         wanted = sorted(g for g in journals if g >= base)
         if not wanted or wanted[0] != base or wanted != list(range(base, wanted[-1] + 1)):
@@ -450,7 +449,7 @@ class Journal:
         generation = self.generation + 1
         _write_file(self._journal(generation), [JOURNAL_MAGIC, encode_record(_meta(self.robot, self.writer, generation))])
         self._file.close()
-        self._file = open(self._journal(generation), "ab")  # noqa: SIM115 - open until close()
+        self._file = open(self._journal(generation), "ab")  # open until close()
         self.generation = generation
         self.journal_bytes = self._file.tell()
         return generation
