@@ -286,13 +286,21 @@ def check_replicas(run: RunResult) -> Iterable[str]:
 
 
 def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
-    """Every acknowledged insert is seen by every running holder at the end,
+    """An acknowledged insert is on two holders when its answer arrives (the
+    acknowledgement's promise), and is seen by every running holder at the end,
     unless a delete of the same value was sent after it; and a value removed
     by a delete that had seen every insert of it (every holder up, at one
     version, showing it, no insert of it on its way) never comes back,
     unless inserted again later."""
     for op in run.writes:
         seen_by = run.values.get(op.module, {})
+        if op.kind == "insert" and op.status == "2.04" and op.copies < min(2, run.holders.get(op.module, 2)):
+            raced = any(d.kind == "delete" and d.module == op.module and d.value == op.value
+                        and d.sent_s <= op.answered_s for d in run.writes)
+            if not raced:
+                yield (f"{op.label} ({op.module} value {op.value}) was acknowledged by {op.robot} at "
+                       f"{op.answered_s:.3f}s while {op.copies} holder{'s' if op.copies != 1 else ''} showed it: "
+                       "an acknowledgement promises two")
         if op.kind == "insert" and op.status == "2.04":
             if any(d.kind == "delete" and d.module == op.module and d.value == op.value and d.sent_s >= op.sent_s
                    for d in run.writes):

@@ -140,6 +140,9 @@ class WriteOp:
     sent_s: float
     answered_s: float
     settled: bool = False
+    #: An acknowledged insert: how many holders showed the value when the
+    #: operator had the answer.
+    copies: int = 0
 
 
 @dataclass
@@ -172,6 +175,8 @@ class RunResult:
     fates: str = ""
     #: The operator's writes, as they were answered.
     writes: list[WriteOp] = field(default_factory=list)
+    #: Per module: how many robots hold it.
+    holders: dict[str, int] = field(default_factory=dict)
     #: At the end, per module: each running holder's version of it.
     versions: dict[str, dict[str, str]] = field(default_factory=dict)
     #: At the end, per module and running holder: the log values its queries see.
@@ -614,9 +619,21 @@ class SimulatedTeam:
             status = exc.response.status.dotted
         except TransportError:
             status = "lost"
+        copies = self._copies(module, value) if status == "2.04" and kind == "insert" else 0
         self.note(f"write {label} {kind} {value} to {robot} ({module}): {status}")
         self.write_log.append(WriteOp(label, robot, status, module, kind, value, round(sent, 6),
-                                      round(self.scheduler.clock.now, 6), settled))
+                                      round(self.scheduler.clock.now, 6), settled, copies))
+
+    def _copies(self, module: str, value: int) -> int:
+        """How many holders of ``module`` whose process lives (running or
+        frozen) show ``value`` now: what an acknowledgement may count on."""
+        count = 0
+        for robot_id in self._holders(module):
+            robot = self.robots.get(robot_id)
+            live = robot.replicator.live if robot is not None and robot.replicator is not None else None
+            if live is not None and self.current[robot_id].status != "dead" and self._shows(live, module, value):
+                count += 1
+        return count
 
     def _live_holders(self) -> dict[str, dict[str, LiveKB]]:
         """Module -> running robot -> its LiveKB."""
@@ -770,7 +787,8 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), versions=versions, values=values, differences=differences,
+            writes=list(self.write_log), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
+            versions=versions, values=values, differences=differences,
             split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
             settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
