@@ -307,17 +307,23 @@ class LiveKB:
             by_module.setdefault(self.module_of(triple), ([], []))[1].append(triple)
         deltas: dict[str, Delta] = {}
         now = self._wall_ms()
+        removed = added = 0
         try:
             for module, (gone, new) in by_module.items():
-                delta, effect = self.replicas[module].write(gone, new, now, self._is_base)
+                replica = self.replicas[module]
+                if replica.unchanged_by(gone, new, self._is_base):
+                    continue  # nothing to change: no delta, the version stays
+                delta, effect = replica.write(gone, new, now, self._is_base)
                 deltas[module] = delta
+                added += len(delta.added)
+                removed += len(effect.removed)
                 self._show(effect)
         finally:
             # What was written is kept, even if a later module refused its part.
             if self.keeper is not None and deltas:
                 self.keeper([(module, [delta]) for module, delta in deltas.items()])
         self._changed(frozenset(deltas))
-        return Written(deltas, self.etag, len(removes), len(adds))
+        return Written(deltas, self.etag, removed, added)
 
     # -------------------------------------------------------------- joining
 

@@ -32,8 +32,8 @@ files themselves).
 
 from __future__ import annotations
 
-from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections import Counter, OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from .errors import KBError
@@ -276,6 +276,25 @@ class Replica:
     def live_dots(self, triple: Triple) -> Mapping[Dot, Stamp]:
         return self.entries.get(triple, {})
 
+    def shows_own(self, triple: Triple, is_base: bool) -> bool:
+        """``triple`` shows, and carries a dot of this writer's (a single
+        value shows alone): adding it again (a retried request) would change
+        nothing a reader can see."""
+        if not any(d.writer == self.writer for d in self.entries.get(triple, ())):
+            return False
+        s, p, o = triple
+        if p in self.single_valued:
+            return self._winners(s, p) == {o} and not self._values.get((s, p), set()) - {o}
+        return self._present(triple, is_base)
+
+    def unchanged_by(self, removes: Sequence[Triple], adds: Iterable[Triple], is_base: Callable[[Triple], bool]) -> bool:
+        """A write of nothing to remove and only adds that already show under
+        this writer's dots changes nothing: no delta, no new version (a
+        retried iPATCH keeps the ETag a later If-Match names)."""
+        adds = list(adds)
+        together = Counter((s, p) for s, p, _ in adds if p in self.single_valued)
+        return not removes and all(together[t[:2]] <= 1 and self.shows_own(t, is_base(t)) for t in adds)
+
     def _present(self, triple: Triple, is_base: bool) -> bool:
         """Live by the set's rules, before single values shadow any."""
         return bool(self.entries.get(triple)) or (is_base and triple not in self.removed_base)
@@ -329,12 +348,25 @@ class Replica:
     def write(
         self, removes: Iterable[Triple], adds: Iterable[Triple], now_ms: int, is_base: Callable[[Triple], bool]
     ) -> tuple[Delta, Effect]:
-        """A local write: remove what is seen of ``removes``, add ``adds``.
+        """A local write: remove what is seen of ``removes``, add ``adds``
+        (an add that already shows under a dot of this writer's is left out:
+        see :meth:`unchanged_by`).
+
+        Adding a value of a single-valued property removes the other values
+        of it this replica sees (their dots, in the same delta): the older
+        values do not pile up, shadowed, write after write.  A concurrent
+        value this replica has not seen survives and loses on its stamp.
 
         Raises :class:`ReplicaFull` past the entries bound (nothing changes)."""
-        adds = tuple(dict.fromkeys(adds))
-        added = set(adds)
+        named = tuple(dict.fromkeys(adds))
+        added = set(named)
         removes = tuple(t for t in dict.fromkeys(removes) if t not in added)
+        # Values of one single-valued property written together share a
+        # stamp, and show together: none of them is left out.
+        together = Counter((s, p) for s, p, _ in named if p in self.single_valued)
+        adds = tuple(t for t in named if together[t[:2]] > 1 or not self.shows_own(t, is_base(t)))
+        superseded = [(s, p, o) for s, p, _ in named if p in self.single_valued
+                      for o in self._values.get((s, p), ()) if (s, p, o) not in added]
         fresh = sum(1 for t in adds if t not in self.entries)
         if len(self.entries) + fresh > self.limits.entries_max:
             raise ReplicaFull(
@@ -354,6 +386,8 @@ class Replica:
                 removed_dots.update(self.entries.get(t, {}))
                 if is_base(t) and t not in self.removed_base:
                     removed_base[t] = None
+        for triple in superseded:
+            removed_dots.update(self.entries.get(triple, {}))
         first = Dot(self.writer, self._next_seq(max(1, len(adds))))
         delta = Delta(first, self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base))
         self._seq = delta.dots[-1].seq

@@ -543,3 +543,28 @@ def test_causal_context_is_the_set_of_its_dots_in_any_order(dots: list[Dot], spl
         assert d.seq > whole.vv.get(d.writer, 0) + 1
     assert set(whole.missing_from(CausalContext())) == set(dots)
     assert whole.covers(CausalContext(cloud=dots[: len(dots) // 2]))
+
+
+# --------------------------------------------------------------------------- bounded, idempotent
+
+
+def test_a_single_value_written_again_and_again_keeps_one_entry() -> None:
+    """A robot's aisle written 1,000 times (INSERT DATA each time, as the
+    robots write their position): the older values go with each write, so
+    the written state stays one triple, on every replica alike."""
+    a, b = replica("A.1"), replica("B.1")
+    for i in range(1000):
+        delta, _ = a.write([], [(ROBOT1, AISLE, AISLES[i % 3])], i, is_base)
+        b.apply(delta, is_base)
+    assert len(a.entries) == 1 and values(a, ROBOT1) == {AISLES[999 % 3]}
+    assert b.entries == a.entries and values(b, ROBOT1) == values(a, ROBOT1)
+
+
+def test_an_add_that_already_shows_as_this_writer_s_changes_nothing() -> None:
+    a = replica("A.1")
+    a.write([], [X], 1, is_base)
+    assert a.unchanged_by([], [X], is_base)
+    b = replica("B.1")
+    b.apply(a.write([], [(ROBOT1, NEAR, THINGS[1])], 2, is_base)[0], is_base)
+    # Another writer's triple is tagged again: its writer may remove it concurrently (add wins).
+    assert not b.unchanged_by([], [(ROBOT1, NEAR, THINGS[1])], is_base)

@@ -241,3 +241,13 @@ async def test_a_garbage_sync_message_is_refused_and_changes_nothing(robot: Hold
         await holding.server.aclose()
     finally:
         await client.aclose()
+
+
+def test_inserting_a_triple_that_is_there_keeps_the_version() -> None:
+    """A retried iPATCH adds nothing: no delta, the same ETag, so a later
+    If-Match that names it still holds."""
+    live = _location("Robot1.1")
+    text = "PREFIX loc: <http://www.tcs.org/2018/Location#> INSERT DATA { loc:Pallet_9 loc:holds loc:Box_1 }"
+    first = live.update(text)
+    again = live.update(text)
+    assert first.added == 1 and again.added == 0 and not again.deltas and again.version == first.version
