@@ -411,6 +411,8 @@ class SimulatedTeam:
         self.network.answer_hooks.append(self.grants.answered)
         self.history = _History(self.processes, clock, self.note if trace else None)
         self.decided_at: dict[tuple[int, int], float] = {}
+        #: Every robot process's KB, the dead ones' as they were at their death.
+        self.lives: list[tuple[str, LiveKB]] = []
         #: The faults the schedule's traps injected when they sprang.
         self.sprung: list[FaultEvent] = []
         self.split_versions: list[str] = []
@@ -447,6 +449,7 @@ class SimulatedTeam:
         self.robots[robot_id] = robot
         live = robot.replicator.live if robot.replicator is not None else None
         if live is not None:
+            self.lives.append((robot_id, live))
             live.listeners.append(lambda modules: self._compare_at_version(robot_id, modules))
         return robot
 
@@ -625,15 +628,12 @@ class SimulatedTeam:
                                       round(self.scheduler.clock.now, 6), settled, copies))
 
     def _copies(self, module: str, value: int) -> int:
-        """How many holders of ``module`` whose process lives (running or
-        frozen) show ``value`` now: what an acknowledgement may count on."""
-        count = 0
-        for robot_id in self._holders(module):
-            robot = self.robots.get(robot_id)
-            live = robot.replicator.live if robot is not None and robot.replicator is not None else None
-            if live is not None and self.current[robot_id].status != "dead" and self._shows(live, module, value):
-                count += 1
-        return count
+        """How many holders of ``module`` have held ``value`` by now: a
+        process showing it now, or one killed since, whose state (as it was
+        at its death) showed it; what an acknowledgement may count on."""
+        held = {robot_id for robot_id, live in self.lives
+                if module in live.names and self._shows(live, module, value)}
+        return len(held)
 
     def _live_holders(self) -> dict[str, dict[str, LiveKB]]:
         """Module -> running robot -> its LiveKB."""
