@@ -67,7 +67,8 @@ class Channel:
     roster: Roster
     settings: FeederSettings
     #: Robot -> its task posts in flight (see :meth:`forget_posts`).
-    _posting: dict[str, set[asyncio.Future[Response]]] = field(default_factory=dict)
+    #: Per robot, its posts in flight, in the order sent (a dict as an ordered set: cancelled in that order).
+    _posting: dict[str, dict[asyncio.Future[Response], None]] = field(default_factory=dict)
     #: Whether the feeder itself is cut off from its robots.
     reach: Reach = field(init=False)
 
@@ -139,8 +140,8 @@ class Channel:
             exchange = asyncio.ensure_future(self.client.request(
                 self.endpoint(robot_id), request, timeout=max(watcher.request_timeout_s, 1.0)
             ))
-            posting = self._posting.setdefault(robot_id, set())
-            posting.add(exchange)
+            posting = self._posting.setdefault(robot_id, {})
+            posting[exchange] = None
             try:
                 response = await exchange
             except asyncio.CancelledError:
@@ -156,7 +157,7 @@ class Channel:
                     raise FeederError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
                 continue
             finally:
-                posting.discard(exchange)
+                posting.pop(exchange, None)
             if not response.status.is_success:
                 await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
                 if robot_id in watcher.down:
@@ -170,5 +171,5 @@ class Channel:
         process (same endpoint) as a task of its own, which the new process
         took and executed before the task went round again (found in the
         simulator)."""
-        for exchange in self._posting.pop(robot_id, ()):
+        for exchange in self._posting.pop(robot_id, {}):
             exchange.cancel()
