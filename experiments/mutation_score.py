@@ -5,8 +5,9 @@ simulator's checker catches, and on which seeds.
     .venv/bin/python -m experiments.mutation_score --seeds 1-200 --only no-tombstones
 
 Each mutant runs as ``coapkb sim PROFILE --seeds A-B`` with the bug planted
-(a new process, ``PYTHONHASHSEED=0``, as a replay would).  A mutant is
-caught when at least one seed violates an invariant.  Prints one line per
+(a new process, ``PYTHONHASHSEED=0``, as a replay would), and each profile
+once without any.  A mutant is caught on a seed that violates an invariant
+with the bug and holds every one without it.  Prints one line per
 mutant and the score; writes ``experiments/results/sim/mutation_score.csv``
 (mutant, profile, seeds run, seeds caught, the first catching seeds, the
 first finding, wall seconds).
@@ -35,18 +36,25 @@ def _mutants() -> dict[str, tuple[str, ...]]:
     return {name: m.profile for name, m in MUTANTS.items()}
 
 
-def run_mutant(name: str, profile: tuple[str, ...], seeds: str, jobs: int) -> tuple[list[int], str, float]:
-    """The seeds on which mutant ``name`` was caught, the first finding, wall s."""
-    started = time.monotonic()
+def violations(prefix: list[str], profile: tuple[str, ...], seeds: str, jobs: int) -> dict[int, str]:
+    """Seed -> its first finding, for the seeds that violate, run as ``prefix``."""
     result = subprocess.run(
-        [sys.executable, str(ROOT / "tests" / "sim" / "mutants.py"), name, "sim", *profile, "--seeds", seeds,
-         "--quiet", "--jobs", str(jobs)],
+        [sys.executable, *prefix, "sim", *profile, "--seeds", seeds, "--quiet", "--jobs", str(jobs)],
         capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONHASHSEED": "0"}, check=False,
     )
-    found = VIOLATION.findall(result.stdout)
     if result.returncode not in (0, 1):
-        raise SystemExit(f"{name}: coapkb sim failed ({result.returncode}): {result.stderr[-2000:]}")
-    return [int(s) for s, _ in found], (found[0][1][:200] if found else ""), time.monotonic() - started
+        raise SystemExit(f"{' '.join(prefix)}: coapkb sim failed ({result.returncode}): {result.stderr[-2000:]}")
+    return {int(seed): finding for seed, finding in VIOLATION.findall(result.stdout)}
+
+
+def run_mutant(name: str, profile: tuple[str, ...], seeds: str, jobs: int,
+               clean: dict[int, str]) -> tuple[list[int], str, float]:
+    """The seeds on which mutant ``name`` was caught (violating with it, not
+    without it: ``clean``), the first finding, wall s."""
+    started = time.monotonic()
+    found = violations([str(ROOT / "tests" / "sim" / "mutants.py"), name], profile, seeds, jobs)
+    caught = sorted(set(found) - set(clean))
+    return caught, (found[caught[0]][:200] if caught else ""), time.monotonic() - started
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,8 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     mutants = _mutants()
     names = args.only or list(mutants)
     rows = []
+    clean: dict[tuple[str, ...], dict[int, str]] = {}
     for name in names:
-        caught, finding, wall = run_mutant(name, mutants[name], args.seeds, args.jobs)
+        profile = mutants[name]
+        if profile not in clean:
+            clean[profile] = violations(["-m", "coapkb"], profile, args.seeds, args.jobs)
+            if clean[profile]:
+                print(f"without a bug, {' '.join(profile)} violates on seeds {sorted(clean[profile])}", flush=True)
+        caught, finding, wall = run_mutant(name, profile, args.seeds, args.jobs, clean[profile])
         rows.append({"mutant": name, "profile": " ".join(mutants[name]), "seeds": args.seeds,
                      "caught": len(caught), "first_seeds": " ".join(map(str, caught[:5])),
                      "finding": finding, "wall_s": round(wall, 1)})

@@ -41,6 +41,11 @@ from coapkb.world.truth import Taken, WorldTruth
 #: The profiles mutants are caught in: a CI profile's options.
 MIXED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm")
 WRITES = (*MIXED, "--writes", "20")
+#: More writes, more of them racing: removes that overtake their adds.
+MANY_WRITES = (*MIXED, "--writes", "60")
+#: No loss: the loopback lease (3 s), and outages longer than it.
+FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,starve,swarm")
+LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
 NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
 
 
@@ -100,13 +105,8 @@ def _admit_same_epoch(self: TeamView, robot_id: str) -> None:
     self.epoch = before
 
 
-_adopt = TeamView.adopt
-
-
-def _adopt_any(self: TeamView, membership: Membership, seq: int) -> None:
-    _adopt(self, membership, seq)
-    if membership.members:
-        self.epoch = membership.epoch  # an older one too: epochs go back
+def _adopt_nothing(self: TeamView, membership: Membership, seq: int) -> None:
+    """A follower keeps its own membership, not the leader's it carries out."""
 
 
 _assign = controller_module.assign
@@ -203,29 +203,29 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("lease-never-held", "a robot's lease check always passes: it never asks its teammates",
            lambda: _patch(Lease, "hold", _always_held), MIXED, (1,)),
     Mutant("fence-verdict-ignored", "the executor asks for its lease and picks whatever the answer",
-           lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), NINE, (3, 6)),
+           lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), FENCE),
     Mutant("lease-granted-by-anyone", "a robot grants a lease to any teammate, down or not",
-           lambda: _patch(TeamView, "grant", _grant_anyone), NINE, (3,)),
+           lambda: _patch(TeamView, "grant", _grant_anyone), FENCE),
     Mutant("feeder-skips-the-fence", "the feeder sends a down robot's tasks round at once, without the lease wait",
-           lambda: _patch(FeederMembership, "fence", _no_lease_wait), NINE, (2,)),
+           lambda: _patch(FeederMembership, "fence", _no_lease_wait), FENCE),
     Mutant("claims-forgotten", "a robot forgets the cluster's claims: an object given once is given again",
            lambda: _patch(Controller, "_apply", _claims_forgotten), MIXED, (8,)),
     Mutant("shelf-unchecked", "the shelf lets an object be taken twice",
            lambda: _patch(WorldTruth, "take_now", _take_unchecked), NINE, (1,)),
     Mutant("admit-keeps-the-epoch", "a robot admitting a restarted teammate keeps its membership epoch",
-           lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED),
-    Mutant("adopt-older-epochs", "a robot adopts a decision's membership even when it is older than its own",
-           lambda: _patch(TeamView, "adopt", _adopt_any), ("--strategy", "compute-and-communicate", *MIXED)),
+           lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED, (26,)),
+    Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
+           lambda: _patch(TeamView, "adopt", _adopt_nothing), WRITES),
     Mutant("ties-to-the-first-asked", "a cost tie goes to the first robot in this robot's own order",
-           lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), MIXED),
+           lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (1,)),
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
-           _every_fifth_push_dropped, WRITES),
+           _every_fifth_push_dropped, WRITES, (38,)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1,)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",
            lambda: _patch(Replica, "join", _context_ignored), WRITES, (3,)),
     Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
-           lambda: _patch(Replica, "apply", _no_tombstones), WRITES),
+           lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (22,)),
     Mutant("latest-arrival-wins", "a single-valued property shows the value that arrived last, not the newest stamp",
            _latest_arrival_wins, WRITES, (8,)),
 )}
