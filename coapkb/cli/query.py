@@ -73,11 +73,12 @@ async def _query(args: argparse.Namespace) -> int:
         raise UserError(f"unexpected path {parts.path!r}: use the robot's base URI or /kb/q/NAME")
     accept = FORMAT_ACCEPT[args.accept]
     if args.observe:
+        from ..kb.client import named_request, sparql_request
+
         if named:
-            request = Request(Method.GET, parts.path, dict(parse_qsl(parts.query)), accept=accept)
+            request = named_request(parts.path.rsplit("/", 1)[1], dict(parse_qsl(parts.query)), accept=accept)
         else:
-            request = Request(Method.FETCH, "/kb/sparql", payload=(text or "").encode(),
-                              content_format=ContentFormat.TEXT, accept=accept)
+            request = sparql_request(text or "", accept=accept, method=Method.FETCH)
         transport = await open_client(peer.scheme, security=client_security(args, peer))
         try:
             return await _observe(transport, peer, request, args)
@@ -102,22 +103,29 @@ async def _query(args: argparse.Namespace) -> int:
 
 
 async def _observe(transport: ClientTransport, peer: Endpoint, request: Request, args: argparse.Namespace) -> int:
-    """Print the answer, then again at every notification, until interrupted
-    or the robot ends the observation."""
-    from ..kb.client import decode
+    """Print the answer, then again at every change, until interrupted or
+    the robot answers an error.  A re-registration (no notification within
+    Max-Age: the robot restarted, or lost the observation) and the loss of
+    the robot (it is tried again until it answers) are one line each on
+    stderr; the answer follows as usual when it changed meanwhile."""
+    from ..kb.client import KBClient, QueryFailed
     from ..transport import TransportError
+    from ..transport.observation import Notice
+
+    def notice(what: Notice) -> None:
+        print(f"coapkb: {what}", file=sys.stderr, flush=True)
 
     count = 0
     try:
-        async for response in transport.observe(peer, request):
-            if not response.status.is_success:
-                print(f"coapkb: {peer} answered {response.status.dotted} {response.text()}", file=sys.stderr)
-                return 1
+        async for result in KBClient(transport).observe(peer, request, on_notice=notice):
             if count:
                 print(f"-- changed (notification {count})", flush=True)
-            sys.stdout.write(render(decode(response), args.format))
+            sys.stdout.write(render(result, args.format))
             sys.stdout.flush()
             count += 1
+    except QueryFailed as exc:
+        print(f"coapkb: {peer} answered {exc}", file=sys.stderr)
+        return 1
     except TransportError as exc:
         print(f"coapkb: {exc}", file=sys.stderr)
         return 1

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import AsyncGenerator, Callable, Mapping
 from dataclasses import dataclass
 
 from ..clock import monotonic as loop_clock
 from ..errors import CoapkbError
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.observation import Notice, observe_fresh
 from ..wire import codec
 from .results import QueryResult
 
@@ -75,12 +77,7 @@ class KBClient:
         timeout: float | None = None,
     ) -> QueryResult:
         """Run SPARQL text on ``peer`` (FETCH by default, RFC 8132)."""
-        if method == Method.GET:
-            request = Request(Method.GET, "/kb/sparql", {"q": query}, accept=accept)
-        else:
-            request = Request(method, "/kb/sparql", payload=query.encode("utf-8"),
-                              content_format=ContentFormat.TEXT, accept=accept)
-        return decode(await self.call(peer, request, timeout))
+        return decode(await self.call(peer, sparql_request(query, accept=accept, method=method), timeout))
 
     async def named(
         self,
@@ -92,7 +89,7 @@ class KBClient:
         timeout: float | None = None,
     ) -> QueryResult:
         """Run the named query ``/kb/q/<name>?params`` on ``peer``: a few bytes on the wire."""
-        request = Request(Method.GET, f"/kb/q/{name}", dict(params or {}), accept=accept)
+        request = named_request(name, params, accept=accept)
         if self._cache is None:
             return decode(await self.call(peer, request, timeout))
         key = (peer, request.path, tuple(sorted(request.query.items())), accept)
@@ -148,6 +145,44 @@ class KBClient:
         if not response.status.is_success:
             raise QueryFailed(response)
         return response
+
+    async def observe(
+        self,
+        peer: Endpoint,
+        request: Request,
+        *,
+        on_notice: Callable[[Notice], None] | None = None,
+    ) -> AsyncGenerator[QueryResult, None]:
+        """The answer to ``request`` (:func:`sparql_request` by FETCH, or
+        :func:`named_request`), then again each time it changes (RFC 7641).
+
+        The observation notices when the robot lost it: after the answer's
+        Max-Age (2 s on a writable KB) and a margin with no notification, it
+        registers again, and keeps trying while the robot does not answer
+        (:func:`~coapkb.transport.observation.observe_fresh`); each time it
+        does, ``on_notice`` is told, and the answer is yielded if it changed
+        meanwhile.  An error answer raises :class:`QueryFailed` (it ends the
+        observation); the first registration's :class:`TransportError` is raised."""
+        async with contextlib.aclosing(observe_fresh(self.transport, peer, request, on_notice=on_notice)) as answers:
+            async for response in answers:
+                if not response.status.is_success:
+                    raise QueryFailed(response)
+                yield decode(response)
+
+
+def sparql_request(query: str, *, accept: ContentFormat = ContentFormat.CBOR, method: Method = Method.FETCH) -> Request:
+    """SPARQL text for ``/kb/sparql``: its body by FETCH or POST, ``?q=`` by GET."""
+    if method == Method.GET:
+        return Request(Method.GET, "/kb/sparql", {"q": query}, accept=accept)
+    return Request(method, "/kb/sparql", payload=query.encode("utf-8"), content_format=ContentFormat.TEXT,
+                   accept=accept)
+
+
+def named_request(name: str, params: Mapping[str, str] | None = None, *,
+                  accept: ContentFormat = ContentFormat.CBOR) -> Request:
+    """The named query ``/kb/q/<name>?params``."""
+    return Request(Method.GET, f"/kb/q/{name}", dict(params or {}), accept=accept)
+
 
 
 def decode(response: Response) -> QueryResult:

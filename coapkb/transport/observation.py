@@ -17,10 +17,20 @@ Server side: :class:`ObservationRegistry`
     A client without a free slot (``limit``), or a resource whose
     subscription fails, is answered without ``seq``: not registered.
 
+    An answer with a Max-Age is sent again, changed or not, shortly before
+    that Max-Age runs out (:func:`refresh_after`): the observer's copy stays
+    fresh, and its silence says the server lost the observation.
+
 Client side: :class:`ObserverState` and :func:`put_latest`
     Which notifications are news (a higher ``seq`` than the last one
     delivered) and whether the server still holds the observation; the
     notification queue keeps the newest states when the reader is slow.
+
+Every transport: :func:`observe_fresh`
+    An observation that notices when its server lost it (killed, restarted,
+    the registration dropped): after Max-Age plus :data:`FRESHNESS_MARGIN_S`
+    without a notification it registers again (RFC 7641 section 3.3.1), and
+    while the server does not answer it keeps trying, reporting both.
 """
 
 from __future__ import annotations
@@ -28,23 +38,65 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable, Coroutine, Hashable
+from collections.abc import AsyncGenerator, Awaitable, Callable, Coroutine, Hashable
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeVar
+from typing import Any, Literal, Protocol, TypeVar
 
-from .base import Service, TransportError, handle_safely
-from .messages import Request, Response
+from .base import ClientTransport, Endpoint, PeerUnreachable, Service, TransportError, handle_safely
+from .messages import Request, Response, Status
 
 __all__ = [
     "Answer",
     "Delivery",
+    "FRESHNESS_MARGIN_S",
+    "Notice",
     "Notifier",
     "ObservationRegistry",
     "ObserverState",
+    "observe_fresh",
     "put_latest",
+    "refresh_after",
 ]
 
 _T = TypeVar("_T")
+
+log = logging.getLogger(__name__)
+
+#: How long before an answer's Max-Age runs out the server sends it again
+#: (at most; a quarter of a short Max-Age): the time the refresh has to
+#: cross the network before the observer's copy goes stale.
+REFRESH_LEAD_S = 0.5
+#: What an observer adds to Max-Age before it counts a silent observation as
+#: lost.  Max-Age runs from when the server answered, the observer's wait
+#: from when the answer arrived: a refresh that left on time still takes its
+#: way across the network, and the observer's own loop may run late.  With
+#: the server's lead (:data:`REFRESH_LEAD_S`) that is a second of slack, far
+#: more than a loopback or LAN round trip, and small beside a Max-Age of 2 s:
+#: a lost observation is still noticed within Max-Age and half a second.  A
+#: lost refresh (its retransmission comes later) costs one re-registration,
+#: the cheap side to err on.
+FRESHNESS_MARGIN_S = 0.5
+#: Max-Age of an answer that carries none (RFC 7252 section 5.10.5).
+DEFAULT_MAX_AGE_S = 60
+#: The least silence that counts: Max-Age 0 would re-register after every notification.
+MIN_SILENCE_S = 1.0
+#: A re-registration without an answer this long counts as failed (tried
+#: again): a CoAP registration has been retransmitted by then, and a server
+#: that is there answers a registration like any request, in a round trip.
+REREGISTER_TIMEOUT_S = 5.0
+#: The first wait before trying a lost server again; it doubles up to the
+#: answer's Max-Age (no server that kept its observation would have been
+#: silent longer), and at most :data:`RETRY_MAX_S`.
+RETRY_MIN_S = 0.25
+RETRY_MAX_S = 30.0
+
+
+def refresh_after(max_age: int | None) -> float | None:
+    """Seconds after sending an answer with ``max_age`` at which to send it
+    again if nothing changed; None: never (no Max-Age, or 0: no freshness promised)."""
+    if not max_age:
+        return None
+    return max_age - min(REFRESH_LEAD_S, max_age / 4)
 
 #: A response and its ``seq`` (None: not part of an observation).
 Delivery = tuple[Response, int | None]
@@ -181,19 +233,28 @@ class ObservationRegistry:
             self._stop(obs)
 
     async def _notify_loop(self, obs: _Observation) -> None:
-        """Send the current state after each change, one at a time, in seq order."""
+        """Send the current state after each change, one at a time, in seq
+        order; and again before the Max-Age of the last one sent runs out."""
         assert obs.notifier is not None
+        loop = asyncio.get_running_loop()
+        refresh_at = _refresh_at(obs.last, loop.time())
         while obs.active:
-            await obs.dirty.wait()
+            try:
+                async with asyncio.timeout_at(refresh_at):
+                    await obs.dirty.wait()
+                stale = False
+            except TimeoutError:
+                stale = True
             obs.dirty.clear()
             async with self._slots:
                 response = await self._call(obs.request)
             if not obs.active:
                 return
-            if obs.quiet and obs.last is not None and _same_answer(response, obs.last):
+            if not stale and obs.quiet and obs.last is not None and _same_answer(response, obs.last):
                 continue  # the change did not change this answer (its ETag may have)
             obs.last = response
             obs.seq += 1
+            refresh_at = _refresh_at(response, loop.time())
             if not await obs.notifier.notify(response, obs.seq):
                 self._stop(obs)
                 return
@@ -240,6 +301,11 @@ def _same_answer(a: Response, b: Response) -> bool:
     return (a.status, a.content_format, a.payload) == (b.status, b.content_format, b.payload)
 
 
+def _refresh_at(sent: Response | None, now: float) -> float | None:
+    after = None if sent is None or not sent.status.is_success else refresh_after(sent.max_age)
+    return None if after is None else now + after
+
+
 # =========================================================================== client side
 
 
@@ -277,3 +343,155 @@ def put_latest(queue: asyncio.Queue[Any], item: Any) -> None:
     if queue.full():
         queue.get_nowait()
     queue.put_nowait(item)
+
+
+# =========================================================================== every transport
+
+
+@dataclass(frozen=True)
+class Notice:
+    """What happened to an observation itself, not to what it observes:
+    ``re-registered`` (registered again, and why) or ``lost`` (the server
+    does not answer; it is tried again).  ``str()`` is one line for a person."""
+
+    kind: Literal["re-registered", "lost"]
+    line: str
+
+    def __str__(self) -> str:
+        return self.line
+
+
+def _silence_limit(max_age: int) -> float:
+    return max(float(max_age), MIN_SILENCE_S) + FRESHNESS_MARGIN_S
+
+
+def _why(exc: Exception, peer: Endpoint) -> str:
+    """``exc``'s text without the peer the line names already."""
+    text = str(exc) or type(exc).__name__
+    for prefix in (f"no answer from {peer}: ", f"{peer}: "):
+        if text.startswith(prefix):
+            return text[len(prefix):]
+    return text
+
+
+def _try_later(response: Response) -> bool:
+    """5.03: the server is there but cannot answer now (Max-Age: when to ask again)."""
+    return response.status == Status.SERVICE_UNAVAILABLE
+
+
+async def observe_fresh(
+    transport: ClientTransport,
+    peer: Endpoint,
+    request: Request,
+    *,
+    on_notice: Callable[[Notice], None] | None = None,
+) -> AsyncGenerator[Response, None]:
+    """``transport.observe(peer, request)`` that notices when it went silent.
+
+    Yields the first answer, then each notification whose answer differs
+    from the last one yielded (a server's refresh of an unchanged answer is
+    not news).  If Max-Age (60 s when absent) plus :data:`FRESHNESS_MARGIN_S`
+    passes without a notification -- the server was killed or restarted, or
+    dropped the observation -- it registers again (RFC 7641 section 3.3.1:
+    the server lost track, or the notifications do; a new registration
+    answers the current state either way, and its answer is yielded if it
+    differs).  A registration that is not answered (the server is gone, or
+    silent for :data:`REREGISTER_TIMEOUT_S`), or answered 5.03, is tried
+    again, the waits doubling from :data:`RETRY_MIN_S` up to the answer's
+    Max-Age, so a server back up is registered with again within Max-Age of
+    it serving.  Each re-registration and each loss (once, until the server
+    answers again) is told to ``on_notice`` (default: logged).
+
+    The first registration is the transport's: its errors
+    (:class:`PeerUnreachable`, ...) are the caller's, as is any
+    :class:`TransportError` other than an unreachable peer (a closed
+    transport).  An error answer (other than 5.03) is yielded and ends the
+    iteration, as it ends the observation (RFC 7641).
+    """
+    tell = on_notice if on_notice is not None else (lambda notice: log.info("%s %s: %s", peer, request.path, notice))
+    loop = asyncio.get_running_loop()
+    last: Response | None = None  # the last answer yielded
+    max_age = DEFAULT_MAX_AGE_S
+    why = ""  # why the next registration is a re-registration
+    lost_since: float | None = None
+    retry = RETRY_MIN_S
+
+    async def lost(reason: str, wait_s: float = 0.0) -> None:
+        nonlocal lost_since, retry
+        if lost_since is None:
+            lost_since = loop.time()
+            tell(Notice("lost", f"lost {peer}: {reason}; retrying"))
+        await asyncio.sleep(max(retry, wait_s))  # a timed retry: nothing to wait on but the clock
+        retry = min(retry * 2, max(RETRY_MIN_S, min(float(max_age), RETRY_MAX_S)))
+
+    while True:
+        stream = transport.observe(peer, request)
+        try:
+            # The registration (the first, or again).
+            try:
+                if last is None:
+                    response = await anext(stream)
+                else:
+                    async with asyncio.timeout(REREGISTER_TIMEOUT_S):
+                        response = await anext(stream)
+            except StopAsyncIteration:
+                if last is None:
+                    raise TransportError(f"{peer} did not answer the observation of {request.path}") from None
+                await lost("it ended the observation without an answer")
+                continue
+            except TimeoutError:
+                await lost(f"no answer within {REREGISTER_TIMEOUT_S:g} s")
+                continue
+            except PeerUnreachable as exc:
+                if last is None:
+                    raise
+                await lost(_why(exc, peer))
+                continue
+            heard = loop.time()
+            if last is not None:
+                if _try_later(response):
+                    await lost(f"answered {response.status.dotted} {response.text()}", float(response.max_age or 0))
+                    continue
+                if lost_since is not None:
+                    why = f"{peer} answers again, after {heard - lost_since:.1f} s"
+                tell(Notice("re-registered", f"re-registered: {why}"))
+            lost_since, retry = None, RETRY_MIN_S
+            if last is None or not _same_answer(response, last):
+                last = response
+                yield response
+            if not response.status.is_success:
+                return
+            max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
+            # The notifications, each within Max-Age of the one before.
+            while True:
+                try:
+                    async with asyncio.timeout_at(heard + _silence_limit(max_age)):
+                        response = await anext(stream)
+                except TimeoutError:
+                    why = f"no notification within Max-Age {max_age} s"
+                    break
+                except StopAsyncIteration:
+                    # Ended without an error: the server kept no observation
+                    # (no slot left) or closed.  Ask again once the answer is stale.
+                    await asyncio.sleep(max(heard + _silence_limit(max_age) - loop.time(), 0.0))
+                    why = f"{peer} ended the observation"
+                    break
+                except PeerUnreachable as exc:
+                    why = _why(exc, peer)
+                    break
+                heard = loop.time()
+                if _try_later(response):
+                    why = f"{peer} answered {response.status.dotted} {response.text()}"
+                    await asyncio.sleep(float(response.max_age or 0))  # the server said when to ask again
+                    break
+                max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
+                if not _same_answer(response, last):
+                    last = response
+                    yield response
+                if not response.status.is_success:
+                    return
+        finally:
+            # Deregisters where the transport can (an async generator, typed an AsyncIterator).
+            close: Callable[[], Awaitable[None]] | None = getattr(stream, "aclose", None)
+            if close is not None:
+                await close()

@@ -24,6 +24,7 @@ from aiocoap.numbers.constants import TransportTuning
 
 from ..base import Endpoint, RateLimitFilter, ResourceInfo, Service, TrafficCounters, TransportError, handle_safely
 from ..messages import Response, Status
+from ..observation import refresh_after
 from .aiocoap_adapter import ContextHooks, local_port
 from .blockwise import BodyAwareBlock2Cache, GapSafeBlock1Spool
 from .bounds import StateBounds
@@ -59,6 +60,10 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         #: last answer it was sent (code, content-format, payload).
         self._watched: dict[Any, aiocoap.Message] = {}
         self._sent: dict[Any, tuple[object, ...]] = {}
+        #: Each observation's timer for the refresh of its answer before
+        #: that answer's Max-Age runs out, and those whose timer went off.
+        self._refresh_timers: dict[Any, asyncio.TimerHandle] = {}
+        self._stale: set[Any] = set()
         self._dirty = False
         self._refresher: asyncio.Task[None] | None = None
         if info.obs:
@@ -96,6 +101,7 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         for observation, watched in self._watched.items():
             if watched is request and observation not in self._sent:  # an observation's first answer
                 self._sent[observation] = _digest(message)
+                self._keep_fresh(observation, message)
         return message
 
     async def add_observation(self, request: aiocoap.Message, serverobservation: Any) -> None:
@@ -111,22 +117,57 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
             super().updated_state(response)
             return
         self._dirty = True
+        self._start_refresher()
+
+    def _start_refresher(self) -> None:
         if self._refresher is None or self._refresher.done():
             self._refresher = asyncio.ensure_future(self._refresh())
 
+    def _keep_fresh(self, observation: Any, message: aiocoap.Message) -> None:
+        """Send ``observation`` its answer again shortly before the Max-Age
+        of ``message`` (just sent to it) runs out, unless a change does first:
+        its client's copy stays fresh, and a client that hears nothing for
+        longer knows the observation is lost (a restarted server's is).
+        Only a quiet resource keeps each observation's request to answer it
+        with; the others carry no Max-Age."""
+        if (timer := self._refresh_timers.pop(observation, None)) is not None:
+            timer.cancel()
+        after = refresh_after(message.opt.max_age) if message.code.is_successful() else None
+        if after is not None:
+            self._refresh_timers[observation] = asyncio.get_running_loop().call_later(
+                after, self._refresh_due, observation)
+
+    def _refresh_due(self, observation: Any) -> None:
+        self._refresh_timers.pop(observation, None)
+        self._stale.add(observation)
+        self._start_refresher()
+
+    def close(self) -> None:
+        """Stop the refresh timers (the server is closing)."""
+        for timer in self._refresh_timers.values():
+            timer.cancel()
+        self._refresh_timers.clear()
+        self._stale.clear()
+
     async def _refresh(self) -> None:
         # Changes while answers are computed are coalesced into one more pass.
-        while self._dirty:
-            self._dirty = False
+        while self._dirty or self._stale:
+            changed, self._dirty = self._dirty, False
+            stale, self._stale = self._stale, set()
             for observation, request in list(self._watched.items()):
                 if observation not in self._observations:  # cancelled
                     self._watched.pop(observation, None)
                     self._sent.pop(observation, None)
+                    if (timer := self._refresh_timers.pop(observation, None)) is not None:
+                        timer.cancel()
+                    continue
+                if not changed and observation not in stale:
                     continue
                 message = await self.render(request)
                 digest = _digest(message)
-                if self._sent.get(observation) != digest:
+                if self._sent.get(observation) != digest or observation in stale:
                     self._sent[observation] = digest
+                    self._keep_fresh(observation, message)
                     observation.trigger(message)
 
 
@@ -194,8 +235,10 @@ class CoapServerTransport:
 
     def __init__(self, ctx: aiocoap.Context, endpoint: Endpoint, hooks: ContextHooks, policy: NotificationPolicy,
                  blocks: tuple[GapSafeBlock1Spool, BodyAwareBlock2Cache],
-                 bounds: StateBounds, security: CoapServerSecurity | None = None) -> None:
+                 bounds: StateBounds, security: CoapServerSecurity | None = None,
+                 resources: tuple[_ServiceResource, ...] = ()) -> None:
         self._ctx = ctx
+        self._resources = resources
         self.bounds = bounds
         self._hooks = hooks
         self.endpoint = endpoint
@@ -245,9 +288,11 @@ class CoapServerTransport:
         )
         parents: set[tuple[str, ...]] = set()
         blocks = (GapSafeBlock1Spool(bounds), BodyAwareBlock2Cache(bounds=bounds))
+        resources = []
         for info in service.resources():
             segments = [s for s in info.path.split("/") if s]
-            site.add_resource(segments, _ServiceResource(service, info, tuning_for, security, blocks, bounds.observers))
+            resources.append(_ServiceResource(service, info, tuning_for, security, blocks, bounds.observers))
+            site.add_resource(segments, resources[-1])
             parents.add(tuple(segments[:-1]))
         for parent in sorted(parents - {()}):
             site.add_resource(list(parent), _UnknownPaths(service, "/" + "/".join(parent)))
@@ -263,7 +308,8 @@ class CoapServerTransport:
         hooks = ContextHooks.of(ctx, bounds)
         hooks.set_con_policy(policy)
         hooks.on_datagram = layer.on_datagram
-        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks, bounds, security)
+        return cls(ctx, Endpoint("coap", endpoint.host, local_port(ctx)), hooks, policy, blocks, bounds, security,
+                   tuple(resources))
 
     def describe(self) -> dict[str, Any]:
         return {"profile": {"name": ReliabilityLayer.name}, "notifications": "timed from the client's path estimates"}
@@ -273,5 +319,7 @@ class CoapServerTransport:
         with contextlib.suppress(asyncio.CancelledError):
             await self._sweeper
         self._hooks.cancel_empty_ack_timers()
+        for resource in self._resources:
+            resource.close()
         await self._ctx.shutdown()
         self._hooks.remove()
