@@ -89,7 +89,7 @@ def module_triples(live: LiveKB, module: str) -> frozenset[tuple[object, object,
     store's own terms): read from the store that answers them, not from the
     replica's bookkeeping."""
     prefixes = tuple(live._namespaces[module])
-    store = live._view.store if live._view is not None else live.base.engine.store  # type: ignore[attr-defined]
+    store = live._view.store if live._view is not None else live._base_store
     return frozenset(
         (quad.subject, quad.predicate, quad.object) for quad in store
         if str(getattr(quad.subject, "value", "")).startswith(prefixes)
