@@ -29,7 +29,7 @@ from .. import clock
 from ..config import KB_MODULES, ConfigError, RobotConfig
 from ..errors import CoapkbError
 from ..host import Host, operating_system
-from ..kb.client import KBClient, QueryFailed
+from ..kb.client import KBClient, QueryFailed, WriteShort
 from ..kb.durable import Keeper, open_live
 from ..kb.live import LiveKB
 from ..kb.replication import Holder, Replicator
@@ -106,7 +106,9 @@ async def write_knowledge(
 ) -> None:
     """Write ``update`` (facts of KB ``module``): into this robot's own
     module if it holds it, passed on to the other holders; else to the first
-    live holder in robot-id order (another if it fails)."""
+    live holder in robot-id order (another if it fails).  A holder that
+    answers 5.04 has made the write, which spreads from it: not sent to
+    another (it would be written twice)."""
     if isinstance(served, LiveKB) and module in served.names:
         written = served.update(update)
         if replicator is not None and written.deltas:
@@ -120,6 +122,8 @@ async def write_knowledge(
     for holder in holders:
         try:
             await kb_client.update(holder.endpoint, update, timeout=config.query_timeout_s)
+            return
+        except WriteShort:
             return
         except (QueryFailed, TransportError) as exc:
             failure = exc

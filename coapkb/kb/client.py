@@ -15,6 +15,7 @@ from ..transport.messages import ContentFormat, Method, Request, Response, Statu
 from ..transport.observation import Notice, observe_fresh
 from ..wire import codec
 from .results import QueryResult
+from .write_concern import ACK_PARAM, Ack, parse_answer
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
 DEFAULT_MAX_AGE_S = 60
@@ -44,6 +45,32 @@ class QueryFailed(CoapkbError):
     def __init__(self, response: Response) -> None:
         self.response = response
         super().__init__(f"{response.status.dotted} {response.status.name}: {response.text()}")
+
+
+class WriteShort(QueryFailed):
+    """5.04: the robot made the write (it is not undone and spreads on its
+    own), but fewer holders confirmed it than the write concern asked.
+    Sending it again would write it again."""
+
+    def __init__(self, response: Response, reached: Ack, asked: Ack, version: bytes | None) -> None:
+        super().__init__(response)
+        self.reached = reached
+        self.asked = asked
+        #: The KB's version after the write (None if the robot did not say).
+        self.version = version
+
+
+@dataclass(frozen=True)
+class WriteAnswer:
+    """A write's 2.04."""
+
+    #: The KB's new version (its ETag).
+    version: bytes
+    #: The level the write reached (None: the robot does not say, one
+    #: older than write concerns).
+    reached: Ack | None
+    #: The robot's line: ``removed N, added M; ack LEVEL (...)``.
+    text: str
 
 
 class KBClient:
@@ -123,22 +150,50 @@ class KBClient:
         *,
         if_match: bytes | None = None,
         idempotent: bool = False,
+        ack: Ack | None = None,
         timeout: float | None = None,
     ) -> bytes:
         """Write to ``peer``'s KB: SPARQL Update text, or a compact patch
         (bytes, :func:`coapkb.kb.update.encode_patch`); PATCH, or iPATCH
-        when ``idempotent``.  Returns the KB's new version (its ETag);
-        raises :class:`QueryFailed` with the robot's diagnostic."""
+        when ``idempotent``; ``ack`` the write concern (None: the robot's
+        default, ``2``).  Returns the KB's new version (its ETag); raises
+        :class:`QueryFailed` with the robot's diagnostic, and
+        :class:`WriteShort` (one) when the write was made but reached less
+        than ``ack``."""
+        return (await self.write(peer, update, if_match=if_match, idempotent=idempotent, ack=ack,
+                                 timeout=timeout)).version
+
+    async def write(
+        self,
+        peer: Endpoint,
+        update: str | bytes,
+        *,
+        if_match: bytes | None = None,
+        idempotent: bool = False,
+        ack: Ack | None = None,
+        timeout: float | None = None,
+    ) -> WriteAnswer:
+        """:meth:`update`, answering the whole 2.04: the version, the level
+        the write reached and the robot's line."""
         text = isinstance(update, str)
         request = Request(
             Method.IPATCH if idempotent else Method.PATCH,
             "/kb",
+            {} if ack is None else {ACK_PARAM: str(ack)},
             payload=update.encode("utf-8") if isinstance(update, str) else update,
             content_format=ContentFormat.TEXT if text else ContentFormat.CBOR,
             if_match=() if if_match is None else (if_match,),
         )
-        response = await self.call(peer, request, timeout)
-        return response.etag or b""
+        try:
+            response = await self.call(peer, request, timeout)
+        except QueryFailed as exc:
+            if exc.response.status == Status.GATEWAY_TIMEOUT:
+                short = parse_answer(exc.response.text(), short=True)
+                if short is not None and short.asked is not None:
+                    raise WriteShort(exc.response, short.reached, short.asked, short.version) from None
+            raise
+        said = parse_answer(response.text(), short=False)
+        return WriteAnswer(response.etag or b"", None if said is None else said.reached, response.text())
 
     async def call(self, peer: Endpoint, request: Request, timeout: float | None = None) -> Response:
         response = await self.transport.request(peer, request, timeout=timeout or self.timeout)
@@ -182,7 +237,6 @@ def named_request(name: str, params: Mapping[str, str] | None = None, *,
                   accept: ContentFormat = ContentFormat.CBOR) -> Request:
     """The named query ``/kb/q/<name>?params``."""
     return Request(Method.GET, f"/kb/q/{name}", dict(params or {}), accept=accept)
-
 
 
 def decode(response: Response) -> QueryResult:

@@ -6,8 +6,9 @@ peer), so it runs over every transport and under its security.
 
 * **Push.**  A local write's delta goes to every holder of the module this
   robot knows (its cluster's holders and its peers in other clusters) at
-  once.  The write is answered once one of them has it: an acknowledged
-  write then lives on two robots.  A holder in another cluster passes a
+  once.  The write is answered once as many of them have it as the writer
+  asked (its write concern, :mod:`.write_concern`): by default one, so an
+  acknowledged write lives on two robots.  A holder in another cluster passes a
   delta new to it on to the holders it knows (its cluster, and the next
   cluster), so a write crosses the team cluster by cluster, each robot
   sending it at most once to each holder it knows.
@@ -55,6 +56,7 @@ from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
 from .live import LiveKB, Written
 from .replica import CausalContext, Delta, WrittenState
+from .write_concern import DEFAULT_ACK, Ack, Reached
 
 __all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings", "writer_robot"]
 
@@ -291,27 +293,46 @@ class Replicator:
     # -------------------------------------------------------------- writing
 
     async def replicate(self, written: Written) -> int:
-        """Push a local write to the holders of its modules; how many had it
-        before the ack timeout (the number of robots it lives on, minus one).
+        """Push a local write to the holders of its modules; how many other
+        holders had it when it returned: at the first acknowledgement of
+        every module, or at the ack timeout (:meth:`acknowledge` at ``2``)."""
+        return (await self.acknowledge(written, Ack.TWO)).holders - 1
 
-        Returns at the first acknowledgement; the other pushes go on."""
-        pushes = [
-            self._spawn(self._push(holder, module, [delta]))
+    async def acknowledge(self, written: Written, ack: Ack = DEFAULT_ACK) -> Reached:
+        """Push a local write to every holder of the modules it changed, and
+        wait until it reached ``ack`` (:mod:`.write_concern`), every push
+        ended or the ack timeout passed; how far it reached then.
+
+        ``local`` waits for nothing.  ``2`` is reached when one other holder
+        of every module changed confirmed it (a module with no other holder
+        needs none), ``all`` when every holder pushed to did.  The pushes
+        not waited for go on."""
+        wanted = {module: frozenset(h.name for h in self.holders[module]) for module in written.deltas}
+        pushes = {
+            self._spawn(self._push(holder, module, [delta])): (module, holder.name)
             for module, delta in written.deltas.items()
             for holder in self.holders[module]
-        ]
-        if not pushes:
-            return 0
-        acked = 0
+        }
+        confirmed: dict[str, set[str]] = {module: set() for module in wanted}
+        failed: set[str] = set()
+        reached = _reached(wanted, confirmed, failed)
+        pending = set(pushes)
+        if ack == Ack.LOCAL:
+            return reached
         try:
             async with asyncio.timeout(self.settings.ack_timeout_s):
-                for done in asyncio.as_completed(pushes):
-                    if await done:
-                        acked += 1
-                        break
+                while pending and not reached.level.covers(ack):
+                    done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+                    for task in done:
+                        module, name = pushes[task]
+                        if not task.cancelled() and task.exception() is None and task.result():
+                            confirmed[module].add(name)
+                        else:
+                            failed.add(name)
+                    reached = _reached(wanted, confirmed, failed)
         except TimeoutError:
             pass
-        return acked
+        return reached
 
     def _spawn(self, coro: Coroutine[Any, Any, bool]) -> asyncio.Task[bool]:
         task = asyncio.ensure_future(coro)
@@ -426,3 +447,24 @@ class Replicator:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
+
+
+def _reached(wanted: Mapping[str, frozenset[str]], confirmed: Mapping[str, set[str]],
+             failed: Collection[str] = ()) -> Reached:
+    """How far a write reached: ``wanted`` the other holders of each module
+    it changed, ``confirmed`` those whose push was answered 2.04, ``failed``
+    those a push to failed."""
+    if not wanted:
+        return Reached(Ack.ALL, changed=False)
+    if all(confirmed[m] >= holders for m, holders in wanted.items()):
+        level = Ack.ALL
+    elif all(confirmed[m] or not holders for m, holders in wanted.items()):
+        level = Ack.TWO
+    else:
+        level = Ack.LOCAL
+    robots = frozenset().union(*wanted.values())
+    # A robot holding several of the modules has the write once it confirmed each.
+    holding = {r for r in robots if all(r in confirmed[m] for m, holders in wanted.items() if r in holders)}
+    lacking = robots - holding
+    return Reached(level, 1 + len(holding), 1 + len(robots), tuple(sorted(lacking - set(failed))),
+                   tuple(sorted(lacking & set(failed))))

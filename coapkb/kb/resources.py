@@ -30,6 +30,7 @@ from .named_queries import NamedQuery, named_queries_for
 from .replica import ReplicaFull
 from .results import QueryResult
 from .update import UpdateUnsupported, decode_patch, parse_update
+from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, short_line
 
 if TYPE_CHECKING:
     from .replication import Replicator
@@ -182,6 +183,10 @@ class KBResources:
         live = self.live
         if live is None:  # pragma: no cover - the router allows PATCH only on a live KB
             return Response.error(Status.METHOD_NOT_ALLOWED, "this knowledge base is read-only")
+        try:
+            ack = ack_of_query(request.query)
+        except ValueError as exc:
+            return Response.error(Status.BAD_REQUEST, str(exc))
         size = len(request.payload)
         if size > self.limits.max_update_bytes:
             return Response.error(
@@ -223,20 +228,30 @@ class KBResources:
             return Response.error(Status.SERVICE_UNAVAILABLE, f"not written: {exc}", max_age=self.limits.retry_after_s)
         except KBError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        return await self._acknowledge(written)
+        return await self._acknowledge(written, ack)
 
-    async def _acknowledge(self, written: Written) -> Response:
-        """2.04 once a second holder has the write (or none is known)."""
-        summary = f"removed {written.removed}, added {written.added}".encode()
+    async def _acknowledge(self, written: Written, ack: Ack = DEFAULT_ACK) -> Response:
+        """2.04 once the write reached ``ack`` (:mod:`.write_concern`); 5.04
+        if it did not within the replicator's ack wait.
+
+        5.04, not 2.04: the writer asked for more than it got, and a 2.04
+        read without its payload would promise it.  Nor 5.03, which tells a
+        client when to try again: the write is not undone, it spreads on its
+        own, and the text says so, with the version it made."""
+        live = self.live
+        assert live is not None
+        durable = live.keeper is not None
         replicator = self.replicator
-        if replicator is not None and written.deltas and any(replicator.holders[m] for m in written.deltas):
-            if await replicator.replicate(written) == 0:
-                return Response.error(
-                    Status.GATEWAY_TIMEOUT,
-                    f"written here (version {written.version.hex()}) but no other holder confirmed it yet; "
-                    "it spreads when one answers",
-                )
-        return Response(Status.CHANGED, summary, ContentFormat.TEXT, etag=written.version)
+        if replicator is not None:
+            reached = await replicator.acknowledge(written, ack)
+        else:  # no other holder: every holder (this one) has it
+            reached = Reached(Ack.ALL, changed=bool(written.deltas))
+        if not reached.level.covers(ack):
+            assert replicator is not None
+            return Response.error(Status.GATEWAY_TIMEOUT, short_line(
+                reached, ack, written.version, durable=durable, wait_s=replicator.settings.ack_timeout_s))
+        summary = changed_line(written.removed, written.added, reached, durable=durable)
+        return Response(Status.CHANGED, summary.encode(), ContentFormat.TEXT, etag=written.version)
 
     async def get_info(self, request: Request) -> Response:
         fmt = negotiate(request.accept)

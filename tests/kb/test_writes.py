@@ -13,7 +13,7 @@ import pytest
 from rdflib import Literal, URIRef
 from support import ONTOLOGIES, free_tcp_port, free_udp_port
 
-from coapkb.kb.client import KBClient, QueryFailed, decode
+from coapkb.kb.client import KBClient, WriteShort, decode
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
 from coapkb.kb.resources import KBResources, QueryLimits
@@ -85,7 +85,7 @@ async def test_a_write_is_answered_2_04_with_the_new_version(robot: Holding) -> 
     response = await _patch(robot.endpoint, (MOVE_ROBOT1 % 4).encode())
     assert response.status == Status.CHANGED, response.text()
     assert response.etag == robot.live.etag != before
-    assert response.text() == "removed 1, added 1"
+    assert response.text() == "removed 1, added 1; ack all (1 of 1 holder, in memory)"  # nobody else holds it
     [[aisle]] = robot.live.query(AISLE_OF_ROBOT1).rows  # type: ignore[union-attr]
     assert aisle == Literal(4)
 
@@ -222,9 +222,10 @@ async def test_a_write_no_other_holder_confirms_is_said_so() -> None:
     nobody = Holder("B", Endpoint("coap", "127.0.0.1", free_udp_port()), ("Location",))
     holding = await _hold("coap", "A.1", 0, [nobody], client)
     try:
-        with pytest.raises(QueryFailed, match="5.04.*no other holder confirmed it"):
+        with pytest.raises(WriteShort, match="5.04.*ack local .*, asked 2: written here.*; B (unreachable|did not answer)") as short:
             await KBClient(client, timeout=10).update(holding.endpoint, MOVE_ROBOT1 % 2)
         assert holding.live.changed  # written here all the same; it spreads when B answers
+        assert short.value.version == holding.live.etag
     finally:
         await holding.server.aclose()
         await client.aclose()

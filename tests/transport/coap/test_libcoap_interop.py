@@ -321,7 +321,8 @@ async def writable() -> AsyncIterator[ServerProcess]:
 
 
 async def test_coap_client_writes_and_observes(coap_client: str, writable: ServerProcess, tmp_path: Path) -> None:
-    """libcoap PATCHes a SPARQL Update (2.04); an observing libcoap client
+    """libcoap PATCHes a SPARQL Update asking ``?ack=all`` (2.04, the level
+    reached in the payload); an observing libcoap client
     (``-s``) of the query gets the new answer; aiocoap reads it too."""
     rq = query_file(tmp_path, RACK_OF_ROBOT2)
     watcher = asyncio.ensure_future(
@@ -330,8 +331,9 @@ async def test_coap_client_writes_and_observes(coap_client: str, writable: Serve
     )
     await asyncio.sleep(1.0)
     run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", MOVE.format(rack=3),
-                     f"{writable.uri}/kb", out=False)
-    assert run.stdout.decode().strip() == "removed 1, added 1", run.error
+                     f"{writable.uri}/kb?ack=all", out=False)
+    # The level reached: all of its holders, itself alone (no data folder).
+    assert run.stdout.decode().strip() == "removed 1, added 1; ack all (1 of 1 holder, in memory)", run.error
     seen = await watcher
     # coap-client prints each notification's JSON right after the last one.
     text, answers, at = seen.stdout.decode(), [], 0
