@@ -37,7 +37,7 @@ from .. import clock
 from ..config import RobotConfig
 from ..kb.named_queries import MAX_LIST_ITEMS
 from ..kb.results import SelectResult
-from ..transport.base import TransportError
+from ..transport.base import PeerGone, TransportError
 from ..world import Layout, Position, layout_from_row, travel_distance
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
@@ -59,6 +59,10 @@ RECENT_KEPT = 64
 CLAIMS_PATH = "/robot/claims"
 #: How often a robot whose knowledge did not arrive asks its teammates again.
 SETTLE_POLL_S = 0.5
+#: How long it asks, in query timeouts; and while a teammate answers that it
+#: is still deciding the task, how long at most.
+SETTLE_WAIT_TIMEOUTS = 2
+SETTLE_DECIDING_TIMEOUTS = 6
 #: Objects whose assignment a robot remembers (:class:`Claim`): the last
 #: ones decided.  Older picks are in the KB by then (a writable team).
 CLAIMS_KEPT = 4096
@@ -223,7 +227,7 @@ class Controller:
                 await self._admit(task)
                 if task.again is not None:  # never picked: the object is free again, on every robot alike
                     self.claims.pop(task.object, None)
-                message = await self._decide(task)
+                message = await self._decide(task, received)
             except ModuleUnavailable as exc:
                 # Not an error of this robot: every teammate without the module
                 # finds the same, and the record says why the task waits.
@@ -247,20 +251,36 @@ class Controller:
         arrive (a lost answer, a holder that seemed down): a live teammate's
         decided on knowledge, taken whole, so every robot decides alike;
         ``alone`` (unavailable, or an error) if every live teammate failed
-        too, or none decided within the wait.  Meanwhile teammates asking
+        too, or none decided within the wait (:data:`SETTLE_WAIT_TIMEOUTS`
+        query timeouts, up to :data:`SETTLE_DECIDING_TIMEOUTS` while one
+        answers that it has not decided yet).  Meanwhile teammates asking
         this robot get ``alone``: two robots that both failed do not wait
         for each other."""
         self.recent[task.seq] = alone
         if self._ask_decision is None:
             return alone
-        deadline = clock.monotonic() + self.config.query_timeout_s * 2
-        while clock.monotonic() < deadline:
+        started = clock.monotonic()
+        deadline = started + self.config.query_timeout_s * SETTLE_WAIT_TIMEOUTS
+        last_call = started + self.config.query_timeout_s * SETTLE_DECIDING_TIMEOUTS
+        deciding = False
+        while clock.monotonic() < (last_call if deciding else deadline):
             # A teammate whose answer was just lost is asked too: it may be the
-            # one that had the knowledge (found in the simulator).
-            mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+            # one that had the knowledge (found in the simulator).  A robot
+            # with no majority up asks the members it has down as well: it may
+            # be the one that was cut off, and they went on counting it (found
+            # in the simulator: after the heal it decided every task alone
+            # while they assigned it tasks).  One that answers is counted on again.
+            outnumbered = self.team.alone
+            mates = [r for r in self.team.membership.members
+                     if r != self.robot_id and (outnumbered or self.team.is_up(r))]
             answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
                                            return_exceptions=True)
+            heard = [mate for mate, theirs in zip(mates, answers)
+                     if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
+            if heard:
+                await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
             failed_too = 0
+            deciding = False
             for mate, theirs in zip(mates, answers):
                 if isinstance(theirs, BaseException):
                     # A lost answer is asked again (found in the simulator:
@@ -269,9 +289,22 @@ class Controller:
                     # teammate is soon known down, and cannot help.
                     if isinstance(theirs, TransportError):
                         await self.team.request_failed(mate, theirs)
-                    failed_too += not self.team.is_up(mate)
+                    # Outnumbered, a silence is no answer: the silent ones may
+                    # be the majority, cut off from this robot, and it waits
+                    # for them; only a teammate whose process is gone cannot help.
+                    failed_too += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
                     continue
                 if theirs is None or theirs.decision.object != task.object:
+                    # Still deciding: waited for past the deadline (found in
+                    # the simulator: a robot gave up the moment before a
+                    # teammate back from a partition decided on knowledge).
+                    deciding = True
+                    continue
+                if not self._counts_me(theirs.decision):
+                    # Decided in a membership without this robot: not taken
+                    # (it would name their epoch, and its next decisions,
+                    # its own, would then not be void).
+                    failed_too += 1
                     continue
                 if theirs.decision.error is None and theirs.decision.unavailable is None:
                     log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
@@ -318,9 +351,11 @@ class Controller:
         that joins takes that membership first, then admits the others
         joining with it (admitted first, they were lost when it took the
         membership: two robots back at one task named different epochs,
-        found in the simulator)."""
+        found in the simulator).  Joiners with no surviving teammate start a
+        fresh membership of the join list (:meth:`TeamView.join`) and admit
+        each other on it alike."""
         if self.robot_id in task.join:
-            await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4)
+            await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4, joining=task.join)
             # Before its plan is out, nobody has decided this task: the
             # claims a teammate hands over are those of the tasks before it.
             await self._take_claims(task.seq)
@@ -357,9 +392,13 @@ class Controller:
         latest = list(self.claims.items())[-CLAIMS_HANDED:]
         return dict(latest)
 
-    async def _decide(self, task: Task) -> DecisionMessage:
+    async def _decide(self, task: Task, received: float) -> DecisionMessage:
         if not self.computes:
             return await self._await_decision(task)
+        if self.config.strategy == "compute-by-all":
+            theirs = await self._decided_before_me(task, received)
+            if theirs is not None:
+                return theirs
         message = await self._compute(task)
         if self.config.strategy == "compute-and-communicate":
             # Stamped with the membership it was computed in: the followers
@@ -370,6 +409,53 @@ class Controller:
             except TransportError as exc:  # the decision stands; the teammate reports its own timeout
                 log.error("%s", exc)
         return message
+
+    async def _decided_before_me(self, task: Task, received: float) -> DecisionMessage | None:
+        """A teammate's decision on ``task`` if one may have decided it before
+        this robot began it: its observed plan is past the task already, or
+        this process stood still for a request timeout or more since about
+        when the task came (its teammates' requests to it went unanswered
+        meanwhile, and the observations of their plans may have been dropped).
+        This robot lags behind, and what it would compute now may not be what
+        they settled.  Found in the simulator: a robot frozen in a pick for
+        20 s, the one the Location KB's places are read from, while its
+        teammates settled a task unavailable without it; back, it decided the
+        task alone on its own knowledge and picked it, and the record said
+        failed.  The decision is taken whole, as :meth:`_settle` takes one:
+        one decided on knowledge first, else one settled unavailable (and
+        applied); none decided in a membership without this robot (its own
+        decision is void then).  A robot in step asks nothing: no extra
+        message per task."""
+        if self._ask_decision is None:
+            return None
+        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+        window = clock.monotonic() - received + self.config.query_timeout_s * 2
+        if self.team.stalled_within(window) >= self.team.request_timeout_s:
+            ahead = mates
+        else:
+            ahead = [r for r in mates if (state := self.team.state_of(r)) is not None and state.plan.seq >= task.seq]
+        if not ahead:
+            return None
+        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in ahead),
+                                       return_exceptions=True)
+        # An unavailable one still being settled (not yet applied, so not
+        # stamped with its members) may yet give way to a decision on knowledge.
+        taken = [(mate, theirs) for mate, theirs in zip(ahead, answers)
+                 if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
+                 and theirs.decision.error is None and self._counts_me(theirs.decision)
+                 and (theirs.decision.unavailable is None or theirs.decision.members)]
+        taken.sort(key=lambda item: item[1].decision.unavailable is not None)  # on knowledge first
+        if not taken:
+            return None
+        mate, theirs = taken[0]
+        log.warning("task %d (%s): %s decided it before this robot began; took its decision",
+                    task.seq, task.object, mate)
+        self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
+        return theirs
+
+    def _counts_me(self, decision: Decision) -> bool:
+        """Whether ``decision`` was taken in a membership with this robot in it."""
+        return not decision.members or self.robot_id in decision.members
 
     async def _await_decision(self, task: Task) -> DecisionMessage:
         """The leader's decision on ``task``; if the leader is declared down

@@ -101,6 +101,19 @@ class LoopHealth:
             worst = max(worst, pending)
         return worst
 
+    def stalled_within(self, window_s: float) -> float:
+        """The longest stall (a tick's lateness) that ended in the last
+        ``window_s`` seconds, or that lasts still: a process stopped for a
+        while finds, once it runs again, that its peers went on without it."""
+        now = clock.monotonic()
+        worst = 0.0
+        for due, late in self._recent:
+            if due + late >= now - window_s:
+                worst = max(worst, late)
+        if self._recent:
+            worst = max(worst, now - (self._recent[-1][0] + self._recent[-1][1]) - self.period_s)
+        return worst
+
     def stats(self) -> LatenessStats:
         lates = sorted(late for _, late in self._recent)
         p99 = lates[min(len(lates) - 1, int(0.99 * len(lates)))] if lates else 0.0

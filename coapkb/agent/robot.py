@@ -453,6 +453,8 @@ class Robot:
             return Response.error(Status.FORBIDDEN, f"{request.peer} may not ask about {about}'s lease")
         if "check" in request.query:
             await self.team.probe(about)
+        else:
+            self.team.asked_by(about)  # alive: if down here, perhaps this robot was the one cut off
         why = self.team.grant(about)
         if why is not None:
             return Response.error(Status.FORBIDDEN, why)

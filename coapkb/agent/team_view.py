@@ -43,6 +43,8 @@ FAILURES_TO_DOWN = 2
 #: timeouts (the helper's own request to it, and the answer).
 INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
+#: How soon a joining robot observes a silent teammate again.
+JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers
 #: in between): how often a late loop's lateness adds up in one request.
 TURNS_PER_EXCHANGE = 8
@@ -225,6 +227,20 @@ class ObservedStates:
         # meet a context that is gone, and EDHOC runs again).
         self._joining[robot_id] = clock.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
+        self._start_watch(robot_id)
+
+    async def revive(self, robot_id: str) -> None:
+        """Count on ``robot_id`` again: declared down, it answered as the same
+        process (the suspicion was false: this process was the one cut off).
+        What was observed of it stays, so a new process of it is still told
+        apart by its ``boot`` and found down at once (:meth:`_update`)."""
+        if robot_id not in self.down:
+            return
+        log.warning("%s answers again as the same process: counted on again", robot_id)
+        async with self._changed:
+            del self.down[robot_id]
+            self._failures.pop(robot_id, None)
+            self._changed.notify_all()
         self._start_watch(robot_id)
 
     async def heard_from_all(self, timeout: float) -> list[str]:
@@ -469,6 +485,11 @@ class TeamView:
         #: Teammate -> the task after which this robot told another it had no
         #: plan of it: a plan arriving later is not used, so both decide alike.
         self._forgone: dict[str, int] = {}
+        #: Teammates this robot declared down and counts on again (:meth:`heard_again`):
+        #: their processes are never granted a lease again (the fence).
+        self.refused: set[str] = set()
+        self._reviving: dict[str, asyncio.Future[bool]] = {}
+        self._background: set[asyncio.Task] = set()
 
     @property
     def own(self) -> RobotState:
@@ -494,6 +515,9 @@ class TeamView:
         return self._teammates.liveness_timeout_s
 
     async def aclose(self) -> None:
+        for task in self._background:
+            task.cancel()
+        await asyncio.gather(*self._background, return_exceptions=True)
         await self._teammates.aclose()
 
     async def _ask_others(self, robot_id: str) -> bool:
@@ -550,6 +574,12 @@ class TeamView:
         """A liveness request's timeout: it follows the measured round trip."""
         return self._teammates.request_timeout_s
 
+    def stalled_within(self, window_s: float) -> float:
+        """How long this process's loop stood still at most, in a stall that
+        ended in the last ``window_s`` seconds (0 when nothing measures it)."""
+        health = self._teammates.health
+        return health.stalled_within(window_s) if health is not None else 0.0
+
     def grant(self, robot_id: str) -> str | None:
         """None if this robot grants teammate ``robot_id`` a lease (it counts
         it as up and a member), else why not.  Once refused, a process is
@@ -561,7 +591,76 @@ class TeamView:
             return f"{self._own.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
         if robot_id in self.excluded or robot_id in self._forgone:
             return f"{self._own.robot_id} has left {robot_id} out of the membership"
+        if robot_id in self.refused:
+            return f"{self._own.robot_id} had {robot_id} down: it never grants that process again"
         return None
+
+    @property
+    def alone(self) -> bool:
+        """Whether the members this robot counts as up, itself counted, are
+        no majority of the cluster, while it has left nobody out: then it
+        may be the one cut off, and decides nothing alone against teammates
+        that may still count it (:meth:`heard_again`).  A robot that left a
+        teammate out has a membership of its own (another epoch): counting
+        on the others again would not make it decide as they do (found in
+        the simulator), and it stays as it is."""
+        if self.excluded:
+            return False
+        up = sum(1 for r in self.membership.members if r == self._own.robot_id or self.is_up(r))
+        return up <= (len(self._peers) + 1) // 2
+
+    async def heard_again(self, robot_id: str) -> bool:
+        """Teammate ``robot_id``, a member this robot has down, showed it is
+        alive (it answered, or asked for a lease) while this robot is
+        :attr:`alone`: the suspicion was this robot's own (it was the one cut
+        off, and the others went on, counting it).  Asked once for its state,
+        the same process (the ``boot`` last seen) is counted on again: this
+        robot waits for its plans, asks it, decides with it.  It is never
+        granted a lease again (:attr:`refused`): it was refused once, and the
+        feeder may have re-assigned its tasks on that refusal.  Whether it is
+        up now."""
+        if robot_id not in self._peers:
+            return False
+        if robot_id not in self._teammates.down:
+            return True
+        known = self._teammates.states.get(robot_id)
+        if (robot_id in self.excluded or robot_id in self._forgone or not self.alone
+                or known is None or not known.boot):
+            return False
+        pending = self._reviving.get(robot_id)
+        if pending is None:
+            pending = self._reviving[robot_id] = asyncio.ensure_future(self._revive(robot_id, known.boot))
+            pending.add_done_callback(lambda _: self._reviving.pop(robot_id, None))
+        try:
+            return await asyncio.shield(pending)
+        except Exception:  # noqa: BLE001 - a probe that failed revives nothing
+            return False
+
+    def asked_by(self, robot_id: str) -> None:
+        """Teammate ``robot_id`` asked this robot for something (a lease):
+        if this robot has it down and is :attr:`alone`, see whether it is
+        back (:meth:`heard_again`), without holding the answer up."""
+        if robot_id in self._peers and robot_id in self._teammates.down and self.alone:
+            task = asyncio.create_task(self.heard_again(robot_id), name=f"revive {robot_id}")
+            self._background.add(task)
+            task.add_done_callback(self._background.discard)
+
+    async def _revive(self, robot_id: str, boot: int) -> bool:
+        try:
+            response = await self._transport.request(
+                self._endpoints[robot_id], Request(Method.GET, PLAN_PATH, accept=ContentFormat.CBOR),
+                timeout=self._teammates.request_timeout_s,
+            )
+            state = RobotState.decode(response.payload) if response.status.is_success else None
+        except (TransportError, ValueError) as exc:
+            log.debug("asking %s again: %s", robot_id, exc)
+            return False
+        if state is None or state.boot != boot:
+            return False  # another process: it joins at a task boundary
+        if robot_id in self._teammates.down and robot_id not in self.excluded and robot_id not in self._forgone:
+            self.refused.add(robot_id)
+            await self._teammates.revive(robot_id)
+        return self.is_up(robot_id)
 
     async def probe(self, robot_id: str) -> None:
         """Ask teammate ``robot_id`` for its state now (two failures: down)."""
@@ -587,6 +686,7 @@ class TeamView:
         log.warning("%s joins the team again", robot_id)
         self.excluded.pop(robot_id, None)
         self._forgone.pop(robot_id, None)  # a promise about its old process
+        self.refused.discard(robot_id)  # and a refusal of it
         self.epoch += 1
         self._teammates.readmit(robot_id)
 
@@ -604,44 +704,78 @@ class TeamView:
             del self.excluded[robot_id]
         self.epoch = membership.epoch
 
-    async def join(self, seq: int, timeout: float) -> None:
+    async def join(self, seq: int, timeout: float, joining: Sequence[str] = ()) -> None:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in (a new epoch: its
         admission) and shows a plan right after ``seq - 1``, which the others
-        wait for before deciding ``seq``."""
-        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+        wait for before deciding ``seq``.
 
-        async def decided_before(robot_id: str) -> Membership | None:
-            """Observe ``robot_id``'s state until it shows its decision of ``seq - 1``."""
-            try:
-                async for response in self._transport.observe(self._endpoints[robot_id], request):
-                    state = RobotState.decode(response.payload) if response.status.is_success else None
-                    last = state.last if state is not None else None
-                    if last is not None and last.seq >= seq - 1:
-                        # None decides seq before this robot's plan for it is
-                        # out, so seq - 1 is as far as a teammate can be.
-                        return Membership(last.epoch, last.members) if last.seq == seq - 1 else None
-            except (TransportError, ValueError) as exc:
-                log.debug("catching up from %s: %s", robot_id, exc)
-            return None
+        ``joining``: every robot joining at ``seq`` (this one too).  When no
+        teammate can show that decision -- each is joining too, or no process
+        listens at its address, or it is a new process that has decided
+        nothing yet -- no process that decided ``seq - 1`` survives (every
+        robot restarted in turn, each before the previous one had joined), and
+        the joiners start a fresh membership from the join list: its members
+        are the joiners, its epoch the task's number, the same on each of them
+        (found in the simulator: three robots restarted in turn logged
+        "cannot join" and decided nothing).  The same when no teammate showed
+        it within ``timeout``: the teammates the feeder counts decided
+        ``seq - 1`` before it posted ``seq``, so one still silent is out."""
+        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+        if seq <= 1:
+            # Nothing decided before: the membership is the cluster's first.
+            self._joined(seq, Membership(0, ()))
+            return
+        co_joiners = {r for r in joining if r in self._peers}
+
+        async def decided_before(robot_id: str) -> Membership | bool:
+            """Observe ``robot_id``'s state until it shows its decision of
+            ``seq - 1``; False once it cannot (no process there, or a new one
+            that decided nothing), True if it is not known."""
+            while True:
+                try:
+                    async for response in self._transport.observe(self._endpoints[robot_id], request):
+                        state = RobotState.decode(response.payload) if response.status.is_success else None
+                        last = state.last if state is not None else None
+                        if state is not None and last is None:
+                            return False  # a process that never decided: restarted, not yet joined
+                        if last is not None and last.seq >= seq - 1:
+                            # None decides seq before this robot's plan for it is
+                            # out, so seq - 1 is as far as a teammate can be.
+                            return Membership(last.epoch, last.members) if last.seq == seq - 1 else True
+                except PeerGone as exc:
+                    log.debug("catching up from %s: %s", robot_id, exc)
+                    return False
+                except (TransportError, ValueError) as exc:
+                    log.debug("catching up from %s: %s", robot_id, exc)
+                await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: until the timeout
 
         membership = None
         # Every teammate at once (some may be down): the first that shows it.
-        watches = [asyncio.create_task(decided_before(r)) for r in sorted(self._peers)]
+        watches = [asyncio.create_task(decided_before(r)) for r in sorted(self._peers - co_joiners)]
+        unknown = False
         try:
             async with asyncio.timeout(timeout):
                 for first in asyncio.as_completed(watches):
-                    membership = await first
-                    if membership is not None:
+                    found = await first
+                    if isinstance(found, Membership):
+                        membership = found
                         break
+                    unknown = unknown or found
         except TimeoutError:
-            pass
+            unknown = True
         finally:
             for watch in watches:
                 watch.cancel()
             await asyncio.gather(*watches, return_exceptions=True)
         if membership is None:
-            raise TransportError(f"no teammate showed its decision of task {seq - 1}: cannot join at task {seq}")
+            log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "
+                        "at task %d", seq - 1, f" within {timeout:g}s" if unknown else " (none survives)", seq)
+            membership = Membership(seq, tuple(sorted(co_joiners | {self._own.robot_id})))
+        self._joined(seq, membership)
+
+    def _joined(self, seq: int, membership: Membership) -> None:
+        """Join at task ``seq`` on top of ``membership`` (see :meth:`join`)."""
         if membership.members:
             gone = self._peers - set(membership.members)
             self.excluded = {r: seq - 1 for r in gone}

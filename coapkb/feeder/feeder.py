@@ -226,7 +226,8 @@ class Feeder:
             # After the recovery, which reads a down robot's final state: one
             # still granted (settled) reports there what it did not find.
             mark_not_found(assigned, watcher.states)
-            found = {r.seq: r for r in reruns + membership.orphans(records)}
+            found = {r.seq: r for r in [*reruns, *membership.orphans(records),
+                                        *membership.undecided(cluster, records)]}
             reruns = []
             queue = [(found[s].object, s) for s in sorted(found)]
         return records, decided_at

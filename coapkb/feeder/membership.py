@@ -80,6 +80,23 @@ class Membership:
         return orphans(records, self.channel.watcher, self._incarnation, self._fenced_off,
                        done_before=self._done_before)
 
+    def undecided(self, cluster: Sequence[str], records: list[TaskRecord]) -> list[TaskRecord]:
+        """Tasks no robot decided (each that took one went down first), to
+        send round again once every robot of the cluster runs as a process
+        started after the task: the processes that took it are dead, so
+        nobody can pick it (found in the simulator: the three robots of a
+        cluster restarted in turn, each before the previous one had joined).
+        While one of them may still run, the task stays as it is (failed)."""
+        taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+        found = []
+        for record in records:
+            if record.decisions or record.orphaned is not None or record.seq in taken:
+                continue
+            if all(self._incarnation.get(r, 0) > record.seq for r in cluster):
+                record.orphaned = "every robot that took it went down before deciding it"
+                found.append(record)
+        return found
+
     async def take_back(self, cluster: Sequence[str], records: Sequence[TaskRecord]) -> None:
         """Feed again a robot the feeder has down but its teammates still
         count as a member (their last decision names it): it was only slow

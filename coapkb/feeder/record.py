@@ -58,6 +58,8 @@ class TaskRecord:
         object at the shelf) or unassigned (nobody could)."""
         if self.skipped:
             return "skipped"
+        if self.orphaned is not None and not self.decisions:
+            return "reassigned"  # nobody decided it: it went round again
         if not self.agreed:
             return "failed"
         if self.unavailable is not None:

@@ -56,3 +56,32 @@ def test_a_timeout_while_the_own_loop_ran_late_is_not_counted_against_the_peer()
     assert _run(lambda: failures(0.0), starve=None) == (4, True, False)
     count, down, stretched = _run(lambda: failures(1.0), starve=None)
     assert (count, down, stretched) == (1, False, True)
+
+
+def test_a_stall_is_remembered_once_it_is_over() -> None:
+    """A process stopped for 20 s reads, once it runs again, how long it
+    stood still (its teammates may have settled a task without it), while
+    the lateness of its recent turns is back to nothing."""
+    scheduler = Scheduler(random.Random(1), lambda _: None)
+    robot = scheduler.spawn("robot")
+    injector = scheduler.spawn("injector")
+
+    async def measure() -> tuple[float, float, float]:
+        health = LoopHealth()
+        health.start()
+        await asyncio.sleep(30)  # stopped from 5 s to 25 s meanwhile
+        readings = health.late_within(2), health.stalled_within(10), health.stalled_within(1)
+        await health.aclose()
+        return readings
+
+    async def stop_for_a_while() -> None:
+        await asyncio.sleep(5)
+        scheduler.freeze(robot)
+        await asyncio.sleep(20)
+        scheduler.resume(robot)
+
+    task = scheduler.start(robot, measure())
+    scheduler.start(injector, stop_for_a_while())
+    scheduler.run(task.done, limit_s=1_000)
+    late, stalled, long_ago = task.result()
+    assert late == 0.0 and 19.0 < stalled <= 20.0 and long_ago == 0.0

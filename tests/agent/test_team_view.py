@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator
+from dataclasses import replace
 
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import PLAN_PATH, ObservedStates
@@ -221,3 +222,94 @@ async def test_a_starting_robot_waits_to_hear_from_its_teammates_a_bounded_time_
             await only_robot2.aclose()
     finally:
         await states.aclose()
+
+
+# --------------------------------------------------------------------------- joins with no survivor
+
+from coapkb.agent.robot_state import Decision  # noqa: E402
+from coapkb.agent.team_view import STATE_PATH  # noqa: E402
+
+
+async def serve_state(network: MemoryNetwork, own: RobotState):
+    """A teammate's /robot/state and /robot/plan on the memory network."""
+    router = Router()
+
+    async def full(request: Request) -> Response:
+        return Response(Status.CONTENT, own.encode(), ContentFormat.CBOR)
+
+    async def plan(request: Request) -> Response:
+        return Response(Status.CONTENT, own.encode_plan(), ContentFormat.CBOR)
+
+    router.add(ResourceInfo(STATE_PATH, obs=True), full)
+    router.add(ResourceInfo(PLAN_PATH, obs=True), plan)
+    return await network.serve(router, endpoint(own.robot_id))
+
+
+async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_the_join_list() -> None:
+    """Every robot of a cluster restarted in turn, each before the one
+    before had joined: no process that decided task 9 is left.  Robot1
+    joins at task 10 with Robot2; Robot3 is a new process that decided
+    nothing (restarted after the task was posted), or no process at all.
+    Robot1 does not wait for a decision nobody can show: its membership is
+    the join list's, its epoch the task's number, as on every joiner
+    (simulator seed 3531 of the 3-robot mixed profile: the joiners logged
+    "cannot join" and decided nothing)."""
+    for robot3 in ("a new process", "no process"):
+        network = MemoryNetwork()
+        if robot3 == "a new process":
+            await serve_state(network, robot("Robot3", 0, boot=7))
+        team = view(network, robot("Robot1", 0, boot=3))
+        try:
+            async with asyncio.timeout(2):
+                await team.join(10, timeout=60, joining=("Robot1", "Robot2"))
+            assert team.excluded == {"Robot3": 9} and team.own.plan.seq == 9
+            assert (team.membership.epoch, team.membership.members) == (11, ("Robot1", "Robot2"))
+            team.admit("Robot2")  # as the controller does next, on every joiner alike
+            assert team.membership.epoch == 12
+        finally:
+            await team.aclose()
+
+
+async def test_a_joiner_takes_the_membership_a_survivor_decided_the_task_before_in() -> None:
+    network = MemoryNetwork()
+    last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot3", 9), last=last))
+    team = view(network, robot("Robot1", 0, boot=3))
+    try:
+        async with asyncio.timeout(2):
+            await team.join(10, timeout=60, joining=("Robot1",))
+        assert (team.membership.epoch, team.membership.members) == (5, ("Robot1", "Robot2", "Robot3"))
+    finally:
+        await team.aclose()
+
+
+# --------------------------------------------------------------------------- the one cut off
+
+async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_never_grants_them() -> None:
+    """Robot1, cut off, declared both teammates down; they went on counting
+    it.  Once one answers as the same process, Robot1 waits for its plans
+    and asks it again (no majority of its own, it decided alone against
+    them: simulator seeds 20025 and 20056 of the 9-robot freeze and
+    partition profile), but never grants it a lease again (the fence).  A
+    new process of a teammate is not taken for the old one: it joins."""
+    network = MemoryNetwork()
+    await serve_plan(network, robot("Robot2", 4, boot=2))
+    robot3 = await serve_plan(network, robot("Robot3", 4, boot=3))
+    team = view(network, robot("Robot1", 4))
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
+        for teammate in ("Robot2", "Robot3"):
+            await team._teammates.declare_down(teammate, "2 requests failed in a row")
+        await robot3.aclose()
+        await serve_plan(network, robot("Robot3", 0, boot=9))  # restarted meanwhile
+        assert team.alone
+        assert not await team.heard_again("Robot3") and not team.is_up("Robot3")
+        assert await team.heard_again("Robot2")
+        assert team.is_up("Robot2") and not team.alone
+        assert "never grants" in (team.grant("Robot2") or "")
+        await team._teammates.wait(lambda s: s["Robot2"].plan.seq == 4, timeout=2)
+        team.admit("Robot2")  # a new process of it, joining: granted again
+        assert team.grant("Robot2") is None
+    finally:
+        await team.aclose()
