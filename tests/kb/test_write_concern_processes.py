@@ -7,66 +7,32 @@ on Robot1, and the restarted Robot3 catches up with it."""
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import re
 import signal
-import sys
 from pathlib import Path
 
 import pytest
-from support import ROOT, coapkb, free_udp_port
+from support import coapkb
+from writable_team import PREFIX, SPEC, labels, start, write_configs
 
-from coapkb.config import dump_config
-from coapkb.harness.team import TeamSpec, robot_configs
 from coapkb.kb.client import KBClient
-from coapkb.kb.results import expect_select
 from coapkb.transport import open_client
-from coapkb.transport.base import Endpoint
-
-LOC = "http://www.tcs.org/2018/Location#"
-PREFIX = f"PREFIX loc: <{LOC}>\n"
-HOLDERS = ("Robot1", "Robot3")
 
 
 def _insert(label: str) -> str:
     return PREFIX + f'INSERT DATA {{ loc:{label} loc:written "{label}" }}'
 
 
-async def _start(config: Path, robot: str) -> asyncio.subprocess.Process:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "coapkb", "agent", "--config", str(config),
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=ROOT,
-    )
-    assert proc.stdout is not None and proc.stderr is not None
-    line = (await asyncio.wait_for(proc.stdout.readline(), 90)).decode()
-    if not line.startswith(f"robot {robot} ready"):
-        proc.kill()
-        raise AssertionError(line + (await proc.stderr.read()).decode())
-    return proc
-
-
-async def _labels(kb: KBClient, endpoint: Endpoint) -> set[str]:
-    result = await kb.sparql(endpoint, PREFIX + "SELECT ?v WHERE { ?s loc:written ?v }", timeout=20)
-    return {str(row["v"]) for row in expect_select(result, "written").as_dicts()}
-
-
 @pytest.mark.timeout(240)
 async def test_all_asked_with_a_holder_down_says_what_was_reached(tmp_path: Path) -> None:
-    spec = TeamSpec(robots=3, kb_writable=True)
-    endpoints = {r: Endpoint("coap", "127.0.0.1", free_udp_port()) for r in spec.robot_ids}
-    configs: dict[str, Path] = {}
-    for robot, config in robot_configs(spec, endpoints).items():
-        assert ("Location" in config.team[robot].kbs) == (robot in HOLDERS)
-        configs[robot] = tmp_path / f"{robot}.toml"
-        configs[robot].write_text(dump_config(dataclasses.replace(config, data_dir=tmp_path / "data" / robot)),
-                                  encoding="utf-8")
+    endpoints, configs = write_configs(tmp_path)
     procs: dict[str, asyncio.subprocess.Process] = {}
     client = await open_client("coap")
     kb = KBClient(client, timeout=20)
     robot1 = str(endpoints["Robot1"])
     try:
-        started = await asyncio.gather(*(_start(configs[r], r) for r in spec.robot_ids))
-        procs.update(zip(spec.robot_ids, started))
+        started = await asyncio.gather(*(start(configs[r], r) for r in SPEC.robot_ids))
+        procs.update(zip(SPEC.robot_ids, started))
 
         local = await coapkb("update", "--ack", "local", robot1, _insert("first"))
         assert local.code == 0, local.stderr
@@ -84,19 +50,19 @@ async def test_all_asked_with_a_holder_down_says_what_was_reached(tmp_path: Path
             rf"coapkb: {re.escape(robot1)} answered 5\.04: ack local \(1 of 2 holders\), asked all: written here, "
             r"version [0-9a-f]+, kept on disk; Robot3 unreachable or refused it; it spreads to them when "
             r"they answer: do not send it again", line), line
-        assert "late" in await _labels(kb, endpoints["Robot1"])  # not undone
+        assert "late" in await labels(kb, endpoints["Robot1"])  # not undone
 
         bad = await coapkb("update", "--ack", "most", robot1, _insert("never"))
         assert bad.code == 2 and len(bad.stderr.splitlines()) == 1 and "--ack" in bad.stderr, bad
 
-        procs["Robot3"] = await _start(configs["Robot3"], "Robot3")
+        procs["Robot3"] = await start(configs["Robot3"], "Robot3")
 
         async def caught_up() -> None:
-            while "late" not in await _labels(kb, endpoints["Robot3"]):
+            while "late" not in await labels(kb, endpoints["Robot3"]):
                 await asyncio.sleep(0.3)
 
         await asyncio.wait_for(caught_up(), 30)
-        assert await _labels(kb, endpoints["Robot3"]) == await _labels(kb, endpoints["Robot1"]) == {
+        assert await labels(kb, endpoints["Robot3"]) == await labels(kb, endpoints["Robot1"]) == {
             "first", "second", "late"}
     finally:
         await client.aclose()
