@@ -13,7 +13,7 @@ import signal
 from pathlib import Path
 
 import pytest
-from writable_team import HOLDERS, PREFIX, SPEC, labels, start, write_configs
+from writable_team import HOLDERS, PREFIX, SPEC, labels, start, stop_all, write_configs
 
 from coapkb.kb.client import KBClient
 from coapkb.transport import open_client
@@ -57,11 +57,4 @@ async def test_every_acknowledged_write_survives_killing_every_holder(tmp_path: 
         assert await labels(kb, endpoints["Robot1"]) == await labels(kb, endpoints["Robot3"]) == expected | {"after"}
     finally:
         await client.aclose()
-        for proc in procs.values():
-            proc.terminate()
-        for proc in procs.values():
-            try:
-                await asyncio.wait_for(proc.wait(), 10)
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
+        await stop_all(procs)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from support import coapkb
-from writable_team import PREFIX, SPEC, labels, start, write_configs
+from writable_team import PREFIX, SPEC, labels, start, stop_all, write_configs
 
 from coapkb.kb.client import KBClient
 from coapkb.transport import open_client
@@ -66,11 +66,4 @@ async def test_all_asked_with_a_holder_down_says_what_was_reached(tmp_path: Path
             "first", "second", "late"}
     finally:
         await client.aclose()
-        for proc in procs.values():
-            proc.terminate()
-        for proc in procs.values():
-            try:
-                await asyncio.wait_for(proc.wait(), 10)
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
+        await stop_all(procs)

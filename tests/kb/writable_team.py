@@ -54,3 +54,15 @@ async def labels(kb: KBClient, endpoint: Endpoint) -> set[str]:
     """The values of ``loc:written`` the robot at ``endpoint`` holds."""
     result = await kb.sparql(endpoint, PREFIX + "SELECT ?v WHERE { ?s loc:written ?v }", timeout=20)
     return {str(row["v"]) for row in expect_select(result, "written").as_dicts()}
+
+
+async def stop_all(procs: dict[str, asyncio.subprocess.Process]) -> None:
+    """SIGTERM every robot, SIGKILL one that has not stopped within 10 s."""
+    for proc in procs.values():
+        proc.terminate()
+    for proc in procs.values():
+        try:
+            await asyncio.wait_for(proc.wait(), 10)
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
