@@ -119,7 +119,7 @@ class LiveKB:
         self._wall_ms = wall_ms
         self._base_store: ox.Store = base.engine.store
         self._view: OxigraphBackend | None = None
-        functional = frozenset(URIRef(p) for p in single_valued)
+        functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self._base_store)
         self.replicas: dict[str, Replica] = {
             name: Replica(writer, single_valued=functional, base_values=self._base_values, limits=self.limits.replica)
             for name in base.names
@@ -377,6 +377,18 @@ class LiveKB:
         if modules:
             for listener in list(self.listeners):
                 listener(modules)
+
+
+_RDF_TYPE = ox.NamedNode("http://www.w3.org/1999/02/22-rdf-syntax-ns#type")
+_OWL_FUNCTIONAL = ox.NamedNode("http://www.w3.org/2002/07/owl#FunctionalProperty")
+
+
+def declared_functional(store: ox.Store) -> frozenset[Term]:
+    """The properties the modules' files declare ``owl:FunctionalProperty``:
+    single-valued like :data:`~coapkb.world.vocabulary.SINGLE_VALUED`.
+    Every holder loads the same files, so every replica counts them alike."""
+    return frozenset(URIRef(q.subject.value) for q in store.quads_for_pattern(None, _RDF_TYPE, _OWL_FUNCTIONAL)
+                     if isinstance(q.subject, ox.NamedNode))
 
 
 def _quad(triple: Triple) -> ox.Quad:

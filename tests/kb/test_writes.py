@@ -17,6 +17,7 @@ from coapkb.kb.client import KBClient, WriteShort, decode
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
 from coapkb.kb.resources import KBResources, QueryLimits
+from coapkb.kb.results import expect_select
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import encode_patch
 from coapkb.transport import open_client, serve
@@ -252,3 +253,19 @@ def test_inserting_a_triple_that_is_there_keeps_the_version() -> None:
     first = live.update(text)
     again = live.update(text)
     assert first.added == 1 and again.added == 0 and not again.deltas and again.version == first.version
+
+
+def test_a_property_the_ontology_declares_functional_keeps_one_value() -> None:
+    """``owl:FunctionalProperty`` in a module's files makes a property
+    single-valued: the newest write's value shows, alone."""
+    import pyoxigraph as ox
+
+    kb = KnowledgeBase.load([ONTOLOGIES / "Location.owl"])
+    colour = "http://www.tcs.org/2018/Location#Pallet_colour"
+    kb.engine.store.add(ox.Quad(ox.NamedNode(colour), ox.NamedNode("http://www.w3.org/1999/02/22-rdf-syntax-ns#type"),
+                                ox.NamedNode("http://www.w3.org/2002/07/owl#FunctionalProperty")))
+    live = LiveKB(kb, "Robot1.1", wall_ms=wall_ms)
+    for value in ("red", "blue"):
+        live.update(f'INSERT DATA {{ <http://www.tcs.org/2018/Location#Pallet_9> <{colour}> "{value}" }}')
+    query = f"SELECT ?c WHERE {{ ?p <{colour}> ?c }}"
+    assert [str(row[0]) for row in expect_select(live.query(query), query).rows] == ["blue"]
