@@ -18,10 +18,10 @@ from ..errors import CoapkbError
 from .network import LinkModel
 
 #: Fault kinds that act on processes or links at a time.
-EVENT_KINDS = ("kill", "freeze", "partition", "starve")
+EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge")
 #: Kinds that shape every link for the whole run, with their default amount.
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
-#: Everything at once, with default amounts.
+#: Everything at once, with default amounts (a forger is asked for by name).
 MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
 #: Swarm testing: each seed draws which of the mix's kinds are on, how
 #: often, for how long, and its links' amounts (up to three times the default).
@@ -134,6 +134,8 @@ class FaultEvent:
             return f"cut {who}|{'+'.join(self.other)}@{self.at_s:.2f}s"
         if self.action == "starve":
             return f"starve {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount * 1000:.0f}ms)"
+        if self.action == "forge":
+            return f"forge {who} as {'+'.join(self.other)}@{self.at_s:.2f}s"
         if self.action.endswith("-picking"):
             return f"{self.action} {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount:.2f}s)"
         return f"{self.action} {who}@{self.at_s:.2f}s"
@@ -187,6 +189,13 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
             target = rng.choice(["feeder", *robots])
             events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.1, 1.5), 3),
                                      until_s=round(at + lasting, 3)))
+            continue
+        if kind == "forge":
+            # A teammate's credential used against a robot: a sync in the
+            # robot's own writer name (its next dot), from one that may not hold the module.
+            cluster = clusters[rng.randrange(len(clusters))]
+            victim, forger = rng.sample(cluster, 2)
+            events.append(FaultEvent(at, "forge", (victim,), other=(forger,)))
             continue
         candidates = [r for r in robots if free(r, at) and free(r, at + lasting)]
         if kind == "partition" and rng.random() < 0.2:

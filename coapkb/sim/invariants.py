@@ -322,6 +322,19 @@ def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
                        f"{op.answered_s:.3f}s), is back on {', '.join(back)}")
 
 
+def check_forgeries(run: RunResult) -> Iterable[str]:
+    """A sync sent with a credential of a robot that does not hold the
+    module, in a holder's writer name, is refused (4.03), and what it
+    carried never shows on any holder."""
+    for forgery in run.forgeries:
+        if forgery.status.startswith("2."):
+            yield (f"{forgery.victim} took a sync of {forgery.module} from {forgery.forger}, which does not hold "
+                   f"it ({forgery.status})")
+        shown = [r for r, values in run.values.get(forgery.module, {}).items() if forgery.value in values]
+        if shown:
+            yield f"a forged {forgery.module} value from {forgery.forger} shows on {', '.join(shown)}"
+
+
 def check_shelf(run: RunResult) -> Iterable[str]:
     """Each object comes off its shelf at most once in a run (the simulated
     warehouse never restocks), whatever the world's own bookkeeping says:
@@ -399,7 +412,7 @@ def check_liveness(run: RunResult) -> Iterable[str]:
 CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
     check_finished, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
     check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
-    check_acknowledged_writes, check_liveness,
+    check_acknowledged_writes, check_forgeries, check_liveness,
 )
 
 

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
 
+from rdflib import Literal, URIRef
+
 from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
 from ..agent.team_view import liveness_floor_s
@@ -39,9 +41,13 @@ from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_co
 from ..host import Host
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
+from ..kb.replica import CausalContext, Delta, Dot, Stamp
+from ..kb.replication import SYNC_PATH
 from ..kb.results import QueryResult, expect_ask, expect_select
 from ..kb.store import KnowledgeBase
 from ..transport.base import Endpoint, TransportError
+from ..transport.messages import ContentFormat, Method, Request
+from ..wire.sync import SyncMessage, encode_sync
 from ..world.truth import WorldTruth
 from ..world.vocabulary import ONTOLOGIES
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
@@ -145,6 +151,18 @@ class WriteOp:
     copies: int = 0
 
 
+@dataclass(frozen=True)
+class Forgery:
+    """A sync a non-holder's credential sent in a holder's writer name, and
+    its answer: it must be refused, and its value never show."""
+
+    victim: str
+    forger: str
+    module: str
+    value: int
+    status: str
+
+
 @dataclass
 class RunResult:
     """What one seed's run gave (picklable: runs travel between worker processes)."""
@@ -175,6 +193,8 @@ class RunResult:
     fates: str = ""
     #: The operator's writes, as they were answered.
     writes: list[WriteOp] = field(default_factory=list)
+    #: The forged syncs sent, and how each was answered.
+    forgeries: list[Forgery] = field(default_factory=list)
     #: Per module: how many robots hold it.
     holders: dict[str, int] = field(default_factory=dict)
     #: At the end, per module: each running holder's version of it.
@@ -411,6 +431,8 @@ class SimulatedTeam:
         self.network.answer_hooks.append(self.grants.answered)
         self.history = _History(self.processes, clock, self.note if trace else None)
         self.decided_at: dict[tuple[int, int], float] = {}
+        #: The forged syncs the schedule sent.
+        self.forgeries: list[Forgery] = []
         #: Every robot process's KB, the dead ones' as they were at their death.
         self.lives: list[tuple[str, LiveKB]] = []
         #: The faults the schedule's traps injected when they sprang.
@@ -505,8 +527,40 @@ class SimulatedTeam:
             process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
         elif action.endswith("-picking"):
             self.scheduler.start(self.current["faults"], self._trap(event))
+        elif action == "forge":
+            self.scheduler.start(self.current["faults"], self._forge(target, event.other[0]))
         if not action.endswith("-picking"):
             self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
+
+    async def _forge(self, victim: str, forger: str) -> None:
+        """``forger``'s credential used against ``victim``: a sync of a module
+        ``victim`` holds and ``forger`` does not, carrying a delta in
+        ``victim``'s own writer name at its next dot (the write it would make
+        next would be taken for a duplicate and lost), stamped far ahead, that
+        adds a value no one wrote to the module's log."""
+        robot = self.robots.get(victim)
+        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
+        held = [m for m in self.configs[victim].team[victim].kbs if m not in self.configs[forger].team[forger].kbs]
+        if live is None or not held or self.current[victim].status == "dead":
+            self.note(f"forge {victim} as {forger}: nothing to forge")
+            return
+        module = held[0]
+        ns = ONTOLOGIES[module][1]
+        value = -1 - len(self.forgeries)
+        triple = (URIRef(f"{ns}{WRITE_LOG}"), URIRef(f"{ns}written"), Literal(value))
+        writer = live.writer
+        next_dot = Dot(writer, live.replicas[module].context.vv.get(writer, 0) + 1)
+        stamp = Stamp(int(self.scheduler.clock.now * 1000) + 3_600_000, 0, writer)
+        message = SyncMessage(module, CausalContext(), [Delta(next_dot, stamp, (triple,))], forward=True)
+        request = Request(Method.POST, SYNC_PATH, payload=encode_sync(message), content_format=ContentFormat.CBOR,
+                          peer=forger)
+        client = await self.network.for_process(self.current["faults"]).open_client("coap")
+        try:
+            status = (await client.request(self.configs[victim].bind, request, timeout=10.0)).status.dotted
+        except TransportError:
+            status = "lost"
+        self.note(f"forge {victim} as {forger} ({module} value {value}): {status}")
+        self.forgeries.append(Forgery(victim, forger, module, value, status))
 
     async def _trap(self, event: FaultEvent) -> None:
         """Spring ``event``'s trap the moment its robot starts a pick (looked
@@ -787,7 +841,7 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
+            writes=list(self.write_log), forgeries=list(self.forgeries), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),

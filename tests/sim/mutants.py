@@ -43,6 +43,8 @@ MIXED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm")
 WRITES = (*MIXED, "--writes", "20")
 #: More writes, more of them racing: removes that overtake their adds.
 MANY_WRITES = (*MIXED, "--writes", "60")
+#: With forged syncs: a teammate's credential used against a holder.
+FORGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20")
 #: No loss: the loopback lease (3 s), and outages longer than it.
 FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,starve,swarm")
 LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
@@ -151,6 +153,10 @@ def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
     return _patch(Replicator, "_push", dropping)
 
 
+def _take_from_anyone(self: Replicator, message: Any, sender: str | None) -> str | None:
+    return None
+
+
 _live_apply = LiveKB.apply
 
 
@@ -220,6 +226,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (2, 3, 4)),
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
+    Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
+           lambda: _patch(Replicator, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1, 2, 3)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",

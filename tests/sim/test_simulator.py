@@ -192,11 +192,12 @@ def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) 
 CI_PROFILES = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20"), "1-200"),
     (("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"), "1-12"),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20"), "1-50"),
 ]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots"])
+@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs"])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation
     (what the schedules explain is listed apart)."""
