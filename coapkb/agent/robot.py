@@ -240,7 +240,7 @@ class Robot:
                 known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
                 try:
                     served, keeper = open_live(kb, config.robot_id, boot, config.data_dir, wall_ms=host.wall_ms,
-                                               holders=known)
+                                               holders=known, background=host.threads)
                 except BaseException:
                     await client.aclose()
                     raise

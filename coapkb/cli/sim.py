@@ -30,6 +30,9 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
     p.add_argument("--writes", type=int, default=0, metavar="N",
                    help="an operator writes N times to random robots' KBs during each run (replication checked)")
+    p.add_argument("--storage", action="store_true",
+                   help="every robot keeps its writes in a data folder: kills keep it (and may tear its journal's "
+                        "tail), restarts restore from it; with crash in --faults, every holder of a module dies at once")
     p.add_argument("--ties", action="store_true",
                    help="every robot of a cluster starts at the same place: cost ties, decided by the tie-break")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
@@ -82,7 +85,7 @@ async def _sim(args: argparse.Namespace) -> int:
     if args.writes < 0:
         raise UserError("--writes must not be negative")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
-                   writes=args.writes, ties=args.ties,
+                   writes=args.writes, ties=args.ties, storage=args.storage,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
     started = time.monotonic()
     if args.shrink:

@@ -168,11 +168,14 @@ def open_live(
     robot_id: str,
     boot: int,
     data_dir: Path | None,
+    *,
+    background: bool = True,
     **live_options: Any,
 ) -> tuple[LiveKB, Keeper | None]:
     """The writable KB of robot ``robot_id`` started as ``boot``: in memory
     only (``data_dir`` None, a new writer ``robot_id.boot``), or kept in
-    ``data_dir`` and restored from it.  Raises :class:`DataDirError`."""
+    ``data_dir`` and restored from it; ``background``: compact in a thread
+    (False in the simulator, which runs no thread).  Raises :class:`DataDirError`."""
     writer = f"{robot_id}.{boot}"
     if data_dir is None:
         return LiveKB(base, writer, **live_options), None
@@ -184,7 +187,7 @@ def open_live(
     except BaseException:
         journal.close()
         raise
-    keeper = Keeper(journal, live)
+    keeper = Keeper(journal, live, background=background)
     live.keeper = keeper
     if recovered.fresh:
         log.info("data folder %s: new, writing as %s", data_dir, recovered.writer)

@@ -18,7 +18,7 @@ from ..errors import CoapkbError
 from .network import LinkModel
 
 #: Fault kinds that act on processes or links at a time.
-EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge")
+EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash")
 #: Kinds that shape every link for the whole run, with their default amount.
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
 #: Everything at once, with default amounts (a forger is asked for by name).
@@ -134,6 +134,8 @@ class FaultEvent:
             return f"cut {who}|{'+'.join(self.other)}@{self.at_s:.2f}s"
         if self.action == "starve":
             return f"starve {who}@{self.at_s:.2f}-{self.until_s:.2f}s({self.amount * 1000:.0f}ms)"
+        if self.action == "crash":
+            return f"crash holders of {who}@{self.at_s:.2f}s({self.amount:.2f}s)"
         if self.action == "forge":
             return f"forge {who} as {'+'.join(self.other)}@{self.at_s:.2f}s"
         if self.action.endswith("-picking"):
@@ -206,6 +208,14 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
         if not candidates:
             continue
         victim = rng.choice(candidates)
+        if kind == "crash":
+            # A power cut: every holder of one of the victim's modules at
+            # once, all restarted later (outside the one-out-per-cluster
+            # model, so the whole cluster counts as out meanwhile).
+            for robot in clusters[cluster_of[victim]]:
+                out[robot] = at + lasting
+            events.append(FaultEvent(at, "crash", (victim,), amount=lasting))
+            continue
         if swarm and kind in ("freeze", "partition") and rng.random() < 0.4:
             # A trap: armed for ``lasting``, it springs at the robot's next pick.
             held = round(rng.uniform(0.5, longest), 3)

@@ -214,6 +214,10 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
     out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
     texts = [task.unavailable or "", *task.errors.values()]
     blamed = {w.strip(",:;()") for text in texts for w in text.split() if w.strip(",:;()").startswith("Robot")}
+    if any(e.action == "crash" and e.targets[0] in cluster for e in run.events):
+        # Outside the team's fault model on purpose (the storage's test): a
+        # majority of the cluster lost power at once, nobody could decide.
+        return "every holder of a module lost power at once: no majority was left to decide"
     suspected_alive = blamed - out
     cut_off = sorted(r for e in run.events if e.action == "cut" for r in e.targets if r in cluster)
     if not suspected_alive:

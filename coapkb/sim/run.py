@@ -40,6 +40,7 @@ from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
 from ..host import Host
 from ..kb.client import KBClient, QueryFailed
+from ..kb.journal import encode_record
 from ..kb.live import LiveKB
 from ..kb.replica import CausalContext, Delta, Dot, Stamp
 from ..kb.replication import SYNC_PATH
@@ -98,6 +99,10 @@ class SimSpec:
     #: Every robot of a cluster starts where its first robot does, with the
     #: same battery and load: equal costs, so the tie-break decides.
     ties: bool = False
+    #: Every robot keeps its writes in a data folder of its own (a journal,
+    #: fsynced before a write is answered): a kill keeps the folder, and may
+    #: tear the journal's tail; a restart restores from it.
+    storage: bool = False
 
     def team(self) -> TeamSpec:
         return TeamSpec(
@@ -420,6 +425,12 @@ class SimulatedTeam:
         if spec.ties:
             first = {r: self.configs[c[0]].start for c in self.team.clusters() for r in c}
             self.configs = {r: dataclasses.replace(c, start=first[r]) for r, c in self.configs.items()}
+        self._data: tempfile.TemporaryDirectory[str] | None = None
+        if spec.storage:
+            self._data = tempfile.TemporaryDirectory(prefix="coapkb-sim-data-")
+            self.configs = {r: dataclasses.replace(c, data_dir=Path(self._data.name) / r)
+                            for r, c in self.configs.items()}
+        self._disk_rng = random.Random(rng.random())
         self.processes: dict[SimLoop, Process] = {}
         self.current: dict[str, Process] = {}
         self.robots: dict[str, Robot] = {}
@@ -503,6 +514,7 @@ class SimulatedTeam:
         process = self.current[target]
         if action == "kill":
             self.scheduler.kill(process)
+            self._crash_disk(target)
         elif action == "restart":
             reborn = self._spawn(target)
             feeder = self.feeder
@@ -527,10 +539,58 @@ class SimulatedTeam:
             process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
         elif action.endswith("-picking"):
             self.scheduler.start(self.current["faults"], self._trap(event))
+        elif action == "crash":
+            self._crash_holders(target, event.amount)
         elif action == "forge":
             self.scheduler.start(self.current["faults"], self._forge(target, event.other[0]))
         if not action.endswith("-picking"):
             self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
+
+    def _release_disks(self) -> None:
+        """Every data folder closed and removed (the run is over)."""
+        for robot in self.robots.values():
+            if robot.keeper is not None:
+                robot.keeper.journal.close()
+        if self._data is not None:
+            self._data.cleanup()
+
+    def _crash_disk(self, robot_id: str) -> None:
+        """What a killed robot leaves on its disk: its folder released (the
+        OS closes a dead process's files and its lock), and, half the time,
+        the start of a record it never finished writing (a torn tail, which
+        the restart must cut)."""
+        robot = self.robots.get(robot_id)
+        keeper = robot.keeper if robot is not None else None
+        if keeper is None:
+            return
+        keeper.journal.close()
+        if self._disk_rng.random() < 0.5:
+            journals = sorted(keeper.journal.path.glob("journal.*"), key=lambda p: int(p.suffix[1:]))
+            if journals:
+                # A prefix of a whole record: what a write cut by the power leaves.
+                record = encode_record(bytes(self._disk_rng.randrange(256) for _ in range(40)))
+                torn = record[:self._disk_rng.randint(1, len(record) - 1)]
+                with open(journals[-1], "ab") as tail:
+                    tail.write(torn)
+                self.note(f"disk {robot_id}: {len(torn)} bytes of a torn record after {journals[-1].name}")
+
+    def _crash_holders(self, robot_id: str, down_s: float) -> None:
+        """Every holder of a module ``robot_id`` holds killed at once (a power
+        cut), and restarted ``down_s`` later."""
+        modules = self.configs[robot_id].team[robot_id].kbs
+        if not modules:
+            return
+        holders = [r for r in self._holders(modules[0]) if self.current[r].status != "dead"]
+        for holder in holders:
+            self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "kill", (holder,)))
+            self.inject(self.sprung[-1])
+
+        async def restart() -> None:
+            await asyncio.sleep(down_s)
+            for holder in holders:
+                self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "restart", (holder,)))
+                self.inject(self.sprung[-1])
+        self.scheduler.start(self.current["faults"], restart())
 
     async def _forge(self, victim: str, forger: str) -> None:
         """``forger``'s credential used against ``victim``: a sync of a module
@@ -831,6 +891,7 @@ class SimulatedTeam:
                 bounds = _bounds(self.robots, scheduler)
                 versions, values, differences = self._replication_outcome() if spec.writes else ({}, {}, {})
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
+                self._release_disks()
         finally:
             if gc_was_enabled:
                 gc.enable()

@@ -33,6 +33,7 @@ from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import Job, TaskExecutor
 from coapkb.agent.team_view import Membership, TeamView
 from coapkb.feeder.membership import Membership as FeederMembership
+from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import CausalContext, Delta, Replica, WrittenState
 from coapkb.kb.replication import Replicator
@@ -45,6 +46,8 @@ WRITES = (*MIXED, "--writes", "20")
 MANY_WRITES = (*MIXED, "--writes", "60")
 #: With forged syncs: a teammate's credential used against a holder.
 FORGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20")
+#: Data folders, torn tails, and every holder of a module losing power at once.
+STORAGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20", "--storage")
 #: No loss: the loopback lease (3 s), and outages longer than it.
 FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,starve,swarm")
 LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
@@ -153,6 +156,10 @@ def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
     return _patch(Replicator, "_push", dropping)
 
 
+def _nothing_kept(self: Keeper, changes: Any) -> None:
+    """The journal never written: a write answered before it is on disk."""
+
+
 def _take_from_anyone(self: Replicator, message: Any, sender: str | None) -> str | None:
     return None
 
@@ -226,6 +233,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (2, 3, 4)),
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
+    Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
+           lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (11, 13, 21)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(Replicator, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",

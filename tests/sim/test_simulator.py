@@ -193,11 +193,12 @@ CI_PROFILES = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20"), "1-200"),
     (("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"), "1-12"),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20"), "1-50"),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20", "--storage"), "1-40"),
 ]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs"])
+@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts"])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation
     (what the schedules explain is listed apart)."""
