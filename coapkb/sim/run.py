@@ -151,8 +151,8 @@ class WriteOp:
     sent_s: float
     answered_s: float
     settled: bool = False
-    #: An acknowledged insert: how many holders showed the value when the
-    #: operator had the answer.
+    #: An acknowledged insert: how many holders had held the value when the
+    #: operator had the answer (:meth:`SimulatedTeam._copies`).
     copies: int = 0
 
 
