@@ -430,7 +430,6 @@ class SimulatedTeam:
             self._data = tempfile.TemporaryDirectory(prefix="coapkb-sim-data-")
             self.configs = {r: dataclasses.replace(c, data_dir=Path(self._data.name) / r)
                             for r, c in self.configs.items()}
-        self._disk_rng = random.Random(rng.random())
         self.processes: dict[SimLoop, Process] = {}
         self.current: dict[str, Process] = {}
         self.robots: dict[str, Robot] = {}
@@ -446,6 +445,8 @@ class SimulatedTeam:
         self.forgeries: list[Forgery] = []
         #: Every robot process's KB, the dead ones' as they were at their death.
         self.lives: list[tuple[str, LiveKB]] = []
+        #: What traps, power cuts and forgers run in the faults' process.
+        self._faulting: list[asyncio.Task[None]] = []
         #: The faults the schedule's traps injected when they sprang.
         self.sprung: list[FaultEvent] = []
         self.split_versions: list[str] = []
@@ -460,6 +461,8 @@ class SimulatedTeam:
         #: The operator's writes (``spec.writes``), as they were answered.
         self.write_log: list[WriteOp] = []
         self._write_seed = rng.random()
+        # Drawn last: a seed's other draws stay what they were before disks.
+        self._disk_rng = random.Random(rng.random())
 
     def note(self, text: str) -> None:
         """A line of the trace, stamped with the simulated time."""
@@ -538,11 +541,11 @@ class SimulatedTeam:
         elif action == "starve":
             process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
         elif action.endswith("-picking"):
-            self.scheduler.start(self.current["faults"], self._trap(event))
+            self._faulting.append(self.scheduler.start(self.current["faults"], self._trap(event)))
         elif action == "crash":
             self._crash_holders(target, event.amount)
         elif action == "forge":
-            self.scheduler.start(self.current["faults"], self._forge(target, event.other[0]))
+            self._faulting.append(self.scheduler.start(self.current["faults"], self._forge(target, event.other[0])))
         if not action.endswith("-picking"):
             self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
 
@@ -590,7 +593,7 @@ class SimulatedTeam:
             for holder in holders:
                 self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "restart", (holder,)))
                 self.inject(self.sprung[-1])
-        self.scheduler.start(self.current["faults"], restart())
+        self._faulting.append(self.scheduler.start(self.current["faults"], restart()))
 
     async def _forge(self, victim: str, forger: str) -> None:
         """``forger``'s credential used against ``victim``: a sync of a module
@@ -818,7 +821,10 @@ class SimulatedTeam:
                 # statistics are asked for, as a run's report would be.  Those run
                 # in other processes, whose tasks this loop cannot await: look
                 # again shortly (simulated time, free).
-                while not schedule.done() or not self._settled():  # noqa: ASYNC110 - other processes' state, no event to await
+                # The faults a trap, a power cut or a forger started end too (a
+                # robot resumed, restarted): the run ends with every fault healed.
+                while (not schedule.done() or not self._settled()  # noqa: ASYNC110 - other processes' state, no event to await
+                       or not all(t.done() for t in self._faulting)):
                     await asyncio.sleep(0.5)
                 self.settled_at = round(self.elapsed_s, 6)
                 if writer is not None:
