@@ -234,7 +234,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
-           lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (11, 13, 21)),
+           lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(Replicator, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
