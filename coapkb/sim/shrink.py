@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TextIO, TypeVar
 
@@ -62,9 +62,15 @@ class Violation:
     finding: str
 
 
-def first_violation(run: RunResult) -> Violation | None:
-    """The first check of :data:`~coapkb.sim.invariants.CHECKS` that ``run`` fails, if any."""
-    for invariant in invariants.CHECKS:
+#: An invariant's check, as :data:`~coapkb.sim.invariants.CHECKS` lists them.
+Check = Callable[[RunResult], Iterable[str]]
+#: What runs a case and judges it (:func:`replay`).
+Runner = Callable[[SimCase, KBCache], RunResult]
+
+
+def first_violation(run: RunResult, checks: Sequence[Check] | None = None) -> Violation | None:
+    """The first check of ``checks`` (default :data:`~coapkb.sim.invariants.CHECKS`) that ``run`` fails, if any."""
+    for invariant in invariants.CHECKS if checks is None else checks:
         for finding in invariant(run):
             return Violation(invariant.__name__, finding)
     return None
@@ -113,13 +119,18 @@ def shrink(spec: SimSpec, seed: int, *, kbs: KBCache | None = None, budget_s: fl
 
 
 def shrink_case(case: SimCase, *, kbs: KBCache | None = None, budget_s: float = DEFAULT_BUDGET_S,
-                progress: Callable[[str], None] | None = None, expect: str | None = None) -> Shrunk | None:
+                progress: Callable[[str], None] | None = None, expect: str | None = None,
+                runner: Runner | None = None, checks: Sequence[Check] | None = None) -> Shrunk | None:
     """The smallest case found within ``budget_s`` wall-clock seconds that
     breaks first the invariant ``case`` breaks first when run (None: it
     breaks none).  ``expect``: the check it must break first (the seed's, for
     a case written from a seed's run): :class:`SimulationError` if it does
-    not, since the case would not replay the seed."""
-    return _Shrinker(case, kbs or KBCache(), budget_s, progress, expect).run()
+    not, since the case would not replay the seed.  ``runner`` and
+    ``checks``: what runs a case (:func:`replay`) and the invariants judged
+    (:data:`~coapkb.sim.invariants.CHECKS`), for tests of the reductions."""
+    shrinker = _Shrinker(case, kbs or KBCache(), budget_s, progress, expect)
+    shrinker.runner, shrinker.checks = runner or replay, checks
+    return shrinker.run()
 
 
 class _OutOfBudget(Exception):
@@ -143,6 +154,8 @@ class _Shrinker:
         self.tried: dict[str, bool] = {}
         self.violation: Violation | None = None
         self.best_run: RunResult | None = None
+        self.runner: Runner = replay
+        self.checks: Sequence[Check] | None = None
 
     @property
     def elapsed_s(self) -> float:
@@ -150,7 +163,7 @@ class _Shrinker:
 
     def run(self) -> Shrunk | None:
         run = self._run(self.original)
-        violation = first_violation(run)
+        violation = first_violation(run, self.checks)
         if self.expect is not None and (violation is None or violation.check != self.expect):
             raise SimulationError(f"seed {self.original.seed}'s run, written as a case, does not break {self.expect} "
                                   f"first again ({violation.check if violation else 'nothing'}): it does not replay")
@@ -178,7 +191,7 @@ class _Shrinker:
             complete = False
             self.progress("shrink: interrupted; keeping the smallest case so far")
         assert self.best_run is not None
-        last = first_violation(self.best_run)
+        last = first_violation(self.best_run, self.checks)
         assert last is not None
         return Shrunk(self.original, self.best, last, self.best_run, self.runs, self.violating, self.sim_s,
                       self.elapsed_s, complete)
@@ -204,7 +217,7 @@ class _Shrinker:
             self.progress(f"shrink: a reduction ({what}) did not run: {type(exc).__name__}: {exc}")
             self.tried[key] = False
             return False
-        found = first_violation(run)
+        found = first_violation(run, self.checks)
         assert self.violation is not None
         same = found is not None and found.check == self.violation.check
         self.tried[key] = same
@@ -216,7 +229,7 @@ class _Shrinker:
 
     def _run(self, case: SimCase) -> RunResult:
         self.runs += 1
-        run = replay(case, self.kbs)
+        run = self.runner(case, self.kbs)
         self.violating += bool(run.violations)
         self.sim_s += run.sim_s
         return run

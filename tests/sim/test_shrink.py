@@ -18,8 +18,7 @@ import pytest
 
 from coapkb.agent.team_view import ObservedStates
 from coapkb.cli import main
-from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, invariants, run_checked
-from coapkb.sim import shrink as shrinking
+from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, run_checked
 from coapkb.sim.case import CaseFileError, SimCase, mix_text
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.run import RunResult
@@ -76,7 +75,7 @@ def _made_up(case: SimCase, kbs: KBCache | None = None, trace: object = None) ->
     """A run decided by the case alone: its team and link faults in ``schedule``."""
     run = RunResult(case.seed, f"{case.robots} robots, {case.faults}", None, None, [], [])
     run.events, run.fed, run.sim_s = list(case.events), list(case.tasks), 1.0
-    run.violations = [finding for check in invariants.CHECKS for finding in check(run)]
+    run.violations = [finding for check in MADE_UP_CHECKS for finding in check(run)]
     return run
 
 
@@ -95,10 +94,9 @@ def check_planted(run: RunResult) -> Iterable[str]:
         yield "planted"
 
 
-@pytest.fixture
-def made_up(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(shrinking, "replay", _made_up)
-    monkeypatch.setattr(invariants, "CHECKS", (check_few_tasks, check_planted))
+#: The made-up runs' invariants, and the shrinker's options that run and judge them.
+MADE_UP_CHECKS = (check_few_tasks, check_planted)
+MADE_UP = {"runner": _made_up, "checks": MADE_UP_CHECKS}
 
 
 ALL_EVENTS = (
@@ -115,12 +113,11 @@ ALL_EVENTS = (
 FRUIT = ("Fig", "Apple", "Kiwi", "Plum", "Pear", "Lime", "Date", "Yuzu")
 
 
-@pytest.mark.usefixtures("made_up")
 def test_every_reduction_keeps_the_same_invariant_broken_first() -> None:
     case = SimCase(seed=7, robots=9, strategy="compute-by-all", faults="kill,freeze,loss=0.05,dup=0.02,jitter=0.02",
                    tasks=FRUIT, events=ALL_EVENTS)
     lines: list[str] = []
-    shrunk = shrink_case(case, budget_s=60, progress=lines.append)
+    shrunk = shrink_case(case, budget_s=60, progress=lines.append, **MADE_UP)
     assert shrunk is not None and shrunk.complete
     small = shrunk.case
     assert (shrunk.violation.check, small.violates) == ("check_planted", "check_planted")
@@ -137,26 +134,24 @@ def test_every_reduction_keeps_the_same_invariant_broken_first() -> None:
     assert lines[0].startswith("shrink: seed 7 breaks check_planted") and "robots (" in lines[-1]
 
 
-@pytest.mark.usefixtures("made_up")
 def test_a_kill_whose_cluster_is_left_alone_loses_its_restart() -> None:
     events = (_event(0.5, "freeze", "Robot2"), _event(1.5, "resume", "Robot2"),
               _event(2.0, "kill", "Robot1"), _event(3.0, "restart", "Robot1"))
     case = SimCase(seed=1, robots=3, strategy="compute-by-all", faults="none", tasks=("Apple", "Pear"), events=events)
-    shrunk = shrink_case(case)
+    shrunk = shrink_case(case, **MADE_UP)
     assert shrunk is not None
     assert [e.action for e in shrunk.case.events] == ["freeze", "resume", "kill"]
 
 
-@pytest.mark.usefixtures("made_up")
 def test_the_budget_keeps_the_smallest_case_so_far_and_a_case_must_break_what_it_should() -> None:
     case = SimCase(seed=7, robots=9, strategy="compute-by-all", faults="none", tasks=FRUIT, events=ALL_EVENTS)
-    shrunk = shrink_case(case, budget_s=0)
+    shrunk = shrink_case(case, budget_s=0, **MADE_UP)
     assert shrunk is not None and not shrunk.complete and shrunk.runs == 1
     assert shrunk.case.events == case.events and shrunk.case.tasks == case.tasks
     with pytest.raises(SimulationError, match="does not break check_few_tasks"):
-        shrink_case(case, expect="check_few_tasks")
+        shrink_case(case, expect="check_few_tasks", **MADE_UP)
     assert shrink_case(SimCase(seed=7, robots=3, strategy="compute-by-all", faults="none", tasks=FRUIT,
-                               events=())) is None
+                               events=()), **MADE_UP) is None
 
 
 # --------------------------------------------------------------------------- the case file
