@@ -44,7 +44,7 @@ class Links(ClientTransport):
         if peer.host in self.down:
             raise PeerUnreachable(f"{peer.host} is down")
         if peer.host in self.silent:
-            await asyncio.sleep(3600)
+            await asyncio.Event().wait()  # never answers: the caller's own timeout ends the wait
         return await self.robots[peer.host].handle_sync(replace(request, peer=self.me))
 
     def observe(self, peer: Endpoint, request: Request):  # type: ignore[no-untyped-def]
