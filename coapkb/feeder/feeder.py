@@ -24,7 +24,7 @@ from ..transport.messages import ContentFormat, Method, Request
 from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
 from .membership import Membership
 from .orphans import idle
-from .record import TaskRecord, mark_not_found
+from .record import TaskRecord, claim_of, mark_not_found, unclaim
 from .tasks import FeederError, split_tasks, task_post
 
 log = logging.getLogger(__name__)
@@ -188,6 +188,14 @@ class Feeder:
         records: list[TaskRecord] = []
         #: (robot, task) -> record, for the tasks a robot reports not found.
         assigned: dict[tuple[str, int], TaskRecord] = {}
+        #: (robot, task) -> the later skips that name its pick: named again
+        #: if that task's robot does not find the object.
+        claims: dict[tuple[str, int], list[TaskRecord]] = {}
+
+        def not_found() -> None:
+            for found in mark_not_found(assigned, watcher.states):
+                for skip in claims.pop((found.assigned_to or "", found.seq), ()):
+                    unclaim(skip, found)
         queue: list[tuple[str, int | None]] = [(name, None) for name in share]
         #: Tasks of a robot's previous process, found when it joins again.
         reruns: list[TaskRecord] = []
@@ -206,7 +214,13 @@ class Feeder:
                 records.append(record)
                 if record.assigned_to is not None:
                     assigned[(record.assigned_to, record.seq)] = record
-                mark_not_found(assigned, watcher.states)
+                claim = claim_of(record)
+                if claim is not None and claim in assigned:
+                    if assigned[claim].not_found is not None:
+                        unclaim(record, assigned[claim])
+                    else:
+                        claims.setdefault(claim, []).append(record)
+                not_found()
                 if progress is not None:
                     held = progress(record)
                     if held is not None:
@@ -225,7 +239,7 @@ class Feeder:
             await membership.recover(cluster, records)
             # After the recovery, which reads a down robot's final state: one
             # still granted (settled) reports there what it did not find.
-            mark_not_found(assigned, watcher.states)
+            not_found()
             found = {r.seq: r for r in [*reruns, *membership.orphans(records),
                                         *membership.undecided(cluster, records)]}
             reruns = []

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -134,16 +135,43 @@ def by_assignment(records: Sequence[TaskRecord]) -> dict[tuple[str, int], TaskRe
     return {(r.assigned_to, r.seq): r for r in records if r.assigned_to is not None}
 
 
-def mark_not_found(assigned: Mapping[tuple[str, int], TaskRecord], states: Mapping[str, Any]) -> None:
+def mark_not_found(
+    assigned: Mapping[tuple[str, int], TaskRecord], states: Mapping[str, Any]
+) -> list[TaskRecord]:
     """Mark the tasks whose robot did not find the object at the shelf, as its
     live state names them (``missed``: the latest few); ``assigned``: see
     :func:`by_assignment` (kept up as tasks are decided, so a shift of
-    thousands of tasks is not indexed again after each one)."""
+    thousands of tasks is not indexed again after each one).  Returns the
+    records marked now."""
+    marked = []
     for robot_id, state in states.items():
         for seq, why in state.live.missed:
             record = assigned.get((robot_id, seq))
             if record is not None and record.not_found is None:
                 record.not_found = f"{robot_id} did not find it: {why}"
+                marked.append(record)
+    return marked
+
+
+_CLAIM = re.compile(r"picked by (\S+) at task (\d+)")
+
+
+def claim_of(record: TaskRecord) -> tuple[str, int] | None:
+    """(robot, task) a skip names as the object's pick ("picked by Robot2 at
+    task 1"), or None."""
+    match = _CLAIM.fullmatch(record.skip_reason or "") if record.skipped else None
+    return (match.group(1), int(match.group(2))) if match else None
+
+
+def unclaim(skip: TaskRecord, claimed: TaskRecord) -> None:
+    """A skip that named the pick of task ``claimed`` when that task's robot
+    then did not find the object: the robots skipped on the cluster's claim,
+    before anyone went to the shelf, but nobody picked it.  The record says
+    what became of the object instead: missing from its place since that
+    task, or picked by whoever took it first (another cluster)."""
+    why = (claimed.not_found or "").split(": ", 1)[-1]
+    skip.skip_reason = (why.removeprefix("gone: ") if why.startswith("gone: picked by ")
+                        else f"missing from its place since task {claimed.seq}")
 
 
 @dataclass(frozen=True)

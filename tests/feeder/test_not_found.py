@@ -9,7 +9,7 @@ from dataclasses import replace
 
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.feeder import FateCounts, TaskRecord
-from coapkb.feeder.record import by_assignment, mark_not_found, skip_kind
+from coapkb.feeder.record import by_assignment, claim_of, mark_not_found, skip_kind, unclaim
 from coapkb.harness.record import TeamRecord, summarise
 from coapkb.transport.base import TrafficCounters
 
@@ -129,3 +129,29 @@ def test_the_summary_names_each_task_not_found() -> None:
     data = json.loads(json.dumps(record.to_dict()))
     assert data["fates"]["not_found"] == 1 and data["fates"]["skip_kinds"] == {"already picked": 1}
     assert TeamRecord.from_dict(data).to_dict() == data
+
+
+def test_a_skip_on_a_claim_whose_robot_found_the_shelf_empty_says_missing() -> None:
+    """The robots skip a repeat on the cluster's claim ("picked by Robot1 at
+    task 4") before the robot reaches the shelf; once it reports the object
+    not there, the record says it is missing and counts it so."""
+    four, six = _assigned(4), _skipped(6, "picked by Robot1 at task 4", obj="Barilla_pasta_1")
+    assert claim_of(six) == ("Robot1", 4)
+    assert claim_of(_skipped(7, "missing from its place since task 4")) is None
+    assert claim_of(_skipped(8, "no such object")) is None
+    assigned = by_assignment([four, six])
+    [marked] = mark_not_found(assigned, {"Robot1": _state("Robot1", (4, MISPLACED))})
+    assert marked is four
+    assert mark_not_found(assigned, {"Robot1": _state("Robot1", (4, MISPLACED))}) == []  # marked once
+    unclaim(six, four)
+    assert six.skip_reason == "missing from its place since task 4"
+    assert FateCounts.of([four, six]).skip_kinds == {"missing": 1}
+
+
+def test_a_skip_on_a_claim_another_cluster_won_names_the_pick() -> None:
+    four = _assigned(4)
+    four.not_found = "Robot1 did not find it: gone: picked by Robot5 at task 2"
+    six = _skipped(6, "picked by Robot1 at task 4", obj="Barilla_pasta_1")
+    unclaim(six, four)
+    assert six.skip_reason == "picked by Robot5 at task 2"
+    assert skip_kind(six.skip_reason) == "already picked"

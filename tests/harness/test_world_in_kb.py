@@ -1,6 +1,7 @@
 """The world in the team's knowledge, as a user runs it: ``coapkb team
 --writable --misplace`` (repeats skipped as picked, by the robot the first
-task went to; a misplaced object not found) and ``coapkb world`` serving the
+task went to; a misplaced object not found, and its repeat skipped as
+missing) and ``coapkb world`` serving the
 shelves to robots run by hand.  Subprocesses, exit codes, output, record."""
 
 from __future__ import annotations
@@ -19,8 +20,8 @@ from support import ROOT
 from coapkb.world.service import WorldClient, WorldUnavailable
 
 MISPLACED = "not where the KB says it is (misplaced)"
-#: Tasks 3 and 5 repeat tasks 1 and 2; task 4's object is not at its shelf.
-TASKS = ["Gucci_bag_14", "Canon_tv_538", "Gucci_bag_14", "Barilla_pasta_1", "Canon_tv_538"]
+#: Tasks 3 and 5 repeat tasks 1 and 2; task 4's object is not at its shelf, and task 6 repeats it.
+TASKS = ["Gucci_bag_14", "Canon_tv_538", "Gucci_bag_14", "Barilla_pasta_1", "Canon_tv_538", "Barilla_pasta_1"]
 
 
 def coapkb(*args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -45,11 +46,14 @@ def test_a_writable_team_skips_repeats_and_finds_a_misplaced_object_missing(tmp_
     assert [(t["seq"], t["object"]) for t in tasks] == list(enumerate(TASKS, start=1))
     first, second = tasks[0]["assigned_to"], tasks[1]["assigned_to"]
     assert first in record["robots"] and second in record["robots"], tasks
-    assert [t["fate"] for t in tasks] == ["assigned", "assigned", "skipped", "not-found", "skipped"], tasks
+    assert [t["fate"] for t in tasks] == ["assigned", "assigned", "skipped", "not-found", "skipped", "skipped"], tasks
     # Every robot skipped each repeat alike, naming the robot the first task went to.
     assert tasks[2]["skip_reason"] == f"picked by {first} at task 1"
     assert tasks[4]["skip_reason"] == f"picked by {second} at task 2"
-    for task in (tasks[2], tasks[4]):
+    # The robots skipped task 6 on the claim of task 4 too, but nobody picked
+    # it: the record says the object is missing since task 4.
+    assert tasks[5]["skip_reason"] == "missing from its place since task 4"
+    for task in (tasks[2], tasks[4], tasks[5]):
         assert task["skipped"] and task["assigned_to"] is None and task["agreed"]
         assert set(task["decisions"]) == {"Robot1", "Robot2", "Robot3"}
     # Task 4 went to a robot, which found the shelf empty.
@@ -59,13 +63,13 @@ def test_a_writable_team_skips_repeats_and_finds_a_misplaced_object_missing(tmp_
     assert all(t["agreed"] and not t["errors"] for t in tasks)
     fates = record["fates"]
     assert (fates["assigned"], fates["skipped"], fates["not_found"], fates["disagreements"], fates["errors"]) == (
-        2, 2, 1, 0, 0)
-    assert fates["skip_kinds"] == {"already picked": 2}
+        2, 3, 1, 0, 0)
+    assert fates["skip_kinds"] == {"already picked": 2, "missing": 1}
 
     # The summary.
     assert "[cluster" not in stdout  # --quiet
     assert re.search(
-        r"^3 robots, distributed, coap, compute-by-all: 5 tasks, 2 assigned, 2 skipped \(2 already picked\), "
+        r"^3 robots, distributed, coap, compute-by-all: 6 tasks, 2 assigned, 3 skipped \(2 already picked, 1 missing\), "
         r"0 unassigned, 0 unavailable, 0 reassigned, 1 not found, 0 with errors, 0 disagreements$",
         stdout, re.M), stdout
     assert (f"\nnot found: task 4 Barilla_pasta_1 (cluster 1): {four['assigned_to']} did not find it: {MISPLACED}\n"
