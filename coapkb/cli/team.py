@@ -305,7 +305,13 @@ def task_lines(record, costs: bool = False) -> str:  # record: TaskRecord
         outcome += f" [joined again: {', '.join(record.joined)}]"
     if record.absent:
         outcome += f" [down: {', '.join(record.absent)}; epoch {max(record.epochs.values(), default=0)}]"
-    agreed = "" if record.agreed else "  DISAGREEMENT " + str(record.decisions)
+    # As the summary counts them: a disagreement is a task that failed with
+    # no robot's error (an error is shown as such; robots that all skip in
+    # different membership epochs still skip).
+    agreed = ""
+    if record.fate == "failed" and not record.errors:
+        agreed = ("  DISAGREEMENT " + str(record.decisions) if len(set(record.decisions.values())) > 1
+                  else "  DISAGREEMENT on the membership epoch " + str(record.epochs))
     lines = [f"[cluster {record.cluster}] task {record.seq:>3} {record.object:<28} {outcome} "
              f"({record.coordination_s * 1000:.0f} ms){agreed}"]
     if costs and record.costs:

@@ -207,3 +207,24 @@ def test_team_stop_and_resume_and_discovery() -> None:
     assert result.returncode in (0, 1) and "Traceback" not in result.stderr, result.stderr[-3000:]
     assert re.search(r"^stop Robot2 at 0\.3 s, declared down \d+\.\d s later$", result.stdout, re.M), result.stdout
     assert "resume Robot2 at 6.0 s" in result.stdout, result.stdout
+
+
+def test_a_task_line_says_disagreement_only_where_the_summary_counts_one() -> None:
+    from coapkb.cli.team import task_lines
+    from coapkb.feeder import TaskRecord
+
+    # Both survivors skipped, in different membership epochs: a skip, as the summary counts it.
+    skipped = TaskRecord("Gucci_bag_14", 1, 7, skipped=True, decisions={"Robot1": None, "Robot3": None},
+                         epochs={"Robot1": 1, "Robot3": 2}, skip_reason="no such object")
+    assert skipped.fate == "skipped"
+    assert "DISAGREEMENT" not in task_lines(skipped), task_lines(skipped)
+    # A robot's error is shown as such and counted as one, not as a disagreement.
+    failed = TaskRecord("Gucci_bag_14", 1, 7, decisions={"Robot1": None, "Robot3": None},
+                        errors={"Robot3": "no answer"})
+    assert "ERROR Robot3: no answer" in task_lines(failed) and "DISAGREEMENT" not in task_lines(failed)
+    # Two decisions, or one decision in two epochs: a disagreement.
+    split = TaskRecord("Gucci_bag_14", 1, 7, decisions={"Robot1": "Robot1", "Robot3": "Robot3"})
+    assert task_lines(split).endswith("DISAGREEMENT {'Robot1': 'Robot1', 'Robot3': 'Robot3'}")
+    epochs = TaskRecord("Gucci_bag_14", 1, 7, assigned_to="Robot1", decisions={"Robot1": "Robot1", "Robot3": "Robot1"},
+                        epochs={"Robot1": 1, "Robot3": 2})
+    assert task_lines(epochs).endswith("DISAGREEMENT on the membership epoch {'Robot1': 1, 'Robot3': 2}")
