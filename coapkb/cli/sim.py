@@ -8,13 +8,9 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from .common import UserError
-from .sim_case import add_case_options, replay_case, run_defaults, shrink_seed
-
-if TYPE_CHECKING:
-    from ..sim import RunResult
+from .sim_case import add_case_options, replay_case, report_run, run_defaults, shrink_seed
 
 
 def add_sim(sub: argparse._SubParsersAction) -> None:
@@ -104,9 +100,9 @@ async def _sim(args: argparse.Namespace) -> int:
         runs = []
         for run in run_many(spec, _seeds(args.seeds), args.jobs):
             runs.append(run)
-            _report(run, args.quiet)
+            report_run(run, args.quiet)
     if args.seed is not None:
-        _report(runs[0], args.quiet)
+        report_run(runs[0], args.quiet)
     violating = sum(1 for r in runs if r.violations)
     excused = sum(len(r.excused) for r in runs)
     if excused:
@@ -116,12 +112,3 @@ async def _sim(args: argparse.Namespace) -> int:
     print(f"sim: {len(runs)} runs, {violating} violations, {sum(r.sim_s for r in runs):,.0f} simulated s "
           f"in {time.monotonic() - started:,.1f} wall s")
     return 1 if violating else 0
-
-
-def _report(run: RunResult, quiet: bool) -> None:
-    if run.violations:
-        print(f"seed {run.seed} ({run.schedule}): VIOLATION " + " | ".join(run.violations), flush=True)
-    elif run.excused and not quiet:
-        print(f"seed {run.seed} ({run.schedule}): excused " + " | ".join(run.excused), flush=True)
-    elif not quiet:
-        print(f"seed {run.seed}: ok, {run.fates} ({run.sim_s:.1f} simulated s)", flush=True)

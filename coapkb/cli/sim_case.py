@@ -50,13 +50,22 @@ def check_budget(args: argparse.Namespace) -> None:
         raise UserError("--shrink-budget must be positive")
 
 
+def report_run(run: RunResult, quiet: bool) -> None:
+    """One run's line: its violations, what excused it, or (unless ``quiet``) that it was ok."""
+    if run.violations:
+        print(f"seed {run.seed} ({run.schedule}): VIOLATION " + " | ".join(run.violations), flush=True)
+    elif run.excused and not quiet:
+        print(f"seed {run.seed} ({run.schedule}): excused " + " | ".join(run.excused), flush=True)
+    elif not quiet:
+        print(f"seed {run.seed}: ok, {run.fates} ({run.sim_s:.1f} simulated s)", flush=True)
+
+
 def replay_case(args: argparse.Namespace) -> int:
     """``--replay FILE``: run the case again and print its result line (with
     ``--shrink OUT``: reduce it further)."""
     from ..sim import KBCache, summary
     from ..sim.case import SimCase
     from ..sim.shrink import first_violation, replay
-    from .sim import _report
 
     check_budget(args)
     given = [flag for dest, (_, flag) in args.run_defaults.items() if getattr(args, dest) is not None]
@@ -74,7 +83,7 @@ def replay_case(args: argparse.Namespace) -> int:
     full = _traced(args.trace, lambda out: replay(case, kbs, out))
     now = first_violation(full)  # from the whole history: the summary keeps none of it
     run = summary(full)
-    _report(run, False)
+    report_run(run, False)
     if case.violates is not None:
         if now is not None and now.check == case.violates:
             print(f"sim: {args.replay} breaks {case.violates} again, as when it was written")
@@ -91,14 +100,13 @@ def shrink_seed(args: argparse.Namespace, spec: SimSpec, started: float) -> int:
     from ..sim import KBCache, run_checked, summary
     from ..sim.case import SimCase
     from ..sim.shrink import first_violation
-    from .sim import _report
 
     check_budget(args)
     if args.seed is None:
         raise UserError("--shrink reduces one run: give --seed S (or --replay CASE)")
     kbs = KBCache()
     run = run_checked(spec, args.seed, kbs)
-    _report(summary(run), False)
+    report_run(summary(run), False)
     violation = first_violation(run)
     if violation is None:
         print(f"sim: seed {args.seed} breaks no invariant: nothing to shrink")
@@ -110,7 +118,6 @@ def shrink_seed(args: argparse.Namespace, spec: SimSpec, started: float) -> int:
 def _shrink(args: argparse.Namespace, case: SimCase, kbs: KBCache, started: float, expect: str | None) -> int:
     from ..sim import summary
     from ..sim.shrink import replay, shrink_case
-    from .sim import _report
 
     budget = args.shrink_budget - (time.monotonic() - started)
     shrunk = shrink_case(case, kbs=kbs, budget_s=budget, progress=lambda line: print(line, flush=True),
@@ -120,7 +127,7 @@ def _shrink(args: argparse.Namespace, case: SimCase, kbs: KBCache, started: floa
         return _closing([], started)
     shrunk.case.save(args.shrink)
     run = shrunk.run if not args.trace else _traced(args.trace, lambda out: replay(shrunk.case, kbs, out))
-    _report(summary(run), False)
+    report_run(summary(run), False)
     how = "no reduction left to try" if shrunk.complete else "the budget ran out"
     print(f"sim: shrunk {shrunk.original.describe_size()} to {shrunk.case.describe_size()}, still breaking "
           f"{shrunk.violation.check} first, in {shrunk.runs} runs and {shrunk.elapsed_s:.1f} s ({how})")
