@@ -592,15 +592,35 @@ class PaperTime:
                 + f" (held-out cell error {self.held_out_error:.0%}, {self.beyond_share:.0%} of the time extrapolated)")
 
 
+def _walls(rows: Sequence[BenchRow]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """All rows as a frame, and those with a wall time."""
+    df = frame(rows)
+    return df, df[df["wall_s"].notna() & (df["wall_s"] > 0)]
+
+
+def no_paper_time(rows: Sequence[BenchRow]) -> str | None:
+    """Why :func:`paper_time` has nothing to say about these rows, or None
+    if it has: no wall times, or one cell only (a ``coapkb bench`` CSV), from
+    which no axis of the matrix can be fitted and no cell held out."""
+    _, walls = _walls(rows)
+    if walls.empty:
+        return "no run in this CSV has a wall time (`wall_s`): nothing to estimate from"
+    cells = len(walls.groupby(list(CELL)))
+    if cells < 2:
+        return (f"the runs of this CSV with a wall time cover {cells} cell (robots, tasks, bandwidth, loss): "
+                "too few to fit how a run's time grows along the matrix; a sweep's CSV covers many")
+    return None
+
+
 def paper_time(rows: Sequence[BenchRow], profile: str = "paper") -> PaperTime | None:
     """The model fitted to ``rows`` and applied to every run of ``profile``
-    (``sweep.plan``, the default ``robust`` CoAP profile); None without wall times."""
+    (``sweep.plan``, the default ``robust`` CoAP profile); None without wall
+    times or with one cell only (:func:`no_paper_time` says which)."""
     from experiments import sweep  # experiments/sweep.py: the plan and each run's kill limit
 
-    df = frame(rows)
-    walls = df[df["wall_s"].notna() & (df["wall_s"] > 0)]
-    if walls.empty:
+    if no_paper_time(rows) is not None:
         return None
+    df, walls = _walls(rows)
     runs = sweep.plan(sweep.PROFILES[profile])
     plan = pd.DataFrame({"system": [r.system for r in runs], "robots": [r.robots for r in runs],
                          "tasks": [r.tasks for r in runs], "bandwidth_kbps": [r.bandwidth for r in runs],
@@ -645,7 +665,8 @@ def section_matrix_time(rows: Sequence[BenchRow], profile: str = "paper") -> lis
     lines = ["## How long the paper matrix takes", ""]
     est = paper_time(rows, profile)
     if est is None:
-        return lines + ["No run in this CSV has a wall time (`wall_s`): nothing to estimate from."]
+        why = no_paper_time(rows) or "nothing to estimate from"
+        return lines + [f"Not estimated: {why}."]
     coef = est.model.coef
     lines += [
         f"Predicted from the {est.fitted} runs of this CSV with a wall time (`wall_s`: a run's whole time, set-up "
@@ -755,6 +776,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     estimate = paper_time(rows)
     if estimate is not None:
         print(estimate.line())
+    else:
+        print(f"paper matrix time not estimated: {no_paper_time(rows)}")
     return 0
 
 

@@ -448,6 +448,28 @@ def test_report_script_writes_the_ratio_table(tmp_path: Path) -> None:
     assert "`coap-distributed --insecure`" in text  # never paired as the secured runs of its cell
 
 
+def test_the_report_on_a_bench_csv_of_one_cell_says_why_it_has_no_matrix_time(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``coapkb bench``'s own CSV: one cell, every system, wall times.  The
+    time model cannot be fitted (nor a cell held out): one line says so, and
+    the rest of the report is written."""
+    from experiments import report
+    path = tmp_path / "bench.csv"
+    append_rows(path, [_row(s, wall_s=w) for s, w in (("coap-distributed", 6.0), ("coap-central", 7.0),
+                                                      ("zmq-distributed", 5.0), ("zmq-central", 6.5))])
+    out = tmp_path / "report.md"
+    assert report.main([str(path), "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert printed.err == ""
+    assert printed.out.splitlines() == [
+        f"report written to {out}",
+        "paper matrix time not estimated: the runs of this CSV with a wall time cover 1 cell (robots, tasks, "
+        "bandwidth, loss): too few to fit how a run's time grows along the matrix; a sweep's CSV covers many"]
+    text = out.read_text()
+    assert "## Key ratios" in text and "## How long the paper matrix takes\n\nNot estimated: the runs" in text
+
+
 def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> None:
     """The central link carries every cluster's answers: the baseline is given
     the time that takes, so it fails only when something is wrong."""
