@@ -16,6 +16,7 @@ to this module).  ``examples/three-robots/`` holds a whole team of three.
 from __future__ import annotations
 
 import dataclasses
+import io
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
@@ -179,9 +180,18 @@ def load_config(path: str | Path) -> RobotConfig:
     """Read and validate a robot's TOML configuration."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = path.read_bytes()
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
+    return config_from_bytes(raw, path)
+
+
+def config_from_bytes(raw: bytes, path: Path) -> RobotConfig:
+    """What :func:`load_config` makes of ``raw`` as the contents of ``path``
+    (its relative paths taken from ``path``'s folder), without the file."""
+    try:
+        # Read as a text file is: UTF-8, universal newlines.
+        data = tomllib.loads(io.TextIOWrapper(io.BytesIO(raw), encoding="utf-8").read())
     except UnicodeDecodeError as exc:  # TOML is UTF-8 (a ValueError, but no ConfigError)
         raise ConfigError(f"{path}: not UTF-8: byte {exc.start} is {exc.object[exc.start]:#04x}") from None
     except tomllib.TOMLDecodeError as exc:

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import os
-import tempfile
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -29,16 +27,16 @@ import aiocoap.error
 from aiocoap.numbers.codes import Code
 
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
-from coapkb.config import ConfigError, dump_config, load_config, parse_config
+from coapkb.config import ConfigError, config_from_bytes, dump_config, parse_config
 from coapkb.discovery.client import DirectoryClient, DiscoveryError, registration_links
 from coapkb.discovery.directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH, DirectoryService
 from coapkb.discovery.multicast import _Asker, _Responder
 from coapkb.kb import update as kb_update
 from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.kb.replica import CausalContext, Delta, Dot, Stamp, WrittenState
 from coapkb.kb.resources import KBResources
-from coapkb.kb.results import AskResult, GraphResult, SelectResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from coapkb.model.results import AskResult, GraphResult, SelectResult
 from coapkb.transport import envelope as zmq_envelope
 from coapkb.transport.base import Endpoint, TransportError
 from coapkb.transport.coap import mapping as coap_mapping
@@ -362,30 +360,15 @@ def robot_state(data: bytes) -> None:
 # --------------------------------------------------------------------------- TOML configuration
 
 
-@functools.cache
-def _config_dir() -> Path:
-    """A folder two levels below one holding ``ontologies``: the examples'
-    relative paths (``../../ontologies/...``) resolve in it."""
-    # One fixed folder per user, made again if missing: fuzzing workers end
-    # without running exit handlers, so a folder per process was left behind.
-    top = Path(tempfile.gettempdir()) / f"coapkb-fuzz-config-{os.getuid()}"
-    (top / "examples" / "team").mkdir(parents=True, exist_ok=True)
-    link = top / "ontologies"
-    try:
-        link.symlink_to(ONTOLOGIES)
-    except FileExistsError:
-        if link.resolve() != ONTOLOGIES.resolve():  # another checkout's: point it here
-            link.unlink()
-            link.symlink_to(ONTOLOGIES)
-    return top / "examples" / "team"
-
-
 @target
 def config_toml(data: bytes) -> None:
-    path = _config_dir() / "robot.toml"
-    path.write_bytes(data)
+    # As the contents of a robot's file beside the examples' (their relative
+    # paths, ``../../ontologies/...``, resolve from there), but never written:
+    # fuzzing workers end without exit handlers, and a file or folder of
+    # theirs would be left behind.
+    path = EXAMPLE_CONFIGS / "robot.toml"
     try:
-        config = load_config(path)
+        config = config_from_bytes(data, path)
     except ConfigError:
         return
     dumped = dump_config(config)

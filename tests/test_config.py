@@ -15,6 +15,7 @@ from coapkb.config import (
     ExecutionModel,
     RobotConfig,
     StartState,
+    config_from_bytes,
     config_to_dict,
     dump_config,
     load_config,
@@ -263,6 +264,17 @@ def test_load_config_not_utf8(tmp_path: Path) -> None:
     path.write_bytes(b'robot_id = "R\x94"\n')
     with pytest.raises(ConfigError, match=r"not UTF-8: byte 13 is 0x94"):
         load_config(path)
+
+
+def test_config_from_bytes_is_load_config_without_the_file(tmp_path: Path) -> None:
+    """What the fuzzer feeds: the same reading (UTF-8, universal newlines,
+    paths from the file's folder) and the same errors, with no file."""
+    path = tmp_path / "robot1.toml"
+    raw = VALID_TOML.format(ontologies=ONTOLOGIES).replace("\n", "\r").encode()  # old Mac line ends
+    path.write_bytes(raw)
+    assert config_from_bytes(raw, tmp_path / "robot1.toml") == load_config(path)
+    with pytest.raises(ConfigError, match=r"^/nowhere/r.toml: not UTF-8: byte 13 is 0x94"):
+        config_from_bytes(b'robot_id = "R\x94"\n', Path("/nowhere/r.toml"))
 
 
 def test_load_config_prefixes_errors_with_the_path(tmp_path: Path) -> None:

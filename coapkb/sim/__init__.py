@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import TextIO
 
 from ..feeder.record import FateCounts
@@ -44,11 +46,11 @@ def summary(run: RunResult) -> RunResult:
 _worker_kbs: KBCache | None = None
 
 
-def _work(job: tuple[SimSpec, int]) -> RunResult:
+def _work(job: tuple[SimSpec, int, str]) -> RunResult:
     global _worker_kbs
+    spec, seed, scratch = job
     if _worker_kbs is None:
-        _worker_kbs = KBCache()
-    spec, seed = job
+        _worker_kbs = KBCache(Path(scratch))
     return summary(run_checked(spec, seed, _worker_kbs))
 
 
@@ -63,6 +65,9 @@ def run_many(spec: SimSpec, seeds: Iterable[int], jobs: int | None = None) -> It
         for job in work:
             yield summary(run_checked(job[0], job[1], kbs))
         return
-    # Forked workers inherit the parent's hash seed, so their runs match a replay.
-    with multiprocessing.get_context("fork").Pool(jobs) as pool:
-        yield from pool.imap(_work, work, chunksize=4)
+    # Forked workers inherit the parent's hash seed, so their runs match a
+    # replay.  The pool ends its workers without their cleanup: the folder
+    # they generate KBs in is this process's, removed once the pool is over.
+    with (tempfile.TemporaryDirectory(prefix="coapkb-sim-") as scratch,
+          multiprocessing.get_context("fork").Pool(jobs) as pool):
+        yield from pool.imap(_work, [(spec, seed, scratch) for spec, seed in work], chunksize=4)

@@ -42,10 +42,11 @@ from ..host import Host
 from ..kb.client import KBClient, QueryFailed
 from ..kb.journal import encode_record
 from ..kb.live import LiveKB
-from ..kb.replica import CausalContext, Delta, Dot, Stamp
 from ..kb.replication import SYNC_PATH
-from ..kb.results import QueryResult, expect_ask, expect_select
+from ..kb.results import expect_ask, expect_select
 from ..kb.store import KnowledgeBase
+from ..model.deltas import CausalContext, Delta, Dot, Stamp
+from ..model.results import QueryResult
 from ..transport.base import Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from ..wire.sync import SyncMessage, encode_sync
@@ -260,7 +261,11 @@ class KBCache:
     """The KB modules and team configurations, loaded once per worker process:
     they are read-only, so every simulated robot may share them."""
 
-    def __init__(self) -> None:
+    def __init__(self, scratch: Path | None = None) -> None:
+        #: Where generated KBs go: a folder of their own in ``scratch`` (a
+        #: worker's, which its parent removes after the pool ends: a worker
+        #: ends without removing its own), else in the temporary folder.
+        self._scratch = scratch
         self._kbs: dict[tuple[Path, ...], KnowledgeBase] = {}
         self._configs: dict[TeamSpec, dict[str, RobotConfig]] = {}
         self._products: dict[Path, list[str]] = {}
@@ -288,7 +293,7 @@ class KBCache:
         known = self._ontologies.get((spec.ontologies, spec.robots, spec.ties))
         if known is None:
             if self._generated is None:
-                self._generated = tempfile.TemporaryDirectory(prefix="coapkb-sim-")
+                self._generated = tempfile.TemporaryDirectory(prefix="coapkb-sim-", dir=self._scratch)
             into = Path(self._generated.name) / f"robots-{spec.robots}"
             known = kbs_for_team(spec.ontologies, team.robot_ids, into).ontologies
             if spec.ties:

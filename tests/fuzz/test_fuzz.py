@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -51,6 +52,15 @@ def test_corpus_replays_without_a_crash(name: str) -> None:
             fn(path.read_bytes())
         except Exception as exc:
             raise AssertionError(f"{name}: {path.relative_to(ROOT)} crashes the parser") from exc
+
+
+def test_the_targets_leave_nothing_in_the_temporary_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Fuzzing workers end without exit handlers: nothing a target makes there would be removed.
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    for name, inputs in targets.seeds().items():
+        for data in inputs:
+            targets.TARGETS[name](data)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_run_lists_the_targets() -> None:

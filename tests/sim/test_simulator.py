@@ -172,6 +172,17 @@ def test_the_command_replays_a_seed_byte_for_byte(tmp_path: Path) -> None:
     assert without_wall_time(first.stdout) == without_wall_time(second.stdout)
 
 
+def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_path: Path) -> None:
+    """The pool ends its workers before they could remove their folders: the
+    folder they generate KBs in is the parent's, removed after the pool."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    result = _coapkb("sim", "--robots", "12", "--tasks", "2", "--faults", "none", "--seeds", "1-2", "--jobs", "2",
+                     "--quiet", env={"TMPDIR": str(tmp)})
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert list(tmp.iterdir()) == []
+
+
 @pytest.mark.parametrize(("args", "needle"), [
     (["--seeds", "9-3"], "the range is empty"),
     (["--seeds", "x"], "--seeds expects"),
