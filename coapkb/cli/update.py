@@ -76,5 +76,6 @@ async def _update(args: argparse.Namespace) -> int:
     if isinstance(answer, WriteShort):
         print(f"coapkb: {peer} answered {answer.response.status.dotted}: {answer.response.text()}", file=sys.stderr)
         return SHORT_EXIT
-    print(f"{answer.version.hex()} {answer.text}".rstrip())
+    # The version is the new ETag (--if-match takes it), named so.
+    print(f"version {answer.version.hex()}" + (f": {answer.text}" if answer.text.strip() else ""))
     return 0

@@ -36,7 +36,7 @@ async def test_all_asked_with_a_holder_down_says_what_was_reached(tmp_path: Path
 
         local = await coapkb("update", "--ack", "local", robot1, _insert("first"))
         assert local.code == 0, local.stderr
-        assert re.fullmatch(r"[0-9a-f]+ removed 0, added 1; ack local \(1 of 2 holders\)\n", local.stdout), local
+        assert re.fullmatch(r"version [0-9a-f]+: removed 0, added 1; ack local \(1 of 2 holders\)\n", local.stdout), local
         both = await coapkb("update", "--ack", "all", robot1, _insert("second"))
         assert both.code == 0, both.stderr
         assert both.stdout.endswith("; ack all (2 of 2 holders)\n"), both
