@@ -39,9 +39,11 @@ def test_repeats_are_skipped_alike_and_no_object_is_picked_twice(kbs: KBCache) -
 
 @pytest.mark.slow
 def test_the_repeat_profile_holds_under_faults() -> None:
-    """60 seeded runs of nine robots with kills, restarts, freezes,
-    partitions and loss: no cluster gives an object twice."""
+    """Twenty seeded runs of nine robots with kills, restarts, freezes,
+    partitions and loss: no cluster gives an object twice (a wider scan is
+    `coapkb sim --robots 9 --tasks 60 --faults mixed --writes 3 --seeds 1-60`;
+    in the suite, under coverage, 60 runs took over five minutes)."""
     spec = SimSpec(robots=9, tasks=60, faults=FaultMix.parse("mixed"), writes=3)
-    findings = [f"seed {run.seed}: {finding}" for run in run_many(spec, range(1, 61))
+    findings = [f"seed {run.seed}: {finding}" for run in run_many(spec, range(1, 21))
                 for finding in check_repeats_skipped(run)]
     assert findings == []
