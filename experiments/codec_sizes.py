@@ -41,7 +41,7 @@ from pathlib import Path
 import cbor2
 from rdflib.term import Literal, URIRef
 
-from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
+from coapkb.model.results import AskResult, GraphResult, QueryResult, SelectResult
 from coapkb.wire.codec import decode_cbor, decode_json, encode_cbor, encode_json
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -283,9 +283,9 @@ def missed_encoding(count: int) -> tuple[int, int, int]:
     writes as deltas in one sync message, and the whole Location module as
     a compact graph (a full transfer)."""
     from coapkb.kb.live import LiveKB
-    from coapkb.kb.results import GraphResult
     from coapkb.kb.store import KnowledgeBase
     from coapkb.kb.update import encode_patch
+    from coapkb.model.results import GraphResult
     from coapkb.wire import codec
     from coapkb.wire.sync import SyncMessage, encode_sync
 

@@ -36,7 +36,7 @@ import cbor2
 from .. import clock
 from ..config import RobotConfig
 from ..kb.named_queries import MAX_LIST_ITEMS
-from ..kb.results import SelectResult
+from ..model.results import SelectResult
 from ..transport.base import PeerGone, TransportError
 from ..world import Layout, Position, layout_from_row, travel_distance
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler

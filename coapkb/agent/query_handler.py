@@ -20,8 +20,8 @@ from ..kb.client import KBClient, QueryFailed
 from ..kb.errors import KBError
 from ..kb.live import LiveKB
 from ..kb.named_queries import NAMED_QUERIES
-from ..kb.results import QueryResult
 from ..kb.store import KnowledgeBase
+from ..model.results import QueryResult
 from ..transport.base import TransportError
 from ..transport.messages import ContentFormat, Method
 from .task_assigner import robot_sort_key

@@ -58,7 +58,7 @@ def split_robot_uri(uri: str) -> tuple[Endpoint, str]:
 
 
 async def _query(args: argparse.Namespace) -> int:
-    from ..kb.results import AskResult, GraphResult
+    from ..model.results import AskResult, GraphResult
     from ..transport import open_client
 
     parts = urlsplit(args.uri if "://" in args.uri else f"coap://{args.uri}")

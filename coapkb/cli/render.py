@@ -23,7 +23,7 @@ WELL_KNOWN_PREFIXES = {
 
 def render(result, fmt: str) -> str:  # result: QueryResult
     """A query result as text: an aligned table, SPARQL-JSON, or SPARQL CSV."""
-    from ..kb.results import AskResult, GraphResult, SelectResult
+    from ..model.results import AskResult, GraphResult, SelectResult
 
     if fmt == "json":
         return json.dumps(json.loads(codec.encode_json(result)), indent=2) + "\n"

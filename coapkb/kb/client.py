@@ -10,11 +10,11 @@ from dataclasses import dataclass
 
 from ..clock import monotonic as loop_clock
 from ..errors import CoapkbError
+from ..model.results import QueryResult
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.observation import Notice, observe_fresh
 from ..wire import codec
-from .results import QueryResult
 from .write_concern import ACK_PARAM, Ack, parse_answer
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).

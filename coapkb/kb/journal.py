@@ -48,10 +48,10 @@ from pathlib import Path
 import cbor2
 
 from ..errors import CoapkbError
+from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..model.results import Triple
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
-from .replica import CausalContext, Delta, Dot, Stamp, WrittenState
-from .results import Triple
 
 __all__ = ["Change", "DataDirError", "Journal", "Recovered", "encode_record", "read_records"]
 

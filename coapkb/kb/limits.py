@@ -5,8 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from .. import clock
+from ..model.results import Term
 from .errors import QueryTimeout
-from .results import Term
 
 
 class Deadline:

@@ -24,11 +24,12 @@ from dataclasses import dataclass, field
 import pyoxigraph as ox
 from rdflib.term import BNode, Literal, URIRef
 
+from ..model.deltas import Delta, WrittenState
+from ..model.results import GraphResult, QueryResult, Term, Triple
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
 from .errors import KBError, QueryEvaluationError
 from .oxigraph_backend import OxigraphBackend, _to_ox
-from .replica import Delta, Effect, Replica, ReplicaLimits, WrittenState
-from .results import GraphResult, QueryResult, Term, Triple
+from .replica import Effect, Replica, ReplicaLimits
 from .store import KnowledgeBase
 from .update import Operation, UpdateUnsupported, parse_update
 

@@ -11,10 +11,10 @@ import pyoxigraph as ox
 import rdflib
 from rdflib.term import BNode, Literal, URIRef
 
+from ..model.results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
 from .errors import KBError, KBLoadError, QueryEvaluationError, QuerySyntaxError, short_message
 from .limits import Deadline, take
 from .refusals import refuse_or_syntax
-from .results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
 
 _XSD_STRING = "http://www.w3.org/2001/XMLSchema#string"
 _RDF_LANGSTRING = "http://www.w3.org/1999/02/22-rdf-syntax-ns#langString"

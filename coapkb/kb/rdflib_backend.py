@@ -15,10 +15,10 @@ import rdflib
 from rdflib.plugins.sparql.sparql import Query as SparqlQuery
 from rdflib.term import Literal, Node
 
+from ..model.results import AskResult, GraphResult, QueryResult, SelectResult, Term
 from .errors import KBError, KBLoadError, QueryEvaluationError, QuerySyntaxError, short_message
 from .limits import Deadline, take
 from .refusals import refuse_or_syntax
-from .results import AskResult, GraphResult, QueryResult, SelectResult, Term
 
 _XSD_STRING = "http://www.w3.org/2001/XMLSchema#string"
 _UNKNOWN_PREFIX = re.compile(r"Unknown namespace prefix\s*:\s*(\S+)")

@@ -49,13 +49,13 @@ from collections.abc import Collection, Coroutine, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from ..model.deltas import CausalContext, Delta, WrittenState
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
 from .live import LiveKB, Written
-from .replica import CausalContext, Delta, WrittenState
 from .write_concern import DEFAULT_ACK, Ack, Reached
 
 __all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings", "writer_robot"]

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import cbor2
 
+from ..model.results import QueryResult
 from ..transport.base import ResourceInfo
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
@@ -28,7 +29,6 @@ from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout, Updat
 from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written
 from .named_queries import NamedQuery, named_queries_for
 from .replica import ReplicaFull
-from .results import QueryResult
 from .update import UpdateUnsupported, decode_patch, parse_update
 from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, short_line
 

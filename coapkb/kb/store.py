@@ -1,6 +1,6 @@
 """A robot's read-only knowledge base: RDF files answering SPARQL queries.
 
-Two interchangeable backends give identical :mod:`coapkb.kb.results`:
+Two interchangeable backends give identical :mod:`coapkb.model.results`:
 
 * ``"oxigraph"`` (default, :mod:`.oxigraph_backend`): a pyoxigraph in-memory
   ``Store``, or an on-disk index (:mod:`.index`).  About 0.03 ms per lookup
@@ -28,6 +28,7 @@ from typing import Protocol
 
 import pyoxigraph as ox
 
+from ..model.results import QueryResult, Term
 from .errors import FeatureRefused
 from .formats import KBFile
 from .index import open_or_build_index
@@ -35,7 +36,7 @@ from .limits import Deadline
 from .named_queries import NAMED_QUERIES
 from .oxigraph_backend import OxigraphBackend
 from .refusals import refused_feature
-from .results import QueryResult, Term, expect_select
+from .results import expect_select
 
 __all__ = ["BACKENDS", "KnowledgeBase", "named_rows"]
 

@@ -29,9 +29,9 @@ from dataclasses import dataclass
 
 import cbor2
 
+from ..model.results import Triple
 from ..wire import codec
 from .errors import KBError, QuerySyntaxError
-from .results import Triple
 
 __all__ = [
     "Operation",

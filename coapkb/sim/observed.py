@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from ..agent.lease import LEASE_PATH
 from ..kb.live import LiveKB
-from ..kb.results import Triple
+from ..model.results import Triple
 from ..transport.messages import Request, Response
 from ..world.truth import WorldTruth
 from .loop import Process, SimLoop

@@ -1,6 +1,6 @@
 """Result codecs: compact CBOR (content-format 60) and SPARQL 1.1 JSON (50).
 
-Pure functions over :mod:`coapkb.kb.results`.  Both codecs are *lossless*:
+Pure functions over :mod:`coapkb.model.results`.  Both codecs are *lossless*:
 ``decode(encode(r)) == r`` down to the exact lexical form, datatype and
 language tag of every literal.  Decoders raise :class:`CodecError` and
 nothing else on malformed input.
@@ -34,7 +34,7 @@ import cbor2
 from rdflib.term import BNode, Literal, URIRef
 
 from ..errors import CoapkbError
-from ..kb.results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
+from ..model.results import AskResult, GraphResult, QueryResult, SelectResult, Term, Triple
 
 __all__ = [
     "CodecError",

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import cbor2
 
-from ..kb.replica import CausalContext, Delta, Dot, Stamp, WrittenState
-from ..kb.results import Triple
+from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..model.results import Triple
 from . import codec
 from .codec import CodecError, decode_graph_item
 

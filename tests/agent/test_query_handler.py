@@ -14,8 +14,8 @@ from coapkb.agent.query_handler import ModuleUnavailable, QueryError, QueryHandl
 from coapkb.kb.client import KBClient
 from coapkb.kb.errors import QueryEvaluationError
 from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.kb.results import SelectResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.results import SelectResult
 from coapkb.transport.base import ResourceInfo
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import Request, Response

@@ -17,8 +17,8 @@ from support import ONTOLOGIES
 from coapkb.kb.durable import Keeper, open_live
 from coapkb.kb.journal import JOURNAL_MAGIC, DataDirError, Journal, encode_record, read_records
 from coapkb.kb.live import LiveKB, wall_ms
-from coapkb.kb.replica import Dot
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.deltas import Dot
 
 LOC = "http://www.tcs.org/2018/Location#"
 PREFIX = f"PREFIX loc: <{LOC}>\n"

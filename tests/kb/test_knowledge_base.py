@@ -19,8 +19,8 @@ from coapkb.kb.errors import (
     UpdateRefused,
 )
 from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.kb.results import AskResult, GraphResult, SelectResult
 from coapkb.kb.store import BACKENDS, KnowledgeBase
+from coapkb.model.results import AskResult, GraphResult, SelectResult
 from coapkb.world import OBJECT_NS
 from coapkb.world.generator import WarehouseSpec
 from coapkb.world.ontologies import build_graphs

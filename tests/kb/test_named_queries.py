@@ -10,8 +10,9 @@ from support import ROOT
 
 from coapkb.kb.errors import KBError, UnexpectedResult
 from coapkb.kb.named_queries import NAMED_QUERIES, SAFE_VALUE, NamedQuery, named_queries_for
-from coapkb.kb.results import AskResult, GraphResult, SelectResult, expect_ask, expect_select
+from coapkb.kb.results import expect_ask, expect_select
 from coapkb.kb.store import BACKENDS, KnowledgeBase, named_rows
+from coapkb.model.results import AskResult, GraphResult, SelectResult
 from coapkb.world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS, Position, layout_from_row
 from coapkb.world.generator import WarehouseSpec, generate
 from coapkb.world.vocabulary import GRIP_TYPES

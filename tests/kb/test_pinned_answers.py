@@ -13,8 +13,8 @@ from coapkb.kb.client import KBClient, decode
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.resources import KBResources
-from coapkb.kb.results import QueryResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.results import QueryResult
 from coapkb.transport.base import Endpoint
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Method, Request, Status

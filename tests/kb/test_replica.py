@@ -24,19 +24,9 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import Literal, URIRef
 
-from coapkb.kb.replica import (
-    BASE_STAMP,
-    CausalContext,
-    Delta,
-    Dot,
-    Effect,
-    Replica,
-    ReplicaFull,
-    ReplicaLimits,
-    Stamp,
-    WrittenState,
-)
-from coapkb.kb.results import Term, Triple
+from coapkb.kb.replica import BASE_STAMP, Effect, Replica, ReplicaFull, ReplicaLimits
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from coapkb.model.results import Term, Triple
 
 EX = "http://example.org/team#"
 LOC = "http://www.tcs.org/2018/Location#"

@@ -21,10 +21,11 @@ from rdflib import Literal, URIRef
 from support import ONTOLOGIES
 
 from coapkb.kb.live import LiveKB, WriteLimits
-from coapkb.kb.replica import CausalContext, Delta, Dot, Replica, ReplicaLimits, Stamp, WrittenState
+from coapkb.kb.replica import Replica, ReplicaLimits
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator, writer_robot
-from coapkb.kb.results import Triple
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from coapkb.model.results import Triple
 from coapkb.transport.base import ClientTransport, Endpoint, PeerUnreachable
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync

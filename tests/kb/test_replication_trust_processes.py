@@ -18,7 +18,7 @@ from support import ROOT, coapkb, free_udp_port
 
 from coapkb.config import dump_config
 from coapkb.harness.team import TeamSpec, robot_configs
-from coapkb.kb.replica import CausalContext, Delta, Dot, Stamp
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp
 from coapkb.security import generate_team, load_identity
 from coapkb.security.coap import ClientSecurity
 from coapkb.security.keys import default_members

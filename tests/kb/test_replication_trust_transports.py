@@ -16,10 +16,10 @@ from rdflib import Literal, URIRef
 from support import ONTOLOGIES
 
 from coapkb.kb.live import LiveKB, wall_ms
-from coapkb.kb.replica import CausalContext, Delta, Dot, Stamp
 from coapkb.kb.replication import Holder, Replicator
 from coapkb.kb.resources import KBResources
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp
 from coapkb.security import generate_team, load_identity
 from coapkb.security.keys import default_members
 from coapkb.security.mechanisms import client_security, server_security

@@ -24,9 +24,9 @@ from support import ONTOLOGIES
 
 from coapkb.kb.errors import QuerySyntaxError
 from coapkb.kb.live import LiveKB, NotHeld, PreconditionFailed, WriteLimits, WriteTooLarge
-from coapkb.kb.results import SelectResult, Triple
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import Operation, UpdateUnsupported, decode_patch, encode_patch, parse_update
+from coapkb.model.results import SelectResult, Triple
 from coapkb.wire.codec import CodecError
 
 LOC = "http://www.tcs.org/2018/Location#"

@@ -35,8 +35,9 @@ from coapkb.agent.team_view import Membership, TeamView
 from coapkb.feeder.membership import Membership as FeederMembership
 from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
-from coapkb.kb.replica import CausalContext, Delta, Replica, WrittenState
+from coapkb.kb.replica import Replica
 from coapkb.kb.replication import Replicator
+from coapkb.model.deltas import CausalContext, Delta, WrittenState
 from coapkb.world.truth import Taken, WorldTruth
 
 #: The profiles mutants are caught in: a CI profile's options.

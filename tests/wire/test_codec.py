@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from rdflib.term import BNode, Literal, URIRef
 from support import ROOT, require
 
-from coapkb.kb.results import AskResult, GraphResult, QueryResult, SelectResult
+from coapkb.model.results import AskResult, GraphResult, QueryResult, SelectResult
 from coapkb.wire.codec import (
     GRAPH_VARS,
     MAX_PREFIX_TABLE_CHARS,

@@ -18,9 +18,10 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from rdflib.term import Literal, URIRef
 
-from coapkb.kb.replica import CausalContext, Delta, Dot, Replica, Stamp, WrittenState
-from coapkb.kb.results import Triple
+from coapkb.kb.replica import Replica
 from coapkb.kb.update import encode_patch
+from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from coapkb.model.results import Triple
 from coapkb.wire.codec import CodecError
 from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
 

@@ -29,8 +29,8 @@ from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_tcp_port, fre
 
 from coapkb.kb.client import KBClient, QueryFailed, decode
 from coapkb.kb.named_queries import NAMED_QUERIES, named_queries_for
-from coapkb.kb.results import SelectResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status

@@ -21,8 +21,8 @@ from rdflib import URIRef
 from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, require_libcoap, varied_query
 
 from coapkb.kb.named_queries import NAMED_QUERIES
-from coapkb.kb.results import SelectResult
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.messages import Method, Request, Status
 from coapkb.wire import codec

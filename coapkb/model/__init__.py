@@ -1,0 +1,3 @@
+"""The knowledge base's data model, below everything that stores, encodes
+or sends it: query results (:mod:`.results`) and a replicated module's
+writes (:mod:`.deltas`).  Pure records; they import nothing of coapkb."""
