@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from .common import UserError
-from .sim_case import add_case_options, replay_case, report_run, run_defaults, shrink_seed
+from .sim_case import add_case_options, closing_line, counted, replay_case, report_run, run_defaults, shrink_seed
 
 
 def add_sim(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +22,8 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, metavar="S", help="run seed S alone (with --trace: write its trace)")
     p.add_argument("--faults", default="mixed", metavar="LIST",
                    help="fault kinds a run may draw: kill, freeze, partition, starve, loss[=P], burst[=P], dup[=P], "
-                        "jitter[=S]; mixed = all of them; none = no faults (default mixed)")
+                        "jitter[=S]; mixed = all of them; none = no faults (default mixed); P is a probability "
+                        "(loss=0.2) or a percentage (loss=20%%)")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
     p.add_argument("--writes", type=int, default=0, metavar="N",
                    help="an operator writes N times to random robots' KBs during each run (replication checked)")
@@ -106,9 +107,7 @@ async def _sim(args: argparse.Namespace) -> int:
     violating = sum(1 for r in runs if r.violations)
     excused = sum(len(r.excused) for r in runs)
     if excused:
-        print(f"sim: {excused} findings excused by their schedules (a starved CPU, lost answers, a pick unreported "
-              f"when its robot died), "
-              f"in {sum(1 for r in runs if r.excused)} runs")
-    print(f"sim: {len(runs)} runs, {violating} violations, {sum(r.sim_s for r in runs):,.0f} simulated s "
-          f"in {time.monotonic() - started:,.1f} wall s")
+        print(f"sim: {counted(excused, 'finding')} excused by their schedules (a starved CPU, lost answers, a pick "
+              f"unreported when its robot died), in {counted(sum(1 for r in runs if r.excused), 'run')}")
+    print(closing_line(runs, violating, started))
     return 1 if violating else 0

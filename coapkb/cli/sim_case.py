@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, TextIO
 
 from .common import UserError
@@ -50,6 +50,29 @@ def check_budget(args: argparse.Namespace) -> None:
         raise UserError("--shrink-budget must be positive")
 
 
+def counted(n: int, what: str) -> str:
+    """``1 run``, ``2 runs``."""
+    return f"{n:,} {what}" if n == 1 else f"{n:,} {what}s"
+
+
+def _writes(runs: Sequence[RunResult]) -> str:
+    """The operator's writes (one may go to two holders at once: two
+    requests), and how many requests were acknowledged (2.04)."""
+    writes = sum(len({w.label for w in r.writes}) for r in runs)
+    requests = sum(len(r.writes) for r in runs)
+    acked = sum(1 for r in runs for w in r.writes if w.status == "2.04")
+    return f"{counted(writes, 'write')} ({counted(requests, 'request')}, {acked:,} acknowledged)"
+
+
+def written(run: RunResult) -> str:
+    """The operator's writes of a run and whether its replicas converged:
+    ``; 5 writes (6 requests, 5 acknowledged), the replicas agreed`` (nothing without writes)."""
+    if not run.writes:
+        return ""
+    agreed = "agreed" if run.converged_at is not None else "never agreed"
+    return f"; {_writes([run])}, the replicas {agreed}"
+
+
 def report_run(run: RunResult, quiet: bool) -> None:
     """One run's line: its violations, what excused it, or (unless ``quiet``) that it was ok."""
     if run.violations:
@@ -57,7 +80,20 @@ def report_run(run: RunResult, quiet: bool) -> None:
     elif run.excused and not quiet:
         print(f"seed {run.seed} ({run.schedule}): excused " + " | ".join(run.excused), flush=True)
     elif not quiet:
-        print(f"seed {run.seed}: ok, {run.fates} ({run.sim_s:.1f} simulated s)", flush=True)
+        print(f"seed {run.seed}: ok, {run.fates}{written(run)} ({run.sim_s:.1f} simulated s)", flush=True)
+
+
+def closing_line(runs: Sequence[RunResult], violating: int, started: float) -> str:
+    """``sim: R runs, V violations, S simulated s in W wall s`` and, with
+    writes, how many there were and in how many runs the replicas agreed."""
+    with_writes = [r for r in runs if r.writes]
+    replicated = ""
+    if with_writes:
+        agreed = sum(1 for r in with_writes if r.converged_at is not None)
+        replicated = (f"; {_writes(with_writes)}, the replicas agreed in {agreed} of "
+                      f"{counted(len(with_writes), 'run')} with writes")
+    return (f"sim: {counted(len(runs), 'run')}, {counted(violating, 'violation')}, "
+            f"{sum(r.sim_s for r in runs):,.0f} simulated s in {time.monotonic() - started:,.1f} wall s{replicated}")
 
 
 def replay_case(args: argparse.Namespace) -> int:
@@ -132,8 +168,8 @@ def _shrink(args: argparse.Namespace, case: SimCase, kbs: KBCache, started: floa
     print(f"sim: shrunk {shrunk.original.describe_size()} to {shrunk.case.describe_size()}, still breaking "
           f"{shrunk.violation.check} first, in {shrunk.runs} runs and {shrunk.elapsed_s:.1f} s ({how})")
     print(f"sim: wrote {args.shrink}; run it again with: coapkb sim --replay {args.shrink}")
-    print(f"sim: {shrunk.runs} runs, {shrunk.violating} violations, {shrunk.sim_s:,.0f} simulated s "
-          f"in {time.monotonic() - started:,.1f} wall s")
+    print(f"sim: {counted(shrunk.runs, 'run')}, {counted(shrunk.violating, 'violation')}, "
+          f"{shrunk.sim_s:,.0f} simulated s in {time.monotonic() - started:,.1f} wall s")
     return 1
 
 
@@ -153,7 +189,7 @@ def _closing(runs: list[RunResult], started: float) -> int:
     violating = sum(1 for r in runs if r.violations)
     excused = sum(len(r.excused) for r in runs)
     if excused:
-        print(f"sim: {excused} findings excused by their schedules, in {sum(1 for r in runs if r.excused)} runs")
-    print(f"sim: {len(runs)} runs, {violating} violations, {sum(r.sim_s for r in runs):,.0f} simulated s "
-          f"in {time.monotonic() - started:,.1f} wall s")
+        print(f"sim: {counted(excused, 'finding')} excused by their schedules, in "
+              f"{counted(sum(1 for r in runs if r.excused), 'run')}")
+    print(closing_line(runs, violating, started))
     return 1 if violating else 0

@@ -107,7 +107,12 @@ def _amount(name: str, value: str) -> float:
         amount = float(value[:-1]) / 100 if value.endswith("%") else float(value)
     except ValueError:
         raise FaultSpecError(f"{name}= expects a number, got {value!r}") from None
-    if not 0 <= amount <= (10 if name == "jitter" else 0.99 if name == "burst" else 1):
+    top = 10 if name == "jitter" else 0.99 if name == "burst" else 1
+    if name != "jitter" and amount > top and not value.endswith("%"):
+        # coapkb bench's --loss is in percent: say how to write a percentage here.
+        raise FaultSpecError(f"{name}={value}: P is a probability from 0 to {top:g} "
+                             f"(write {name}={amount / 100:g} or {name}={value}% for {value} %)")
+    if not 0 <= amount <= top:
         raise FaultSpecError(f"{name}={value} is out of range")
     return amount
 

@@ -165,11 +165,22 @@ def test_the_command_replays_a_seed_byte_for_byte(tmp_path: Path) -> None:
     second = _coapkb(*args, "--trace", str(tmp_path / "b.trace"), env={"PYTHONHASHSEED": "2"})
     assert first.returncode == 0, first.stdout + first.stderr
     assert (tmp_path / "a.trace").read_bytes() == (tmp_path / "b.trace").read_bytes()
-    assert re.search(r"^sim: 1 runs, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s$", first.stdout, re.M)
+    assert re.search(r"^sim: 1 run, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s$", first.stdout, re.M)
     def without_wall_time(out: str) -> str:
         return re.sub(r"in [\d.,]+ wall s", "", out)
 
     assert without_wall_time(first.stdout) == without_wall_time(second.stdout)
+
+
+def test_the_summary_counts_the_writes_and_whether_the_replicas_agreed() -> None:
+    result = _coapkb("sim", "--robots", "3", "--tasks", "3", "--faults", "none,loss=5%", "--seeds", "1-2",
+                     "--writes", "4", "--jobs", "1")
+    assert result.returncode == 0, result.stdout + result.stderr
+    for seed in (1, 2):
+        assert re.search(rf"^seed {seed}: ok, .*; 4 writes \([45] requests, \d acknowledged\), the replicas agreed "
+                         r"\([\d.]+ simulated s\)$", result.stdout, re.M), result.stdout
+    assert re.search(r"^sim: 2 runs, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s; 8 writes \(\d+ requests, "
+                     r"\d+ acknowledged\), the replicas agreed in 2 of 2 runs with writes$", result.stdout, re.M), result.stdout
 
 
 def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_path: Path) -> None:
@@ -189,6 +200,8 @@ def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_pat
     (["--trace", "t.txt"], "give --seed S"),
     (["--robots", "4"], "multiple of 3"),
     (["--faults", "meteor"], "unknown fault 'meteor'"),
+    # coapkb bench's --loss is in percent; here a bare 20 is a slip, said so.
+    (["--faults", "loss=20"], "loss=20: P is a probability from 0 to 1 (write loss=0.2 or loss=20% for 20 %)"),
 ])
 def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
     result = _coapkb("sim", *args, timeout=60)
