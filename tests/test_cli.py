@@ -307,3 +307,10 @@ async def test_keys_warn_when_git_would_commit_them(tmp_path: Path) -> None:
     assert quiet.code == 0 and "warning" not in quiet.stderr
     outside = await coapkb("keys", "--team-dir", str(tmp_path / "keys"))
     assert outside.code == 0 and "warning" not in outside.stderr
+
+
+async def test_keys_count_the_robots_apart_from_the_other_members(tmp_path: Path) -> None:
+    made = await coapkb("keys", "--team-dir", str(tmp_path / "six"), "--robots", "6")
+    assert made.code == 0, made.stderr
+    assert made.stdout.startswith(f"6 robots and 3 other members in {tmp_path / 'six'}: Robot1 (robot), "), made.stdout
+    assert "Robot6 (robot), feeder (feeder), central (server), operator (client)\n" in made.stdout

@@ -65,8 +65,10 @@ async def _keys(args: argparse.Namespace) -> int:
               f"does not ignore it: one `git add -A` would commit them. Keep keys outside the work tree, or add "
               f"{args.team_dir.rstrip('/')}/ to .gitignore", file=sys.stderr)
     # Names and roles only: the keys stay in their 0600 files.
-    print(f"team of {len(trust.members)} in {args.team_dir}: "
-          + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
+    robots = sum(1 for m in trust.members if m.role == "robot")
+    others = len(trust.members) - robots
+    print(f"{robots} robot{'' if robots == 1 else 's'} and {others} other member{'' if others == 1 else 's'} "
+          f"in {args.team_dir}: " + ", ".join(f"{m.name} ({m.role})" for m in trust.members))
     print(f"give each member its {Path(args.team_dir) / 'NAME.key'}, NAME.curve, NAME.tls.key, NAME.tls.pem, team.json and team-ca.pem; "
           "a robot's TOML names the directory: [security] credentials = \"DIR\"")
     return 0
