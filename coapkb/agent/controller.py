@@ -39,10 +39,11 @@ from ..kb.named_queries import MAX_LIST_ITEMS
 from ..model.results import SelectResult
 from ..transport.base import PeerGone, TransportError
 from ..world import Layout, Position, layout_from_row, travel_distance
+from .job import Job
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
 from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import Assignment, ChargeStop, RobotEnergy, TaskFacts, assign, robot_sort_key
-from .task_executor import Job, TaskExecutor
+from .task_executor import TaskExecutor
 from .team_view import Membership, TeamView
 
 log = logging.getLogger(__name__)

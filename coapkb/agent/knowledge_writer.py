@@ -34,13 +34,10 @@ import logging
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from ..errors import CoapkbError
 from ..world import CAPABILITY_NS, LOCATION_NS
-
-if TYPE_CHECKING:
-    from .task_executor import Job
+from .job import Job
 
 log = logging.getLogger(__name__)
 

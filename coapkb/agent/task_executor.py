@@ -20,12 +20,13 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 from ..config import ExecutionModel
 from ..errors import CoapkbError
 from ..world.truth import KBWorld, World
+from .job import Job
 from .knowledge_writer import DRAIN_WAIT_S, KnowledgeWriter
 from .robot_state import LiveState
 from .stats import Recharge
@@ -41,23 +42,6 @@ NOT_FOUND = "not found: %s (task %d): %s"
 #: Not-found tasks the live state names (the latest): the feeder reads them
 #: after every decision, and a robot finds few objects missing.
 MISSED_KEPT = 8
-
-
-@dataclass(frozen=True)
-class Job:
-    seq: int
-    object: str
-    aisle: int
-    rack: int
-    to_object_m: float
-    to_depot_m: float
-    depot: tuple[int, int]
-    #: Drive to a dock and charge before the task (then ``to_object_m`` is from the dock).
-    charge: ChargeStop | None = None
-    #: The robot's battery charge (Wh) and carried load (kg) once the job is
-    #: done, as planned: what it writes into the Capability KB then.
-    battery_after_wh: float | None = None
-    load_after_kg: float | None = None
 
 
 class TaskExecutor:

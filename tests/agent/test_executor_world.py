@@ -10,8 +10,9 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 
+from coapkb.agent.job import Job
 from coapkb.agent.robot_state import LiveState
-from coapkb.agent.task_executor import MISSED_KEPT, Job, TaskExecutor
+from coapkb.agent.task_executor import MISSED_KEPT, TaskExecutor
 from coapkb.config import ExecutionModel
 from coapkb.world.service import WorldUnavailable
 from coapkb.world.truth import Taken, WorldTruth

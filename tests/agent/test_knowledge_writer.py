@@ -15,6 +15,7 @@ import pytest
 from agent_helpers import ONTOLOGIES, config
 
 from coapkb.agent.controller import Controller, Task
+from coapkb.agent.job import Job
 from coapkb.agent.knowledge_writer import (
     WRITE_TRIES,
     KnowledgeWriter,
@@ -27,7 +28,7 @@ from coapkb.agent.knowledge_writer import (
 )
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
-from coapkb.agent.task_executor import Job, TaskExecutor
+from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_view import TeamView
 from coapkb.kb.client import KBClient, QueryFailed
 from coapkb.kb.errors import KBError

@@ -8,10 +8,11 @@ from collections.abc import Awaitable, Callable
 
 import pytest
 
+from coapkb.agent.job import Job
 from coapkb.agent.robot_state import LiveState
 from coapkb.agent.stats import Recharge
 from coapkb.agent.task_assigner import ChargeStop
-from coapkb.agent.task_executor import Job, TaskExecutor
+from coapkb.agent.task_executor import TaskExecutor
 from coapkb.config import ExecutionModel
 from coapkb.world import Position
 

@@ -28,9 +28,10 @@ if __package__ in (None, ""):
 
 from coapkb.agent import controller as controller_module
 from coapkb.agent.controller import Controller
+from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
 from coapkb.agent.task_assigner import Assignment
-from coapkb.agent.task_executor import Job, TaskExecutor
+from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_view import Membership, TeamView
 from coapkb.feeder.membership import Membership as FeederMembership
 from coapkb.kb.durable import Keeper
