@@ -13,9 +13,10 @@ robots, and by ``coapkb feed`` for robots started by hand
 know the feeder by its member name, :data:`~.security.FEEDER_IDENTITY`.
 """
 
-from .channel import FeederSettings, Roster
+from .channel import FeederSettings
 from .feeder import Feeder, FeedOutcome
 from .record import FateCounts, TaskRecord
+from .roster import Roster
 from .security import FEEDER_IDENTITY, feeder_security
 from .tasks import FeederError, read_tasks_file, split_tasks, task_post
 

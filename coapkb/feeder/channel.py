@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 
 from .. import clock
@@ -17,28 +17,12 @@ from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response
 from .reach import Reach
+from .roster import Roster
 from .tasks import FeederError
 
 #: What the feeder reads of a robot: its outcome (RobotState.encode_outcome),
 #: asked once (the watcher observes it all along).
 OUTCOME_REQUEST = Request(Method.GET, OUTCOME_PATH, accept=ContentFormat.CBOR)
-
-
-@dataclass(frozen=True)
-class Roster:
-    """Who is on the team and where: every robot's endpoint, and the
-    clusters (robots that share a task stream) in feeding order."""
-
-    endpoints: Mapping[str, Endpoint]
-    clusters: Sequence[Sequence[str]]
-
-    @property
-    def robot_ids(self) -> list[str]:
-        return [r for cluster in self.clusters for r in cluster]
-
-    def cluster_of(self, robot_id: str) -> Sequence[str]:
-        """The robots of ``robot_id``'s cluster (its own included)."""
-        return next((c for c in self.clusters if robot_id in c), ())
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,11 @@ from ..host import Network
 from ..transport import ClientSecurity
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
-from .channel import OUTCOME_REQUEST, Channel, FeederSettings, Roster
+from .channel import OUTCOME_REQUEST, Channel, FeederSettings
 from .membership import Membership
 from .orphans import idle
 from .record import TaskRecord, claim_of, mark_not_found, unclaim
+from .roster import Roster
 from .tasks import FeederError, split_tasks, task_post
 
 log = logging.getLogger(__name__)

@@ -15,16 +15,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from typing import TYPE_CHECKING
 
 from .. import clock
 from ..agent.robot_state import RobotState
 from ..agent.team_view import ObservedStates, indirect_probe
 from ..transport.base import ClientTransport, PeerGone, TransportError
 from ..transport.messages import Request
-
-if TYPE_CHECKING:
-    from .channel import Roster
+from .roster import Roster
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,8 @@ from typing import Any
 
 from ..agent.task_assigner import robot_sort_key
 from ..config import RobotConfig, load_config
-from .channel import FeederSettings, Roster
+from .channel import FeederSettings
+from .roster import Roster
 from .security import feeder_security
 from .tasks import FeederError
 

@@ -182,7 +182,8 @@ async def test_a_post_to_a_restarted_robot_is_forgotten_not_delivered_to_its_new
     mixed profile: the new process picked it, and so did the robot it went
     round again to)."""
     from coapkb.agent.team_view import OUTCOME_PATH, ObservedStates
-    from coapkb.feeder.channel import Channel, FeederSettings, Roster
+    from coapkb.feeder.channel import Channel, FeederSettings
+    from coapkb.feeder.roster import Roster
 
     class Silent:
         """A robot that never answers: the post stays in flight."""
