@@ -386,7 +386,7 @@ class ContextHooks:
         #: When each request in aiocoap's duplicate memory came, oldest first.
         self._remembered_at: OrderedDict[tuple[Any, int], float] = OrderedDict()
         #: Every datagram sent, written down (``COAPKB_WIRE_TRACE``), or None.
-        self.trace = wire_trace.tracer()
+        self.trace = wire_trace.tracer(note_protection)
 
     @classmethod
     def of(cls, ctx: aiocoap.Context, bounds: StateBounds = StateBounds()) -> ContextHooks:

@@ -35,6 +35,7 @@ import json
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -216,23 +217,18 @@ _TRACER_DIR: str | None = None
 _TRACER_LOCK = threading.Lock()
 
 
-def tracer() -> WireTrace | None:
+def tracer(note_protection: Callable[[str, Callable[[Any], Any]], None]) -> WireTrace | None:
     """This process's trace, if ``COAPKB_WIRE_TRACE`` names a directory (read
-    when a context is created), else None."""
+    when a context is created), else None.  Before a trace starts,
+    ``note_protection`` (the adapter's :func:`~.aiocoap_adapter.note_protection`)
+    has OSCORE's protect and unprotect note each outer message's plaintext
+    (see the module doc)."""
     global _TRACER, _TRACER_DIR
     directory = os.environ.get(ENV)
     if not directory:
         return None
     with _TRACER_LOCK:
         if _TRACER is None or _TRACER_DIR != directory:
-            _install_oscore_notes()
+            note_protection(_PLAIN, describe)
             _TRACER, _TRACER_DIR = WireTrace(Path(directory)), directory
         return _TRACER
-
-
-def _install_oscore_notes() -> None:
-    """Have OSCORE's protect and unprotect note each outer message's
-    plaintext (see the module doc), through the adapter."""
-    from .aiocoap_adapter import note_protection
-
-    note_protection(_PLAIN, describe)
