@@ -539,7 +539,14 @@ class Controller:
         if not exists:
             return NO_SUCH_OBJECT
         if not where or not features:
-            raise QueryError(f"{task.object} exists but has no location or features in the KB")
+            # Said apart: a new product written into the Object KB alone has
+            # its features but no shelf yet.
+            lacking = [what for what, missing in (
+                ("no place (aisle, rack, bin) in the Location KB", not where),
+                ("no grip and weight in the Object KB" if self.queries.wire != "seed"
+                 else "not every feature Query_3 asks in the Object KB", not features),
+            ) if missing]
+            raise QueryError(f"{task.object} exists but has {' and '.join(lacking)}")
         grip = _local_name(features[0]["grip"])
         robots = await self._about_team("robots-for-grip", {"grip": grip})
         capable = {str(r["robo_id"]): float(r["payload"]) for r in robots if str(r["robo_id"]) in self.config.team}

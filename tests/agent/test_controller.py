@@ -18,6 +18,7 @@ from coapkb.agent.team_view import PLAN_PATH, TeamView
 from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase
+from coapkb.model.results import SelectResult
 from coapkb.transport.base import ResourceInfo, TransportError
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Request, Response, Status
@@ -115,6 +116,31 @@ async def test_gather_runs_the_four_queries(make: Callable) -> None:
     assert not isinstance(facts, str) and facts.object == OBJECT and facts.weight_kg > 0
     assert set(facts.capable) <= {"Robot1", "Robot2", "Robot4"} and facts.capable  # only teammates
     assert await h.controller.gather(Task(2, "Nonexistent_widget_1")) == "no such object"
+
+
+async def test_an_object_without_a_place_is_said_to_lack_its_place_not_its_features(
+    make: Callable, network: MemoryNetwork, all_kbs: KnowledgeBase
+) -> None:
+    """A new product written into the Object KB alone: its grip and weight
+    are there, its shelf is not."""
+    cfg = config("Robot1", {"Robot1": ALL, "Robot2": (), "Robot4": ()})
+    real = QueryHandler(cfg, all_kbs, KBClient(network.client()))
+
+    class NoPlace:
+        wire = real.wire
+
+        async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> object:
+            if name == "pick-place":
+                return SelectResult(("aisle_no", "rack_no", "bin_no", "picked_by", "picked_task", "missing_task"), ())
+            return await real.run(name, params, at=at)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(real, name)
+
+    h = await make(cfg, queries=NoPlace())
+    with pytest.raises(QueryError) as raised:
+        await h.controller.gather(Task(1, OBJECT))
+    assert str(raised.value) == f"{OBJECT} exists but has no place (aisle, rack, bin) in the Location KB"
 
 
 async def test_compute_by_all_waits_for_every_teammate_to_decide_the_previous_task(
