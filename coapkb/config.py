@@ -28,7 +28,7 @@ import tomli_w
 from .errors import CoapkbError
 from .security.settings import SecurityConfig, parse_security
 from .transport.base import Endpoint
-from .transport.registry import transport_for
+from .transport.registry import parse_endpoint, transport_for
 from .typed_fields import typed_fields
 
 KB_MODULES = ("Object", "Location", "Capability")
@@ -436,7 +436,7 @@ def _endpoint_value(text: Any) -> Endpoint:
     """ValueError saying why ``text`` is not an endpoint."""
     if not isinstance(text, str):
         raise ValueError("expected a URI string like coap://127.0.0.1:5683")
-    return Endpoint.parse(text)
+    return parse_endpoint(text)
 
 
 def _endpoint(text: Any, name: str) -> Endpoint:

@@ -148,10 +148,10 @@ class Teammates:
         """Key every teammate; returns one protected request as it went on the wire."""
         from coapkb.security import load_identity
         from coapkb.security.coap import ClientSecurity
-        from coapkb.transport import Endpoint, open_client
+        from coapkb.transport import open_client, parse_endpoint
         from coapkb.transport.messages import Method, Request
 
-        self.peer = Endpoint.parse(self.uri)
+        self.peer = parse_endpoint(self.uri)
         for name in ("Robot2", "Robot3", "feeder"):
             client = await open_client("coap", security=ClientSecurity(load_identity(self.team_dir, name)))
             await client.request(self.peer, Request(Method.GET, "/kb/q/object-exists", {"name": self.objects[0]}),

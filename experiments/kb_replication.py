@@ -67,8 +67,7 @@ async def node(args: argparse.Namespace) -> None:
     from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
     from coapkb.kb.resources import KBResources
     from coapkb.kb.store import KnowledgeBase
-    from coapkb.transport import open_client, reliability_for, serve
-    from coapkb.transport.base import Endpoint
+    from coapkb.transport import open_client, parse_endpoint, reliability_for, serve
     from coapkb.transport.router import Router
 
     written = URIRef(LOC + "written")
@@ -83,12 +82,12 @@ async def node(args: argparse.Namespace) -> None:
                     seen.add(str(o))
                     print(json.dumps({"has": str(o), "t": now}), flush=True)
 
-    bind = Endpoint.parse(args.bind)
+    bind = parse_endpoint(args.bind)
     reliability = reliability_for(bind.scheme, link_kbps=args.link_kbps)
     client = await open_client(bind.scheme, reliability=reliability)
     live = Watched(KnowledgeBase.load([LOCATION]), f"{args.name}.1", wall_ms=wall_ms)
-    holders = [Holder(n, Endpoint.parse(uri), ("Location",)) for n, _, uri in (p.partition("=") for p in args.peer)]
-    holders += [Holder(n, Endpoint.parse(uri), ("Location",), remote=True)
+    holders = [Holder(n, parse_endpoint(uri), ("Location",)) for n, _, uri in (p.partition("=") for p in args.peer)]
+    holders += [Holder(n, parse_endpoint(uri), ("Location",), remote=True)
                 for n, _, uri in (p.partition("=") for p in args.remote)]
     replicator = Replicator(live, client, holders, settings=ReplicationSettings(sync_every_s=args.sync_every),
                             rng=random.Random(args.name))
@@ -109,10 +108,10 @@ async def operator(args: argparse.Namespace) -> None:
     """Sends the writes: ``--count`` of them, ``--every`` s apart, each to a
     random one of ``--to``; prints each one's send time and answer."""
     from coapkb.kb.client import KBClient, QueryFailed
-    from coapkb.transport import open_client, reliability_for
+    from coapkb.transport import open_client, parse_endpoint, reliability_for
     from coapkb.transport.base import Endpoint, TransportError
 
-    targets = [Endpoint.parse(uri) for uri in args.to]
+    targets = [parse_endpoint(uri) for uri in args.to]
     scheme = targets[0].scheme
     client = await open_client(scheme, reliability=reliability_for(scheme, link_kbps=args.link_kbps))
     kb = KBClient(client, timeout=60)

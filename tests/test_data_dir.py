@@ -15,7 +15,7 @@ from coapkb.config import ConfigError, dump_config, load_config, parse_config
 from coapkb.kb.client import KBClient
 from coapkb.kb.results import expect_select
 from coapkb.transport import open_client
-from coapkb.transport.base import Endpoint
+from coapkb.transport.registry import parse_endpoint
 
 LOC = "http://www.tcs.org/2018/Location#"
 PREFIX = f"PREFIX loc: <{LOC}>\n"
@@ -51,7 +51,7 @@ def test_a_bad_data_dir_is_named(tmp_path: Path, value: object, message: str) ->
 async def _written(uri: str) -> set[str]:
     client = await open_client("coap")
     try:
-        result = await KBClient(client, timeout=10).sparql(Endpoint.parse(uri),
+        result = await KBClient(client, timeout=10).sparql(parse_endpoint(uri),
                                                            PREFIX + "SELECT ?v WHERE { ?s loc:written ?v }")
         return {str(row["v"]) for row in expect_select(result, "written").as_dicts()}
     finally:

@@ -11,7 +11,7 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, TypeVar
 
 from ..errors import CoapkbError
-from ..transport import ClientSecurity, Endpoint, ServerSecurity
+from ..transport import ClientSecurity, Endpoint, ServerSecurity, registry
 
 if TYPE_CHECKING:
     from ..kb.client import KBClient
@@ -40,14 +40,14 @@ def parse_endpoint(hostport: str, scheme: str) -> Endpoint:
     """``[SCHEME://]HOST[:PORT]``; without a port, the scheme's own (CoAP's
     5683, RFC 7252 section 6.1)."""
     try:
-        return Endpoint.parse(hostport, default_scheme=scheme)
+        return registry.parse_endpoint(hostport, default_scheme=scheme)
     except ValueError as exc:
         error = UserError(str(exc))
     with_port = _with_default_port(hostport, scheme)
     if with_port is None:
         raise error
     try:
-        return Endpoint.parse(with_port, default_scheme=scheme)
+        return registry.parse_endpoint(with_port, default_scheme=scheme)
     except ValueError:
         raise error from None
 

@@ -25,6 +25,7 @@ from ..security.keys import TeamTrust
 from ..transport import open_client, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
+from ..transport.registry import parse_endpoint
 from .directory import EP_LOOKUP_PATH, REGISTER_PATH, RES_LOOKUP_PATH
 from .multicast import find_directory
 
@@ -146,7 +147,7 @@ class DirectoryClient:
                 log.warning("directory lists %s, not a robot of the team: ignored", ep)
                 continue
             try:
-                endpoint = Endpoint.parse(base)
+                endpoint = parse_endpoint(base)
             except ValueError:
                 log.warning("directory lists %s at %r: not an endpoint", ep, base)
                 continue
@@ -167,7 +168,7 @@ class DirectoryClient:
         for link in self._links(response.text(), "resource lookup"):
             kb = dict(link.attr_pairs).get("kb")
             try:
-                hostport = Endpoint.parse(link.href).hostport
+                hostport = parse_endpoint(link.href).hostport
             except ValueError:
                 continue
             if kb in KB_MODULES and kb not in held.setdefault(hostport, []):

@@ -39,6 +39,7 @@ from ..security.policy import ALLOW, AccessPolicy, Verdict
 from ..transport import serve
 from ..transport.base import Endpoint, ResourceInfo, ServerTransport
 from ..transport.messages import ContentFormat, Request, Response, Status
+from ..transport.registry import parse_endpoint
 from ..transport.router import Router
 
 log = logging.getLogger(__name__)
@@ -124,7 +125,7 @@ class DirectoryService:
             lifetime = int(request.query.get("lt", MAX_LIFETIME_S))
             if not 1 <= lifetime <= MAX_LIFETIME_S:
                 raise ValueError(f"lt must be 1 to {MAX_LIFETIME_S}")
-            Endpoint.parse(base)
+            parse_endpoint(base)
         except (UnicodeDecodeError, ValueError) as exc:
             return Response.error(Status.BAD_REQUEST, f"not a registration: {exc}")
         except Exception as exc:  # noqa: BLE001 - the link-format parser's own errors

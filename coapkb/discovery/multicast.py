@@ -27,6 +27,7 @@ import aiocoap
 from aiocoap.util.linkformat import Link, LinkFormat, parse
 
 from ..transport.base import Endpoint
+from ..transport.registry import parse_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ class _Asker(asyncio.DatagramProtocol):
                 try:
                     # A relative reference is the answering node's own (RFC 6690).
                     target = link.href if "://" in link.href else f"coap://{addr[0]}:{addr[1]}{link.href}"
-                    endpoint = Endpoint.parse(target)
+                    endpoint = parse_endpoint(target)
                 except ValueError:
                     continue
                 if not self.found.done():

@@ -24,7 +24,7 @@ from .base import (
     TrafficCounters,
     TransportError,
 )
-from .registry import SCHEMES, Reliability, TransportInfo, secured_schemes, transport_for
+from .registry import SCHEMES, Reliability, TransportInfo, parse_endpoint, secured_schemes, transport_for
 from .security import ClientSecurity, GuardedService, ServerSecurity
 
 
@@ -103,6 +103,7 @@ __all__ = [
     "TransportInfo",
     "check_table",
     "open_client",
+    "parse_endpoint",
     "reliability_for",
     "secured_schemes",
     "serve",

@@ -116,36 +116,12 @@ class PeerTimeout(PeerUnreachable):
 
 @dataclass(frozen=True)
 class Endpoint:
-    """Where a robot listens: ``scheme://host:port`` (a scheme of :mod:`.registry`)."""
+    """Where a robot listens: ``scheme://host:port`` (a scheme of :mod:`.registry`,
+    which parses one: :func:`~.registry.parse_endpoint`)."""
 
     scheme: str
     host: str
     port: int
-
-    @classmethod
-    def parse(cls, uri: str, default_scheme: str = "coap") -> Endpoint:
-        """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq), ``zenoh://h:p``,
-        ``zenoh+udp://h:p``, ``zenoh+quic://h:p``, ``dds://h:p`` or bare ``h:p``."""
-        scheme, sep, rest = uri.partition("://")
-        if not sep:
-            scheme, rest = default_scheme, uri
-        from .registry import SCHEMES, canonical_scheme
-
-        scheme = canonical_scheme(scheme)
-        if scheme not in SCHEMES:
-            raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in SCHEMES)})")
-        rest = rest.split("/", 1)[0]
-        bracketed = rest.startswith("[")
-        if bracketed:  # [IPv6]:port
-            host, _, port = rest[1:].partition("]:")
-        else:
-            host, _, port = rest.rpartition(":")
-        if not host or not (port.isascii() and port.isdigit()) or not 0 <= int(port) < 65536:
-            raise ValueError(f"expected HOST:PORT in {uri!r}")
-        # A host str() could not write back (brackets in it, or a colon outside them).
-        if "[" in host or "]" in host or ":" in host and not bracketed:
-            raise ValueError(f"expected HOST:PORT in {uri!r} (an IPv6 address in brackets: [::1]:5683)")
-        return cls(scheme, host, int(port))
 
     @property
     def hostport(self) -> str:

@@ -20,9 +20,10 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 
 from ..errors import CoapkbError
 from ..typed_fields import typed_fields
+from .base import Endpoint
 
 if TYPE_CHECKING:
-    from .base import ClientTransport, Endpoint, ServerTransport, Service
+    from .base import ClientTransport, ServerTransport, Service
     from .coap.reliability import ReliabilityLayer
     from .dds.transport import DdsOptions
     from .security import ClientSecurity, ServerSecurity
@@ -247,6 +248,31 @@ def canonical_scheme(scheme: str) -> str:
     """``scheme`` as registered (an alias such as ``tcp`` becomes ``zmq``); an unknown one unchanged."""
     found = _BY_SCHEME.get(scheme)
     return scheme if found is None else found.scheme
+
+
+def parse_endpoint(uri: str, default_scheme: str = "coap") -> Endpoint:
+    """Parse ``coap://h:p``, ``zmq://h:p``, ``tcp://h:p`` (= zmq), ``zenoh://h:p``,
+    ``zenoh+udp://h:p``, ``zenoh+quic://h:p``, ``dds://h:p`` or bare ``h:p``
+    (in ``default_scheme``); ValueError for a scheme not registered here or
+    no ``HOST:PORT``."""
+    scheme, sep, rest = uri.partition("://")
+    if not sep:
+        scheme, rest = default_scheme, uri
+    scheme = canonical_scheme(scheme)
+    if scheme not in SCHEMES:
+        raise ValueError(f"unsupported scheme {scheme!r} in {uri!r} (use {', '.join(s + '://' for s in SCHEMES)})")
+    rest = rest.split("/", 1)[0]
+    bracketed = rest.startswith("[")
+    if bracketed:  # [IPv6]:port
+        host, _, port = rest[1:].partition("]:")
+    else:
+        host, _, port = rest.rpartition(":")
+    if not host or not (port.isascii() and port.isdigit()) or not 0 <= int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT in {uri!r}")
+    # A host str() could not write back (brackets in it, or a colon outside them).
+    if "[" in host or "]" in host or ":" in host and not bracketed:
+        raise ValueError(f"expected HOST:PORT in {uri!r} (an IPv6 address in brackets: [::1]:5683)")
+    return Endpoint(scheme, host, int(port))
 
 
 def secured_schemes() -> tuple[str, ...]:

@@ -34,6 +34,7 @@ from coapkb.model.results import SelectResult
 from coapkb.transport import Endpoint, open_client
 from coapkb.transport.base import ClientTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.registry import parse_endpoint
 from coapkb.wire import codec
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
@@ -121,7 +122,7 @@ async def transport() -> AsyncIterator[ClientTransport]:
 
 @pytest.fixture
 def peer(server: ServerProcess) -> Endpoint:
-    return Endpoint.parse(server.uri)
+    return parse_endpoint(server.uri)
 
 
 @pytest.fixture
@@ -588,7 +589,7 @@ async def test_garbage_datagrams() -> None:
     transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
-        peer = Endpoint.parse(srv.uri)
+        peer = parse_endpoint(srv.uri)
         check_seed_answer("robots-for-grip", await client.named(peer, "robots-for-grip", {"grip": "gripping"}))
         rng = random.Random(7252)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -657,7 +658,7 @@ async def test_row_limit_marks_truncated() -> None:
     transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
-        peer = Endpoint.parse(srv.uri)
+        peer = parse_endpoint(srv.uri)
         for accept in (ContentFormat.CBOR, ContentFormat.JSON):
             result = await client.sparql(peer, "SELECT * WHERE { ?s ?p ?o }", accept=accept)
             assert result.truncated is True
@@ -693,7 +694,7 @@ async def test_time_budget_is_503_with_max_age() -> None:
     transport = await open_client("coap")
     try:
         client = KBClient(transport, timeout=10)
-        peer = Endpoint.parse(srv.uri)
+        peer = parse_endpoint(srv.uri)
         # answered at the budget: the count itself would take minutes, and a finished one is 2.05
         response = await call(transport, peer, fetch(COSTLY), timeout=60)
         assert response.status == Status.SERVICE_UNAVAILABLE, response.text()
@@ -713,7 +714,7 @@ async def test_server_stops_promptly_after_a_runaway_query() -> None:
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
     transport = await open_client("coap")
     try:
-        response = await call(transport, Endpoint.parse(srv.uri), fetch(COSTLY), timeout=10)
+        response = await call(transport, parse_endpoint(srv.uri), fetch(COSTLY), timeout=10)
         assert response.status == Status.SERVICE_UNAVAILABLE
     finally:
         await transport.aclose()
@@ -726,7 +727,7 @@ async def test_runaway_queries_do_not_starve_the_robot() -> None:
     srv = await ServerProcess.start("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--time-budget", "0.05")
     transport = await open_client("coap")
     try:
-        peer = Endpoint.parse(srv.uri)
+        peer = parse_endpoint(srv.uri)
         # one more than the default executor's workers; different texts so nothing is shared
         workers = min(32, (os.cpu_count() or 1) + 4)
         answers = await asyncio.gather(*(call(transport, peer, fetch(COSTLY + " " * i)) for i in range(workers + 1)))
@@ -742,7 +743,7 @@ async def test_runaway_queries_do_not_starve_the_robot() -> None:
 
 
 async def test_second_server_on_same_port_fails_clearly(server: ServerProcess) -> None:
-    port = Endpoint.parse(server.uri).port
+    port = parse_endpoint(server.uri).port
     import sys
 
     from support import ROOT
@@ -770,7 +771,7 @@ async def test_zmq_transport_answers_identically(client: KBClient, peer: Endpoin
     srv = await ServerProcess.start("--kb", *KB_FILES, "--transport", "zmq", "--bind", f"127.0.0.1:{port}")
     zmq_transport = await open_client("zmq")
     try:
-        zmq_peer = Endpoint.parse(srv.uri)
+        zmq_peer = parse_endpoint(srv.uri)
         assert zmq_peer.scheme == "zmq" and zmq_peer.port == port
         zmq_client = KBClient(zmq_transport, timeout=10)
         for name, params in SEED_QUERIES.items():

@@ -23,8 +23,9 @@ from support import GRIPPING_ROBOTS, KB_FILES, ServerProcess, free_udp_port, req
 from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.store import KnowledgeBase
 from coapkb.model.results import SelectResult
-from coapkb.transport import Endpoint, open_client
+from coapkb.transport import open_client
 from coapkb.transport.messages import Method, Request, Status
+from coapkb.transport.registry import parse_endpoint
 from coapkb.wire import codec
 
 pytestmark = [pytest.mark.libcoap, pytest.mark.asyncio(loop_scope="module")]
@@ -99,7 +100,7 @@ async def aiocoap_payload(base: str, request: Request) -> bytes:
     """The same request through coapkb's own (aiocoap) client, for comparison."""
     transport = await open_client("coap")
     try:
-        response = await transport.request(Endpoint.parse(base), request, timeout=10)
+        response = await transport.request(parse_endpoint(base), request, timeout=10)
     finally:
         await transport.aclose()
     assert response.status == Status.CONTENT, response.text()

@@ -25,6 +25,7 @@ from coapkb.transport.dds.config import client_domain_xml, server_domain_xml, to
 from coapkb.transport.dds.envelope import Envelope
 from coapkb.transport.dds.transport import DdsClientTransport, DdsOptions, DdsServerTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.registry import parse_endpoint
 from coapkb.wire.codec import decode_cbor
 
 LOCAL = Endpoint("dds", "127.0.0.1", 0)
@@ -202,7 +203,7 @@ async def test_named_query_to_a_serve_process_and_its_restart() -> None:
     port = free_udp_port()
     args = ("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--transport", "dds")
     robot = await ServerProcess.start(*args)
-    peer = Endpoint.parse(robot.uri)
+    peer = parse_endpoint(robot.uri)
     assert peer == Endpoint("dds", "127.0.0.1", port)
     client = await open_client("dds")
     try:

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from coapkb.transport.base import Endpoint
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.registry import parse_endpoint
 from coapkb.transport.zenoh.mapping import (
     KEY_ROOT,
     MappingError,
@@ -44,8 +45,8 @@ def test_locators() -> None:
     assert locator(Endpoint("zenoh+quic", "10.0.0.2", 7447)) == "quic/10.0.0.2:7447"
     with pytest.raises(ValueError, match="not a zenoh endpoint"):
         locator(Endpoint("coap", "127.0.0.1", 5683))
-    assert Endpoint.parse("zenoh+udp://127.0.0.1:7447") == Endpoint("zenoh+udp", "127.0.0.1", 7447)
-    assert Endpoint.parse("zenoh+quic://[::1]:7447") == Endpoint("zenoh+quic", "::1", 7447)
+    assert parse_endpoint("zenoh+udp://127.0.0.1:7447") == Endpoint("zenoh+udp", "127.0.0.1", 7447)
+    assert parse_endpoint("zenoh+quic://[::1]:7447") == Endpoint("zenoh+quic", "::1", 7447)
 
 
 def test_keys_of_the_robot_resources() -> None:

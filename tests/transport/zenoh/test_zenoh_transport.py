@@ -23,6 +23,7 @@ from support import KB_FILES, ServerProcess, free_tcp_port
 from coapkb.transport import open_client, serve
 from coapkb.transport.base import Endpoint, PeerUnreachable, ResourceInfo, Service, TransportError
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
+from coapkb.transport.registry import parse_endpoint
 from coapkb.transport.zenoh.mapping import KEY_ROOT
 from coapkb.transport.zenoh.transport import (
     ZenohClientTransport,
@@ -159,7 +160,7 @@ async def test_named_query_to_a_serve_process_and_its_restart() -> None:
     port = free_tcp_port()
     args = ("--kb", *KB_FILES, "--bind", f"127.0.0.1:{port}", "--transport", "zenoh")
     robot = await ServerProcess.start(*args)
-    peer = Endpoint.parse(robot.uri)
+    peer = parse_endpoint(robot.uri)
     assert peer == Endpoint("zenoh", "127.0.0.1", port)
     client = await open_client("zenoh")
     try:
