@@ -289,7 +289,23 @@ async def test_team_mistakes() -> None:
         (["team", "--robots", "4", "--tasks", "1"], ["multiple of 3"]),
         (["team", "--robots", "3", "--tasks", "0"], ["--tasks"]),
         (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], ["/nonexistent/tasks.txt"]),
+        # Said of the option, not of a robot's configuration file in a temporary folder.
+        (["team", "--robots", "3", "--tasks", "1", "--credentials", "/nonexistent/nokeys/"],
+         ["--credentials /nonexistent/nokeys/: no team.json in /nonexistent/nokeys;",
+          "coapkb keys --team-dir /nonexistent/nokeys/"]),
     ])
+
+
+async def test_a_robot_that_does_not_start_is_said_so_once(tmp_path: Path) -> None:
+    """Keys for Robot1 only: Robot2 refuses to start, and its own one-line
+    error is passed on without a second "coapkb: error:"."""
+    made = await coapkb("keys", "--team-dir", str(tmp_path / "keys"), "--robots", "1")
+    assert made.code == 0, made.stderr
+    run = await coapkb("team", "--robots", "3", "--tasks", "1", "--credentials", str(tmp_path / "keys"))
+    assert run.code == 1 and "Traceback" not in run.stderr, run.stderr
+    [line] = [line for line in run.stderr.splitlines() if "did not start" in line]
+    assert line.count("coapkb:") == 1 and "error:" not in line, line
+    assert line.endswith(f"is not in the team's trust list {tmp_path / 'keys' / 'team.json'}"), line
 
 
 async def test_keys_warn_when_git_would_commit_them(tmp_path: Path) -> None:

@@ -133,6 +133,11 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
     except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
+    if spec.secure and spec.credentials is not None and not (spec.credentials / "team.json").is_file():
+        # Said here, not by the first robot, of the configuration file the
+        # run wrote for it in a temporary folder (removed by then).
+        raise UserError(f"--credentials {args.credentials}: no team.json in {spec.credentials.resolve()}; "
+                        f"make the team's keys with: coapkb keys --team-dir {args.credentials}")
     if spec.data_dir is not None and not spec.kb_writable:
         raise UserError("--data-dir keeps the robots' writes: it needs --writable")
     if not tasks:

@@ -552,7 +552,10 @@ class Team:
             line = ""
         if not line.startswith(ready_prefix):
             await proc.wait() if proc.returncode is not None else None
-            raise TeamError(f"{name} did not start: {line or ' '.join(tail[-3:]) or 'no output'}")
+            # The robot's own "coapkb: error: ..." line, without its prefix:
+            # this one is said as "coapkb: ..." too.
+            said = line or " ".join(t.removeprefix("coapkb: ").removeprefix("error: ") for t in tail[-3:])
+            raise TeamError(f"{name} did not start: {said or 'no output'}")
         asyncio.create_task(_drain(proc.stdout, []), name=f"stdout-{name}")
         return line
 
