@@ -156,7 +156,8 @@ async def test_query_over_zmq_matches(tmp_path: Path) -> None:
 QUERY_MISTAKES = [
     (["query", "htp://127.0.0.1:5683", "ASK {}"], ["htp"]),
     (["query", "coap://127.0.0.1:5", "ASK {}"], ["no answer from coap://127.0.0.1:5", "nothing listens"]),
-    (["query", "coap://127.0.0.1:99999", "ASK {}"], ["HOST:PORT"]),
+    (["query", "coap://127.0.0.1:99999", "ASK {}"], ["port 99999 out of range (0-65535) in 'coap://127.0.0.1:99999'"]),
+    (["query", "coap://127.0.0.1:http", "ASK {}"], ["expected HOST:PORT"]),
     (["query", "coap://127.0.0.1:5683/kb/other", "ASK {}"], ["/kb/other"]),
     (["query", "coap://127.0.0.1:5683"], ["no query"]),
     (["query", "coap://127.0.0.1:5683/kb/q/object-exists?name=x", "ASK {}"], ["not both"]),
@@ -290,6 +291,7 @@ async def test_team_mistakes() -> None:
         (["team", "--robots", "3", "--tasks", "0"], ["--tasks"]),
         (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], ["/nonexistent/tasks.txt"]),
         # Said of the option, not of a robot's configuration file in a temporary folder.
+        (["team", "--robots", "3", "--tasks", "1", "--foxglove", "99999"], ["--foxglove: port 99999 out of range"]),
         (["team", "--robots", "3", "--tasks", "1", "--credentials", "/nonexistent/nokeys/"],
          ["--credentials /nonexistent/nokeys/: no team.json in /nonexistent/nokeys;",
           "coapkb keys --team-dir /nonexistent/nokeys/"]),

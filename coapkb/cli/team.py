@@ -273,8 +273,10 @@ def open_recorder(args: argparse.Namespace, robot_ids: list[str], location_kb: P
 def parse_host_port(text: str, option: str, host: str = "127.0.0.1") -> tuple[str, int]:
     """``[HOST:]PORT``, or a :class:`UserError` naming ``option``."""
     given, _, port = text.rpartition(":")
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
+    if not (port.isascii() and port.isdigit()):
         raise UserError(f"{option} takes [HOST:]PORT, got {text!r}")
+    if int(port) > 65535:
+        raise UserError(f"{option}: port {int(port)} out of range (0-65535)")
     return given.strip("[]") or host, int(port)
 
 

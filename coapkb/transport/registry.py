@@ -267,8 +267,10 @@ def parse_endpoint(uri: str, default_scheme: str = "coap") -> Endpoint:
         host, _, port = rest[1:].partition("]:")
     else:
         host, _, port = rest.rpartition(":")
-    if not host or not (port.isascii() and port.isdigit()) or not 0 <= int(port) < 65536:
+    if not host or not (port.isascii() and port.isdigit()):
         raise ValueError(f"expected HOST:PORT in {uri!r}")
+    if int(port) > 65535:
+        raise ValueError(f"port {int(port)} out of range (0-65535) in {uri!r}")
     # A host str() could not write back (brackets in it, or a colon outside them).
     if "[" in host or "]" in host or ":" in host and not bracketed:
         raise ValueError(f"expected HOST:PORT in {uri!r} (an IPv6 address in brackets: [::1]:5683)")

@@ -43,6 +43,12 @@ def test_a_host_str_could_not_write_back_is_refused(uri: str) -> None:
         parse_endpoint(uri)
 
 
+def test_a_port_past_65535_is_said_out_of_range() -> None:
+    with pytest.raises(ValueError, match=r"^port 99999 out of range \(0-65535\) in 'coap://127.0.0.1:99999'$"):
+        parse_endpoint("coap://127.0.0.1:99999")
+    assert parse_endpoint("127.0.0.1:65535").port == 65535
+
+
 def test_lookups() -> None:
     assert SCHEMES == ("coap", "zmq", "zenoh", "zenoh+udp", "zenoh+quic", "dds")
     assert transport_for("tcp") is transport_for("zmq") is find("zmq")
