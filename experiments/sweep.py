@@ -1,6 +1,6 @@
 """The seed paper's experiment matrix, system by system, into one CSV.
 
-    sudo .venv/bin/python -m experiments.sweep --profile quick --jobs 2  # ~45 min on 2 cores
+    sudo .venv/bin/python -m experiments.sweep --profile quick --jobs 2  # 420 runs: a little over an hour on 2 cores
     sudo .venv/bin/python -m experiments.sweep --profile paper --jobs 1  # the full matrix: days
     .venv/bin/python -m experiments.sweep --profile paper --engine dask://HOST:8786  # on a Dask cluster
 
