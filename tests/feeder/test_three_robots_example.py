@@ -119,7 +119,7 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
         assert f"{robot_id} does not answer at coap://127.0.0.1:" in line, line
         assert f"coapkb agent --config examples/three-robots/{robot_id}.toml" in line, line
 
-    request.getfixturevalue("robots")
+    processes = request.getfixturevalue("robots")
     result = run(workdir, *feed, "--record", "feed.mcap")
     assert result.returncode == 0, result.stdout + result.stderr
     with (workdir / "feed.mcap").open("rb") as f:  # recorded for Foxglove: every task, the robots' poses
@@ -144,3 +144,18 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     assert [m[3] for m in lines] == [f"picked by {robot} at task {i}"
                                      for i, robot in enumerate(DEMO_ASSIGNMENTS, 1)], again.stdout
     assert f"{n} tasks, 0 assigned, {n} skipped ({n} already picked)" in again.stdout
+
+    # Robot2 stopped and started again by hand: a new process, no task taken.
+    # The next feed says it cannot rejoin, and what to do, in one line.
+    processes["Robot2"].terminate()
+    processes["Robot2"].wait(10)
+    with (workdir / "Robot2.again.stderr").open("w") as log:
+        processes["Robot2"] = restarted = subprocess.Popen(
+            [sys.executable, "-m", "coapkb", "agent", "--config", "examples/three-robots/Robot2.toml"],
+            cwd=workdir, env=_env(), stdout=subprocess.PIPE, stderr=log, text=True)
+    assert restarted.stdout is not None
+    ready, _, _ = select.select([restarted.stdout], [], [], 90)
+    assert ready and restarted.stdout.readline().startswith("robot Robot2 ready")
+    assert one_error_line(run(workdir, *feed)) == (
+        "coapkb: error: Robot2 started again by hand (no task taken, its teammates up to 10) cannot rejoin a "
+        "running team: restart every robot of cluster 1 (Robot1, Robot2, Robot3) for a fresh team")
