@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from collections import defaultdict
 from pathlib import Path
 
@@ -93,9 +94,11 @@ def draw(path: Path, out: Path, ontologies: Path) -> None:
     right.set_ylabel("jobs done")
     right.set_title("jobs done per robot; tasks by fate (decided, or found missing)")
     right.legend(loc="upper left", fontsize=8)
-    command = metadata.get("command", "")
-    fig.suptitle(f"{path.name}: {command[:110]}", fontsize=9)
-    fig.tight_layout()
+    # The whole command, over as many lines as it takes, and room kept above
+    # the panels for them (tight_layout alone let a long one run off the figure).
+    title = textwrap.wrap(f"{path.name}: {metadata.get('command', '')}", 150)
+    fig.suptitle("\n".join(title), fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.035 * len(title)))
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     print(f"wrote {out}")
