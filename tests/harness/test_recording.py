@@ -70,6 +70,19 @@ def test_a_team_run_recorded_as_mcap_has_every_channel_task_and_its_metadata(tmp
     assert {s["robot"] for s in states} == {"Robot1", "Robot2", "Robot3"}
     assert len(times["/robots/poses"]) == len(states)
 
+    # The picture of the run: its title is the whole command, inside the figure.
+    import matplotlib.pyplot as plt
+
+    from experiments import mcap_picture
+    mcap_picture.draw(out, tmp_path / "run.png", ROOT / "ontologies")
+    fig = plt.gcf()
+    title = fig._suptitle
+    assert title is not None and title.get_text().replace("\n", " ") == f"run.mcap: {meta.metadata['command']}"
+    fig.canvas.draw()
+    box = title.get_window_extent()
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1, (box, fig.bbox)
+    plt.close(fig)
+
 
 def test_a_bad_recording_option_is_one_line(tmp_path: Path) -> None:
     for args, needle in ((["--foxglove", "nope"], "--foxglove takes [HOST:]PORT"),
