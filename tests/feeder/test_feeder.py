@@ -170,8 +170,9 @@ async def test_robots_of_a_cluster_at_different_tasks_are_refused() -> None:
             await team.kill("Robot2")
             await team.restart("Robot2")
             async with Feeder.open(team.roster(), team.feeder_settings()) as feeder:
-                with pytest.raises(FeederError, match=r"cluster 1 have taken different tasks "
-                                                      r"\(Robot1: up to 1, Robot2: up to 0, Robot3: up to 1\)"):
+                with pytest.raises(FeederError, match=r"^Robot2 started again by hand \(no task taken, its teammates "
+                                                      r"up to 1\) cannot rejoin a running team: restart every robot "
+                                                      r"of cluster 1 \(Robot1, Robot2, Robot3\) for a fresh team$"):
                     await feeder.check_ready(10.0)
 
 
