@@ -91,7 +91,8 @@ def test_fault_lists_are_read_or_refused() -> None:
     assert FaultMix.parse("mixed").events == ("kill", "freeze", "partition", "starve")
     assert FaultMix.parse("none") == FaultMix()
     for bad, needle in [("explode", "unknown fault 'explode'"), ("loss=lots", "expects a number"),
-                        ("loss=2", "out of range")]:
+                        ("loss=2", r"loss=2: P is a probability from 0 to 1 \(write loss=0.02 or loss=2% for 2 %\)"),
+                        ("loss=-0.1", "out of range"), ("loss=200%", "out of range")]:
         with pytest.raises(FaultSpecError, match=needle):
             FaultMix.parse(bad)
 
