@@ -144,7 +144,10 @@ class RobotConfig:
     lease_s: float = 3.0
     #: How the teammates are found (``[discovery]``); default: the ``team`` table.
     discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
-    #: Take writes and replicate them with the holders of its modules.
+    #: Take writes and replicate them with the holders of its modules, and
+    #: write what the robot does into the KB.  A TOML file's default is true
+    #: (false with ``kb_index`` or ``central``: :func:`parse_config`); a
+    #: configuration built in code says which it wants.
     kb_writable: bool = False
     #: Holders of its modules in other clusters (``[replicas]``): writes pass on to them.
     replicas: Mapping[str, Teammate] = field(default_factory=dict)
@@ -229,8 +232,8 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
         discovery["rd"] = None if config.discovery.rd is None else str(config.discovery.rd)
         data["discovery"] = {k: v for k, v in discovery.items() if v is not None}
     data["team"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)} for m in config.team.values()}
-    if config.kb_writable:
-        data["kb_writable"] = True
+    # Always said: the TOML's default depends on other fields (parse_config).
+    data["kb_writable"] = config.kb_writable
     if config.replicas:
         data["replicas"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)}
                             for m in config.replicas.values()}
@@ -281,6 +284,14 @@ def parse_config(data: Mapping[str, Any], base_dir: Path = Path(".")) -> RobotCo
         raise ConfigError(str(exc)) from None
     central = data.get("central")
     central_ep = _endpoint(central, "central") if central is not None else None
+    if "kb_writable" not in plain:
+        # A team's KB follows the world by default (the paper's Location KB
+        # holds the robots' positions as they move); an index on disk is
+        # opened read-only, and a centralised robot holds no module.
+        plain["kb_writable"] = kb_index is None and central_ep is None
+    elif plain["kb_writable"] and kb_index is not None:
+        raise ConfigError("kb_writable: a writable KB is kept in memory; with kb_index (opened read-only "
+                          "from disk) set kb_writable = false or leave kb_index out")
     config = RobotConfig(
         robot_id=robot_id,
         bind=bind,

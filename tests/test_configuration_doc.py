@@ -51,7 +51,7 @@ TABLES = {"start", "cost", "execution", "security", "discovery", "team", "replic
 #: TOML key -> dataclass field, where they differ.
 RENAMED = {"kb": "kb_files", "transport": "transport_options"}
 #: Defaults the loader gives where the dataclass has none.
-LOADER_DEFAULTS: dict[str, Any] = {"kb_files": []}
+LOADER_DEFAULTS: dict[str, Any] = {"kb_files": [], "kb_writable": True}
 #: Dataclass fields that are not TOML keys (the table's key names the teammate).
 NOT_KEYS: dict[type, set[str]] = {Teammate: {"robot_id"}, ReliabilitySettings: {"link_kbps"}, DdsOptions: {"settings"}}
 

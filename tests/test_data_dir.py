@@ -90,5 +90,5 @@ async def test_serve_keeps_its_writes_across_a_kill(tmp_path: Path) -> None:
 async def test_data_dir_needs_writes(tmp_path: Path) -> None:
     served = await coapkb("serve", "--kb", str(ONTOLOGIES / "Location.owl"), "--data-dir", str(tmp_path))
     assert served.code == 2 and "--data-dir keeps writes: it needs --writable" in served.stderr
-    team = await coapkb("team", "--tasks", "1", "--data-dir", str(tmp_path))
-    assert team.code == 2 and "--data-dir keeps the robots' writes: it needs --writable" in team.stderr
+    team = await coapkb("team", "--tasks", "1", "--read-only", "--data-dir", str(tmp_path))
+    assert team.code == 2 and "--data-dir keeps the robots' writes: a --read-only team makes none" in team.stderr

@@ -245,7 +245,10 @@ class Robot:
                     await client.aclose()
                     raise
                 replicator = Replicator(served, client, module_holders(config, served.names), rng=host.rng)
-            KBResources(served, threads=host.threads, replicator=replicator).mount(router)
+            KBResources(served, threads=host.threads, replicator=replicator,
+                        read_only=f"{config.robot_id}'s knowledge base is read-only (kb_writable = false in its TOML, "
+                                  "or coapkb team --read-only): leave kb_writable out or set it true, "
+                                  "and start the robot again").mount(router)
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,

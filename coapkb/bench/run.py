@@ -627,7 +627,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="no OSCORE, CurveZMQ or TLS, for comparison (default: the team's keys protect every message, "
                         "as in coapkb team)")
     p.add_argument("--writable", action="store_true",
-                   help="the robots' KBs take writes and the robots write every pick (distributed systems)")
+                   help="the robots' KBs take writes and the robots write every pick (distributed systems); "
+                        "default: read-only, unlike coapkb team: the paper's workflow, as every committed "
+                        "benchmark figure was measured")
     p.add_argument("--misplace", action="append", default=[], metavar="OBJECT",
                    help="the object is not where the KB says (repeatable)")
     p.add_argument("--out", metavar="F.csv", help="append one row per run (header if new)")

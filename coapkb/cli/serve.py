@@ -56,7 +56,8 @@ async def _serve(args: argparse.Namespace) -> int:
         data_dir = None if args.data_dir is None else Path(args.data_dir)
         kb, keeper = open_live(base, args.identity, secrets.randbelow(2**32), data_dir, wall_ms=wall_ms)
     router = Router()
-    KBResources(kb, limits).mount(router)
+    KBResources(kb, limits, read_only="this knowledge base is read-only: start coapkb serve with --writable "
+                                      "(or --credentials: the team's access table then decides who writes)").mount(router)
     server = await serve(router, endpoint, security=server_security(args))
     mode = "writable" if writable else "read-only"
     if keeper is not None:

@@ -56,11 +56,16 @@ def add_team(sub: argparse._SubParsersAction) -> None:
                    help="write the run's record here: JSON, or an MCAP file Foxglove opens (by the extension)")
     p.add_argument("--foxglove", metavar="[HOST:]PORT",
                    help="serve the run live to Foxglove (WebSocket protocol) while it runs; host 127.0.0.1 by default")
-    p.add_argument("--writable", action="store_true",
-                   help="the robots' KBs take writes (coapkb update) and replicate them among the holders; "
-                        "the robots write their picks and what they do not find")
+    kb = p.add_mutually_exclusive_group()
+    kb.add_argument("--read-only", dest="writable", action="store_false",
+                    help="the robots' KBs stay as the files load them and refuse writes (the paper's workflow; "
+                         "default: writable, see --writable)")
+    kb.add_argument("--writable", dest="writable", action="store_true",
+                    help="the default: the robots' KBs take writes (coapkb update) and replicate them among the "
+                         "holders; the robots write their picks, positions and what they do not find")
+    p.set_defaults(writable=True)
     p.add_argument("--data-dir", metavar="DIR",
-                   help="with --writable: keep each robot's writes in DIR/ROBOT (kept after the run; "
+                   help="keep each robot's writes in DIR/ROBOT (kept after the run; "
                         "default: in the run's temporary folder)")
     p.add_argument("--misplace", action="append", default=[], metavar="OBJECT",
                    help="the object is not where the KB says: the robot sent finds the shelf empty (repeatable)")
@@ -119,7 +124,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
             security=not getattr(args, "insecure", False),
             credentials=None if getattr(args, "credentials", None) is None else Path(args.credentials),
             discovery=getattr(args, "discovery", "static"),
-            kb_writable=getattr(args, "writable", False),
+            kb_writable=getattr(args, "writable", True),
             misplaced=tuple(getattr(args, "misplace", None) or ()),
             data_dir=None if getattr(args, "data_dir", None) is None else Path(args.data_dir),
         )
@@ -139,7 +144,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
         raise UserError(f"--credentials {args.credentials}: no team.json in {spec.credentials.resolve()}; "
                         f"make the team's keys with: coapkb keys --team-dir {args.credentials}")
     if spec.data_dir is not None and not spec.kb_writable:
-        raise UserError("--data-dir keeps the robots' writes: it needs --writable")
+        raise UserError("--data-dir keeps the robots' writes: a --read-only team makes none")
     if not tasks:
         raise UserError("no tasks to run")
     return spec, tasks

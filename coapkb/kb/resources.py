@@ -100,6 +100,12 @@ class QueryableKB(Protocol):
     def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult: ...
 
 
+#: What a write to a read-only KB is answered with (4.05), besides the status:
+#: a robot's or a server's owner learns how to make it writable.
+READ_ONLY = ("this knowledge base is read-only: a robot takes writes unless its TOML says kb_writable = false "
+             "(coapkb team: unless --read-only); coapkb serve takes them with --writable or --credentials")
+
+
 class KBResources:
     """Answers SPARQL over one knowledge base, and takes writes if it is a
     :class:`~.live.LiveKB` (``replicator`` then spreads them)."""
@@ -111,9 +117,12 @@ class KBResources:
         *,
         threads: bool = True,
         replicator: Replicator | None = None,
+        read_only: str = READ_ONLY,
     ) -> None:
         self.kb = kb
         self.live = kb if isinstance(kb, LiveKB) else None
+        #: The diagnostic of a write refused (4.05): why, and how to make it writable.
+        self.read_only = read_only
         self.replicator = replicator
         self.limits = limits or QueryLimits()
         #: False: every query runs on the event loop (the simulator's
@@ -134,7 +143,8 @@ class KBResources:
         router.add(
             ResourceInfo("/kb", rt="coapkb.kb", ct=RESULT_FORMATS, obs=live, quiet=live,
                          title="knowledge base summary" + ("; PATCH/iPATCH a SPARQL Update to write" if live else ""),
-                         methods=("GET", "PATCH", "iPATCH") if live else ("GET",)),
+                         # PATCH on a read-only KB too: answered 4.05 with how to make it writable.
+                         methods=("GET", "PATCH", "iPATCH")),
             self.kb_resource,
         )
         router.add(
@@ -181,8 +191,8 @@ class KBResources:
     async def write(self, request: Request) -> Response:
         """PATCH/iPATCH ``/kb``: SPARQL Update text (0) or a compact patch (60)."""
         live = self.live
-        if live is None:  # pragma: no cover - the router allows PATCH only on a live KB
-            return Response.error(Status.METHOD_NOT_ALLOWED, "this knowledge base is read-only")
+        if live is None:
+            return Response.error(Status.METHOD_NOT_ALLOWED, self.read_only)
         try:
             ack = ack_of_query(request.query)
         except ValueError as exc:

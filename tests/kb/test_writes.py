@@ -143,7 +143,9 @@ async def test_a_read_only_kb_refuses_writes() -> None:
     server = await serve(router, Endpoint("coap", "127.0.0.1", 0))
     try:
         response = await _patch(server.endpoint, (MOVE_ROBOT1 % 4).encode())
+        # Not the router's bare "PATCH not allowed": why, and how to make it writable.
         assert response.status == Status.METHOD_NOT_ALLOWED
+        assert "read-only" in response.text() and "kb_writable" in response.text() and "--writable" in response.text()
     finally:
         await server.aclose()
 
