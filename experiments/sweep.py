@@ -501,7 +501,8 @@ def task_key(run: Run) -> str:
     return "coapkb-run-" + hashlib.sha1("\x1f".join(run.key()).encode()).hexdigest()[:20]
 
 
-async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[Run]) -> tuple[int, int]:
+async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[Run],
+                     connect_timeout_s: float = CONNECT_TIMEOUT_S) -> tuple[int, int]:
     """Run ``runs`` on the Dask cluster at ``address``, one task per run holding
     one ``netns`` resource, appending rows as they complete.  Returns (failed
     runs, runs not run).  EngineError when the cluster cannot take the sweep."""
@@ -514,7 +515,7 @@ async def sweep_dask(runs: list[Run], out: Path, address: str, done_runs: list[R
     # needs only coapkb): cloudpickle ships its functions and Run by value.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     try:
-        client = await Client(address, asynchronous=True, timeout=CONNECT_TIMEOUT_S)
+        client = await Client(address, asynchronous=True, timeout=connect_timeout_s)
     except (OSError, TimeoutError) as exc:
         raise EngineError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
     async with client:
@@ -568,6 +569,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--engine", default="local", metavar="local|dask://HOST:PORT",
                    help="where runs go: this machine (default) or a Dask scheduler's workers (their --resources "
                         f"{NETNS}=N set how many at once per worker)")
+    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
+                   help=f"how long to try the Dask scheduler before giving up (default {CONNECT_TIMEOUT_S:g} s)")
     p.add_argument("--out", type=Path, help="CSV (default experiments/results/<profile>.csv)")
     p.add_argument("--reps", type=int, help="override the profile's repetitions")
     p.add_argument("--systems", help="only these systems (comma-separated)")
@@ -617,7 +620,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if engine.kind == "local":
             failed = asyncio.run(sweep(todo, out, args.jobs, done_runs))
         else:
-            failed, lost = asyncio.run(sweep_dask(todo, out, engine.address, done_runs))
+            failed, lost = asyncio.run(sweep_dask(todo, out, engine.address, done_runs, args.connect_timeout))
     except EngineError as exc:
         print(f"sweep: {exc}", file=sys.stderr)
         return 2

@@ -86,10 +86,13 @@ class KBClient:
         *,
         timeout: float = 30.0,
         cache: bool = False,
+        cache_entries: int = CACHE_ENTRIES,
         clock: Callable[[], float] = loop_clock,
     ) -> None:
         self.transport = transport
         self.timeout = timeout
+        #: The most answers the cache keeps (the least recently used go first).
+        self.cache_entries = cache_entries
         self._cache: OrderedDict[tuple, _Cached] | None = OrderedDict() if cache else None
         self._clock = clock
         self.cache_stats = CacheStats()
@@ -139,7 +142,7 @@ class KBClient:
         result = decode(response)
         if max_age > 0:
             self._cache[key] = _Cached(now + max_age, response.etag, result)
-            if len(self._cache) > CACHE_ENTRIES:
+            if len(self._cache) > self.cache_entries:
                 self._cache.popitem(last=False)
         return result
 

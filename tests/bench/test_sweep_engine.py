@@ -30,15 +30,15 @@ def test_engine_urls() -> None:
 
 
 def test_a_bad_engine_or_no_scheduler_is_one_line_and_exit_2(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert sweep.main(["--engine", "dask://nowhere", "--dry-run"]) == 2
     assert capsys.readouterr().err.strip().splitlines() == [
         "sweep: --engine: expected 'local' or 'dask://HOST:PORT', got 'dask://nowhere'"]
-    monkeypatch.setattr(sweep, "CONNECT_TIMEOUT_S", 1.0)
     port = _free_port()  # nobody listens there
     out = tmp_path / "s.csv"
-    assert sweep.main(["--engine", f"dask://127.0.0.1:{port}", "--out", str(out), "--systems", "coap-distributed"]) == 2
+    assert sweep.main(["--engine", f"dask://127.0.0.1:{port}", "--connect-timeout", "1", "--out", str(out),
+                       "--systems", "coap-distributed"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"sweep: cannot reach the Dask scheduler at tcp://127.0.0.1:{port}")
     assert not out.exists()

@@ -818,12 +818,9 @@ async def test_client_cache_serves_fresh_answers_and_revalidates_stale_ones(
 
 
 async def test_client_cache_keeps_its_most_recently_used_answers_only(
-    transport: ClientTransport, peer: Endpoint, monkeypatch: pytest.MonkeyPatch
+    transport: ClientTransport, peer: Endpoint
 ) -> None:
-    from coapkb.kb import client as kb_client
-
-    monkeypatch.setattr(kb_client, "CACHE_ENTRIES", 2)
-    client = KBClient(transport, timeout=10, cache=True)
+    client = KBClient(transport, timeout=10, cache=True, cache_entries=2)
     for name in ("Gucci_bag_14", "Gucci_bag_1", "Gucci_bag_14", "Gucci_bag_2"):
         await client.named(peer, "object-location", {"name": name})
     # Gucci_bag_1 was the least recently used when a third answer came.
