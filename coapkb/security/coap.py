@@ -499,8 +499,11 @@ class _AnsweredPipe:
 
 
 class _TeamSiteWrapper(OscoreSiteWrapper):
-    def __init__(self, inner_site: Any, credentials: CredentialsMap) -> None:
+    def __init__(self, inner_site: Any, credentials: CredentialsMap, *,
+                 responder_identifiers: int = RESPONDER_IDENTIFIERS) -> None:
         super().__init__(inner_site, credentials)
+        #: The complete responder sessions kept at most (see ``RESPONDER_IDENTIFIERS``).
+        self.responder_identifiers = responder_identifiers
         self.log = logging.getLogger("coapkb.security.server")
         # aiocoap logs a stranger's undecryptable message or stray EDHOC
         # message as an error, once per datagram.
@@ -642,11 +645,12 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         complete = list(newest.values())
         # The new session needs one identifier; complete sessions keep theirs
         # unless they alone leave none (more members than identifiers).
-        if len(complete) >= RESPONDER_IDENTIFIERS:
+        kept = self.responder_identifiers
+        if len(complete) >= kept:
             complete.sort(key=lambda label: self._used.get(id(self.server_credentials[label]), 0.0))
-            drop += complete[: len(complete) - RESPONDER_IDENTIFIERS + 1]
-            complete = complete[len(complete) - RESPONDER_IDENTIFIERS + 1:]
-        room = min(HALF_OPEN_MAX, RESPONDER_IDENTIFIERS - len(complete)) - 1
+            drop += complete[: len(complete) - kept + 1]
+            complete = complete[len(complete) - kept + 1:]
+        room = min(HALF_OPEN_MAX, kept - len(complete)) - 1
         drop += half_open[: max(0, len(half_open) - room)]
         for label in drop:
             self._release(label, now)
@@ -681,6 +685,9 @@ class ServerSecurity:
 
     identity: TeamIdentity
     policy: AccessPolicy = field(default_factory=AccessPolicy)
+    #: The complete EDHOC sessions held as responder at most, one per
+    #: connection identifier (``RESPONDER_IDENTIFIERS``).
+    responder_identifiers: int = RESPONDER_IDENTIFIERS
     #: The site wrapper of the server this security serves (set by :meth:`wrap`).
     _site: Any = field(default=None, init=False, repr=False)
 
@@ -693,13 +700,14 @@ class ServerSecurity:
             self.credentials[_MEMBER_LABEL + member.name] = _edhoc_credentials(None, member)
 
     def wrap(self, site: Any) -> Any:
-        self._site = _TeamSiteWrapper(site, self.credentials)
+        self._site = _TeamSiteWrapper(site, self.credentials, responder_identifiers=self.responder_identifiers)
         return self._site
 
-    def sweep(self) -> None:
-        """Forget the responder state that has aged out (half-open EDHOC sessions)."""
+    def sweep(self, now: float | None = None) -> None:
+        """Forget the responder state that has aged out by ``now`` (the
+        loop's time by default): half-open EDHOC sessions."""
         if self._site is not None:
-            self._site.sweep(asyncio.get_running_loop().time())
+            self._site.sweep(asyncio.get_running_loop().time() if now is None else now)
 
     @property
     def refused_starts(self) -> int:

@@ -411,16 +411,14 @@ async def test_a_flood_of_edhoc_message_1_leaves_teammates_keyed_and_its_session
 
 
 async def test_when_identifiers_run_short_the_least_recently_used_member_keys_again(
-    team_dir: Path, monkeypatch: pytest.MonkeyPatch
+    team_dir: Path
 ) -> None:
     """A server with more members talking to it than connection identifiers
     drops the session used least recently, and that member keys again on its
     next request (here with room for two)."""
-    from coapkb.security import coap as oscore_layer
-
-    monkeypatch.setattr(oscore_layer, "RESPONDER_IDENTIFIERS", 2)
     robot = Robot1(team_dir)
-    security = ServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}))
+    security = ServerSecurity(load_identity(team_dir, "Robot1"), AccessPolicy(lambda: {"Robot2"}),
+                              responder_identifiers=2)
     robot.server = await serve(robot.router, Endpoint("coap", "127.0.0.1", 0), security=security)
     peer = robot.server.endpoint
     clients = {name: await _client(load_identity(team_dir, name)) for name in ("Robot2", "Robot3", "feeder")}
@@ -487,7 +485,7 @@ def _message_1(mid: int) -> bytes:
 
 
 async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_state_bounded_and_aging(
-    team_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    team_dir: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """While three teammates keep asking, strangers on 50 source ports send
     EDHOC message_1 beyond the responder's rate, a teammate's protected
@@ -562,8 +560,7 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
         refilled = oscore_layer.EDHOC_STARTS_PER_S * (loop.time() - flood_started)
         assert security.refused_starts >= 400 - oscore_layer.HALF_OPEN_MAX - 100 - refilled
         assert replies > 0
-        monkeypatch.setattr(oscore_layer, "HALF_OPEN_S", 0.0)
-        security.sweep()  # what the server's periodic sweep does once HALF_OPEN_S has passed
+        security.sweep(loop.time() + oscore_layer.HALF_OPEN_S)  # the server's periodic sweep once that age has passed
         assert security.responder_sessions() == (0, 3)
         # No replay reached the resource.  A teammate's try the loaded server
         # answered late is sent again as a new OSCORE request (a GET is safe),
