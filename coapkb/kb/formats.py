@@ -146,17 +146,18 @@ class KBFile:
         prefixes = _xml_root(path, st.st_size) if fmt == "xml" else {}
         return cls(path, fmt, st.st_size, _stamp(st), prefixes)
 
-    def hash_into(self, digest: Digest) -> None:
+    def hash_into(self, digest: Digest, chunk_bytes: int = _CHUNK) -> None:
         """Feed the file's name, size and bytes to ``digest``; collect Turtle
-        prefixes on the way.  Reads in chunks (hashlib releases the GIL), so
-        it runs beside a parse on another thread without holding the file."""
+        prefixes on the way.  Reads in chunks of ``chunk_bytes`` (hashlib
+        releases the GIL), so it runs beside a parse on another thread
+        without holding the file."""
         digest.update(self.path.name.encode() + b"\0" + self.size.to_bytes(8, "big"))
         turtle = self.fmt in ("turtle", "n3")
         carry = b""
         read = 0
         try:
             with self.path.open("rb") as f:
-                while chunk := f.read(_CHUNK):
+                while chunk := f.read(chunk_bytes):
                     read += len(chunk)
                     digest.update(chunk)
                     if turtle:

@@ -108,6 +108,7 @@ class LiveKB:
         limits: WriteLimits | None = None,
         single_valued: frozenset[str] = SINGLE_VALUED,
         holders: Mapping[str, Sequence[str]] | None = None,
+        pinned_answers: int = PINNED_ANSWERS,
     ) -> None:
         if base.backend != "oxigraph" or not isinstance(base.engine, OxigraphBackend) or base.engine.on_disk:
             raise ValueError("a writable knowledge base needs the in-memory oxigraph backend")
@@ -117,6 +118,8 @@ class LiveKB:
         self.backend = base.backend
         self.writer = writer
         self.limits = limits or WriteLimits()
+        #: The tasks' first answers kept at most (:meth:`query_at`).
+        self.pinned_answers = pinned_answers
         self._wall_ms = wall_ms
         self._base_store: ox.Store = base.engine.store
         self._view: OxigraphBackend | None = None
@@ -185,7 +188,7 @@ class LiveKB:
             return kept
         answer = self.query(sparql)
         self._pinned[key] = answer
-        while len(self._pinned) > PINNED_ANSWERS:
+        while len(self._pinned) > self.pinned_answers:
             self._pinned.popitem(last=False)
         return answer
 

@@ -3,6 +3,7 @@ names the bytes parsed, prefixes are found wherever the reader's chunks end."""
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import pytest
@@ -94,12 +95,14 @@ def test_etag_is_the_content_hash(tmp_path: Path) -> None:
     assert KnowledgeBase.load([a]).etag != first
 
 
-def test_turtle_prefixes_across_chunks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(formats, "_CHUNK", 7)  # every prefix line split between reads
+def test_turtle_prefixes_across_chunks(tmp_path: Path) -> None:
     text = "@prefix ex: <http://ex.org/> .\nex:a ex:p ex:o .\nPREFIX late: <http://late.org/>\nlate:a ex:p ex:o .\n"
-    kb = KnowledgeBase.load([write(tmp_path, "T.ttl", text)])
-    assert kb.prefixes == {"ex": "http://ex.org/", "late": "http://late.org/"}
-    assert kb.triple_count == 2
+    path = write(tmp_path, "T.ttl", text)
+    source = formats.KBFile.open(path)
+    source.hash_into(hashlib.sha256(), chunk_bytes=7)  # every prefix line split between reads
+    assert source.prefixes == {"ex": "http://ex.org/", "late": "http://late.org/"}
+    kb = KnowledgeBase.load([path])
+    assert kb.prefixes == source.prefixes and kb.triple_count == 2
 
 
 def test_files_after_a_bad_one_are_not_parsed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -34,8 +34,9 @@ def pick_update(obj: str, robot: str, seq: int) -> str:
             f'INSERT DATA {{ loc:{obj} loc:Picked_by "{robot}" . loc:{obj} loc:Picked_at_task {seq} }}')
 
 
-def _location() -> LiveKB:
-    return LiveKB(KnowledgeBase.load([ONTOLOGIES / "Location.owl"]), "R.1", wall_ms=wall_ms)
+def _location(pinned_answers: int = 1024) -> LiveKB:
+    return LiveKB(KnowledgeBase.load([ONTOLOGIES / "Location.owl"]), "R.1", wall_ms=wall_ms,
+                  pinned_answers=pinned_answers)
 
 
 def _place(result: QueryResult) -> list[tuple[str, ...]]:
@@ -73,8 +74,8 @@ def test_pinning_is_per_question_not_per_task(live: LiveKB) -> None:
     assert _place(live.query_at(5, other)) == [("picked_by=Robot3", "picked_task=4")]
 
 
-def test_only_the_latest_pinned_answers_are_kept(live: LiveKB, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("coapkb.kb.live.PINNED_ANSWERS", 2)
+def test_only_the_latest_pinned_answers_are_kept() -> None:
+    live = _location(pinned_answers=2)
     first = live.query_at(1, PLACE)
     live.query_at(2, PLACE)
     assert live.query_at(1, PLACE) is first  # asked again: kept, and now the latest
