@@ -515,8 +515,9 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
         #: Tokens for message_1 (``EDHOC_STARTS_PER_S``), and when they were counted.
         self._start_tokens = float(HALF_OPEN_MAX)
         self._tokens_at = 0.0
-        #: message_1 answered 5.03 for want of a token.
+        #: message_1 answered 5.03 for want of a token, and taken on.
         self.refused_starts = 0
+        self.taken_starts = 0
         #: Identifiers of sessions dropped lately -> when (:meth:`_free_identifier`).
         self._resting: dict[bytes, float] = {}
 
@@ -534,6 +535,7 @@ class _TeamSiteWrapper(OscoreSiteWrapper):
                 self.refused_starts += 1
                 pipe.add_response(aiocoap.Message(code=aiocoap.SERVICE_UNAVAILABLE, max_age=wait), is_last=True)
                 return
+            self.taken_starts += 1
             self._prune(now)
             before = set(self.server_credentials)
             await super().render_to_pipe(pipe)
@@ -713,6 +715,11 @@ class ServerSecurity:
     def refused_starts(self) -> int:
         """message_1 answered 5.03 because the responder took on its rate of them."""
         return 0 if self._site is None else self._site.refused_starts
+
+    @property
+    def taken_starts(self) -> int:
+        """message_1 taken on (within the responder's rate)."""
+        return 0 if self._site is None else self._site.taken_starts
 
     def responder_sessions(self) -> tuple[int, int]:
         """(half open, complete) EDHOC sessions this server holds as responder."""

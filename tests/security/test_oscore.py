@@ -529,6 +529,7 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
             await asyncio.sleep(0.01)  # until the feeder's first protected request went through the relay
         protected = [d for d in relay.sent if _has_oscore_option(d)][0]
         replies = 0
+        taken_before = security.taken_starts
         flood_started = loop.time()
         for mid in range(1, 401):
             stranger = strangers[mid % len(strangers)]
@@ -554,11 +555,13 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
         assert answered and set(answered) == {Status.CONTENT}
         half_open, complete = security.responder_sessions()
         assert half_open <= oscore_layer.HALF_OPEN_MAX and complete == 3
-        # The bucket takes on its burst and refills while the flood lasts, which
-        # is longer on a loaded machine (a CI run refused 246); 100 more is the
-        # margin a quick run needs.
+        # The bucket takes on its burst and what refilled while the flood
+        # lasted (longer on a loaded machine); every other message_1 that
+        # reached the server was refused.  How many reached it depends on the
+        # machine: the kernel drops what a busy server has not read in time.
         refilled = oscore_layer.EDHOC_STARTS_PER_S * (loop.time() - flood_started)
-        assert security.refused_starts >= 400 - oscore_layer.HALF_OPEN_MAX - 100 - refilled
+        assert security.taken_starts - taken_before <= oscore_layer.HALF_OPEN_MAX + refilled + 1
+        assert security.refused_starts > 0
         assert replies > 0
         security.sweep(loop.time() + oscore_layer.HALF_OPEN_S)  # the server's periodic sweep once that age has passed
         assert security.responder_sessions() == (0, 3)
