@@ -93,6 +93,9 @@ class Task:
     join: tuple[str, ...] = ()
     #: The task this one does again: its robot went down before the pick.
     again: int | None = None
+    #: The object was delivered back to its shelf since the cluster decided
+    #: it (coapkb.feeder.restock): the claim remembered is void.
+    restocked: bool = False
 
 
 @dataclass(frozen=True)
@@ -226,7 +229,8 @@ class Controller:
             task, received = await self._tasks.get()
             try:
                 await self._admit(task)
-                if task.again is not None:  # never picked: the object is free again, on every robot alike
+                if task.again is not None or task.restocked:
+                    # Never picked, or back on its shelf: the object is free again, on every robot alike.
                     self.claims.pop(task.object, None)
                 message = await self._decide(task, received)
             except ModuleUnavailable as exc:

@@ -8,7 +8,8 @@ are the facts a robot's work changes there, each a small SPARQL Update:
   deleted) and is ``Picked_by`` the robot ``Picked_at_task`` the task;
 * a delivery at the depot: ``Delivered_at_task``, for each object carried;
 * an object not at the shelf: its place is deleted, and it is
-  ``Missing_since_task`` the task, ``Reported_missing_by`` the robot;
+  ``Missing_since_task`` the task, ``Reported_missing_by`` the robot
+  (a delivery, written by the feeder, puts an object back: :func:`restock_update`);
 * with each of these, where the robot is (``Robot_aisle_no``,
   ``Robot_rack_no``, Location) and, once the job is over, the load it
   carries and its battery's charge (``Robot_load_kg``, ``Robot_charge_wh``,
@@ -89,6 +90,19 @@ def missing_update(obj: str, robot: str, seq: int) -> str:
     """The SPARQL Update of an object not at its shelf at task ``seq``."""
     return (f"{_leaves_shelf(obj)} ;\nINSERT DATA {{ {_iri(obj)} {_iri('Missing_since_task')} {seq} ; "
             f"{_iri('Reported_missing_by')} {_literal(robot)} }}")
+
+
+#: What a pick, a delivery and a missing report leave on an object: a restock removes them.
+_AFTER_PICK = ("Picked_by", "Picked_at_task", "Delivered_at_task", "Missing_since_task", "Reported_missing_by")
+
+
+def restock_update(obj: str, place: tuple[int, int, int]) -> str:
+    """The SPARQL Update of a delivery (the feeder's, :mod:`coapkb.feeder.restock`):
+    ``obj`` back on its shelf at ``place`` (aisle, rack, bin), its pick,
+    delivery and missing report gone."""
+    deletes = " ;\n".join(f"DELETE WHERE {{ {_iri(obj)} {_iri(p)} ?v }}" for p in (*_AFTER_PICK, *_PLACE))
+    values = " ; ".join(f"{_iri(p)} {v}" for p, v in zip(_PLACE, place))
+    return f"{deletes} ;\nINSERT DATA {{ {_iri(obj)} {values} }}"
 
 
 def delivered_update(objects: Iterable[tuple[str, int]]) -> str:

@@ -471,15 +471,19 @@ class Robot:
             seq, name = body["seq"], body["object"]
             join = body.get("join", [])
             again = body.get("again")
+            restocked = body.get("restocked", False)
         except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
             return Response.error(
                 Status.BAD_REQUEST,
-                'expected {"seq": int, "object": name[, "join": [robot, ...]][, "again": int]} in CBOR or JSON',
+                'expected {"seq": int, "object": name[, "join": [robot, ...]][, "again": int][, "restocked": true]} '
+                'in CBOR or JSON',
             )
         if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
             return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
         if again is not None and (type(again) is not int or not 0 < again < seq):
             return Response.error(Status.BAD_REQUEST, "again must name an earlier task")
+        if type(restocked) is not bool:
+            return Response.error(Status.BAD_REQUEST, "restocked must be true or false")
         if not isinstance(join, list) or not all(isinstance(r, str) and r in self.config.team for r in join):
             return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
         if seq < self._next_seq and self._accepted.get(seq) == name:
@@ -494,7 +498,7 @@ class Robot:
         self._next_seq += 1
         self._accepted[seq] = name
         self._accepted.pop(seq - POSTS_REMEMBERED, None)
-        self.controller.submit(Task(seq, name, tuple(join), again))
+        self.controller.submit(Task(seq, name, tuple(join), again, restocked))
         return Response(Status.CHANGED)
 
     async def _get_claims(self, request: Request) -> Response:

@@ -19,6 +19,27 @@ def _location_kb(team) -> Path:  # team: TeamFolder
     raise UserError(f"no robot in {team.folder} loads a Location.owl: nothing to draw the warehouse from")
 
 
+async def _restocker(team):  # team: TeamFolder -> Restocker
+    """What makes a task file's deliveries for robots run by hand: into the
+    Location KB of the robots that write (as the team's operator), and into
+    the world their TOML files name (``world = "PATH"``), if any."""
+    from ..feeder.restock import Restocker, operator_security, shelf_places
+    from ..kb.store import KnowledgeBase
+    from ..transport import open_client
+    from ..world.service import WorldClient
+
+    holders = [[(r, team.configs[r].bind) for r in cluster
+                if team.configs[r].kb_writable and "Location" in team.configs[r].team[r].kbs]
+               for cluster in team.roster.clusters]
+    worlds = {c.world for c in team.configs.values() if c.world is not None}
+    expected = {e.hostport: r for r, e in team.roster.endpoints.items()}
+    security = operator_security(team.settings.transport, team.credentials, expected)
+    places = shelf_places(KnowledgeBase.load([_location_kb(team)]))
+    client = await open_client(team.settings.transport, security=security)
+    return Restocker(client, places, holders if any(holders) else [],
+                     WorldClient(next(iter(worlds))) if worlds else None, timeout_s=team.settings.query_timeout_s)
+
+
 def add_feed(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "feed",
@@ -42,6 +63,7 @@ def add_feed(sub: argparse._SubParsersAction) -> None:
 
 async def _feed(args: argparse.Namespace) -> int:
     from ..feeder import FateCounts, Feeder, TaskRecord, read_tasks_file
+    from ..feeder.tasks import Restock, task_count
     from ..feeder.team_folder import read_team_folder
 
     if not args.timeout > 0 or not args.answer_timeout > 0:
@@ -54,7 +76,7 @@ async def _feed(args: argparse.Namespace) -> int:
         raise UserError("--record writes an MCAP file: give it a name ending in .mcap")
     security = team.security()
     recorder = open_recorder(args, list(team.roster.endpoints), _location_kb(team), team=str(team.folder))
-    print(f"feeding {len(tasks)} task(s) to {', '.join(f'{r} {e}' for r, e in team.roster.endpoints.items())}"
+    print(f"feeding {task_count(tasks)} task(s) to {', '.join(f'{r} {e}' for r, e in team.roster.endpoints.items())}"
           + ("" if security is None else f" (keys: {team.credentials})"), flush=True)
 
     def decided(record: TaskRecord) -> None:
@@ -62,19 +84,27 @@ async def _feed(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.task(record)
 
+    restocker = await _restocker(team) if any(isinstance(t, Restock) for t in tasks) else None
     try:
         async with Feeder.open(team.roster, team.settings, security) as feeder:
             await feeder.check_ready(args.answer_timeout,
                                      {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
             if recorder is not None:
                 feeder.watcher.listeners.append(recorder.robot_state)
+            feeder.restocker = restocker
             outcome = await feeder.feed(tasks, decided)
         if recorder is not None:
             recorder.final_fates(outcome.tasks)
     finally:
         if recorder is not None:
             recorder.close()
+        if restocker is not None:
+            await restocker.client.aclose()
+            close = getattr(restocker.world, "aclose", None)  # a WorldClient's connection
+            if close is not None:
+                await close()
     disputed = [t for t in outcome.tasks if not t.agreed]
     print(f"{FateCounts.of(outcome.tasks).line()}; "
-          f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s")
+          f"coordination {outcome.coordination_s:.2f} s, completion {outcome.completion_s:.2f} s"
+          + (f"; restocked {restocker.done}" if restocker is not None else ""))
     return 1 if disputed else 0

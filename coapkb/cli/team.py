@@ -26,8 +26,13 @@ def add_team(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("team", help="run a whole team locally: robots as processes, tasks fed in order")
     p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
     tasks = p.add_mutually_exclusive_group(required=True)
-    tasks.add_argument("--tasks", type=int, metavar="N", help="draw N objects from the Object KB")
-    tasks.add_argument("--tasks-file", metavar="FILE", help="one object name per line")
+    tasks.add_argument("--tasks", type=int, metavar="N",
+                       help="draw N objects from the Object KB: each once, then again, each later draw "
+                            "after a delivery of the object back to its shelf (see --no-restock)")
+    tasks.add_argument("--tasks-file", metavar="FILE",
+                       help="one object name per line, or 'restock OBJECT': a delivery back to its shelf")
+    p.add_argument("--no-restock", dest="restock", action="store_false",
+                   help="with --tasks: no deliveries; an object drawn again is skipped as picked")
     p.add_argument("--seed", type=int, default=1, help="seed for --tasks")
     p.add_argument("--mode", choices=("distributed", "central"), default="distributed")
     p.add_argument("--transport", choices=SCHEMES, default="coap")
@@ -108,6 +113,7 @@ async def _demo(args: argparse.Namespace) -> int:
 def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
     """The team and its task list from the command line, or a :class:`UserError`."""
     from ..feeder import read_tasks_file
+    from ..feeder.tasks import with_restocks
     from ..harness.team import DEFAULT_ONTOLOGIES, Fault, TeamSpec, draw_tasks
 
     ontologies = Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES
@@ -135,7 +141,8 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
         else:
             if args.tasks < 1:
                 raise UserError("--tasks must be at least 1")
-            tasks = draw_tasks(args.tasks, ontologies, seed=args.seed)
+            drawn = draw_tasks(args.tasks, ontologies, seed=args.seed)
+            tasks = with_restocks(drawn) if getattr(args, "restock", True) else drawn
     except ValueError as exc:  # TeamSpec's checks; a FeederError (tasks file) reaches main as it is
         raise UserError(str(exc)) from None
     if spec.secure and spec.credentials is not None and not (spec.credentials / "team.json").is_file():
@@ -162,6 +169,7 @@ async def _team(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..feeder import FeederError, TaskRecord
+    from ..feeder.tasks import task_count
     from ..harness.record import summarise
     from ..harness.team import Team
 
@@ -212,13 +220,14 @@ async def _team(args: argparse.Namespace) -> int:
                       flush=True)
             # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
             # per-task lines go to stdout above it, so a log or a pipe gets just those.
-            with tqdm(total=len(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
+            with tqdm(total=task_count(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
                       disable=True if args.quiet else None) as bar:
                 record = await team.run(tasks, lambda r: record_task(bar, r),
                                         on_state=None if recorder is None else recorder.robot_state,
                                         on_stats=None if recorder is None else (STATS_EVERY_S, recorder.traffic))
             if spec.kb_writable and spec.mode == "distributed":
                 moved = await _positions_line(team)
+            restocked = team.restocked
     except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
         if stopped_by is None:
             if isinstance(exc, asyncio.CancelledError):
@@ -238,6 +247,9 @@ async def _team(args: argparse.Namespace) -> int:
             recorder.close()
     print()
     print(summarise(record))
+    if restocked:
+        where = "in the KB and in the world" if spec.kb_writable and spec.mode == "distributed" else "in the world"
+        print(f"restocked {restocked} object{'s' if restocked != 1 else ''} (delivered back to their shelves {where})")
     if spec.kb_writable and spec.mode == "distributed":
         print(moved)
     if args.record and recorder is not None and recorder.path is not None:

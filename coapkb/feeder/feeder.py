@@ -10,6 +10,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import cbor2
 
@@ -26,7 +27,10 @@ from .membership import Membership
 from .orphans import idle
 from .record import TaskRecord, claim_of, mark_not_found, unclaim
 from .roster import Roster
-from .tasks import FeederError, split_tasks, task_post
+from .tasks import Entry, FeederError, Restock, split_tasks, task_post
+
+if TYPE_CHECKING:
+    from .restock import Restocker
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +70,10 @@ class Feeder:
         self.membership = Membership(channel)
         #: Cluster index -> its first task's number (1, unless robots took an earlier feeder's tasks).
         self._first_seq: dict[int, int] = {}
+        #: Makes the task list's deliveries (``restock OBJECT``); None: a list with one is refused.
+        self.restocker: Restocker | None = None
+        #: Objects this feed assigned: a delivery of one waits for its pick.
+        self._assigned_objects: set[str] = set()
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -137,16 +145,18 @@ class Feeder:
 
     async def feed(
         self,
-        tasks: Sequence[str],
+        tasks: Sequence[Entry],
         progress: Progress | None = None,
         started: float | None = None,
     ) -> FeedOutcome:
-        """Feed ``tasks`` and wait until every robot has executed what it took;
+        """Feed ``tasks`` (deliveries among them: :mod:`.restock`) and wait until every robot has executed what it took;
         ``progress`` is called with each task's record once it is decided
         (if it returns an awaitable, the cluster's next task waits for it).
         ``started``: the run's start (monotonic), if not now."""
         started = clock.monotonic() if started is None else started
         clusters = self.channel.roster.clusters
+        if self.restocker is None and any(isinstance(t, Restock) for t in tasks):
+            raise FeederError("the task list restocks objects, but this feeder cannot deliver them")
         shares = split_tasks(tasks, len(clusters))
         per_cluster = await asyncio.gather(
             *(self._feed_cluster(index, list(cluster), share, progress)
@@ -191,7 +201,7 @@ class Feeder:
         raise AssertionError("unreachable")
 
     async def _feed_cluster(
-        self, index: int, cluster: list[str], share: list[str], progress: Progress | None
+        self, index: int, cluster: list[str], share: list[Entry], progress: Progress | None
     ) -> tuple[list[TaskRecord], float]:
         """Feed one cluster's share; returns its records and when its last task was decided."""
         channel, membership, watcher = self.channel, self.membership, self.channel.watcher
@@ -206,24 +216,35 @@ class Feeder:
             for found in mark_not_found(assigned, watcher.states):
                 for skip in claims.pop((found.assigned_to or "", found.seq), ()):
                     unclaim(skip, found)
-        queue: list[tuple[str, int | None]] = [(name, None) for name in share]
+        queue: list[tuple[Entry, int | None]] = [(name, None) for name in share]
+        #: Objects delivered back since the cluster last decided them: their next task says so.
+        restocked: set[str] = set()
         #: Tasks of a robot's previous process, found when it joins again.
         reruns: list[TaskRecord] = []
         seq = self._first_seq.get(index, 1) - 1
         decided_at = clock.monotonic()
         while queue:
             for name, reassigned_from in queue:
+                if isinstance(name, Restock):
+                    assert self.restocker is not None  # checked by feed()
+                    await self.restocker.restock(name.object, index, name.object in self._assigned_objects,
+                                                 watcher.down)
+                    restocked.add(name.object)
+                    continue
                 seq += 1
                 joining = membership.joining(cluster)
                 if joining:
                     reruns += membership.prepare_join(records, joining, seq)
                 if records:
                     await membership.take_back(cluster, records)
-                record = await self._feed_task(index, cluster, seq, name, joining, reassigned_from)
+                record = await self._feed_task(index, cluster, seq, name, joining, reassigned_from,
+                                               name in restocked)
+                restocked.discard(name)
                 record.reassigned_from = reassigned_from
                 records.append(record)
                 if record.assigned_to is not None:
                     assigned[(record.assigned_to, record.seq)] = record
+                    self._assigned_objects.add(name)
                 claim = claim_of(record)
                 if claim is not None and claim in assigned:
                     if assigned[claim].not_found is not None:
@@ -277,11 +298,11 @@ class Feeder:
 
     async def _feed_task(
         self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = (),
-        again: int | None = None,
+        again: int | None = None, restocked: bool = False,
     ) -> TaskRecord:
         channel, watcher = self.channel, self.channel.watcher
         fed = clock.monotonic()
-        request = task_post(seq, name, joining, again)
+        request = task_post(seq, name, joining, again, restocked)
         live = [r for r in cluster if r not in watcher.down]
         if not live:
             why = "; ".join(f"{r}: {watcher.down[r]}" for r in cluster)
@@ -290,7 +311,7 @@ class Feeder:
                               + (f"; {others} robots of other clusters too" if others else ""))
         joined = await self._post_to_joiners(request, seq, name, joining)
         if joined != list(joining):
-            request = task_post(seq, name, joined, again)
+            request = task_post(seq, name, joined, again, restocked)
         await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live if r not in joining))
 
         def decided(states: States, robot_id: str) -> bool:

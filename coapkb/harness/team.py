@@ -45,6 +45,8 @@ from ..config import (
     dump_config,
 )
 from ..feeder import Feeder, FeederError, FeederSettings, FeedOutcome, Roster, TaskRecord, feeder_security
+from ..feeder.restock import Restocker, operator_security, shelf_places
+from ..feeder.tasks import Entry, Restock
 from ..kb.results import expect_select
 from ..kb.store import KnowledgeBase, named_rows
 from ..security import SecurityConfig, generate_team, load_identity
@@ -493,6 +495,8 @@ class Team:
         self._resumed: set[str] = set()
         #: The one world the robots find objects in (:mod:`coapkb.world.service`).
         self.world: WorldServer | None = None
+        #: Deliveries made by the last :meth:`run` (``restock`` entries of its list).
+        self.restocked = 0
 
     # ---------------------------------------------------------------- processes
 
@@ -673,7 +677,7 @@ class Team:
 
     async def run(
         self,
-        tasks: Sequence[str],
+        tasks: Sequence[Entry],
         progress: Callable[[TaskRecord], None] | None = None,
         finished: Callable[[], Awaitable[None]] | None = None,
         on_state: Callable[[str, RobotState], None] | None = None,
@@ -702,7 +706,12 @@ class Team:
                 by_task.remove(fault)
             return self._carry_all(feeder, started, events, due) if due else None
 
-        async with Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
+        restocker = await self._restocker() if any(isinstance(t, Restock) for t in tasks) else None
+        async with contextlib.AsyncExitStack() as closing, \
+                Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
+            if restocker is not None:
+                closing.push_async_callback(restocker.client.aclose)
+                feeder.restocker = restocker
             if on_state is not None:
                 feeder.watcher.listeners.append(on_state)
             started = time.monotonic()
@@ -724,6 +733,7 @@ class Team:
                         helper.cancel()
                 await asyncio.gather(*(h for h in (injector, sampler) if h is not None), return_exceptions=True)
             down, down_at = dict(watcher.down), dict(watcher.down_at)
+        self.restocked = 0 if restocker is None else restocker.done
         for event in events:
             if event.robot in down_at and event.action in ("kill", "stop"):
                 event.detected_after_s = round(down_at[event.robot] - started - event.at_s, 3)
@@ -747,6 +757,23 @@ class Team:
         finally:
             await client.aclose()
         return positions
+
+    async def _restocker(self) -> Restocker:
+        """What makes the list's deliveries: into the Location KB of a
+        writable team (as the team's operator), and into the world."""
+        from ..transport import open_client  # only a list with deliveries needs a second client
+
+        spec = self.spec
+        holders: list[list[tuple[str, Endpoint]]] = []
+        if spec.kb_writable and spec.mode == "distributed":
+            holders = [[(r, self.endpoints[r]) for i, r in enumerate(cluster) if "Location" in cluster_modules(i, spec)]
+                       for cluster in spec.clusters()]
+        expected = {e.hostport: r for r, e in self.endpoints.items()}
+        security = operator_security(spec.transport, self.team_dir, expected)
+        places = shelf_places(KnowledgeBase.load([spec.ontologies / "Location.owl"]))
+        client = await open_client(spec.transport, security=security)
+        return Restocker(client, places, holders, None if self.world is None else self.world.truth,
+                         timeout_s=spec.query_timeout_s)
 
     def feeder_security(self) -> ClientSecurity | None:
         """The feeder's client side for this team (None for an insecure team)."""

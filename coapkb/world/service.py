@@ -8,7 +8,7 @@ counts: they stand for what a robot sees, not for what it sends.
 
 Each request and answer is one CBOR item behind a 4-byte length: the
 request ``[object, robot, seq]``, the answer null (taken) or a text (why
-not).  A malformed request is answered with an error text and the
+not); a delivery (the feeder's) ``["restock", object]``, answered null.  A malformed request is answered with an error text and the
 connection closed; the server goes on.
 """
 
@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 MAX_FRAME = 1024
 #: How long a robot waits for the world before it trusts the KB's word.
 ANSWER_TIMEOUT_S = 2.0
+#: The first item of a delivery's request.
+RESTOCK = "restock"
 
 
 class WorldUnavailable(CoapkbError):
@@ -93,10 +95,16 @@ class WorldServer:
                     self.malformed += 1
                     writer.write(_frame(f"error: {exc}"[:200]))
                     return
+                if (isinstance(request, list) and len(request) == 2 and request[0] == RESTOCK
+                        and isinstance(request[1], str)):
+                    self.truth.restock(request[1])
+                    writer.write(_frame(None))
+                    await writer.drain()
+                    continue
                 if not (isinstance(request, list) and len(request) == 3 and isinstance(request[0], str)
                         and isinstance(request[1], str) and type(request[2]) is int):
                     self.malformed += 1
-                    writer.write(_frame("error: a request is [object, robot, seq]"))
+                    writer.write(_frame('error: a request is [object, robot, seq] or ["restock", object]'))
                     return
                 writer.write(_frame(self.truth.take_now(*request)))
                 await writer.drain()
@@ -118,13 +126,22 @@ class WorldClient:
 
     async def take(self, obj: str, robot: str, seq: int) -> str | None:
         """:meth:`~.truth.World.take`; raises :class:`WorldUnavailable`."""
+        return await self._ask([obj, robot, seq])
+
+    async def restock(self, obj: str) -> None:
+        """:meth:`~.truth.WorldTruth.restock`; raises :class:`WorldUnavailable`."""
+        answer = await self._ask([RESTOCK, obj])
+        if answer is not None:
+            raise WorldUnavailable(f"the world at {self.path} refused a delivery: {answer}")
+
+    async def _ask(self, request: list[object]) -> str | None:
         async with self._lock:  # one question at a time on the one connection
             try:
                 async with asyncio.timeout(self.timeout_s):
                     if self._streams is None:
                         self._streams = await asyncio.open_unix_connection(str(self.path))
                     reader, writer = self._streams
-                    writer.write(_frame([obj, robot, seq]))
+                    writer.write(_frame(request))
                     await writer.drain()
                     answer = await _read_frame(reader)
             except (OSError, TimeoutError, asyncio.IncompleteReadError, ValueError, cbor2.CBORDecodeError) as exc:

@@ -3,7 +3,8 @@
 The knowledge base says where each object is; the world may differ.  An
 object can be misplaced (not where the KB says, from the start of the run)
 or already taken by another robot (two clusters that decided the same object
-before either's write reached the other).  Everything else is where the
+before either's write reached the other).  A delivery (:meth:`WorldTruth.restock`)
+puts an object back on its shelf.  Everything else is where the
 KB says: an operator's write that adds or moves a product is taken to
 describe the world, so this keeps only the exceptions.
 
@@ -51,6 +52,8 @@ class WorldTruth:
 
     misplaced: frozenset[str] = frozenset()
     taken: dict[str, Taken] = field(default_factory=dict)
+    #: Misplaced objects a robot looked for, and who: a delivery waits for that.
+    looked_for: dict[str, Taken] = field(default_factory=dict)
 
     @classmethod
     def with_misplaced(cls, objects: Iterable[str]) -> WorldTruth:
@@ -59,6 +62,7 @@ class WorldTruth:
     def take_now(self, obj: str, robot: str, seq: int) -> str | None:
         """:meth:`World.take`, synchronously: the one place two robots race for an object."""
         if obj in self.misplaced:
+            self.looked_for.setdefault(obj, Taken(robot, seq))
             return "not where the KB says it is (misplaced)"
         already = self.taken.get(obj)
         if already is not None:
@@ -70,6 +74,14 @@ class WorldTruth:
 
     async def take(self, obj: str, robot: str, seq: int) -> str | None:
         return self.take_now(obj, robot, seq)
+
+    def restock(self, obj: str) -> None:
+        """A delivery: ``obj`` is on its shelf again (returned or new stock),
+        where the KB says, whoever took it and wherever it was misplaced."""
+        self.taken.pop(obj, None)
+        self.looked_for.pop(obj, None)
+        if obj in self.misplaced:
+            self.misplaced = self.misplaced - {obj}
 
 
 class KBWorld:

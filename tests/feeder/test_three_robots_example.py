@@ -145,6 +145,16 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
                                      for i, robot in enumerate(DEMO_ASSIGNMENTS, 1)], again.stdout
     assert f"{n} tasks, 0 assigned, {n} skipped ({n} already picked)" in again.stdout
 
+    # A delivery first: the bag is back on its shelf (in the KB, written with
+    # the operator's key, and for every robot's claim) and picked again.
+    restocked = workdir / "restock.txt"
+    restocked.write_text(f"restock {tasks[0]}\n{tasks[0]}\n", encoding="utf-8")
+    delivered = run(workdir, "feed", "--team", "examples/three-robots", "--tasks-file", str(restocked))
+    assert delivered.returncode == 0, delivered.stdout + delivered.stderr
+    assert [(int(m[1]), m[2]) for m in map(TASK_LINE.match, delivered.stdout.splitlines()) if m] == [
+        (2 * n + 1, tasks[0])], delivered.stdout
+    assert "1 tasks, 1 assigned, 0 skipped" in delivered.stdout and "; restocked 1" in delivered.stdout
+
     # Robot2 stopped and started again by hand: a new process, no task taken.
     # The next feed says it cannot rejoin, and what to do, in one line.
     processes["Robot2"].terminate()
@@ -157,5 +167,5 @@ def test_three_robots_started_by_hand_are_fed_their_tasks(workdir: Path, request
     ready, _, _ = select.select([restarted.stdout], [], [], 90)
     assert ready and restarted.stdout.readline().startswith("robot Robot2 ready")
     assert one_error_line(run(workdir, *feed)) == (
-        "coapkb: error: Robot2 started again by hand (no task taken, its teammates up to 10) cannot rejoin a "
+        f"coapkb: error: Robot2 started again by hand (no task taken, its teammates up to {2 * n + 1}) cannot rejoin a "
         "running team: restart every robot of cluster 1 (Robot1, Robot2, Robot3) for a fresh team")

@@ -74,6 +74,18 @@ def test_the_truth_forgets_the_oldest_taken_beyond_its_bound(monkeypatch: pytest
     assert truth.take_now("A_1", "Robot2", 4) is None  # delivered long ago: nobody remembers it
 
 
+def test_a_delivery_puts_a_taken_or_misplaced_object_back_on_its_shelf() -> None:
+    truth = WorldTruth.with_misplaced(["Barilla_pasta_1"])
+    assert truth.take_now("Gucci_bag_14", "Robot2", 1) is None
+    truth.restock("Gucci_bag_14")
+    truth.restock("Barilla_pasta_1")
+    truth.restock("Canon_tv_538")  # on its shelf already: nothing changes
+    assert truth.taken == {} and truth.misplaced == frozenset()
+    assert truth.take_now("Gucci_bag_14", "Robot1", 5) is None
+    assert truth.take_now("Barilla_pasta_1", "Robot1", 6) is None
+    assert truth.take_now("Gucci_bag_14", "Robot3", 7) == "gone: picked by Robot1 at task 5"
+
+
 async def test_without_a_simulated_world_every_object_is_where_the_kb_says() -> None:
     world = KBWorld()
     assert [await world.take("Gucci_bag_14", r, 1) for r in ("Robot1", "Robot2")] == [None, None]
@@ -113,6 +125,22 @@ async def test_many_robots_at_once_one_winner_per_object(world: WorldServer) -> 
     assert answers.count(None) == len(objects)
     assert set(world.truth.taken) == set(objects)
     assert all(a is None or a.startswith("gone: picked by Robot") for a in answers)
+
+
+async def test_a_delivery_over_the_socket_puts_objects_back(world: WorldServer) -> None:
+    robot, feeder = WorldClient(world.path), WorldClient(world.path)
+    try:
+        assert await robot.take("Gucci_bag_14", "Robot1", 1) is None
+        assert await robot.take("Barilla_pasta_1", "Robot1", 2) == MISPLACED
+        await feeder.restock("Gucci_bag_14")
+        await feeder.restock("Barilla_pasta_1")
+        assert await robot.take("Gucci_bag_14", "Robot2", 3) is None  # the robot's connection goes on
+        assert await robot.take("Barilla_pasta_1", "Robot2", 4) is None
+        assert world.truth.taken == {"Gucci_bag_14": Taken("Robot2", 3), "Barilla_pasta_1": Taken("Robot2", 4)}
+    finally:
+        await robot.aclose()
+        await feeder.aclose()
+    assert world.malformed == 0
 
 
 async def test_a_misplaced_object_is_answered_why(world: WorldServer) -> None:
