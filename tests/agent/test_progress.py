@@ -5,10 +5,16 @@ from __future__ import annotations
 import asyncio
 from dataclasses import replace
 
+import pytest
+
 from coapkb.agent.progress import ProgressPacing, acted_on
 from coapkb.agent.robot_state import LiveState
 
 IDLE = LiveState(1.0, 0.0)
+
+# The pace is timed on the event loop's own clock (looptime): a busy
+# machine cannot stretch the waits below past the pace.
+pytestmark = pytest.mark.looptime
 
 
 def test_observers_act_on_jobs_done_dropped_and_the_robot_idle() -> None:
