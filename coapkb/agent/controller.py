@@ -267,8 +267,15 @@ class Controller:
         started = clock.monotonic()
         deadline = started + self.config.query_timeout_s * SETTLE_WAIT_TIMEOUTS
         last_call = started + self.config.query_timeout_s * SETTLE_DECIDING_TIMEOUTS
-        deciding = False
-        while clock.monotonic() < (last_call if deciding else deadline):
+        deciding = unanswered = False
+        # Past the deadline only while a teammate says it is still deciding,
+        # or while one that is up has not answered yet: a round can end past
+        # the deadline (a frozen teammate's ask runs out, then the indirect
+        # probe that finds it back), and ending there would decide alone
+        # against a teammate that, asked by it meanwhile, saw this robot's
+        # undecided answer and decided on its own knowledge (found in the
+        # simulator: a robot frozen 14-17 s, the only holder of a module).
+        while clock.monotonic() < (last_call if deciding or unanswered else deadline):
             # A teammate whose answer was just lost is asked too: it may be the
             # one that had the knowledge (found in the simulator).  A robot
             # with no majority up asks the members it has down as well: it may
@@ -285,7 +292,7 @@ class Controller:
             if heard:
                 await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
             failed_too = 0
-            deciding = False
+            deciding = unanswered = False
             for mate, theirs in zip(mates, answers):
                 if isinstance(theirs, BaseException):
                     # A lost answer is asked again (found in the simulator:
@@ -298,6 +305,7 @@ class Controller:
                     # be the majority, cut off from this robot, and it waits
                     # for them; only a teammate whose process is gone cannot help.
                     failed_too += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
+                    unanswered = unanswered or self.team.is_up(mate)
                     continue
                 if theirs is None or theirs.decision.object != task.object:
                     # Still deciding: waited for past the deadline (found in

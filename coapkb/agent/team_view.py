@@ -130,7 +130,12 @@ class ObservedStates:
         #: Robots declared down: robot id -> why, and when (monotonic seconds).
         self.down: dict[str, str] = {}
         self.down_at: dict[str, float] = {}
+        #: Robots down whose process is known gone (nobody listens at its
+        #: address, or a new process answers there), not merely silent.
+        self.gone: set[str] = set()
         self._failures: dict[str, int] = {}
+        #: Robot -> when an answer or a notification of it last arrived.
+        self._heard_at: dict[str, float] = {}
         #: Readmitted robot -> until when its failed requests do not count.
         self._joining: dict[str, float] = {}
         self._changed = asyncio.Condition()
@@ -203,14 +208,17 @@ class ObservedStates:
     def alive(self) -> list[str]:
         return [r for r in self._endpoints if r not in self.down]
 
-    async def declare_down(self, robot_id: str, reason: str) -> None:
-        """Stop counting on ``robot_id``: waits re-evaluate without it."""
+    async def declare_down(self, robot_id: str, reason: str, gone: bool = False) -> None:
+        """Stop counting on ``robot_id``: waits re-evaluate without it.
+        ``gone``: its process is known gone, not merely silent (:attr:`gone`)."""
         if robot_id in self.down:
             return
         log.warning("%s is down: %s", robot_id, reason)
         async with self._changed:
             self.down[robot_id] = reason
             self.down_at[robot_id] = clock.monotonic()
+            if gone:
+                self.gone.add(robot_id)
             self._changed.notify_all()
         watcher = self._watchers.pop(robot_id, None)
         if watcher is not None:
@@ -221,6 +229,7 @@ class ObservedStates:
         was observed of the old one is forgotten, so the new incarnation's
         state is taken as it comes, not as a restart."""
         self.down.pop(robot_id, None)  # down_at stays: when the old process was found dead
+        self.gone.discard(robot_id)
         self._failures.pop(robot_id, None)
         # For a while, failed requests do not count: reaching the new process
         # takes a new security handshake first (OSCORE: the first requests
@@ -239,6 +248,7 @@ class ObservedStates:
         log.warning("%s answers again as the same process: counted on again", robot_id)
         async with self._changed:
             del self.down[robot_id]
+            self.gone.discard(robot_id)
             self._failures.pop(robot_id, None)
             self._changed.notify_all()
         self._start_watch(robot_id)
@@ -272,6 +282,7 @@ class ObservedStates:
             return
         self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
         if self.liveness and failures >= FAILURES_TO_DOWN:
+            failed_at = clock.monotonic()
             if not isinstance(exc, PeerGone) and await self._reached_by_others(robot_id):
                 # Silence (or an error of this process's own making) here, an
                 # answer there: this process's link, loop or state, not the
@@ -279,7 +290,17 @@ class ObservedStates:
                 log.warning("%s is silent to this robot, but a teammate reaches it: not declared down", robot_id)
                 self._failures[robot_id] = 0
                 return
-            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
+            if self._heard_at.get(robot_id, float("-inf")) >= failed_at:
+                # It answered this process itself while the probe ran (back
+                # from a freeze; the helper's answer was lost): the silence
+                # is over.  Found in the simulator: declared down a second
+                # after its notifications came again, a robot decided a
+                # task alone that its teammates took from it.
+                log.warning("%s was heard from again while its silence was confirmed: not declared down", robot_id)
+                self._failures[robot_id] = 0
+                return
+            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}",
+                                    gone=isinstance(exc, PeerGone))
 
     async def _reached_by_others(self, robot_id: str) -> bool:
         """One indirect probe at a time per robot: concurrent failures share it."""
@@ -306,7 +327,8 @@ class ObservedStates:
         if self.liveness and old is not None and (state.boot != old.boot or state.plan.seq < old.plan.seq):
             # A new process that lost the old one's state (a restart): the
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
-            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
+            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})",
+                                    gone=True)
             return
         # Heard from: the grace a readmitted process gets until it can be
         # reached (readmit) is over.  Kept beyond, it hid the new process's
@@ -359,6 +381,7 @@ class ObservedStates:
                 return
             self.round_trip.on_sample(clock.monotonic() - started)
             self._failures[robot_id] = 0
+            self._heard_at[robot_id] = clock.monotonic()
             self._joining.pop(robot_id, None)  # reached: see _update
             if state is not None and state != self.states.get(robot_id):
                 log.info("observation of %s missed a change; registering again", robot_id)
@@ -411,6 +434,7 @@ class ObservedStates:
                         continue
                     backoff = 0.2
                     self._failures[robot_id] = 0
+                    self._heard_at[robot_id] = clock.monotonic()
                     await self._update(robot_id, state)
             except TransportError as exc:
                 log.debug("observing %s: %s", robot_id, exc)
@@ -604,8 +628,12 @@ class TeamView:
         teammate out has a membership of its own (another epoch): counting
         on the others again would not make it decide as they do (found in
         the simulator), and it stays as it is."""
-        if self.excluded:
-            return False
+        return not self.excluded and self._outnumbered
+
+    @property
+    def _outnumbered(self) -> bool:
+        """Whether the members this robot counts as up, itself counted, are
+        no majority of the cluster."""
         up = sum(1 for r in self.membership.members if r == self._own.robot_id or self.is_up(r))
         return up <= (len(self._peers) + 1) // 2
 
@@ -680,14 +708,23 @@ class TeamView:
 
     def admit(self, robot_id: str) -> None:
         """Teammate ``robot_id`` (restarted) is a member again from the task
-        being decided now; its new process's plans are awaited like anyone's."""
+        being decided now; its new process's plans are awaited like anyone's.
+        A new epoch if it had been left out; one restarted before the
+        membership left it out is a member still, in the same epoch.  Each
+        robot of the cluster reads that from the membership of the task
+        before, the joiners too (:meth:`_joined`), so a join list that named
+        a robot to some and not to others (the feeder names to the teammates
+        only the joiners its post reached) cannot set their epochs apart
+        (found in the simulator: a robot killed again before it took its
+        join, named to its co-joiner only, which then named an epoch one
+        ahead of its teammate's on every task)."""
         if robot_id not in self._peers:
             return
         log.warning("%s joins the team again", robot_id)
-        self.excluded.pop(robot_id, None)
+        if self.excluded.pop(robot_id, None) is not None:
+            self.epoch += 1
         self._forgone.pop(robot_id, None)  # a promise about its old process
         self.refused.discard(robot_id)  # and a refusal of it
-        self.epoch += 1
         self._teammates.readmit(robot_id)
 
     def adopt(self, membership: Membership, seq: int) -> None:
@@ -706,8 +743,8 @@ class TeamView:
 
     async def join(self, seq: int, timeout: float, joining: Sequence[str] = ()) -> None:
         """This robot (restarted) joins at task ``seq``: it takes the
-        membership the teammates decided task ``seq - 1`` in (a new epoch: its
-        admission) and shows a plan right after ``seq - 1``, which the others
+        membership the teammates decided task ``seq - 1`` in (a new epoch, its
+        admission, if that membership had left it out) and shows a plan right after ``seq - 1``, which the others
         wait for before deciding ``seq``.
 
         ``joining``: every robot joining at ``seq`` (this one too).  When no
@@ -779,7 +816,9 @@ class TeamView:
         if membership.members:
             gone = self._peers - set(membership.members)
             self.excluded = {r: seq - 1 for r in gone}
-        self.epoch = membership.epoch + 1
+        # Its admission is an epoch if that membership had left it out (see
+        # :meth:`admit`); before any decision, nobody had.
+        self.epoch = membership.epoch + (self._own.robot_id not in (membership.members or (self._own.robot_id,)))
         self._own = replace(self._own, plan=replace(self._own.plan, seq=seq - 1), prev=None)
         log.warning("joined the team at task %d (epoch %d, members %s)", seq, self.epoch,
                     ", ".join(self.membership.members))
@@ -815,6 +854,20 @@ class TeamView:
         for robot_id in sorted(expected):
             if plans.get(robot_id) is None and not self._forgoes(robot_id, seq):
                 plans[robot_id] = await self._plan_from_survivors(robot_id, seq)
+            if plans.get(robot_id) is None and robot_id not in self._teammates.gone and self._outnumbered:
+                # Down for its silence, with no majority up: this robot may
+                # be the one cut off, and the others, counting it, decide on
+                # with the teammate it has down.  Leaving that one out would
+                # be a membership of its own, in an epoch ahead of theirs,
+                # and the feeder voids the decisions of robots left out of a
+                # newer membership: the majority's.  It settles the task
+                # instead, asking the ones it has down too (found in the
+                # simulator: a robot cut off for 21 s, whose observation of
+                # a teammate never started, left it out once the partition
+                # healed).  A teammate whose process is known gone is no
+                # sign of that, and leaves as before.
+                raise TransportError(f"{robot_id} is down without a plan after task {seq}, and this robot has "
+                                     "no majority of its cluster up: it leaves nobody out")
             if plans.get(robot_id) is None:
                 why = down.get(robot_id, f"a teammate had no plan of it after task {seq}")
                 log.warning("%s is down (%s): excluded from task %d on", robot_id, why, seq + 1)

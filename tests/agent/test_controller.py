@@ -14,12 +14,12 @@ from coapkb.agent.controller import Controller, DecisionMessage, Task
 from coapkb.agent.query_handler import QueryError, QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
-from coapkb.agent.team_view import PLAN_PATH, TeamView
+from coapkb.agent.team_view import PLAN_PATH, Membership, TeamView
 from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase
 from coapkb.model.results import SelectResult
-from coapkb.transport.base import ResourceInfo, TransportError
+from coapkb.transport.base import PeerTimeout, ResourceInfo, TransportError
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Request, Response, Status
 from coapkb.transport.router import Router
@@ -239,3 +239,51 @@ async def test_failures_become_the_decisions_error_and_the_robot_goes_on(
     h.controller.submit(Task(2, OBJECT))
     decisions = await h.published.wait(2)
     assert [(d.seq, d.error, d.assigned_to) for d in decisions] == [(1, expected, None), (2, expected, None)]
+
+
+class UpTeam:
+    """What :meth:`Controller._settle` reads of the team: everyone up, a
+    majority; failures recorded and not counted."""
+
+    def __init__(self, robot_id: str, members: tuple[str, ...]) -> None:
+        self.membership = Membership(0, members)
+        self.alone = False
+        self.robot_id = robot_id
+
+    def is_up(self, robot_id: str) -> bool:
+        return True
+
+    async def request_failed(self, robot_id: str, exc: Exception) -> None:
+        pass
+
+    def adopt(self, membership: Membership, seq: int) -> None:
+        pass
+
+
+async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_deadline() -> None:
+    """Robot2 and Robot3 found no holder of a module (Robot1, frozen) and
+    settle the task.  Robot2's ask to Robot1 runs out past the deadline;
+    Robot1, back, has meanwhile decided on its own knowledge.  Robot1 is
+    up, so Robot2 asks it again rather than deciding alone (simulator seeds
+    1076, 1453, 1534 and 1535 of the 3-robot swarm profile with writes: one
+    robot decided nobody, its teammates Robot1)."""
+    cfg = config("Robot2", query_timeout_s=0.2)
+    theirs = DecisionMessage(Decision(7, OBJECT, assigned_to="Robot1", epoch=0,
+                                      members=("Robot1", "Robot2", "Robot3")))
+    alone = DecisionMessage(Decision(7, OBJECT, unavailable="no live robot holds the Location KB"))
+    asked: list[str] = []
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        asked.append(mate)
+        if mate == "Robot3":
+            return alone  # it failed too
+        if asked.count("Robot1") == 1:
+            await asyncio.sleep(0.5)  # frozen: past the deadline (two query timeouts)
+            raise PeerTimeout("coap://robot1:5683: no answer")
+        return theirs
+
+    controller = Controller(cfg, NoQueries(), UpTeam("Robot2", ("Robot1", "Robot2", "Robot3")),  # type: ignore[arg-type]
+                            None, lambda state: None, None, ask_decision=ask)  # type: ignore[arg-type]
+    async with asyncio.timeout(2):
+        settled = await controller._settle(Task(7, OBJECT), alone)
+    assert settled is theirs and asked.count("Robot1") == 2

@@ -6,9 +6,11 @@ import asyncio
 from collections.abc import AsyncIterator
 from dataclasses import replace
 
+import pytest
+
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import PLAN_PATH, ObservedStates
-from coapkb.transport.base import Endpoint, TrafficCounters
+from coapkb.transport.base import Endpoint, PeerTimeout, TrafficCounters, TransportError
 from coapkb.transport.messages import ContentFormat, Request, Response, Status
 
 
@@ -263,9 +265,9 @@ async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_th
             async with asyncio.timeout(2):
                 await team.join(10, timeout=60, joining=("Robot1", "Robot2"))
             assert team.excluded == {"Robot3": 9} and team.own.plan.seq == 9
-            assert (team.membership.epoch, team.membership.members) == (11, ("Robot1", "Robot2"))
-            team.admit("Robot2")  # as the controller does next, on every joiner alike
-            assert team.membership.epoch == 12
+            assert (team.membership.epoch, team.membership.members) == (10, ("Robot1", "Robot2"))
+            team.admit("Robot2")  # as the controller does next, on every joiner alike: a member already
+            assert team.membership.epoch == 10
         finally:
             await team.aclose()
 
@@ -313,3 +315,111 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
         assert team.grant("Robot2") is None
     finally:
         await team.aclose()
+
+
+async def test_an_outnumbered_robot_leaves_no_teammate_out_for_its_silence() -> None:
+    """Robot1, cut off, has both teammates down for their silence and no
+    plan of Robot2 after task 4: it may be the one cut off while they
+    decide on, counting it, so it leaves nobody out (a membership of its
+    own, an epoch ahead, voided theirs in the record: simulator seed 356 of
+    the 3-robot swarm profile with writes).  A teammate whose process is
+    known gone (nobody listening there) leaves as before."""
+    network = MemoryNetwork()
+    await serve_plan(network, robot("Robot2", 3))
+    await serve_plan(network, robot("Robot3", 4))
+    team = view(network, robot("Robot1", 4))
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
+        for teammate in ("Robot2", "Robot3"):
+            await team._teammates.declare_down(teammate, "2 requests failed in a row")
+        with pytest.raises(TransportError, match="leaves nobody out"):
+            await team.planned_states(4, timeout=2)
+        assert team.excluded == {} and team.membership.epoch == 0
+        team._teammates.down.pop("Robot2")
+        await team._teammates.declare_down("Robot2", "port unreachable", gone=True)
+        plans = await team.planned_states(4, timeout=2)
+        assert set(plans) == {"Robot1", "Robot3"} and team.excluded == {"Robot2": 5}
+        assert team.membership.epoch == 1
+    finally:
+        await team.aclose()
+
+
+async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
+    """A restarted robot the membership still counts (restarted before the
+    others left it out) is admitted in the same epoch, on every robot alike,
+    whether or not the task's join list named it to them (the feeder names to
+    the teammates only the joiners its post reached: simulator seed 1621 of
+    the 3-robot swarm profile with writes); one left out comes back in a new
+    epoch.  A joiner reads the same from the membership it joins on."""
+    network = MemoryNetwork()
+    team = view(network, robot("Robot1", 4))
+    try:
+        team.admit("Robot2")
+        assert team.membership.epoch == 0
+        team.excluded["Robot3"] = 4
+        team.epoch = 1
+        team.admit("Robot3")
+        assert (team.membership.epoch, team.membership.members) == (2, ("Robot1", "Robot2", "Robot3"))
+    finally:
+        await team.aclose()
+    last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot1", "Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot3", 9), last=last))
+    joiner = view(network, robot("Robot1", 0, boot=3))
+    try:
+        async with asyncio.timeout(2):
+            await joiner.join(10, timeout=60, joining=("Robot1", "Robot2"))
+        joiner.admit("Robot2")
+        assert (joiner.membership.epoch, joiner.membership.members) == (4, ("Robot1", "Robot2", "Robot3"))
+    finally:
+        await joiner.aclose()
+
+
+class BackDuringTheProbe:
+    """A teammate silent to every request until the indirect probe runs:
+    meanwhile it is back, and a notification of its observation arrives,
+    while the helper's own answer is lost."""
+
+    def __init__(self) -> None:
+        self.counters = TrafficCounters()
+        self.back = asyncio.Event()
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        raise PeerTimeout(f"{peer}: no answer within {timeout}s")
+
+    async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        yield Response(Status.CONTENT, robot("Robot2", 1).encode_plan(), ContentFormat.CBOR)
+        await self.back.wait()
+        yield Response(Status.CONTENT, robot("Robot2", 2).encode_plan(), ContentFormat.CBOR)
+        await asyncio.Event().wait()
+
+    async def aclose(self) -> None:
+        pass
+
+
+async def test_a_teammate_heard_from_while_its_silence_is_confirmed_is_not_declared_down() -> None:
+    """Two requests to Robot2 failed (it was frozen); the teammate asked to
+    reach it fails too, but Robot2's own notification came meanwhile: its
+    silence is over and it stays up (simulator seed 1534 of the 3-robot swarm
+    profile with writes: declared down a second after its notifications came
+    again, a robot decided a task alone)."""
+    transport = BackDuringTheProbe()
+    states = ObservedStates(transport, {"Robot2": Endpoint("coap", "127.0.0.1", 1)}, PLAN_PATH, liveness=True)
+
+    async def helper_fails(robot_id: str) -> bool:
+        transport.back.set()
+        await states.wait(lambda s: s["Robot2"].plan.seq == 2, timeout=2)
+        return False
+
+    states.confirm_silence = helper_fails
+    states.start()
+    try:
+        await states.wait(lambda s: "Robot2" in s, timeout=2)
+        for _ in range(2):
+            await states.record_failure("Robot2", PeerTimeout("no answer"))
+        assert "Robot2" not in states.down
+        await states.record_failure("Robot2", PeerTimeout("no answer"))
+        await states.record_failure("Robot2", PeerTimeout("no answer"))
+        assert "Robot2" in states.down and "Robot2" not in states.gone  # silent again, nothing heard: down
+    finally:
+        await states.aclose()
