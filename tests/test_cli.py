@@ -332,3 +332,23 @@ async def test_keys_count_the_robots_apart_from_the_other_members(tmp_path: Path
     assert made.code == 0, made.stderr
     assert made.stdout.startswith(f"6 robots and 3 other members in {tmp_path / 'six'}: Robot1 (robot), "), made.stdout
     assert "Robot6 (robot), feeder (feeder), central (server), operator (client)\n" in made.stdout
+
+
+async def test_dump_writes_a_module_as_sorted_n_triples(uri: str, tmp_path: Path) -> None:
+    """``coapkb dump --module``: the module's triples as the robot holds them
+    (those whose subject is in its namespace, and its ontology's header), one
+    sorted N-Triples line each."""
+    import rdflib
+
+    out = tmp_path / "capability.nt"
+    result = await coapkb("dump", uri, "--module", "Capability", "--out", str(out))
+    assert result.code == 0, result.stderr
+    lines = out.read_text(encoding="utf-8").splitlines()
+    assert lines == sorted(lines) and re.fullmatch(rf"{len(lines)} triples, \d+ bytes, version [0-9a-f]+\n",
+                                                   result.stderr)
+    dumped = rdflib.Graph().parse(out, format="nt")
+    source = rdflib.Graph().parse(ONTOLOGIES / "Capability.owl")
+    module = "http://www.tcs.org/2018/Capability"  # the ontology's IRI, and its namespace after it
+    assert set(dumped) == {t for t in source if str(t[0]).startswith(module)}
+    mistake = await coapkb("dump", uri, "--module", "Robots")
+    assert mistake.code == 2 and "invalid choice" in mistake.stderr and "Traceback" not in mistake.stderr

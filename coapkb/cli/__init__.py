@@ -20,7 +20,7 @@ import typing
 from collections.abc import Callable, Sequence
 
 from ..errors import CoapkbError
-from . import agent, bench, feed, keys, query, serve, sim, team, update, world
+from . import agent, bench, dump, feed, keys, query, serve, sim, team, update, world
 from .common import UserError
 from .render import render
 
@@ -51,7 +51,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 COMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {
     "demo": team.add_demo, "team": team.add_team, "feed": feed.add_feed, "serve": serve.add_serve,
     "agent": agent.add_agent, "query": query.add_query, "bench": bench.add_bench, "keys": keys.add_keys,
-    "sim": sim.add_sim, "update": update.add_update, "world": world.add_world,
+    "sim": sim.add_sim, "update": update.add_update, "dump": dump.add_dump, "world": world.add_world,
 }
 
 
