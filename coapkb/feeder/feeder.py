@@ -204,7 +204,7 @@ class Feeder:
         self, index: int, cluster: list[str], share: list[Entry], progress: Progress | None
     ) -> tuple[list[TaskRecord], float]:
         """Feed one cluster's share; returns its records and when its last task was decided."""
-        channel, membership, watcher = self.channel, self.membership, self.channel.watcher
+        membership, watcher = self.membership, self.channel.watcher
         records: list[TaskRecord] = []
         #: (robot, task) -> record, for the tasks a robot reports not found.
         assigned: dict[tuple[str, int], TaskRecord] = {}
@@ -257,13 +257,7 @@ class Feeder:
                     if held is not None:
                         await held
             decided_at = clock.monotonic()
-            # Until the cluster's survivors have executed everything: a robot
-            # that dies meanwhile is found by the stalled wait's liveness requests.
-            await channel.wait_for(
-                lambda s: all(r in watcher.down or idle(s, r) for r in cluster),
-                channel.settings.task_timeout_s * 4,
-                f"cluster {index + 1} to finish executing",
-            )
+            await self._until_executed(index, cluster)
             # Tasks assigned to robots that went down before executing them
             # go round again, in their order, to the survivors: once the
             # down robot can no longer pick them (the fence).
@@ -276,6 +270,29 @@ class Feeder:
             reruns = []
             queue = [(found[s].object, s) for s in sorted(found)]
         return records, decided_at
+
+    async def _until_executed(self, index: int, cluster: list[str]) -> None:
+        """Until the cluster's survivors have executed everything: a robot
+        that dies meanwhile is found by the stalled wait's liveness
+        requests.  A long shift's robots decide far ahead of their wheels
+        (3,000 tasks leave hours of jobs queued), so the wait lasts while
+        they finish jobs, and fails once none did for four task timeouts."""
+        channel, watcher = self.channel, self.channel.watcher
+        what = f"cluster {index + 1} to finish executing"
+
+        def done() -> int:
+            return sum(watcher.states[r].live.done for r in cluster if r in watcher.states)
+
+        while True:
+            before = done()
+            try:
+                await channel.wait_for(lambda s: all(r in watcher.down or idle(s, r) for r in cluster),
+                                       channel.settings.task_timeout_s * 4, what)
+                return
+            except FeederError:
+                if done() == before:
+                    raise
+                log.info("%s: %d jobs done meanwhile; waiting on", what, done() - before)
 
     async def _post_to_joiners(self, request: Request, seq: int, name: str, joining: Sequence[str]) -> list[str]:
         """Post task ``seq`` to the robots joining at it, before their
