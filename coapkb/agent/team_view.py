@@ -208,17 +208,14 @@ class ObservedStates:
     def alive(self) -> list[str]:
         return [r for r in self._endpoints if r not in self.down]
 
-    async def declare_down(self, robot_id: str, reason: str, gone: bool = False) -> None:
-        """Stop counting on ``robot_id``: waits re-evaluate without it.
-        ``gone``: its process is known gone, not merely silent (:attr:`gone`)."""
+    async def declare_down(self, robot_id: str, reason: str) -> None:
+        """Stop counting on ``robot_id``: waits re-evaluate without it."""
         if robot_id in self.down:
             return
         log.warning("%s is down: %s", robot_id, reason)
         async with self._changed:
             self.down[robot_id] = reason
             self.down_at[robot_id] = clock.monotonic()
-            if gone:
-                self.gone.add(robot_id)
             self._changed.notify_all()
         watcher = self._watchers.pop(robot_id, None)
         if watcher is not None:
@@ -299,8 +296,17 @@ class ObservedStates:
                 log.warning("%s was heard from again while its silence was confirmed: not declared down", robot_id)
                 self._failures[robot_id] = 0
                 return
-            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}",
-                                    gone=isinstance(exc, PeerGone))
+            self._gone_if(robot_id, isinstance(exc, PeerGone))
+            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
+
+    def _gone_if(self, robot_id: str, gone: bool) -> None:
+        """About to declare ``robot_id`` down: its process known gone, or
+        only silent (:attr:`gone`)."""
+        if robot_id not in self.down:
+            if gone:
+                self.gone.add(robot_id)
+            else:
+                self.gone.discard(robot_id)
 
     async def _reached_by_others(self, robot_id: str) -> bool:
         """One indirect probe at a time per robot: concurrent failures share it."""
@@ -327,8 +333,8 @@ class ObservedStates:
         if self.liveness and old is not None and (state.boot != old.boot or state.plan.seq < old.plan.seq):
             # A new process that lost the old one's state (a restart): the
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
-            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})",
-                                    gone=True)
+            self._gone_if(robot_id, True)
+            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
             return
         # Heard from: the grace a readmitted process gets until it can be
         # reached (readmit) is over.  Kept beyond, it hid the new process's

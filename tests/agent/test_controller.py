@@ -267,7 +267,7 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
     up, so Robot2 asks it again rather than deciding alone (simulator seeds
     1076, 1453, 1534 and 1535 of the 3-robot swarm profile with writes: one
     robot decided nobody, its teammates Robot1)."""
-    cfg = config("Robot2", query_timeout_s=0.2)
+    cfg = config("Robot2", query_timeout_s=1.0)  # a wait of 2 s, 6 s for one still deciding: room on a busy machine
     theirs = DecisionMessage(Decision(7, OBJECT, assigned_to="Robot1", epoch=0,
                                       members=("Robot1", "Robot2", "Robot3")))
     alone = DecisionMessage(Decision(7, OBJECT, unavailable="no live robot holds the Location KB"))
@@ -278,12 +278,12 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
         if mate == "Robot3":
             return alone  # it failed too
         if asked.count("Robot1") == 1:
-            await asyncio.sleep(0.5)  # frozen: past the deadline (two query timeouts)
+            await asyncio.sleep(2.5)  # frozen: past the deadline (two query timeouts)
             raise PeerTimeout("coap://robot1:5683: no answer")
         return theirs
 
     controller = Controller(cfg, NoQueries(), UpTeam("Robot2", ("Robot1", "Robot2", "Robot3")),  # type: ignore[arg-type]
                             None, lambda state: None, None, ask_decision=ask)  # type: ignore[arg-type]
-    async with asyncio.timeout(2):
+    async with asyncio.timeout(10):
         settled = await controller._settle(Task(7, OBJECT), alone)
     assert settled is theirs and asked.count("Robot1") == 2

@@ -337,7 +337,8 @@ async def test_an_outnumbered_robot_leaves_no_teammate_out_for_its_silence() -> 
             await team.planned_states(4, timeout=2)
         assert team.excluded == {} and team.membership.epoch == 0
         team._teammates.down.pop("Robot2")
-        await team._teammates.declare_down("Robot2", "port unreachable", gone=True)
+        team._teammates.gone.add("Robot2")
+        await team._teammates.declare_down("Robot2", "port unreachable")
         plans = await team.planned_states(4, timeout=2)
         assert set(plans) == {"Robot1", "Robot3"} and team.excluded == {"Robot2": 5}
         assert team.membership.epoch == 1
