@@ -77,6 +77,20 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "unavailable without it; back, it decided the task alone on its own knowledge and picked it",
         55: "a robot waiting for its teammates' decision gave up the moment before one, back from a partition, "
             "decided on knowledge: the two decided differently",
+        1076: "a robot frozen 16 s, the only holder of the places: a teammate settling a task without it asked it "
+              "once, the ask ran out past the deadline, and it decided nobody while the frozen one, back, decided "
+              "on knowledge and the third took that",
+        1453: "the same as seed 1076, after the feeder and the frozen robot were cut off",
+        1534: "the same as seed 1076, and the teammate declared the frozen robot down a second after its "
+              "notifications came again (the helper's answer of the indirect probe lost)",
+        1535: "the same as seed 1076, with the feeder cut off meanwhile",
+        1621: "a robot killed again before it took its join was named to its co-joiner and not to its teammate: "
+              "the co-joiner admitted it in one more epoch, and named an epoch ahead of its teammate's on every task",
+        356: "a robot cut off from everyone, whose observation of a teammate never started, left that teammate "
+             "out once the partition healed, alone: its epoch, ahead of theirs, voided the majority's decision",
+    }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
+        40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
     }),
     (("--robots", "9", "--tasks", "100", "--faults", "freeze,partition"), {
         20005: "a robot cut off dropped a task under its fence; granted again once the partition healed, it was "
