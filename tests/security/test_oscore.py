@@ -557,11 +557,11 @@ async def test_strangers_traffic_leaves_teammates_answered_and_the_responder_sta
         assert half_open <= oscore_layer.HALF_OPEN_MAX and complete == 3
         # The bucket takes on its burst and what refilled while the flood
         # lasted (longer on a loaded machine); every other message_1 that
-        # reached the server was refused.  How many reached it depends on the
-        # machine: the kernel drops what a busy server has not read in time.
+        # reached the server was refused.  How many reached it, and so how
+        # many were refused, depends on the machine: the kernel drops what a
+        # busy server has not read in time, and a slow flood refills.
         refilled = oscore_layer.EDHOC_STARTS_PER_S * (loop.time() - flood_started)
         assert security.taken_starts - taken_before <= oscore_layer.HALF_OPEN_MAX + refilled + 1
-        assert security.refused_starts > 0
         assert replies > 0
         security.sweep(loop.time() + oscore_layer.HALF_OPEN_S)  # the server's periodic sweep once that age has passed
         assert security.responder_sessions() == (0, 3)

@@ -223,6 +223,7 @@ CI_PROFILES = [
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # hundreds of seeds: this bounds a hang; a busy machine takes minutes
 @pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts"])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation

@@ -73,16 +73,17 @@ _OUTPUTS = itertools.count()
 
 
 async def coap(binary: str, tmp_path: Path, *args: str, out: bool = True) -> Run:
-    """Run coap-client with a 10 s break (-B) and a hard 30 s limit."""
+    """Run coap-client with a 30 s break (-B) and a hard 60 s limit: bounds
+    on a hang, long enough for a busy machine's server."""
     # A name of its own: runs at once (the concurrent test) named their output
     # by counting the folder, and two could count alike before either wrote.
     output = tmp_path / f"out-{next(_OUTPUTS)}.bin"
-    argv = [binary, "-B", "10", *(("-o", str(output)) if out else ()), *args]
+    argv = [binary, "-B", "30", *(("-o", str(output)) if out else ()), *args]
     proc = await asyncio.create_subprocess_exec(
         *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
     )
     try:
-        stdout, stderr = await asyncio.wait_for(proc.communicate(), 30)
+        stdout, stderr = await asyncio.wait_for(proc.communicate(), 60)
     except TimeoutError:
         proc.kill()
         await proc.wait()
