@@ -96,7 +96,8 @@ def draw(path: Path, out: Path, ontologies: Path) -> None:
     right.legend(loc="upper left", fontsize=8)
     # The whole command, over as many lines as it takes, and room kept above
     # the panels for them (tight_layout alone let a long one run off the figure).
-    title = textwrap.wrap(f"{path.name}: {metadata.get('command', '')}", 150)
+    # Broken at spaces only: a path's hyphen is not where a line may end.
+    title = textwrap.wrap(f"{path.name}: {metadata.get('command', '')}", 150, break_on_hyphens=False)
     fig.suptitle("\n".join(title), fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.035 * len(title)))
     out.parent.mkdir(parents=True, exist_ok=True)
