@@ -292,6 +292,7 @@ async def test_team_mistakes() -> None:
         (["team", "--robots", "3", "--tasks-file", "/nonexistent/tasks.txt"], ["/nonexistent/tasks.txt"]),
         # Said of the option, not of a robot's configuration file in a temporary folder.
         (["team", "--robots", "3", "--tasks", "1", "--foxglove", "99999"], ["--foxglove: port 99999 out of range"]),
+        (["team", "--robots", "3", "--tasks", "1", "--keep-serving"], ["--keep-serving goes with --foxglove"]),
         (["team", "--robots", "3", "--tasks", "1", "--credentials", "/nonexistent/nokeys/"],
          ["--credentials /nonexistent/nokeys/: no team.json in /nonexistent/nokeys;",
           "coapkb keys --team-dir /nonexistent/nokeys/"]),

@@ -10,9 +10,13 @@ import logging
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
 from .common import UserError
+
+if TYPE_CHECKING:
+    from ..harness.recording import RunRecorder
 
 #: The seed's example task (Fig. 4), a few more picks, and one object that
 #: does not exist, which every robot must skip.
@@ -61,6 +65,8 @@ def add_team(sub: argparse._SubParsersAction) -> None:
                    help="write the run's record here: JSON, or an MCAP file Foxglove opens (by the extension)")
     p.add_argument("--foxglove", metavar="[HOST:]PORT",
                    help="serve the run live to Foxglove (WebSocket protocol) while it runs; host 127.0.0.1 by default")
+    p.add_argument("--keep-serving", action="store_true",
+                   help="with --foxglove: once the run is over, go on serving it until Ctrl-C (time to open a viewer)")
     kb = p.add_mutually_exclusive_group()
     kb.add_argument("--read-only", dest="writable", action="store_false",
                     help="the robots' KBs stay as the files load them and refuse writes (the paper's workflow; "
@@ -174,7 +180,11 @@ async def _team(args: argparse.Namespace) -> int:
     from ..harness.team import Team
 
     spec, tasks = _spec_and_tasks(args)
+    keep_serving = getattr(args, "keep_serving", False)  # coapkb demo has no live view
+    if keep_serving and args.foxglove is None:
+        raise UserError("--keep-serving goes with --foxglove [HOST:]PORT")
     record = None
+    holding = False
 
     def progress(bar: tqdm, record: TaskRecord) -> None:
         bar.update()
@@ -244,7 +254,8 @@ async def _team(args: argparse.Namespace) -> int:
             logger.removeHandler(recorder.log_handler)
             if record is not None:
                 recorder.finished(record)
-            recorder.close()
+            holding = keep_serving and record is not None and stopped_by is None
+            recorder.close(keep_serving=holding)
     print()
     print(summarise(record))
     if restocked:
@@ -257,7 +268,26 @@ async def _team(args: argparse.Namespace) -> int:
     elif args.record:
         Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
+    if holding and recorder is not None:
+        await _serve_until_stopped(recorder, args.foxglove_at[0])
     return 1 if record.disputed else 0
+
+
+async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:
+    """``--keep-serving``: the live server stays up with the whole run until Ctrl-C or SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        assert recorder.server is not None
+        print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
+              flush=True)
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        recorder.close()
 
 
 def _recorder(args: argparse.Namespace, spec):  # -> RunRecorder | None

@@ -244,11 +244,13 @@ class RunRecorder:
         channel.log(message, log_time=now if now is not None else time.time_ns())
         self.messages += 1
 
-    def close(self) -> None:
+    def close(self, *, keep_serving: bool = False) -> None:
+        """Close the MCAP file, and stop the live server unless ``keep_serving``
+        (a viewer opened late still sees the whole run; close again to stop it)."""
         if self._mcap is not None:
             self._mcap.close()
             self._mcap = None
-        if self.server is not None:
+        if self.server is not None and not keep_serving:
             self.server.stop()
             self.server = None
 

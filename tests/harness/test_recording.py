@@ -140,3 +140,45 @@ def test_the_foxglove_layout_names_only_topics_the_recording_writes() -> None:
     assert named and named <= written, named - written
     source = (ROOT / "coapkb" / "harness" / "recording.py").read_text()
     assert all(f'"{topic}"' in source for topic in written)
+
+
+@pytest.mark.slow
+async def test_keep_serving_serves_the_finished_run_until_ctrl_c(tmp_path: Path) -> None:
+    """``--foxglove PORT --keep-serving``: the run ends, its summary and its
+    recording are written, and a viewer opened afterwards still gets the
+    channels, until Ctrl-C ends the command with status 0."""
+    import signal
+
+    from support import free_tcp_port
+
+    port = free_tcp_port()
+    out = tmp_path / "run.mcap"
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "coapkb", "team", "--robots", "3", "--tasks", "2", "--insecure", "--quiet",
+        "--record", str(out), "--foxglove", str(port), "--keep-serving", cwd=ROOT,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    assert proc.stdout is not None
+    try:
+        lines: list[str] = []
+        async with asyncio.timeout(180):
+            while not lines or "until Ctrl-C" not in lines[-1]:
+                line = (await proc.stdout.readline()).decode()
+                assert line, "".join(lines)
+                lines.append(line)
+        assert any(line.startswith(f"recording written to {out}") for line in lines), lines
+        assert lines[-1].startswith(f"foxglove: the run is over; still serving it on ws://127.0.0.1:{port}")
+        with out.open("rb") as f:  # the recording is whole already
+            assert sum(1 for _ in make_reader(f).iter_messages()) > 0
+        async with websockets.connect(f"ws://127.0.0.1:{port}",
+                                      subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:
+            async with asyncio.timeout(10):
+                advertised = json.loads(await ws.recv())
+                while advertised["op"] != "advertise":
+                    advertised = json.loads(await ws.recv())
+            assert "/tasks" in {c["topic"] for c in advertised["channels"]}
+        proc.send_signal(signal.SIGINT)
+        assert await asyncio.wait_for(proc.wait(), 30) == 0
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
