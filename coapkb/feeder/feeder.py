@@ -227,8 +227,9 @@ class Feeder:
             for name, reassigned_from in queue:
                 if isinstance(name, Restock):
                     assert self.restocker is not None  # checked by feed()
-                    await self.restocker.restock(name.object, index, name.object in self._assigned_objects,
-                                                 watcher.down)
+                    await self.restocker.restock(
+                        name.object, index, name.object in self._assigned_objects, watcher.down,
+                        lambda: sum(watcher.states[r].live.done for r in cluster if r in watcher.states))
                     restocked.add(name.object)
                     continue
                 seq += 1

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,7 +48,7 @@ from .tasks import FeederError
 log = logging.getLogger(__name__)
 
 #: How long a delivery waits for the pick it follows to be in the KB (or off
-#: the shelf), at most, and how often it looks.
+#: the shelf) while no robot finishes a job, and how often it looks.
 PICK_WAIT_S = 30.0
 POLL_S = 0.1
 #: After a delivery: how many times it is read back, and written again at most.
@@ -99,10 +99,13 @@ class Restocker:
     #: Deliveries made.
     done: int = 0
 
-    async def restock(self, obj: str, cluster: int, picked: bool, down: Collection[str] = ()) -> None:
+    async def restock(self, obj: str, cluster: int, picked: bool, down: Collection[str] = (),
+                      jobs_done: Callable[[], int] | None = None) -> None:
         """Deliver ``obj`` back, in the KB of cluster ``cluster`` (0-based)
         and the world; ``picked``: this feed assigned it earlier, so its pick
-        is waited for first.  Raises :class:`FeederError`."""
+        is waited for first, as long as the robots finish jobs (``jobs_done``:
+        how many so far; the robots may decide far ahead of their wheels).
+        Raises :class:`FeederError`."""
         place = self.places.get(obj)
         if place is None:
             raise FeederError(f"restock {obj}: the Location KB's files give it no place (aisle, rack, bin)")
@@ -111,7 +114,7 @@ class Restocker:
             raise FeederError(f"restock {obj}: no live robot of cluster {cluster + 1} holds the Location KB")
         kb = KBClient(self.client, timeout=self.timeout_s, cache=False)
         if picked:
-            await self._after_pick(kb, obj, holders[0][1] if holders else None)
+            await self._after_pick(kb, obj, holders[0][1] if holders else None, jobs_done or (lambda: 0))
         if holders:
             await self._write(kb, obj, place, holders)
             await self._settled(kb, obj, place, holders)
@@ -125,11 +128,14 @@ class Restocker:
         self.done += 1
         log.info("restocked %s at aisle %d, rack %d, bin %d", obj, *place)
 
-    async def _after_pick(self, kb: KBClient, obj: str, holder: Endpoint | None) -> None:
+    async def _after_pick(self, kb: KBClient, obj: str, holder: Endpoint | None, jobs_done: Callable[[], int]) -> None:
         """Wait until the earlier pick of ``obj`` is in ``holder``'s KB (or,
-        with no KB to read, off the shelf of the world here)."""
+        with no KB to read, off the shelf of the world here), while jobs get done."""
         deadline = clock.monotonic() + self.pick_wait_s
-        while clock.monotonic() < deadline:
+        done = jobs_done()
+        while clock.monotonic() < deadline or jobs_done() != done:
+            if jobs_done() != done:
+                done, deadline = jobs_done(), clock.monotonic() + self.pick_wait_s
             if holder is not None:
                 try:
                     rows = expect_select(await kb.named(holder, "pick-place", {"name": obj}), "pick-place").as_dicts()
@@ -143,7 +149,8 @@ class Restocker:
             else:
                 return  # nothing to read it from: delivered at once
             await asyncio.sleep(POLL_S)  # polling the KB (or the world) for the pick
-        log.warning("restock %s: its earlier pick did not show within %.0f s; delivered anyway", obj, self.pick_wait_s)
+        log.warning("restock %s: its earlier pick did not show, and no job was done for %.0f s; delivered anyway",
+                    obj, self.pick_wait_s)
 
     async def _settled(self, kb: KBClient, obj: str, place: Place, holders: Sequence[tuple[str, Endpoint]]) -> None:
         """Read the delivery back for a moment, and write it again if a late
