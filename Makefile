@@ -36,7 +36,7 @@ demo: venv
 # Coverage is reported, not enforced: the total line (robots run as processes included,
 # [tool.coverage] in pyproject.toml) and coverage.xml for tools; printed even when a test fails.
 test: venv system-deps
-	$(PY) -m pytest -q --durations=15 --cov --cov-report=xml:coverage.xml; status=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=15 --cov --cov-report=xml:coverage.xml; status=$$?; \
 	  echo "coverage: $$($(PY) -m coverage report --format=total)% of coapkb's lines run by the tests (coverage.xml)"; \
 	  exit $$status
 
