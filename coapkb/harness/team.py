@@ -493,6 +493,8 @@ class Team:
         self.directory: ResourceDirectory | None = None
         #: Stopped robots let go on again: alive, though the team has them down.
         self._resumed: set[str] = set()
+        #: Held while a fault is carried out: the run's end waits for one under way.
+        self._faulting = asyncio.Lock()
         #: The one world the robots find objects in (:mod:`coapkb.world.service`).
         self.world: WorldServer | None = None
         #: Deliveries made by the last :meth:`run` (``restock`` entries of its list).
@@ -725,7 +727,12 @@ class Team:
                 # A resumed robot is down for the team but answers: its counts
                 # show what it executed (nothing the others were given).
                 resumed = [r for r in spec.robot_ids if r in self._resumed and r in watcher.down]
-                stats = await feeder.collect_stats(watcher.alive, resumed)
+                # A fault under way (a restart whose process is starting) ends first; a robot
+                # whose process is dead is asked only if it answers: its death may not be seen yet.
+                async with self._faulting:
+                    dead = [r for r in watcher.alive if self.processes[r].returncode is not None]
+                    stats = await feeder.collect_stats([r for r in watcher.alive if r not in dead],
+                                                       [*resumed, *dead])
                 traffic = feeder.traffic  # a copy: the client still counts while closing
             finally:
                 for helper in (injector, sampler):
@@ -817,6 +824,10 @@ class Team:
             await self._carry_out(feeder, started, events, fault)
 
     async def _carry_out(self, feeder: Feeder, started: float, events: list[FaultEvent], fault: Fault) -> None:
+        async with self._faulting:
+            await self._carry_out_now(feeder, started, events, fault)
+
+    async def _carry_out_now(self, feeder: Feeder, started: float, events: list[FaultEvent], fault: Fault) -> None:
         at_s = round(time.monotonic() - started, 3)
         if fault.action == "restart":
             await self.restart(fault.robot)
