@@ -67,6 +67,14 @@ def _with_default_port(text: str, scheme: str) -> str | None:
     return f"{given}://{rest}:{port}"
 
 
+def add_robot_client(p: argparse.ArgumentParser, *, timeout_s: float) -> None:
+    """What a command asking one robot takes: ``--timeout``, the
+    credentials (as the operator) and ``--peer``."""
+    p.add_argument("--timeout", type=float, default=timeout_s, metavar="SECONDS", help="give up after this long")
+    add_credentials(p, "operator")
+    p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
+
+
 def add_credentials(p: argparse.ArgumentParser, identity: str) -> None:
     p.add_argument("--credentials", metavar="DIR",
                    help="team key directory (coapkb keys): OSCORE keyed by EDHOC with the team's members")

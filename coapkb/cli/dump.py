@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .common import UserError, add_credentials, ask_robot
+from .common import UserError, add_robot_client, ask_robot
 from .query import split_robot_uri
 
 if TYPE_CHECKING:
@@ -35,9 +35,7 @@ def add_dump(sub: argparse._SubParsersAction) -> None:
     p.add_argument("uri", help="robot (coap://, zmq://, zenoh://, ... HOST:PORT)")
     p.add_argument("--module", choices=MODULES, help="one module's triples only")
     p.add_argument("--out", type=Path, metavar="FILE", help="write the triples here (default: standard output)")
-    p.add_argument("--timeout", type=float, default=120.0, metavar="SECONDS", help="give up after this long")
-    add_credentials(p, "operator")
-    p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
+    add_robot_client(p, timeout_s=120.0)
     p.set_defaults(run=_dump)
 
 

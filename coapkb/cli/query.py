@@ -9,7 +9,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from ..transport.base import ClientTransport, Endpoint
 from ..transport.messages import ContentFormat, Method, Request
-from .common import UserError, add_credentials, ask_robot, client_security, parse_endpoint
+from .common import UserError, add_robot_client, ask_robot, client_security, parse_endpoint
 from .render import render
 
 FORMAT_ACCEPT = {"cbor": ContentFormat.CBOR, "json": ContentFormat.JSON}
@@ -29,11 +29,9 @@ def add_query(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--accept", choices=tuple(FORMAT_ACCEPT), default="cbor", help="answer format on the wire")
     p.add_argument("--format", choices=("table", "json", "csv"), default="table", help="output format")
     p.add_argument("--method", choices=("fetch", "post", "get"), default="fetch")
-    p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
     p.add_argument("--observe", action="store_true",
                    help="keep printing the answer each time it changes (RFC 7641; SPARQL text is observed by FETCH)")
-    add_credentials(p, "operator")
-    p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
+    add_robot_client(p, timeout_s=30.0)
     p.set_defaults(run=_query)
 
 

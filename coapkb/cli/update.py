@@ -7,7 +7,7 @@ import sys
 from typing import TYPE_CHECKING
 
 from ..kb.write_concern import Ack
-from .common import UserError, add_credentials, ask_robot
+from .common import UserError, add_robot_client, ask_robot
 from .query import read_text, split_robot_uri
 
 if TYPE_CHECKING:
@@ -39,9 +39,7 @@ def add_update(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ack", choices=[a.value for a in Ack], metavar="LEVEL",
                    help="answer once the write is local (here: on disk with a data folder), on 2 holders "
                         "(the robot's default) or on all the holders it pushes to (?ack= on the request)")
-    p.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="give up after this long")
-    add_credentials(p, "operator")
-    p.add_argument("--peer", metavar="NAME", help="the team member serving at URI (needed over zmq; checked over coap)")
+    add_robot_client(p, timeout_s=30.0)
     p.set_defaults(run=_update)
 
 
