@@ -260,6 +260,7 @@ class UpTeam:
         pass
 
 
+@pytest.mark.looptime  # the frozen ask and the deadline on the event loop's own clock: exact on a busy machine
 async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_deadline() -> None:
     """Robot2 and Robot3 found no holder of a module (Robot1, frozen) and
     settle the task.  Robot2's ask to Robot1 runs out past the deadline;
@@ -267,7 +268,7 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
     up, so Robot2 asks it again rather than deciding alone (simulator seeds
     1076, 1453, 1534 and 1535 of the 3-robot swarm profile with writes: one
     robot decided nobody, its teammates Robot1)."""
-    cfg = config("Robot2", query_timeout_s=1.0)  # a wait of 2 s, 6 s for one still deciding: room on a busy machine
+    cfg = config("Robot2", query_timeout_s=1.0)  # a wait of 2 s, 6 s for one still deciding
     theirs = DecisionMessage(Decision(7, OBJECT, assigned_to="Robot1", epoch=0,
                                       members=("Robot1", "Robot2", "Robot3")))
     alone = DecisionMessage(Decision(7, OBJECT, unavailable="no live robot holds the Location KB"))
