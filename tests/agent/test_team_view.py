@@ -287,6 +287,21 @@ async def test_a_joiner_takes_the_membership_a_survivor_decided_the_task_before_
 
 # --------------------------------------------------------------------------- the one cut off
 
+async def cut_off(network: MemoryNetwork, own: RobotState) -> TeamView:
+    """``own``'s view of Robot2 and Robot3 (served on ``network``), started,
+    with both teammates seen once and then declared down for their silence."""
+    team = view(network, own)
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
+        for teammate in ("Robot2", "Robot3"):
+            await team._teammates.declare_down(teammate, "2 requests failed in a row")
+    except BaseException:
+        await team.aclose()
+        raise
+    return team
+
+
 async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_never_grants_them() -> None:
     """Robot1, cut off, declared both teammates down; they went on counting
     it.  Once one answers as the same process, Robot1 waits for its plans
@@ -297,12 +312,8 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
     network = MemoryNetwork()
     await serve_plan(network, robot("Robot2", 4, boot=2))
     robot3 = await serve_plan(network, robot("Robot3", 4, boot=3))
-    team = view(network, robot("Robot1", 4))
-    team.start()
+    team = await cut_off(network, robot("Robot1", 4))
     try:
-        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
-        for teammate in ("Robot2", "Robot3"):
-            await team._teammates.declare_down(teammate, "2 requests failed in a row")
         await robot3.aclose()
         await serve_plan(network, robot("Robot3", 0, boot=9))  # restarted meanwhile
         assert team.alone
@@ -327,12 +338,8 @@ async def test_an_outnumbered_robot_leaves_no_teammate_out_for_its_silence() -> 
     network = MemoryNetwork()
     await serve_plan(network, robot("Robot2", 3))
     await serve_plan(network, robot("Robot3", 4))
-    team = view(network, robot("Robot1", 4))
-    team.start()
+    team = await cut_off(network, robot("Robot1", 4))
     try:
-        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
-        for teammate in ("Robot2", "Robot3"):
-            await team._teammates.declare_down(teammate, "2 requests failed in a row")
         with pytest.raises(TransportError, match="leaves nobody out"):
             await team.planned_states(4, timeout=2)
         assert team.excluded == {} and team.membership.epoch == 0
