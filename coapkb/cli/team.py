@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
-from .common import UserError
+from .common import UserError, until_signalled
 
 if TYPE_CHECKING:
     from ..harness.recording import RunRecorder
@@ -275,18 +275,12 @@ async def _team(args: argparse.Namespace) -> int:
 
 async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:
     """``--keep-serving``: the live server stays up with the whole run until Ctrl-C or SIGTERM."""
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+    assert recorder.server is not None
+    print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
+          flush=True)
     try:
-        assert recorder.server is not None
-        print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
-              flush=True)
-        await stop.wait()
+        await until_signalled()
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
         recorder.close()
 
 
