@@ -825,21 +825,18 @@ class Team:
 
     async def _carry_out(self, feeder: Feeder, started: float, events: list[FaultEvent], fault: Fault) -> None:
         async with self._faulting:
-            await self._carry_out_now(feeder, started, events, fault)
-
-    async def _carry_out_now(self, feeder: Feeder, started: float, events: list[FaultEvent], fault: Fault) -> None:
-        at_s = round(time.monotonic() - started, 3)
-        if fault.action == "restart":
-            await self.restart(fault.robot)
-            await feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
-            log.warning("restarted %s at %.1fs", fault.robot, at_s)
-        elif fault.action in ("stop", "resume"):
-            self.pause(fault.robot, fault.action == "stop")
-            log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
-        else:
-            await self.kill(fault.robot)
-            log.warning("killed %s at %.1fs", fault.robot, at_s)
-        events.append(FaultEvent(fault.action, fault.robot, at_s))
+            at_s = round(time.monotonic() - started, 3)
+            if fault.action == "restart":
+                await self.restart(fault.robot)
+                await feeder.membership.rejoin(fault.robot)  # it joins at the next task fed
+                log.warning("restarted %s at %.1fs", fault.robot, at_s)
+            elif fault.action in ("stop", "resume"):
+                self.pause(fault.robot, fault.action == "stop")
+                log.warning("%s %s at %.1fs", "stopped" if fault.action == "stop" else "resumed", fault.robot, at_s)
+            else:
+                await self.kill(fault.robot)
+                log.warning("killed %s at %.1fs", fault.robot, at_s)
+            events.append(FaultEvent(fault.action, fault.robot, at_s))
 
 
 def team_record(
