@@ -150,6 +150,30 @@ DECISION_SENDS = 3
 POSTS_REMEMBERED = 64
 
 
+class FinalOutcome:
+    """Which ``/robot/outcome`` is final: the robot went idle with nothing
+    queued, and has decided nothing since.  Its notification goes confirmed
+    (``Response.confirm``): the feeder waits for it at the end of a run, and
+    no later change would make up for its loss; the others go unconfirmed,
+    each awaited by a feeder that asks again when one is late."""
+
+    def __init__(self) -> None:
+        #: (jobs done, last task decided) when the robot last went idle.
+        self._at: tuple[int, int] | None = None
+
+    @staticmethod
+    def _key(state: RobotState) -> tuple[int, int]:
+        return state.live.done, state.last.seq if state.last is not None else 0
+
+    def on_live(self, before: LiveState, state: RobotState) -> None:
+        live = state.live
+        if before.activity != "idle" and live.activity == "idle" and not live.queued:
+            self._at = self._key(state)
+
+    def __call__(self, state: RobotState) -> bool:
+        return self._at is not None and self._at == self._key(state) and state.live.activity == "idle"
+
+
 class Robot:
     def __init__(
         self,
@@ -175,6 +199,7 @@ class Robot:
         self.queries = queries
         #: Paces the notifications of /robot/state and /robot/outcome (set at start).
         self.progress: tuple[ProgressPacing, ...] = ()
+        self.final_outcome = FinalOutcome()
         self._next_seq = 1
         #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
         #: (a repeated post is recognised: the feeder repeats only its latest).
@@ -273,9 +298,12 @@ class Robot:
         # one loop turn as one notification.
         outcome_changed = ProgressPacing(lambda: router.notify(OUTCOME_PATH))
 
+        final = FinalOutcome()
+
         def publish_live(live: LiveState) -> None:
             before = team.own.live
             team.set_own(replace(team.own, live=live))
+            final.on_live(before, team.own)
             if acted_on(before, live):
                 state_changed.now()
                 outcome_changed.now()
@@ -336,6 +364,7 @@ class Robot:
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries)
         robot.progress = (state_changed, outcome_changed)
+        robot.final_outcome = final
         robot.health = health
         robot.replicator = replicator
         robot.keeper = keeper
@@ -417,7 +446,9 @@ class Robot:
         return _cbor_state(self.team.own.encode(), request.accept)
 
     async def _get_outcome(self, request: Request) -> Response:
-        return _cbor_state(self.team.own.encode_outcome(), request.accept)
+        own = self.team.own
+        response = _cbor_state(own.encode_outcome(), request.accept)
+        return replace(response, confirm=self.final_outcome(own)) if response.status.is_success else response
 
     async def _get_plan(self, request: Request) -> Response:
         probed = request.query.get("probe")

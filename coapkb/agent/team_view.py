@@ -13,7 +13,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+import math
+from collections.abc import Awaitable, Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 from .. import clock
@@ -43,6 +44,8 @@ FAILURES_TO_DOWN = 2
 #: timeouts (the helper's own request to it, and the answer).
 INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
+#: The least time an awaited state may be late before it is asked for.
+REPAIR_FLOOR_S = 0.2
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers
@@ -149,6 +152,9 @@ class ObservedStates:
         #: The round of liveness GETs in progress (shared), and when the last ended.
         self._refreshing: asyncio.Future[None] | None = None
         self._refreshed_at = 0.0
+        #: GETs that repair a lost notification (:meth:`wait`), per robot, and how many were sent.
+        self._repairing: dict[str, asyncio.Task[None]] = {}
+        self.repairs = 0
 
     def start(self) -> None:
         for robot_id in self._endpoints:
@@ -163,7 +169,8 @@ class ObservedStates:
         )
 
     async def aclose(self) -> None:
-        tasks = [*self._watchers.values(), *([self._refreshing] if self._refreshing is not None else [])]
+        tasks = [*self._watchers.values(), *self._repairing.values(),
+                 *([self._refreshing] if self._refreshing is not None else [])]
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -367,9 +374,9 @@ class ObservedStates:
         finally:
             self._refreshed_at = clock.monotonic()
 
-    async def probe(self, robot_id: str) -> None:
+    async def probe(self, robot_id: str, *, reobserve: bool = True) -> None:
         """GET ``robot_id``'s state (re-observing if the observation missed a
-        change); with liveness, failures in a row declare it down."""
+        change and ``reobserve``); with liveness, failures in a row declare it down."""
         endpoint = self._endpoints[robot_id]
         for _ in range(FAILURES_TO_DOWN if self.liveness else 1):
             started = clock.monotonic()
@@ -390,9 +397,10 @@ class ObservedStates:
             self._heard_at[robot_id] = clock.monotonic()
             self._joining.pop(robot_id, None)  # reached: see _update
             if state is not None and state != self.states.get(robot_id):
-                log.info("observation of %s missed a change; registering again", robot_id)
                 await self._update(robot_id, state)
-                self._start_watch(robot_id)
+                if reobserve:
+                    log.info("observation of %s missed a change; registering again", robot_id)
+                    self._start_watch(robot_id)
             return
 
     async def hearsay(self, robot_id: str, about: str, seq: int) -> RobotState | None:
@@ -455,19 +463,82 @@ class ObservedStates:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float | None) -> States:
-        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit)."""
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
+                   pending: Callable[[States], Collection[str]] | None = None, due: bool = False) -> States:
+        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit).
+
+        ``pending(states)``: the robots whose awaited state has not come.
+        Notifications go unconfirmed (NotificationTypes), so a lost one is
+        repaired here: a robot still pending :attr:`repair_s` after the
+        awaited states became due is asked once with a GET, and again after
+        twice as long, and so on.  They are due at once with ``due`` (this
+        process already has its own), else once the first of them came."""
         async with asyncio.timeout(timeout):
+            refresh_at = clock.monotonic() + self.refresh_s
+            repair = _Repair(pending(self.states), clock.monotonic() if due else None) if pending else None
             while True:
-                try:
-                    async with asyncio.timeout(self.refresh_s):
-                        async with self._changed:
-                            await self._changed.wait_for(lambda: predicate(self.states))
-                    return dict(self.states)
-                except TimeoutError:
-                    await self.refresh()
+                async with self._changed:
                     if predicate(self.states):
                         return dict(self.states)
+                    now = clock.monotonic()
+                    until = refresh_at
+                    if repair is not None and pending is not None:
+                        for robot_id in repair.overdue(pending(self.states), now, self.repair_s):
+                            if robot_id not in self.down:
+                                self._repair(robot_id)
+                        until = min(until, repair.next_at)
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(max(0.0, until - now)):
+                            await self._changed.wait()
+                if clock.monotonic() >= refresh_at:
+                    await self.refresh()
+                    refresh_at = clock.monotonic() + self.refresh_s
+
+    @property
+    def repair_s(self) -> float:
+        """How long an awaited state may be late before it is asked for:
+        a liveness round trip's timeout (RFC 6298's), at least
+        :data:`REPAIR_FLOOR_S`."""
+        rtt = self.round_trip
+        if rtt.srtt is None:
+            return self._liveness_floor_s
+        return max(REPAIR_FLOOR_S, rtt.srtt + 4 * rtt.rttvar) + self.health_margin_s
+
+    def _repair(self, robot_id: str) -> None:
+        """GET ``robot_id``'s state once, unless a GET of it is under way;
+        the observation stays (a NON notification lost is no sign that it ended)."""
+        running = self._repairing.get(robot_id)
+        if running is None or running.done():
+            self.repairs += 1
+            self._repairing[robot_id] = asyncio.create_task(self.probe(robot_id, reobserve=False),
+                                                            name=f"repair-{robot_id}")
+
+
+class _Repair:
+    """When each robot a wait still awaits is next asked for its state."""
+
+    def __init__(self, awaited: Collection[str], due_at: float | None) -> None:
+        self._awaited = len(awaited)
+        self._due_at = due_at
+        self._asked: dict[str, tuple[float, float]] = {}  # robot -> (when next, the wait before that)
+        self.next_at = math.inf
+
+    def overdue(self, pending: Collection[str], now: float, repair_s: float) -> list[str]:
+        """The robots of ``pending`` to ask now; sets :attr:`next_at`."""
+        if self._due_at is None and len(pending) < self._awaited:
+            self._due_at = now  # the first awaited state came: the rest are due
+        self.next_at = math.inf
+        if self._due_at is None:
+            return []
+        ask = []
+        for robot_id in pending:
+            at, wait = self._asked.get(robot_id, (self._due_at + repair_s, repair_s))
+            if now >= at:
+                ask.append(robot_id)
+                at, wait = now + 2 * wait, 2 * wait
+            self._asked[robot_id] = (at, wait)
+            self.next_at = min(self.next_at, at)
+        return ask
 
 
 @dataclass(frozen=True)
@@ -841,18 +912,17 @@ class TeamView:
         down = self._teammates.down
         expected = self._peers - set(self.excluded)
 
-        def ready(states: States) -> bool:
-            return all(
-                r in down or self._forgoes(r, seq) or (r in states and states[r].plan_at(seq) is not None)
-                for r in expected
-            )
+        def missing(states: States) -> list[str]:
+            return [r for r in expected
+                    if not (r in down or self._forgoes(r, seq) or (r in states and states[r].plan_at(seq) is not None))]
 
         try:
-            states = await self._teammates.wait(ready, timeout)
+            # Due at once: this robot has its own plan after task seq, and its teammates decide alike.
+            states = await self._teammates.wait(lambda s: not missing(s), timeout, pending=missing, due=True)
         except TimeoutError:
             states = self._teammates.states
-            missing = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)
-            raise TransportError(f"no state for task {seq} from {', '.join(missing)} within {timeout:g}s") from None
+            late = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)
+            raise TransportError(f"no state for task {seq} from {', '.join(late)} within {timeout:g}s") from None
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Collection
 from dataclasses import dataclass, field
 
 from .. import clock
@@ -99,10 +99,13 @@ class Channel:
     def endpoint(self, robot_id: str) -> Endpoint:
         return self.roster.endpoints[robot_id]
 
-    async def wait_for(self, predicate: Callable[[States], bool], timeout: float, what: str) -> States:
-        """The robots' states once ``predicate`` holds; a FeederError naming ``what`` after ``timeout``."""
+    async def wait_for(self, predicate: Callable[[States], bool], timeout: float, what: str, *,
+                       pending: Callable[[States], Collection[str]] | None = None) -> States:
+        """The robots' states once ``predicate`` holds; a FeederError naming
+        ``what`` after ``timeout``.  ``pending``: the robots still awaited,
+        asked again once the others' states came (ObservedStates.wait)."""
         try:
-            return await self.watcher.wait(predicate, timeout)
+            return await self.watcher.wait(predicate, timeout, pending=pending)
         except TimeoutError:
             raise FeederError(f"timed out after {timeout:g}s waiting for {what}") from None
 

@@ -336,10 +336,14 @@ class Feeder:
             last = states[robot_id].last if robot_id in states else None
             return last is not None and last.seq >= seq
 
+        def undecided(states: States) -> list[str]:
+            return [r for r in cluster if r not in watcher.down and not decided(states, r)]
+
         states = await channel.wait_for(
-            lambda s: all(r in watcher.down or decided(s, r) for r in cluster),
+            lambda s: not undecided(s),
             channel.settings.task_timeout_s,
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
+            pending=undecided,
         )
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
                             joined=joined)

@@ -13,9 +13,12 @@ the code above it:
 * a request to an endpoint whose process is dead fails at once (the
   kernel's ICMP port unreachable), unless a partition drops that too;
 * an observation (RFC 7641) registers with a request; each change is a
-  confirmable notification, retried until acknowledged, superseded by a
-  newer one, and dropped with the observer after ``NOTIFY_TRIES`` -- the
-  client is not told, as in CoAP, and must notice by its own requests.
+  notification, sent once and never acknowledged (NON) but for every
+  ``confirm_every``-th and those the service marks ``confirm``, as the CoAP
+  server does (NotificationTypes): those are confirmable, retried until
+  acknowledged, superseded by a newer one, and dropped with the observer
+  after ``NOTIFY_TRIES`` -- the client is not told, as in CoAP, and must
+  notice by its own requests.
 
 What it does not model: the CoAP reliability layer's own timing (hedged
 copies, congestion windows, airtime), Block-wise transfer, message sizes on
@@ -243,7 +246,8 @@ class ProcessNetwork:
     async def serve(self, service: Service, endpoint: Endpoint, *, reliability: Reliability | None = None,
                     security: ServerSecurity | None = None,
                     options: Mapping[str, Any] | None = None) -> SimServer:
-        server = SimServer(self.network, self.process, service, endpoint)
+        server = SimServer(self.network, self.process, service, endpoint,
+                           confirm_every=reliability.confirm_every if reliability is not None else 1)
         self.network._bind(server)
         return server
 
@@ -251,11 +255,14 @@ class ProcessNetwork:
 class SimServer:
     """A service on an endpoint of the simulated network."""
 
-    def __init__(self, network: SimNetwork, process: Process, service: Service, endpoint: Endpoint) -> None:
+    def __init__(self, network: SimNetwork, process: Process, service: Service, endpoint: Endpoint, *,
+                 confirm_every: int = 1) -> None:
         self.network = network
         self.process = process
         self.service = service
         self.endpoint = endpoint
+        #: Of each observation's notifications, every this many is confirmable.
+        self.confirm_every = confirm_every
         self.counters = TrafficCounters()
         self.closed = False
         #: (client, exchange) -> its answer once known (None while it runs), oldest first.
@@ -315,7 +322,7 @@ class SimServer:
 
 
 class _Observer:
-    """The server's side of one observation: notifies each change, confirmably."""
+    """The server's side of one observation: notifies each change."""
 
     def __init__(self, server: SimServer, client: SimClient, observation: _Observation, request: Request) -> None:
         self.server = server
@@ -359,6 +366,13 @@ class _Observer:
             self.changed.clear()
             response = await handle_safely(server.service, self.request, log)
             seq += 1
+            if not (response.confirm or seq % server.confirm_every == 0):
+                server.counters.messages_sent += 1
+                server.counters.bytes_sent += len(response.payload) + HEADER_BYTES
+                network.carry(server.process, self.client.process, f"ntf {self.request.path} #{seq} non",
+                              functools.partial(self.observation.notified, seq, response, False),
+                              response.payload if self.request.path == OUTCOME_PATH else None)
+                continue
             rto = _rto(estimator)
             # RFC 7641 4.5.2: a newer state replaces a notification still in
             # flight at once, keeping its retransmission count and timeout.
@@ -409,12 +423,13 @@ class _Observation:
         #: with the registration's token, RFC 7641 section 3.2).
         self.registration: asyncio.Future[Response] | None = None
 
-    def notified(self, seq: int, response: Response) -> None:
+    def notified(self, seq: int, response: Response, confirmable: bool = True) -> None:
         client = self.client
         client.counters.messages_received += 1
         client.counters.bytes_received += len(response.payload) + HEADER_BYTES
         server = client.network.server_at(self.peer)
-        if server is not None:
+        # A CON is acknowledged; a NON gets a Reset only if nobody takes it.
+        if server is not None and (confirmable or self.closed or client.closed):
             closed = self.closed or client.closed
             observation_key = self.key
             client.network.carry(client.process, server.process, f"{'rst' if closed else 'ack'} ntf #{seq}",

@@ -96,6 +96,10 @@ class Response:
     #: Freshness in seconds (CoAP Max-Age); None leaves the protocol default.
     max_age: int | None = None
     etag: bytes | None = None
+    #: As an Observe notification: one the observer must not miss, because
+    #: nothing it waits for follows it (a robot that went idle).  A transport
+    #: that sends notifications unconfirmed sends this one confirmed.
+    confirm: bool = False
 
     @classmethod
     def error(cls, status: Status, message: str, max_age: int | None = None) -> Response:

@@ -41,6 +41,11 @@ class Reliability(Protocol):
         """Its settings and per-peer estimates, for the robot's record."""
         ...
 
+    @property
+    def confirm_every(self) -> int:
+        """Of an observation's notifications, every this many is confirmable (1: all)."""
+        ...
+
 
 #: A robot's ``[transport.SCHEME]`` table, as read from its TOML.
 Table = Mapping[str, Any]

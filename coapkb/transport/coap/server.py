@@ -20,7 +20,6 @@ from typing import Any
 
 import aiocoap
 import aiocoap.resource
-from aiocoap.numbers.constants import TransportTuning
 
 from ..base import Endpoint, RateLimitFilter, ResourceInfo, Service, TrafficCounters, TransportError, handle_safely
 from ..messages import Response, Status
@@ -31,7 +30,7 @@ from .bounds import StateBounds
 from .heap import trim_heap
 from .mapping import BODY_HASH_PARAM, body_hash, message_from_response, request_from_message
 from .reliability import ReliabilityLayer, make_reliability
-from .reliability.notifications import NotificationPolicy, NotificationTuning
+from .reliability.notifications import NotificationPolicy, NotificationTypes
 from .security import CoapServerSecurity
 
 log = logging.getLogger(__name__)
@@ -94,10 +93,11 @@ class _ServiceResource(aiocoap.resource.ObservableResource):
         sent_hash = dict(q.partition("=")[::2] for q in request.opt.uri_query).get(BODY_HASH_PARAM)
         if req.payload and sent_hash is not None and sent_hash != body_hash(req.payload):
             return message_from_response(Response.error(Status.BAD_REQUEST, f"{BODY_HASH_PARAM} does not match body"))
-        message = message_from_response(await handle_safely(self.service, req, log))
-        # Piggybacked answers are never retransmitted, but Observe
-        # notifications are CON: they follow the notification policy's timers.
-        message.transport_tuning = self._tuning_for(request)
+        response = await handle_safely(self.service, req, log)
+        message = message_from_response(response)
+        # Piggybacked answers are never retransmitted; CON notifications
+        # follow the notification policy's timers.
+        message.transport_tuning = self._tuning_for(request, response.confirm)
         for observation, watched in self._watched.items():
             if watched is request and observation not in self._sent:  # an observation's first answer
                 self._sent[observation] = _digest(message)
@@ -275,12 +275,9 @@ class CoapServerTransport:
         _check_port_free(host, endpoint.port)
         layer = make_reliability() if reliability is None else reliability
         policy = NotificationPolicy(layer)
-        notification, answer = NotificationTuning(), TransportTuning()
-        # Only an observation's answers are CON; an answer to a NON try is
-        # NON (the client's layer repeats the try if it is lost).
-        def tuning_for(request: Any) -> Any:
-            return notification if request.opt.observe == 0 else answer
-
+        # An answer to a NON try is NON (the client's layer repeats the try
+        # if it is lost); notifications as NotificationTypes says.
+        tuning_for = NotificationTypes(layer.settings.confirm_every).tuning_for
         site = aiocoap.resource.Site()
         site.add_resource(
             [".well-known", "core"],

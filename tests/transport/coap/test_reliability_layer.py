@@ -29,6 +29,7 @@ from coapkb.transport.coap import CoapClientTransport
 from coapkb.transport.coap.reliability import ReliabilityLayer, ReliabilitySettings
 from coapkb.transport.coap.reliability.estimator import LossEstimator, airtime
 from coapkb.transport.coap.reliability.layer import PeerPath
+from coapkb.transport.coap.reliability.notifications import NotificationTypes
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
 from coapkb.transport.rtt import RttEstimator
@@ -148,7 +149,8 @@ async def served() -> AsyncIterator[Served]:
     counter = [0]
 
     async def get_counter(request: Request) -> Response:
-        return Response(Status.CONTENT, str(counter[0]).encode(), ContentFormat.TEXT)
+        # 10 is the last value the tests set: a final state, sent confirmed.
+        return Response(Status.CONTENT, str(counter[0]).encode(), ContentFormat.TEXT, confirm=counter[0] == 10)
 
     router.add(ResourceInfo("/counter", obs=True), get_counter)
     server = await serve(router, Endpoint("coap", "127.0.0.1", 0), reliability=ReliabilityLayer())
@@ -255,7 +257,9 @@ async def test_blockwise_answer_through_loss(served: Served) -> None:
         relay.close()
 
 
-async def test_notifications_arrive_through_loss(served: Served) -> None:
+async def test_a_final_notification_arrives_through_loss(served: Served) -> None:
+    """The others go NON and may be lost; the one marked ``confirm`` is
+    retransmitted until acknowledged, and nothing arrives out of order."""
     relay, peer = await _relayed(served, 20, seed=11)
     layer = ReliabilityLayer()
     client = await open_client("coap", reliability=layer)
@@ -298,3 +302,19 @@ async def test_dead_peer_is_reported_at_once() -> None:
             await client.request(Endpoint("coap", "127.0.0.1", port), Request(Method.GET, "/kb"), timeout=20)
     finally:
         await client.aclose()
+
+
+def test_notifications_go_non_but_every_nth_and_the_final_ones() -> None:
+    import aiocoap
+
+    types = NotificationTypes(confirm_every=4)
+    registration = aiocoap.Message(code=aiocoap.GET, observe=0)
+    plain = aiocoap.Message(code=aiocoap.GET)
+    # The registration's own answer (piggybacked), then notifications 1-8.
+    sent = [types.tuning_for(registration, confirm=False).reliability for _ in range(9)]
+    assert sent == [True, False, False, False, True, False, False, False, True]
+    assert types.tuning_for(registration, confirm=True).reliability is True
+    assert types.tuning_for(plain, confirm=False).reliability is None  # NON for a NON try, as asked
+    assert [NotificationTypes(1).tuning_for(registration, False).reliability for _ in range(3)] == [True] * 3
+    with pytest.raises(ValueError):
+        ReliabilitySettings(confirm_every=0)

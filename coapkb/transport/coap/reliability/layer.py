@@ -113,6 +113,9 @@ class ReliabilitySettings:
     window_min: int = 2
     window_max: int = 16
     max_tries: int = 30
+    #: Of an observation's notifications, every this many is confirmable
+    #: (the rest NON, repaired by the waiting observer; 1: all confirmable).
+    confirm_every: int = 16
 
     def __post_init__(self) -> None:
         if self.link_kbps is not None and not self.link_kbps > 0:
@@ -128,8 +131,8 @@ class ReliabilitySettings:
             raise ValueError("need 0 <= hedge_retries_above <= hedge_all_above <= 1")
         if not 1 <= self.window_min <= self.window_max:
             raise ValueError("need 1 <= window_min <= window_max")
-        if self.max_copies < 1 or self.max_tries < 1:
-            raise ValueError("max_copies and max_tries must be at least 1")
+        if self.max_copies < 1 or self.max_tries < 1 or self.confirm_every < 1:
+            raise ValueError("max_copies, max_tries and confirm_every must be at least 1")
 
     @property
     def link_bps(self) -> float | None:
@@ -354,6 +357,10 @@ class ReliabilityLayer:
         self._paths: dict[Hashable, PeerPath] = {}
         #: The robot's own link: both its client's and its server's datagrams.
         self.uplink = UplinkQueue(self.settings.link_bps)
+
+    @property
+    def confirm_every(self) -> int:
+        return self.settings.confirm_every
 
     def on_datagram(self, nbytes: int) -> None:
         """Hand this every datagram the robot sends (the CoAP contexts do)."""

@@ -1,5 +1,11 @@
-"""The confirmable messages of RFC 7641 on the layer's paths: a server's
-notifications and a client's registrations.
+"""RFC 7641 on the layer's paths: which of a server's notifications are
+confirmable, their timers, and a client's registrations.
+
+Most notifications go NON (:class:`NotificationTypes`): each one of the
+team's states is awaited by a process that asks again when it is late
+(``ObservedStates.wait``), so an empty ACK per notification, and a
+retransmission of every notification whose ACK was lost, bought nothing
+the waiter does not already do, at 46 bytes and more per notification.
 
 A robot's state notifications are on every task's critical path: a
 teammate waits for them before it assigns the next task.  aiocoap sends
@@ -16,6 +22,7 @@ the server registers it once, however many times it is sent.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +48,41 @@ class NotificationTuning(TransportTuning):  # type: ignore[misc]  # aiocoap ship
 
     MAX_RETRANSMIT = 10
     reliability = True
+
+
+#: The tuning of an answer that is not a notification (piggybacked, or NON
+#: answering a NON try) and of an unconfirmed notification.
+_UNCONFIRMED = TransportTuning()
+_UNCONFIRMED.reliability = False
+
+
+class NotificationTypes:
+    """Which answers of an observation go confirmable (RFC 7641 §4.5).
+
+    Every ``confirm_every``-th notification of an observation, so the server
+    learns that an observer is gone (RFC 7641 asks for one a day at least;
+    an unacknowledged one ends the observation), and every one the service
+    marks ``confirm`` (a final state: nobody waits for a later one that
+    would repair its loss); the rest NON.  ``confirm_every`` 1: all CON."""
+
+    def __init__(self, confirm_every: int) -> None:
+        if confirm_every < 1:
+            raise ValueError("confirm_every must be at least 1")
+        self.confirm_every = confirm_every
+        self._confirmed = NotificationTuning()
+        self._answer = TransportTuning()
+        #: Answers sent so far per observation (its registration's request).
+        self._sent: weakref.WeakKeyDictionary[aiocoap.Message, int] = weakref.WeakKeyDictionary()
+
+    def tuning_for(self, request: aiocoap.Message, confirm: bool) -> TransportTuning:
+        if request.opt.observe != 0:
+            return self._answer
+        sent = self._sent.get(request, 0)
+        self._sent[request] = sent + 1
+        # The first is the registration's answer: piggybacked on its ACK, whatever the tuning.
+        if sent == 0 or confirm or sent % self.confirm_every == 0:
+            return self._confirmed
+        return _UNCONFIRMED
 
 
 def _host_of(remote: Any) -> str:
