@@ -25,18 +25,23 @@ The named queries ``pick-place``, ``robot-positions`` and ``robot-loads``
 read them back.  A robot never waits at the shelf for the radio.  A write
 that fails is tried again a few times, then dropped with an error in the
 log (the team still knows the pick from its decision, and the shelf from
-the world).
+the world).  Every try of a write carries one write id, so a holder that
+made it already answers again instead of making it twice
+(:mod:`coapkb.kb.write_ids`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
+import secrets
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
 
 from ..errors import CoapkbError
+from ..kb.write_ids import writer_name
 from ..world import CAPABILITY_NS, LOCATION_NS
 from .job import Job
 
@@ -148,7 +153,9 @@ class _Later:
 
 
 class KnowledgeWriter:
-    """Sends a robot's facts with ``write(module, update)``.
+    """Sends a robot's facts with ``write(module, update, write_id)``, each
+    write under an id of its own from ``new_write_id`` (None: numbered
+    under the robot's name and a random token), the same for its every try.
 
     What others decide on (a pick, an object missing) goes at once, in
     order; what only describes the robot (its position, load and charge)
@@ -156,10 +163,15 @@ class KnowledgeWriter:
     (:meth:`flush`), and ride with the next update of their module: a
     robot's position needs no request of its own after every job."""
 
-    def __init__(self, write: Callable[[str, str], Awaitable[None]], robot: str,
-                 wall_ms: Callable[[], int], retry_s: float = RETRY_S, lazy_s: float = LAZY_S) -> None:
+    def __init__(self, write: Callable[[str, str, str], Awaitable[None]], robot: str,
+                 wall_ms: Callable[[], int], retry_s: float = RETRY_S, lazy_s: float = LAZY_S,
+                 new_write_id: Callable[[], str] | None = None) -> None:
         self._write = write
         self.robot = robot
+        if new_write_id is None:
+            count, name = itertools.count(1), writer_name(f"{robot}.{secrets.token_hex(4)}")
+            new_write_id = lambda: f"{name}.{next(count)}"  # noqa: E731 - one line, one use
+        self._new_write_id = new_write_id
         self._wall_ms = wall_ms
         self._retry_s = retry_s
         self._lazy_s = lazy_s
@@ -290,9 +302,10 @@ class KnowledgeWriter:
                 self._drained.set()
 
     async def _send(self, module: str, update: str) -> None:
+        write_id = self._new_write_id()
         for attempt in range(1, WRITE_TRIES + 1):
             try:
-                await self._write(module, with_prologue(module, update))
+                await self._write(module, with_prologue(module, update), write_id)
                 self.written += 1
                 return
             except CoapkbError as exc:

@@ -102,12 +102,13 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
 
 async def write_knowledge(
     config: RobotConfig, served: KnowledgeBase | LiveKB | None, replicator: Replicator | None, kb_client: KBClient,
-    module: str, update: str, alive: Callable[[str], bool],
+    module: str, update: str, alive: Callable[[str], bool], write_id: str | None = None,
 ) -> None:
     """Write ``update`` (facts of KB ``module``): into this robot's own
     module if it holds it, passed on to the other holders; else to the first
-    live holder in robot-id order (another if it fails).  A holder that
-    answers 5.04 has made the write, which spreads from it: not sent to
+    live holder in robot-id order (another if it fails), under ``write_id``
+    (each try of one write the same id: a holder makes it once).  A holder
+    that answers 5.04 has made the write, which spreads from it: not sent to
     another (it would be written twice)."""
     if isinstance(served, LiveKB) and module in served.names:
         written = served.update(update)
@@ -121,7 +122,7 @@ async def write_knowledge(
     failure: CoapkbError | None = None
     for holder in holders:
         try:
-            await kb_client.update(holder.endpoint, update, timeout=config.query_timeout_s)
+            await kb_client.update(holder.endpoint, update, timeout=config.query_timeout_s, write_id=write_id)
             return
         except WriteShort:
             return
@@ -288,7 +289,8 @@ class Robot:
         team = TeamView(own, teammates, client, link_kbps=config.link_kbps, health=health)
         # The compact wire caches answers for their Max-Age (the KBs are
         # read-only); the seed's wire reproduces the paper: no cache.
-        kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact")
+        kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact",
+                             writer=f"{config.robot_id}.{boot}")
         queries = QueryHandler(
             config, served, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
         )
@@ -331,9 +333,9 @@ class Robot:
         knowledge = None
         if config.kb_writable:
             knowledge = KnowledgeWriter(
-                lambda module, update: write_knowledge(config, served, replicator, kb_client, module, update,
-                                                       team.is_up),
-                config.robot_id, host.wall_ms)
+                lambda module, update, write_id: write_knowledge(config, served, replicator, kb_client, module,
+                                                                 update, team.is_up, write_id),
+                config.robot_id, host.wall_ms, new_write_id=kb_client.new_write_id)
         world = host.world if host.world is not None else (
             WorldClient(config.world) if config.world is not None else None)
         executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence, robot_id=config.robot_id,

@@ -12,7 +12,9 @@ returned or new, to the place the Location KB's files give it:
    live holder of the Location module of the cluster fed, by PATCH with
    write concern ``all``, as ``coapkb update`` sends it.  It deletes the
    pick, the delivery and a missing report, and puts the object on its
-   shelf; the holder spreads it to the others;
+   shelf; the holder spreads it to the others.  A late try of the pick's
+   own write cannot take it off the shelf again: the holder made that
+   write once, under its id (:mod:`coapkb.kb.write_ids`);
 3. in the world's truth (:mod:`coapkb.world`), so that the robot sent
    finds it there: in this process, or over the world's socket;
 4. the cluster's next task for the object says ``restocked``: every robot
@@ -51,9 +53,6 @@ log = logging.getLogger(__name__)
 #: the shelf) while no robot finishes a job, and how often it looks.
 PICK_WAIT_S = 30.0
 POLL_S = 0.1
-#: After a delivery: how many times it is read back, and written again at most.
-SETTLE_POLLS = 5
-SETTLE_REWRITES = 3
 
 #: An object's place: aisle, rack, bin.
 Place = tuple[int, int, int]
@@ -117,7 +116,6 @@ class Restocker:
             await self._after_pick(kb, obj, holders[0][1] if holders else None, jobs_done or (lambda: 0))
         if holders:
             await self._write(kb, obj, place, holders)
-            await self._settled(kb, obj, place, holders)
         if isinstance(self.world, WorldTruth):
             self.world.restock(obj)
         elif self.world is not None:
@@ -152,32 +150,13 @@ class Restocker:
         log.warning("restock %s: its earlier pick did not show, and no job was done for %.0f s; delivered anyway",
                     obj, self.pick_wait_s)
 
-    async def _settled(self, kb: KBClient, obj: str, place: Place, holders: Sequence[tuple[str, Endpoint]]) -> None:
-        """Read the delivery back for a moment, and write it again if a late
-        copy of the pick's write (a request sent again while its answer was
-        slow) landed after it and took the object off its shelf once more."""
-        rewrites = 0
-        for _ in range(SETTLE_POLLS):
-            await asyncio.sleep(POLL_S)  # a late copy arrives within a few round trips
-            try:
-                rows = expect_select(await kb.named(holders[0][1], "pick-place", {"name": obj}), "pick-place").as_dicts()
-            except CoapkbError:
-                return
-            if not any(r.get("picked_by") is not None for r in rows):
-                continue
-            if rewrites == SETTLE_REWRITES:
-                log.warning("restock %s: the pick came back %d times; left so", obj, rewrites)
-                return
-            rewrites += 1
-            log.info("restock %s: a late copy of its pick landed after the delivery; written again", obj)
-            await self._write(kb, obj, place, holders)
-
     async def _write(self, kb: KBClient, obj: str, place: Place, holders: Sequence[tuple[str, Endpoint]]) -> None:
         update = with_prologue("Location", restock_update(obj, place))
+        write_id = kb.new_write_id()  # one delivery, one id, whichever holder takes it
         failure: CoapkbError | None = None
         for robot_id, endpoint in holders:
             try:
-                await kb.write(endpoint, update, ack=Ack.ALL)
+                await kb.write(endpoint, update, ack=Ack.ALL, write_id=write_id)
                 return
             except WriteShort:
                 return  # made, and it spreads from there: not sent to another holder

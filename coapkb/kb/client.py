@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
+import secrets
 from collections import OrderedDict
 from collections.abc import AsyncGenerator, Callable, Mapping
 from dataclasses import dataclass
@@ -16,6 +18,7 @@ from ..transport.messages import ContentFormat, Method, Request, Response, Statu
 from ..transport.observation import Notice, observe_fresh
 from ..wire import codec
 from .write_concern import ACK_PARAM, Ack, parse_answer
+from .write_ids import WID_PARAM, writer_name
 
 #: CoAP's default Max-Age when a response carries none (RFC 7252 section 5.10.5).
 DEFAULT_MAX_AGE_S = 60
@@ -78,7 +81,11 @@ class KBClient:
 
     With ``cache=True``, named-query answers are kept for their Max-Age (a
     robot's KB is read-only) and revalidated with their ETag afterwards (2.03
-    Valid costs a few bytes instead of the answer): RFC 7252 section 5.6."""
+    Valid costs a few bytes instead of the answer): RFC 7252 section 5.6.
+
+    Every write carries an id (``?wid=WRITER.N``, :mod:`.write_ids`), the
+    same for each of its tries, so the robot makes it once: ``writer``
+    names this client in it (None: a random name, a client of its own)."""
 
     def __init__(
         self,
@@ -88,14 +95,23 @@ class KBClient:
         cache: bool = False,
         cache_entries: int = CACHE_ENTRIES,
         clock: Callable[[], float] = loop_clock,
+        writer: str | None = None,
     ) -> None:
         self.transport = transport
+        #: The writer part of this client's write ids: unique to it, and to
+        #: this run of it (a robot's includes its boot).
+        self.writer = writer_name(writer) if writer else secrets.token_hex(4)
+        self._writes = itertools.count(1)
         self.timeout = timeout
         #: The most answers the cache keeps (the least recently used go first).
         self.cache_entries = cache_entries
         self._cache: OrderedDict[tuple, _Cached] | None = OrderedDict() if cache else None
         self._clock = clock
         self.cache_stats = CacheStats()
+
+    def new_write_id(self) -> str:
+        """An id for the next write, which each of its tries then carries."""
+        return f"{self.writer}.{next(self._writes)}"
 
     async def sparql(
         self,
@@ -155,16 +171,19 @@ class KBClient:
         idempotent: bool = False,
         ack: Ack | None = None,
         timeout: float | None = None,
+        write_id: str | None = None,
     ) -> bytes:
         """Write to ``peer``'s KB: SPARQL Update text, or a compact patch
         (bytes, :func:`coapkb.kb.update.encode_patch`); PATCH, or iPATCH
         when ``idempotent``; ``ack`` the write concern (None: the robot's
-        default, ``2``).  Returns the KB's new version (its ETag); raises
-        :class:`QueryFailed` with the robot's diagnostic, and
-        :class:`WriteShort` (one) when the write was made but reached less
-        than ``ack``."""
+        default, ``2``); ``write_id`` the write's id (None: a new one; a
+        caller that sends a write again, to this robot or another holder,
+        passes the id it sent it with, :meth:`new_write_id`).  Returns the
+        KB's new version (its ETag); raises :class:`QueryFailed` with the
+        robot's diagnostic, and :class:`WriteShort` (one) when the write
+        was made but reached less than ``ack``."""
         return (await self.write(peer, update, if_match=if_match, idempotent=idempotent, ack=ack,
-                                 timeout=timeout)).version
+                                 timeout=timeout, write_id=write_id)).version
 
     async def write(
         self,
@@ -175,14 +194,17 @@ class KBClient:
         idempotent: bool = False,
         ack: Ack | None = None,
         timeout: float | None = None,
+        write_id: str | None = None,
     ) -> WriteAnswer:
         """:meth:`update`, answering the whole 2.04: the version, the level
         the write reached and the robot's line."""
         text = isinstance(update, str)
+        query = {} if ack is None else {ACK_PARAM: str(ack)}
+        query[WID_PARAM] = write_id or self.new_write_id()
         request = Request(
             Method.IPATCH if idempotent else Method.PATCH,
             "/kb",
-            {} if ack is None else {ACK_PARAM: str(ack)},
+            query,
             payload=update.encode("utf-8") if isinstance(update, str) else update,
             content_format=ContentFormat.TEXT if text else ContentFormat.CBOR,
             if_match=() if if_match is None else (if_match,),

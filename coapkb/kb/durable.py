@@ -3,11 +3,11 @@ is in the data folder's journal (:mod:`.journal`) before anyone hears of
 it, and a robot started again on the same folder comes back with every
 write it had acknowledged or taken from a peer.
 
-* **What goes to disk.**  A local write's deltas, and the deltas and whole
-  states a peer sent that were new here, one journal record per delta,
-  fsynced before the write is answered, pushed, or a peer's sync is
-  answered.  Nothing else: the view, the catch-up journal and the version
-  are rebuilt from it.
+* **What goes to disk.**  A local write's deltas and its write id (with
+  the version it made, not the answer), and the deltas and whole states a
+  peer sent that were new here, one journal record each, fsynced before
+  the write is answered, pushed, or a peer's sync is answered.  Nothing
+  else: the view, the catch-up journal and the version are rebuilt from it.
 * **The writer.**  A new folder takes the robot's writer of this start
   (``RobotN.<boot>``) and keeps it: a robot started again on its folder
   writes on as the same writer, above the highest dot under that name
@@ -37,6 +37,7 @@ from .journal import Change, DataDirError, Journal, Recovered
 from .live import LiveKB
 from .replica import Replica
 from .store import KnowledgeBase
+from .write_ids import Remembered, WriteId
 
 __all__ = ["DataDirError", "Keeper", "open_live"]
 
@@ -80,10 +81,11 @@ class Keeper:
     def path(self) -> Path:
         return self.journal.path
 
-    def __call__(self, changes: Sequence[tuple[str, Change]]) -> None:
-        """The LiveKB's hook: ``changes`` on disk before it returns."""
+    def __call__(self, changes: Sequence[tuple[str, Change]], made: tuple[WriteId, Remembered] | None = None) -> None:
+        """The LiveKB's hook: ``changes``, and the id of the write that
+        ``made`` them, on disk before it returns."""
         try:
-            self.stats["records_bytes"] += self.journal.append(changes)
+            self.stats["records_bytes"] += self.journal.append(changes, made)
         except OSError as exc:
             self.on_failure(f"cannot keep a change in {self.journal.path}: {exc}")
             raise
@@ -97,21 +99,23 @@ class Keeper:
             return
         try:
             states = {name: replica.state() for name, replica in self.live.replicas.items()}
+            write_ids = list(self.live.write_ids)
             generation = self.journal.rotate()
         except OSError as exc:
             self.on_failure(f"cannot start a new journal in {self.journal.path}: {exc}")
             raise
         if self.background:
             self._compacting = threading.Thread(
-                target=self._snapshot, args=(generation, states), name="coapkb-snapshot", daemon=True)
+                target=self._snapshot, args=(generation, states, write_ids), name="coapkb-snapshot", daemon=True)
             self._compacting.start()
         else:
-            self._snapshot(generation, states)
+            self._snapshot(generation, states, write_ids)
 
-    def _snapshot(self, generation: int, states: Mapping[str, Any]) -> None:
+    def _snapshot(self, generation: int, states: Mapping[str, Any],
+                  write_ids: Sequence[tuple[WriteId, Remembered]]) -> None:
         started = time.perf_counter()
         try:
-            size = self.journal.write_snapshot(generation, states)
+            size = self.journal.write_snapshot(generation, states, write_ids)
         except OSError as exc:
             # The journals it would replace stay: nothing is lost, the next
             # compaction tries again.
@@ -149,6 +153,8 @@ def restore(live: LiveKB, recovered: Recovered) -> int:
     if skipped:
         log.warning("the data folder holds writes of %s, which this robot no longer holds: left out",
                     ", ".join(sorted(skipped)))
+    for wid, remembered in recovered.write_ids:
+        live.write_ids.remember(wid, remembered)
     for replica in live.replicas.values():
         resume_writer(replica)
     return sum(len(r.entries) for r in live.replicas.values())

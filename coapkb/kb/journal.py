@@ -19,8 +19,12 @@ messages of :mod:`coapkb.wire.sync` (pure codecs, no I/O).  The format
               "S" head      a sync message: a module's context, removed files' triples, tombstones
               "E" entries   a sync message: a module's written triples (about 10,000) as
                             deltas, one per run of a writer's consecutive dots with one stamp
+              "W" write id  CBOR [peer, writer, write, digest, version, removed, added]:
+                            a local write's id (:mod:`.write_ids`), with the write
+                            in a journal, the ids remembered then in a snapshot
               "Z" end       CBOR uint: the snapshot's records before it, meta excluded
 
+Format 2 added the write-id record; format 1 (without it) is read alike.
 Every file starts with its magic and a meta record.  A journal's records
 are appended and fsynced before the change they hold is answered; a
 snapshot is written to ``snapshot.G.tmp``, fsynced, and renamed.
@@ -52,12 +56,15 @@ from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Triple
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
+from .write_ids import Remembered, WriteId
 
 __all__ = ["Change", "DataDirError", "Journal", "Recovered", "encode_record", "read_records"]
 
 log = logging.getLogger(__name__)
 
-FORMAT = 1
+FORMAT = 2
+#: The formats this coapkb reads: 1 has no write-id records.
+READABLE = (1, 2)
 JOURNAL_MAGIC = b"coapkbJ\x01"
 SNAPSHOT_MAGIC = b"coapkbS\x01"
 HEAD = struct.Struct(">III")
@@ -66,7 +73,7 @@ MAX_RECORD = 256 << 20
 #: Written triples per snapshot record (about): well inside what the sync decoder takes.
 ENTRIES_PER_RECORD = 10_000
 
-META, CHANGE, HEAD_KIND, ENTRIES, END = b"M", b"C", b"S", b"E", b"Z"
+META, CHANGE, HEAD_KIND, ENTRIES, WRITE_ID, END = b"M", b"C", b"S", b"E", b"W", b"Z"
 
 #: What a replica took: deltas (one per journal record) or a peer's whole state.
 Change = Sequence[Delta] | WrittenState
@@ -88,6 +95,8 @@ class Recovered:
     states: dict[str, WrittenState] = field(default_factory=dict)
     #: (module, change) in the order they were taken, after the snapshot.
     changes: list[tuple[str, Change]] = field(default_factory=list)
+    #: The local writes' ids, in the order they were made (the snapshot's first).
+    write_ids: list[tuple[WriteId, Remembered]] = field(default_factory=list)
     #: Bytes cut off a torn tail (0: none).
     cut: int = 0
     #: Whether the folder was new.
@@ -168,9 +177,9 @@ def _read_meta(payload: bytes, name: str) -> tuple[str, str, int]:
         meta = cbor2.loads(payload[1:])
     except (cbor2.CBORDecodeError, ValueError, TypeError, EOFError) as exc:
         raise DataDirError(f"{name}: corrupt meta record: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+    if not isinstance(meta, dict) or meta.get("format") not in READABLE:
         raise DataDirError(f"{name}: format {meta.get('format') if isinstance(meta, dict) else '?'}, "
-                           f"this coapkb reads format {FORMAT}")
+                           f"this coapkb reads format {' and '.join(map(str, READABLE))}")
     robot, writer, generation = meta.get("robot"), meta.get("writer"), meta.get("generation")
     if not isinstance(robot, str) or not isinstance(writer, str) or not writer or not isinstance(generation, int):
         raise DataDirError(f"{name}: corrupt meta record {meta!r}")
@@ -180,6 +189,23 @@ def _read_meta(payload: bytes, name: str) -> tuple[str, str, int]:
 def _change_payload(module: str, change: Delta | WrittenState) -> bytes:
     changes: Sequence[Delta] | WrittenState = change if isinstance(change, WrittenState) else [change]
     return CHANGE + encode_sync(SyncMessage(module, CausalContext(), changes))
+
+
+def _write_id_payload(wid: WriteId, remembered: Remembered) -> bytes:
+    return WRITE_ID + cbor2.dumps([wid.peer, wid.writer, wid.write, remembered.digest, remembered.version,
+                                   remembered.removed, remembered.added])
+
+
+def _decode_write_id(payload: bytes, name: str) -> tuple[WriteId, Remembered]:
+    try:
+        peer, writer, write, digest, version, removed, added = cbor2.loads(payload[1:])
+    except (cbor2.CBORDecodeError, ValueError, TypeError, EOFError) as exc:
+        raise DataDirError(f"{name}: corrupt write-id record: {exc}") from None
+    if not (isinstance(peer, (str, type(None))) and isinstance(writer, str) and isinstance(write, str)
+            and isinstance(digest, bytes) and isinstance(version, bytes)
+            and isinstance(removed, int) and isinstance(added, int)):
+        raise DataDirError(f"{name}: corrupt write-id record")
+    return WriteId(peer, writer, write), Remembered(digest, version, removed, added)
 
 
 def _decode(payload: bytes, name: str) -> SyncMessage:
@@ -214,10 +240,14 @@ def _runs(entries: Mapping[Triple, Mapping[Dot, Stamp]]) -> list[Delta]:
     return runs
 
 
-def snapshot_payloads(states: Mapping[str, WrittenState]) -> Iterator[bytes]:
+def snapshot_payloads(states: Mapping[str, WrittenState],
+                      write_ids: Sequence[tuple[WriteId, Remembered]] = ()) -> Iterator[bytes]:
     """A snapshot's records after its meta: per module a head and its
-    written triples in parts, then the end."""
+    written triples in parts, the write ids remembered, then the end."""
     count = 0
+    for wid, remembered in write_ids:
+        yield _write_id_payload(wid, remembered)
+        count += 1
     for module, state in states.items():
         head = WrittenState(state.context, {}, state.removed_base, state.tombstones)
         yield HEAD_KIND + encode_sync(SyncMessage(module, CausalContext(), head))
@@ -237,7 +267,9 @@ def snapshot_payloads(states: Mapping[str, WrittenState]) -> Iterator[bytes]:
     yield END + cbor2.dumps(count)
 
 
-def _snapshot_states(records: list[bytes], name: str) -> dict[str, WrittenState]:
+def _snapshot_states(records: list[bytes], name: str,
+                     write_ids: list[tuple[WriteId, Remembered]]) -> dict[str, WrittenState]:
+    """The modules' states a snapshot's records hold; its write ids go into ``write_ids``."""
     heads: dict[str, WrittenState] = {}
     entries: dict[str, dict[Triple, dict[Dot, Stamp]]] = {}
     if not records or records[-1][:1] != END:
@@ -250,6 +282,9 @@ def _snapshot_states(records: list[bytes], name: str) -> dict[str, WrittenState]
         raise DataDirError(f"{name}: corrupt: the end record counts {count} records, the file has {len(records) - 1}")
     for payload in records[:-1]:
         kind = payload[:1]
+        if kind == WRITE_ID:
+            write_ids.append(_decode_write_id(payload, name))
+            continue
         message = _decode(payload, name)
         changes = message.changes
         if kind == HEAD_KIND and isinstance(changes, WrittenState):
@@ -392,7 +427,7 @@ class Journal:
             if not scan.records:
                 raise DataDirError(f"{name}: corrupt: no meta record")
             check(name, scan.records[0], base)
-            recovered.states = _snapshot_states(scan.records[1:], name)
+            recovered.states = _snapshot_states(scan.records[1:], name, recovered.write_ids)
         for generation in wanted:
             file = journals[generation]
             name = str(file)
@@ -402,6 +437,9 @@ class Journal:
                 raise DataDirError(f"{name}: corrupt: no meta record")
             check(name, scan.records[0], generation)
             for payload in scan.records[1:]:
+                if payload[:1] == WRITE_ID:
+                    recovered.write_ids.append(_decode_write_id(payload, name))
+                    continue
                 if payload[:1] != CHANGE:
                     raise DataDirError(f"{name}: corrupt: a record of kind {payload[:1]!r} in a journal")
                 message = _decode(payload, name)
@@ -426,14 +464,17 @@ class Journal:
 
     # ------------------------------------------------------------ writing
 
-    def append(self, changes: Iterable[tuple[str, Change]]) -> int:
-        """Append one record per delta (or state) and fsync: on disk when
-        this returns.  How many bytes it wrote."""
+    def append(self, changes: Iterable[tuple[str, Change]], made: tuple[WriteId, Remembered] | None = None) -> int:
+        """Append one record per delta (or state), and the id of the write
+        that ``made`` them if it has one, and fsync: on disk when this
+        returns.  How many bytes it wrote."""
         records = b"".join(
             encode_record(_change_payload(module, item))
             for module, change in changes
             for item in ([change] if isinstance(change, WrittenState) else change)
         )
+        if made is not None:
+            records += encode_record(_write_id_payload(*made))
         if not records:
             return 0
         self._file.write(records)
@@ -454,13 +495,14 @@ class Journal:
         self.journal_bytes = self._file.tell()
         return generation
 
-    def write_snapshot(self, generation: int, states: Mapping[str, WrittenState]) -> int:
+    def write_snapshot(self, generation: int, states: Mapping[str, WrittenState],
+                       write_ids: Sequence[tuple[WriteId, Remembered]] = ()) -> int:
         """Write the snapshot of ``generation`` (the state when it was
         rotated to) and remove what it replaces; its size.  May run in a
         thread of its own while the journal is appended to."""
         chunks: Iterator[bytes] = (
             encode_record(p)
-            for p in [_meta(self.robot, self.writer, generation), *snapshot_payloads(states)]
+            for p in [_meta(self.robot, self.writer, generation), *snapshot_payloads(states, write_ids)]
         )
         size = _write_file(self._snapshot(generation), [SNAPSHOT_MAGIC, *chunks])
         for old in range(generation - 1, -1, -1):

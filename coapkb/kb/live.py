@@ -20,6 +20,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import pyoxigraph as ox
 from rdflib.term import BNode, Literal, URIRef
@@ -32,12 +33,13 @@ from .oxigraph_backend import OxigraphBackend, _to_ox
 from .replica import Effect, Replica, ReplicaLimits
 from .store import KnowledgeBase
 from .update import Operation, UpdateUnsupported, parse_update
+from .write_ids import Remembered, WriteId, WriteIds, WriteTag
 
 #: Answers kept as first given for a task (:meth:`LiveKB.query_at`): a few
 #: questions per task, and no robot asks about a task hundreds of tasks old.
 PINNED_ANSWERS = 1024
 
-__all__ = ["LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
+__all__ = ["Keeping", "LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
 
 
 class NotHeld(KBError):
@@ -65,10 +67,17 @@ class WriteLimits:
     #: Triples one write may remove or add (each CONSTRUCT is stopped there).
     max_triples: int = 1000
     replica: ReplicaLimits = field(default_factory=ReplicaLimits)
+    #: Write ids remembered per writer (:mod:`.write_ids`): a repeat comes
+    #: within seconds, and a robot writes a few times a task.
+    ids_per_writer: int = 64
+    #: Writers whose ids are remembered: a team's robots, their earlier
+    #: incarnations and a few operators.
+    id_writers: int = 256
 
     def __post_init__(self) -> None:
-        if self.max_triples < 1:
-            raise ValueError(f"max_triples must be at least 1, got {self.max_triples}")
+        for name in ("max_triples", "ids_per_writer", "id_writers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -79,6 +88,14 @@ class Written:
     version: bytes
     removed: int
     added: int
+
+
+class Keeping(Protocol):
+    """What keeps a LiveKB's changes (a data folder: :class:`~.durable.Keeper`):
+    the changes its replicas took, and the id a local write was made under."""
+
+    def __call__(self, changes: Sequence[tuple[str, Sequence[Delta] | WrittenState]],
+                 made: tuple[WriteId, Remembered] | None = None) -> None: ...
 
 
 def wall_ms() -> int:
@@ -138,7 +155,9 @@ class LiveKB:
         self._pinned: OrderedDict[tuple[int, str], QueryResult] = OrderedDict()
         #: Told every change the replicas took, before anyone hears of it
         #: (a data folder: :mod:`.durable`); None: kept in memory only.
-        self.keeper: Callable[[Sequence[tuple[str, Sequence[Delta] | WrittenState]]], None] | None = None
+        self.keeper: Keeping | None = None
+        #: The ids of the writes made lately, and what each was answered.
+        self.write_ids = WriteIds(self.limits.ids_per_writer, self.limits.id_writers)
 
     def __repr__(self) -> str:
         return f"<LiveKB {'+'.join(self.names)} of {self.writer}>"
@@ -218,8 +237,10 @@ class LiveKB:
 
     # -------------------------------------------------------------- writing
 
-    def update(self, text: str, *, if_match: tuple[bytes, ...] = ()) -> Written:
-        """Run SPARQL 1.1 Update text (see :mod:`.update`) as one write."""
+    def update(self, text: str, *, if_match: tuple[bytes, ...] = (), tag: WriteTag | None = None) -> Written:
+        """Run SPARQL 1.1 Update text (see :mod:`.update`) as one write;
+        ``tag``: its id, remembered in :attr:`write_ids` (and on disk with
+        the write) once it is made.  A repeat is the caller's to catch."""
         parsed = parse_update(text)
         self._check_precondition(if_match)
         removes: dict[Triple, None] = {}
@@ -241,10 +262,12 @@ class LiveKB:
                     undo += self._scratch(gone, new)
         finally:
             self._unscratch(undo)
-        return self._write(list(removes), list(adds))
+        return self._write(list(removes), list(adds), tag)
 
-    def patch(self, deletes: Iterable[Triple], inserts: Iterable[Triple], *, if_match: tuple[bytes, ...] = ()) -> Written:
-        """A compact patch: remove ``deletes`` that are there, add ``inserts``."""
+    def patch(self, deletes: Iterable[Triple], inserts: Iterable[Triple], *, if_match: tuple[bytes, ...] = (),
+              tag: WriteTag | None = None) -> Written:
+        """A compact patch: remove ``deletes`` that are there, add ``inserts``
+        (``tag``: as :meth:`update`'s)."""
         self._check_precondition(if_match)
         deletes, inserts = list(deletes), list(inserts)
         for triple in deletes + inserts:
@@ -252,7 +275,7 @@ class LiveKB:
         if len(deletes) > self.limits.max_triples or len(inserts) > self.limits.max_triples:
             raise WriteTooLarge(f"a write changes at most {self.limits.max_triples} triples each way")
         view = self._store()
-        return self._write([t for t in deletes if _quad(t) in view], inserts)
+        return self._write([t for t in deletes if _quad(t) in view], inserts, tag)
 
     def _check_precondition(self, if_match: tuple[bytes, ...]) -> None:
         # An empty If-Match asks only that the resource exist: it does.
@@ -303,7 +326,7 @@ class LiveKB:
             assert store is not None
             (store.add if action == "add" else store.remove)(_quad(triple))
 
-    def _write(self, removes: list[Triple], adds: list[Triple]) -> Written:
+    def _write(self, removes: list[Triple], adds: list[Triple], tag: WriteTag | None = None) -> Written:
         by_module: dict[str, tuple[list[Triple], list[Triple]]] = {}
         for triple in removes:
             by_module.setdefault(self.module_of(triple), ([], []))[0].append(triple)
@@ -322,12 +345,23 @@ class LiveKB:
                 added += len(delta.added)
                 removed += len(effect.removed)
                 self._show(effect)
-        finally:
+        except BaseException:
             # What was written is kept, even if a later module refused its part.
             if self.keeper is not None and deltas:
                 self.keeper([(module, [delta]) for module, delta in deltas.items()])
+            raise
+        self._etag = None
+        written = Written(deltas, self.etag, removed, added)
+        made = None
+        if tag is not None:
+            # Even a write that changed nothing: a repeat after a later change would.
+            made = (tag.wid, Remembered(tag.digest, written.version, removed, added))
+            self.write_ids.remember(*made)
+        if self.keeper is not None and (deltas or made is not None):
+            # One record each, fsynced together: the id is on disk with its write.
+            self.keeper([(module, [delta]) for module, delta in deltas.items()], made)
         self._changed(frozenset(deltas))
-        return Written(deltas, self.etag, removed, added)
+        return written
 
     # -------------------------------------------------------------- joining
 

@@ -14,6 +14,7 @@ import json
 import math
 import threading
 import time
+from collections.abc import Awaitable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -31,6 +32,7 @@ from .named_queries import NamedQuery, named_queries_for
 from .replica import ReplicaFull
 from .update import UpdateUnsupported, decode_patch, parse_update
 from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, short_line
+from .write_ids import WID_PARAM, Remembered, WriteId, WriteTag, body_digest, parse_wid
 
 if TYPE_CHECKING:
     from .replication import Replicator
@@ -137,6 +139,9 @@ class KBResources:
         #: named query -> the longest any of its runs took (s); runs inline once known cheap.
         self.slowest_run: dict[str, float] = {}
         self._dumps: dict[tuple[str | None, bytes], bytes] = {}
+        #: Writes made under an id and not answered yet (waiting for their
+        #: write concern): a repeat waits for the same answer.
+        self._answering: dict[WriteId, tuple[bytes, asyncio.Future[Response]]] = {}
 
     @property
     def max_age_s(self) -> int:
@@ -198,14 +203,22 @@ class KBResources:
         return await self.get_info(request)
 
     async def write(self, request: Request) -> Response:
-        """PATCH/iPATCH ``/kb``: SPARQL Update text (0) or a compact patch (60)."""
+        """PATCH/iPATCH ``/kb``: SPARQL Update text (0) or a compact patch
+        (60); with ``?wid=``, made once however often it is sent (:mod:`.write_ids`)."""
         live = self.live
         if live is None:
             return Response.error(Status.METHOD_NOT_ALLOWED, self.read_only)
         try:
-            ack = ack_of_query(request.query)
+            ack = ack_of_query(request.query, {WID_PARAM: "WRITER.N"})
+            wid = request.query.get(WID_PARAM)
+            tag = None if wid is None else WriteTag(
+                parse_wid(wid, request.peer), body_digest(request.method, request.content_format, request.payload))
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
+        if tag is not None:
+            repeat = await self._repeat(tag, ack)
+            if repeat is not None:
+                return repeat
         size = len(request.payload)
         if size > self.limits.max_update_bytes:
             return Response.error(
@@ -224,10 +237,10 @@ class KBResources:
                     return Response.error(
                         Status.BAD_REQUEST, "DELETE/INSERT ... WHERE is not idempotent: send it with PATCH, not iPATCH"
                     )
-                written = live.update(text, if_match=request.if_match)
+                written = live.update(text, if_match=request.if_match, tag=tag)
             elif request.content_format == ContentFormat.CBOR:
                 deletes, inserts = decode_patch(request.payload)
-                written = live.patch(deletes, inserts, if_match=request.if_match)
+                written = live.patch(deletes, inserts, if_match=request.if_match, tag=tag)
             else:
                 return Response.error(
                     Status.UNSUPPORTED_CONTENT_FORMAT,
@@ -247,7 +260,74 @@ class KBResources:
             return Response.error(Status.SERVICE_UNAVAILABLE, f"not written: {exc}", max_age=self.limits.retry_after_s)
         except KBError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        return await self._acknowledge(written, ack)
+        if tag is None:
+            return await self._acknowledge(written, ack)
+        return await self._answer_once(tag, self._acknowledge(written, ack))
+
+    async def _repeat(self, tag: WriteTag, ack: Ack) -> Response | None:
+        """The answer to a repeat of a write made under ``tag``'s id (the
+        first answer, waited for if it is not given yet), an error if the
+        id came with another update; None if the id is new."""
+        live = self.live
+        assert live is not None
+        made = live.write_ids.get(tag.wid)
+        pending = self._answering.get(tag.wid)
+        if made is not None:
+            digest = made.digest
+        elif pending is not None:
+            digest = pending[0]
+        else:
+            return None
+        if digest != tag.digest:
+            return Response.error(Status.UNPROCESSABLE_ENTITY, (
+                f"{WID_PARAM}={tag.wid} was already used for another update (a write's tries carry its id, "
+                "each write an id of its own): not written"))
+        if pending is not None:
+            return await asyncio.shield(pending[1])
+        assert made is not None
+        if made.answer is not None:
+            return made.answer
+        return self._before_restart(made, ack)
+
+    async def _answer_once(self, tag: WriteTag, answering: Awaitable[Response]) -> Response:
+        """Answer a write made under ``tag`` with ``answering``, which every
+        repeat that comes meanwhile awaits too, and keep the answer."""
+        live = self.live
+        assert live is not None
+        future: asyncio.Future[Response] = asyncio.get_running_loop().create_future()
+        self._answering[tag.wid] = (tag.digest, future)
+        try:
+            response = await answering
+        except asyncio.CancelledError:
+            future.cancel()
+            raise
+        except BaseException as exc:
+            future.set_exception(exc)
+            future.exception()  # a repeat waiting gets it; none waiting is no news: this try reports it
+            raise
+        finally:
+            del self._answering[tag.wid]
+        made = live.write_ids.get(tag.wid)
+        if made is not None:
+            made.answer = response
+        future.set_result(response)
+        return response
+
+    def _before_restart(self, made: Remembered, ack: Ack) -> Response:
+        """A repeat of a write this robot made before it restarted: its data
+        folder kept the write and its id, not the answer, nor how far the
+        write had reached (it spreads by anti-entropy since), unless no
+        other robot holds these modules."""
+        if not made.removed and not made.added:
+            reached = Reached(Ack.ALL, changed=False)
+        else:
+            reached = Reached(Ack.ALL if self.replicator is None else Ack.LOCAL, before_restart=True)
+        if reached.level.covers(ack):
+            return Response(Status.CHANGED, changed_line(made.removed, made.added, reached, durable=True).encode(),
+                            ContentFormat.TEXT, etag=made.version)
+        wait_s = 0.0 if self.replicator is None else self.replicator.settings.ack_timeout_s
+        return Response.error(Status.GATEWAY_TIMEOUT, short_line(reached, ack, made.version, durable=True,
+                                                                 wait_s=wait_s))
 
     async def _acknowledge(self, written: Written, ack: Ack = DEFAULT_ACK) -> Response:
         """2.04 once the write reached ``ack`` (:mod:`.write_concern`); 5.04

@@ -70,14 +70,17 @@ def parse_ack(text: str) -> Ack:
         raise ValueError(f"ack takes {_CHOICES}, not {text[:40]!r}") from None
 
 
-def ack_of_query(query: Mapping[str, str]) -> Ack:
+def ack_of_query(query: Mapping[str, str], also: Mapping[str, str] | None = None) -> Ack:
     """The concern a write's URI query asks (:data:`DEFAULT_ACK` without
-    ``ack``).  A write takes no other parameter: a misspelt one would
+    ``ack``).  A write takes no other parameter than those ``also`` names
+    (name -> what its value is, for the message): a misspelt one would
     silently ask the default.  ValueError with a one-line reason."""
-    others = sorted(k for k in query if k != ACK_PARAM)
+    taken = {ACK_PARAM: "|".join(a.value for a in Ack), **(also or {})}
+    others = sorted(k for k in query if k not in taken)
     if others:
-        raise ValueError(f"a write takes one query parameter, {ACK_PARAM}={'|'.join(a.value for a in Ack)}; "
-                         f"not {others[0][:40]!r}")
+        names = " and ".join(f"{k}={v}" for k, v in taken.items())
+        counted = "one query parameter" if len(taken) == 1 else "the query parameters"
+        raise ValueError(f"a write takes {counted} {names}; not {others[0][:40]!r}")
     text = query.get(ACK_PARAM)
     return DEFAULT_ACK if text is None else parse_ack(text)
 
@@ -97,12 +100,17 @@ class Reached:
     failed: tuple[str, ...] = ()
     #: False: the write changed nothing, so there was nothing to pass on.
     changed: bool = True
+    #: True: a repeat of a write made before this robot restarted (its
+    #: data folder kept the write and its id, not how far it had reached).
+    before_restart: bool = False
 
     def describe(self, *, durable: bool) -> str:
         """``ack LEVEL (H of K holders[, in memory])``; ``durable``: this
         robot keeps its writes in a data folder."""
         if not self.changed:
             return f"ack {self.level} (nothing changed)"
+        if self.before_restart:
+            return f"ack {self.level} (written before this robot restarted)"
         where = "" if durable else ", in memory"
         return f"ack {self.level} ({self.holders} of {self.of} holder{'s' if self.of != 1 else ''}{where})"
 
@@ -116,6 +124,8 @@ def short_line(reached: Reached, asked: Ack, version: bytes, *, durable: bool, w
     """A 5.04's payload: the write is here, fewer holders confirmed it than asked."""
     kept = "kept on disk" if durable else "in memory only (no data folder)"
     why = []
+    if reached.before_restart:
+        why.append("which holders it reached then is not known here")
     if reached.failed:
         why.append(f"{', '.join(reached.failed)} unreachable or refused it")
     if reached.waiting:

@@ -677,7 +677,9 @@ class SimulatedTeam:
         holders at once, removes a value added before, adds a value at one
         holder while another removes it, or moves a robot (a single value:
         the latest write wins)."""
-        client = KBClient(await self.network.for_process(operator).open_client("coap"), timeout=10.0)
+        # A writer named by its process, not a random one: a seed runs alike.
+        client = KBClient(await self.network.for_process(operator).open_client("coap"), timeout=10.0,
+                          writer=operator.name)
         times = sorted(rng.uniform(0, self.spec.horizon_s) for _ in range(self.spec.writes))
         loop = asyncio.get_running_loop()
         pending: list[asyncio.Task[None]] = []

@@ -12,7 +12,7 @@ import itertools
 from collections.abc import AsyncIterator, Callable
 
 import pytest
-from agent_helpers import ONTOLOGIES, config
+from agent_helpers import ONTOLOGIES, config, endpoint
 
 from coapkb.agent.controller import Controller, Task
 from coapkb.agent.job import Job
@@ -27,6 +27,7 @@ from coapkb.agent.knowledge_writer import (
     with_prologue,
 )
 from coapkb.agent.query_handler import QueryHandler
+from coapkb.agent.robot import write_knowledge
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_view import TeamView
@@ -34,10 +35,12 @@ from coapkb.kb.client import KBClient, QueryFailed
 from coapkb.kb.errors import KBError
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.resources import KBResources
 from coapkb.kb.store import KnowledgeBase
-from coapkb.transport.base import PeerUnreachable
+from coapkb.transport.base import PeerUnreachable, ResourceInfo
 from coapkb.transport.memory import MemoryNetwork
-from coapkb.transport.messages import Response, Status
+from coapkb.transport.messages import Request, Response, Status
+from coapkb.transport.router import Router
 
 LOC = "http://www.tcs.org/2018/Location#"
 BAG, TV, PASTA = "Gucci_bag_14", "Canon_tv_538", "Barilla_pasta_1"
@@ -177,18 +180,22 @@ async def test_the_controller_reads_back_why_nobody_picks_it() -> None:
 
 
 class Radio:
-    """``write(module, update)`` for a KnowledgeWriter: records what it is
-    given and fails the first ``fail[i]`` tries of the i-th distinct update."""
+    """``write(module, update, write_id)`` for a KnowledgeWriter: records
+    what it is given and fails the first ``fail[i]`` tries of the i-th
+    distinct update."""
 
     def __init__(self, fail: dict[int, int] | None = None, apply: Callable[[str], object] | None = None) -> None:
         self.calls: list[tuple[str, str]] = []
+        #: The write id of each call.
+        self.ids: list[str] = []
         self.fail = fail or {}
         self.apply = apply
         self._distinct: list[tuple[str, str]] = []
         self._changed = asyncio.Event()
 
-    async def __call__(self, module: str, update: str) -> None:
+    async def __call__(self, module: str, update: str, write_id: str) -> None:
         self.calls.append((module, update))
+        self.ids.append(write_id)
         self._changed.set()
         if (module, update) not in self._distinct:
             self._distinct.append((module, update))
@@ -305,6 +312,10 @@ async def test_a_failed_write_is_tried_again_before_the_next(make: Callable) -> 
     second = ("Location", _location(_joined(pick_update(TV, "Robot1", 2), _at((3, 7), 2000))))
     assert radio.calls == [first] * WRITE_TRIES + [second]
     assert (writer.written, writer.dropped) == (2, 0)
+    # Each try of a write under its id: a holder that made it makes it once.
+    tries = radio.ids[:WRITE_TRIES]
+    assert len(set(tries)) == 1 and radio.ids[-1] != tries[0]
+    assert tries[0].startswith("Robot1.")
 
 
 async def test_a_write_that_keeps_failing_is_dropped_and_the_next_goes_out(
@@ -330,7 +341,7 @@ async def test_every_coapkb_error_counts_as_a_failed_write(make: Callable, error
     calls: list[str] = []
     done = asyncio.Event()
 
-    async def failing(module: str, update: str) -> None:
+    async def failing(module: str, update: str, write_id: str) -> None:
         calls.append(update)
         if len(calls) == WRITE_TRIES:
             done.set()
@@ -378,3 +389,31 @@ async def test_a_robot_has_one_position_after_facts_written_together(make: Calla
     await radio.wait(writer)
     assert _place(live, BAG) == [{"picked_by": "Robot1", "picked_task": "1"}]
     assert _position(live, "Robot1") == [("1", "0", "2000")]
+
+
+async def test_a_write_keeps_its_id_on_every_holder_it_is_sent_to() -> None:
+    """``write_knowledge``: a holder that fails passes the write to the next
+    one under the same id; sent again, the next one answers as before and
+    changes nothing."""
+    network = MemoryNetwork()
+    seen: list[str | None] = []
+
+    async def busy(request: Request) -> Response:
+        seen.append(request.query.get("wid"))
+        return Response.error(Status.SERVICE_UNAVAILABLE, "busy")
+
+    failing = Router()
+    failing.add(ResourceInfo("/kb", methods=("PATCH",)), busy)
+    await network.serve(failing, endpoint("Robot2"))
+    holder = _writable("Location")
+    taking = Router()
+    KBResources(holder).mount(taking)
+    await network.serve(taking, endpoint("Robot3"))
+    cfg = config("Robot1", {"Robot1": "Object", "Robot2": "Location", "Robot3": "Location"}, kb_writable=True)
+    kb = KBClient(network.client(), writer="Robot1.5")
+    update = _location(pick_update(BAG, "Robot1", 1))
+    for _ in range(2):
+        await write_knowledge(cfg, None, None, kb, "Location", update, lambda robot: True, "Robot1.5.1")
+    assert seen == ["Robot1.5.1"] * 2
+    assert len(holder.replicas["Location"].journal) == 1  # made once
+    assert _place(holder, BAG) == [{"picked_by": "Robot1", "picked_task": "1"}]

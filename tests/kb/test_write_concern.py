@@ -143,8 +143,12 @@ def test_the_option_parses_exactly_its_three_levels() -> None:
     for bad in ("", "1", "ALL", "majority", "3", " all"):
         with pytest.raises(ValueError, match="ack takes local, 2 or all, not"):
             ack_of_query({"ack": bad})
-    with pytest.raises(ValueError, match="one query parameter, ack=local|2|all; not 'acks'"):
+    with pytest.raises(ValueError, match=re.escape("one query parameter ack=local|2|all; not 'acks'")):
         ack_of_query({"acks": "all"})
+    # The robot takes a write's id beside it (coapkb.kb.write_ids).
+    assert ack_of_query({"wid": "a.1"}, {"wid": "WRITER.N"}) is Ack.TWO
+    with pytest.raises(ValueError, match=re.escape("the query parameters ack=local|2|all and wid=WRITER.N; not 'w'")):
+        ack_of_query({"w": "a.1"}, {"wid": "WRITER.N"})
     assert parse_ack("all").covers(Ack.TWO) and Ack.TWO.covers(Ack.LOCAL) and not Ack.LOCAL.covers(Ack.TWO)
 
 
