@@ -44,8 +44,10 @@ FAILURES_TO_DOWN = 2
 #: timeouts (the helper's own request to it, and the answer).
 INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
-#: The least time an awaited state may be late before it is asked for.
+#: The least time an awaited state may be late before it is asked for, and
+#: the time before any state's lateness was measured.
 REPAIR_FLOOR_S = 0.2
+INITIAL_REPAIR_S = 0.5
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers
@@ -155,6 +157,8 @@ class ObservedStates:
         #: GETs that repair a lost notification (:meth:`wait`), per robot, and how many were sent.
         self._repairing: dict[str, asyncio.Task[None]] = {}
         self.repairs = 0
+        #: How late awaited states came, unasked, after they became due (:attr:`repair_s`).
+        self.lateness = RttEstimator()
 
     def start(self) -> None:
         for robot_id in self._endpoints:
@@ -464,18 +468,19 @@ class ObservedStates:
             backoff = min(backoff * 2, 2.0)
 
     async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
-                   pending: Callable[[States], Collection[str]] | None = None, due: bool = False) -> States:
+                   pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
         """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit).
 
         ``pending(states)``: the robots whose awaited state has not come.
         Notifications go unconfirmed (NotificationTypes), so a lost one is
         repaired here: a robot still pending :attr:`repair_s` after the
         awaited states became due is asked once with a GET, and again after
-        twice as long, and so on.  They are due at once with ``due`` (this
-        process already has its own), else once the first of them came."""
+        twice as long, and so on.  They are due once fewer than ``of`` are
+        pending (one of that many robots has come: they decide alike), and at
+        once without ``of`` (this process already has its own)."""
         async with asyncio.timeout(timeout):
             refresh_at = clock.monotonic() + self.refresh_s
-            repair = _Repair(pending(self.states), clock.monotonic() if due else None) if pending else None
+            repair = _Repair(pending(self.states), of, self.lateness.on_sample) if pending else None
             while True:
                 async with self._changed:
                     if predicate(self.states):
@@ -496,13 +501,16 @@ class ObservedStates:
 
     @property
     def repair_s(self) -> float:
-        """How long an awaited state may be late before it is asked for:
-        a liveness round trip's timeout (RFC 6298's), at least
-        :data:`REPAIR_FLOOR_S`."""
-        rtt = self.round_trip
-        if rtt.srtt is None:
-            return self._liveness_floor_s
-        return max(REPAIR_FLOOR_S, rtt.srtt + 4 * rtt.rttvar) + self.health_margin_s
+        """How long an awaited state may be late before it is asked for: RFC
+        6298's timeout over how late the states that came unasked were (from
+        when they became due), at least :data:`REPAIR_FLOOR_S`.  Their
+        lateness, not a round trip: it holds the spread of the robots'
+        decisions, which the links' delay only adds to; the round trips
+        this process measures start with a security handshake each."""
+        late = self.lateness
+        if late.srtt is None:
+            return INITIAL_REPAIR_S
+        return max(REPAIR_FLOOR_S, late.srtt + 4 * late.rttvar)
 
     def _repair(self, robot_id: str) -> None:
         """GET ``robot_id``'s state once, unless a GET of it is under way;
@@ -515,18 +523,26 @@ class ObservedStates:
 
 
 class _Repair:
-    """When each robot a wait still awaits is next asked for its state."""
+    """When each robot a wait still awaits is next asked for its state; tells
+    ``on_lateness`` how late each state that came unasked was."""
 
-    def __init__(self, awaited: Collection[str], due_at: float | None) -> None:
-        self._awaited = len(awaited)
-        self._due_at = due_at
+    def __init__(self, pending: Collection[str], of: int | None, on_lateness: Callable[[float], None]) -> None:
+        self._waiting = set(pending)
+        self._of = of
+        self._due_at = clock.monotonic() if of is None or len(pending) < of else None
+        self._on_lateness = on_lateness
         self._asked: dict[str, tuple[float, float]] = {}  # robot -> (when next, the wait before that)
         self.next_at = math.inf
 
     def overdue(self, pending: Collection[str], now: float, repair_s: float) -> list[str]:
         """The robots of ``pending`` to ask now; sets :attr:`next_at`."""
-        if self._due_at is None and len(pending) < self._awaited:
+        if self._due_at is None and self._of is not None and len(pending) < self._of:
             self._due_at = now  # the first awaited state came: the rest are due
+        elif self._due_at is not None:
+            for robot_id in self._waiting.difference(pending):
+                if robot_id not in self._asked:
+                    self._on_lateness(now - self._due_at)
+        self._waiting.intersection_update(pending)
         self.next_at = math.inf
         if self._due_at is None:
             return []
@@ -918,7 +934,7 @@ class TeamView:
 
         try:
             # Due at once: this robot has its own plan after task seq, and its teammates decide alike.
-            states = await self._teammates.wait(lambda s: not missing(s), timeout, pending=missing, due=True)
+            states = await self._teammates.wait(lambda s: not missing(s), timeout, pending=missing)
         except TimeoutError:
             states = self._teammates.states
             late = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)

@@ -100,12 +100,12 @@ class Channel:
         return self.roster.endpoints[robot_id]
 
     async def wait_for(self, predicate: Callable[[States], bool], timeout: float, what: str, *,
-                       pending: Callable[[States], Collection[str]] | None = None) -> States:
+                       pending: Callable[[States], Collection[str]] | None = None, of: int = 0) -> States:
         """The robots' states once ``predicate`` holds; a FeederError naming
-        ``what`` after ``timeout``.  ``pending``: the robots still awaited,
-        asked again once the others' states came (ObservedStates.wait)."""
+        ``what`` after ``timeout``.  ``pending``: the robots still awaited of
+        ``of``, asked again once one of them came (ObservedStates.wait)."""
         try:
-            return await self.watcher.wait(predicate, timeout, pending=pending)
+            return await self.watcher.wait(predicate, timeout, pending=pending, of=of)
         except TimeoutError:
             raise FeederError(f"timed out after {timeout:g}s waiting for {what}") from None
 

@@ -343,7 +343,7 @@ class Feeder:
             lambda s: not undecided(s),
             channel.settings.task_timeout_s,
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
-            pending=undecided,
+            pending=undecided, of=len(live),
         )
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
                             joined=joined)
