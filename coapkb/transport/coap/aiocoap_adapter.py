@@ -34,7 +34,8 @@ import aiocoap
 import aiocoap.meta
 from aiocoap.blockwise import Block1Spool, Block2Cache, ContinueException, IncompleteException, _extract_block_key
 from aiocoap.messagemanager import MessageManager
-from aiocoap.numbers.types import CON
+from aiocoap.numbers.codes import EMPTY
+from aiocoap.numbers.types import CON, NON, RST
 from aiocoap.util import ExtensibleIntEnum
 
 from ...errors import CoapkbError
@@ -74,8 +75,12 @@ _WRAPPED = {
     (MessageManager, "dispatch_message"): ("message",),
     (MessageManager, "dispatch_error"): ("error", "remote"),
     (MessageManager, "_deduplicate_message"): ("message",),
+    (MessageManager, "_process_response"): ("response",),
+    (MessageManager, "_send_initially"): ("message", "messageerror_monitor"),
 }
 _MARKER = "_coapkb_hooks"
+#: NON notifications whose Reset is still matched to their observation.
+NON_NOTIFICATIONS_KEPT = 256
 
 
 
@@ -376,6 +381,9 @@ class ContextHooks:
         self._pending: dict[tuple[Any, int], Any] = {}
         #: finished exchanges that were retransmitted: (remote, mid) -> (record, expiry).
         self._finished: OrderedDict[tuple[Any, int], tuple[Any, float]] = OrderedDict()
+        #: (remote, Message ID) of the latest NON notifications -> what ends
+        #: their observation: aiocoap matches a Reset only to a CON.
+        self._non_notifications: OrderedDict[tuple[Any, int], Any] = OrderedDict()
         self._recent_con: OrderedDict[tuple[Any, int], None] = OrderedDict()
         #: Queued notifications dropped because a newer one of the same observation came.
         self.superseded_notifications = 0
@@ -450,6 +458,7 @@ class ContextHooks:
         self._patch(self.mm, "dispatch_message", self._dispatch_message)
         self._patch(self.mm, "dispatch_error", self._dispatch_error)
         self._patch(self.mm, "_deduplicate_message", self._deduplicate_message)
+        self._patch(self.mm, "_process_response", self._process_response)
         self._patch(self.mm, "_add_exchange", self._add_exchange)
         self._patch(self.mm, "_schedule_retransmit", self._schedule_retransmit)
         self._patch(self.mm, "_retransmit", self._retransmit)
@@ -512,6 +521,10 @@ class ContextHooks:
     def _send_message(self, message: aiocoap.Message, messageerror_monitor: Any = None) -> Any:
         result = self._original(self.mm, "send_message")(message, messageerror_monitor)
         if message.opt.observe is not None and message.code.is_response():
+            if message.mtype == NON and messageerror_monitor is not None and message.mid is not None:
+                self._non_notifications[(message.remote, message.mid)] = messageerror_monitor
+                while len(self._non_notifications) > NON_NOTIFICATIONS_KEPT:
+                    self._non_notifications.popitem(last=False)
             backlog = self.mm._backlogs.get(message.remote)
             if backlog and backlog[-1][0] is message:
                 superseded = [entry for entry in backlog[:-1]
@@ -559,6 +572,20 @@ class ContextHooks:
             self._original(self.mm, "dispatch_message")(message)
         except asyncio.InvalidStateError:
             log.debug("late response from %s for an abandoned request", message.remote)
+
+    def _process_response(self, response: aiocoap.Message) -> bool:
+        """aiocoap rejects an unexpected CON response with a Reset, and
+        ignores an unexpected NON one.  A NON notification of an observation
+        this client gave up (it registered again) is rejected too, as RFC 7641
+        §3.6 lets a client do: notifications go NON, and the server would
+        otherwise send each state twice until its next CON one."""
+        expected = bool(self._original(self.mm, "_process_response")(response))
+        if not expected and response.mtype == NON and response.opt.observe is not None \
+                and not response.remote.is_multicast_locally:
+            rst = aiocoap.Message(_mtype=RST, _mid=response.mid, code=EMPTY, payload=b"")
+            rst.remote = response.remote.as_response_address()
+            self.mm._send_initially(rst)
+        return expected
 
     def _dispatch_error(self, error: Exception, remote: Any) -> None:
         if self.mm.token_manager.incoming_requests is None:
@@ -613,6 +640,10 @@ class ContextHooks:
                 entry = self._finished.get(key)
                 if entry is not None:
                     policy.on_duplicate_reply(entry[0], message)
+        ended = self._non_notifications.pop(key, None)
+        if ended is not None and message.mtype == RST and key not in self.mm._active_exchanges:
+            ended()  # a NON notification reset: its observer is gone (RFC 7641 §3.6)
+            return
         self._original(self.mm, "_remove_exchange")(message)
 
     def _remember_finished(self, key: tuple[Any, int], record: Any, now: float) -> None:

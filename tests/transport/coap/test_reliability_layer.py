@@ -318,3 +318,35 @@ def test_notifications_go_non_but_every_nth_and_the_final_ones() -> None:
     assert [NotificationTypes(1).tuning_for(registration, False).reliability for _ in range(3)] == [True] * 3
     with pytest.raises(ValueError):
         ReliabilitySettings(confirm_every=0)
+
+
+async def test_a_notification_of_an_observation_given_up_is_reset() -> None:
+    """aiocoap ignores an unexpected NON response; a NON notification of an
+    observation the client gave up is answered with a Reset, so the server
+    ends it at once instead of sending every state twice until its next CON."""
+    router = Router()
+    counter = [0]
+
+    async def get_counter(request: Request) -> Response:
+        return Response(Status.CONTENT, str(counter[0]).encode(), ContentFormat.TEXT)
+
+    router.add(ResourceInfo("/counter", obs=True), get_counter)
+    server = await serve(router, Endpoint("coap", "127.0.0.1", 0), reliability=ReliabilityLayer())
+    client = await open_client("coap", reliability=ReliabilityLayer())
+    (resource,) = [r for r in server._resources if r.info.path == "/counter"]  # type: ignore[attr-defined]
+    try:
+        for _ in range(2):  # the first observation is given up after one answer
+            stream = client.observe(server.endpoint, Request(Method.GET, "/counter"))
+            await anext(stream)
+            await stream.aclose()  # type: ignore[attr-defined]
+        kept = client.observe(server.endpoint, Request(Method.GET, "/counter"))
+        await anext(kept)
+        for value in range(1, 4):
+            counter[0] = value
+            router.notify("/counter")
+            assert int((await asyncio.wait_for(anext(kept), 5)).payload) == value
+        assert len(resource._observations) == 1
+        await kept.aclose()  # type: ignore[attr-defined]
+    finally:
+        await client.aclose()
+        await server.aclose()
