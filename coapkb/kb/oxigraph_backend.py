@@ -230,6 +230,12 @@ def _from_ox(term: object) -> Term:
 
 
 def _to_ox(term: object) -> ox.NamedNode | ox.BlankNode | ox.Literal:
+    # The usual kinds first, by their exact type: isinstance is slower, and
+    # a write or a join converts every triple it changes.
+    if type(term) is URIRef:
+        return ox.NamedNode(term)
+    if type(term) is Literal and term.language is None and term.datatype is None:
+        return ox.Literal(term)
     if isinstance(term, URIRef):
         return ox.NamedNode(str(term))
     if isinstance(term, BNode):

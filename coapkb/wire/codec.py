@@ -774,7 +774,9 @@ class _TermDecoder:
     def _build(self, item: object) -> Term:
         kind = type(item)
         if kind is str:
-            return Literal(item)
+            # normalize=False: a plain literal's lexical form is its value
+            # already, and rdflib's normalising would only cost its time.
+            return Literal(item, normalize=False)
         if kind is bool:
             return Literal("true" if item else "false", datatype=_DT_BOOLEAN, normalize=False)
         if kind is int:
