@@ -457,10 +457,10 @@ class ReliabilityLayer:
             if copy:
                 # Spaced apart, so one burst of loss is less likely to take both.
                 gap = self.settings.hedge_gap + airtime(64, self.settings.link_bps)
-                done = [a.task for a in attempts if a.task is not None and a.task.done()]
-                if done:
-                    return
                 await asyncio.sleep(gap)
+                # Checked after the gap: an answer that came during it makes the copy useless.
+                if any(a.task is not None and a.task.done() for a in attempts):
+                    return
                 path.stats.hedge_copies += 1
             attempt = send(try_number)
             now = self.clock()
