@@ -501,16 +501,19 @@ class ObservedStates:
 
     @property
     def repair_s(self) -> float:
-        """How long an awaited state may be late before it is asked for: RFC
-        6298's timeout over how late the states that came unasked were (from
-        when they became due), at least :data:`REPAIR_FLOOR_S`.  Their
-        lateness, not a round trip: it holds the spread of the robots'
-        decisions, which the links' delay only adds to; the round trips
-        this process measures start with a security handshake each."""
+        """How long an awaited state may be late before it is asked for: how
+        late the states that came unasked were (from when they became due),
+        smoothed as RFC 6298 smooths round trips, plus twice their variation
+        (RFC 6298 adds four: a timer that fires early here costs one GET,
+        one that fires late holds the whole cluster), at least
+        :data:`REPAIR_FLOOR_S`.  Their lateness, not a round trip: it holds
+        the spread of the robots' decisions, which the links' delay only
+        adds to; the round trips this process measures start with a
+        security handshake each."""
         late = self.lateness
         if late.srtt is None:
             return INITIAL_REPAIR_S
-        return max(REPAIR_FLOOR_S, late.srtt + 4 * late.rttvar)
+        return max(REPAIR_FLOOR_S, late.srtt + 2 * late.rttvar)
 
     def _repair(self, robot_id: str) -> None:
         """GET ``robot_id``'s state once, unless a GET of it is under way;
