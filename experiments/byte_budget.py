@@ -434,6 +434,7 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("observation", ("registration", "registration answer", "notification")),
     ("task feed", ("task post", "task answer")),
     ("decisions", ("decision post", "decision answer")),
+    ("knowledge writes", ("write", "write answer", "replication", "replication answer")),
     ("liveness and membership", ("liveness", "liveness answer", "hearsay", "hearsay answer", "lease", "lease answer")),
     ("acknowledgements", ("empty ACK", "reset")),
     ("errors", ("error answer",)),
@@ -443,7 +444,8 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 _ANSWER_OF = {"EDHOC message_1": "EDHOC message_2", "EDHOC message_3": "EDHOC message_4", "query": "answer",
               "registration": "registration answer", "task post": "task answer", "decision post": "decision answer",
               "liveness": "liveness answer", "hearsay": "hearsay answer", "lease": "lease answer",
-              "stats": "stats answer", "other request": "other answer"}
+              "stats": "stats answer", "other request": "other answer", "write": "write answer",
+              "replication": "replication answer"}
 
 
 def request_kind(plain: Mapping[str, Any]) -> tuple[str, str]:
@@ -471,6 +473,10 @@ def request_kind(plain: Mapping[str, Any]) -> tuple[str, str]:
         return "decision post", ""
     if path == "/robot/stats":
         return "stats", ""
+    if path == "/kb" and code in ("PATCH", "iPATCH"):
+        return "write", ""
+    if path == "/kb/sync":
+        return "replication", ""
     return "other request", f"{code} {path}"
 
 
@@ -776,7 +782,8 @@ class _CaptureSetup:
 
 
 async def traced_run(directory: Path, *, system: str = "coap-distributed", robots: int = 3, tasks: int = 10,
-                     bandwidth: float = 35.0, loss: float = 2.0, rep: int = 0, security: bool = True) -> dict[str, Any]:
+                     bandwidth: float = 35.0, loss: float = 2.0, rep: int = 0, security: bool = True,
+                     writable: bool = False) -> dict[str, Any]:
     """One ``coapkb bench`` run with the capture and the wire traces on; its
     files in ``directory``; returns its row."""
     from coapkb.bench.run import run_once
@@ -786,7 +793,7 @@ async def traced_run(directory: Path, *, system: str = "coap-distributed", robot
     previous = os.environ.get(ENV)
     os.environ[ENV] = str(directory / "wire")
     try:
-        row = await run_once(system, robots, tasks, bandwidth, loss, rep, security=security,
+        row = await run_once(system, robots, tasks, bandwidth, loss, rep, security=security, kb_writable=writable,
                              observer=setup, testbed_class=setup.testbed_class())
     finally:
         if previous is None:
@@ -1412,9 +1419,9 @@ def print_report(settings: Mapping[str, Sequence[Run]]) -> None:
 # --------------------------------------------------------------------------- main
 
 
-def setting_name(loss: float, security: bool, system: str = "coap-distributed") -> str:
+def setting_name(loss: float, security: bool, system: str = "coap-distributed", writable: bool = False) -> str:
     prefix = "" if system == "coap-distributed" else f"{system}-"
-    return f"{prefix}loss{loss:g}" + ("" if security else "-insecure")
+    return f"{prefix}loss{loss:g}" + ("" if security else "-insecure") + ("-writable" if writable else "")
 
 
 async def run_settings(plan: Sequence[tuple[str, str, float, bool]], args: argparse.Namespace,
@@ -1430,7 +1437,8 @@ async def run_settings(plan: Sequence[tuple[str, str, float, bool]], args: argpa
         for rep in range(args.reps):
             directory = keep / f"{name}-rep{rep}"
             row = await traced_run(directory, system=system, robots=args.robots, tasks=args.tasks,
-                                   bandwidth=args.bandwidth, loss=loss, rep=rep, security=security)
+                                   bandwidth=args.bandwidth, loss=loss, rep=rep, security=security,
+                                   writable=name.endswith("-writable"))
             print(f"{name} rep {rep}: ok={row['ok']} wire_bytes={row['wire_bytes']} "
                   f"completion={row['completion_s']} s {row['error']}", flush=True)
             meta = json.loads((directory / "run.json").read_text(encoding="utf-8"))
@@ -1453,6 +1461,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=None,
                    help=f"runs per setting (repetitions 0..N-1, as the bench's; default 1, {DOC_REPS} with --doc)")
     p.add_argument("--insecure", action="store_true", help="security off (OSCORE and EDHOC)")
+    p.add_argument("--writable", action="store_true",
+                   help="the robots write their picks, positions, loads and charges into the KB (bench --writable)")
     p.add_argument("--systems", dest="system", default=None,
                    help="one system of coapkb bench; for ZeroMQ and Zenoh only TCP's roles are told apart "
                         "(handshake, data, ACK), their messages being encrypted and not traced")
@@ -1486,8 +1496,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             settings.setdefault(setting_name(run.loss, run.security, str(run.row.get("system"))), []).append(run)
     else:
         system = args.system or "coap-distributed"
-        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, system), system,
-                                                 args.loss, not args.insecure)]
+        plan = list(DOC_RUNS) if args.doc else [(setting_name(args.loss, not args.insecure, system, args.writable),
+                                                 system, args.loss, not args.insecure)]
         with contextlib.ExitStack() as stack:
             keep = args.keep or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="byte-budget-")))
             settings = asyncio.run(run_settings(plan, args, keep))

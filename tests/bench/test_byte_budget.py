@@ -92,6 +92,10 @@ def test_parts_add_up_to_the_frame_plain_and_protected() -> None:
     ({"code": "POST", "path": "/tasks", "query": "qh=12"}, ("task post", "")),
     ({"code": "POST", "path": "/decisions"}, ("decision post", "")),
     ({"code": "GET", "path": "/robot/stats"}, ("stats", "")),
+    ({"code": "PATCH", "path": "/kb", "query": "wid=Robot1.7.3"}, ("write", "")),
+    ({"code": "iPATCH", "path": "/kb"}, ("write", "")),
+    ({"code": "POST", "path": "/kb/sync"}, ("replication", "")),
+    ({"code": "GET", "path": "/kb"}, ("other request", "GET /kb")),
     ({"code": "GET", "path": "/elsewhere"}, ("other request", "GET /elsewhere")),
 ])
 def test_request_kinds(plain: dict[str, Any], kind: tuple[str, str]) -> None:
