@@ -19,7 +19,7 @@ from __future__ import annotations
 import asyncio
 import json
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, replace
 from typing import TYPE_CHECKING, Any
 
@@ -32,6 +32,7 @@ from ..host import Host, operating_system
 from ..kb.client import KBClient, QueryFailed, WriteShort
 from ..kb.durable import Keeper, open_live
 from ..kb.live import LiveKB
+from ..kb.named_updates import NamedUpdate, named_updates_sparql
 from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase, named_rows
@@ -102,7 +103,7 @@ def check_start(config: RobotConfig, kb: KnowledgeBase | None) -> None:
 
 async def write_knowledge(
     config: RobotConfig, served: KnowledgeBase | LiveKB | None, replicator: Replicator | None, kb_client: KBClient,
-    module: str, update: str, alive: Callable[[str], bool], write_id: str | None = None,
+    module: str, update: Sequence[NamedUpdate], alive: Callable[[str], bool], write_id: str | None = None,
 ) -> None:
     """Write ``update`` (facts of KB ``module``): into this robot's own
     module if it holds it, passed on to the other holders; else to the first
@@ -111,7 +112,7 @@ async def write_knowledge(
     that answers 5.04 has made the write, which spreads from it: not sent to
     another (it would be written twice)."""
     if isinstance(served, LiveKB) and module in served.names:
-        written = served.update(update)
+        written = served.update(named_updates_sparql(update))
         if replicator is not None and written.deltas:
             await replicator.replicate(written)
         return

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .. import clock
-from ..agent.knowledge_writer import restock_update, with_prologue
 from ..errors import CoapkbError
 from ..kb.client import KBClient, WriteShort
+from ..kb.named_updates import NamedUpdate
 from ..kb.results import expect_select
 from ..kb.store import KnowledgeBase
 from ..kb.write_concern import Ack
@@ -151,7 +151,7 @@ class Restocker:
                     obj, self.pick_wait_s)
 
     async def _write(self, kb: KBClient, obj: str, place: Place, holders: Sequence[tuple[str, Endpoint]]) -> None:
-        update = with_prologue("Location", restock_update(obj, place))
+        update = [NamedUpdate("restock", (obj, *place))]
         write_id = kb.new_write_id()  # one delivery, one id, whichever holder takes it
         failure: CoapkbError | None = None
         for robot_id, endpoint in holders:

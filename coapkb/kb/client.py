@@ -7,7 +7,7 @@ import dataclasses
 import itertools
 import secrets
 from collections import OrderedDict
-from collections.abc import AsyncGenerator, Callable, Mapping
+from collections.abc import AsyncGenerator, Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from ..clock import monotonic as loop_clock
@@ -17,6 +17,7 @@ from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.observation import Notice, observe_fresh
 from ..wire import codec
+from .named_updates import NamedUpdate, encode_named_updates
 from .write_concern import ACK_PARAM, Ack, parse_answer
 from .write_ids import WID_PARAM, writer_name
 
@@ -165,7 +166,7 @@ class KBClient:
     async def update(
         self,
         peer: Endpoint,
-        update: str | bytes,
+        update: str | bytes | Sequence[NamedUpdate],
         *,
         if_match: bytes | None = None,
         idempotent: bool = False,
@@ -173,8 +174,9 @@ class KBClient:
         timeout: float | None = None,
         write_id: str | None = None,
     ) -> bytes:
-        """Write to ``peer``'s KB: SPARQL Update text, or a compact patch
-        (bytes, :func:`coapkb.kb.update.encode_patch`); PATCH, or iPATCH
+        """Write to ``peer``'s KB: SPARQL Update text, a compact patch
+        (bytes, :func:`coapkb.kb.update.encode_patch`) or named updates
+        (:mod:`coapkb.kb.named_updates`); PATCH, or iPATCH
         when ``idempotent``; ``ack`` the write concern (None: the robot's
         default, ``2``); ``write_id`` the write's id (None: a new one; a
         caller that sends a write again, to this robot or another holder,
@@ -188,7 +190,7 @@ class KBClient:
     async def write(
         self,
         peer: Endpoint,
-        update: str | bytes,
+        update: str | bytes | Sequence[NamedUpdate],
         *,
         if_match: bytes | None = None,
         idempotent: bool = False,
@@ -199,6 +201,8 @@ class KBClient:
         """:meth:`update`, answering the whole 2.04: the version, the level
         the write reached and the robot's line."""
         text = isinstance(update, str)
+        if not isinstance(update, (str, bytes)):
+            update = encode_named_updates(update)
         query = {} if ack is None else {ACK_PARAM: str(ack)}
         query[WID_PARAM] = write_id or self.new_write_id()
         request = Request(

@@ -29,6 +29,7 @@ from .answer_cache import AnswerCache
 from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout, UpdateRefused
 from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written, module_namespaces
 from .named_queries import NamedQuery, named_queries_for
+from .named_updates import decode_named_updates, is_named_updates, named_updates_sparql
 from .replica import ReplicaFull
 from .update import UpdateUnsupported, decode_patch, parse_update
 from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, short_line
@@ -203,8 +204,9 @@ class KBResources:
         return await self.get_info(request)
 
     async def write(self, request: Request) -> Response:
-        """PATCH/iPATCH ``/kb``: SPARQL Update text (0) or a compact patch
-        (60); with ``?wid=``, made once however often it is sent (:mod:`.write_ids`)."""
+        """PATCH/iPATCH ``/kb``: SPARQL Update text (0), or a compact patch or
+        named updates (60, :mod:`.named_updates`); with ``?wid=``, made once
+        however often it is sent (:mod:`.write_ids`)."""
         live = self.live
         if live is None:
             return Response.error(Status.METHOD_NOT_ALLOWED, self.read_only)
@@ -239,17 +241,22 @@ class KBResources:
                     )
                 written = live.update(text, if_match=request.if_match, tag=tag)
             elif request.content_format == ContentFormat.CBOR:
-                deletes, inserts = decode_patch(request.payload)
-                written = live.patch(deletes, inserts, if_match=request.if_match, tag=tag)
+                body = codec.load_cbor(request.payload)
+                if is_named_updates(body):
+                    text = named_updates_sparql(decode_named_updates(body))
+                    written = live.update(text, if_match=request.if_match, tag=tag)
+                else:
+                    deletes, inserts = decode_patch(request.payload)
+                    written = live.patch(deletes, inserts, if_match=request.if_match, tag=tag)
             else:
                 return Response.error(
                     Status.UNSUPPORTED_CONTENT_FORMAT,
-                    "a write is SPARQL Update text (content-format 0) or a compact patch (60)",
+                    "a write is SPARQL Update text (content-format 0), or a compact patch or named updates (60)",
                 )
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL Update: {exc}")
         except codec.CodecError as exc:
-            return Response.error(Status.BAD_REQUEST, f"malformed patch: {exc}")
+            return Response.error(Status.BAD_REQUEST, f"malformed patch or named updates: {exc}")
         except (UpdateUnsupported, NotHeld) as exc:
             return Response.error(Status.UNPROCESSABLE_ENTITY, str(exc))
         except PreconditionFailed as exc:

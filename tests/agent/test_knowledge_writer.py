@@ -16,16 +16,7 @@ from agent_helpers import ONTOLOGIES, config, endpoint
 
 from coapkb.agent.controller import Controller, Task
 from coapkb.agent.job import Job
-from coapkb.agent.knowledge_writer import (
-    WRITE_TRIES,
-    KnowledgeWriter,
-    delivered_update,
-    load_update,
-    missing_update,
-    pick_update,
-    robot_at_update,
-    with_prologue,
-)
+from coapkb.agent.knowledge_writer import WRITE_TRIES, KnowledgeWriter
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot import write_knowledge
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
@@ -35,6 +26,16 @@ from coapkb.kb.client import KBClient, QueryFailed
 from coapkb.kb.errors import KBError
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.named_queries import NAMED_QUERIES
+from coapkb.kb.named_updates import (
+    PROLOGUE,
+    NamedUpdate,
+    load_update,
+    missing_update,
+    named_updates_sparql,
+    pick_update,
+)
+from coapkb.kb.named_updates import delivered_update as _delivered
+from coapkb.kb.named_updates import robot_at_update as _robot_at
 from coapkb.kb.resources import KBResources
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.base import PeerUnreachable, ResourceInfo
@@ -87,8 +88,20 @@ def live() -> LiveKB:
     return _writable("Location")
 
 
+def with_prologue(module: str, update: str) -> str:
+    return PROLOGUE[module] + update
+
+
 def _location(update: str) -> str:
     return with_prologue("Location", update)
+
+
+def delivered_update(objects: list[tuple[str, int]]) -> str:
+    return " ;\n".join(_delivered(obj, seq) for obj, seq in objects)
+
+
+def robot_at_update(robot: str, at: tuple[int, int], at_ms: int) -> str:
+    return _robot_at(robot, at[0], at[1], at_ms)
 
 
 # ------------------------------------------------------------------ the updates
@@ -193,7 +206,9 @@ class Radio:
         self._distinct: list[tuple[str, str]] = []
         self._changed = asyncio.Event()
 
-    async def __call__(self, module: str, update: str, write_id: str) -> None:
+    async def __call__(self, module: str, updates: list[NamedUpdate], write_id: str) -> None:
+        # Compared as the holder renders them: the SPARQL Update they write.
+        update = named_updates_sparql(updates)
         self.calls.append((module, update))
         self.ids.append(write_id)
         self._changed.set()
@@ -411,7 +426,7 @@ async def test_a_write_keeps_its_id_on_every_holder_it_is_sent_to() -> None:
     await network.serve(taking, endpoint("Robot3"))
     cfg = config("Robot1", {"Robot1": "Object", "Robot2": "Location", "Robot3": "Location"}, kb_writable=True)
     kb = KBClient(network.client(), writer="Robot1.5")
-    update = _location(pick_update(BAG, "Robot1", 1))
+    update = [NamedUpdate("pick", (BAG, "Robot1", 1))]
     for _ in range(2):
         await write_knowledge(cfg, None, None, kb, "Location", update, lambda robot: True, "Robot1.5.1")
     assert seen == ["Robot1.5.1"] * 2

@@ -10,11 +10,11 @@ from pathlib import Path
 import cbor2
 import pytest
 
-from coapkb.agent.knowledge_writer import restock_update, with_prologue
 from coapkb.feeder import FeederError, read_tasks_file, split_tasks, task_post
 from coapkb.feeder.restock import shelf_places
 from coapkb.feeder.tasks import Restock, task_count, with_restocks
 from coapkb.kb.live import LiveKB
+from coapkb.kb.named_updates import PROLOGUE, pick_update, restock_update
 from coapkb.kb.store import KnowledgeBase
 
 ONTOLOGIES = Path(__file__).resolve().parents[2] / "ontologies"
@@ -56,14 +56,13 @@ def test_the_post_of_a_restocked_object_says_so() -> None:
 def test_a_delivery_puts_a_picked_object_back_on_its_shelf_in_the_kb() -> None:
     """The update the feeder writes, applied to a writable Location KB after
     the robot's own pick update: the shelf the files give, no pick left."""
-    from coapkb.agent.knowledge_writer import pick_update
 
     base = KnowledgeBase.load([ONTOLOGIES / "Location.owl"])
     place = shelf_places(base)["Gucci_bag_14"]
     kb = LiveKB(base, "R.1", wall_ms=lambda: 1)
-    kb.update(with_prologue("Location", pick_update("Gucci_bag_14", "Robot2", 1)))
+    kb.update(PROLOGUE["Location"] + pick_update("Gucci_bag_14", "Robot2", 1))
     assert _pick_place(kb)["picked_by"] == "Robot2"
-    kb.update(with_prologue("Location", restock_update("Gucci_bag_14", place)))
+    kb.update(PROLOGUE["Location"] + restock_update("Gucci_bag_14", *place))
     row = _pick_place(kb)
     assert (int(row["aisle_no"]), int(row["rack_no"]), int(row["bin_no"])) == place
     assert row.get("picked_by") is None and row.get("picked_task") is None

@@ -21,10 +21,10 @@ import pytest
 from rdflib import Literal, URIRef
 from support import ONTOLOGIES, ServerProcess, coapkb, free_udp_port
 
-from coapkb.agent.knowledge_writer import pick_update, restock_update, with_prologue
 from coapkb.kb.client import KBClient
 from coapkb.kb.durable import Keeper, open_live
 from coapkb.kb.live import LiveKB, WriteLimits, wall_ms
+from coapkb.kb.named_updates import PROLOGUE, pick_update, restock_update
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
 from coapkb.kb.resources import KBResources
 from coapkb.kb.results import expect_select
@@ -152,8 +152,8 @@ async def relayed() -> AsyncIterator[Relayed]:
 
 SHELVED = [(*map(str, PLACE), None)]
 PICKED = [(None, None, None, "Robot2")]
-PICK = with_prologue("Location", pick_update(OBJECT, "Robot2", 7))
-DELIVERY = with_prologue("Location", restock_update(OBJECT, PLACE))
+PICK = PROLOGUE["Location"] + pick_update(OBJECT, "Robot2", 7)
+DELIVERY = PROLOGUE["Location"] + restock_update(OBJECT, *PLACE)
 
 
 async def _pick_then_deliver(relayed: Relayed, pick: Callable[[], Awaitable[object]]) -> bytes:

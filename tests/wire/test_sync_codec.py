@@ -253,3 +253,15 @@ def test_sync_messages_match_the_cddl(knowledge_cddl: object) -> None:
 def test_a_patch_matches_the_cddl(knowledge_cddl: object) -> None:
     outcome = knowledge_cddl.validate(encode_patch([FILE_TRIPLE], [AISLE, LABEL]), root_type="patch")  # type: ignore[attr-defined]
     assert outcome.valid, [str(d) for d in outcome.diagnostics]
+
+
+def test_named_updates_match_the_cddl(knowledge_cddl: object) -> None:
+    from coapkb.kb.named_updates import NamedUpdate, encode_named_updates
+
+    writes = [[NamedUpdate("pick", ("Gucci_bag_14", "Robot2", 7)), NamedUpdate("robot-at", ("Robot2", 3, 21, 1000)),
+               NamedUpdate("delivered", ("Gucci_bag_14", 7)), NamedUpdate("restock", ("Gucci_bag_14", 3, 21, 2)),
+               NamedUpdate("missing", ("Canon_tv_538", "Robot1", 8))],
+              [NamedUpdate("load", ("Robot1", 12.5, 380, 4000))]]
+    for write in writes:
+        outcome = knowledge_cddl.validate(encode_named_updates(write), root_type="named-updates")  # type: ignore[attr-defined]
+        assert outcome.valid, [str(d) for d in outcome.diagnostics]
