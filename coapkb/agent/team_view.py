@@ -45,9 +45,9 @@ FAILURES_TO_DOWN = 2
 INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
 #: The least time an awaited state may be late before it is asked for, and
-#: the time before any state's lateness was measured.
+#: the time before any state's lateness was measured (at 0.5 s, 100 ms of
+#: one-way delay made a lost plan cost 0.7 s, and a run 40 % longer).
 REPAIR_FLOOR_S = 0.2
-INITIAL_REPAIR_S = 0.5
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers
@@ -506,13 +506,13 @@ class ObservedStates:
         smoothed as RFC 6298 smooths round trips, plus twice their variation
         (RFC 6298 adds four: a timer that fires early here costs one GET,
         one that fires late holds the whole cluster), at least
-        :data:`REPAIR_FLOOR_S`.  Their lateness, not a round trip: it holds
+        :data:`REPAIR_FLOOR_S` (and that before any sample).  Their lateness, not a round trip: it holds
         the spread of the robots' decisions, which the links' delay only
         adds to; the round trips this process measures start with a
         security handshake each."""
         late = self.lateness
         if late.srtt is None:
-            return INITIAL_REPAIR_S
+            return REPAIR_FLOOR_S
         return max(REPAIR_FLOOR_S, late.srtt + 2 * late.rttvar)
 
     def _repair(self, robot_id: str) -> None:
