@@ -506,10 +506,10 @@ class ObservedStates:
         smoothed as RFC 6298 smooths round trips, plus twice their variation
         (RFC 6298 adds four: a timer that fires early here costs one GET,
         one that fires late holds the whole cluster), at least
-        :data:`REPAIR_FLOOR_S` (and that before any sample).  Their lateness, not a round trip: it holds
-        the spread of the robots' decisions, which the links' delay only
-        adds to; the round trips this process measures start with a
-        security handshake each."""
+        :data:`REPAIR_FLOOR_S`, and that before any sample.  Their lateness,
+        not a round trip: it holds the spread of the robots' decisions,
+        which the links' delay only adds to; the round trips this process
+        measures start with a security handshake each."""
         late = self.lateness
         if late.srtt is None:
             return REPAIR_FLOOR_S

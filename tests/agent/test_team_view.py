@@ -55,6 +55,42 @@ async def test_a_stale_observation_is_refreshed_and_registered_again() -> None:
         await states.aclose()
 
 
+async def test_a_lost_notification_is_asked_for_once_late_and_the_observation_stays() -> None:
+    """A NON notification lost: the wait GETs the robot's state after
+    ``repair_s`` (not after the refresh period), without registering again;
+    a state that came unasked is a lateness sample."""
+    transport = SilentlyDroppedObservation()
+    states = ObservedStates(transport, {"Robot2": Endpoint("coap", "127.0.0.1", 1)}, PLAN_PATH, refresh_s=60)
+    states.start()
+    try:
+        await states.wait(lambda s: "Robot2" in s, timeout=2)
+        transport.current = state(1)  # its notification of task 1 is lost
+        seen = await states.wait(lambda s: s["Robot2"].plan.seq >= 1, timeout=2,
+                                 pending=lambda s: [] if s["Robot2"].plan.seq >= 1 else ["Robot2"])
+        assert seen["Robot2"].plan.seq == 1
+        assert (states.repairs, states.refreshes, transport.observations) == (1, 0, 1)
+        assert states.lateness.srtt is None  # asked for, so no sample of how late states come
+    finally:
+        await states.aclose()
+
+
+async def test_awaited_states_are_due_once_the_first_came() -> None:
+    """With ``of``, nothing is asked for while every awaited robot is still
+    deciding: only once one of them came are the others late."""
+    transport = SilentlyDroppedObservation()
+    states = ObservedStates(transport, {"Robot2": Endpoint("coap", "127.0.0.1", 1)}, PLAN_PATH, refresh_s=60)
+    states.start()
+    try:
+        await states.wait(lambda s: "Robot2" in s, timeout=2)
+        transport.current = state(1)
+        with pytest.raises(TimeoutError):  # Robot3 never came: Robot2 is never due
+            await states.wait(lambda s: s["Robot2"].plan.seq >= 1, timeout=0.5,
+                              pending=lambda s: ["Robot2", "Robot3"], of=2)
+        assert states.repairs == 0
+    finally:
+        await states.aclose()
+
+
 # --------------------------------------------------------------------------- membership
 
 from agent_helpers import endpoint  # noqa: E402
