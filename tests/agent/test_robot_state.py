@@ -89,15 +89,14 @@ def test_matches_the_cddl(validator: object) -> None:
 @given(states)
 def test_outcome_carries_what_the_feeder_acts_on(state: RobotState) -> None:
     seen = RobotState.decode(state.encode_outcome())
-    assert (seen.robot_id, seen.plan, seen.live, seen.boot, seen.prev) == (
-        state.robot_id, state.plan, state.live, state.boot, None)
+    assert (seen.robot_id, seen.plan, seen.live, seen.boot, seen.prev) == ("", state.plan, state.live, state.boot, None)
     if state.last is None:
         assert seen.last is None
         return
     last, got = state.last, seen.last
     assert got is not None
     assert (got.seq, got.object, got.skipped, got.assigned_to, got.error, got.epoch, got.unavailable) == (
-        last.seq, last.object, last.skipped, last.assigned_to, last.error, last.epoch, last.unavailable)
+        last.seq, "", last.skipped, last.assigned_to, last.error, last.epoch, last.unavailable)
     assert got.members == (last.members if last.epoch else ())
     carries = last.assigned_to in (None, state.robot_id)
     assert (got.costs, got.reasons) == ((last.costs, last.reasons) if carries else ({}, {}))
@@ -202,7 +201,7 @@ def test_a_skip_reason_is_sent_only_when_there_is_one() -> None:
     skipped = Decision(3, "Gucci_bag_14", skipped=True, skip_reason="picked by Robot2 at task 1")
     state = RobotState("Robot1", PLAN, LiveState(3.0, 21.0), skipped)
     assert cbor2.loads(state.encode())[4][-1] == "picked by Robot2 at task 1"
-    assert RobotState.decode(state.encode_outcome()).last == replace(skipped, coordination_s=0.0)
+    assert RobotState.decode(state.encode_outcome()).last == replace(skipped, object="", coordination_s=0.0)
     unreasoned = replace(state, last=replace(skipped, skip_reason=None))
     assert len(cbor2.loads(unreasoned.encode())[4]) == 11
     assert RobotState.decode(unreasoned.encode()).last.skip_reason is None  # type: ignore[union-attr]
