@@ -25,13 +25,12 @@ from dataclasses import dataclass
 import cbor2
 
 from ..wire.codec import CodecError, load_cbor
+from ..world.vocabulary import CAPABILITY_NS, LOCATION_NS
 from .named_queries import SAFE_VALUE
 
 __all__ = ["NAMED_UPDATES", "NamedUpdate", "decode_named_updates", "encode_named_updates",
            "is_named_updates", "named_updates_sparql"]
 
-LOCATION_NS = "http://www.tcs.org/2018/Location#"
-CAPABILITY_NS = "http://www.tcs.org/2018/Capability#"
 #: Each module's namespace as the empty prefix: what an update of it starts with.
 PROLOGUE = {"Location": f"PREFIX : <{LOCATION_NS}>\n", "Capability": f"PREFIX : <{CAPABILITY_NS}>\n"}
 
@@ -189,19 +188,18 @@ def decode_named_updates(item: object) -> tuple[NamedUpdate, ...]:
     if not is_named_updates(item):
         raise CodecError("named updates are [+ [name, * argument]]")
     assert isinstance(item, list)
+    updates = []
     try:
-        updates = tuple(NamedUpdate(u[0], tuple(u[1:])) if u and isinstance(u[0], str)
-                        else _refuse("each named update starts with its name") for u in item)
+        for update in item:
+            if not update or not isinstance(update[0], str):
+                raise CodecError("each named update starts with its name")
+            updates.append(NamedUpdate(update[0], tuple(update[1:])))
         named_updates_sparql(updates)
-    except ValueError as exc:
+    except ValueError as exc:  # CodecError is one too
         raise CodecError(str(exc)) from None
-    return updates
+    return tuple(updates)
 
 
 def decode_named_updates_bytes(data: bytes) -> tuple[NamedUpdate, ...]:
     """:func:`decode_named_updates` of an encoded body."""
     return decode_named_updates(load_cbor(data))
-
-
-def _refuse(why: str) -> NamedUpdate:
-    raise ValueError(why)
