@@ -3,7 +3,7 @@
 The paper keeps the robots' real-time world in the Location KB ("real time
 locations of the robots") and what they can do in the Capability KB; these
 are the facts a robot's work changes there, each a small SPARQL Update,
-sent by name (:mod:`coapkb.kb.named_updates`: about 30 bytes, not 150-320):
+sent by name (:mod:`coapkb.kb.named_updates`: 41-57 bytes, not 152-316):
 
 * a pick: the object leaves its shelf (its aisle, rack and bin are
   deleted) and is ``Picked_by`` the robot ``Picked_at_task`` the task;

@@ -3,8 +3,8 @@
 What a robot's work changes in the team's knowledge is always one of a few
 SPARQL Updates (a pick, an object missing, a delivery, a restock, where the
 robot is, its load and charge: :mod:`coapkb.agent.knowledge_writer` says
-when each is written).  Sent as text each costs 150-320 bytes on a 35
-kbit/s radio; sent by name, as the named queries are asked, about 30.  The
+when each is written).  Sent as text a write costs 152-316 bytes on a 35
+kbit/s radio; sent by name, as the named queries are asked, 41-57.  The
 holder renders the same SPARQL Update from the name and the arguments, so
 a named update writes exactly what its text would.
 
