@@ -314,14 +314,18 @@ class _BlockwiseRunnerLog(logging.LoggerAdapter[logging.Logger]):
     When the caller cancels a block-wise request, aiocoap 0.4.17 cancels its
     runner from a done-callback, which runs one loop turn late.  A runner
     whose last block arrived in that turn sets the result of the cancelled
-    future and logs the InvalidStateError as an error with a traceback.
-    Nobody waits for that result, so it is logged at debug level here."""
+    future and logs the InvalidStateError as an error with a traceback; one
+    whose try then failed (a robot's port refused it while its team was
+    stopped) logs that its error "neither went to response nor to
+    observation".  Nobody waits for either, so both are logged at debug
+    level here."""
 
     def __init__(self, logger: logging.Logger) -> None:
         super().__init__(logger, {})
 
     def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
-        if level >= logging.ERROR and isinstance(kwargs.get("exc_info"), asyncio.InvalidStateError):
+        if level >= logging.ERROR and (isinstance(kwargs.get("exc_info"), asyncio.InvalidStateError)
+                                       or "neither went to response nor to observation" in str(msg)):
             level = logging.DEBUG
         super().log(level, msg, *args, **kwargs)
 

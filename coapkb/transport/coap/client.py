@@ -74,7 +74,10 @@ class _AbandonedTryFilter(logging.Filter):
             # answer with TypeError('invalid exception object') (it sets the
             # end-of-pipe marker, None, as the response's exception).
             abandoned = isinstance(exc, TypeError) and str(exc) == "invalid exception object"
-            return not (abandoned or isinstance(exc, (aiocoap.error.LibraryShutdown, aiocoap.error.ObservationCancelled)))
+            # A network error (ICMP port unreachable) for a try already given
+            # up: the layer's own try, or the team stopping, says what matters.
+            return not (abandoned or isinstance(exc, (aiocoap.error.LibraryShutdown, aiocoap.error.ObservationCancelled,
+                                                      aiocoap.error.NetworkError)))
         return True
 
 
