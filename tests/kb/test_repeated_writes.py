@@ -72,6 +72,9 @@ class HoldingRelay(asyncio.DatagramProtocol):
     held: int = 0
     #: Set once the held datagram has been passed on.
     released: asyncio.Event = field(default_factory=asyncio.Event)
+    #: Set by the server's first answer after the held datagram was released:
+    #: its answer to that late try, so the try has been taken.
+    answered_late: asyncio.Event = field(default_factory=asyncio.Event)
     _front: asyncio.DatagramTransport | None = None
     _upstreams: dict[tuple[str, int], _Upstream] = field(default_factory=dict)
     _tasks: set[asyncio.Task[None]] = field(default_factory=set)
@@ -98,7 +101,7 @@ class HoldingRelay(asyncio.DatagramProtocol):
         if upstream is None:
             front = self._front
             assert front is not None
-            upstream = self._upstreams[client] = _Upstream(lambda reply: front.sendto(reply, client))
+            upstream = self._upstreams[client] = _Upstream(lambda reply: self._reply(front, reply, client))
             await asyncio.get_running_loop().create_datagram_endpoint(lambda: upstream, remote_addr=self.server)
         late = self.marker in data and not self.held
         if late:
@@ -108,6 +111,11 @@ class HoldingRelay(asyncio.DatagramProtocol):
         upstream.transport.sendto(data)
         if late:
             self.released.set()
+
+    def _reply(self, front: asyncio.DatagramTransport, reply: bytes, client: tuple[str, int]) -> None:
+        front.sendto(reply, client)
+        if self.released.is_set():
+            self.answered_late.set()
 
     def close(self) -> None:
         for task in self._tasks:
@@ -166,8 +174,7 @@ async def _pick_then_deliver(relayed: Relayed, pick: Callable[[], Awaitable[obje
     assert relayed.place() == PICKED
     delivered = await KBClient(relayed.client, timeout=10).write(relayed.server.endpoint, DELIVERY)
     assert delivered.text.startswith("removed 2, added 3;"), "the delivery undid the pick"
-    await asyncio.wait_for(relayed.relay.released.wait(), HOLD_S + 5)
-    await asyncio.sleep(0.3)  # the server takes it within a loop turn or two on loopback
+    await asyncio.wait_for(relayed.relay.answered_late.wait(), HOLD_S + 5)
     return delivered.version
 
 
@@ -305,7 +312,8 @@ async def test_a_repeat_while_the_write_waits_for_its_holders_gets_the_same_answ
                             settings=ReplicationSettings(ack_timeout_s=0.3, request_timeout_s=0.2))
     resources = KBResources(live, replicator=replicator)
     first = asyncio.create_task(resources.write(_request(_note("a"), "R2.1", ack="all")))
-    await asyncio.sleep(0.05)
+    while not any(r.journal for r in live.replicas.values()):  # made: now it waits for its holders
+        await asyncio.sleep(0)  # one loop turn, not a time
     repeats = await asyncio.gather(*(resources.write(_request(_note("a"), "R2.1", ack="all")) for _ in range(2)))
     answer = await first
     assert answer.status == Status.GATEWAY_TIMEOUT, answer.text()
