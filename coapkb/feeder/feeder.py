@@ -23,7 +23,7 @@ from ..transport import ClientSecurity
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .channel import OUTCOME_REQUEST, Channel, FeederSettings
-from .membership import Membership
+from .membership import Membership, PendingTask
 from .orphans import idle
 from .record import TaskRecord, claim_of, mark_not_found, unclaim
 from .roster import Roster
@@ -239,7 +239,7 @@ class Feeder:
                 if records:
                     await membership.take_back(cluster, records)
                 record = await self._feed_task(index, cluster, seq, name, joining, reassigned_from,
-                                               name in restocked)
+                                               name in restocked, records)
                 restocked.discard(name)
                 record.reassigned_from = reassigned_from
                 records.append(record)
@@ -316,7 +316,7 @@ class Feeder:
 
     async def _feed_task(
         self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = (),
-        again: int | None = None, restocked: bool = False,
+        again: int | None = None, restocked: bool = False, records: Sequence[TaskRecord] = (),
     ) -> TaskRecord:
         channel, watcher = self.channel, self.channel.watcher
         fed = clock.monotonic()
@@ -339,12 +339,18 @@ class Feeder:
         def undecided(states: States) -> list[str]:
             return [r for r in cluster if r not in watcher.down and not decided(states, r)]
 
-        states = await channel.wait_for(
+        deciding = asyncio.ensure_future(channel.wait_for(
             lambda s: not undecided(s),
             channel.settings.task_timeout_s,
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
             pending=undecided, of=len(live),
-        )
+        ))
+        try:
+            if records:
+                await self.membership.take_back_while(cluster, records, PendingTask(seq, name, request), deciding)
+            states = await deciding
+        finally:
+            deciding.cancel()
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
                             joined=joined)
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
