@@ -79,7 +79,7 @@ class QueryHandler:
         kb: KnowledgeBase | LiveKB | None,
         client: KBClient,
         wire: str = "compact",
-        alive: Callable[[str], bool] = lambda robot_id: True,
+        down: Callable[[str], str | None] = lambda robot_id: None,
         hedge_floor_s: float = 1.0,
         on_failure: Callable[[str, Exception], Awaitable[None]] | None = None,
     ) -> None:
@@ -90,8 +90,8 @@ class QueryHandler:
         self.client = client
         self.wire = wire
         self.stats = QueryStats()
-        #: Whether a teammate is up, as the team view knows it (failure detection).
-        self._alive = alive
+        #: Why a teammate is down (None: up), as the team view knows it (failure detection).
+        self._down = down
         #: Told of every holder a request to which failed at the transport:
         #: failed queries count towards failure detection like failed probes.
         self._on_failure = on_failure
@@ -118,7 +118,7 @@ class QueryHandler:
             holders = sorted(holders, key=lambda m: robot_sort_key(m.robot_id))
             live = [m for m in holders if m.robot_id == self.config.robot_id or self._alive(m.robot_id)]
             if not live:
-                raise ModuleUnavailable(module, {m.robot_id: "down" for m in holders})
+                raise ModuleUnavailable(module, {m.robot_id: self._why_down(m.robot_id) for m in holders})
             if live[0].robot_id == self.config.robot_id and self.kb is not None:
                 return None
             return live[:1]
@@ -126,9 +126,16 @@ class QueryHandler:
             return None
         remote = [m for m in holders if m.robot_id != self.config.robot_id]
         if not any(self._alive(m.robot_id) for m in remote):
-            raise ModuleUnavailable(module, {m.robot_id: "down" for m in remote})
+            raise ModuleUnavailable(module, {m.robot_id: self._why_down(m.robot_id) for m in remote})
         # sorted() is stable: the configured order stays among equals.
         return sorted(remote, key=lambda m: (not self._alive(m.robot_id), m.robot_id in self._suspects))
+
+    def _alive(self, robot_id: str) -> bool:
+        return self._down(robot_id) is None
+
+    def _why_down(self, robot_id: str) -> str:
+        why = self._down(robot_id)
+        return "down" if why is None else f"down ({why})"
 
     def hedge_after_s(self) -> float:
         """How long to wait for one holder before also asking the next replica:

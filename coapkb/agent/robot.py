@@ -293,7 +293,8 @@ class Robot:
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact",
                              writer=f"{config.robot_id}.{boot}")
         queries = QueryHandler(
-            config, served, kb_client, wire=query_wire, alive=team.is_up, on_failure=team.request_failed
+            config, served, kb_client, wire=query_wire, down=lambda r: team.down.get(r),
+            on_failure=team.request_failed
         )
 
         state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))

@@ -25,10 +25,10 @@ EXISTS = {"name": "Gucci_bag_14"}
 
 
 def handler(network: MemoryNetwork, kb: KnowledgeBase | None, wire: str = "compact", cache: bool = False,
-            alive: Callable[[str], bool] = lambda robot_id: True, on_failure: Any = None,
+            down: Callable[[str], str | None] = lambda robot_id: None, on_failure: Any = None,
             **changes: object) -> QueryHandler:
     cfg = config("Robot1", **changes)
-    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire, alive=alive,
+    return QueryHandler(cfg, kb, KBClient(network.client(), cache=cache), wire=wire, down=down,
                         on_failure=on_failure)
 
 
@@ -103,8 +103,8 @@ async def test_failed_queries_are_reported_for_failure_detection(network: Memory
 
 async def test_holders_known_down_are_not_asked(network: MemoryNetwork, kbs: dict, serve_kbs: Callable) -> None:
     await serve_kbs("Robot2", ["Object"])  # up, but the team view has declared it down
-    queries = handler(network, kbs["Location"], alive=lambda robot_id: robot_id != "Robot2")
-    with pytest.raises(ModuleUnavailable, match=r"no live robot holds the Object KB \(Robot2: down\)"):
+    queries = handler(network, kbs["Location"], down=lambda robot_id: "killed" if robot_id == "Robot2" else None)
+    with pytest.raises(ModuleUnavailable, match=r"no live robot holds the Object KB \(Robot2: down \(killed\)\)"):
         await queries.run("object-exists", EXISTS)
     assert queries.client.transport.counters.messages_sent == 0
 
@@ -170,7 +170,7 @@ async def test_a_holder_the_team_knows_is_down_is_not_asked_first(network: Memor
                                                                   serve_kbs: Callable) -> None:
     await serve_kbs("Robot3", ["Capability", "Location"])
     cfg = config("Robot1", holders=REPLICATED)
-    queries = QueryHandler(cfg, kbs["Location"], KBClient(network.client()), alive=lambda r: r != "Robot2")
+    queries = QueryHandler(cfg, kbs["Location"], KBClient(network.client()), down=lambda r: "killed" if r == "Robot2" else None)
     await queries.run("robot-specs", {})
     assert (queries.stats.failovers, queries.stats.remote) == (0, 1)
 
