@@ -7,7 +7,8 @@ simulator's checker catches, and on which seeds.
 Each mutant runs as ``coapkb sim PROFILE --seeds A-B`` with the bug planted
 (a new process, ``PYTHONHASHSEED=0``, as a replay would), and each profile
 once without any.  A mutant is caught on a seed that violates an invariant
-with the bug and holds every one without it.  Prints one line per
+with the bug and holds every one without it (seed 0: the profile's runs
+together broke the progress oracle, ``--decide-within``).  Prints one line per
 mutant and the score; writes ``experiments/results/sim/mutation_score.csv``
 (mutant, profile, seeds run, seeds caught, the first catching seeds, the
 first finding, wall seconds).
@@ -27,6 +28,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "experiments" / "results" / "sim" / "mutation_score.csv"
 VIOLATION = re.compile(r"^seed (\d+) .*?VIOLATION (.*)$", re.M)
+#: The progress oracle judges all the runs together: reported as seed 0.
+PROFILE_VIOLATION = re.compile(r"^sim: VIOLATION (progress: .*)$", re.M)
 
 
 def _mutants() -> dict[str, tuple[str, ...]]:
@@ -44,7 +47,11 @@ def violations(prefix: list[str], profile: tuple[str, ...], seeds: str, jobs: in
     )
     if result.returncode not in (0, 1):
         raise SystemExit(f"{' '.join(prefix)}: coapkb sim failed ({result.returncode}): {result.stderr[-2000:]}")
-    return {int(seed): finding for seed, finding in VIOLATION.findall(result.stdout)}
+    found = {int(seed): finding for seed, finding in VIOLATION.findall(result.stdout)}
+    profile_wide = PROFILE_VIOLATION.search(result.stdout)
+    if profile_wide is not None:
+        found[0] = profile_wide.group(1)
+    return found
 
 
 def run_mutant(name: str, profile: tuple[str, ...], seeds: str, jobs: int,

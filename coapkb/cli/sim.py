@@ -36,6 +36,9 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: the cores)")
     p.add_argument("--trace", metavar="FILE", help="with --seed: write every message, fault and pick in order")
     p.add_argument("--quiet", action="store_true", help="only violating seeds and the summary line")
+    p.add_argument("--decide-within", type=float, default=None, metavar="S",
+                   help="progress oracle: fail if the median task of all the runs took longer than S "
+                        "simulated seconds to decide")
     add_case_options(p)
     p.set_defaults(run=_sim)
 
@@ -81,6 +84,8 @@ async def _sim(args: argparse.Namespace) -> int:
         raise UserError("--trace writes one run's trace: give --seed S")
     if args.writes < 0:
         raise UserError("--writes must not be negative")
+    if args.decide_within is not None and not args.decide_within > 0:
+        raise UserError(f"--decide-within must be positive, got {args.decide_within:g}")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
                    writes=args.writes, ties=args.ties, storage=args.storage,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
@@ -108,6 +113,13 @@ async def _sim(args: argparse.Namespace) -> int:
     excused = sum(len(r.excused) for r in runs)
     if excused:
         print(f"sim: {counted(excused, 'finding')} excused by their schedules (a starved CPU, lost answers, a pick "
-              f"unreported when its robot died), in {counted(sum(1 for r in runs if r.excused), 'run')}")
+              f"unreported when its robot died, a write's last copy in a killed robot's memory), in {counted(sum(1 for r in runs if r.excused), 'run')}")
+    slow = None
+    if runs and args.decide_within is not None:
+        from ..sim.invariants import check_progress
+
+        slow = check_progress(runs, args.decide_within)
+        if slow is not None:
+            print(f"sim: VIOLATION progress: {slow}")
     print(closing_line(runs, violating, started))
-    return 1 if violating else 0
+    return 1 if violating or slow else 0

@@ -39,7 +39,8 @@ def run_checked(spec: SimSpec, seed: int, kbs: KBCache, trace: TextIO | None = N
 def summary(run: RunResult) -> RunResult:
     """``run`` without its history (what a worker sends back): its fates in one line instead."""
     fates = FateCounts.of(run.record.tasks).line() if run.record is not None else "no record"
-    return replace(run, record=None, picks=[], bounds={}, fates=fates)
+    coordination = [t.coordination_s for t in run.record.tasks] if run.record is not None else []
+    return replace(run, record=None, picks=[], bounds={}, fates=fates, coordination_s=coordination)
 
 
 # One KB cache per worker process: loaded once, read by every run there.

@@ -221,9 +221,13 @@ class SimNetwork:
         return next(self._ids)
 
 
+#: A confirmable message's first timeout on a path with no sample (RFC 6298).
+INITIAL_RTO_S = 1.0
+
+
 def _rto(estimator: RttEstimator) -> float:
-    """A confirmable message's first timeout on a path (RFC 6298: 1 s with no sample)."""
-    return estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=1.0)
+    """A confirmable message's first timeout on a path."""
+    return estimator.rto(k=4.0, granularity=0.01, floor=0.2, ceiling=8.0, initial=INITIAL_RTO_S)
 
 
 def _if_alive(process: Process, deliver: Callable[[], None]) -> None:

@@ -54,7 +54,7 @@ from ..world.truth import WorldTruth
 from ..world.vocabulary import ONTOLOGIES
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
-from .network import SimNetwork
+from .network import INITIAL_RTO_S, SimNetwork
 from .observed import Grant, GrantLog, Shelf, Take, module_triples, written_view
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,11 @@ DEFAULT_LIMIT_S = 3600.0
 #: How long the holders may take, once the last write is answered and the
 #: faults healed, to agree (anti-entropy rounds every few seconds).
 REPLICATION_SETTLE_S = 60.0
+#: How long a restarted holder (no data folder) may take to catch up: its
+#: catch-up's first two tries, from RFC 6298's first timeout with no sample
+#: (1 s, then 2 s).  A holder's last copy dying sooner is a loss the
+#: schedule excuses; later, the others should have had it.
+CATCH_UP_WINDOW_S = 3 * INITIAL_RTO_S
 #: The subject of each module's write log: the operator's writes add and
 #: remove values of its multi-valued ``written`` property.
 WRITE_LOG = "WriteLog"
@@ -197,8 +202,14 @@ class RunResult:
     reports: dict[tuple[str, int], list[tuple[float, int]]] = field(default_factory=dict)
     #: The fate counts in one line (kept when the record is dropped).
     fates: str = ""
+    #: Each task's coordination, from its post to the feeder's having its
+    #: decisions, simulated s (kept when the record is dropped).
+    coordination_s: list[float] = field(default_factory=list)
     #: The operator's writes, as they were answered.
     writes: list[WriteOp] = field(default_factory=list)
+    #: (module, value) -> how an acknowledged value's last copy died, in a
+    #: run without data folders: the loss the schedule excuses.
+    lost_copies: dict[tuple[str, int], str] = field(default_factory=dict)
     #: The forged syncs sent, and how each was answered.
     forgeries: list[Forgery] = field(default_factory=list)
     #: Per module: how many robots hold it.
@@ -465,6 +476,10 @@ class SimulatedTeam:
         self.ending = False
         #: The operator's writes (``spec.writes``), as they were answered.
         self.write_log: list[WriteOp] = []
+        #: (module, value) -> how an acknowledged value's last copy died (no data folder).
+        self.lost_copies: dict[tuple[str, int], str] = {}
+        #: Robot -> when its current process had started.
+        self._started_s: dict[str, float] = {}
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
         self._disk_rng = random.Random(rng.random())
@@ -488,6 +503,7 @@ class SimulatedTeam:
                     threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf)
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
+        self._started_s[robot_id] = clock.now
         live = robot.replicator.live if robot.replicator is not None else None
         if live is not None:
             self.lives.append((robot_id, live))
@@ -521,6 +537,8 @@ class SimulatedTeam:
         action, target = event.action, event.targets[0]
         process = self.current[target]
         if action == "kill":
+            if not self.spec.storage:
+                self._last_copies(target)
             self.scheduler.kill(process)
             self._crash_disk(target)
         elif action == "restart":
@@ -751,6 +769,32 @@ class SimulatedTeam:
         self.write_log.append(WriteOp(label, robot, status, module, kind, value, round(sent, 6),
                                       round(self.scheduler.clock.now, 6), settled, copies))
 
+    def _last_copies(self, dying: str) -> None:
+        """Acknowledged values that die with ``dying``'s memory (no data
+        folder): no other holder's process, running or frozen, shows them,
+        and each such process started too recently to have caught up
+        (:data:`CATCH_UP_WINDOW_S`).  A holder up for longer that lacks the
+        value is the protocol's failure, not the schedule's."""
+        robot = self.robots.get(dying)
+        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
+        if live is None:
+            return
+        now = self.scheduler.clock.now
+        others = {r_id: r.replicator.live for r_id, r in self.robots.items()
+                  if r_id != dying and r.replicator is not None and r.replicator.live is not None
+                  and self.current[r_id].status != "dead"}
+        for op in self.write_log:
+            if (op.kind != "insert" or op.status != "2.04" or (op.module, op.value) in self.lost_copies
+                    or op.module not in live.names or not self._shows(live, op.module, op.value)):
+                continue
+            holding = {r: kb for r, kb in others.items() if op.module in kb.names}
+            if any(self._shows(kb, op.module, op.value) for kb in holding.values()):
+                continue
+            if all(now - self._started_s[r] < CATCH_UP_WINDOW_S for r in holding):
+                young = "".join(f"; {r} had started {now - self._started_s[r]:.3f}s before" for r in sorted(holding))
+                self.lost_copies[(op.module, op.value)] = (
+                    f"{dying} was killed at {now:.3f}s with the last copy in memory (no data folder){young}")
+
     def _copies(self, module: str, value: int) -> int:
         """How many holders of ``module`` have held ``value`` by now: a
         process showing it now, or one killed since, whose state (as it was
@@ -915,7 +959,7 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), forgeries=list(self.forgeries), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
+            writes=list(self.write_log), lost_copies=dict(self.lost_copies), forgeries=list(self.forgeries), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coapkb.agent import controller as controller_module
+from coapkb.agent import team_view as team_view_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
@@ -54,6 +56,10 @@ STORAGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "-
 FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,starve,swarm")
 LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
 NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
+#: Lossy links and the progress oracle over the profile's runs (seed 0 in a
+#: mutant's list: the profile as a whole, its seeds 1-40).
+PROGRESS = ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5")
+PROFILE_SEEDS = tuple(range(1, 41))
 
 
 @dataclass(frozen=True)
@@ -134,6 +140,11 @@ def _tie_to_the_first_asked(task: Any, states: Any, *args: Any) -> Assignment:
 
 
 # ------------------------------------------------------------------ the shelf
+
+
+def _repair_never_fires(self: Any, pending: Any, now: float, repair_s: float) -> list[str]:
+    self.next_at = math.inf
+    return []
 
 
 def _take_unchecked(self: WorldTruth, obj: str, robot: str, seq: int) -> str | None:
@@ -231,6 +242,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
            lambda: _patch(TeamView, "adopt", _adopt_nothing), WRITES),
+    Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
+           "the observation's refresh", lambda: _patch(team_view_module._Repair, "overdue", _repair_never_fires),
+           PROGRESS, PROFILE_SEEDS),
     Mutant("ties-to-the-first-asked", "a cost tie goes to the first robot in this robot's own order",
            lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (2, 3, 4)),
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",

@@ -146,3 +146,12 @@ def test_replicas_unequal_triple_for_triple_or_losing_writes_are_found() -> None
     split = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], differences={"Object": ["Robot1 and Robot2 differ"]},
                  split_versions=["Robot1 and Robot2 at version 00 of Object show different triples"])
     assert len([v for v in split.violations if "Robot1 and Robot2" in v]) == 2, split.violations
+
+
+def test_a_write_lost_with_the_last_memory_holding_it_is_excused_with_its_reason() -> None:
+    insert = WriteOp("w1", "Robot1", "2.04", "Object", "insert", 1, 1.0, 1.2, copies=2)
+    why = "Robot2 was killed at 6.755s with the last copy in memory (no data folder); Robot1 had started 0.251s before"
+    lost = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], writes=[insert],
+                values={"Object": {"Robot1": frozenset()}}, lost_copies={("Object", 1): why})
+    assert not lost.violations
+    assert lost.excused == [f"Robot1 lacks acknowledged write w1 (Object value 1, answered Robot1 2.04 at 1.200s): {why}"]

@@ -166,7 +166,7 @@ def test_the_command_replays_a_seed_byte_for_byte(tmp_path: Path) -> None:
     second = _coapkb(*args, "--trace", str(tmp_path / "b.trace"), env={"PYTHONHASHSEED": "2"})
     assert first.returncode == 0, first.stdout + first.stderr
     assert (tmp_path / "a.trace").read_bytes() == (tmp_path / "b.trace").read_bytes()
-    assert re.search(r"^sim: 1 run, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s$", first.stdout, re.M)
+    assert re.search(r"^sim: 1 run, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s; tasks decided in [\d.]+ s \(median\)$", first.stdout, re.M)
     def without_wall_time(out: str) -> str:
         return re.sub(r"in [\d.,]+ wall s", "", out)
 
@@ -180,7 +180,7 @@ def test_the_summary_counts_the_writes_and_whether_the_replicas_agreed() -> None
     for seed in (1, 2):
         assert re.search(rf"^seed {seed}: ok, .*; 4 writes \([45] requests, \d acknowledged\), the replicas agreed "
                          r"\([\d.]+ simulated s\)$", result.stdout, re.M), result.stdout
-    assert re.search(r"^sim: 2 runs, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s; 8 writes \(\d+ requests, "
+    assert re.search(r"^sim: 2 runs, 0 violations, [\d,]+ simulated s in [\d.,]+ wall s; tasks decided in [\d.]+ s \(median\); 8 writes \(\d+ requests, "
                      r"\d+ acknowledged\), the replicas agreed in 2 of 2 runs with writes$", result.stdout, re.M), result.stdout
 
 
