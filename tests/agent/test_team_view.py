@@ -74,6 +74,47 @@ async def test_a_lost_notification_is_asked_for_once_late_and_the_observation_st
         await states.aclose()
 
 
+class LateNotification(SilentlyDroppedObservation):
+    """Notifications come, but later than the first repair: a GET is sent
+    first and never answered (lost), then the notification arrives."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.notify = asyncio.Event()
+        self.gets = 0
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        self.gets += 1
+        self.notify.set()  # the notification overtakes the GET's answer
+        await asyncio.sleep(timeout)
+        raise PeerTimeout(f"{peer}: no answer")
+
+    async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
+        self.observations += 1
+        yield Response(Status.CONTENT, self.current.encode_plan(), ContentFormat.CBOR)
+        await self.notify.wait()
+        yield Response(Status.CONTENT, self.current.encode_plan(), ContentFormat.CBOR)
+        await asyncio.Event().wait()
+
+
+async def test_a_notification_that_came_after_its_repair_left_is_a_lateness_sample() -> None:
+    """As Karn's algorithm keeps a backed-off timer, the estimate must learn
+    from states that came unasked even when a GET raced them: otherwise a
+    first repair earlier than the links' delay asks for every state forever."""
+    transport = LateNotification()
+    states = ObservedStates(transport, {"Robot2": Endpoint("coap", "127.0.0.1", 1)}, PLAN_PATH, refresh_s=60)
+    states.start()
+    try:
+        await states.wait(lambda s: "Robot2" in s, timeout=2)
+        transport.current = state(1)
+        await states.wait(lambda s: s["Robot2"].plan.seq >= 1, timeout=2,
+                          pending=lambda s: [] if s["Robot2"].plan.seq >= 1 else ["Robot2"])
+        assert transport.gets == 1 and states.repairs == 1
+        assert states.lateness.srtt is not None  # the notification's lateness, though a GET had left
+    finally:
+        await states.aclose()
+
+
 async def test_awaited_states_are_due_once_the_first_came() -> None:
     """With ``of``, nothing is asked for while every awaited robot is still
     deciding: only once one of them came are the others late."""
