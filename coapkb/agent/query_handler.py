@@ -99,6 +99,16 @@ class QueryHandler:
         #: Holders whose last request failed at the transport: asked last.
         self._suspects: set[str] = set()
 
+    def reads_from(self, module: str) -> str | None:
+        """The holder the robots of the cluster now put a pinned question
+        about ``module`` to (this robot's id if it is that holder); None if
+        no holder is live."""
+        try:
+            chosen = self._holders_for(module, pinned=True)
+        except QueryError:
+            return None
+        return self.config.robot_id if chosen is None else chosen[0].robot_id
+
     def _holders_for(self, module: str, pinned: bool = False) -> list[Teammate] | None:
         """The remote holders of ``module`` to ask, best first; None if this robot
         answers itself.  Holders known to be down (team view) or that failed

@@ -91,6 +91,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "later, with the first repair at 0.2 s: the feeder found it down and posted the next task without "
              "it, its teammates (who never did) waited 68 s for its plan on that task, and no task boundary "
              "came to take it back at",
+        2271: "the holder the places are read from, frozen 20 s just after it decided a task on knowledge: a "
+              "teammate that settled without it decided nothing once it found it down, the other had taken its "
+              "decision; the task is now decided again on the next holder's knowledge",
+        2619: "the same as seed 2271, frozen 17 s in a pick: both teammates decided nothing against its decision",
         1162: "a holder restarted empty 0.25 s before its only co-holder was killed, its first catch-up lost: two "
               "acknowledged writes gone with the last memory that held them (no data folders), now excused",
     }),
