@@ -169,6 +169,10 @@ def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
     return _patch(Replicator, "_push", dropping)
 
 
+async def _no_catch_up(self: Replicator) -> None:
+    """A robot that starts waits for its first anti-entropy round."""
+
+
 def _nothing_kept(self: Keeper, changes: Any) -> None:
     """The journal never written: a write answered before it is on disk."""
 
@@ -249,6 +253,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (2, 3, 4)),
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
+    Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
+           lambda: _patch(Replicator, "catch_up", _no_catch_up), WRITES),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
@@ -260,7 +266,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
            lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (22, 28, 60)),
     Mutant("latest-arrival-wins", "a single-valued property shows the value that arrived last, not the newest stamp",
-           _latest_arrival_wins, WRITES, (18, 24, 34)),
+           _latest_arrival_wins, WRITES, (37, 60, 122)),
 )}
 
 
