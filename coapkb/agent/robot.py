@@ -5,6 +5,7 @@ Resources (besides the KB's ``/kb``, ``/kb/sparql``, ``/kb/q/*``):
 =================  ======  ==================================================
 ``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
 ``/robot/plan``    GET     planned state only, for teammates; observable
+``/robot/plan``    POST    ``?of=X&at=S``: compare notes on teammate X's plan after task S
 ``/robot/outcome`` GET     what the feeder acts on: decisions, jobs done or dropped, idle; observable
 ``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON; :mod:`coapkb.feeder.tasks`)
 ``/tasks``         GET     the decisions taken so far
@@ -400,7 +401,8 @@ class Robot:
     def _mount(self) -> None:
         add = self.router.add
         add(ResourceInfo(STATE_PATH, rt="coapkb.state", ct=(60, 50), obs=True, title="robot state"), self._get_state)
-        add(ResourceInfo(PLAN_PATH, rt="coapkb.plan", ct=(60,), obs=True, title="planned state"), self._get_plan)
+        add(ResourceInfo(PLAN_PATH, rt="coapkb.plan", ct=(60,), obs=True, title="planned state",
+                         methods=("GET", "POST")), self._plan)
         add(ResourceInfo(OUTCOME_PATH, rt="coapkb.outcome", ct=(60,), obs=True, title="decisions and jobs"),
             self._get_outcome)
         add(
@@ -454,6 +456,32 @@ class Robot:
         response = _cbor_state(own.encode_outcome(), request.accept)
         return replace(response, confirm=self.final_outcome(own)) if response.status.is_success else response
 
+    async def _plan(self, request: Request) -> Response:
+        if request.method == Method.POST:
+            return await self._compare_notes(request)
+        return await self._get_plan(request)
+
+    async def _compare_notes(self, request: Request) -> Response:
+        """``POST ?of=X&at=S``: a teammate goes on without X's plan after
+        task S unless this robot has it (TeamView._plan_from_survivors).
+        Answered with that plan (2.04), or 4.04, and then this robot goes on
+        without it too: a change of state, so not a GET, which must be safe
+        (RFC 7252 §5.8.1).  Only the cluster's robots may ask."""
+        about, at = request.query.get("of"), request.query.get("at")
+        if about is None or at is None:
+            return Response.error(Status.BAD_REQUEST, "give the robot and the task: /robot/plan?of=ROBOT&at=SEQ")
+        try:
+            seq = int(at)
+        except ValueError:
+            return Response.error(Status.BAD_REQUEST, "at must be a task number")
+        if request.peer is not None and not self.team.in_cluster(request.peer):
+            return Response.error(Status.FORBIDDEN, f"{request.peer} is not of {self.config.robot_id}'s cluster")
+        state = self.team.state_of(about)
+        if state is None or state.plan_at(seq) is None:
+            await self.team.forgo(about, seq)
+            return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
+        return Response(Status.CHANGED, state.encode_plan(), ContentFormat.CBOR)
+
     async def _get_plan(self, request: Request) -> Response:
         probed = request.query.get("probe")
         if probed is not None:
@@ -474,8 +502,6 @@ class Robot:
             except ValueError:
                 return Response.error(Status.BAD_REQUEST, "at must be a task number")
             if state is None or state.plan_at(seq) is None:
-                # The asker goes on without it: so must this robot.
-                await self.team.forgo(about, seq)
                 return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
         if state is None:
             return Response.error(Status.NOT_FOUND, f"no state of {about}")

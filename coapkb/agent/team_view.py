@@ -422,7 +422,8 @@ class ObservedStates:
         if it holds ``about``'s plan right after task ``seq`` (``&at=``);
         None if it has not (it then never uses that plan: see
         :meth:`TeamView.forgo`) or does not answer, twice."""
-        request = Request(Method.GET, self._request.path, {"of": about, "at": str(seq)}, accept=ContentFormat.CBOR)
+        # A POST: the robot asked goes on without that plan too if it has none.
+        request = Request(Method.POST, self._request.path, {"of": about, "at": str(seq)}, accept=ContentFormat.CBOR)
         for _ in range(FAILURES_TO_DOWN):
             try:
                 response = await self._transport.request(
@@ -698,6 +699,10 @@ class TeamView:
         """A query to teammate ``robot_id`` failed at the transport: a failure
         of a request like a liveness probe's (two in a row: down)."""
         await self._teammates.record_failure(robot_id, exc)
+
+    def in_cluster(self, robot_id: str) -> bool:
+        """Whether ``robot_id`` is one of this robot's cluster (itself included)."""
+        return robot_id == self._own.robot_id or robot_id in self._peers
 
     async def forgo(self, robot_id: str, seq: int) -> None:
         """Another robot asked for ``robot_id``'s plan after task ``seq`` and

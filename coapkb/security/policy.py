@@ -16,6 +16,8 @@ POST ``/decisions``                        the robot(s) deciding for this
                                            leader under compute-and-communicate)
 PATCH / iPATCH ``/kb`` (a write)           operators (role client) and robots
 POST ``/kb/sync`` (replication)            robots
+POST ``/robot/plan`` (compare notes)       robots (of the cluster: the
+                                           resource checks)
 anything else                              nobody (4.03)
 =========================================  ==================================
 
@@ -65,6 +67,8 @@ ROLE_RULES: tuple[RoleRule, ...] = (
     RoleRule("iPATCH", "/kb", frozenset({"client", "robot"}), "only operators (role client) and robots write the KB",
              by_key=False),
     RoleRule("POST", "/kb/sync", frozenset({"robot"}), "only a module's holders replicate it"),
+    RoleRule("POST", "/robot/plan", frozenset({"robot"}), "only the cluster's robots compare notes on a plan",
+             by_key=False),
 )
 
 

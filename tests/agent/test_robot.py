@@ -94,6 +94,17 @@ async def test_unknown_teammate_or_format_is_a_clear_4xx(ask: Asker) -> None:
     assert text.status == Status.NOT_ACCEPTABLE and "cbor" in text.text()
 
 
+async def test_comparing_notes_on_a_teammate_s_plan_is_a_post(ask: Asker) -> None:
+    """``?of=X&at=S`` commits the robot asked to go on without X's plan if it
+    has none: a POST; a GET of the same only reads."""
+    unknown = await ask(Method.POST, "/robot/plan", query={"of": "Robot2", "at": "3"})
+    assert unknown.status == Status.NOT_FOUND and "after task 3" in unknown.text()
+    incomplete = await ask(Method.POST, "/robot/plan", query={"of": "Robot2"})
+    assert incomplete.status == Status.BAD_REQUEST and "of=ROBOT&at=SEQ" in incomplete.text()
+    read = await ask(Method.GET, "/robot/plan", query={"of": "Robot2", "at": "3"})
+    assert read.status == Status.NOT_FOUND
+
+
 @pytest.mark.parametrize(
     ("payload", "content_format", "says"),
     [

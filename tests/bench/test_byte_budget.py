@@ -86,7 +86,7 @@ def test_parts_add_up_to_the_frame_plain_and_protected() -> None:
     ({"code": "GET", "path": "/kb/q/pick-place", "query": "name=X"}, ("query", "pick-place")),
     ({"code": "FETCH", "path": "/kb/sparql"}, ("query", "sparql")),
     ({"code": "GET", "path": "/robot/plan", "observe": 0}, ("registration", "/robot/plan")),
-    ({"code": "GET", "path": "/robot/plan", "query": "of=Robot2&at=3"}, ("hearsay", "/robot/plan")),
+    ({"code": "POST", "path": "/robot/plan", "query": "of=Robot2&at=3"}, ("hearsay", "/robot/plan")),
     ({"code": "GET", "path": "/robot/state"}, ("liveness", "/robot/state")),
     ({"code": "GET", "path": "/robot/lease", "query": "r=Robot1"}, ("lease", "/robot/lease")),
     ({"code": "POST", "path": "/tasks", "query": "qh=12"}, ("task post", "")),
