@@ -32,6 +32,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -57,6 +58,17 @@ def fail_stop(message: str) -> NoReturn:
     os._exit(75)
 
 
+@dataclass
+class KeeperStats:
+    """What one robot's data folder took, counted since it started."""
+
+    #: Bytes of journal records written.
+    records_bytes: int = 0
+    #: Snapshots written, and the seconds they took together.
+    snapshots: int = 0
+    snapshot_s: float = 0.0
+
+
 class Keeper:
     """Keeps one :class:`~.live.LiveKB`'s changes in a data folder (see the
     module docstring): installed as the LiveKB's ``keeper``."""
@@ -77,7 +89,7 @@ class Keeper:
         #: Compact in a thread (False: at once, in the caller).
         self.background = background
         self._compacting: threading.Thread | None = None
-        self.stats = {"records_bytes": 0, "snapshots": 0, "snapshot_s": 0.0}
+        self.stats = KeeperStats()
 
     @property
     def path(self) -> Path:
@@ -87,7 +99,7 @@ class Keeper:
         """The LiveKB's hook: ``changes``, and the id of the write that
         ``made`` them, on disk before it returns."""
         try:
-            self.stats["records_bytes"] += self.journal.append(changes, made)
+            self.stats.records_bytes += self.journal.append(changes, made)
         except OSError as exc:
             self.on_failure(f"cannot keep a change in {self.journal.path}: {exc}")
             raise
@@ -124,8 +136,8 @@ class Keeper:
             log.warning("snapshot %d in %s not written: %s", generation, self.journal.path, exc)
             return
         took = time.perf_counter() - started
-        self.stats["snapshots"] += 1
-        self.stats["snapshot_s"] += took
+        self.stats.snapshots += 1
+        self.stats.snapshot_s += took
         log.info("snapshot %d of %s written: %d bytes in %.2f s", generation, self.journal.path, size, took)
 
     def close(self) -> None:

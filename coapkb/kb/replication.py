@@ -121,6 +121,25 @@ class ReplicationSettings:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
+@dataclass
+class ReplicationStats:
+    """What one robot's replication did, counted since it started."""
+
+    #: Pushes of new writes sent to a holder, and those that failed.
+    pushed: int = 0
+    push_failed: int = 0
+    #: Anti-entropy rounds run.
+    rounds: int = 0
+    #: Deltas and whole states taken from holders.
+    deltas_in: int = 0
+    states_in: int = 0
+    #: Sync messages refused: not decodable, from a sender not allowed, or
+    #: deltas not taken at the replica's bound (they come again at catch-up).
+    malformed: int = 0
+    forbidden: int = 0
+    not_taken: int = 0
+
+
 class Replicator:
     """One robot's side of replication (see the module docstring)."""
 
@@ -165,8 +184,7 @@ class Replicator:
         #: The pushes in flight, in the order they started (a dict: a set's order
         #: follows id(), and aclose cancels them in this order).
         self._pushes: dict[asyncio.Task[bool], None] = {}
-        self.stats = {"pushed": 0, "push_failed": 0, "rounds": 0, "deltas_in": 0, "states_in": 0, "malformed": 0,
-                      "forbidden": 0, "not_taken": 0}
+        self.stats = ReplicationStats()
 
     # -------------------------------------------------------------- serving
 
@@ -183,14 +201,14 @@ class Replicator:
         try:
             message = decode_sync(request.payload)
         except CodecError as exc:
-            self.stats["malformed"] += 1
+            self.stats.malformed += 1
             return Response.error(Status.BAD_REQUEST, f"malformed sync message: {exc}")
         module = message.module
         if module not in self.live.replicas:
             return Response.error(Status.NOT_FOUND, f"this robot does not hold the {module} module")
         refusal = self.refusal(message, request.peer)
         if refusal is not None:
-            self.stats["forbidden"] += 1
+            self.stats.forbidden += 1
             self._log_once(request.peer or "an unprotected sender", module, Status.FORBIDDEN,
                            "refused a sync of %s from %s: %s", module, request.peer, refusal)
             return Response.error(Status.FORBIDDEN, refusal)
@@ -208,7 +226,7 @@ class Replicator:
         if replica.refused > refused:
             # Not 2.04: a push's sender would count the write as held here.
             # The gap fills at the next exchanges; the rest may come then.
-            self.stats["not_taken"] += replica.refused - refused
+            self.stats.not_taken += replica.refused - refused
             return Response.error(
                 Status.SERVICE_UNAVAILABLE,
                 f"{replica.refused - refused} of the changes not taken: this robot waits for "
@@ -265,10 +283,10 @@ class Replicator:
 
     def _take(self, message: SyncMessage) -> None:
         if isinstance(message.changes, WrittenState):
-            self.stats["states_in"] += 1
+            self.stats.states_in += 1
             self.live.join(message.module, message.changes)
         elif message.changes:
-            self.stats["deltas_in"] += len(message.changes)
+            self.stats.deltas_in += len(message.changes)
             self.live.apply(message.module, message.changes)
 
     def _answer_for(self, module: str, peer: CausalContext) -> SyncMessage:
@@ -345,9 +363,9 @@ class Replicator:
         message = SyncMessage(module, replica.context.copy(), changes, forward=holder.remote)
         answer = await self._exchange(holder, message)
         if answer is None:
-            self.stats["push_failed"] += 1
+            self.stats.push_failed += 1
             return False
-        self.stats["pushed"] += 1
+        self.stats.pushed += 1
         return True
 
     async def _exchange(self, holder: Holder, message: SyncMessage) -> SyncMessage | None:
@@ -374,7 +392,7 @@ class Replicator:
         # The answer comes from the holder asked (the client's security checks who answers).
         refusal = self.refusal(answer, holder.name)
         if refusal is not None:
-            self.stats["forbidden"] += 1
+            self.stats.forbidden += 1
             self._log_once(holder.name, message.module, Status.FORBIDDEN, "not taking %s's answer on %s: %s",
                            holder.name, message.module, refusal)
             return None
@@ -418,7 +436,7 @@ class Replicator:
 
     async def sync_once(self) -> None:
         """One anti-entropy exchange per module, with its next holder."""
-        self.stats["rounds"] += 1
+        self.stats.rounds += 1
         self._turn += 1
         for module, holders in self.holders.items():
             if not holders:

@@ -183,7 +183,7 @@ def test_compaction_writes_a_snapshot_and_drops_the_old_journal(base, tmp_path) 
         _insert(live, f"w{i}")
         if i % 3 == 0:
             live.update(PREFIX + f'DELETE DATA {{ loc:w{i} loc:written "w{i}" }}')
-    assert keeper.stats["snapshots"] >= 2
+    assert keeper.stats.snapshots >= 2
     names = sorted(p.name for p in tmp_path.iterdir())
     generation = keeper.journal.generation
     assert names == [".gitignore", "journal." + str(generation), "lock", "snapshot." + str(generation)]

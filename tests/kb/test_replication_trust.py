@@ -180,7 +180,7 @@ async def test_a_robot_that_does_not_hold_the_module_is_refused_and_nothing_chan
     # A question too: Robot2 never has a reason to ask.
     assert (await replicator.handle_sync(push(None, "Robot2"))).status == Status.FORBIDDEN
     assert unchanged(replicator, etag) and client.sent == []
-    assert replicator.stats["forbidden"] == 5
+    assert replicator.stats.forbidden == 5
     # Its next real write is its first.
     written = replicator.live.update(f"PREFIX loc: <{LOC}> INSERT DATA {{ loc:X loc:note 'real' }}")
     assert written.deltas["Location"].dot == Dot("Robot1.7", 1)
@@ -285,7 +285,7 @@ async def test_an_answer_naming_a_non_holders_writer_is_not_taken() -> None:
     replicator = robot1(Recorder(answer))
     etag = replicator.live.etag
     await replicator.sync_once()
-    assert unchanged(replicator, etag) and replicator.stats["forbidden"] == 1
+    assert unchanged(replicator, etag) and replicator.stats.forbidden == 1
 
 
 async def test_a_delta_refused_at_the_bound_is_answered_5_03_not_2_04() -> None:
@@ -300,7 +300,7 @@ async def test_a_delta_refused_at_the_bound_is_answered_5_03_not_2_04() -> None:
     assert answer.text().startswith("1 of the changes not taken")
     replica = replicator.live.replicas["Location"]
     assert Dot("Robot3.2", 1) in replica.context and Dot("Robot3.2", 7) not in replica.context
-    assert replica.refused == 1 and replicator.stats["not_taken"] == 1
+    assert replica.refused == 1 and replicator.stats.not_taken == 1
     await _settle(replicator)
     # Only what was taken is passed on.
     passed = {d.dot for _, r in client.sent for d in decode_sync(r.payload).changes or ()}  # type: ignore[union-attr]
@@ -361,4 +361,4 @@ async def test_a_ring_of_three_clusters_converges_with_or_without_the_teams_list
             await robot.sync_once()
         await asyncio.gather(*(_settle(r) for r in robots.values()))
     assert rounds == (0 if listed else 2)
-    assert (robots[1].stats["forbidden"] > 0) is not listed  # A1's pushes, refused
+    assert (robots[1].stats.forbidden > 0) is not listed  # A1's pushes, refused

@@ -116,7 +116,7 @@ async def test_a_non_holder_is_refused_and_a_holder_taken(robot1: Served) -> Non
     else:
         assert feeder.status == Status.FORBIDDEN  # the policy: robots only
     assert robot1.live.etag == etag and not replica.context.vv and not replica.entries and not replica.journal
-    assert robot1.replicator.stats["forbidden"] == 2
+    assert robot1.replicator.stats.forbidden == 2
 
     # A holder's own write is taken; one naming Robot2 as its writer is not.
     forged = await _sync_as("Robot3", robot1, [_note("Robot2.5", 1, "forged")])
