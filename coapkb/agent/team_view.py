@@ -50,6 +50,11 @@ INDIRECT_PROBE_TIMEOUTS = 2
 #: 13.3-16.2 s.
 REPAIR_FLOOR_S = 0.2
 INITIAL_REPAIR_S = 0.2
+#: The most an awaited state may be late before it is asked for: one state
+#: held up by a query's retries (9 s at 20 % loss and 100 ms of delay) is
+#: a sample that lifted the estimate to seconds, and the next lost
+#: notifications waited that long (completions of 26-45 s against 13-20 s).
+REPAIR_CEILING_S = 1.0
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 #: Turns of the event loop one exchange takes (send, receive, the handlers
@@ -522,14 +527,15 @@ class ObservedStates:
         smoothed as RFC 6298 smooths round trips, plus twice their variation
         (RFC 6298 adds four: a timer that fires early here costs one GET,
         one that fires late holds the whole cluster), at least
-        :data:`REPAIR_FLOOR_S` (:data:`INITIAL_REPAIR_S` before any sample).  Their lateness,
+        :data:`REPAIR_FLOOR_S` and at most :data:`REPAIR_CEILING_S`
+        (:data:`INITIAL_REPAIR_S` before any sample).  Their lateness,
         not a round trip: it holds the spread of the robots' decisions,
         which the links' delay only adds to; the round trips this process
         measures start with a security handshake each."""
         late = self.lateness
         if late.srtt is None:
             return INITIAL_REPAIR_S
-        return max(REPAIR_FLOOR_S, late.srtt + 2 * late.rttvar)
+        return min(REPAIR_CEILING_S, max(REPAIR_FLOOR_S, late.srtt + 2 * late.rttvar))
 
     def _repair(self, robot_id: str) -> None:
         """GET ``robot_id``'s state once, unless a GET of it is under way;
