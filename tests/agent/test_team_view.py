@@ -158,7 +158,7 @@ async def serve_plan(network: MemoryNetwork, own: RobotState, seen: dict[str, Ro
             return Response.error(Status.NOT_FOUND, f"no state of {about}")
         return Response(Status.CONTENT, shown.encode_plan(), ContentFormat.CBOR)
 
-    router.add(ResourceInfo(PLAN_PATH, obs=True), plan)
+    router.add(ResourceInfo(PLAN_PATH, obs=True, methods=("GET", "POST")), plan)
     return await network.serve(router, endpoint(own.robot_id))
 
 
