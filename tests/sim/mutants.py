@@ -245,7 +245,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("admit-keeps-the-epoch", "a robot admitting a restarted teammate keeps its membership epoch",
            lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
-           lambda: _patch(TeamView, "adopt", _adopt_nothing), WRITES),
+           lambda: _patch(TeamView, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh", lambda: _patch(team_view_module._Repair, "overdue", _repair_never_fires),
            PROGRESS, PROFILE_SEEDS),

@@ -48,8 +48,6 @@ def test_every_planted_bug_is_caught_on_its_seed(name: str) -> None:
 
 #: Planted bugs no seed searched has caught yet, and why that may be.
 SURVIVORS = {
-    "adopt-nothing": "not caught in 300 seeds of its profile: a robot now takes a teammate's decision only "
-                     "from its own membership, so the adopted membership rarely differs from its own",
     "no-catch-up-at-start": "not caught in 200 seeds of its profile: the first anti-entropy round comes 3.3-6.7 s "
                             "after the start, and only a co-holder killed in that window, past the 3 s the checker "
                             "excuses, loses a write; no oracle reads what a restarted holder answers meanwhile",
