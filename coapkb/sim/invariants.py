@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import statistics
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
 from .observed import Take
-from .run import Pick, RunResult
+from .run import Pick, RunResult, WriteOp
 
 
 def check_finished(run: RunResult) -> Iterable[str]:
@@ -306,15 +306,7 @@ def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
                 yield (f"{op.label} ({op.module} value {op.value}) was acknowledged by {op.robot} at "
                        f"{op.answered_s:.3f}s while {op.copies} holder{'s' if op.copies != 1 else ''} showed it: "
                        "an acknowledgement promises two")
-        if op.kind == "insert" and op.status == "2.04":
-            if any(d.kind == "delete" and d.module == op.module and d.value == op.value and d.sent_s >= op.sent_s
-                   for d in run.writes):
-                continue
-            lacking = [r for r, values in seen_by.items() if op.value not in values]
-            if lacking and (op.module, op.value) not in run.lost_copies:
-                yield (f"{', '.join(lacking)} lack{'s' if len(lacking) == 1 else ''} acknowledged write {op.label} "
-                       f"({op.module} value {op.value}, answered {op.robot} 2.04 at {op.answered_s:.3f}s)")
-        elif op.kind == "delete" and op.status == "2.04" and op.settled:
+        if op.kind == "delete" and op.status == "2.04" and op.settled:
             # An insert sent later, or still on its way when the delete was
             # sent (it may land after it), may bring the value back.
             if any(i.kind == "insert" and i.module == op.module and i.value == op.value
@@ -325,6 +317,9 @@ def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
             if back:
                 yield (f"{op.module} value {op.value}, removed by {op.label} at {op.robot} (2.04 at "
                        f"{op.answered_s:.3f}s), is back on {', '.join(back)}")
+    for lacking, op in _acknowledged_but_missing(run):
+        if (op.module, op.value) not in run.lost_copies:
+            yield lacking
 
 
 def excused_lost_writes(run: RunResult) -> list[str]:
@@ -333,16 +328,24 @@ def excused_lost_writes(run: RunResult) -> list[str]:
     promised a second holder, and both went (found in the simulator, seed
     1162: a holder restarted empty, and its only peer holding the value was
     killed 0.25 s later, before the restarted one's first sync was answered)."""
-    found = []
+    return [f"{lacking}: {run.lost_copies[(op.module, op.value)]}" for lacking, op in _acknowledged_but_missing(run)
+            if (op.module, op.value) in run.lost_copies]
+
+
+def _acknowledged_but_missing(run: RunResult) -> Iterator[tuple[str, WriteOp]]:
+    """Each acknowledged insert that a running holder does not show at the
+    end, though no delete of its value was sent after it: what is missing
+    where, in a line, and the insert."""
     for op in run.writes:
-        why = run.lost_copies.get((op.module, op.value))
-        if op.kind == "insert" and op.status == "2.04" and why is not None:
-            lacking = [r for r, values in run.values.get(op.module, {}).items() if op.value not in values]
-            if lacking:
-                found.append(f"{', '.join(lacking)} lack{'s' if len(lacking) == 1 else ''} acknowledged write "
-                             f"{op.label} ({op.module} value {op.value}, answered {op.robot} 2.04 at "
-                             f"{op.answered_s:.3f}s): {why}")
-    return found
+        if op.kind != "insert" or op.status != "2.04":
+            continue
+        if any(d.kind == "delete" and d.module == op.module and d.value == op.value and d.sent_s >= op.sent_s
+               for d in run.writes):
+            continue
+        lacking = [r for r, values in run.values.get(op.module, {}).items() if op.value not in values]
+        if lacking:
+            yield (f"{', '.join(lacking)} lack{'s' if len(lacking) == 1 else ''} acknowledged write {op.label} "
+                   f"({op.module} value {op.value}, answered {op.robot} 2.04 at {op.answered_s:.3f}s)"), op
 
 
 def check_forgeries(run: RunResult) -> Iterable[str]:
@@ -456,11 +459,15 @@ def check_progress(runs: Sequence[RunResult], within_s: float) -> str | None:
     over 3 s.  The simulator is deterministic, so a profile's median is a
     number, not a sample: a change that moves it past the bound is found
     every time."""
+    median = median_decided(runs)
+    if median is None or median <= within_s:
+        return None
     times = sorted(t for run in runs for t in run.coordination_s)
-    if not times:
-        return None
-    median = statistics.median(times)
-    if median <= within_s:
-        return None
     return (f"the median task took {median:.2f} simulated s to decide (of {len(times)} tasks, p90 "
             f"{times[int(0.9 * (len(times) - 1))]:.2f} s), more than the bound of {within_s:g} s")
+
+
+def median_decided(runs: Sequence[RunResult]) -> float | None:
+    """The median of every task's coordination in ``runs`` (simulated s); None without tasks."""
+    times = [t for run in runs for t in run.coordination_s]
+    return statistics.median(times) if times else None
