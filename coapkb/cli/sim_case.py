@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, TextIO
@@ -93,8 +92,10 @@ def closing_line(runs: Sequence[RunResult], violating: int, started: float) -> s
         agreed = sum(1 for r in with_writes if r.converged_at is not None)
         replicated = (f"; {_writes(with_writes)}, the replicas agreed in {agreed} of "
                       f"{counted(len(with_writes), 'run')} with writes")
-    times = sorted(t for r in runs for t in r.coordination_s)
-    decided = f"; tasks decided in {statistics.median(times):.2f} s (median)" if times else ""
+    from ..sim.invariants import median_decided
+
+    median = median_decided(runs)
+    decided = f"; tasks decided in {median:.2f} s (median)" if median is not None else ""
     return (f"sim: {counted(len(runs), 'run')}, {counted(violating, 'violation')}, "
             f"{sum(r.sim_s for r in runs):,.0f} simulated s in {time.monotonic() - started:,.1f} wall s"
             f"{decided}{replicated}")
