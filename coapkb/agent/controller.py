@@ -105,13 +105,19 @@ class DecisionMessage:
     decision: Decision
     after: PlannedState | None = None
     job: Job | None = None
+    #: The sending leader's process (:attr:`RobotState.boot`; 0 = not said):
+    #: a follower that never observed it can still tell a new process of it.
+    boot: int = 0
 
     def to_dict(self) -> dict:
-        return {
+        raw: dict[str, object] = {
             "decision": asdict(self.decision),
             "after": asdict(self.after) if self.after else None,
             "job": asdict(self.job) if self.job else None,
         }
+        if self.boot:
+            raw["boot"] = self.boot
+        return raw
 
     @classmethod
     def from_dict(cls, raw: Mapping) -> DecisionMessage:
@@ -120,6 +126,7 @@ class DecisionMessage:
             decision=Decision(**raw["decision"]),
             after=PlannedState(**raw["after"]) if raw.get("after") else None,
             job=_job(job) if job else None,
+            boot=int(raw.get("boot", 0)),
         )
 
 
@@ -439,7 +446,7 @@ class Controller:
         if self.config.strategy == "compute-and-communicate":
             # Stamped with the membership it was computed in: the followers
             # take it as theirs (a follower's own view of who is down lags).
-            message = replace(message, decision=self._with_membership(message.decision))
+            message = replace(message, decision=self._with_membership(message.decision), boot=self.team.own.boot)
             try:
                 await self._send_decision(message)
             except TransportError as exc:  # the decision stands; the teammate reports its own timeout
@@ -510,6 +517,9 @@ class Controller:
         if future.done():
             message = future.result()
             self.team.adopt(Membership(message.decision.epoch, message.decision.members), task.seq)
+            if message.boot and message.decision.members:
+                # Its sender: the first of the membership it was computed in.
+                self.team.saw_process(min(message.decision.members, key=robot_sort_key), message.boot)
             return message
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
         return await self._compute(task)

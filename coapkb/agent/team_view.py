@@ -150,6 +150,9 @@ class ObservedStates:
         self._heard_at: dict[str, float] = {}
         #: Readmitted robot -> until when its failed requests do not count.
         self._joining: dict[str, float] = {}
+        #: Robot never observed -> the process (``boot``) its decision as the
+        #: leader came from: a first state of another process is a restart's.
+        self._boot_unseen: dict[str, int] = {}
         self._changed = asyncio.Condition()
         #: Told of every state stored (a recording: coapkb.harness.recording).
         self.listeners: list[Callable[[str, RobotState], None]] = []
@@ -248,12 +251,19 @@ class ObservedStates:
         self.down.pop(robot_id, None)  # down_at stays: when the old process was found dead
         self.gone.discard(robot_id)
         self._failures.pop(robot_id, None)
+        self._boot_unseen.pop(robot_id, None)
         # For a while, failed requests do not count: reaching the new process
         # takes a new security handshake first (OSCORE: the first requests
         # meet a context that is gone, and EDHOC runs again).
         self._joining[robot_id] = clock.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
+
+    def saw_process(self, robot_id: str, boot: int) -> None:
+        """Process ``boot`` of ``robot_id`` sent something here (a decision);
+        kept only while no state of it was observed."""
+        if robot_id in self._endpoints and robot_id not in self.states:
+            self._boot_unseen[robot_id] = boot
 
     async def revive(self, robot_id: str) -> None:
         """Count on ``robot_id`` again: declared down, it answered as the same
@@ -357,6 +367,16 @@ class ObservedStates:
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
             self._gone_if(robot_id, True)
             await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
+            return
+        seen = self._boot_unseen.pop(robot_id, 0) if old is None else 0
+        if self.liveness and seen and state.boot and state.boot != seen:
+            # Never observed before, but another process of it sent a decision
+            # here: this one is a restart.  Found in the simulator: a follower
+            # whose observation of its leader was lost took the restarted
+            # leader's first state for the old one's, and waited for its
+            # decision on a task the new process was never given.
+            self._gone_if(robot_id, True)
+            await self.declare_down(robot_id, "restarted (another process than the one that decided before)")
             return
         # Heard from: the grace a readmitted process gets until it can be
         # reached (readmit) is over.  Kept beyond, it hid the new process's
@@ -717,6 +737,10 @@ class TeamView:
         if robot_id in self._peers and seq < self._forgone.get(robot_id, seq + 1):
             self._forgone[robot_id] = seq
             await self._teammates.poke()
+
+    def saw_process(self, robot_id: str, boot: int) -> None:
+        """Process ``boot`` of teammate ``robot_id`` sent its decision here, as the leader."""
+        self._teammates.saw_process(robot_id, boot)
 
     def _forgoes(self, robot_id: str, seq: int) -> bool:
         return self._forgone.get(robot_id, seq + 1) <= seq

@@ -97,13 +97,18 @@ class Membership:
         started after the task: the processes that took it are dead, so
         nobody can pick it (found in the simulator: the three robots of a
         cluster restarted in turn, each before the previous one had joined).
-        While one of them may still run, the task stays as it is (failed)."""
+        A robot whose process is known gone (nobody listens at its address)
+        counts as one started after it: found in the simulator, the last of
+        the three was killed and came back only after the last task, so it
+        never joined.  While one of them may still run, the task stays as it
+        is (failed)."""
         taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+        gone = self.channel.watcher.gone
         found = []
         for record in records:
             if record.decisions or record.orphaned is not None or record.seq in taken:
                 continue
-            if all(self._incarnation.get(r, 0) > record.seq for r in cluster):
+            if all(self._incarnation.get(r, 0) > record.seq or r in gone for r in cluster):
                 record.orphaned = "every robot that took it went down before deciding it"
                 found.append(record)
         return found

@@ -228,6 +228,22 @@ async def test_an_older_state_of_the_same_process_is_stale_not_a_restart() -> No
     assert "restarted" in states.down["Robot2"]
 
 
+async def test_a_first_state_of_another_process_than_the_leaders_is_a_restart() -> None:
+    """Never observed, the leader's process is known by the boot its decision
+    carried: a first state with another boot is a restart, one with the same
+    boot is the leader (simulator seed 1623 of the 6-robot compute-and-
+    communicate swarm profile: the follower waited 20 s for a decision the
+    new process was never given)."""
+    network = MemoryNetwork()
+    states = ObservedStates(network.client(), {"Robot2": endpoint("Robot2"), "Robot3": endpoint("Robot3")},
+                            PLAN_PATH, liveness=True)
+    states.saw_process("Robot2", 5)
+    states.saw_process("Robot3", 7)
+    await states._update("Robot2", robot("Robot2", 0, boot=9))
+    await states._update("Robot3", robot("Robot3", 0, boot=7))
+    assert "restarted" in states.down["Robot2"] and "Robot3" not in states.down
+
+
 async def test_the_wait_for_plans_outlasts_finding_a_silent_teammate_down() -> None:
     """Robot2 died before Robot1 ever heard from it; Robot3 holds its last
     plan.  However short the wait asked for, Robot1 waits until its failure

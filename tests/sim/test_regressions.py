@@ -101,6 +101,13 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
     }),
+    (("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate"), {
+        1623: "a follower whose observation of its leader was lost took the restarted leader's first state for "
+              "the old process's, and waited 20 s for its decision on a task the new process was never given: it "
+              "decided nothing",
+        1162: "a cluster's three robots killed and restarted in turn, the last back only after the last task: "
+              "it never joined, so the task nobody decided never went round again",
+    }),
     (("--robots", "9", "--tasks", "100", "--faults", "freeze,partition"), {
         20005: "a robot cut off dropped a task under its fence; granted again once the partition healed, it was "
                "settled, but the state showing the dropped task was never kept: the task never went round again",
