@@ -39,6 +39,9 @@ def add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--decide-within", type=float, default=None, metavar="S",
                    help="progress oracle: fail if the median task of all the runs took longer than S "
                         "simulated seconds to decide")
+    p.add_argument("--catch-up-within", type=float, default=None, metavar="S",
+                   help="catch-up oracle (with --writes): fail if the median restarted holder of all the runs "
+                        "took longer than S simulated seconds to show what its co-holders showed at its restart")
     add_case_options(p)
     p.set_defaults(run=_sim)
 
@@ -84,8 +87,11 @@ async def _sim(args: argparse.Namespace) -> int:
         raise UserError("--trace writes one run's trace: give --seed S")
     if args.writes < 0:
         raise UserError("--writes must not be negative")
-    if args.decide_within is not None and not args.decide_within > 0:
-        raise UserError(f"--decide-within must be positive, got {args.decide_within:g}")
+    for option, bound in (("--decide-within", args.decide_within), ("--catch-up-within", args.catch_up_within)):
+        if bound is not None and not bound > 0:
+            raise UserError(f"{option} must be positive, got {bound:g}")
+    if args.catch_up_within is not None and not args.writes:
+        raise UserError("--catch-up-within times what restarted holders catch up with: give --writes N too")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
                    writes=args.writes, ties=args.ties, storage=args.storage,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
@@ -114,12 +120,12 @@ async def _sim(args: argparse.Namespace) -> int:
     if excused:
         print(f"sim: {counted(excused, 'finding')} excused by their schedules (a starved CPU, lost answers, a pick "
               f"unreported when its robot died, a write's last copy in a killed robot's memory), in {counted(sum(1 for r in runs if r.excused), 'run')}")
-    slow = None
-    if runs and args.decide_within is not None:
-        from ..sim.invariants import check_progress
+    from ..sim.invariants import check_catch_up, check_progress
 
-        slow = check_progress(runs, args.decide_within)
-        if slow is not None:
-            print(f"sim: VIOLATION progress: {slow}")
+    slow = [f"sim: VIOLATION {what}: {finding}" for what, bound, check in (
+        ("progress", args.decide_within, check_progress), ("catch-up", args.catch_up_within, check_catch_up))
+        if runs and bound is not None and (finding := check(runs, bound)) is not None]
+    for line in slow:
+        print(line)
     print(closing_line(runs, violating, started))
     return 1 if violating or slow else 0

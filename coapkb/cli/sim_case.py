@@ -92,10 +92,12 @@ def closing_line(runs: Sequence[RunResult], violating: int, started: float) -> s
         agreed = sum(1 for r in with_writes if r.converged_at is not None)
         replicated = (f"; {_writes(with_writes)}, the replicas agreed in {agreed} of "
                       f"{counted(len(with_writes), 'run')} with writes")
-    from ..sim.invariants import median_decided
+    from ..sim.invariants import median_caught_up, median_decided
 
-    median = median_decided(runs)
+    median, caught_up = median_decided(runs), median_caught_up(runs)
     decided = f"; tasks decided in {median:.2f} s (median)" if median is not None else ""
+    if caught_up is not None:
+        replicated += f"; restarted holders caught up in {caught_up:.2f} s (median)"
     return (f"sim: {counted(len(runs), 'run')}, {counted(violating, 'violation')}, "
             f"{sum(r.sim_s for r in runs):,.0f} simulated s in {time.monotonic() - started:,.1f} wall s"
             f"{decided}{replicated}")

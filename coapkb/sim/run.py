@@ -52,6 +52,7 @@ from ..transport.messages import ContentFormat, Method, Request
 from ..wire.sync import SyncMessage, encode_sync
 from ..world.truth import WorldTruth
 from ..world.vocabulary import ONTOLOGIES
+from .catch_up import CatchUps
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import INITIAL_RTO_S, SimNetwork
@@ -212,6 +213,9 @@ class RunResult:
     lost_copies: dict[tuple[str, int], str] = field(default_factory=dict)
     #: The forged syncs sent, and how each was answered.
     forgeries: list[Forgery] = field(default_factory=list)
+    #: How long each restarted holder took to show what its co-holders showed
+    #: at its restart (simulated s; :mod:`.catch_up`).
+    catch_up_s: list[float] = field(default_factory=list)
     #: Per module: how many robots hold it.
     holders: dict[str, int] = field(default_factory=dict)
     #: At the end, per module: each running holder's version of it.
@@ -480,6 +484,7 @@ class SimulatedTeam:
         self.lost_copies: dict[tuple[str, int], str] = {}
         #: Robot -> when its current process had started.
         self._started_s: dict[str, float] = {}
+        self.catch_ups = CatchUps(clock, self._shows)
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
         self._disk_rng = random.Random(rng.random())
@@ -508,6 +513,8 @@ class SimulatedTeam:
         if live is not None:
             self.lives.append((robot_id, live))
             live.listeners.append(lambda modules: self._compare_at_version(robot_id, modules))
+            live.listeners.append(lambda _: self.catch_ups.changed(robot_id, live))
+            self.catch_ups.changed(robot_id, live)
         return robot
 
     def _compare_at_version(self, robot_id: str, modules: frozenset[str]) -> None:
@@ -539,9 +546,11 @@ class SimulatedTeam:
         if action == "kill":
             if not self.spec.storage:
                 self._last_copies(target)
+            self.catch_ups.killed(target)
             self.scheduler.kill(process)
             self._crash_disk(target)
         elif action == "restart":
+            self.catch_ups.expect(target, self._owed(target))
             reborn = self._spawn(target)
             feeder = self.feeder
 
@@ -724,9 +733,24 @@ class SimulatedTeam:
             for to, kind, value in ops:
                 if kind == "insert":
                     inserted.setdefault(module, []).append(value)
+                elif kind == "delete":
+                    self.catch_ups.deleting(module, value)
                 task = loop.create_task(self._send_write(client, to, module, f"w{i}", kind, value))
                 pending.append(task)
         await asyncio.gather(*pending)
+
+    def _owed(self, robot_id: str) -> dict[str, set[int]]:
+        """What ``robot_id``, restarting now, must catch up with: per module
+        it holds, the acknowledged values every other running holder shows."""
+        live = self._live_holders()
+        owed: dict[str, set[int]] = {}
+        for module in self.configs[robot_id].team[robot_id].kbs:
+            others = [kb for r, kb in live.get(module, {}).items() if r != robot_id]
+            acknowledged = {op.value for op in self.write_log
+                            if op.module == module and op.kind == "insert" and op.status == "2.04"}
+            if others:
+                owed[module] = {v for v in acknowledged if all(self._shows(kb, module, v) for kb in others)}
+        return owed
 
     def _holders(self, module: str) -> list[str]:
         return [r for r, c in sorted(self.configs.items()) if module in c.team[r].kbs]
@@ -947,6 +971,7 @@ class SimulatedTeam:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
                 versions, values, differences = self._replication_outcome() if spec.writes else ({}, {}, {})
+                catch_up_s = self.catch_ups.finish()
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
                 self._release_disks()
         finally:
@@ -959,7 +984,8 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), lost_copies=dict(self.lost_copies), forgeries=list(self.forgeries), holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
+            writes=list(self.write_log), lost_copies=dict(self.lost_copies), forgeries=list(self.forgeries),
+            catch_up_s=catch_up_s, holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),

@@ -60,6 +60,10 @@ NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
 #: mutant's list: the profile as a whole, its seeds 1-40).
 PROGRESS = ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5")
 PROFILE_SEEDS = tuple(range(1, 41))
+#: Kills and restarts while the operator writes, and the catch-up oracle over
+#: the profile's runs (seed 0: the profile as a whole, its seeds 1-60).
+CATCH_UP = ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5")
+CATCH_UP_SEEDS = tuple(range(1, 61))
 
 
 @dataclass(frozen=True)
@@ -254,7 +258,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
     Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
-           lambda: _patch(Replicator, "catch_up", _no_catch_up), WRITES),
+           lambda: _patch(Replicator, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",

@@ -203,6 +203,8 @@ def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_pat
     (["--faults", "meteor"], "unknown fault 'meteor'"),
     # coapkb bench's --loss is in percent; here a bare 20 is a slip, said so.
     (["--faults", "loss=20"], "loss=20: P is a probability from 0 to 1 (write loss=0.2 or loss=20% for 20 %)"),
+    (["--decide-within", "0"], "--decide-within must be positive"),
+    (["--catch-up-within", "1"], "give --writes N too"),
 ])
 def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
     result = _coapkb("sim", *args, timeout=60)
@@ -221,12 +223,15 @@ CI_PROFILES = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20", "--storage"), "1-40"),
     # The progress oracle judges the runs together (a median under 1 s now).
     (("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5"), "1-40"),
+    # The catch-up oracle judges the restarts together (a median of one exchange, 0.07 s, now).
+    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5"),
+     "1-60"),
 ]
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # hundreds of seeds: this bounds a hang; a busy machine takes minutes
-@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts", "progress"])
+@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts", "progress", "catch-up"])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation
     (what the schedules explain is listed apart)."""
