@@ -362,7 +362,15 @@ class Controller:
             return await self._decide(task, received)
         except (QueryError, TransportError) as exc:
             log.warning("task %d (%s): deciding again failed too: %s", task.seq, task.object, exc)
-            return None
+            # A teammate that read there may have decided on knowledge
+            # meanwhile: taken, as any settling takes it (found in the
+            # simulator, seed 3296: the answers of the next holder lost here,
+            # not there, and the two decided differently).
+            why = str(exc)
+            again = DecisionMessage(Decision(task.seq, task.object, unavailable=why)
+                                    if isinstance(exc, ModuleUnavailable) else Decision(task.seq, task.object, error=why))
+            settled = await self._settle(task, again)
+            return None if settled is again else settled
 
     def _apply(self, message: DecisionMessage) -> None:
         decision = message.decision

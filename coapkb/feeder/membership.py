@@ -134,8 +134,7 @@ class Membership:
                     or robot_id in self._restarted):
                 continue
             state = await self.channel.state(robot_id, timeout)
-            known = watcher.states.get(robot_id)
-            if state is None or known is None or state.boot != known.boot:
+            if state is None or not self._same_process(robot_id, state):
                 continue
             seen = state.last.seq if state.last is not None else 0
             missed = [PendingTask(r.seq, r.object, task_post(r.seq, r.object, r.joined, r.reassigned_from))
@@ -147,6 +146,18 @@ class Membership:
             watcher.readmit(robot_id)
             for task in missed:  # the robot takes tasks strictly in order
                 await self.channel.post_task(robot_id, task.post, task.seq, task.object)
+
+    def _same_process(self, robot_id: str, state: RobotState) -> bool:
+        """Whether ``state`` is the process of ``robot_id`` this feeder fed:
+        its ``boot`` if one was observed; else it decided a task fed to this
+        process (a new process decides nothing before it joins, and joins
+        only at a task this feeder posts).  Found in the simulator (seed
+        3866): the feeder, cut off from the start, never observed a robot
+        that its teammates went on counting, and could never take it back."""
+        known = self.channel.watcher.states.get(robot_id)
+        if known is not None:
+            return state.boot == known.boot
+        return state.last is not None and state.last.seq >= max(1, self._incarnation.get(robot_id, 0))
 
     async def take_back_while(self, cluster: Sequence[str], records: Sequence[TaskRecord],
                               deciding: PendingTask, decided: asyncio.Future[Any]) -> None:

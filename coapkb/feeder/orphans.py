@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 
 from ..agent.team_view import ObservedStates, States
-from .record import TaskRecord
+from .record import TaskRecord, claim_of
 
 
 def idle(states: States, robot_id: str) -> bool:
@@ -22,13 +22,18 @@ def unexecuted(
     jobs in the order assigned, so its last observed ``done`` count, less the
     jobs it had done before these records began (``done_before``), says how
     many of them are finished (a job finished in the instant before a crash
-    counts as not done: done again rather than lost)."""
+    counts as not done: done again rather than lost).  A task its teammates
+    decided late, as skipped because the KB already showed this robot's
+    pick of that very task, was its job too, and counts among the done
+    (found in the simulator, seed 3619: uncounted, the robot's one done job
+    covered its next task, which its dead process never did)."""
     taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
     state = watcher.states.get(robot_id)
     done = state.live.done - (done_before or {}).get(robot_id, 0) if state is not None else 0
     fenced = set(state.live.fenced) if state is not None else set()
     first = (incarnation or {}).get(robot_id, 0)
-    mine = [r for r in records if r.assigned_to == robot_id and r.seq >= first and r.seq not in fenced]
+    mine = [r for r in records if (r.assigned_to == robot_id or claim_of(r) == (robot_id, r.seq))
+            and r.seq >= first and r.seq not in fenced]
     return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
 
 

@@ -97,6 +97,14 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         2619: "the same as seed 2271, frozen 17 s in a pick: both teammates decided nothing against its decision",
         1162: "a holder restarted empty 0.25 s before its only co-holder was killed, its first catch-up lost: two "
               "acknowledged writes gone with the last memory that held them (no data folders), now excused",
+        3296: "the holder the places are read from frozen, then killed: both teammates decided again on the next "
+              "holder, whose answers were lost to one of them; it decided nothing while the other decided on "
+              "knowledge",
+        3619: "a robot picked task 1 and was killed; its teammates, deciding late, skipped it as picked by that "
+              "robot at task 1, then gave it task 2: its one job done was counted against task 2, never executed",
+        3866: "the feeder, cut off from the start, never observed a robot its teammates went on counting: it "
+              "could not tell that robot's answering process from a new one, never took it back, and its "
+              "teammates waited for its plan on every later task",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
