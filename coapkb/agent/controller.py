@@ -28,21 +28,20 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import OrderedDict, deque
-from collections.abc import Awaitable, Callable, Mapping
-from dataclasses import asdict, dataclass, replace
-
-import cbor2
+from collections.abc import Awaitable, Callable
+from dataclasses import replace
 
 from .. import clock
 from ..config import RobotConfig
-from ..kb.named_queries import MAX_LIST_ITEMS
-from ..model.results import SelectResult
-from ..transport.base import PeerGone, TransportError
-from ..world import Layout, Position, layout_from_row, travel_distance
+from ..transport.base import TransportError
+from ..world import Position, travel_distance
+from .decisions import Claim, DecisionMessage, Task
+from .facts import FactGatherer
 from .job import Job
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
-from .robot_state import Decision, PlannedState, RobotState
-from .task_assigner import Assignment, ChargeStop, RobotEnergy, TaskFacts, assign, robot_sort_key
+from .robot_state import Decision, RobotState
+from .settling import AskDecision, Settler
+from .task_assigner import Assignment, TaskFacts, assign, robot_sort_key
 from .task_executor import TaskExecutor
 from .team_view import Membership, TeamView
 
@@ -56,91 +55,12 @@ DECISIONS_KEPT = 1024
 #: Decisions kept whole (with the assignee's job) for teammates to take: they
 #: ask about the task they are deciding, never about old ones.
 RECENT_KEPT = 64
-#: Where a robot serves its cluster's claims (:func:`encode_claims`).
-CLAIMS_PATH = "/robot/claims"
-#: How often a robot whose knowledge did not arrive asks its teammates again.
-SETTLE_POLL_S = 0.5
-#: How long it asks, in query timeouts; and while a teammate answers that it
-#: is still deciding the task, how long at most.
-SETTLE_WAIT_TIMEOUTS = 2
-SETTLE_DECIDING_TIMEOUTS = 6
 #: Objects whose assignment a robot remembers (:class:`Claim`): the last
 #: ones decided.  Older picks are in the KB by then (a writable team).
 CLAIMS_KEPT = 4096
 #: Claims a restarted robot takes from a teammate: a few minutes of tasks,
 #: by when a writable team has the picks in the KB (about 20 kB of CBOR).
 CLAIMS_HANDED = 512
-#: The skip reason of an object no KB knows.
-NO_SUCH_OBJECT = "no such object"
-
-
-@dataclass(frozen=True)
-class Claim:
-    """An object this robot's cluster assigned: to whom, at which task."""
-
-    robot: str
-    seq: int
-
-    def __str__(self) -> str:
-        return f"picked by {self.robot} at task {self.seq}"
-
-
-@dataclass(frozen=True)
-class Task:
-    seq: int
-    object: str
-    #: Robots (restarted) that are members again from this task on.
-    join: tuple[str, ...] = ()
-    #: The task this one does again: its robot went down before the pick.
-    again: int | None = None
-    #: The object was delivered back to its shelf since the cluster decided
-    #: it (coapkb.feeder.restock): the claim remembered is void.
-    restocked: bool = False
-
-
-@dataclass(frozen=True)
-class DecisionMessage:
-    """What "compute and communicate" sends: the decision and the winner's plan."""
-
-    decision: Decision
-    after: PlannedState | None = None
-    job: Job | None = None
-    #: The sending leader's process (:attr:`RobotState.boot`; 0 = not said):
-    #: a follower that never observed it can still tell a new process of it.
-    boot: int = 0
-
-    def to_dict(self) -> dict:
-        raw: dict[str, object] = {
-            "decision": asdict(self.decision),
-            "after": asdict(self.after) if self.after else None,
-            "job": asdict(self.job) if self.job else None,
-        }
-        if self.boot:
-            raw["boot"] = self.boot
-        return raw
-
-    @classmethod
-    def from_dict(cls, raw: Mapping) -> DecisionMessage:
-        job = raw.get("job")
-        return cls(
-            decision=Decision(**raw["decision"]),
-            after=PlannedState(**raw["after"]) if raw.get("after") else None,
-            job=_job(job) if job else None,
-            boot=int(raw.get("boot", 0)),
-        )
-
-
-def _job(raw: Mapping) -> Job:
-    charge = raw.get("charge")
-    if charge is not None:
-        charge = ChargeStop(**{**charge, "dock": Position(**charge["dock"])})
-    return Job(**{**raw, "depot": tuple(raw["depot"]), "charge": charge})
-
-
-def _first(result: object, name: str) -> list[dict]:
-    if not isinstance(result, SelectResult):
-        raise QueryError(f"{name} did not return solutions")
-    return result.as_dicts()
 
 
 class Controller:
@@ -152,7 +72,7 @@ class Controller:
         executor: TaskExecutor,
         publish: Callable[[RobotState], None],
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
-        ask_decision: Callable[[str, int], Awaitable[DecisionMessage | None]] | None = None,
+        ask_decision: AskDecision | None = None,
         ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None,
     ) -> None:
         self.config = config
@@ -161,9 +81,6 @@ class Controller:
         self.executor = executor
         self._publish = publish
         self._send_decision = send_decision
-        #: Asks a teammate for its decision on a task (None: it has none yet;
-        #: TransportError: it does not answer).
-        self._ask_decision = ask_decision
         #: Asks a teammate for the cluster's claims (a restarted robot joining).
         self._ask_claims = ask_claims
         #: This robot's last decisions as it applied them, by task: a teammate
@@ -171,9 +88,6 @@ class Controller:
         self.recent: OrderedDict[int, DecisionMessage] = OrderedDict()
         self._tasks: asyncio.Queue[tuple[Task, float]] = asyncio.Queue()
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
-        self._layout: Layout | None = None
-        self._energy: dict[str, RobotEnergy] | None = None
-        self._docks: tuple[Position, ...] | None = None
         #: The last ``DECISIONS_KEPT`` decisions, oldest first (``GET /tasks``).
         self.log: deque[Decision] = deque(maxlen=DECISIONS_KEPT)
         #: object -> the cluster's assignment of it, from the decisions
@@ -181,20 +95,14 @@ class Controller:
         #: skipped alike before the pick is written (or even made).
         self.claims: OrderedDict[str, Claim] = OrderedDict()
         self._runner: asyncio.Task | None = None
+        #: What a task's decision needs from the KB.
+        self.facts = FactGatherer(config, queries)
+        #: Taking a teammate's decision when this robot cannot decide alone.
+        self.settler = Settler(config.robot_id, team, config.query_timeout_s, ask_decision, self.recent)
 
     @property
     def robot_id(self) -> str:
         return self.config.robot_id
-
-    async def _about_team(self, query: str, params: Mapping[str, str]) -> list[dict]:
-        """``query`` for this robot's team only (its ``-among`` form: the answer
-        does not grow with the fleet in the KB), or for every robot when the
-        team is longer than a list parameter takes.  The team is in one order
-        on every robot, so a teammate's answer cache serves it once."""
-        team = sorted(self.config.team, key=robot_sort_key)
-        if len(team) <= MAX_LIST_ITEMS:
-            query, params = f"{query}-among", {**params, "robots": ",".join(team)}
-        return _first(await self.queries.run(query, params), query)
 
     @property
     def leader(self) -> str:
@@ -245,12 +153,12 @@ class Controller:
                 # finds the same, and the record says why the task waits.
                 log.warning("task %d (%s): %s", task.seq, task.object, exc)
                 alone = DecisionMessage(Decision(task.seq, task.object, unavailable=str(exc)))
-                message = await self._settle(task, alone)
+                message = await self.settler.settle(task, alone)
                 if message is alone:
                     message = await self._read_elsewhere(task, received, exc) or alone
             except (QueryError, TransportError) as exc:
                 log.error("task %d (%s): %s", task.seq, task.object, exc)
-                message = await self._settle(task, DecisionMessage(Decision(task.seq, task.object, error=str(exc))))
+                message = await self.settler.settle(task, DecisionMessage(Decision(task.seq, task.object, error=str(exc))))
             except Exception as exc:  # keep the robot alive and the team informed
                 log.exception("task %d (%s) failed", task.seq, task.object)
                 message = DecisionMessage(Decision(task.seq, task.object, error=f"internal error: {exc}"))
@@ -259,89 +167,6 @@ class Controller:
             if not decision.members:  # not the leader's, stamped already
                 decision = self._with_membership(decision)
             self._apply(replace(message, decision=decision))
-
-    async def _settle(self, task: Task, alone: DecisionMessage) -> DecisionMessage:
-        """The decision on ``task`` when this robot's own knowledge did not
-        arrive (a lost answer, a holder that seemed down): a live teammate's
-        decided on knowledge, taken whole, so every robot decides alike;
-        ``alone`` (unavailable, or an error) if every live teammate failed
-        too, or none decided within the wait (:data:`SETTLE_WAIT_TIMEOUTS`
-        query timeouts, up to :data:`SETTLE_DECIDING_TIMEOUTS` while one
-        answers that it has not decided yet).  Meanwhile teammates asking
-        this robot get ``alone``: two robots that both failed do not wait
-        for each other."""
-        self.recent[task.seq] = alone
-        if self._ask_decision is None:
-            return alone
-        started = clock.monotonic()
-        deadline = started + self.config.query_timeout_s * SETTLE_WAIT_TIMEOUTS
-        last_call = started + self.config.query_timeout_s * SETTLE_DECIDING_TIMEOUTS
-        deciding = unanswered = False
-        # Past the deadline only while a teammate says it is still deciding,
-        # or while one that is up has not answered yet: a round can end past
-        # the deadline (a frozen teammate's ask runs out, then the indirect
-        # probe that finds it back), and ending there would decide alone
-        # against a teammate that, asked by it meanwhile, saw this robot's
-        # undecided answer and decided on its own knowledge (found in the
-        # simulator: a robot frozen 14-17 s, the only holder of a module).
-        while clock.monotonic() < (last_call if deciding or unanswered else deadline):
-            # A teammate whose answer was just lost is asked too: it may be the
-            # one that had the knowledge (found in the simulator).  A robot
-            # with no majority up asks the members it has down as well: it may
-            # be the one that was cut off, and they went on counting it (found
-            # in the simulator: after the heal it decided every task alone
-            # while they assigned it tasks).  One that answers is counted on again.
-            outnumbered = self.team.alone
-            mates = [r for r in self.team.membership.members
-                     if r != self.robot_id and (outnumbered or self.team.is_up(r))]
-            answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
-                                           return_exceptions=True)
-            heard = [mate for mate, theirs in zip(mates, answers)
-                     if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
-            if heard:
-                await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
-            failed_too = 0
-            deciding = unanswered = False
-            for mate, theirs in zip(mates, answers):
-                if isinstance(theirs, BaseException):
-                    # A lost answer is asked again (found in the simulator:
-                    # three asks lost at 20 % loss, and this robot decided
-                    # alone); the failure counts like a probe's, so a dead
-                    # teammate is soon known down, and cannot help.
-                    if isinstance(theirs, TransportError):
-                        await self.team.request_failed(mate, theirs)
-                    # Outnumbered, a silence is no answer: the silent ones may
-                    # be the majority, cut off from this robot, and it waits
-                    # for them; only a teammate whose process is gone cannot help.
-                    failed_too += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
-                    unanswered = unanswered or self.team.is_up(mate)
-                    continue
-                if theirs is None or theirs.decision.object != task.object:
-                    # Still deciding: waited for past the deadline (found in
-                    # the simulator: a robot gave up the moment before a
-                    # teammate back from a partition decided on knowledge).
-                    deciding = True
-                    continue
-                if not self._counts_me(theirs.decision):
-                    # Decided in a membership without this robot: not taken
-                    # (it would name their epoch, and its next decisions,
-                    # its own, would then not be void).
-                    failed_too += 1
-                    continue
-                if theirs.decision.error is None and theirs.decision.unavailable is None:
-                    log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
-                                task.seq, task.object, mate)
-                    # And the membership it was taken in: this robot's own
-                    # view may not have caught up (it computed nothing), and
-                    # the next join counts its epoch from there (found in
-                    # the simulator).
-                    self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
-                    return theirs
-                failed_too += 1
-            if failed_too == len(mates):  # nobody had the knowledge: every robot alike
-                return alone
-            await asyncio.sleep(SETTLE_POLL_S)
-        return alone
 
     async def _read_elsewhere(self, task: Task, received: float, lost: ModuleUnavailable) -> DecisionMessage | None:
         """``task`` decided again on knowledge once the holder the cluster
@@ -369,7 +194,7 @@ class Controller:
             why = str(exc)
             again = DecisionMessage(Decision(task.seq, task.object, unavailable=why)
                                     if isinstance(exc, ModuleUnavailable) else Decision(task.seq, task.object, error=why))
-            settled = await self._settle(task, again)
+            settled = await self.settler.settle(task, again)
             return None if settled is again else settled
 
     def _apply(self, message: DecisionMessage) -> None:
@@ -447,7 +272,7 @@ class Controller:
         if not self.computes:
             return await self._await_decision(task)
         if self.config.strategy == "compute-by-all":
-            theirs = await self._decided_before_me(task, received)
+            theirs = await self.settler.decided_before(task, received)
             if theirs is not None:
                 return theirs
         message = await self._compute(task)
@@ -460,53 +285,6 @@ class Controller:
             except TransportError as exc:  # the decision stands; the teammate reports its own timeout
                 log.error("%s", exc)
         return message
-
-    async def _decided_before_me(self, task: Task, received: float) -> DecisionMessage | None:
-        """A teammate's decision on ``task`` if one may have decided it before
-        this robot began it: its observed plan is past the task already, or
-        this process stood still for a request timeout or more since about
-        when the task came (its teammates' requests to it went unanswered
-        meanwhile, and the observations of their plans may have been dropped).
-        This robot lags behind, and what it would compute now may not be what
-        they settled.  Found in the simulator: a robot frozen in a pick for
-        20 s, the one the Location KB's places are read from, while its
-        teammates settled a task unavailable without it; back, it decided the
-        task alone on its own knowledge and picked it, and the record said
-        failed.  The decision is taken whole, as :meth:`_settle` takes one:
-        one decided on knowledge first, else one settled unavailable (and
-        applied); none decided in a membership without this robot (its own
-        decision is void then).  A robot in step asks nothing: no extra
-        message per task."""
-        if self._ask_decision is None:
-            return None
-        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
-        window = clock.monotonic() - received + self.config.query_timeout_s * 2
-        if self.team.stalled_within(window) >= self.team.request_timeout_s:
-            ahead = mates
-        else:
-            ahead = [r for r in mates if (state := self.team.state_of(r)) is not None and state.plan.seq >= task.seq]
-        if not ahead:
-            return None
-        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in ahead),
-                                       return_exceptions=True)
-        # An unavailable one still being settled (not yet applied, so not
-        # stamped with its members) may yet give way to a decision on knowledge.
-        taken = [(mate, theirs) for mate, theirs in zip(ahead, answers)
-                 if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
-                 and theirs.decision.error is None and self._counts_me(theirs.decision)
-                 and (theirs.decision.unavailable is None or theirs.decision.members)]
-        taken.sort(key=lambda item: item[1].decision.unavailable is not None)  # on knowledge first
-        if not taken:
-            return None
-        mate, theirs = taken[0]
-        log.warning("task %d (%s): %s decided it before this robot began; took its decision",
-                    task.seq, task.object, mate)
-        self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
-        return theirs
-
-    def _counts_me(self, decision: Decision) -> bool:
-        """Whether ``decision`` was taken in a membership with this robot in it."""
-        return not decision.members or self.robot_id in decision.members
 
     async def _await_decision(self, task: Task) -> DecisionMessage:
         """The leader's decision on ``task``; if the leader is declared down
@@ -532,107 +310,20 @@ class Controller:
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
         return await self._compute(task)
 
-    async def layout(self) -> Layout:
-        if self._layout is None:
-            rows = _first(await self.queries.run("warehouse-layout", {}), "warehouse-layout")
-            if not rows:
-                raise QueryError("the Location KB has no warehouse layout")
-            self._layout = layout_from_row(rows[0])
-        return self._layout
-
-    async def docks(self) -> tuple[Position, ...]:
-        """The charging docks, asked once of the Location KB (in its order:
-        the tie-break between equally good docks)."""
-        if self._docks is None:
-            rows = _first(await self.queries.run("charging-docks", {}), "charging-docks")
-            self._docks = tuple(Position(int(r["aisle_no"]), int(r["rack_no"])) for r in rows)
-        return self._docks
-
-    async def energy(self) -> dict[str, RobotEnergy]:
-        """Every teammate's energy figures, asked once of the Capability KB."""
-        if self._energy is None:
-            rows = await self._about_team("robot-specs", {})
-            self._energy = {
-                str(r["robo_id"]): RobotEnergy(
-                    float(r["e_empty"]), float(r["e_loaded"]), float(r["e_pick"]), float(r["battery"])
-                )
-                for r in rows
-                if str(r["robo_id"]) in self.config.team
-            }
-        return self._energy
-
     async def gather(self, task: Task) -> TaskFacts | str:
-        """What the task's pick needs from the KBs, or why nobody picks it:
-        no such object, already picked (by whom, at which task), missing."""
+        """What the task's pick needs from the KBs, or why nobody picks it;
+        an object the cluster assigned already is skipped without a query."""
         claim = self.claims.get(task.object)
         if claim is not None:  # decided here, perhaps not yet picked: no need to ask
             return str(claim)
-        params = {"name": task.object}
-        if self.queries.wire == "seed":
-            exists, where, features = await self._seed_queries(params)
-        else:
-            # One exchange per KB holder: existence, grip and weight from the
-            # Object KB, the place and what became of the object from the
-            # Location KB (``pick-facts`` and ``pick-place``: the seed's
-            # Query_1-3 as the assigner uses them).  The place is read as the
-            # holder first told it for this task: every robot alike.
-            exists, where = (
-                _first(rows, label)
-                for rows, label in zip(
-                    await asyncio.gather(self.queries.run("pick-facts", params),
-                                         self.queries.run("pick-place", params, at=task.seq)),
-                    ("pick-facts", "pick-place"),
-                )
-            )
-            features = [row for row in exists if row.get("grip") is not None and row.get("weight") is not None]
-            why = _gone(where)
-            if exists and why is not None:
-                return why
-            where = [row for row in where if row.get("aisle_no") is not None]
-        if not exists:
-            return NO_SUCH_OBJECT
-        if not where or not features:
-            # Said apart: a new product written into the Object KB alone has
-            # its features but no shelf yet.
-            lacking = [what for what, missing in (
-                ("no place (aisle, rack, bin) in the Location KB", not where),
-                ("no grip and weight in the Object KB" if self.queries.wire != "seed"
-                 else "not every feature Query_3 asks in the Object KB", not features),
-            ) if missing]
-            raise QueryError(f"{task.object} exists but has {' and '.join(lacking)}")
-        grip = _local_name(features[0]["grip"])
-        robots = await self._about_team("robots-for-grip", {"grip": grip})
-        capable = {str(r["robo_id"]): float(r["payload"]) for r in robots if str(r["robo_id"]) in self.config.team}
-        return TaskFacts(
-            seq=task.seq,
-            object=task.object,
-            aisle=int(where[0]["aisle_no"]),
-            rack=int(where[0]["rack_no"]),
-            bin=int(where[0]["bin_no"]),
-            weight_kg=float(features[0]["weight"]),
-            grip=grip,
-            capable=capable,
-        )
-
-    async def _seed_queries(self, params: Mapping[str, str]) -> tuple[list[dict], ...]:
-        """The seed's Query_1, Query_2 and Query_3, as its system sends them."""
-        # Query_2 and Query_3 need only the name, so they go out with Query_1
-        # (the transports keep several exchanges in flight): two round trips
-        # on the critical path instead of four.  For an object that does not
-        # exist their empty answers are simply dropped.
-        answers = await asyncio.gather(
-            self.queries.run("object-exists", params),
-            self.queries.run("object-location", params),
-            self.queries.run("object-features", params),
-        )
-        return tuple(_first(rows, label) for rows, label in zip(answers, ("Query_1", "Query_2", "Query_3")))
+        return await self.facts.gather(task)
 
     async def _compute(self, task: Task) -> DecisionMessage:
         started = clock.monotonic()
         facts = await self.gather(task)
         if isinstance(facts, str):
             return DecisionMessage(Decision(task.seq, task.object, skipped=True, skip_reason=facts))
-        layout, energy, docks = await self.layout(), await self.energy(), await self.docks()
+        layout, energy, docks = await self.facts.layout(), await self.facts.energy(), await self.facts.docks()
         gathered = clock.monotonic()
         states = await self.team.planned_states(task.seq - 1, timeout=self.config.query_timeout_s * 2)
         # Where a slow task's time went (coapkb bench --trace keeps these).
@@ -652,42 +343,3 @@ class Controller:
             (DEPOT.aisle, DEPOT.rack), plan.charge, plan.after.battery_wh, plan.after.load_kg,
         )
         return DecisionMessage(decision, plan.after, job)
-
-
-def encode_claims(claims: Mapping[str, Claim]) -> bytes:
-    """``/robot/claims``: ``[[object, robot, seq], ...]`` in CBOR."""
-    return cbor2.dumps([[obj, c.robot, c.seq] for obj, c in claims.items()])
-
-
-def decode_claims(payload: bytes) -> dict[str, Claim]:
-    """:func:`encode_claims`'s output; ``ValueError`` for anything else."""
-    try:
-        raw = cbor2.loads(payload)
-    except (cbor2.CBORDecodeError, RecursionError) as exc:
-        raise ValueError(f"not CBOR: {exc}") from None
-    if not isinstance(raw, list):
-        raise ValueError("claims are an array")
-    claims = {}
-    for item in raw:
-        if not (isinstance(item, list) and len(item) == 3 and isinstance(item[0], str) and isinstance(item[1], str)
-                and type(item[2]) is int and item[2] > 0):
-            raise ValueError(f"a claim is [object, robot, seq], got {item!r}"[:200])
-        claims[item[0]] = Claim(item[1], item[2])
-    return claims
-
-
-def _gone(rows: list[dict]) -> str | None:
-    """What ``pick-place`` says became of an object: picked (by whom, at
-    which task) or missing from its place; None if it is on its shelf."""
-    for row in rows:
-        if row.get("picked_by") is not None:
-            return f"picked by {row['picked_by']} at task {row.get('picked_task')}"
-    for row in rows:
-        if row.get("missing_task") is not None and row.get("aisle_no") is None:
-            return f"missing from its place since task {row['missing_task']}"
-    return None
-
-
-def _local_name(term: object) -> str:
-    text = str(term)
-    return text.rsplit("#", 1)[-1].rsplit("/", 1)[-1]

@@ -44,7 +44,8 @@ from ..transport.messages import ContentFormat, Method, Request, Response, Statu
 from ..transport.router import Router
 from ..world import Position, layout_from_row
 from ..world.service import WorldClient
-from .controller import CLAIMS_PATH, Claim, Controller, DecisionMessage, Task, decode_claims, encode_claims
+from .controller import Controller
+from .decisions import CLAIMS_PATH, Claim, DecisionMessage, Task, decode_claims, encode_claims
 from .knowledge_writer import KnowledgeWriter
 from .lease import LEASE_PATH, Lease
 from .local_health import LoopHealth

@@ -14,7 +14,8 @@ import cbor2
 import pytest
 from agent_helpers import config, endpoint
 
-from coapkb.agent.controller import Claim, Controller, DecisionMessage, Task, decode_claims, encode_claims
+from coapkb.agent.controller import Controller
+from coapkb.agent.decisions import Claim, DecisionMessage, Task, decode_claims, encode_claims
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor

@@ -10,7 +10,8 @@ from collections.abc import Awaitable, Callable, Mapping
 import pytest
 from agent_helpers import config, endpoint
 
-from coapkb.agent.controller import Controller, DecisionMessage, Task
+from coapkb.agent.controller import Controller
+from coapkb.agent.decisions import DecisionMessage, Task
 from coapkb.agent.query_handler import QueryError, QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
@@ -286,5 +287,5 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
     controller = Controller(cfg, NoQueries(), UpTeam("Robot2", ("Robot1", "Robot2", "Robot3")),  # type: ignore[arg-type]
                             None, lambda state: None, None, ask_decision=ask)  # type: ignore[arg-type]
     async with asyncio.timeout(10):
-        settled = await controller._settle(Task(7, OBJECT), alone)
+        settled = await controller.settler.settle(Task(7, OBJECT), alone)
     assert settled is theirs and asked.count("Robot1") == 2

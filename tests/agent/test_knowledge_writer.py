@@ -14,7 +14,8 @@ from collections.abc import AsyncIterator, Callable
 import pytest
 from agent_helpers import ONTOLOGIES, config, endpoint
 
-from coapkb.agent.controller import Controller, Task
+from coapkb.agent.controller import Controller
+from coapkb.agent.decisions import Task
 from coapkb.agent.job import Job
 from coapkb.agent.knowledge_writer import WRITE_TRIES, KnowledgeWriter
 from coapkb.agent.query_handler import QueryHandler

@@ -1,0 +1,175 @@
+"""How a robot's decision is made to match its teammates' when it cannot
+stand alone: its own knowledge did not arrive (a lost answer, a holder
+that seemed down), or it may be behind them (frozen, or its teammates
+already past the task).  It takes a teammate's decision whole, decided on
+knowledge first, so every robot of the cluster decides a task alike
+(docs/failover.md)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable, MutableMapping
+
+from .. import clock
+from ..transport.base import PeerGone, TransportError
+from .decisions import DecisionMessage, Task
+from .robot_state import Decision
+from .team_view import Membership, TeamView
+
+log = logging.getLogger(__name__)
+
+#: How often a robot whose knowledge did not arrive asks its teammates again.
+SETTLE_POLL_S = 0.5
+#: How long it asks, in query timeouts; and while a teammate answers that it
+#: is still deciding the task, how long at most.
+SETTLE_WAIT_TIMEOUTS = 2
+SETTLE_DECIDING_TIMEOUTS = 6
+
+#: Asks a teammate for its decision on a task (None: it has none yet;
+#: TransportError: it does not answer).
+AskDecision = Callable[[str, int], Awaitable[DecisionMessage | None]]
+
+
+class Settler:
+    """One robot's side of settling decisions with its teammates."""
+
+    def __init__(self, robot_id: str, team: TeamView, query_timeout_s: float, ask_decision: AskDecision | None,
+                 recent: MutableMapping[int, DecisionMessage]) -> None:
+        self.robot_id = robot_id
+        self.team = team
+        self._query_timeout_s = query_timeout_s
+        self._ask_decision = ask_decision
+        #: The robot's decisions as teammates asking it get them (its Controller's).
+        self.recent = recent
+
+    async def settle(self, task: Task, alone: DecisionMessage) -> DecisionMessage:
+        """The decision on ``task`` when this robot's own knowledge did not
+        arrive (a lost answer, a holder that seemed down): a live teammate's
+        decided on knowledge, taken whole, so every robot decides alike;
+        ``alone`` (unavailable, or an error) if every live teammate failed
+        too, or none decided within the wait (:data:`SETTLE_WAIT_TIMEOUTS`
+        query timeouts, up to :data:`SETTLE_DECIDING_TIMEOUTS` while one
+        answers that it has not decided yet).  Meanwhile teammates asking
+        this robot get ``alone``: two robots that both failed do not wait
+        for each other."""
+        self.recent[task.seq] = alone
+        if self._ask_decision is None:
+            return alone
+        started = clock.monotonic()
+        deadline = started + self._query_timeout_s * SETTLE_WAIT_TIMEOUTS
+        last_call = started + self._query_timeout_s * SETTLE_DECIDING_TIMEOUTS
+        deciding = unanswered = False
+        # Past the deadline only while a teammate says it is still deciding,
+        # or while one that is up has not answered yet: a round can end past
+        # the deadline (a frozen teammate's ask runs out, then the indirect
+        # probe that finds it back), and ending there would decide alone
+        # against a teammate that, asked by it meanwhile, saw this robot's
+        # undecided answer and decided on its own knowledge (found in the
+        # simulator: a robot frozen 14-17 s, the only holder of a module).
+        while clock.monotonic() < (last_call if deciding or unanswered else deadline):
+            # A teammate whose answer was just lost is asked too: it may be the
+            # one that had the knowledge (found in the simulator).  A robot
+            # with no majority up asks the members it has down as well: it may
+            # be the one that was cut off, and they went on counting it (found
+            # in the simulator: after the heal it decided every task alone
+            # while they assigned it tasks).  One that answers is counted on again.
+            outnumbered = self.team.alone
+            mates = [r for r in self.team.membership.members
+                     if r != self.robot_id and (outnumbered or self.team.is_up(r))]
+            answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
+                                           return_exceptions=True)
+            heard = [mate for mate, theirs in zip(mates, answers)
+                     if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
+            if heard:
+                await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
+            failed_too = 0
+            deciding = unanswered = False
+            for mate, theirs in zip(mates, answers):
+                if isinstance(theirs, BaseException):
+                    # A lost answer is asked again (found in the simulator:
+                    # three asks lost at 20 % loss, and this robot decided
+                    # alone); the failure counts like a probe's, so a dead
+                    # teammate is soon known down, and cannot help.
+                    if isinstance(theirs, TransportError):
+                        await self.team.request_failed(mate, theirs)
+                    # Outnumbered, a silence is no answer: the silent ones may
+                    # be the majority, cut off from this robot, and it waits
+                    # for them; only a teammate whose process is gone cannot help.
+                    failed_too += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
+                    unanswered = unanswered or self.team.is_up(mate)
+                    continue
+                if theirs is None or theirs.decision.object != task.object:
+                    # Still deciding: waited for past the deadline (found in
+                    # the simulator: a robot gave up the moment before a
+                    # teammate back from a partition decided on knowledge).
+                    deciding = True
+                    continue
+                if not self.counts_me(theirs.decision):
+                    # Decided in a membership without this robot: not taken
+                    # (it would name their epoch, and its next decisions,
+                    # its own, would then not be void).
+                    failed_too += 1
+                    continue
+                if theirs.decision.error is None and theirs.decision.unavailable is None:
+                    log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
+                                task.seq, task.object, mate)
+                    # And the membership it was taken in: this robot's own
+                    # view may not have caught up (it computed nothing), and
+                    # the next join counts its epoch from there (found in
+                    # the simulator).
+                    self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
+                    return theirs
+                failed_too += 1
+            if failed_too == len(mates):  # nobody had the knowledge: every robot alike
+                return alone
+            await asyncio.sleep(SETTLE_POLL_S)
+        return alone
+
+
+    async def decided_before(self, task: Task, received: float) -> DecisionMessage | None:
+        """A teammate's decision on ``task`` if one may have decided it before
+        this robot began it: its observed plan is past the task already, or
+        this process stood still for a request timeout or more since about
+        when the task came (its teammates' requests to it went unanswered
+        meanwhile, and the observations of their plans may have been dropped).
+        This robot lags behind, and what it would compute now may not be what
+        they settled.  Found in the simulator: a robot frozen in a pick for
+        20 s, the one the Location KB's places are read from, while its
+        teammates settled a task unavailable without it; back, it decided the
+        task alone on its own knowledge and picked it, and the record said
+        failed.  The decision is taken whole, as :meth:`settle` takes one:
+        one decided on knowledge first, else one settled unavailable (and
+        applied); none decided in a membership without this robot (its own
+        decision is void then).  A robot in step asks nothing: no extra
+        message per task."""
+        if self._ask_decision is None:
+            return None
+        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+        window = clock.monotonic() - received + self._query_timeout_s * 2
+        if self.team.stalled_within(window) >= self.team.request_timeout_s:
+            ahead = mates
+        else:
+            ahead = [r for r in mates if (state := self.team.state_of(r)) is not None and state.plan.seq >= task.seq]
+        if not ahead:
+            return None
+        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in ahead),
+                                       return_exceptions=True)
+        # An unavailable one still being settled (not yet applied, so not
+        # stamped with its members) may yet give way to a decision on knowledge.
+        taken = [(mate, theirs) for mate, theirs in zip(ahead, answers)
+                 if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
+                 and theirs.decision.error is None and self.counts_me(theirs.decision)
+                 and (theirs.decision.unavailable is None or theirs.decision.members)]
+        taken.sort(key=lambda item: item[1].decision.unavailable is not None)  # on knowledge first
+        if not taken:
+            return None
+        mate, theirs = taken[0]
+        log.warning("task %d (%s): %s decided it before this robot began; took its decision",
+                    task.seq, task.object, mate)
+        self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
+        return theirs
+
+    def counts_me(self, decision: Decision) -> bool:
+        """Whether ``decision`` was taken in a membership with this robot in it."""
+        return not decision.members or self.robot_id in decision.members
