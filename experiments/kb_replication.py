@@ -28,6 +28,13 @@ replication's bytes.
 * **soak**: one holder in this process takes a flood of writes (half of
   them moving a robot, a quarter adding a triple, a quarter deleting one
   added before): its RSS and journal stay bounded.
+* **shift**: one holder of Location and Capability in this process takes
+  the writes of a long shift, job after job, as robots send them (the pick,
+  the position, the delivery, the load and charge: the named updates of
+  ``coapkb.agent.knowledge_writer``), and the feeder's delivery of an
+  object back to its shelf before it is picked again: written triples,
+  the whole-state message, the version vector and CPU per write stay
+  bounded.
 
 Prints tables and writes ``experiments/results/kb_replication_*.csv``.
 """
@@ -390,6 +397,71 @@ def soak(args: argparse.Namespace) -> None:
     write_csv(RESULTS / "kb_replication_soak.csv", list(rows[0]), rows)
 
 
+def shift(args: argparse.Namespace) -> None:
+    """The writes of ``args.jobs`` jobs, three robots taking turns, into one
+    holder: what it holds and what a write costs along the way."""
+    import gc
+    import os
+
+    from coapkb.harness.team import DEFAULT_ONTOLOGIES, product_names
+    from coapkb.kb.live import LiveKB
+    from coapkb.kb.named_updates import NamedUpdate, named_updates_sparql
+    from coapkb.kb.results import expect_select
+    from coapkb.kb.store import KnowledgeBase
+    from coapkb.wire.sync import SyncMessage, encode_sync
+
+    ontologies = DEFAULT_ONTOLOGIES
+    names = product_names(KnowledgeBase.load([ontologies / "Object.owl"]))[: args.catalogue]
+    live = LiveKB(KnowledgeBase.load([ontologies / "Location.owl", ontologies / "Capability.owl"]), "A.1",
+                  wall_ms=lambda: clock_ms)
+    places: dict[str, tuple[int, int, int]] = {}
+    rows = expect_select(live.query(
+        f"PREFIX loc: <{LOC}> SELECT ?o ?a ?r ?b WHERE {{ ?o loc:Inventory_aisle_no ?a ; loc:Inventory_rack_no ?r ; "
+        "loc:Inventory_bin_no ?b }", row_limit=1_000_000), "the shelves").rows
+    for o, a, r, b in rows:
+        places[str(o).rsplit("#", 1)[-1]] = (int(a), int(r), int(b))
+    names = [n for n in names if n in places]
+    clock_ms = 1_700_000_000_000
+    picked: set[str] = set()
+    out: list[dict[str, object]] = []
+    window_writes, window_cpu = 0, 0.0
+
+    def write(*updates: NamedUpdate) -> None:
+        nonlocal window_writes, window_cpu
+        text = named_updates_sparql(updates)
+        started = time.process_time()
+        live.update(text)
+        window_cpu += time.process_time() - started
+        window_writes += 1
+
+    for job in range(1, args.jobs + 1):
+        clock_ms += 7_000  # a job every few seconds of the shift
+        robot = f"Robot{job % 3 + 1}"
+        obj = names[job % len(names)]
+        aisle, rack, bin_no = places[obj]
+        if obj in picked:  # delivered back to its shelf before it is drawn again (the feeder's restock)
+            write(NamedUpdate("restock", (obj, aisle, rack, bin_no)))
+        write(NamedUpdate("pick", (obj, robot, job)), NamedUpdate("robot-at", (robot, aisle, rack, clock_ms)))
+        write(NamedUpdate("delivered", (obj, job)), NamedUpdate("robot-at", (robot, 0, 0, clock_ms + 3_000)))
+        write(NamedUpdate("load", (robot, 0.0, 400.0 - job % 50, clock_ms + 3_000)))
+        picked.add(obj)
+        if job % args.every == 0:
+            gc.collect()
+            row: dict[str, object] = {"jobs": job, "rss_mib": round(rss_mib(os.getpid()), 1)}
+            for module in ("Location", "Capability"):
+                replica = live.replicas[module]
+                state = encode_sync(SyncMessage(module, replica.context, replica.state()))
+                row[f"{module.lower()}_written"] = len(replica.entries)
+                row[f"{module.lower()}_state_bytes"] = len(state)
+                row[f"{module.lower()}_writers"] = len(replica.context.vv)
+            row["cpu_ms_per_write"] = round(1000 * window_cpu / window_writes, 3)
+            row["store_rebuilds"] = live.rebuilds
+            window_writes, window_cpu = 0, 0.0
+            out.append(row)
+            print(row, flush=True)
+    write_csv(RESULTS / "kb_replication_shift.csv", list(out[0]), out)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.kb_replication",
                                      description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -405,6 +477,10 @@ def main() -> int:
     p.add_argument("--sync-every", type=float, default=5.0)
     p = sub.add_parser("soak")
     p.add_argument("--writes", type=int, default=30_000)
+    p = sub.add_parser("shift")
+    p.add_argument("--jobs", type=int, default=100_000)
+    p.add_argument("--every", type=int, default=1000, help="a row every this many jobs")
+    p.add_argument("--catalogue", type=int, default=1000, help="objects on the shelves (each delivered back)")
     p = sub.add_parser("node")
     p.add_argument("--name", required=True)
     p.add_argument("--bind", required=True)
@@ -421,8 +497,8 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--link-kbps", type=float, default=None)
     args = parser.parse_args()
-    if args.what == "soak":
-        soak(args)
+    if args.what in ("soak", "shift"):
+        {"soak": soak, "shift": shift}[args.what](args)
         return 0
     if args.what in ("spread", "catch-up"):
         why = prepare_link_emulation()

@@ -74,9 +74,17 @@ class WriteLimits:
     #: Writers whose ids are remembered: a team's robots, their earlier
     #: incarnations and a few operators.
     id_writers: int = 256
+    #: Adds and removes the view's store takes, at least (four times its size
+    #: if more), before it is copied afresh.  pyoxigraph's in-memory store
+    #: keeps memory for every value and version it ever held (measured: about
+    #: 0.3 kB per add and remove of a new value, never given back), so a long
+    #: shift's positions and picks would grow a robot without end; a copy
+    #: holds only what is live (20 ms for the shipped Location and Capability
+    #: KBs, 15,000 triples).
+    rebuild_after_changes: int = 200_000
 
     def __post_init__(self) -> None:
-        for name in ("max_triples", "ids_per_writer", "id_writers"):
+        for name in ("max_triples", "ids_per_writer", "id_writers", "rebuild_after_changes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
@@ -164,6 +172,10 @@ class LiveKB:
         #: :func:`base_triples`, once a write or a join asks.
         self._base_triples: frozenset[Triple] | None = None
         self._view: OxigraphBackend | None = None
+        #: Adds and removes the view took since it was last copied afresh.
+        self._churn = 0
+        #: Times the view was copied afresh (:attr:`WriteLimits.rebuild_after_changes`).
+        self.rebuilds = 0
         functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self._base_store)
         self.replicas: dict[str, Replica] = {
             name: Replica(writer, single_valued=functional, base_values=self._base_values, limits=self.limits.replica)
@@ -344,6 +356,7 @@ class LiveKB:
             if _quad(triple) not in store:
                 store.add(_quad(triple))
                 undo.append(("remove", triple))
+        self._churn += len(undo)
         return undo
 
     def _unscratch(self, undo: list[tuple[str, Triple]]) -> None:
@@ -351,6 +364,7 @@ class LiveKB:
         for action, triple in reversed(undo):
             assert store is not None
             (store.add if action == "add" else store.remove)(_quad(triple))
+        self._churn += len(undo)
 
     def _write(self, removes: list[Triple], adds: list[Triple], tag: WriteTag | None = None) -> Written:
         by_module: dict[str, tuple[list[Triple], list[Triple]]] = {}
@@ -436,6 +450,13 @@ class LiveKB:
         if effect.added:
             # At once: a join at a restart may add 100,000.
             store.extend(_quad(triple) for triple in effect.added)
+        self._churn += len(effect.removed) + len(effect.added)
+        if self._churn >= max(self.limits.rebuild_after_changes, 4 * len(store)):
+            fresh = ox.Store()
+            fresh.extend(store.quads_for_pattern(None, None, None))
+            self._view = OxigraphBackend(fresh)
+            self._churn = 0
+            self.rebuilds += 1
 
     def _changed(self, modules: frozenset[str]) -> None:
         self._etag = None
