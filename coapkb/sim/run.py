@@ -1026,12 +1026,12 @@ TASKS_BASE = 40
 def _bounds(robots: dict[str, Robot], scheduler: Scheduler) -> dict[str, tuple[int, int]]:
     """State that must stay bounded whatever the schedule: (reading, bound)."""
     from ..agent.controller import DECISIONS_KEPT
-    from ..agent.robot import POSTS_REMEMBERED
+    from ..agent.robot_resources import POSTS_REMEMBERED
 
     peers = len(robots) + 1
     readings: dict[str, tuple[int, int]] = {}
     for robot_id, robot in robots.items():
-        readings[f"{robot_id} posts remembered"] = (len(robot._accepted), POSTS_REMEMBERED)
+        readings[f"{robot_id} posts remembered"] = (len(robot.resources.accepted), POSTS_REMEMBERED)
         readings[f"{robot_id} decisions kept"] = (len(robot.controller.log), DECISIONS_KEPT)
     for process in scheduler.processes:
         if process.alive:

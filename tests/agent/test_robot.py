@@ -149,11 +149,10 @@ async def test_tasks_in_order_are_decided_and_shown_in_stats(ask: Asker) -> None
 async def test_a_robot_keeps_its_latest_decisions_and_posts_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """A robot runs whole shifts: what it keeps per task is bounded (the decision
     listing of ``GET /tasks``, the posts whose repeat it recognises)."""
-    from coapkb.agent import controller
-    from coapkb.agent import robot as robot_module
+    from coapkb.agent import controller, robot_resources
 
     monkeypatch.setattr(controller, "DECISIONS_KEPT", 3)
-    monkeypatch.setattr(robot_module, "POSTS_REMEMBERED", 2)
+    monkeypatch.setattr(robot_resources, "POSTS_REMEMBERED", 2)
     robot = await Robot.start(solo_config(free_udp_port()))
     client = await open_client("coap")
     try:

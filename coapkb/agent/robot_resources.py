@@ -1,0 +1,292 @@
+"""A robot's own resources (besides the KB's): its state for teammates and
+the feeder, the task feed, decisions, claims, lease grants and statistics.
+
+=================  ======  ==================================================
+``/robot/state``   GET     live and planned state, last decision; observable (RFC 7641)
+``/robot/plan``    GET     planned state only, for teammates; observable
+``/robot/plan``    POST    ``?of=X&at=S``: compare notes on teammate X's plan after task S
+``/robot/outcome`` GET     what the feeder acts on: decisions, jobs done or dropped, idle; observable
+``/tasks``         POST    a new task ``{"seq": n, "object": name}`` (CBOR/JSON; :mod:`coapkb.feeder.tasks`)
+``/tasks``         GET     the decisions taken so far
+``/decisions``     GET     ``?seq=N``: this robot's decision on task N, whole
+``/decisions``     POST    the leader's decision ("compute and communicate")
+``/robot/claims``  GET     the objects the cluster assigned lately
+``/robot/stats``   GET     traffic counters and query statistics
+``/robot/lease``   GET     ``?r=X[&check]``: does this robot grant teammate X a lease (the fence)
+=================  ======  ==================================================
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from dataclasses import asdict, replace
+from typing import Any
+
+import cbor2
+
+from .. import clock
+from ..config import RobotConfig
+from ..transport.base import ResourceInfo
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.router import Router
+from .controller import Controller
+from .decisions import CLAIMS_PATH, DecisionMessage, Task, encode_claims
+from .lease import LEASE_PATH
+from .robot_state import LiveState, RobotState
+from .stats import RobotStats
+from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
+
+OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
+#: How long one snapshot of a robot's statistics is served (``/robot/stats``).
+STATS_SNAPSHOT_S = 5.0
+#: Task posts whose repeat a robot recognises (sequence numbers are consecutive).
+POSTS_REMEMBERED = 64
+
+
+class FinalOutcome:
+    """Which ``/robot/outcome`` is final: the robot went idle with nothing
+    queued, and has decided nothing since.  Its notification goes confirmed
+    (``Response.confirm``): the feeder waits for it at the end of a run, and
+    no later change would make up for its loss; the others go unconfirmed,
+    each awaited by a feeder that asks again when one is late."""
+
+    def __init__(self) -> None:
+        #: (jobs done, last task decided) when the robot last went idle.
+        self._at: tuple[int, int] | None = None
+
+    @staticmethod
+    def _key(state: RobotState) -> tuple[int, int]:
+        return state.live.done, state.last.seq if state.last is not None else 0
+
+    def on_live(self, before: LiveState, state: RobotState) -> None:
+        live = state.live
+        if before.activity != "idle" and live.activity == "idle" and not live.queued:
+            self._at = self._key(state)
+
+    def __call__(self, state: RobotState) -> bool:
+        return self._at is not None and self._at == self._key(state) and state.live.activity == "idle"
+
+
+class RobotResources:
+    """The handlers of one robot's resources (see the module docstring)."""
+
+    def __init__(self, config: RobotConfig, team: TeamView, controller: Controller, final_outcome: FinalOutcome,
+                 stats: Callable[[], RobotStats]) -> None:
+        self.config = config
+        self.team = team
+        self.controller = controller
+        self.final_outcome = final_outcome
+        self._stats = stats
+        self._next_seq = 1
+        #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
+        #: (a repeated post is recognised: the feeder repeats only its latest).
+        self.accepted: dict[int, str] = {}
+        #: Content format -> (when taken, the stats answer): see _get_stats.
+        self._stats_snapshots: dict[int | None, tuple[float, Response]] = {}
+
+    def mount(self, router: Router) -> None:
+        add = router.add
+        add(ResourceInfo(STATE_PATH, rt="coapkb.state", ct=(60, 50), obs=True, title="robot state"), self._get_state)
+        add(ResourceInfo(PLAN_PATH, rt="coapkb.plan", ct=(60,), obs=True, title="planned state",
+                         methods=("GET", "POST")), self._plan)
+        add(ResourceInfo(OUTCOME_PATH, rt="coapkb.outcome", ct=(60,), obs=True, title="decisions and jobs"),
+            self._get_outcome)
+        add(
+            ResourceInfo("/tasks", rt="coapkb.tasks", ct=(60, 50), title="task feed", methods=("GET", "POST")),
+            self._tasks,
+        )
+        add(ResourceInfo("/decisions", rt="coapkb.decisions", methods=("GET", "POST")), self._decisions)
+        add(ResourceInfo("/robot/stats", rt="coapkb.stats", ct=(60, 50), title="traffic and query stats"),
+            self._get_stats)
+        add(ResourceInfo(CLAIMS_PATH, rt="coapkb.claims", ct=(60,), title="objects the cluster assigned"),
+            self._get_claims)
+        add(ResourceInfo(LEASE_PATH, rt="coapkb.lease", title="lease grants (the fence)"), self._get_lease)
+
+    # ---------------------------------------------------------------- handlers
+
+    async def _get_state(self, request: Request) -> Response:
+        if request.accept == ContentFormat.JSON:
+            return _encode(self.team.own.to_dict(), request.accept)
+        return _cbor_state(self.team.own.encode(), request.accept)
+
+    async def _get_outcome(self, request: Request) -> Response:
+        own = self.team.own
+        response = _cbor_state(own.encode_outcome(), request.accept)
+        return replace(response, confirm=self.final_outcome(own)) if response.status.is_success else response
+
+    async def _plan(self, request: Request) -> Response:
+        if request.method == Method.POST:
+            return await self._compare_notes(request)
+        return await self._get_plan(request)
+
+    async def _compare_notes(self, request: Request) -> Response:
+        """``POST ?of=X&at=S``: a teammate goes on without X's plan after
+        task S unless this robot has it (TeamView._plan_from_survivors).
+        Answered with that plan (2.04), or 4.04, and then this robot goes on
+        without it too: a change of state, so not a GET, which must be safe
+        (RFC 7252 §5.8.1).  Only the cluster's robots may ask."""
+        about = request.query.get("of")
+        seq = _task_number(request)
+        if about is None or seq is None:
+            return Response.error(Status.BAD_REQUEST, "give the robot and the task: /robot/plan?of=ROBOT&at=SEQ")
+        if isinstance(seq, Response):
+            return seq
+        if request.peer is not None and not self.team.in_cluster(request.peer):
+            return Response.error(Status.FORBIDDEN, f"{request.peer} is not of {self.config.robot_id}'s cluster")
+        state = self.team.state_of(about)
+        if state is None or state.plan_at(seq) is None:
+            await self.team.forgo(about, seq)
+            return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
+        return Response(Status.CHANGED, state.encode_plan(), ContentFormat.CBOR)
+
+    async def _get_plan(self, request: Request) -> Response:
+        probed = request.query.get("probe")
+        if probed is not None:
+            # A teammate finds ``probed`` silent: does this robot reach it?
+            if await self.team.reaches(probed):
+                return _cbor_state(self.team.own.encode_plan(), request.accept)
+            return Response.error(Status.GATEWAY_TIMEOUT, f"{probed} does not answer {self.config.robot_id} either")
+        about = request.query.get("of")
+        if about is None or about == self.config.robot_id:
+            return _cbor_state(self.team.own.encode_plan(), request.accept)
+        # A teammate's plan as this robot observed it: survivors compare notes
+        # on a robot that died (TeamView._plan_from_survivors).
+        state = self.team.state_of(about)
+        seq = _task_number(request)
+        if isinstance(seq, Response):
+            return seq
+        if seq is not None:
+            if state is None or state.plan_at(seq) is None:
+                return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
+        if state is None:
+            return Response.error(Status.NOT_FOUND, f"no state of {about}")
+        return _cbor_state(state.encode_plan(), request.accept)
+
+    async def _get_lease(self, request: Request) -> Response:
+        """``?r=X``: does this robot grant teammate X a lease (2.05) or not
+        (4.03, why)?  ``&check``: probe X first, so a robot that stopped
+        answering is found down now (the feeder asks before re-assigning
+        X's tasks).  The requester must be X or the feeder, when known."""
+        about = request.query.get("r", "")
+        if request.peer is not None and request.peer not in (about, "feeder"):
+            return Response.error(Status.FORBIDDEN, f"{request.peer} may not ask about {about}'s lease")
+        if "check" in request.query:
+            await self.team.probe(about)
+        else:
+            self.team.asked_by(about)  # alive: if down here, perhaps this robot was the one cut off
+        why = self.team.grant(about)
+        if why is not None:
+            return Response.error(Status.FORBIDDEN, why)
+        return Response(Status.CONTENT)
+
+    async def _tasks(self, request: Request) -> Response:
+        if request.method == Method.GET:
+            return _encode([asdict(d) for d in self.controller.log], request.accept)
+        try:
+            body = _decode_body(request)
+            seq, name = body["seq"], body["object"]
+            join = body.get("join", [])
+            again = body.get("again")
+            restocked = body.get("restocked", False)
+        except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
+            return Response.error(
+                Status.BAD_REQUEST,
+                'expected {"seq": int, "object": name[, "join": [robot, ...]][, "again": int][, "restocked": true]} '
+                'in CBOR or JSON',
+            )
+        if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
+            return Response.error(Status.BAD_REQUEST, "seq must be an integer and object a local name")
+        if again is not None and (type(again) is not int or not 0 < again < seq):
+            return Response.error(Status.BAD_REQUEST, "again must name an earlier task")
+        if type(restocked) is not bool:
+            return Response.error(Status.BAD_REQUEST, "restocked must be true or false")
+        if not isinstance(join, list) or not all(isinstance(r, str) and r in self.config.team for r in join):
+            return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
+        if seq < self._next_seq and self.accepted.get(seq) == name:
+            # A repeat of a post already taken (its answer was lost and the
+            # feeder asked again as a new exchange): same answer, no new task.
+            return Response(Status.CHANGED)
+        if self.config.robot_id in join and not self.accepted and seq > 0:
+            # Restarted: this robot joins the team at this task (its first).
+            self._next_seq = seq
+        if seq != self._next_seq:
+            return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
+        self._next_seq += 1
+        self.accepted[seq] = name
+        self.accepted.pop(seq - POSTS_REMEMBERED, None)
+        self.controller.submit(Task(seq, name, tuple(join), again, restocked))
+        return Response(Status.CHANGED)
+
+    async def _get_claims(self, request: Request) -> Response:
+        """``/robot/claims``: the objects the cluster assigned lately, for a restarted teammate."""
+        return Response(Status.CONTENT, encode_claims(self.controller.claims_handed()), ContentFormat.CBOR)
+
+    async def _decisions(self, request: Request) -> Response:
+        if request.method == Method.GET:
+            return self._get_decision(request)
+        return await self._post_decision(request)
+
+    def _get_decision(self, request: Request) -> Response:
+        """``?seq=N``: this robot's decision on task N, whole (a teammate whose
+        knowledge did not arrive takes it instead of deciding alone)."""
+        try:
+            seq = int(request.query.get("seq", ""))
+        except ValueError:
+            return Response.error(Status.BAD_REQUEST, "give the task: /decisions?seq=N")
+        message = self.controller.recent.get(seq)
+        if message is None:
+            return Response.error(Status.NOT_FOUND, f"no decision on task {seq} here (yet)")
+        return _cbor_state(cbor2.dumps(message.to_dict()), request.accept)
+
+    async def _post_decision(self, request: Request) -> Response:
+        try:
+            message = DecisionMessage.from_dict(cbor2.loads(request.payload))
+        except (ValueError, KeyError, TypeError, cbor2.CBORDecodeError) as exc:
+            return Response.error(Status.BAD_REQUEST, f"not a decision: {exc}")
+        self.controller.receive_decision(message)
+        return Response(Status.CHANGED)
+
+    async def _get_stats(self, request: Request) -> Response:
+        # Serving the stats counts traffic, so every fresh snapshot differs: a
+        # retried first block of a block-wise transfer on a lossy link would
+        # start a new answer each time.  One snapshot serves for a few seconds.
+        now = clock.monotonic()
+        snapshot = self._stats_snapshots.get(request.accept)
+        if snapshot is None or now - snapshot[0] > STATS_SNAPSHOT_S:
+            snapshot = (now, _encode(self._stats().to_dict(), request.accept))
+            self._stats_snapshots[request.accept] = snapshot
+        return snapshot[1]
+
+
+def _task_number(request: Request) -> int | Response | None:
+    """``?at=S``: the task number, None if not given, or the 4.00 to answer."""
+    at = request.query.get("at")
+    if at is None:
+        return None
+    try:
+        return int(at)
+    except ValueError:
+        return Response.error(Status.BAD_REQUEST, "at must be a task number")
+
+
+def _decode_body(request: Request) -> Any:
+    """A CBOR (default) or JSON request body."""
+    if request.content_format == ContentFormat.JSON:
+        return json.loads(request.payload)
+    return cbor2.loads(request.payload)
+
+
+def _encode(value: Any, accept: int | None) -> Response:
+    if accept == ContentFormat.JSON:
+        return Response(Status.CONTENT, json.dumps(value).encode(), ContentFormat.JSON)
+    if accept not in (None, ContentFormat.CBOR):
+        return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
+    return Response(Status.CONTENT, cbor2.dumps(value), ContentFormat.CBOR)
+
+
+def _cbor_state(payload: bytes, accept: int | None) -> Response:
+    if accept not in (None, ContentFormat.CBOR):
+        return Response.error(Status.NOT_ACCEPTABLE, "use content-format 60 (cbor) or 50 (json)")
+    return Response(Status.CONTENT, payload, ContentFormat.CBOR)
