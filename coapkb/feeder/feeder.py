@@ -127,17 +127,20 @@ class Feeder:
         states = {r: a for r, a in zip(robots, answers) if isinstance(a, RobotState)}
         for index, cluster in enumerate(channel.roster.clusters):
             taken = {r: _last_task(states[r]) for r in cluster}
-            if len(set(taken.values())) > 1:
-                # A robot restarted by hand: a new process that has taken no
-                # task.  It does not rejoin a team started by hand (its
-                # teammates never saw it down, and it may decide alone):
-                # said so, with what to do.
-                fresh = [r for r, n in taken.items() if n == 0 and not states[r].live.done]
-                again = (f"{', '.join(fresh)} started again by hand (no task taken, "
-                         f"{'its' if len(fresh) == 1 else 'their'} teammates up to {max(taken.values())}) "
-                         f"cannot rejoin a running team: restart every robot of cluster {index + 1} "
-                         f"({', '.join(cluster)}) for a fresh team") if fresh else ""
-                raise FeederError(again or f"the robots of cluster {index + 1} have taken different tasks "
+            # A robot started again by hand: a new process that has taken no
+            # task while its teammates took some.  It joins them at this
+            # feeder's first task, as a robot restarted during a run does
+            # (its teammates tell the new process by its boot and admit it
+            # there).  Robots at different tasks otherwise are refused.
+            fresh = [r for r, n in taken.items() if n == 0 and not states[r].live.done]
+            went_on = {n for r, n in taken.items() if r not in fresh}
+            if fresh and len(went_on) == 1 and went_on != {0}:
+                for robot_id in fresh:
+                    log.warning("%s started again by hand: it joins its teammates at task %d",
+                                robot_id, max(went_on) + 1)
+                    await self.membership.rejoin(robot_id)
+            elif len(set(taken.values())) > 1:
+                raise FeederError(f"the robots of cluster {index + 1} have taken different tasks "
                                   f"({', '.join(f'{r}: up to {n}' for r, n in taken.items())}): restart them")
             self._first_seq[index] = max(taken.values(), default=0) + 1
         for robot_id, state in states.items():
