@@ -459,12 +459,8 @@ def check_progress(runs: Sequence[RunResult], within_s: float) -> str | None:
     over 3 s.  The simulator is deterministic, so a profile's median is a
     number, not a sample: a change that moves it past the bound is found
     every time."""
-    median = median_decided(runs)
-    if median is None or median <= within_s:
-        return None
-    times = sorted(t for run in runs for t in run.coordination_s)
-    return (f"the median task took {median:.2f} simulated s to decide (of {len(times)} tasks, p90 "
-            f"{times[int(0.9 * (len(times) - 1))]:.2f} s), more than the bound of {within_s:g} s")
+    return _median_past([t for run in runs for t in run.coordination_s], within_s,
+                        "the median task took {median} simulated s to decide (of {count} tasks")
 
 
 def median_decided(runs: Sequence[RunResult]) -> float | None:
@@ -482,15 +478,21 @@ def check_catch_up(runs: Sequence[RunResult], within_s: float) -> str | None:
     the start, mends the holder, while its queries miss the writes.  Judged
     over the profile for the reason :func:`check_progress` is: a partition
     or a freeze can hold one catch-up up for as long as it lasts."""
-    median = median_caught_up(runs)
-    if median is None or median <= within_s:
-        return None
-    times = sorted(t for run in runs for t in run.catch_up_s)
-    return (f"the median restarted holder took {median:.2f} simulated s to catch up (of {len(times)} restarts, "
-            f"p90 {times[int(0.9 * (len(times) - 1))]:.2f} s), more than the bound of {within_s:g} s")
+    return _median_past([t for run in runs for t in run.catch_up_s], within_s,
+                        "the median restarted holder took {median} simulated s to catch up (of {count} restarts")
 
 
 def median_caught_up(runs: Sequence[RunResult]) -> float | None:
     """The median catch-up of a restarted holder in ``runs`` (simulated s); None without one."""
     times = [t for run in runs for t in run.catch_up_s]
     return statistics.median(times) if times else None
+
+
+def _median_past(times: list[float], within_s: float, what: str) -> str | None:
+    """Why the median of ``times`` is past ``within_s`` (``what`` names it,
+    with ``{median}`` and ``{count}``), or None if it is not."""
+    if not times or statistics.median(times) <= within_s:
+        return None
+    times = sorted(times)
+    said = what.format(median=f"{statistics.median(times):.2f}", count=len(times))
+    return f"{said}, p90 {times[int(0.9 * (len(times) - 1))]:.2f} s), more than the bound of {within_s:g} s"
