@@ -34,7 +34,7 @@ from dataclasses import replace
 from .. import clock
 from ..config import RobotConfig
 from ..transport.base import TransportError
-from ..world import Position, travel_distance
+from ..world import DEPOT, travel_distance
 from .decisions import Claim, DecisionMessage, Task
 from .facts import FactGatherer
 from .job import Job
@@ -47,8 +47,6 @@ from .team_view import Membership, TeamView
 
 log = logging.getLogger(__name__)
 
-#: The depot, where robots unload: the front end of the first aisle.
-DEPOT = Position(1, 0)
 #: Decisions a robot keeps to show on ``GET /tasks``: a robot runs whole shifts,
 #: and nothing but that listing reads its past decisions.
 DECISIONS_KEPT = 1024

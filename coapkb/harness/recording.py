@@ -36,7 +36,7 @@ import foxglove
 from foxglove import channels
 
 from ..errors import CoapkbError
-from ..world import Layout, Position
+from ..world import DEPOT, Layout, Position
 
 if TYPE_CHECKING:
     from ..agent.robot_state import RobotState
@@ -46,8 +46,6 @@ if TYPE_CHECKING:
 
 #: The frame the warehouse is drawn in; each robot has a frame of its own name.
 WORLD_FRAME = "warehouse"
-#: Where robots start when the configuration gives no [start] (aisle 1, rack 0).
-DEPOT = Position(1, 0)
 #: Log lines at or above this level go to ``/log``.
 LOG_LEVEL = logging.WARNING
 

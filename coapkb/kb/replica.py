@@ -33,7 +33,7 @@ files themselves).
 from __future__ import annotations
 
 from collections import Counter, OrderedDict
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
@@ -135,9 +135,6 @@ class Replica:
             self._clock = Stamp(stamp.ms, stamp.counter, self.writer)
 
     # ---------------------------------------------------------- visibility
-
-    def live_dots(self, triple: Triple) -> Mapping[Dot, Stamp]:
-        return self.entries.get(triple, {})
 
     def shows_own(self, triple: Triple, is_base: bool) -> bool:
         """``triple`` shows, and carries a dot of this writer's (a single

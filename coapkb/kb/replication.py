@@ -159,7 +159,8 @@ class Replicator:
         self.live = live
         self.client = client
         self.settings = settings or ReplicationSettings()
-        self._rng = rng or random.Random()
+        # Seeded by the writer when not given: runs repeat, and robots' rounds still differ.
+        self._rng = rng or random.Random(live.writer)
         self.holders: dict[str, list[Holder]] = {
             module: [h for h in holders if module in h.modules] for module in live.names
         }

@@ -7,12 +7,13 @@ from a seed) and :mod:`.ontologies` (the three KB files), used by
 ``tools/gen_warehouse.py`` and the tests.
 """
 
-from .geometry import Layout, Position, layout_from_row, travel_distance
+from .geometry import DEPOT, Layout, Position, layout_from_row, travel_distance
 from .vocabulary import CAPABILITY_NS, CLUSTER_SIZE, LOCATION_NS, OBJECT_NS, ONTOLOGIES
 
 __all__ = [
     "CAPABILITY_NS",
     "CLUSTER_SIZE",
+    "DEPOT",
     "LOCATION_NS",
     "OBJECT_NS",
     "ONTOLOGIES",

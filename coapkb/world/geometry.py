@@ -42,6 +42,11 @@ class Position:
     rack: int
 
 
+#: The depot, where robots unload and start when no [start] is given: the
+#: front end of the first aisle.
+DEPOT = Position(1, 0)
+
+
 @dataclass(frozen=True)
 class Layout:
     """The geometry of the aisle graph, in metres (see the module docstring)."""

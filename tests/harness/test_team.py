@@ -23,7 +23,6 @@ import cbor2
 import pytest
 from support import ROOT
 
-from coapkb.agent.controller import DEPOT
 from coapkb.agent.robot_state import PlannedState
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign
 from coapkb.config import CostModel
@@ -34,7 +33,7 @@ from coapkb.kb.named_queries import NAMED_QUERIES
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport import open_client
 from coapkb.transport.messages import ContentFormat, Method, Request
-from coapkb.world import layout_from_row, travel_distance
+from coapkb.world import DEPOT, layout_from_row, travel_distance
 
 ONTOLOGIES = ROOT / "ontologies"
 
