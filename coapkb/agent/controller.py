@@ -92,7 +92,7 @@ class Controller:
         #: applied: the same on every robot of the cluster, so a repeat is
         #: skipped alike before the pick is written (or even made).
         self.claims: OrderedDict[str, Claim] = OrderedDict()
-        self._runner: asyncio.Task | None = None
+        self._runner: asyncio.Task[None] | None = None
         #: What a task's decision needs from the KB.
         self.facts = FactGatherer(config, queries)
         #: Taking a teammate's decision when this robot cannot decide alone.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import cbor2
 
@@ -53,7 +54,7 @@ class DecisionMessage:
     #: a follower that never observed it can still tell a new process of it.
     boot: int = 0
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, object]:
         raw: dict[str, object] = {
             "decision": asdict(self.decision),
             "after": asdict(self.after) if self.after else None,
@@ -64,7 +65,7 @@ class DecisionMessage:
         return raw
 
     @classmethod
-    def from_dict(cls, raw: Mapping) -> DecisionMessage:
+    def from_dict(cls, raw: Mapping[str, Any]) -> DecisionMessage:
         job = raw.get("job")
         return cls(
             decision=Decision(**raw["decision"]),
@@ -74,7 +75,7 @@ class DecisionMessage:
         )
 
 
-def _job(raw: Mapping) -> Job:
+def _job(raw: Mapping[str, Any]) -> Job:
     charge = raw.get("charge")
     if charge is not None:
         charge = ChargeStop(**{**charge, "dock": Position(**charge["dock"])})

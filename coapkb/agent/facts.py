@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Mapping
+from typing import Any
 
 from ..config import RobotConfig
 from ..kb.named_queries import MAX_LIST_ITEMS
@@ -111,7 +112,7 @@ class FactGatherer:
             capable=capable,
         )
 
-    async def _about_team(self, query: str, params: Mapping[str, str]) -> list[dict]:
+    async def _about_team(self, query: str, params: Mapping[str, str]) -> list[dict[str, Any]]:
         """``query`` for this robot's team only (its ``-among`` form: the answer
         does not grow with the fleet in the KB), or for every robot when the
         team is longer than a list parameter takes.  The team is in one order
@@ -121,7 +122,7 @@ class FactGatherer:
             query, params = f"{query}-among", {**params, "robots": ",".join(team)}
         return _first(await self.queries.run(query, params), query)
 
-    async def _seed_queries(self, params: Mapping[str, str]) -> tuple[list[dict], ...]:
+    async def _seed_queries(self, params: Mapping[str, str]) -> tuple[list[dict[str, Any]], ...]:
         """The seed's Query_1, Query_2 and Query_3, as its system sends them."""
         # Query_2 and Query_3 need only the name, so they go out with Query_1
         # (the transports keep several exchanges in flight): two round trips
@@ -135,13 +136,13 @@ class FactGatherer:
         return tuple(_first(rows, label) for rows, label in zip(answers, ("Query_1", "Query_2", "Query_3")))
 
 
-def _first(result: object, name: str) -> list[dict]:
+def _first(result: object, name: str) -> list[dict[str, Any]]:
     if not isinstance(result, SelectResult):
         raise QueryError(f"{name} did not return solutions")
     return result.as_dicts()
 
 
-def _gone(rows: list[dict]) -> str | None:
+def _gone(rows: list[dict[str, Any]]) -> str | None:
     """What ``pick-place`` says became of an object: picked (by whom, at
     which task) or missing from its place; None if it is on its shelf."""
     for row in rows:

@@ -102,8 +102,10 @@ class KnowledgeWriter:
         self.robot = robot
         if new_write_id is None:
             count, name = itertools.count(1), writer_name(f"{robot}.{secrets.token_hex(4)}")
-            new_write_id = lambda: f"{name}.{next(count)}"  # noqa: E731 - one line, one use
-        self._new_write_id = new_write_id
+
+            def new_write_id() -> str:
+                return f"{name}.{next(count)}"
+        self._new_write_id: Callable[[], str] = new_write_id
         self._wall_ms = wall_ms
         self._retry_s = retry_s
         self._lazy_s = lazy_s

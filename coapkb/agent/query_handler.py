@@ -65,7 +65,7 @@ class QueryStats:
     #: ``LATENCIES_KEPT`` (a robot runs for days: its statistics must not grow with them).
     remote_latencies: list[float] = field(default_factory=list)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, object]:
         return {
             "local": self.local, "remote": self.remote, "failed": self.failed, "cached": self.cached,
             "failovers": self.failovers, "hedged": self.hedged,

@@ -143,9 +143,9 @@ class RobotState:
                            costs=last.costs if carries else {}, reasons=last.reasons if carries else {})
         return replace(self, robot_id="", prev=None, last=last).encode()
 
-    def _live_tail(self) -> list:
+    def _live_tail(self) -> list[object]:
         live = self.live
-        tail: list = [list(live.fenced), live.fence_reason or ""] if live.fenced or live.missed else []
+        tail: list[object] = [list(live.fenced), live.fence_reason or ""] if live.fenced or live.missed else []
         if live.missed:
             tail.append([[seq, why] for seq, why in live.missed])
         return tail
@@ -192,7 +192,7 @@ class RobotState:
 ACTIVITIES = ("idle", "travelling", "picking", "unloading", "charging")
 
 
-def _plan_array(plan: PlannedState | None) -> list | None:
+def _plan_array(plan: PlannedState | None) -> list[object] | None:
     if plan is None:
         return None
     # Floats stay float64: every robot must compute on exactly the numbers
@@ -246,19 +246,19 @@ def _missed(raw: object) -> tuple[tuple[int, str], ...]:
     return tuple((_uint(seq, "missed seq"), _text(why, "missed why") or "") for seq, why in entries)
 
 
-def _plan(raw: list) -> PlannedState:
+def _plan(raw: list[Any]) -> PlannedState:
     _check(type(raw) is list and len(raw) == 6, "planned-state is an array of 6 items", raw)
     aisle, rack, battery, load, payload, seq = raw
     return PlannedState(_uint(aisle, "aisle"), _uint(rack, "rack"), _float(battery, "battery-wh"),
                         _float(load, "load-kg"), _float(payload, "payload-kg"), _uint(seq, "seq"))
 
 
-def _decision_array(d: Decision) -> list:
+def _decision_array(d: Decision) -> list[object]:
     return [d.seq, d.object, d.skipped, d.assigned_to, d.costs, d.error, d.coordination_s, d.reasons,
             d.epoch, list(d.members), d.unavailable, *([d.skip_reason] if d.skip_reason else [])]
 
 
-def _decision(raw: list) -> Decision:
+def _decision(raw: list[Any]) -> Decision:
     # Eight items: a robot from before membership epochs (epoch 0, members
     # unnamed); ten: from before "unavailable"; eleven: no skip reason.
     _check(type(raw) is list and 8 <= len(raw) <= 12, "decision is an array of 8 to 12 items", raw)

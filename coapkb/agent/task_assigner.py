@@ -103,7 +103,7 @@ class Assignment:
     plan: Plan | None
 
 
-def robot_sort_key(robot_id: str) -> tuple:
+def robot_sort_key(robot_id: str) -> tuple[object, ...]:
     """Natural order, so Robot10 comes after Robot9 (the tie-break order)."""
     return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", robot_id))
 

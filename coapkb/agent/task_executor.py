@@ -75,7 +75,7 @@ class TaskExecutor:
         self._jobs: asyncio.Queue[Job] = asyncio.Queue()
         self._idle = asyncio.Event()
         self._idle.set()
-        self._task: asyncio.Task | None = None
+        self._task: asyncio.Task[None] | None = None
         #: The charges made so far, in order (for the robot's statistics).
         self.recharges: list[Recharge] = []
 

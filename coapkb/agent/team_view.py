@@ -156,7 +156,7 @@ class ObservedStates:
         self._changed = asyncio.Condition()
         #: Told of every state stored (a recording: coapkb.harness.recording).
         self.listeners: list[Callable[[str, RobotState], None]] = []
-        self._watchers: dict[str, asyncio.Task] = {}
+        self._watchers: dict[str, asyncio.Task[None]] = {}
         #: Asks other members whether they reach a robot this process finds
         #: silent (SWIM's indirect probe): True if one does.  None: no one to ask.
         self.confirm_silence: Callable[[str], Awaitable[bool]] | None = None
@@ -666,7 +666,7 @@ class TeamView:
         #: their processes are never granted a lease again (the fence).
         self.refused: set[str] = set()
         self._reviving: dict[str, asyncio.Future[bool]] = {}
-        self._background: set[asyncio.Task] = set()
+        self._background: set[asyncio.Task[bool]] = set()
 
     @property
     def own(self) -> RobotState:

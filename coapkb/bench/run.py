@@ -39,7 +39,6 @@ from ..errors import CoapkbError
 from ..feeder.record import FateCounts
 from ..harness.record import TeamRecord
 from ..harness.team import (
-    CLUSTER_SIZE,
     DEFAULT_ONTOLOGIES,
     Fault,
     Placement,
@@ -51,6 +50,7 @@ from ..harness.team import (
 from ..transport.base import Endpoint, TrafficCounters
 from ..transport.coap.reliability import ROBUST
 from ..transport.registry import find, transport_for
+from ..world import CLUSTER_SIZE
 from .linkemu import (
     LinkCounters,
     LinkSpec,

@@ -314,7 +314,7 @@ class PortReservation:
         held = socket.socket(socket.AF_INET, kind)
         held.bind((self.host, 0))
         self._held[name] = held
-        return held.getsockname()[1]
+        return int(held.getsockname()[1])
 
     def release(self, name: str) -> None:
         """Let ``name``'s process bind its port (no-op if none is held)."""

@@ -106,7 +106,7 @@ class KBClient:
         self.timeout = timeout
         #: The most answers the cache keeps (the least recently used go first).
         self.cache_entries = cache_entries
-        self._cache: OrderedDict[tuple, _Cached] | None = OrderedDict() if cache else None
+        self._cache: OrderedDict[tuple[object, ...], _Cached] | None = OrderedDict() if cache else None
         self._clock = clock
         self.cache_stats = CacheStats()
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 from .. import clock
 from ..model.results import Term
@@ -23,11 +24,11 @@ class Deadline:
             raise QueryTimeout(self.budget or 0.0, rows)
 
 
-def take(items: Iterable[Term | tuple], limit: int, deadline: Deadline) -> tuple[list, bool]:
+def take(items: Iterable[Term | tuple[Term | None, ...]], limit: int, deadline: Deadline) -> tuple[list[Any], bool]:
     """Up to ``limit`` items, and whether more existed; checks the deadline
     after every item (one ``next()`` on a lazy result = evaluating up to the
     next solution)."""
-    out: list = []
+    out: list[Any] = []
     for item in items:
         if len(out) == limit:
             return out, True

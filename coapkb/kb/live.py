@@ -30,6 +30,7 @@ from ..model.deltas import Delta, WrittenState
 from ..model.results import GraphResult, QueryResult, Term, Triple
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
 from .errors import KBError, QueryEvaluationError
+from .limits import Deadline
 from .oxigraph_backend import OxigraphBackend, _from_ox, _to_ox
 from .replica import Effect, Replica, ReplicaLimits
 from .store import KnowledgeBase
@@ -490,7 +491,5 @@ def _check_term_kinds(triple: Triple) -> None:
         raise UpdateUnsupported("a triple is an IRI subject, an IRI predicate and an IRI or literal object")
 
 
-def _no_deadline():
-    from .limits import Deadline
-
+def _no_deadline() -> Deadline:
     return Deadline(None)

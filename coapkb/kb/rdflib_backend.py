@@ -9,7 +9,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from decimal import Decimal
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
 import rdflib
 from rdflib.plugins.sparql.sparql import Query as SparqlQuery
@@ -147,7 +147,7 @@ class RdflibBackend:
             if result.type == "SELECT":
                 variables = tuple(str(v) for v in result.vars or ())
                 order = prepared.star_order
-                rows_iter: Iterable[tuple] = (
+                rows_iter: Iterable[tuple[Any, ...]] = (
                     tuple(_norm_rdflib(t) for t in row)  # type: ignore[union-attr]  # SELECT rows are ResultRows
                     for row in result
                 )
