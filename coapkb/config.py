@@ -323,7 +323,7 @@ def _data_dir(data: Mapping[str, Any], base_dir: Path) -> Path | None:
     path = base_dir / text
     if path.exists() and not path.is_dir():
         raise ConfigError(f"data_dir: {path} is not a folder")
-    return path
+    return Path(path)
 
 
 def _transport_options(table: Mapping[str, Any], scheme: str) -> dict[str, dict[str, Any]]:

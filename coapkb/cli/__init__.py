@@ -16,31 +16,23 @@ import argparse
 import asyncio
 import logging
 import sys
-import typing
 from collections.abc import Callable, Sequence
 
 from ..errors import CoapkbError
 from . import agent, bench, dump, feed, keys, query, serve, sim, team, update, world
-from .common import UserError
+from .common import Parser, UserError
 from .render import render
 
 __all__ = ["UserError", "build_parser", "main", "render"]
 
 
-class _Parser(argparse.ArgumentParser):
-    """A usage mistake in one line, with where to read the usage (not the
-    usage block: it hides the one line that matters)."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The whole command line, or with ``only`` the one subcommand of that
     name (what :func:`main` runs: the others' options are not imported)."""
-    parser = _Parser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
+    parser = Parser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub: argparse._SubParsersAction[Parser] = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND")
     for name, add in COMMANDS.items():
         if only is None or name == only:
             add(sub)
@@ -48,7 +40,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 #: Each subcommand's name and the function adding its parser.
-COMMANDS: dict[str, Callable[[argparse._SubParsersAction], None]] = {
+COMMANDS: dict[str, Callable[[argparse._SubParsersAction[Parser]], None]] = {
     "demo": team.add_demo, "team": team.add_team, "feed": feed.add_feed, "serve": serve.add_serve,
     "agent": agent.add_agent, "query": query.add_query, "bench": bench.add_bench, "keys": keys.add_keys,
     "sim": sim.add_sim, "update": update.add_update, "dump": dump.add_dump, "world": world.add_world,
@@ -74,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        return asyncio.run(args.run(args))
+        return int(asyncio.run(args.run(args)))
     except CoapkbError as exc:  # a user mistake, a bad file, an unreachable peer: one line
         parser.exit(2, f"coapkb: error: {exc}\n")
     except KeyboardInterrupt:

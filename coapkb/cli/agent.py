@@ -6,10 +6,10 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from .common import until_signalled
+from .common import Parser, until_signalled
 
 
-def add_agent(sub: argparse._SubParsersAction) -> None:
+def add_agent(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("agent", help="run one robot from its TOML configuration")
     p.add_argument("--config", required=True, metavar="FILE", help="the robot's TOML file")
     p.add_argument("--query-wire", choices=("compact", "seed"), default="compact",

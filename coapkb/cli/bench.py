@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from .common import UserError
+from .common import Parser, UserError
 
 
-def add_bench(sub: argparse._SubParsersAction) -> None:
+def add_bench(sub: argparse._SubParsersAction[Parser]) -> None:
     from ..bench import run as bench
 
     p = sub.add_parser(

@@ -8,7 +8,7 @@ import asyncio
 import signal
 import sys
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, NoReturn, TypeVar
 
 from ..errors import CoapkbError
 from ..transport import ClientSecurity, Endpoint, ServerSecurity, registry
@@ -21,6 +21,14 @@ T = TypeVar("T")
 
 class UserError(CoapkbError):
     """A mistake the user can fix; printed as one line."""
+
+
+class Parser(argparse.ArgumentParser):
+    """A usage mistake in one line, with where to read the usage (not the
+    usage block: it hides the one line that matters)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 async def until_signalled() -> None:

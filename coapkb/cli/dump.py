@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .common import UserError, add_robot_client, ask_robot
+from .common import Parser, UserError, add_robot_client, ask_robot
 from .query import split_robot_uri
 
 if TYPE_CHECKING:
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 MODULES = ("Object", "Location", "Capability")
 
 
-def add_dump(sub: argparse._SubParsersAction) -> None:
+def add_dump(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser(
         "dump",
         help="write a robot's whole knowledge base (or one module) as N-Triples",

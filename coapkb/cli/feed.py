@@ -4,22 +4,27 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from .common import UserError
+from .common import Parser, UserError
 from .team import open_recorder, task_lines
 
+if TYPE_CHECKING:
+    from ..feeder.restock import Restocker
+    from ..feeder.team_folder import TeamFolder
 
-def _location_kb(team) -> Path:  # team: TeamFolder
+
+def _location_kb(team: TeamFolder) -> Path:
     """The Location KB's file, as a robot of the team loads it (the
     warehouse a recording draws)."""
     for config in team.configs.values():
         for path in config.kb_files:
             if path.name == "Location.owl":
-                return path
+                return Path(path)
     raise UserError(f"no robot in {team.folder} loads a Location.owl: nothing to draw the warehouse from")
 
 
-async def _restocker(team):  # team: TeamFolder -> Restocker
+async def _restocker(team: TeamFolder) -> Restocker:
     """What makes a task file's deliveries for robots run by hand: into the
     Location KB of the robots that write (as the team's operator), and into
     the world their TOML files name (``world = "PATH"``), if any."""
@@ -40,7 +45,7 @@ async def _restocker(team):  # team: TeamFolder -> Restocker
                      WorldClient(next(iter(worlds))) if worlds else None, timeout_s=team.settings.query_timeout_s)
 
 
-def add_feed(sub: argparse._SubParsersAction) -> None:
+def add_feed(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser(
         "feed",
         help="feed tasks to robots started by hand (coapkb agent --config DIR/RobotN.toml), as the team's feeder",

@@ -6,10 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from .common import UserError
+from .common import Parser, UserError
 
 
-def add_keys(sub: argparse._SubParsersAction) -> None:
+def add_keys(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("keys", help="make a team's key material: EDHOC credentials, CurveZMQ keys, TLS certificates, trust list")
     p.add_argument("--team-dir", required=True, metavar="DIR", help="a new directory (never overwritten)")
     p.add_argument("--robots", type=int, default=3, help="Robot1..RobotN")

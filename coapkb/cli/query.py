@@ -9,13 +9,13 @@ from urllib.parse import parse_qsl, urlsplit
 
 from ..transport.base import ClientTransport, Endpoint
 from ..transport.messages import ContentFormat, Method, Request
-from .common import UserError, add_robot_client, ask_robot, client_security, parse_endpoint
+from .common import Parser, UserError, add_robot_client, ask_robot, client_security, parse_endpoint
 from .render import render
 
 FORMAT_ACCEPT = {"cbor": ContentFormat.CBOR, "json": ContentFormat.JSON}
 
 
-def add_query(sub: argparse._SubParsersAction) -> None:
+def add_query(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser(
         "query",
         help="query a robot: SPARQL text, or a named query URI",

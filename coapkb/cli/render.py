@@ -5,10 +5,13 @@ from __future__ import annotations
 import csv
 import io
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..wire import codec
 from ..world import CAPABILITY_NS, LOCATION_NS, OBJECT_NS
+
+if TYPE_CHECKING:
+    from ..model.results import QueryResult
 
 WELL_KNOWN_PREFIXES = {
     "obj": OBJECT_NS,
@@ -21,7 +24,7 @@ WELL_KNOWN_PREFIXES = {
 }
 
 
-def render(result, fmt: str) -> str:  # result: QueryResult
+def render(result: QueryResult, fmt: str) -> str:
     """A query result as text: an aligned table, SPARQL-JSON, or SPARQL CSV."""
     from ..model.results import AskResult, GraphResult, SelectResult
 
@@ -51,7 +54,7 @@ def render(result, fmt: str) -> str:  # result: QueryResult
     return "\n".join(lines) + "\n"
 
 
-def _short(term) -> str:
+def _short(term: object) -> str:
     from rdflib.term import BNode, Literal, URIRef
 
     if term is None:

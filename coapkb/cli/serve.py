@@ -7,10 +7,10 @@ import secrets
 from pathlib import Path
 
 from ..transport import SCHEMES
-from .common import UserError, add_credentials, parse_endpoint, server_security, until_signalled
+from .common import Parser, UserError, add_credentials, parse_endpoint, server_security, until_signalled
 
 
-def add_serve(sub: argparse._SubParsersAction) -> None:
+def add_serve(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("serve", help="serve knowledge base files as a robot's resources")
     p.add_argument("--kb", nargs="+", required=True, metavar="FILE", help="RDF files (.owl, .ttl, .nt)")
     p.add_argument("--bind", default="127.0.0.1:5683", metavar="HOST:PORT")

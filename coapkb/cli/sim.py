@@ -9,11 +9,11 @@ import sys
 import time
 from pathlib import Path
 
-from .common import UserError
+from .common import Parser, UserError
 from .sim_case import add_case_options, closing_line, counted, replay_case, report_run, run_defaults, shrink_seed
 
 
-def add_sim(sub: argparse._SubParsersAction) -> None:
+def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("sim", help="run the team in the deterministic simulator under seeded faults")
     p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
     p.add_argument("--tasks", type=int, default=10, help="tasks per run, drawn from the Object KB by the seed")

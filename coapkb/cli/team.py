@@ -13,10 +13,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
-from .common import UserError, until_signalled
+from .common import Parser, UserError, until_signalled
 
 if TYPE_CHECKING:
+    from ..feeder import TaskRecord
+    from ..feeder.tasks import Entry
     from ..harness.recording import RunRecorder
+    from ..harness.team import Team, TeamSpec
 
 #: The seed's example task (Fig. 4), a few more picks, and one object that
 #: does not exist, which every robot must skip.
@@ -26,7 +29,7 @@ DEMO_TASKS = ("Gucci_bag_14", "Nonexistent_widget_1")
 STATS_EVERY_S = 2.0
 
 
-def add_team(sub: argparse._SubParsersAction) -> None:
+def add_team(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("team", help="run a whole team locally: robots as processes, tasks fed in order")
     p.add_argument("--robots", type=int, default=3, help="team size, a multiple of 3 (clusters of three)")
     tasks = p.add_mutually_exclusive_group(required=True)
@@ -87,7 +90,7 @@ def add_team(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=_team)
 
 
-def add_demo(sub: argparse._SubParsersAction) -> None:
+def add_demo(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser("demo", help="the main job: 3 robots on loopback do the seed's example tasks")
     p.add_argument("--transport", choices=SCHEMES, default="coap")
     p.add_argument("--insecure", action="store_true", help="no OSCORE/EDHOC (default: on, throwaway keys)")
@@ -116,7 +119,7 @@ async def _demo(args: argparse.Namespace) -> int:
     return await _team(team_args)
 
 
-def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
+def _spec_and_tasks(args: argparse.Namespace) -> tuple[TeamSpec, list[Entry]]:
     """The team and its task list from the command line, or a :class:`UserError`."""
     from ..feeder import read_tasks_file
     from ..feeder.tasks import with_restocks
@@ -163,7 +166,7 @@ def _spec_and_tasks(args: argparse.Namespace):  # -> tuple[TeamSpec, list[str]]
     return spec, tasks
 
 
-def _security_line(spec) -> str:  # spec: TeamSpec
+def _security_line(spec: TeamSpec) -> str:
     if not spec.secure:
         return "security: none"
     from ..security import mechanism_for
@@ -174,7 +177,7 @@ def _security_line(spec) -> str:  # spec: TeamSpec
 async def _team(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..feeder import FeederError, TaskRecord
+    from ..feeder import FeederError
     from ..feeder.tasks import task_count
     from ..harness.record import summarise
     from ..harness.team import Team
@@ -284,14 +287,15 @@ async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:
         recorder.close()
 
 
-def _recorder(args: argparse.Namespace, spec):  # -> RunRecorder | None
+def _recorder(args: argparse.Namespace, spec: TeamSpec) -> RunRecorder | None:
     """The run's recording (``--record X.mcap``, ``--foxglove``), or None."""
     return open_recorder(args, spec.robot_ids, spec.ontologies, robots=spec.robots, mode=spec.mode,
                          transport=spec.transport, strategy=spec.strategy, writable=spec.kb_writable,
                          misplaced=list(spec.misplaced), time_scale=spec.time_scale, seed=getattr(args, "seed", None))
 
 
-def open_recorder(args: argparse.Namespace, robot_ids: list[str], location_kb: Path, **settings: object):
+def open_recorder(args: argparse.Namespace, robot_ids: list[str], location_kb: Path,
+                  **settings: object) -> RunRecorder | None:
     """``--record X.mcap`` and ``--foxglove [HOST:]PORT``: the run's
     :class:`~coapkb.harness.recording.RunRecorder`, or None without them
     (``args.foxglove_at`` is set to the live server's host and port)."""
@@ -321,7 +325,7 @@ def parse_host_port(text: str, option: str, host: str = "127.0.0.1") -> tuple[st
     return given.strip("[]") or host, int(port)
 
 
-async def _positions_line(team) -> str:  # team: Team
+async def _positions_line(team: Team) -> str:
     """Where the Location KB put each robot at the start, and where it says
     they are now (the robots wrote it as they worked)."""
     from ..errors import CoapkbError
@@ -336,7 +340,7 @@ async def _positions_line(team) -> str:  # team: Team
         f"{r} ({starts[r]['aisle']}, {starts[r]['rack']}) -> {now[r]}" for r in team.spec.robot_ids if r in now)
 
 
-def task_lines(record, costs: bool = False) -> str:  # record: TaskRecord
+def task_lines(record: TaskRecord, costs: bool = False) -> str:
     """What the feeder saw of one task, as ``coapkb team`` and ``coapkb feed``
     print it; ``costs``: a second line with every robot's cost."""
     if record.skipped:

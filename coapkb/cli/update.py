@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 from ..kb.write_concern import Ack
 from ..kb.write_ids import parse_wid
-from .common import UserError, add_robot_client, ask_robot
+from .common import Parser, UserError, add_robot_client, ask_robot
 from .query import read_text, split_robot_uri
 
 if TYPE_CHECKING:
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 SHORT_EXIT = 3
 
 
-def add_update(sub: argparse._SubParsersAction) -> None:
+def add_update(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser(
         "update",
         help="write to a robot's knowledge base: a SPARQL 1.1 Update",

@@ -7,10 +7,10 @@ import asyncio
 import signal
 from pathlib import Path
 
-from .common import UserError
+from .common import Parser, UserError
 
 
-def add_world(sub: argparse._SubParsersAction) -> None:
+def add_world(sub: argparse._SubParsersAction[Parser]) -> None:
     p = sub.add_parser(
         "world",
         help="serve the ground truth of the shelves to robots run by hand (world = PATH in their TOML)",

@@ -130,7 +130,8 @@ class DirectoryClient:
         """The links of a lookup's answer; a :class:`DiscoveryError` if it is
         not link-format (aiocoap's parser raises its own exception)."""
         try:
-            return parse(text).links
+            links: list[Link] = parse(text).links
+            return links
         except ParseException as exc:
             near = exc.args[1] if len(exc.args) > 1 else ""
             raise DiscoveryError(f"{what} at {self.rd}: the answer is not link-format (near {near[:80]})") from None

@@ -323,7 +323,7 @@ class ClientSecurity:
         if not response.code.is_successful():
             detail = response.payload.decode("utf-8", "replace")[:80]
             raise EdhocFailed(f"EDHOC with {peer} refused: {response.code} {detail}".rstrip(), code=response.code)
-        return response.payload
+        return bytes(response.payload)
 
     def _responder(self, peer: Endpoint, id_cred_r: bytes) -> TeamMember:
         """The trust list's member whose credential the responder named."""
@@ -466,7 +466,7 @@ class _InitiatorContext(aiocoap_edhoc.EdhocInitiatorContext):
         message_3 = self.message_3_to_include()
         if message_3 is None:
             raise SecurityError("EDHOC message_3 already sent")
-        return message_3
+        return bytes(message_3)
 
     @property
     def authenticated_claims(self) -> list[str]:

@@ -38,7 +38,7 @@ import stat
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cbor2
 
@@ -81,10 +81,11 @@ class TeamMember:
     #: SHA-256 (hex) of the member's X.509 certificate; None in a team made without.
     tls_sha256: str | None = None
 
-    def ccs_map(self) -> dict:
-        return cbor2.loads(self.ccs)
+    def ccs_map(self) -> dict[Any, Any]:
+        ccs: dict[Any, Any] = cbor2.loads(self.ccs)
+        return ccs
 
-    def aiocoap_cred(self) -> dict:
+    def aiocoap_cred(self) -> dict[int, dict[Any, Any]]:
         """The credential as aiocoap's ``own_cred`` / ``peer_cred``: ``{14: CCS}``."""
         return {14: self.ccs_map()}
 
