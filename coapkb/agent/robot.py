@@ -93,6 +93,31 @@ async def write_knowledge(
     raise failure
 
 
+def _serve_kb(config: RobotConfig, kb: KnowledgeBase | None, client: ClientTransport, host: Host, boot: int,
+              router: Router) -> tuple[KnowledgeBase | LiveKB | None, Keeper | None, Replicator | None]:
+    """The robot's KB served on ``router``: the files' as loaded, or, on a
+    writable team, a live one kept in the data folder (if any) and spread
+    to the other holders.  In memory, each incarnation writes as a writer
+    of its own (its counts start again at 1); with a data folder, it
+    restores what the folder holds and writes on as the folder's writer."""
+    if kb is None:
+        return None, None, None
+    served: KnowledgeBase | LiveKB = kb
+    keeper: Keeper | None = None
+    replicator: Replicator | None = None
+    if config.kb_writable:
+        known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
+        live, keeper = open_live(kb, config.robot_id, boot, config.data_dir, wall_ms=host.wall_ms,
+                                 holders=known, background=host.threads)
+        served = live
+        replicator = Replicator(live, client, module_holders(config, live.names), rng=host.rng)
+    KBResources(served, threads=host.threads, replicator=replicator,
+                read_only=f"{config.robot_id}'s knowledge base is read-only (kb_writable = false in its TOML, "
+                          "or coapkb team --read-only): leave kb_writable out or set it true, "
+                          "and start the robot again").mount(router)
+    return served, keeper, replicator
+
+
 def module_holders(config: RobotConfig, modules: Iterable[str]) -> list[Holder]:
     """The other robots holding any of ``modules``: teammates, then the
     holders in other clusters (``replicas``)."""
@@ -178,27 +203,11 @@ class Robot:
                                                 options=table)
         # Nonzero, so it is always sent: teammates tell a restart by it.
         boot = host.rng.randrange(1, 2**32)
-        replicator = None
-        keeper: Keeper | None = None
-        served: KnowledgeBase | LiveKB | None = kb
-        if kb is not None:
-            served = kb
-            if config.kb_writable:
-                # In memory, each incarnation writes as a writer of its own (its
-                # counts start again at 1); with a data folder, it restores what
-                # the folder holds and writes on as the folder's writer.
-                known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
-                try:
-                    served, keeper = open_live(kb, config.robot_id, boot, config.data_dir, wall_ms=host.wall_ms,
-                                               holders=known, background=host.threads)
-                except BaseException:
-                    await client.aclose()
-                    raise
-                replicator = Replicator(served, client, module_holders(config, served.names), rng=host.rng)
-            KBResources(served, threads=host.threads, replicator=replicator,
-                        read_only=f"{config.robot_id}'s knowledge base is read-only (kb_writable = false in its TOML, "
-                                  "or coapkb team --read-only): leave kb_writable out or set it true, "
-                                  "and start the robot again").mount(router)
+        try:
+            served, keeper, replicator = _serve_kb(config, kb, client, host, boot, router)
+        except BaseException:
+            await client.aclose()
+            raise
         start = config.start
         own = RobotState(
             robot_id=config.robot_id,
