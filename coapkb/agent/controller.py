@@ -29,7 +29,7 @@ import asyncio
 import logging
 from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from .. import clock
 from ..config import RobotConfig
@@ -47,18 +47,34 @@ from .team_view import Membership, TeamView
 
 log = logging.getLogger(__name__)
 
-#: Decisions a robot keeps to show on ``GET /tasks``: a robot runs whole shifts,
-#: and nothing but that listing reads its past decisions.
-DECISIONS_KEPT = 1024
 #: Decisions kept whole (with the assignee's job) for teammates to take: they
 #: ask about the task they are deciding, never about old ones.
 RECENT_KEPT = 64
-#: Objects whose assignment a robot remembers (:class:`Claim`): the last
-#: ones decided.  Older picks are in the KB by then (a writable team).
-CLAIMS_KEPT = 4096
-#: Claims a restarted robot takes from a teammate: a few minutes of tasks,
-#: by when a writable team has the picks in the KB (about 20 kB of CBOR).
-CLAIMS_HANDED = 512
+
+
+@dataclass(frozen=True)
+class RobotBounds:
+    """What a robot remembers per task, at most: a robot runs whole shifts."""
+
+    #: Decisions shown on ``GET /tasks``: nothing but that listing reads past decisions.
+    decisions_kept: int = 1024
+    #: Objects whose assignment it remembers (:class:`Claim`): the last ones
+    #: decided.  Older picks are in the KB by then (a writable team).
+    claims_kept: int = 4096
+    #: Claims a restarted robot takes from a teammate: a few minutes of tasks,
+    #: by when a writable team has the picks in the KB (about 20 kB of CBOR).
+    claims_handed: int = 512
+    #: Task posts whose repeat it recognises (sequence numbers are consecutive).
+    posts_remembered: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("decisions_kept", "claims_kept", "claims_handed", "posts_remembered"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+
+
+#: A robot's bounds unless told otherwise.
+DEFAULT_BOUNDS = RobotBounds()
 
 
 class Controller:
@@ -72,8 +88,10 @@ class Controller:
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
         ask_decision: AskDecision | None = None,
         ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None,
+        bounds: RobotBounds = DEFAULT_BOUNDS,
     ) -> None:
         self.config = config
+        self.bounds = bounds
         self.queries = queries
         self.team = team
         self.executor = executor
@@ -86,8 +104,8 @@ class Controller:
         self.recent: OrderedDict[int, DecisionMessage] = OrderedDict()
         self._tasks: asyncio.Queue[tuple[Task, float]] = asyncio.Queue()
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
-        #: The last ``DECISIONS_KEPT`` decisions, oldest first (``GET /tasks``).
-        self.log: deque[Decision] = deque(maxlen=DECISIONS_KEPT)
+        #: The last ``bounds.decisions_kept`` decisions, oldest first (``GET /tasks``).
+        self.log: deque[Decision] = deque(maxlen=bounds.decisions_kept)
         #: object -> the cluster's assignment of it, from the decisions
         #: applied: the same on every robot of the cluster, so a repeat is
         #: skipped alike before the pick is written (or even made).
@@ -206,7 +224,7 @@ class Controller:
         if decision.assigned_to is not None:
             self.claims[decision.object] = Claim(decision.assigned_to, decision.seq)
             self.claims.move_to_end(decision.object)
-            while len(self.claims) > CLAIMS_KEPT:
+            while len(self.claims) > self.bounds.claims_kept:
                 self.claims.popitem(last=False)
         self.recent[decision.seq] = message
         while len(self.recent) > RECENT_KEPT:
@@ -241,7 +259,7 @@ class Controller:
     async def _take_claims(self, seq: int) -> None:
         """A restarted robot joining at task ``seq`` takes the cluster's
         claims of the tasks before from a live teammate (the last
-        ``CLAIMS_HANDED``), so it skips a repeat as they do."""
+        ``bounds.claims_handed``), so it skips a repeat as they do."""
         if self._ask_claims is None:
             return
         for mate in sorted(self.team.membership.members, key=robot_sort_key):
@@ -262,8 +280,8 @@ class Controller:
                     "differently here", seq)
 
     def claims_handed(self) -> dict[str, Claim]:
-        """The claims a restarted teammate takes: the latest ``CLAIMS_HANDED``."""
-        latest = list(self.claims.items())[-CLAIMS_HANDED:]
+        """The claims a restarted teammate takes: the latest ``bounds.claims_handed``."""
+        latest = list(self.claims.items())[-self.bounds.claims_handed:]
         return dict(latest)
 
     async def _decide(self, task: Task, received: float) -> DecisionMessage:

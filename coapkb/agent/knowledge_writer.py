@@ -97,8 +97,11 @@ class KnowledgeWriter:
 
     def __init__(self, write: Callable[[str, list[NamedUpdate], str], Awaitable[None]], robot: str,
                  wall_ms: Callable[[], int], retry_s: float = RETRY_S, lazy_s: float = LAZY_S,
-                 new_write_id: Callable[[], str] | None = None) -> None:
+                 new_write_id: Callable[[], str] | None = None, queued_max: int = QUEUED_MAX,
+                 merged_max_bytes: int = MERGED_MAX_BYTES) -> None:
         self._write = write
+        self._queued_max = queued_max
+        self._merged_max_bytes = merged_max_bytes
         self.robot = robot
         if new_write_id is None:
             count, name = itertools.count(1), writer_name(f"{robot}.{secrets.token_hex(4)}")
@@ -148,10 +151,10 @@ class KnowledgeWriter:
         await self._drained.wait()
 
     def _now(self, module: str, update: NamedUpdate) -> None:
-        if len(self._queue) >= QUEUED_MAX:
+        if len(self._queue) >= self._queued_max:
             self._queue.popleft()
             self.dropped += 1
-            log.error("more than %d facts wait for the radio: the oldest is dropped", QUEUED_MAX)
+            log.error("more than %d facts wait for the radio: the oldest is dropped", self._queued_max)
         self._queue.append((module, update))
         self._drained.clear()
         self._ready.set()
@@ -161,7 +164,7 @@ class KnowledgeWriter:
         if later is None:
             later = self._later[module] = _Later(since=asyncio.get_running_loop().time())
         for fact in facts:
-            if len(later.facts) >= QUEUED_MAX:
+            if len(later.facts) >= self._queued_max:
                 later.facts.pop(0)
                 self.dropped += 1
             later.facts.append(fact)
@@ -197,7 +200,7 @@ class KnowledgeWriter:
             parts, size = [first], len(first.text())
             while self._queue and self._queue[0][0] == module:
                 following = self._queue[0][1]
-                if size + len(following.text()) + 3 > MERGED_MAX_BYTES:
+                if size + len(following.text()) + 3 > self._merged_max_bytes:
                     break
                 self._queue.popleft()
                 parts.append(following)

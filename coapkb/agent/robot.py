@@ -24,7 +24,7 @@ from ..transport.base import ClientTransport, ServerTransport, TransportError
 from ..transport.router import Router
 from ..world import Position, layout_from_row
 from ..world.service import WorldClient
-from .controller import Controller
+from .controller import DEFAULT_BOUNDS, Controller, RobotBounds
 from .knowledge_writer import KnowledgeWriter
 from .lease import Lease
 from .local_health import LoopHealth
@@ -166,9 +166,10 @@ class Robot:
         self.keeper: Keeper | None = None
 
     @classmethod
-    async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None) -> Robot:
+    async def start(cls, config: RobotConfig, *, query_wire: str = "compact", host: Host | None = None,
+                    bounds: RobotBounds = DEFAULT_BOUNDS) -> Robot:
         """Start the robot ``config`` describes on ``host`` (the operating
-        system unless a simulator gives one)."""
+        system unless a simulator gives one), remembering at most ``bounds``."""
         host = host or operating_system()
         directory = None
         if config.discovery.method == "rd":
@@ -180,7 +181,7 @@ class Robot:
 
             config, directory = await discover(config)
         try:
-            robot = await cls._start(config, query_wire, host)
+            robot = await cls._start(config, query_wire, host, bounds)
         except BaseException:
             if directory is not None:
                 await directory.aclose()
@@ -189,7 +190,7 @@ class Robot:
         return robot
 
     @classmethod
-    async def _start(cls, config: RobotConfig, query_wire: str, host: Host) -> Robot:
+    async def _start(cls, config: RobotConfig, query_wire: str, host: Host, bounds: RobotBounds) -> Robot:
         secured = robot_security(config)  # first: a bad key stops the robot before the KB loads
         client_security = None if secured is None else secured[1]
         kb = host.load_kb(config.kb_files, config.kb_index) if config.kb_files else None
@@ -272,7 +273,7 @@ class Robot:
         calls = TeammateCalls(client, config, team)
         controller = Controller(
             config, queries, team, executor, publish_decision, calls.send_decision, calls.ask_decision,
-            calls.ask_claims,
+            calls.ask_claims, bounds,
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries, final)
         robot.progress = (state_changed, outcome_changed)

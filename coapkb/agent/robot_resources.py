@@ -41,8 +41,6 @@ from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).
 STATS_SNAPSHOT_S = 5.0
-#: Task posts whose repeat a robot recognises (sequence numbers are consecutive).
-POSTS_REMEMBERED = 64
 
 
 class FinalOutcome:
@@ -80,7 +78,7 @@ class RobotResources:
         self.final_outcome = final_outcome
         self._stats = stats
         self._next_seq = 1
-        #: Object of the last ``POSTS_REMEMBERED`` tasks taken, by sequence number
+        #: Object of the last ``bounds.posts_remembered`` tasks taken, by sequence number
         #: (a repeated post is recognised: the feeder repeats only its latest).
         self.accepted: dict[int, str] = {}
         #: Content format -> (when taken, the stats answer): see _get_stats.
@@ -215,7 +213,7 @@ class RobotResources:
             return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")
         self._next_seq += 1
         self.accepted[seq] = name
-        self.accepted.pop(seq - POSTS_REMEMBERED, None)
+        self.accepted.pop(seq - self.controller.bounds.posts_remembered, None)
         self.controller.submit(Task(seq, name, tuple(join), again, restocked))
         return Response(Status.CHANGED)
 

@@ -1025,14 +1025,12 @@ TASKS_BASE = 40
 
 def _bounds(robots: dict[str, Robot], scheduler: Scheduler) -> dict[str, tuple[int, int]]:
     """State that must stay bounded whatever the schedule: (reading, bound)."""
-    from ..agent.controller import DECISIONS_KEPT
-    from ..agent.robot_resources import POSTS_REMEMBERED
-
     peers = len(robots) + 1
     readings: dict[str, tuple[int, int]] = {}
     for robot_id, robot in robots.items():
-        readings[f"{robot_id} posts remembered"] = (len(robot.resources.accepted), POSTS_REMEMBERED)
-        readings[f"{robot_id} decisions kept"] = (len(robot.controller.log), DECISIONS_KEPT)
+        bounds = robot.controller.bounds
+        readings[f"{robot_id} posts remembered"] = (len(robot.resources.accepted), bounds.posts_remembered)
+        readings[f"{robot_id} decisions kept"] = (len(robot.controller.log), bounds.decisions_kept)
     for process in scheduler.processes:
         if process.alive:
             pending = sum(1 for t in asyncio.all_tasks(process.loop) if not t.done())

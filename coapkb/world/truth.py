@@ -54,6 +54,8 @@ class WorldTruth:
     taken: dict[str, Taken] = field(default_factory=dict)
     #: Misplaced objects a robot looked for, and who: a delivery waits for that.
     looked_for: dict[str, Taken] = field(default_factory=dict)
+    #: Objects taken that it remembers at most (:data:`TAKEN_KEPT`).
+    taken_kept: int = TAKEN_KEPT
 
     @classmethod
     def with_misplaced(cls, objects: Iterable[str]) -> WorldTruth:
@@ -68,7 +70,7 @@ class WorldTruth:
         if already is not None:
             return f"gone: {already}"
         self.taken[obj] = Taken(robot, seq)
-        while len(self.taken) > TAKEN_KEPT:
+        while len(self.taken) > self.taken_kept:
             del self.taken[next(iter(self.taken))]
         return None
 

@@ -14,7 +14,7 @@ import cbor2
 import pytest
 from agent_helpers import config, endpoint
 
-from coapkb.agent.controller import Controller
+from coapkb.agent.controller import DEFAULT_BOUNDS, Controller, RobotBounds
 from coapkb.agent.decisions import Claim, DecisionMessage, Task, decode_claims, encode_claims
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
@@ -124,8 +124,8 @@ async def make(network: MemoryNetwork, all_kbs: KnowledgeBase) -> AsyncIterator[
     """``make(config, ask_claims=None)``: a started controller of ``config``'s robot."""
     started: list[tuple[Controller, TeamView, TaskExecutor]] = []
 
-    async def build(cfg: RobotConfig,
-                    ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None) -> Harness:
+    async def build(cfg: RobotConfig, ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None,
+                    bounds: RobotBounds = DEFAULT_BOUNDS) -> Harness:
         client = network.client()
         team = TeamView(_state(cfg.robot_id), {r: m.endpoint for r, m in cfg.team.items() if r != cfg.robot_id},
                         client)
@@ -137,7 +137,7 @@ async def make(network: MemoryNetwork, all_kbs: KnowledgeBase) -> AsyncIterator[
             pass
 
         controller = Controller(cfg, queries, team, executor, published, send,  # type: ignore[arg-type]
-                                ask_claims=ask_claims)
+                                ask_claims=ask_claims, bounds=bounds)
         team.start()
         executor.start()
         controller.start()
@@ -190,11 +190,9 @@ async def test_a_task_done_again_frees_its_object(make: Callable) -> None:
 
 
 async def test_claims_are_bounded_and_a_teammate_is_handed_the_latest(
-    make: Callable, monkeypatch: pytest.MonkeyPatch
+    make: Callable,
 ) -> None:
-    monkeypatch.setattr("coapkb.agent.controller.CLAIMS_KEPT", 2)
-    monkeypatch.setattr("coapkb.agent.controller.CLAIMS_HANDED", 1)
-    h = await make(config("Robot1", ALONE))
+    h = await make(config("Robot1", ALONE), bounds=RobotBounds(claims_kept=2, claims_handed=1))
     for seq, obj in enumerate((BAG, TV, PASTA), start=1):
         h.controller.submit(Task(seq, obj))
     await h.published.wait(3)

@@ -239,9 +239,10 @@ async def make() -> AsyncIterator[Callable[..., KnowledgeWriter]]:
     """``make(write, start=True)``: Robot1's writer, its clock at 1000, 2000, ... ms."""
     made: list[KnowledgeWriter] = []
 
-    def build(write: Callable, start: bool = True, retry_s: float = 0.001, lazy_s: float = 10.0) -> KnowledgeWriter:
+    def build(write: Callable, start: bool = True, retry_s: float = 0.001, lazy_s: float = 10.0,
+              **bounds: int) -> KnowledgeWriter:
         writer = KnowledgeWriter(write, "Robot1", itertools.count(1000, 1000).__next__, retry_s=retry_s,
-                                 lazy_s=lazy_s)
+                                 lazy_s=lazy_s, **bounds)
         if start:
             writer.start()
         made.append(writer)
@@ -305,10 +306,9 @@ async def test_what_may_wait_goes_alone_once_due(make: Callable) -> None:
     assert radio.calls == [("Capability", with_prologue("Capability", load_update("Robot1", 12.5, 380.25, 1000)))]
 
 
-async def test_an_update_joins_no_more_than_merged_max_bytes(make: Callable, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("coapkb.agent.knowledge_writer.MERGED_MAX_BYTES", 300)
+async def test_an_update_joins_no_more_than_merged_max_bytes(make: Callable) -> None:
     radio = Radio()
-    writer = make(radio)
+    writer = make(radio, merged_max_bytes=300)
     for seq, obj in enumerate((BAG, TV, PASTA), start=1):
         writer.picked(_job(seq, obj))
     await radio.wait(writer)
@@ -370,10 +370,9 @@ async def test_every_coapkb_error_counts_as_a_failed_write(make: Callable, error
     assert len(calls) == WRITE_TRIES and writer.dropped == 1 and writer.pending == 0
 
 
-async def test_the_queue_is_bounded_and_drops_the_oldest(make: Callable, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("coapkb.agent.knowledge_writer.QUEUED_MAX", 2)
+async def test_the_queue_is_bounded_and_drops_the_oldest(make: Callable) -> None:
     radio = Radio()
-    writer = make(radio, start=False)  # nothing goes out: everything waits
+    writer = make(radio, start=False, queued_max=2)  # nothing goes out: everything waits
     for seq, obj in enumerate((BAG, TV, PASTA), start=1):
         writer.picked(_job(seq, obj))
     assert (writer.pending, writer.dropped) == (3, 1)  # two picks, and the position waiting

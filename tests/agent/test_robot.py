@@ -13,6 +13,7 @@ import pytest
 import pytest_asyncio
 from support import KB_FILES, free_udp_port
 
+from coapkb.agent.controller import RobotBounds
 from coapkb.agent.robot import Robot
 from coapkb.agent.robot_state import RobotState
 from coapkb.config import ExecutionModel, RobotConfig, StartState, Teammate
@@ -146,14 +147,10 @@ async def test_tasks_in_order_are_decided_and_shown_in_stats(ask: Asker) -> None
     assert cbor2.loads(cbor_stats.payload)["robot_id"] == "Robot1"
 
 
-async def test_a_robot_keeps_its_latest_decisions_and_posts_only(monkeypatch: pytest.MonkeyPatch) -> None:
+async def test_a_robot_keeps_its_latest_decisions_and_posts_only() -> None:
     """A robot runs whole shifts: what it keeps per task is bounded (the decision
     listing of ``GET /tasks``, the posts whose repeat it recognises)."""
-    from coapkb.agent import controller, robot_resources
-
-    monkeypatch.setattr(controller, "DECISIONS_KEPT", 3)
-    monkeypatch.setattr(robot_resources, "POSTS_REMEMBERED", 2)
-    robot = await Robot.start(solo_config(free_udp_port()))
+    robot = await Robot.start(solo_config(free_udp_port()), bounds=RobotBounds(decisions_kept=3, posts_remembered=2))
     client = await open_client("coap")
     try:
         ask = Asker(client, robot.config.bind)

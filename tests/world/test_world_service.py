@@ -65,9 +65,8 @@ def test_a_misplaced_object_is_never_taken() -> None:
     assert truth.take_now("Canon_tv_538", "Robot1", 3) is None
 
 
-def test_the_truth_forgets_the_oldest_taken_beyond_its_bound(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("coapkb.world.truth.TAKEN_KEPT", 2)
-    truth = WorldTruth()
+def test_the_truth_forgets_the_oldest_taken_beyond_its_bound() -> None:
+    truth = WorldTruth(taken_kept=2)
     for seq, obj in enumerate(("A_1", "B_2", "C_3"), start=1):
         assert truth.take_now(obj, "Robot1", seq) is None
     assert list(truth.taken) == ["B_2", "C_3"]
