@@ -173,8 +173,11 @@ class LiveKB:
         #: :func:`base_triples`, once a write or a join asks.
         self._base_triples: frozenset[Triple] | None = None
         self._view: OxigraphBackend | None = None
-        #: Adds and removes the view took since it was last copied afresh.
+        #: Adds and removes the view took since it was last copied afresh,
+        #: and how many it may take before the next copy (its size is
+        #: counted only then: counting a pyoxigraph store walks it).
         self._churn = 0
+        self._churn_allowed = self.limits.rebuild_after_changes
         #: Times the view was copied afresh (:attr:`WriteLimits.rebuild_after_changes`).
         self.rebuilds = 0
         functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self._base_store)
@@ -452,11 +455,12 @@ class LiveKB:
             # At once: a join at a restart may add 100,000.
             store.extend(_quad(triple) for triple in effect.added)
         self._churn += len(effect.removed) + len(effect.added)
-        if self._churn >= max(self.limits.rebuild_after_changes, 4 * len(store)):
+        if self._churn >= self._churn_allowed:
             fresh = ox.Store()
             fresh.extend(store.quads_for_pattern(None, None, None))
             self._view = OxigraphBackend(fresh)
             self._churn = 0
+            self._churn_allowed = max(self.limits.rebuild_after_changes, 4 * len(fresh))
             self.rebuilds += 1
 
     def _changed(self, modules: frozenset[str]) -> None:
