@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any
 
 
@@ -50,3 +50,11 @@ def _optional_of(cls: type, name: str) -> type:
     if not isinstance(hint, types.UnionType) or len(kinds) != 1 or not isinstance(kinds[0], type):
         raise TypeError(f"{cls.__name__}.{name}: a None default needs an `X | None` annotation")
     return kinds[0]
+
+
+def require_at_least(record: object, names: Iterable[str], least: int = 1) -> None:
+    """A ``ValueError`` naming the first of ``record``'s fields ``names``
+    below ``least`` (a bound of a dataclass's ``__post_init__``)."""
+    for name in names:
+        if getattr(record, name) < least:
+            raise ValueError(f"{name} must be at least {least}, got {getattr(record, name)}")

@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 from .. import clock
 from ..config import RobotConfig
 from ..transport.base import TransportError
+from ..typed_fields import require_at_least
 from ..world import DEPOT, travel_distance
 from .decisions import Claim, DecisionMessage, Task
 from .facts import FactGatherer
@@ -68,9 +69,7 @@ class RobotBounds:
     posts_remembered: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("decisions_kept", "claims_kept", "claims_handed", "posts_remembered"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        require_at_least(self, ("decisions_kept", "claims_kept", "claims_handed", "posts_remembered"))
 
 
 #: A robot's bounds unless told otherwise.

@@ -28,6 +28,7 @@ from rdflib.term import BNode, Literal, URIRef
 
 from ..model.deltas import Delta, WrittenState
 from ..model.results import GraphResult, QueryResult, Term, Triple
+from ..typed_fields import require_at_least
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
 from .errors import KBError, QueryEvaluationError
 from .limits import Deadline
@@ -85,9 +86,7 @@ class WriteLimits:
     rebuild_after_changes: int = 200_000
 
     def __post_init__(self) -> None:
-        for name in ("max_triples", "ids_per_writer", "id_writers", "rebuild_after_changes"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        require_at_least(self, ("max_triples", "ids_per_writer", "id_writers", "rebuild_after_changes"))
 
 
 @dataclass(frozen=True)

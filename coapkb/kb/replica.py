@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Term, Triple
+from ..typed_fields import require_at_least
 from .errors import KBError
 
 __all__ = [
@@ -80,9 +81,7 @@ class ReplicaLimits:
     cloud_max: int = 10_000
 
     def __post_init__(self) -> None:
-        for name in ("journal_max", "entries_max", "cloud_max"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        require_at_least(self, ("journal_max", "entries_max", "cloud_max"))
 
 
 class ReplicaFull(KBError):
