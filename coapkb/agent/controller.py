@@ -198,6 +198,8 @@ class Controller:
             return None
         log.warning("task %d (%s): the %s KB is read from %s now; deciding again", task.seq, task.object,
                     lost.module, now)
+        if (settled := await self.settler.decided_by_teammates(task)) is not None:
+            return settled
         try:
             return await self._decide(task, received)
         except (QueryError, TransportError) as exc:

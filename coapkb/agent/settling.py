@@ -77,14 +77,16 @@ class Settler:
             outnumbered = self.team.alone
             mates = [r for r in self.team.membership.members
                      if r != self.robot_id and (outnumbered or self.team.is_up(r))]
-            answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
-                                           return_exceptions=True)
+            timed = await asyncio.gather(*(self._ask_timed(mate, task.seq) for mate in mates))
+            answers = [answer for answer, _ in timed]
+            round_end = clock.monotonic()
             heard = [mate for mate, theirs in zip(mates, answers)
                      if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
             if heard:
                 await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
             failed_too = 0
             deciding = unanswered = False
+            answered_at = {mate: at for mate, (_, at) in zip(mates, timed)}
             for mate, theirs in zip(mates, answers):
                 if isinstance(theirs, BaseException):
                     # A lost answer is asked again (found in the simulator:
@@ -103,6 +105,14 @@ class Settler:
                     # Still deciding: waited for past the deadline (found in
                     # the simulator: a robot gave up the moment before a
                     # teammate back from a partition decided on knowledge).
+                    deciding = True
+                    continue
+                if not theirs.decision.members and round_end - answered_at[mate] > SETTLE_POLL_S:
+                    # Its settling, answered long before this round ended (the
+                    # round waited on a silent teammate): it may have decided
+                    # on knowledge since, so it is asked again (found in the
+                    # simulator, seed 7862: an answer 15 s old ended a
+                    # settling that the teammate's decision would have changed).
                     deciding = True
                     continue
                 if not self.counts_me(theirs.decision):
@@ -127,6 +137,15 @@ class Settler:
         return alone
 
 
+    async def _ask_timed(self, mate: str, seq: int) -> tuple[DecisionMessage | None | BaseException, float]:
+        """``mate``'s answer (or its failure) on task ``seq``, and when it came."""
+        assert self._ask_decision is not None
+        try:
+            answer: DecisionMessage | None | BaseException = await self._ask_decision(mate, seq)
+        except Exception as exc:  # noqa: BLE001 - judged by the caller, like gather's return_exceptions
+            answer = exc
+        return answer, clock.monotonic()
+
     async def decided_before(self, task: Task, received: float) -> DecisionMessage | None:
         """A teammate's decision on ``task`` if one may have decided it before
         this robot began it: its observed plan is past the task already, or
@@ -143,21 +162,42 @@ class Settler:
         applied); none decided in a membership without this robot (its own
         decision is void then).  A robot in step asks nothing: no extra
         message per task."""
-        if self._ask_decision is None:
-            return None
         mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
         window = clock.monotonic() - received + self._query_timeout_s * 2
         if self.team.stalled_within(window) >= self.team.request_timeout_s:
             ahead = mates
         else:
             ahead = [r for r in mates if (state := self.team.state_of(r)) is not None and state.plan.seq >= task.seq]
-        if not ahead:
+        return await self._taken_from(task, ahead, "decided it before this robot began")
+
+    async def decided_by_teammates(self, task: Task) -> DecisionMessage | None:
+        """A live teammate's decision on ``task`` already made, before this
+        robot, which settled it unavailable, decides it again on another
+        holder's knowledge: a teammate that ended its settling meanwhile
+        and applied the task unavailable is followed, not contradicted.
+        While this robot decides again, teammates asking it are told it is
+        still deciding, so one still settling waits for its decision rather
+        than end on its unavailable answer (found in the simulator, seed
+        7862: a starved teammate ended its settling on both teammates'
+        unavailable answers the moment before one of them decided again)."""
+        self.recent.pop(task.seq, None)
+        if self._ask_decision is None:
             return None
-        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in ahead),
+        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+        return await self._taken_from(task, mates, "decided it already")
+
+    async def _taken_from(self, task: Task, mates: list[str], how: str) -> DecisionMessage | None:
+        """The decision on ``task`` of one of ``mates``, taken whole as
+        :meth:`settle` takes one: decided on knowledge first, else settled
+        unavailable and applied; none decided in a membership without this
+        robot."""
+        if not mates or self._ask_decision is None:
+            return None
+        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
                                        return_exceptions=True)
         # An unavailable one still being settled (not yet applied, so not
         # stamped with its members) may yet give way to a decision on knowledge.
-        taken = [(mate, theirs) for mate, theirs in zip(ahead, answers)
+        taken = [(mate, theirs) for mate, theirs in zip(mates, answers)
                  if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
                  and theirs.decision.error is None and self.counts_me(theirs.decision)
                  and (theirs.decision.unavailable is None or theirs.decision.members)]
@@ -165,8 +205,7 @@ class Settler:
         if not taken:
             return None
         mate, theirs = taken[0]
-        log.warning("task %d (%s): %s decided it before this robot began; took its decision",
-                    task.seq, task.object, mate)
+        log.warning("task %d (%s): %s %s; took its decision", task.seq, task.object, mate, how)
         self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
         return theirs
 

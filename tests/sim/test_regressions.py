@@ -105,6 +105,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         3866: "the feeder, cut off from the start, never observed a robot its teammates went on counting: it "
               "could not tell that robot's answering process from a new one, never took it back, and its "
               "teammates waited for its plan on every later task",
+        7862: "a starved robot settling a task ended on both teammates' unavailable answers, one of them 15 s old "
+              "(its round waited on the teammate cut off): that one had decided again on the next holder since",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
