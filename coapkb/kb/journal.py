@@ -19,9 +19,10 @@ messages of :mod:`coapkb.wire.sync` (pure codecs, no I/O).  The format
               "S" head      a sync message: a module's context, removed files' triples, tombstones
               "E" entries   a sync message: a module's written triples (about 10,000) as
                             deltas, one per run of a writer's consecutive dots with one stamp
-              "W" write id  CBOR [peer, writer, write, digest, version, removed, added]:
-                            a local write's id (:mod:`.write_ids`), with the write
-                            in a journal, the ids remembered then in a snapshot
+              "W" write id  CBOR [peer, writer, write, digest, version, removed, added, ?made-by]:
+                            a client's write's id (:mod:`.write_ids`), with the write
+                            in a journal, the ids remembered then in a snapshot;
+                            ``made-by``: the holder that made it and pushed it here
               "Z" end       CBOR uint: the snapshot's records before it, meta excluded
 
 Format 2 added the write-id record; format 1 (without it) is read alike.
@@ -192,20 +193,26 @@ def _change_payload(module: str, change: Delta | WrittenState) -> bytes:
 
 
 def _write_id_payload(wid: WriteId, remembered: Remembered) -> bytes:
-    return WRITE_ID + cbor2.dumps([wid.peer, wid.writer, wid.write, remembered.digest, remembered.version,
-                                   remembered.removed, remembered.added])
+    fields: list[object] = [wid.peer, wid.writer, wid.write, remembered.digest, remembered.version,
+                            remembered.removed, remembered.added]
+    if remembered.made_by is not None:
+        fields.append(remembered.made_by)
+    return WRITE_ID + cbor2.dumps(fields)
 
 
 def _decode_write_id(payload: bytes, name: str) -> tuple[WriteId, Remembered]:
     try:
-        peer, writer, write, digest, version, removed, added = cbor2.loads(payload[1:])
-    except (cbor2.CBORDecodeError, ValueError, TypeError, EOFError) as exc:
+        fields = cbor2.loads(payload[1:])
+        peer, writer, write, digest, version, removed, added = fields[:7]
+        made_by = fields[7] if len(fields) == 8 else None
+    except (cbor2.CBORDecodeError, ValueError, TypeError, EOFError, KeyError) as exc:
         raise DataDirError(f"{name}: corrupt write-id record: {exc}") from None
-    if not (isinstance(peer, (str, type(None))) and isinstance(writer, str) and isinstance(write, str)
+    if not (isinstance(fields, list) and len(fields) in (7, 8)
+            and isinstance(peer, (str, type(None))) and isinstance(writer, str) and isinstance(write, str)
             and isinstance(digest, bytes) and isinstance(version, bytes)
-            and isinstance(removed, int) and isinstance(added, int)):
+            and isinstance(removed, int) and isinstance(added, int) and isinstance(made_by, (str, type(None)))):
         raise DataDirError(f"{name}: corrupt write-id record")
-    return WriteId(peer, writer, write), Remembered(digest, version, removed, added)
+    return WriteId(peer, writer, write), Remembered(digest, version, removed, added, made_by=made_by)
 
 
 def _decode(payload: bytes, name: str) -> SyncMessage:

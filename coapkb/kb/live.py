@@ -26,7 +26,7 @@ from typing import Protocol
 import pyoxigraph as ox
 from rdflib.term import BNode, Literal, URIRef
 
-from ..model.deltas import Delta, WrittenState
+from ..model.deltas import Delta, MadeUnder, WrittenState
 from ..model.results import GraphResult, QueryResult, Term, Triple
 from ..typed_fields import require_at_least
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
@@ -97,6 +97,16 @@ class Written:
     version: bytes
     removed: int
     added: int
+    #: The id it was made under (pushed with its deltas).
+    tag: WriteTag | None = None
+
+    @property
+    def made(self) -> MadeUnder | None:
+        """Its id as its pushes carry it."""
+        if self.tag is None:
+            return None
+        wid = self.tag.wid
+        return MadeUnder(wid.peer, wid.writer, wid.write, self.tag.digest, self.removed, self.added)
 
 
 class Keeping(Protocol):
@@ -394,7 +404,7 @@ class LiveKB:
                 self.keeper([(module, [delta]) for module, delta in deltas.items()])
             raise
         self._etag = None
-        written = Written(deltas, self.etag, removed, added)
+        written = Written(deltas, self.etag, removed, added, tag)
         made = None
         if tag is not None:
             # Even a write that changed nothing: a repeat after a later change would.
@@ -408,11 +418,17 @@ class LiveKB:
 
     # -------------------------------------------------------------- joining
 
-    def apply(self, module: str, deltas: Iterable[Delta]) -> bool:
-        """Join teammates' deltas of ``module``; whether the view changed."""
+    def apply(self, module: str, deltas: Iterable[Delta], made: MadeUnder | None = None,
+              made_by: str | None = None) -> bool:
+        """Join teammates' deltas of ``module``; whether the view changed.
+        ``made``: the id of the client's write the one delta came from, at
+        the holder ``made_by``; remembered once the delta is here, so that
+        a try of that write sent here next is a repeat (docs/knowledge.md,
+        "A write tried again")."""
         replica = self.replicas[module]
         changed = False
         taken: list[Delta] = []
+        deltas = list(deltas)
         for delta in deltas:
             new, refused = delta.dot not in replica.context, replica.refused
             effect = replica.apply(delta, self._is_base)
@@ -420,8 +436,15 @@ class LiveKB:
                 taken.append(delta)
             changed |= bool(effect)
             self._show(effect)
-        if taken and self.keeper is not None:
-            self.keeper([(module, taken)])
+        remembered = None
+        if made is not None and deltas and all(d.dot in replica.context for d in deltas):
+            wid = WriteId(made.peer, made.writer, made.write)
+            if self.write_ids.get(wid) is None:
+                self._etag = None
+                remembered = (wid, Remembered(made.digest, self.etag, made.removed, made.added, made_by=made_by))
+                self.write_ids.remember(*remembered)
+        if (taken or remembered is not None) and self.keeper is not None:
+            self.keeper([(module, taken)] if taken else [], remembered)
         self._changed(frozenset({module}) if changed else frozenset())
         return changed
 

@@ -49,7 +49,7 @@ from collections.abc import Collection, Coroutine, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ..model.deltas import CausalContext, Delta, WrittenState
+from ..model.deltas import CausalContext, Delta, MadeUnder, WrittenState
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
@@ -221,7 +221,7 @@ class Replicator:
         fresh = [d for d in new if d.dot in replica.context]
         if fresh:
             for holder in self.holders[module]:
-                self._spawn(self._push(holder, module, fresh))
+                self._spawn(self._push(holder, module, fresh, message.made))
         if request.peer is not None and self.holds(request.peer, module):
             self.known[(module, request.peer)] = message.context
         if replica.refused > refused:
@@ -288,7 +288,9 @@ class Replicator:
             self.live.join(message.module, message.changes)
         elif message.changes:
             self.stats.deltas_in += len(message.changes)
-            self.live.apply(message.module, message.changes)
+            # The holder that made a client's write is its delta's writer.
+            made_by = writer_robot(message.changes[0].dot.writer)
+            self.live.apply(message.module, message.changes, message.made, made_by)
 
     def _answer_for(self, module: str, peer: CausalContext) -> SyncMessage:
         replica = self.live.replicas[module]
@@ -328,7 +330,7 @@ class Replicator:
         not waited for go on."""
         wanted = {module: frozenset(h.name for h in self.holders[module]) for module in written.deltas}
         pushes = {
-            self._spawn(self._push(holder, module, [delta])): (module, holder.name)
+            self._spawn(self._push(holder, module, [delta], written.made)): (module, holder.name)
             for module, delta in written.deltas.items()
             for holder in self.holders[module]
         }
@@ -359,9 +361,12 @@ class Replicator:
         task.add_done_callback(lambda done: self._pushes.pop(done, None))
         return task
 
-    async def _push(self, holder: Holder, module: str, changes: Sequence[Delta] | WrittenState) -> bool:
+    async def _push(self, holder: Holder, module: str, changes: Sequence[Delta] | WrittenState,
+                    made: MadeUnder | None = None) -> bool:
+        """Send ``changes`` to ``holder``; ``made``: the id of the client's
+        write they come from, so that a try of it sent there next is a repeat."""
         replica = self.live.replicas[module]
-        message = SyncMessage(module, replica.context.copy(), changes, forward=holder.remote)
+        message = SyncMessage(module, replica.context.copy(), changes, forward=holder.remote, made=made)
         answer = await self._exchange(holder, message)
         if answer is None:
             self.stats.push_failed += 1

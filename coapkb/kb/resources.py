@@ -294,7 +294,7 @@ class KBResources:
         assert made is not None
         if made.answer is not None:
             return made.answer
-        return self._before_restart(made, ack)
+        return self._from_memory(made, ack)
 
     async def _answer_once(self, tag: WriteTag, answering: Awaitable[Response]) -> Response:
         """Answer a write made under ``tag`` with ``answering``, which every
@@ -320,13 +320,17 @@ class KBResources:
         future.set_result(response)
         return response
 
-    def _before_restart(self, made: Remembered, ack: Ack) -> Response:
-        """A repeat of a write this robot made before it restarted: its data
-        folder kept the write and its id, not the answer, nor how far the
-        write had reached (it spreads by anti-entropy since), unless no
-        other robot holds these modules."""
+    def _from_memory(self, made: Remembered, ack: Ack) -> Response:
+        """A repeat of a write whose answer this robot does not have: one it
+        made before it restarted (its data folder kept the write and its id,
+        not the answer, nor how far the write had reached: it spreads by
+        anti-entropy since), unless no other robot holds these modules; or
+        one another holder made and pushed here with its id (the write is on
+        two holders at least: that one and this)."""
         if not made.removed and not made.added:
             reached = Reached(Ack.ALL, changed=False)
+        elif made.made_by is not None:
+            reached = Reached(Ack.TWO, holders=2, made_by=made.made_by)
         else:
             reached = Reached(Ack.ALL if self.replicator is None else Ack.LOCAL, before_restart=True)
         if reached.level.covers(ack):

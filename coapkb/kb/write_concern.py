@@ -103,12 +103,16 @@ class Reached:
     #: True: a repeat of a write made before this robot restarted (its
     #: data folder kept the write and its id, not how far it had reached).
     before_restart: bool = False
+    #: A repeat of a write another holder made and pushed here: that holder.
+    made_by: str | None = None
 
     def describe(self, *, durable: bool) -> str:
         """``ack LEVEL (H of K holders[, in memory])``; ``durable``: this
         robot keeps its writes in a data folder."""
         if not self.changed:
             return f"ack {self.level} (nothing changed)"
+        if self.made_by is not None:
+            return f"ack {self.level} (made by {self.made_by}, which passed it on here)"
         if self.before_restart:
             return f"ack {self.level} (written before this robot restarted)"
         where = "" if durable else ", in memory"
@@ -124,7 +128,9 @@ def short_line(reached: Reached, asked: Ack, version: bytes, *, durable: bool, w
     """A 5.04's payload: the write is here, fewer holders confirmed it than asked."""
     kept = "kept on disk" if durable else "in memory only (no data folder)"
     why = []
-    if reached.before_restart:
+    if reached.made_by is not None:
+        why.append(f"{reached.made_by} made it and passed it on here; which other holders have it is not known here")
+    elif reached.before_restart:
         why.append("which holders it reached then is not known here")
     if reached.failed:
         why.append(f"{', '.join(reached.failed)} unreachable or refused it")

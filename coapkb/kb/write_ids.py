@@ -103,6 +103,9 @@ class Remembered:
     #: The answer given (None until it is known, and after a restart: it is
     #: kept in memory only, the rest of the record on disk too).
     answer: Response | None = None
+    #: The holder that made the write and pushed it here under its id
+    #: (None: made here); ``version`` is then this robot's once it took it.
+    made_by: str | None = None
 
 
 class WriteIds:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from .results import Triple
 
-__all__ = ["CausalContext", "Delta", "Dot", "Stamp", "WrittenState"]
+__all__ = ["CausalContext", "Delta", "Dot", "MadeUnder", "Stamp", "WrittenState"]
 
 
 @dataclass(frozen=True, order=True)
@@ -134,6 +134,24 @@ class Delta:
     def size(self) -> int:
         """Triples and dots it carries: what a journal's bound counts."""
         return 1 + len(self.added) + len(self.removed) + len(self.removed_base)
+
+
+@dataclass(frozen=True)
+class MadeUnder:
+    """The id a client's write was made under at the holder that pushes its
+    delta (docs/knowledge.md, "A write tried again"): another holder a try
+    of the write is sent to next answers it as a repeat, not a new write."""
+
+    #: The sender of the write as that holder authenticated it (None: unprotected).
+    peer: str | None
+    #: The id's parts: its writer, and the write.
+    writer: str
+    write: str
+    #: The digest of the write's method, content-format and body.
+    digest: bytes
+    #: What the write removed and added, at the holder that made it.
+    removed: int
+    added: int
 
 
 @dataclass(frozen=True)

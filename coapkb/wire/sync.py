@@ -3,7 +3,7 @@
 
 ::
 
-    sync     = [module: tstr, context, changes / null, ? forward: true]
+    sync     = [module: tstr, context, changes / null, ? (forward: bool, ? made-under)]
     context  = [* [writer: tstr, top: uint, ? [+ seq: uint]]]   ; vv, then dots past a gap
     changes  = deltas / state
     deltas   = [triples: graph-item, [* delta]]
@@ -14,12 +14,17 @@
                 ? 5: [* [writer: tstr, [+ seq: uint]]]}
     dot-stamp = [writer: tstr, seq: uint, ms: uint, counter: uint]
     graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
+    made-under = [writer: tstr, write: tstr, digest: bstr .size 8, removed: uint, added: uint,
+                  ? peer: tstr / null]
 
 The triples of all the deltas travel in one compact graph, so their
 prefixes and repeated names are sent once: each delta takes, in order, its
 ``removed-base`` count of them (the files' triples it removed), then its
 ``added`` count.  ``forward`` asks the receiver to pass deltas new to it on to the holders
-it knows (a push from another cluster).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
+it knows (a push from another cluster).  ``made-under`` is the id of the
+client's write a push of one delta comes from; without ``peer``, its
+sender is the name before the writer's first dot (``Robot2`` of
+``Robot2.7f3a``).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
 each in the same order, key 4 the files' triples removed, key 5 the
 tombstones (dots removed before their write arrived).  Decoders raise
 :class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
@@ -32,7 +37,7 @@ from dataclasses import dataclass
 
 import cbor2
 
-from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..model.deltas import CausalContext, Delta, Dot, MadeUnder, Stamp, WrittenState
 from ..model.results import Triple
 from . import codec
 from .codec import CodecError, decode_graph_item
@@ -52,6 +57,8 @@ class SyncMessage:
     changes: Sequence[Delta] | WrittenState | None = None
     #: Pass the deltas new to the receiver on to the holders it knows.
     forward: bool = False
+    #: The id of the client's write the one delta pushed comes from.
+    made: MadeUnder | None = None
 
 
 def _context(context: CausalContext) -> list[list[object]]:
@@ -103,9 +110,23 @@ def encode_sync(message: SyncMessage) -> bytes:
     elif message.changes is not None:
         changes = _deltas(message.changes)
     fields: list[object] = [message.module, _context(message.context), changes]
-    if message.forward:
-        fields.append(True)
+    if message.forward or message.made is not None:
+        fields.append(message.forward)
+    if message.made is not None:
+        fields.append(_made(message.made))
     return cbor2.dumps(fields)
+
+
+def _made(made: MadeUnder) -> list[object]:
+    fields: list[object] = [made.writer, made.write, made.digest, made.removed, made.added]
+    if made.peer != _sender_named(made.writer):
+        fields.append(made.peer)
+    return fields
+
+
+def _sender_named(writer: str) -> str:
+    """The sender a made-under without ``peer`` stands for."""
+    return writer.split(".", 1)[0]
 
 
 # ------------------------------------------------------------------ decoding
@@ -209,11 +230,26 @@ def _decode_state(item: dict[object, object]) -> WrittenState:
                         frozenset(tombstones))
 
 
+def _decode_made(item: object) -> MadeUnder:
+    fields = _list(item, "made-under", 6)
+    if len(fields) not in (5, 6):
+        raise CodecError("made-under: expected [writer, write, digest, removed, added, ?peer]")
+    writer, write = _text(fields[0], "made-under writer"), _text(fields[1], "made-under write")
+    digest = fields[2]
+    if not isinstance(digest, bytes) or len(digest) != 8:
+        raise CodecError("made-under digest: expected 8 bytes")
+    peer = fields[5] if len(fields) == 6 else _sender_named(writer)
+    if peer is not None:
+        peer = _text(peer, "made-under peer")
+    return MadeUnder(peer, writer, write, digest, _uint(fields[3], "made-under removed"),
+                     _uint(fields[4], "made-under added"))
+
+
 def decode_sync(data: bytes) -> SyncMessage:
     item = codec.load_cbor(data)
-    fields = _list(item, "sync", 4)
-    if len(fields) not in (3, 4) or (len(fields) == 4 and fields[3] is not True):
-        raise CodecError("sync: expected [module, context, changes, ?true]")
+    fields = _list(item, "sync", 5)
+    if len(fields) < 3 or (len(fields) > 3 and not isinstance(fields[3], bool)):
+        raise CodecError("sync: expected [module, context, changes, ?forward, ?made-under]")
     module = _text(fields[0], "module")
     context = _decode_context(fields[1])
     raw = fields[2]
@@ -224,4 +260,5 @@ def decode_sync(data: bytes) -> SyncMessage:
         changes = _decode_state(raw)
     else:
         changes = _decode_deltas(_list(raw, "changes", 2))
-    return SyncMessage(module, context, changes, forward=len(fields) == 4)
+    made = _decode_made(fields[4]) if len(fields) == 5 else None
+    return SyncMessage(module, context, changes, forward=len(fields) > 3 and fields[3] is True, made=made)

@@ -31,7 +31,7 @@ from coapkb.kb.results import expect_select
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import encode_patch
 from coapkb.kb.write_concern import Ack, Answer, parse_answer
-from coapkb.kb.write_ids import parse_wid
+from coapkb.kb.write_ids import WriteTag, body_digest, parse_wid
 from coapkb.transport import open_client, serve
 from coapkb.transport.base import ClientTransport, Endpoint, ResourceInfo, ServerTransport
 from coapkb.transport.memory import MemoryNetwork
@@ -378,6 +378,28 @@ async def test_a_data_folder_keeps_the_ids_across_a_restart_and_a_snapshot(tmp_p
             == Status.CHANGED
     assert _notes(live) == {"z"} and live.etag == version
     keeper.close()
+
+
+async def test_an_id_pushed_with_a_write_is_kept_on_disk_by_the_holder_that_took_it(tmp_path: Path) -> None:
+    """A holder that took a teammate's write with its id answers a try of
+    that write as a repeat, after a restart on its folder too."""
+    maker = _location()
+    payload = _note("a")
+    tag = WriteTag(parse_wid("Robot2.9.1", "Robot2"), body_digest(Method.PATCH, ContentFormat.TEXT, payload))
+    written = maker.update(payload.decode(), tag=tag)
+    base = KnowledgeBase.load([ONTOLOGIES / "Location.owl"])
+    for boot in (1, 2):
+        live, keeper = open_live(base, "Robot3", boot, tmp_path, wall_ms=wall_ms)
+        assert keeper is not None
+        keeper.background = False
+        if boot == 1:
+            live.apply("Location", [written.deltas["Location"]], written.made, "Robot1")
+        version = live.etag
+        again = await KBResources(live).write(_request(payload, "Robot2.9.1", peer="Robot2"))
+        assert again.status == Status.CHANGED, again.text()
+        assert again.text() == "removed 0, added 1; ack 2 (made by Robot1, which passed it on here)"
+        assert again.etag == version == live.etag and _notes(live) == {"a"}
+        keeper.close()
 
 
 @pytest.mark.timeout(120)

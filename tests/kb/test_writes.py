@@ -13,13 +13,14 @@ import pytest
 from rdflib import Literal, URIRef
 from support import ONTOLOGIES, free_tcp_port, free_udp_port
 
-from coapkb.kb.client import KBClient, WriteShort, decode
+from coapkb.kb.client import KBClient, QueryFailed, WriteShort, decode
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
 from coapkb.kb.resources import KBResources, QueryLimits
 from coapkb.kb.results import expect_select
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import encode_patch
+from coapkb.kb.write_concern import Ack
 from coapkb.transport import open_client, serve
 from coapkb.transport.base import Endpoint, ServerTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
@@ -219,6 +220,37 @@ async def test_three_holders_converge_over_the_transport(scheme: str) -> None:
         for holding in holdings.values():
             if holding.replicator is not None:
                 await holding.replicator.aclose()
+            await holding.server.aclose()
+        await client.aclose()
+
+
+async def test_a_write_tried_again_at_the_next_holder_is_made_once() -> None:
+    """A writer whose first holder made a write but answered too late sends
+    it, under the same id, to the next holder: the first holder's push
+    carried the id, so the next answers it as a repeat and makes nothing."""
+    client = await open_client("coap")
+    ports = {name: free_udp_port() for name in ("A", "B")}
+    endpoints = {name: Endpoint("coap", "127.0.0.1", port) for name, port in ports.items()}
+    holdings: dict[str, Holding] = {}
+    try:
+        for name in ports:
+            holders = [Holder(n, endpoints[n], ("Location",)) for n in endpoints if n != name]
+            holdings[name] = await _hold("coap", f"{name}.1", ports[name], holders, client)
+        kb = KBClient(client, timeout=10)
+        wid = kb.new_write_id()
+        first = await kb.write(endpoints["A"], MOVE_ROBOT1 % 2, write_id=wid)
+        assert first.reached == Ack.ALL, first.text  # B confirmed it, and has its id
+        version = holdings["B"].live.etag
+        again = await kb.write(endpoints["B"], MOVE_ROBOT1 % 2, write_id=wid)
+        assert again.text == "removed 1, added 1; ack 2 (made by A, which passed it on here)"
+        assert again.version == version == holdings["B"].live.etag
+        assert [h.live.replicas["Location"].context.vv for h in holdings.values()] == [{"A.1": 1}] * 2  # made once
+        with pytest.raises(QueryFailed, match="4.22.*already used for another update"):
+            await kb.write(endpoints["B"], MOVE_ROBOT1 % 3, write_id=wid)
+        with pytest.raises(WriteShort, match="ack 2 .*asked all.*A made it and passed it on here"):
+            await kb.write(endpoints["B"], MOVE_ROBOT1 % 2, write_id=wid, ack=Ack.ALL)
+    finally:
+        for holding in holdings.values():
             await holding.server.aclose()
         await client.aclose()
 

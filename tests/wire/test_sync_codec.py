@@ -10,6 +10,7 @@ and the deltas, the whole written state, or nothing it sends.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cbor2
@@ -20,7 +21,7 @@ from rdflib.term import Literal, URIRef
 
 from coapkb.kb.replica import Replica
 from coapkb.kb.update import encode_patch
-from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from coapkb.model.deltas import CausalContext, Delta, Dot, MadeUnder, Stamp, WrittenState
 from coapkb.model.results import Triple
 from coapkb.wire.codec import CodecError
 from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
@@ -76,6 +77,22 @@ def test_deltas_round_trip() -> None:
     for g, d in zip(got.changes, deltas):
         same_delta(g, d)
     assert got.changes[0] == deltas[0]  # the replica's sorted removed dots keep their order too
+
+
+#: A robot's write under OSCORE (its sender is its writer's robot, left out
+#: on the wire), and a script's on an unprotected team.
+MADE = (MadeUnder("Robot2", "Robot2.7f3a", "12", b"\x01" * 8, 1, 1),
+        MadeUnder(None, "op.7", "3", b"\x02" * 8, 0, 4))
+
+
+@pytest.mark.parametrize("made", MADE)
+def test_the_id_of_a_pushed_write_round_trips(made: MadeUnder) -> None:
+    push = SyncMessage("Location", CONTEXT, [Delta(Dot("Robot1.7", 13), Stamp(5, 0, "Robot1.7"), added=(AISLE,))],
+                       made=made)
+    got = round_trip(push)
+    assert got.made == made and not got.forward
+    if made.peer is not None:  # the sender left out: the id, its digest and two counts
+        assert len(encode_sync(push)) - len(encode_sync(replace(push, made=None))) <= 30
 
 
 def test_a_written_state_round_trips() -> None:
@@ -241,6 +258,8 @@ def test_sync_messages_match_the_cddl(knowledge_cddl: object) -> None:
     messages = [
         SyncMessage("Location", a.context, [first, second]),
         SyncMessage("Location", a.context, [second], forward=True),
+        SyncMessage("Location", a.context, [first], made=MADE[0]),
+        SyncMessage("Location", a.context, [first], forward=True, made=MADE[1]),
         SyncMessage("Location", b.context, b.state()),
         SyncMessage("Location", CausalContext()),
     ]
