@@ -19,6 +19,8 @@ import asyncio
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+import pyoxigraph as ox
+
 from ..agent.lease import LEASE_PATH
 from ..kb.live import LiveKB
 from ..model.results import Triple
@@ -84,16 +86,15 @@ class GrantLog:
             self.grants.append(Grant(server.name, request.query.get("r", ""), round(self._clock(), 6)))
 
 
-def module_triples(live: LiveKB, module: str) -> frozenset[tuple[object, object, object]]:
+def module_triples(live: LiveKB, module: str) -> frozenset[ox.Quad]:
     """Every triple of ``module`` that ``live``'s queries see now (as the
-    store's own terms): read from the store that answers them, not from the
-    replica's bookkeeping."""
+    store's own quads, in the default graph): read from the store that
+    answers them, not from the replica's bookkeeping."""
     prefixes = tuple(live._namespaces[module])
     store = live._view.store if live._view is not None else live._base_store
-    return frozenset(
-        (quad.subject, quad.predicate, quad.object) for quad in store
-        if str(getattr(quad.subject, "value", "")).startswith(prefixes)
-    )
+    # A quad's own hash and a subject's text read directly: this runs over
+    # every holder's whole store at the end of every run.
+    return frozenset(quad for quad in store if getattr(quad.subject, "value", "").startswith(prefixes))
 
 
 def written_view(live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:
