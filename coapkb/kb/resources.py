@@ -25,8 +25,9 @@ from ..transport.messages import ContentFormat, Method, Request, Response, Statu
 from ..transport.router import Router
 from ..wire import codec
 from .answer_cache import AnswerCache
+from .dump_resource import DumpResource
 from .errors import KBError, QueryRefused, QuerySyntaxError, QueryTimeout, UpdateRefused
-from .live import LiveKB, module_namespaces
+from .live import LiveKB
 from .named_queries import NamedQuery, named_queries_for
 from .write_resource import WriteResource
 
@@ -34,9 +35,6 @@ if TYPE_CHECKING:
     from .replication import Replicator
 
 RESULT_FORMATS = (ContentFormat.CBOR, ContentFormat.JSON)
-#: Dumps kept rendered, by module and KB version: the blocks of one transfer
-#: (and a second reader's) are cut from one rendering.
-DUMPS_KEPT = 2
 
 
 @dataclass(frozen=True)
@@ -134,7 +132,8 @@ class KBResources:
         self.answers = AnswerCache()
         #: named query -> the longest any of its runs took (s); runs inline once known cheap.
         self.slowest_run: dict[str, float] = {}
-        self._dumps: dict[tuple[str | None, bytes], bytes] = {}
+        #: ``/kb/dump``.
+        self.dumps = DumpResource(kb, self.limits.retry_after_s, self.max_age_s, threads=threads)
         #: PATCH and iPATCH of ``/kb``, on a writable KB.
         self.writes = None if self.live is None else WriteResource(self.live, self.limits, replicator)
 
@@ -176,7 +175,7 @@ class KBResources:
         router.add(
             ResourceInfo("/kb/dump", rt="coapkb.dump", ct=(ContentFormat.TEXT,),
                          title="every triple, N-Triples, sorted (?module=NAME: one module's)"),
-            self.dump,
+            self.dumps.dump,
         )
         if self.live is not None:
             self.live.listeners.append(lambda modules: self._changed(router, modules))
@@ -219,42 +218,6 @@ class KBResources:
             info["versions"] = {m: self.live.module_version(m).hex() for m in self.live.names}
         payload = cbor2.dumps(info) if fmt == ContentFormat.CBOR else json.dumps(info).encode()
         return Response(Status.CONTENT, payload, fmt, max_age=self.max_age_s, etag=self.kb.etag)
-
-    async def dump(self, request: Request) -> Response:
-        """GET ``/kb/dump[?module=NAME]``: every triple this robot's queries
-        see (of one module: those whose subject is in its namespace, and its
-        ontology's header), as N-Triples (text/plain, content-format 0:
-        N-Triples has no CoAP number), one line each, sorted, so two
-        replicas' dumps compare with ``diff``.  No row limit: a long answer
-        goes block-wise, each block cut from one rendering per KB version."""
-        if request.accept not in (None, ContentFormat.TEXT):
-            return Response.error(Status.NOT_ACCEPTABLE, "a dump is N-Triples, text/plain (content-format 0)")
-        module = request.query.get("module")
-        prefixes = module_namespaces(self.kb.names)
-        if module is not None and module not in prefixes:
-            return Response.error(Status.BAD_REQUEST, f"no module {module!r} here; this robot holds "
-                                  + ", ".join(self.kb.names))
-        etag = self.kb.etag
-        key = (module, etag)
-        body = self._dumps.get(key)
-        if body is None:
-            wanted = None if module is None else prefixes[module]
-            try:
-                body = await asyncio.to_thread(self._render_dump, wanted) if self.threads else self._render_dump(wanted)
-            except KBError as exc:
-                return Response.error(Status.SERVICE_UNAVAILABLE, f"no dump: {exc}", max_age=self.limits.retry_after_s)
-            self._dumps[key] = body
-            while len(self._dumps) > DUMPS_KEPT:
-                del self._dumps[next(iter(self._dumps))]
-        return Response(Status.CONTENT, body, ContentFormat.TEXT, max_age=self.max_age_s,
-                        etag=hashlib.blake2s(etag + (module or "").encode(), digest_size=8).digest())
-
-    def _render_dump(self, prefixes: tuple[str, ...] | None) -> bytes:
-        result = self.kb.query("CONSTRUCT WHERE { ?s ?p ?o }", row_limit=1 << 40, time_budget_s=600.0)
-        lines = sorted(
-            f"{s.n3()} {p.n3()} {o.n3()} .\n" for s, p, o in result.triples  # type: ignore[union-attr]  # a CONSTRUCT
-            if prefixes is None or str(s).startswith(prefixes))
-        return "".join(lines).encode("utf-8")
 
     async def sparql(self, request: Request) -> Response:
         if request.method == Method.GET:
