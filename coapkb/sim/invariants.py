@@ -21,7 +21,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
 from .observed import Take
-from .run import Pick, RunResult, WriteOp
+from .operator import WriteOp
+from .run import Pick, RunResult
 
 
 def check_finished(run: RunResult) -> Iterable[str]:

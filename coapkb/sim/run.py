@@ -39,11 +39,8 @@ from ..harness.record import FaultEvent as RecordedFault
 from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
 from ..host import Host
-from ..kb.client import KBClient, QueryFailed
 from ..kb.journal import encode_record
-from ..kb.live import LiveKB
 from ..kb.replication import SYNC_PATH
-from ..kb.results import expect_ask, expect_select
 from ..kb.store import KnowledgeBase
 from ..model.deltas import CausalContext, Delta, Dot, Stamp
 from ..model.results import QueryResult
@@ -55,8 +52,9 @@ from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
-from .network import INITIAL_RTO_S, SimNetwork
-from .observed import Grant, GrantLog, Shelf, Take, module_triples, written_view
+from .network import SimNetwork
+from .observed import Grant, GrantLog, Shelf, Take
+from .operator import WRITE_LOG, Holders, Operator, WriteOp, shows
 
 log = logging.getLogger(__name__)
 
@@ -65,18 +63,6 @@ DEFAULT_LIMIT_S = 3600.0
 #: How long the holders may take, once the last write is answered and the
 #: faults healed, to agree (anti-entropy rounds every few seconds).
 REPLICATION_SETTLE_S = 60.0
-#: How long a restarted holder (no data folder) may take to catch up: its
-#: catch-up's first two tries, from RFC 6298's first timeout with no sample
-#: (1 s, then 2 s).  A holder's last copy dying sooner is a loss the
-#: schedule excuses; later, the others should have had it.
-CATCH_UP_WINDOW_S = 3 * INITIAL_RTO_S
-#: The subject of each module's write log: the operator's writes add and
-#: remove values of its multi-valued ``written`` property.
-WRITE_LOG = "WriteLog"
-MOVE_ROBOT = (
-    "PREFIX loc: <http://www.tcs.org/2018/Location#> DELETE {{ loc:{robot} loc:Robot_aisle_no ?a }} "
-    "INSERT {{ loc:{robot} loc:Robot_aisle_no {aisle} }} WHERE {{ loc:{robot} loc:Robot_aisle_no ?a }}"
-)
 
 
 @dataclass(frozen=True)
@@ -137,30 +123,6 @@ class Pick:
     seq: int
     object: str
     at_s: float
-
-
-@dataclass(frozen=True)
-class WriteOp:
-    """One of the operator's writes, as sent and answered.
-
-    ``kind``: ``insert`` or ``delete`` of the value ``value`` of the
-    multi-valued log property of ``module``, or ``move`` (a robot's aisle,
-    single-valued).  ``settled``: a delete sent while every holder of its
-    module ran, reachable, at one version and showing the value: it saw
-    every insert of it, so the value must stay gone unless inserted again."""
-
-    label: str
-    robot: str
-    status: str
-    module: str
-    kind: str
-    value: int
-    sent_s: float
-    answered_s: float
-    settled: bool = False
-    #: An acknowledged insert: how many holders had held the value when the
-    #: operator had the answer (:meth:`SimulatedTeam._copies`).
-    copies: int = 0
 
 
 @dataclass(frozen=True)
@@ -463,13 +425,10 @@ class SimulatedTeam:
         self.decided_at: dict[tuple[int, int], float] = {}
         #: The forged syncs the schedule sent.
         self.forgeries: list[Forgery] = []
-        #: Every robot process's KB, the dead ones' as they were at their death.
-        self.lives: list[tuple[str, LiveKB]] = []
         #: What traps, power cuts and forgers run in the faults' process.
         self._faulting: list[asyncio.Task[None]] = []
         #: The faults the schedule's traps injected when they sprang.
         self.sprung: list[FaultEvent] = []
-        self.split_versions: list[str] = []
         self.settled_at: float | None = None
         self.converged_at: float | None = None
         self.feeder: Feeder | None = None
@@ -478,13 +437,10 @@ class SimulatedTeam:
         self.recorded: list[RecordedFault] = []
         #: Set once every task is done: from then on the schedule only heals (no new faults after the run).
         self.ending = False
-        #: The operator's writes (``spec.writes``), as they were answered.
-        self.write_log: list[WriteOp] = []
-        #: (module, value) -> how an acknowledged value's last copy died (no data folder).
-        self.lost_copies: dict[tuple[str, int], str] = {}
-        #: Robot -> when its current process had started.
-        self._started_s: dict[str, float] = {}
-        self.catch_ups = CatchUps(clock, self._shows)
+        #: The holders' KBs, and the operator's writes (``spec.writes``) into them.
+        self.holders = Holders(self.configs, self.robots, self.current, lambda: self.elapsed_s)
+        self.catch_ups = CatchUps(clock, shows)
+        self.operator = Operator(self.holders, self.network, clock, self.note, self.catch_ups)
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
         self._disk_rng = random.Random(rng.random())
@@ -508,33 +464,12 @@ class SimulatedTeam:
                     threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf)
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
-        self._started_s[robot_id] = clock.now
         live = robot.replicator.live if robot.replicator is not None else None
+        self.holders.started(robot_id, live, clock.now)
         if live is not None:
-            self.lives.append((robot_id, live))
-            live.listeners.append(lambda modules: self._compare_at_version(robot_id, modules))
             live.listeners.append(lambda _: self.catch_ups.changed(robot_id, live))
             self.catch_ups.changed(robot_id, live)
         return robot
-
-    def _compare_at_version(self, robot_id: str, modules: frozenset[str]) -> None:
-        """After ``robot_id``'s view changed: every other running holder at the
-        same version of a changed module must show the same triples."""
-        holders = self._live_holders()
-        for module in sorted(modules):
-            mine = holders.get(module, {}).get(robot_id)
-            if mine is None:
-                continue
-            version = mine.module_version(module)
-            view = written_view(mine, module)
-            for other_id, other in sorted(holders[module].items()):
-                if other_id != robot_id and other.module_version(module) == version:
-                    theirs = written_view(other, module)
-                    if theirs != view:
-                        differ = sorted(str(t) for t in view ^ theirs)[:3]
-                        self.split_versions.append(
-                            f"{robot_id} and {other_id} at version {version.hex()} of {module} show different "
-                            f"triples at {self.elapsed_s:.3f}s: {'; '.join(differ)}")
 
     # ------------------------------------------------------------- faults
 
@@ -545,12 +480,12 @@ class SimulatedTeam:
         process = self.current[target]
         if action == "kill":
             if not self.spec.storage:
-                self._last_copies(target)
+                self.operator.last_copies(target)
             self.catch_ups.killed(target)
             self.scheduler.kill(process)
             self._crash_disk(target)
         elif action == "restart":
-            self.catch_ups.expect(target, self._owed(target))
+            self.catch_ups.expect(target, self.operator.owed(target))
             reborn = self._spawn(target)
             feeder = self.feeder
 
@@ -615,7 +550,7 @@ class SimulatedTeam:
         modules = self.configs[robot_id].team[robot_id].kbs
         if not modules:
             return
-        holders = [r for r in self._holders(modules[0]) if self.current[r].status != "dead"]
+        holders = [r for r in self.holders.of(modules[0]) if self.current[r].status != "dead"]
         for holder in holders:
             self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "kill", (holder,)))
             self.inject(self.sprung[-1])
@@ -697,178 +632,6 @@ class SimulatedTeam:
 
     # ------------------------------------------------------------- writes
 
-    async def _write(self, operator: Process, rng: random.Random) -> None:
-        """The operator's writes: at random times over the run, each to a
-        random robot and a module it holds.  A write adds a value to the
-        module's log (a multi-valued property), adds the same value at two
-        holders at once, removes a value added before, adds a value at one
-        holder while another removes it, or moves a robot (a single value:
-        the latest write wins)."""
-        # A writer named by its process, not a random one: a seed runs alike.
-        client = KBClient(await self.network.for_process(operator).open_client("coap"), timeout=10.0,
-                          writer=operator.name)
-        times = sorted(rng.uniform(0, self.spec.horizon_s) for _ in range(self.spec.writes))
-        loop = asyncio.get_running_loop()
-        pending: list[asyncio.Task[None]] = []
-        inserted: dict[str, list[int]] = {}
-        for i, at in enumerate(times):
-            await asyncio.sleep(max(0.0, (self.fed_at or 0.0) + at - loop.time()))
-            robot = rng.choice(sorted(self.configs))
-            module = rng.choice(self.configs[robot].team[robot].kbs)
-            others = [r for r in self._holders(module) if r != robot]
-            draw = rng.random()
-            ops: list[tuple[str, str, int]] = []  # (robot, kind, value)
-            if module == "Location" and draw < 0.25:
-                ops.append((robot, "move", rng.randint(1, 9)))
-            elif draw < 0.55 or (draw < 0.85 and not inserted.get(module)):
-                ops.append((robot, "insert", i))
-            elif draw < 0.65 and others:
-                ops += [(robot, "insert", i), (rng.choice(others), "insert", i)]
-            elif draw < 0.85:
-                ops.append((robot, "delete", rng.choice(inserted[module])))
-            elif others:
-                ops += [(robot, "insert", i), (rng.choice(others), "delete", i)]
-            else:
-                ops.append((robot, "insert", i))
-            for to, kind, value in ops:
-                if kind == "insert":
-                    inserted.setdefault(module, []).append(value)
-                elif kind == "delete":
-                    self.catch_ups.deleting(module, value)
-                task = loop.create_task(self._send_write(client, to, module, f"w{i}", kind, value))
-                pending.append(task)
-        await asyncio.gather(*pending)
-
-    def _owed(self, robot_id: str) -> dict[str, set[int]]:
-        """What ``robot_id``, restarting now, must catch up with: per module
-        it holds, the acknowledged values every other running holder shows."""
-        live = self._live_holders()
-        owed: dict[str, set[int]] = {}
-        for module in self.configs[robot_id].team[robot_id].kbs:
-            others = [kb for r, kb in live.get(module, {}).items() if r != robot_id]
-            acknowledged = {op.value for op in self.write_log
-                            if op.module == module and op.kind == "insert" and op.status == "2.04"}
-            if others:
-                owed[module] = {v for v in acknowledged if all(self._shows(kb, module, v) for kb in others)}
-        return owed
-
-    def _holders(self, module: str) -> list[str]:
-        return [r for r, c in sorted(self.configs.items()) if module in c.team[r].kbs]
-
-    def _write_text(self, module: str, kind: str, value: int) -> str:
-        if kind == "move":
-            return MOVE_ROBOT.format(robot=sorted(self.configs)[value % len(self.configs)], aisle=value)
-        ns = ONTOLOGIES[module][1]
-        verb = "INSERT" if kind == "insert" else "DELETE"
-        return f"{verb} DATA {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
-
-    def _shows(self, live: LiveKB, module: str, value: int) -> bool:
-        ns = ONTOLOGIES[module][1]
-        ask = f"ASK {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
-        return expect_ask(live.query(ask), ask).value
-
-    def _all_holders_settled(self, module: str, value: int) -> bool:
-        """Every holder of ``module`` runs, reachable, at one version, showing
-        ``value``: a delete sent now has seen every insert of it."""
-        live = self._live_holders().get(module, {})
-        holders = self._holders(module)
-        if sorted(live) != holders or any(self.network.isolated(r) for r in holders):
-            return False
-        if len({kb.module_version(module) for kb in live.values()}) != 1:
-            return False
-        return all(self._shows(kb, module, value) for kb in live.values())
-
-    async def _send_write(self, client: KBClient, robot: str, module: str, label: str, kind: str, value: int) -> None:
-        sent = self.scheduler.clock.now
-        settled = kind == "delete" and self._all_holders_settled(module, value)
-        try:
-            await client.update(self.configs[robot].bind, self._write_text(module, kind, value))
-            status = "2.04"
-        except QueryFailed as exc:
-            status = exc.response.status.dotted
-        except TransportError:
-            status = "lost"
-        copies = self._copies(module, value) if status == "2.04" and kind == "insert" else 0
-        self.note(f"write {label} {kind} {value} to {robot} ({module}): {status}")
-        self.write_log.append(WriteOp(label, robot, status, module, kind, value, round(sent, 6),
-                                      round(self.scheduler.clock.now, 6), settled, copies))
-
-    def _last_copies(self, dying: str) -> None:
-        """Acknowledged values that die with ``dying``'s memory (no data
-        folder): no other holder's process, running or frozen, shows them,
-        and each such process started too recently to have caught up
-        (:data:`CATCH_UP_WINDOW_S`).  A holder up for longer that lacks the
-        value is the protocol's failure, not the schedule's."""
-        robot = self.robots.get(dying)
-        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
-        if live is None:
-            return
-        now = self.scheduler.clock.now
-        others = {r_id: r.replicator.live for r_id, r in self.robots.items()
-                  if r_id != dying and r.replicator is not None and r.replicator.live is not None
-                  and self.current[r_id].status != "dead"}
-        for op in self.write_log:
-            if (op.kind != "insert" or op.status != "2.04" or (op.module, op.value) in self.lost_copies
-                    or op.module not in live.names or not self._shows(live, op.module, op.value)):
-                continue
-            holding = {r: kb for r, kb in others.items() if op.module in kb.names}
-            if any(self._shows(kb, op.module, op.value) for kb in holding.values()):
-                continue
-            if all(now - self._started_s[r] < CATCH_UP_WINDOW_S for r in holding):
-                young = "".join(f"; {r} had started {now - self._started_s[r]:.3f}s before" for r in sorted(holding))
-                self.lost_copies[(op.module, op.value)] = (
-                    f"{dying} was killed at {now:.3f}s with the last copy in memory (no data folder){young}")
-
-    def _copies(self, module: str, value: int) -> int:
-        """How many holders of ``module`` have held ``value`` by now: a
-        process showing it now, or one killed since, whose state (as it was
-        at its death) showed it; what an acknowledgement may count on."""
-        held = {robot_id for robot_id, live in self.lives
-                if module in live.names and self._shows(live, module, value)}
-        return len(held)
-
-    def _live_holders(self) -> dict[str, dict[str, LiveKB]]:
-        """Module -> running robot -> its LiveKB."""
-        held: dict[str, dict[str, LiveKB]] = {}
-        for robot_id, robot in self.robots.items():
-            live = robot.replicator.live if robot.replicator is not None else None
-            if live is None or self.current[robot_id].status != "running":
-                continue
-            for module in live.names:
-                held.setdefault(module, {})[robot_id] = live
-        return held
-
-    def _replicas_agree(self) -> bool:
-        return all(
-            len({live.module_version(module) for live in holders.values()}) == 1
-            for module, holders in self._live_holders().items()
-        )
-
-    def _replication_outcome(self) -> tuple[dict[str, dict[str, str]], dict[str, dict[str, frozenset[int]]],
-                                            dict[str, list[str]]]:
-        """Per module at the end: each running holder's version, the log
-        values its queries see, and the holders whose triples differ."""
-        versions: dict[str, dict[str, str]] = {}
-        values: dict[str, dict[str, frozenset[int]]] = {}
-        differences: dict[str, list[str]] = {}
-        for module, holders in sorted(self._live_holders().items()):
-            ns = ONTOLOGIES[module][1]
-            select = f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
-            versions[module] = {r: live.module_version(module).hex() for r, live in sorted(holders.items())}
-            values[module] = {
-                r: frozenset(int(str(row[0])) for row in expect_select(live.query(select), select).rows)
-                for r, live in sorted(holders.items())
-            }
-            first_id, *rest = sorted(holders)
-            first = module_triples(holders[first_id], module)
-            for other_id in rest:
-                other = module_triples(holders[other_id], module)
-                if other != first:
-                    differ = sorted(str(t) for t in first ^ other)
-                    differences.setdefault(module, []).append(
-                        f"{first_id} and {other_id} differ by {len(differ)} triples, e.g. {'; '.join(differ[:2])}")
-        return versions, values, differences
-
     # ------------------------------------------------------------- the run
 
     async def _feed(self, chaos: Process) -> TeamRecord:
@@ -882,7 +645,8 @@ class SimulatedTeam:
             writer = None
             if self.spec.writes:
                 operator = self._spawn("operator")
-                writer = self.scheduler.start(operator, self._write(operator, random.Random(self._write_seed)))
+                writer = self.scheduler.start(operator, self.operator.write(
+                    operator, random.Random(self._write_seed), self.spec.writes, self.spec.horizon_s, started))
             scenario = self.spec.scenario
 
             def progress(record: TaskRecord) -> None:
@@ -907,9 +671,9 @@ class SimulatedTeam:
                     while not writer.done():  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
                     deadline = asyncio.get_running_loop().time() + REPLICATION_SETTLE_S
-                    while not self._replicas_agree() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
+                    while not self.holders.agree() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
-                    self.converged_at = round(self.elapsed_s, 6) if self._replicas_agree() else None
+                    self.converged_at = round(self.elapsed_s, 6) if self.holders.agree() else None
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]
                 maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
@@ -970,7 +734,7 @@ class SimulatedTeam:
                 except (SimulationError, FeederError, TransportError, TimeoutError) as exc:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
-                versions, values, differences = self._replication_outcome() if spec.writes else ({}, {}, {})
+                versions, values, differences = self.holders.outcome() if spec.writes else ({}, {}, {})
                 catch_up_s = self.catch_ups.finish()
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
                 self._release_disks()
@@ -984,10 +748,10 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.write_log), lost_copies=dict(self.lost_copies), forgeries=list(self.forgeries),
-            catch_up_s=catch_up_s, holders={m: len(self._holders(m)) for m in sorted(ONTOLOGIES)},
+            writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.forgeries),
+            catch_up_s=catch_up_s, holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
-            split_versions=list(self.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
+            split_versions=list(self.holders.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
             settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
         )

@@ -8,7 +8,8 @@ from coapkb.harness.record import TeamRecord
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.invariants import check
 from coapkb.sim.observed import Grant, Take
-from coapkb.sim.run import Pick, RunResult, WriteOp
+from coapkb.sim.operator import WriteOp
+from coapkb.sim.run import Pick, RunResult
 from coapkb.transport.base import TrafficCounters
 
 CLUSTER = ["Robot1", "Robot2", "Robot3"]
