@@ -9,14 +9,14 @@ simulator watches three things from where the robots cannot lie:
   answered, with the robot's process and the simulated time;
 * the network (:class:`GrantLog`): every lease a robot granted a teammate,
   read off the answers its server sent;
-* the knowledge base (:func:`module_triples`, :func:`written_view`): the
+* the knowledge base (:func:`store_quads`, :func:`written_view`): the
   triples a holder's queries see, compared between holders.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import pyoxigraph as ox
@@ -86,15 +86,16 @@ class GrantLog:
             self.grants.append(Grant(server.name, request.query.get("r", ""), round(self._clock(), 6)))
 
 
-def module_triples(live: LiveKB, module: str) -> frozenset[ox.Quad]:
-    """Every triple of ``module`` that ``live``'s queries see now (as the
-    store's own quads, in the default graph): read from the store that
+def store_quads(live: LiveKB) -> frozenset[ox.Quad]:
+    """Every quad ``live``'s queries see now: read from the store that
     answers them, not from the replica's bookkeeping."""
+    return frozenset(live._view.store if live._view is not None else live._base_store)
+
+
+def of_module(quads: Iterable[ox.Quad], live: LiveKB, module: str) -> list[ox.Quad]:
+    """Those of ``quads`` whose subject is in ``module``'s namespaces."""
     prefixes = tuple(live._namespaces[module])
-    store = live._view.store if live._view is not None else live._base_store
-    # A quad's own hash and a subject's text read directly: this runs over
-    # every holder's whole store at the end of every run.
-    return frozenset(quad for quad in store if getattr(quad.subject, "value", "").startswith(prefixes))
+    return [quad for quad in quads if getattr(quad.subject, "value", "").startswith(prefixes)]
 
 
 def written_view(live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:

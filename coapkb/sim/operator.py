@@ -15,6 +15,8 @@ import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+import pyoxigraph as ox
+
 from ..agent.robot import Robot
 from ..config import RobotConfig
 from ..kb.client import KBClient, QueryFailed
@@ -25,7 +27,7 @@ from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
 from .loop import Process
 from .network import INITIAL_RTO_S, SimNetwork
-from .observed import module_triples, written_view
+from .observed import of_module, store_quads, written_view
 
 #: How long a restarted holder (no data folder) may take to catch up: its
 #: catch-up's first two tries, from RFC 6298's first timeout with no sample
@@ -139,6 +141,10 @@ class Holders:
         versions: dict[str, dict[str, str]] = {}
         values: dict[str, dict[str, frozenset[int]]] = {}
         differences: dict[str, list[str]] = {}
+        # Each store read once: two holders' stores differ only in their
+        # other modules' triples unless something is wrong, and only the
+        # difference is sorted by module (this runs at the end of every run).
+        quads: dict[str, frozenset[ox.Quad]] = {}
         for module, holders in sorted(self.running().items()):
             ns = ONTOLOGIES[module][1]
             select = f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
@@ -147,12 +153,13 @@ class Holders:
                 r: frozenset(int(str(row[0])) for row in expect_select(live.query(select), select).rows)
                 for r, live in sorted(holders.items())
             }
+            for robot_id, live in holders.items():
+                if robot_id not in quads:
+                    quads[robot_id] = store_quads(live)
             first_id, *rest = sorted(holders)
-            first = module_triples(holders[first_id], module)
             for other_id in rest:
-                other = module_triples(holders[other_id], module)
-                if other != first:
-                    differ = sorted(str(t) for t in first ^ other)
+                differ = sorted(str(q) for q in of_module(quads[first_id] ^ quads[other_id], holders[first_id], module))
+                if differ:
                     differences.setdefault(module, []).append(
                         f"{first_id} and {other_id} differ by {len(differ)} triples, e.g. {'; '.join(differ[:2])}")
         return versions, values, differences
