@@ -28,8 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
 
-from rdflib import Literal, URIRef
-
 from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
 from ..agent.team_view import liveness_floor_s
@@ -40,14 +38,9 @@ from ..harness.record import FaultEvent as RecordedFault
 from ..harness.record import TeamRecord
 from ..harness.team import DEFAULT_ONTOLOGIES, TeamSpec, product_names, robot_configs, team_record
 from ..host import Host
-from ..kb.journal import encode_record
-from ..kb.replication import SYNC_PATH
 from ..kb.store import KnowledgeBase
-from ..model.deltas import CausalContext, Delta, Dot, Stamp
 from ..model.results import QueryResult
 from ..transport.base import Endpoint, TransportError
-from ..transport.messages import ContentFormat, Method, Request
-from ..wire.sync import SyncMessage, encode_sync
 from ..world.truth import WorldTruth
 from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
@@ -55,7 +48,8 @@ from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
 from .observed import Grant, GrantLog, Shelf, Take
-from .operator import WRITE_LOG, Holders, Operator, WriteOp, shows
+from .operator import Holders, Operator, WriteOp, shows
+from .saboteur import Forgery, Saboteur
 
 log = logging.getLogger(__name__)
 
@@ -124,18 +118,6 @@ class Pick:
     seq: int
     object: str
     at_s: float
-
-
-@dataclass(frozen=True)
-class Forgery:
-    """A sync a non-holder's credential sent in a holder's writer name, and
-    its answer: it must be refused, and its value never show."""
-
-    victim: str
-    forger: str
-    module: str
-    value: int
-    status: str
 
 
 @dataclass
@@ -427,12 +409,6 @@ class SimulatedTeam:
         self.network.answer_hooks.append(self.grants.answered)
         self.history = _History(self.processes, clock, self.note if trace else None)
         self.decided_at: dict[tuple[int, int], float] = {}
-        #: The forged syncs the schedule sent.
-        self.forgeries: list[Forgery] = []
-        #: What traps, power cuts and forgers run in the faults' process.
-        self._faulting: list[asyncio.Task[None]] = []
-        #: The faults the schedule's traps injected when they sprang.
-        self.sprung: list[FaultEvent] = []
         self.settled_at: float | None = None
         self.converged_at: float | None = None
         self.feeder: Feeder | None = None
@@ -447,11 +423,15 @@ class SimulatedTeam:
         self.operator = Operator(self.holders, self.network, clock, self.note, self.catch_ups)
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
-        self._disk_rng = random.Random(rng.random())
+        self.saboteur = Saboteur(self, random.Random(rng.random()))
 
     def note(self, text: str) -> None:
-        """A line of the trace, stamped with the simulated time."""
+        """A line of the trace, stamped with the simulated time; the data
+        folders' temporary parent as ``DATA`` (its name is drawn afresh at
+        every run, and a replay must give the same trace)."""
         if self._out is not None:
+            if self._data is not None:
+                text = text.replace(self._data.name, "DATA")
             self._out.write(f"{self.scheduler.clock.now:11.6f} {text}\n")
 
     # ------------------------------------------------------------- processes
@@ -487,7 +467,7 @@ class SimulatedTeam:
                 self.operator.last_copies(target)
             self.catch_ups.killed(target)
             self.scheduler.kill(process)
-            self._crash_disk(target)
+            self.saboteur.torn_disk(target)
         elif action == "restart":
             self.catch_ups.expect(target, self.operator.owed(target))
             reborn = self._spawn(target)
@@ -512,11 +492,11 @@ class SimulatedTeam:
         elif action == "starve":
             process.starve(event.amount, (self.fed_at or 0.0) + event.until_s, self.scheduler.clock.now)
         elif action.endswith("-picking"):
-            self._faulting.append(self.scheduler.start(self.current["faults"], self._trap(event)))
+            self.saboteur.trap(event)
         elif action == "crash":
-            self._crash_holders(target, event.amount)
+            self.saboteur.power_cut(target, event.amount)
         elif action == "forge":
-            self._faulting.append(self.scheduler.start(self.current["faults"], self._forge(target, event.other[0])))
+            self.saboteur.forge(target, event.other[0])
         if not action.endswith("-picking"):
             self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
 
@@ -527,95 +507,6 @@ class SimulatedTeam:
                 robot.keeper.journal.close()
         if self._data is not None:
             self._data.cleanup()
-
-    def _crash_disk(self, robot_id: str) -> None:
-        """What a killed robot leaves on its disk: its folder released (the
-        OS closes a dead process's files and its lock), and, half the time,
-        the start of a record it never finished writing (a torn tail, which
-        the restart must cut)."""
-        robot = self.robots.get(robot_id)
-        keeper = robot.keeper if robot is not None else None
-        if keeper is None:
-            return
-        keeper.journal.close()
-        if self._disk_rng.random() < 0.5:
-            journals = sorted(keeper.journal.path.glob("journal.*"), key=lambda p: int(p.suffix[1:]))
-            if journals:
-                # A prefix of a whole record: what a write cut by the power leaves.
-                record = encode_record(bytes(self._disk_rng.randrange(256) for _ in range(40)))
-                torn = record[:self._disk_rng.randint(1, len(record) - 1)]
-                with open(journals[-1], "ab") as tail:
-                    tail.write(torn)
-                self.note(f"disk {robot_id}: {len(torn)} bytes of a torn record after {journals[-1].name}")
-
-    def _crash_holders(self, robot_id: str, down_s: float) -> None:
-        """Every holder of a module ``robot_id`` holds killed at once (a power
-        cut), and restarted ``down_s`` later."""
-        modules = self.configs[robot_id].team[robot_id].kbs
-        if not modules:
-            return
-        holders = [r for r in self.holders.of(modules[0]) if self.current[r].status != "dead"]
-        for holder in holders:
-            self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "kill", (holder,)))
-            self.inject(self.sprung[-1])
-
-        async def restart() -> None:
-            await asyncio.sleep(down_s)
-            for holder in holders:
-                self.sprung.append(FaultEvent(round(self.elapsed_s, 3), "restart", (holder,)))
-                self.inject(self.sprung[-1])
-        self._faulting.append(self.scheduler.start(self.current["faults"], restart()))
-
-    async def _forge(self, victim: str, forger: str) -> None:
-        """``forger``'s credential used against ``victim``: a sync of a module
-        ``victim`` holds and ``forger`` does not, carrying a delta in
-        ``victim``'s own writer name at its next dot (the write it would make
-        next would be taken for a duplicate and lost), stamped far ahead, that
-        adds a value no one wrote to the module's log."""
-        robot = self.robots.get(victim)
-        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
-        held = [m for m in self.configs[victim].team[victim].kbs if m not in self.configs[forger].team[forger].kbs]
-        if live is None or not held or self.current[victim].status == "dead":
-            self.note(f"forge {victim} as {forger}: nothing to forge")
-            return
-        module = held[0]
-        ns = ONTOLOGIES[module][1]
-        value = -1 - len(self.forgeries)
-        triple = (URIRef(f"{ns}{WRITE_LOG}"), URIRef(f"{ns}written"), Literal(value))
-        writer = live.writer
-        next_dot = Dot(writer, live.replicas[module].context.vv.get(writer, 0) + 1)
-        stamp = Stamp(int(self.scheduler.clock.now * 1000) + 3_600_000, 0, writer)
-        message = SyncMessage(module, CausalContext(), [Delta(next_dot, stamp, (triple,))], forward=True)
-        request = Request(Method.POST, SYNC_PATH, payload=encode_sync(message), content_format=ContentFormat.CBOR,
-                          peer=forger)
-        client = await self.network.for_process(self.current["faults"]).open_client("coap")
-        try:
-            status = (await client.request(self.configs[victim].bind, request, timeout=10.0)).status.dotted
-        except TransportError:
-            status = "lost"
-        self.note(f"forge {victim} as {forger} ({module} value {value}): {status}")
-        self.forgeries.append(Forgery(victim, forger, module, value, status))
-
-    async def _trap(self, event: FaultEvent) -> None:
-        """Spring ``event``'s trap the moment its robot starts a pick (looked
-        at every 10 ms of simulated time until the trap expires)."""
-        target = event.targets[0]
-        while self.elapsed_s < event.until_s and not self.ending:
-            robot = self.robots.get(target)
-            if (robot is not None and self.current[target].status == "running"
-                    and robot.executor.live.activity == "picking"):
-                if event.action == "freeze-picking":
-                    start, end = FaultEvent(round(self.elapsed_s, 3), "freeze", (target,)), "resume"
-                else:
-                    everyone = tuple(r for r in ["feeder", *self.team.robot_ids] if r != target)
-                    start, end = FaultEvent(round(self.elapsed_s, 3), "cut", (target,), other=everyone), "heal"
-                self.sprung.append(start)
-                self.inject(start)
-                await asyncio.sleep(event.amount)
-                self.sprung.append(FaultEvent(round(self.elapsed_s, 3), end, (target,)))
-                self.inject(self.sprung[-1])
-                return
-            await asyncio.sleep(0.01)
 
     @property
     def elapsed_s(self) -> float:
@@ -667,7 +558,7 @@ class SimulatedTeam:
                 # The faults a trap, a power cut or a forger started end too (a
                 # robot resumed, restarted): the run ends with every fault healed.
                 while (not schedule.done() or not self._settled()  # noqa: ASYNC110 - other processes' state, no event to await
-                       or not all(t.done() for t in self._faulting)):
+                       or not self.saboteur.done):
                     await asyncio.sleep(0.5)
                 self.settled_at = round(self.elapsed_s, 6)
                 if writer is not None:
@@ -748,11 +639,11 @@ class SimulatedTeam:
         return RunResult(
             seed=self.seed, schedule=str(self.schedule), record=record, error=error, picks=self.history.picks,
             crashes=list(scheduler.crashes), bounds=bounds,
-            events=sorted([*self.schedule.events, *self.sprung], key=lambda e: e.at_s),
+            events=sorted([*self.schedule.events, *self.saboteur.sprung], key=lambda e: e.at_s),
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.forgeries),
+            writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.saboteur.forgeries),
             catch_up_s=catch_up_s, holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.holders.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
