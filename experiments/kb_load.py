@@ -161,7 +161,7 @@ def _median_us(results: list[dict[str, float]], key: str) -> float | str:
 
 
 def inline_below_us() -> int:
-    from coapkb.kb.resources import QueryLimits
+    from coapkb.kb.limits import QueryLimits
 
     return round(QueryLimits().inline_below_s * 1e6)
 

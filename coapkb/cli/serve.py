@@ -31,8 +31,9 @@ def add_serve(sub: argparse._SubParsersAction[Parser]) -> None:
 
 async def _serve(args: argparse.Namespace) -> int:
     from ..kb.durable import open_live
+    from ..kb.limits import QueryLimits
     from ..kb.live import LiveKB, wall_ms
-    from ..kb.resources import KBResources, QueryLimits
+    from ..kb.resources import KBResources
     from ..kb.store import KnowledgeBase
     from ..transport import serve
     from ..transport.router import Router

@@ -12,7 +12,7 @@ from .errors import KBError
 from .live import module_namespaces
 
 if TYPE_CHECKING:
-    from .resources import QueryableKB
+    from .store import QueryableKB
 
 #: Dumps kept rendered, by module and KB version: the blocks of one transfer
 #: (and a second reader's) are cut from one rendering.

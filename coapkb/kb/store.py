@@ -43,6 +43,22 @@ __all__ = ["BACKENDS", "KnowledgeBase", "named_rows"]
 BACKENDS = ("oxigraph", "rdflib")
 
 
+class QueryableKB(Protocol):
+    """What answering needs of a KB: a :class:`~.store.KnowledgeBase` or a :class:`~.live.LiveKB`."""
+
+    names: tuple[str, ...]
+    backend: str
+    prefixes: dict[str, str]
+
+    @property
+    def triple_count(self) -> int: ...
+
+    @property
+    def etag(self) -> bytes: ...
+
+    def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult: ...
+
+
 class Backend(Protocol):
     """What :class:`KnowledgeBase` needs of a backend."""
 

@@ -21,8 +21,8 @@ from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line
 from .write_ids import WID_PARAM, Remembered, WriteId, WriteTag, body_digest, parse_wid
 
 if TYPE_CHECKING:
+    from .limits import QueryLimits
     from .replication import Replicator
-    from .resources import QueryLimits
 
 
 class WriteResource:

@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import asyncio
 import random
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from rdflib import Literal, URIRef
 
+from ..agent.robot import Robot
+from ..config import RobotConfig
+from ..harness.team import TeamSpec
 from ..kb.journal import encode_record
 from ..kb.replication import SYNC_PATH
 from ..model.deltas import CausalContext, Delta, Dot, Stamp
@@ -26,10 +29,37 @@ from ..transport.messages import ContentFormat, Method, Request
 from ..wire.sync import SyncMessage, encode_sync
 from ..world.vocabulary import ONTOLOGIES
 from .faults import FaultEvent
-from .operator import WRITE_LOG
+from .loop import Process, Scheduler
+from .network import SimNetwork
+from .operator import WRITE_LOG, Holders
 
-if TYPE_CHECKING:
-    from .run import SimulatedTeam
+
+class Run(Protocol):
+    """What the saboteur reads and does of a run (:class:`~coapkb.sim.run.SimulatedTeam`)."""
+
+    @property
+    def configs(self) -> Mapping[str, RobotConfig]: ...
+    @property
+    def robots(self) -> Mapping[str, Robot]: ...
+    @property
+    def current(self) -> Mapping[str, Process]: ...
+    @property
+    def holders(self) -> Holders: ...
+    @property
+    def scheduler(self) -> Scheduler: ...
+    @property
+    def network(self) -> SimNetwork: ...
+    @property
+    def team(self) -> TeamSpec: ...
+    @property
+    def ending(self) -> bool:
+        """Every task is done: a trap set now is not sprung."""
+    @property
+    def elapsed_s(self) -> float: ...
+
+    def note(self, text: str) -> None: ...
+
+    def inject(self, event: FaultEvent) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -48,7 +78,7 @@ class Saboteur:
     """What the run's ``faults`` process does to ``run``; ``disk_rng``
     draws the torn tails."""
 
-    def __init__(self, run: SimulatedTeam, disk_rng: random.Random) -> None:
+    def __init__(self, run: Run, disk_rng: random.Random) -> None:
         self.run = run
         self._disk_rng = disk_rng
         #: The plain faults the traps and power cuts injected when they sprang.

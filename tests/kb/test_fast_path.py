@@ -10,7 +10,8 @@ import threading
 import pytest
 from support import KB_FILES
 
-from coapkb.kb.resources import KBResources, QueryLimits
+from coapkb.kb.limits import QueryLimits
+from coapkb.kb.resources import KBResources
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 

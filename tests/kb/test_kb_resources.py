@@ -8,7 +8,8 @@ import sys
 import pytest
 from support import KB_FILES
 
-from coapkb.kb.resources import KBResources, QueryLimits
+from coapkb.kb.limits import QueryLimits
+from coapkb.kb.resources import KBResources
 from coapkb.kb.store import KnowledgeBase
 from coapkb.transport.messages import Method, Request, Status
 from coapkb.transport.router import Router

@@ -14,9 +14,10 @@ from rdflib import Literal, URIRef
 from support import ONTOLOGIES, free_tcp_port, free_udp_port
 
 from coapkb.kb.client import KBClient, QueryFailed, WriteShort, decode
+from coapkb.kb.limits import QueryLimits
 from coapkb.kb.live import LiveKB, wall_ms
 from coapkb.kb.replication import Holder, ReplicationSettings, Replicator
-from coapkb.kb.resources import KBResources, QueryLimits
+from coapkb.kb.resources import KBResources
 from coapkb.kb.results import expect_select
 from coapkb.kb.store import KnowledgeBase
 from coapkb.kb.update import encode_patch
