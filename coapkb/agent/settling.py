@@ -87,6 +87,7 @@ class Settler:
             failed_too = 0
             deciding = unanswered = False
             answered_at = {mate: at for mate, (_, at) in zip(mates, timed)}
+            known: list[tuple[str, DecisionMessage]] = []
             for mate, theirs in zip(mates, answers):
                 if isinstance(theirs, BaseException):
                     # A lost answer is asked again (found in the simulator:
@@ -122,15 +123,21 @@ class Settler:
                     failed_too += 1
                     continue
                 if theirs.decision.error is None and theirs.decision.unavailable is None:
-                    log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
-                                task.seq, task.object, mate)
-                    # And the membership it was taken in: this robot's own
-                    # view may not have caught up (it computed nothing), and
-                    # the next join counts its epoch from there (found in
-                    # the simulator).
-                    self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
-                    return theirs
+                    known.append((mate, theirs))
+                    continue
                 failed_too += 1
+            if known:
+                # In the newest membership: a teammate's decision in an older
+                # one is void if the newer left it out (the feeder voids it).
+                mate, theirs = max(known, key=lambda item: item[1].decision.epoch)
+                log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
+                            task.seq, task.object, mate)
+                # And the membership it was taken in: this robot's own
+                # view may not have caught up (it computed nothing), and
+                # the next join counts its epoch from there (found in
+                # the simulator).
+                self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
+                return theirs
             if failed_too == len(mates):  # nobody had the knowledge: every robot alike
                 return alone
             await asyncio.sleep(SETTLE_POLL_S)
@@ -201,7 +208,12 @@ class Settler:
                  if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
                  and theirs.decision.error is None and self.counts_me(theirs.decision)
                  and (theirs.decision.unavailable is None or theirs.decision.members)]
-        taken.sort(key=lambda item: item[1].decision.unavailable is not None)  # on knowledge first
+        # On knowledge first, then in the newest membership: a decision in an
+        # older one is void if the newer left its robot out (found in the
+        # simulator, seed 11774: a robot back from a freeze decided in the
+        # membership it had left, a teammate had excluded it meanwhile, and
+        # the third, lagging, took the frozen one's decision).
+        taken.sort(key=lambda item: (item[1].decision.unavailable is not None, -item[1].decision.epoch))
         if not taken:
             return None
         mate, theirs = taken[0]

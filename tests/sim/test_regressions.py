@@ -108,6 +108,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         7862: "a starved robot settling a task ended on both teammates' unavailable answers, one of them 15 s old "
               "(its round waited on the teammate cut off): that one had decided again on the next holder since",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage"), {
+        11774: "a robot back from a 16 s freeze decided a task in the membership it had left; a teammate had "
+               "excluded it meanwhile, and the third, lagging, took the frozen one's decision: two epochs",
+    }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
     }),
