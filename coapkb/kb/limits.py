@@ -9,6 +9,7 @@ from typing import Any
 
 from .. import clock
 from ..model.results import Term
+from ..typed_fields import require_at_least
 from .errors import QueryTimeout
 
 
@@ -64,10 +65,8 @@ class QueryLimits:
     inline_below_s: float = 0.002
 
     def __post_init__(self) -> None:
-        for name in ("row_limit", "max_request_bytes", "max_age_s", "live_max_age_s", "max_update_bytes",
-                     "retry_after_s", "max_concurrent"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        require_at_least(self, ("row_limit", "max_request_bytes", "max_age_s", "live_max_age_s",
+                                "max_update_bytes", "retry_after_s", "max_concurrent"))
         if not self.time_budget_s > 0:
             raise ValueError(f"time_budget_s must be positive, got {self.time_budget_s}")
         if not 0 <= self.inline_below_s < self.time_budget_s:
