@@ -28,6 +28,7 @@ from .controller import DEFAULT_BOUNDS, Controller, RobotBounds
 from .knowledge_writer import KnowledgeWriter
 from .lease import Lease
 from .local_health import LoopHealth
+from .observed_states import OUTCOME_PATH, PLAN_PATH, STATE_PATH
 from .progress import ProgressPacing, acted_on
 from .query_handler import QueryError, QueryHandler
 from .robot_resources import FinalOutcome, RobotResources
@@ -35,7 +36,7 @@ from .robot_state import LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_assigner import robot_sort_key
 from .task_executor import TaskExecutor
-from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
+from .team_view import TeamView
 from .teammate_calls import TeammateCalls
 
 if TYPE_CHECKING:  # discovery is imported only when a robot uses it

@@ -34,9 +34,10 @@ from ..transport.router import Router
 from .controller import Controller
 from .decisions import CLAIMS_PATH, DecisionMessage, Task, encode_claims
 from .lease import LEASE_PATH
+from .observed_states import OUTCOME_PATH, PLAN_PATH, STATE_PATH
 from .robot_state import LiveState, RobotState
 from .stats import RobotStats
-from .team_view import OUTCOME_PATH, PLAN_PATH, STATE_PATH, TeamView
+from .team_view import TeamView
 
 OBJECT_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 #: How long one snapshot of a robot's statistics is served (``/robot/stats``).

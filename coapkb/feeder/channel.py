@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 from .. import clock
 from ..agent.local_health import LoopHealth
+from ..agent.observed_states import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..agent.robot_state import RobotState
-from ..agent.team_view import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
 from ..host import Network, Sockets
 from ..transport import ClientSecurity, reliability_for
 from ..transport.base import ClientTransport, Endpoint, TransportError

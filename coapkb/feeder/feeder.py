@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING
 import cbor2
 
 from .. import clock
+from ..agent.observed_states import ObservedStates, States
 from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
-from ..agent.team_view import ObservedStates, States
 from ..host import Network
 from ..transport import ClientSecurity
 from ..transport.base import TrafficCounters, TransportError

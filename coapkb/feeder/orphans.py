@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Mapping
 
-from ..agent.team_view import ObservedStates, States
+from ..agent.observed_states import ObservedStates, States
 from .record import TaskRecord, claim_of
 
 

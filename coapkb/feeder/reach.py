@@ -17,8 +17,8 @@ import contextlib
 import logging
 
 from .. import clock
+from ..agent.observed_states import ObservedStates, indirect_probe
 from ..agent.robot_state import RobotState
-from ..agent.team_view import ObservedStates, indirect_probe
 from ..transport.base import ClientTransport, PeerGone, TransportError
 from ..transport.messages import Request
 from .roster import Roster

@@ -29,10 +29,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from ..agent.lease import lease_duration_s
+from ..agent.observed_states import liveness_floor_s
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
-from ..agent.team_view import liveness_floor_s
 from ..config import (
     DISCOVERY_METHODS,
     KB_MODULES,

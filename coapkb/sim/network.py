@@ -37,8 +37,8 @@ from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from ..agent.observed_states import OUTCOME_PATH
 from ..agent.robot_state import RobotState
-from ..agent.team_view import OUTCOME_PATH
 from ..transport.base import Endpoint, PeerGone, PeerTimeout, PeerUnreachable, Service, TrafficCounters, handle_safely
 from ..transport.messages import Request, Response
 from ..transport.rtt import RttEstimator

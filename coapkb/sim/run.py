@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
 
+from ..agent.observed_states import liveness_floor_s
 from ..agent.robot import Robot
 from ..agent.task_executor import PICKED
-from ..agent.team_view import liveness_floor_s
 from ..config import RobotConfig
 from ..feeder import Feeder, FeederError, Roster, TaskRecord
 from ..harness.kbs import kbs_for_team

@@ -16,10 +16,11 @@ from agent_helpers import config, endpoint
 
 from coapkb.agent.controller import DEFAULT_BOUNDS, Controller, RobotBounds
 from coapkb.agent.decisions import Claim, DecisionMessage, Task, decode_claims, encode_claims
+from coapkb.agent.observed_states import PLAN_PATH, STATE_PATH
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
-from coapkb.agent.team_view import PLAN_PATH, STATE_PATH, TeamView
+from coapkb.agent.team_view import TeamView
 from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase

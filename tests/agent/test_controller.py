@@ -12,10 +12,11 @@ from agent_helpers import config, endpoint
 
 from coapkb.agent.controller import Controller
 from coapkb.agent.decisions import DecisionMessage, Task
+from coapkb.agent.observed_states import PLAN_PATH
 from coapkb.agent.query_handler import QueryError, QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
-from coapkb.agent.team_view import PLAN_PATH, Membership, TeamView
+from coapkb.agent.team_view import Membership, TeamView
 from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase

@@ -8,7 +8,7 @@ import asyncio
 import random
 
 from coapkb.agent.local_health import LoopHealth
-from coapkb.agent.team_view import PLAN_PATH, ObservedStates
+from coapkb.agent.observed_states import PLAN_PATH, ObservedStates
 from coapkb.sim.loop import Scheduler
 from coapkb.transport.base import Endpoint, PeerTimeout, PeerUnreachable
 from coapkb.transport.memory import MemoryNetwork

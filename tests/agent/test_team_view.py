@@ -8,8 +8,8 @@ from dataclasses import replace
 
 import pytest
 
+from coapkb.agent.observed_states import PLAN_PATH, ObservedStates
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
-from coapkb.agent.team_view import PLAN_PATH, ObservedStates
 from coapkb.transport.base import Endpoint, PeerTimeout, TrafficCounters, TransportError
 from coapkb.transport.messages import ContentFormat, Request, Response, Status
 
@@ -136,7 +136,8 @@ async def test_awaited_states_are_due_once_the_first_came() -> None:
 
 from agent_helpers import endpoint  # noqa: E402
 
-from coapkb.agent.team_view import TeamView, liveness_timeout_s  # noqa: E402
+from coapkb.agent.observed_states import liveness_timeout_s  # noqa: E402
+from coapkb.agent.team_view import TeamView  # noqa: E402
 from coapkb.transport.base import ResourceInfo  # noqa: E402
 from coapkb.transport.memory import MemoryNetwork  # noqa: E402
 from coapkb.transport.router import Router  # noqa: E402
@@ -321,8 +322,8 @@ async def test_a_starting_robot_waits_to_hear_from_its_teammates_a_bounded_time_
 
 # --------------------------------------------------------------------------- joins with no survivor
 
+from coapkb.agent.observed_states import STATE_PATH  # noqa: E402
 from coapkb.agent.robot_state import Decision  # noqa: E402
-from coapkb.agent.team_view import STATE_PATH  # noqa: E402
 
 
 async def serve_state(network: MemoryNetwork, own: RobotState):

@@ -187,7 +187,7 @@ async def test_a_post_to_a_restarted_robot_is_forgotten_not_delivered_to_its_new
     new process as a task of its own (simulator seed 3291 of the 3-robot
     mixed profile: the new process picked it, and so did the robot it went
     round again to)."""
-    from coapkb.agent.team_view import OUTCOME_PATH, ObservedStates
+    from coapkb.agent.observed_states import OUTCOME_PATH, ObservedStates
     from coapkb.feeder.channel import Channel, FeederSettings
     from coapkb.feeder.roster import Roster
 

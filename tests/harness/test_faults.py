@@ -11,8 +11,8 @@ import pytest
 from fates import VICTIM, check_fates, check_joined_again
 from support import ROOT
 
+from coapkb.agent.observed_states import STATE_PATH
 from coapkb.agent.robot_state import RobotState
-from coapkb.agent.team_view import STATE_PATH
 from coapkb.feeder import TaskRecord
 from coapkb.harness.record import TeamRecord
 from coapkb.harness.team import Fault, Team, TeamSpec, cluster_modules, draw_tasks

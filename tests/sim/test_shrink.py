@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from coapkb.agent.team_view import ObservedStates
+from coapkb.agent.observed_states import ObservedStates
 from coapkb.cli import main
 from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, run_checked
 from coapkb.sim.case import CaseFileError, SimCase, mix_text
