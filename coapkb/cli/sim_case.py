@@ -97,7 +97,9 @@ def closing_line(runs: Sequence[RunResult], violating: int, started: float) -> s
     median, caught_up = median_decided(runs), median_caught_up(runs)
     decided = f"; tasks decided in {median:.2f} s (median)" if median is not None else ""
     if caught_up is not None:
-        replicated += f"; restarted holders caught up in {caught_up:.2f} s (median)"
+        stale = sum(len(r.stale_reads) for r in runs)
+        replicated += (f"; restarted holders caught up in {caught_up:.2f} s (median), "
+                       f"{stale:,} {'query' if stale == 1 else 'queries'} answered meanwhile")
     return (f"sim: {counted(len(runs), 'run')}, {counted(violating, 'violation')}, "
             f"{sum(r.sim_s for r in runs):,.0f} simulated s in {time.monotonic() - started:,.1f} wall s"
             f"{decided}{replicated}")

@@ -9,6 +9,11 @@ simulator times it: at the restart it notes the acknowledged values every
 other running holder of each module shows, and the moment the new process
 shows them all (or they were deleted since) is one sample.  The profile's
 median is judged by :func:`coapkb.sim.invariants.check_catch_up`.
+
+The reads a holder answers meanwhile are watched too (:meth:`CatchUps.answered`,
+a hook on the simulated network's answers): a query answered by a holder
+that still owes acknowledged values is a read its co-holders would have
+answered with them.  The same oracle judges them: there should be none.
 """
 
 from __future__ import annotations
@@ -16,6 +21,11 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 
 from ..kb.live import LiveKB
+from ..transport.messages import Request, Response
+from .loop import Process
+
+#: The paths a holder answers queries on.
+_READS = ("/kb/q/", "/kb/sparql")
 
 #: Whether a holder's KB shows a written value: (kb, module, value).
 Shows = Callable[[LiveKB, str, int], bool]
@@ -33,6 +43,8 @@ class CatchUps:
         self._deleted: set[tuple[str, int]] = set()
         #: Simulated seconds from each restart to its holder's having caught up.
         self.took_s: list[float] = []
+        #: Queries answered by a holder that still owed values, one line each.
+        self.stale_reads: list[str] = []
 
     def expect(self, robot_id: str, owed: Mapping[str, set[int]]) -> None:
         """``robot_id`` restarts now and owes ``owed`` (module -> values)."""
@@ -60,6 +72,19 @@ class CatchUps:
         if not any(owed.values()):
             del self._pending[robot_id]
             self.took_s.append(round(self._clock() - since, 6))
+
+    def answered(self, server: Process, request: Request, response: Response) -> None:
+        """A hook on the network's answers: a query ``server`` answered
+        while its process still owed values is a stale read."""
+        entry = self._pending.get(server.name)
+        if entry is None or not response.status.is_success or not request.path.startswith(_READS):
+            return
+        since, owed = entry
+        lacking = ", ".join(f"{len(values)} of {module}" for module, values in sorted(owed.items()) if values)
+        if lacking:
+            self.stale_reads.append(
+                f"{server.name} answered {request.method.name} {request.path} {self._clock() - since:.3f} s after "
+                f"its restart, still lacking acknowledged values ({lacking})")
 
     def finish(self) -> list[float]:
         """Every sample: a catch-up unfinished at the end counts until now (at least that long)."""

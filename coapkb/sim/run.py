@@ -161,6 +161,8 @@ class RunResult:
     #: How long each restarted holder took to show what its co-holders showed
     #: at its restart (simulated s; :mod:`.catch_up`).
     catch_up_s: list[float] = field(default_factory=list)
+    #: Queries answered by a restarted holder before it caught up (:mod:`.catch_up`).
+    stale_reads: list[str] = field(default_factory=list)
     #: Per module: how many robots hold it.
     holders: dict[str, int] = field(default_factory=dict)
     #: At the end, per module: each running holder's version of it.
@@ -420,6 +422,7 @@ class SimulatedTeam:
         #: The holders' KBs, and the operator's writes (``spec.writes``) into them.
         self.holders = Holders(self.configs, self.robots, self.current, lambda: self.elapsed_s)
         self.catch_ups = CatchUps(clock, shows)
+        self.network.answer_hooks.append(self.catch_ups.answered)
         self.operator = Operator(self.holders, self.network, clock, self.note, self.catch_ups)
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
@@ -644,7 +647,7 @@ class SimulatedTeam:
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
             writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.saboteur.forgeries),
-            catch_up_s=catch_up_s, holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
+            catch_up_s=catch_up_s, stale_reads=list(self.catch_ups.stale_reads), holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.holders.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
