@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable, Callable, MutableMapping
+from collections.abc import Awaitable, Callable, Mapping, MutableMapping
+from dataclasses import dataclass, field
 
 from .. import clock
 from ..transport.base import PeerGone, TransportError
@@ -29,6 +30,20 @@ SETTLE_DECIDING_TIMEOUTS = 6
 #: Asks a teammate for its decision on a task (None: it has none yet;
 #: TransportError: it does not answer).
 AskDecision = Callable[[str, int], Awaitable[DecisionMessage | None]]
+
+
+@dataclass
+class _Round:
+    """What one round of asking the teammates told."""
+
+    #: Teammates that cannot help: failed the same way, gone, or decided without this robot.
+    failed: int = 0
+    #: A teammate answered that it is still deciding (or its answer may be stale).
+    deciding: bool = False
+    #: A teammate that is up did not answer.
+    unanswered: bool = False
+    #: Decisions on knowledge, by teammate.
+    known: list[tuple[str, DecisionMessage]] = field(default_factory=list)
 
 
 class Settler:
@@ -78,54 +93,13 @@ class Settler:
             mates = [r for r in self.team.membership.members
                      if r != self.robot_id and (outnumbered or self.team.is_up(r))]
             timed = await asyncio.gather(*(self._ask_timed(mate, task.seq) for mate in mates))
-            answers = [answer for answer, _ in timed]
             round_end = clock.monotonic()
-            heard = [mate for mate, theirs in zip(mates, answers)
+            heard = [mate for mate, (theirs, _) in zip(mates, timed)
                      if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
             if heard:
                 await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
-            failed_too = 0
-            deciding = unanswered = False
-            answered_at = {mate: at for mate, (_, at) in zip(mates, timed)}
-            known: list[tuple[str, DecisionMessage]] = []
-            for mate, theirs in zip(mates, answers):
-                if isinstance(theirs, BaseException):
-                    # A lost answer is asked again (found in the simulator:
-                    # three asks lost at 20 % loss, and this robot decided
-                    # alone); the failure counts like a probe's, so a dead
-                    # teammate is soon known down, and cannot help.
-                    if isinstance(theirs, TransportError):
-                        await self.team.request_failed(mate, theirs)
-                    # Outnumbered, a silence is no answer: the silent ones may
-                    # be the majority, cut off from this robot, and it waits
-                    # for them; only a teammate whose process is gone cannot help.
-                    failed_too += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
-                    unanswered = unanswered or self.team.is_up(mate)
-                    continue
-                if theirs is None or theirs.decision.object != task.object:
-                    # Still deciding: waited for past the deadline (found in
-                    # the simulator: a robot gave up the moment before a
-                    # teammate back from a partition decided on knowledge).
-                    deciding = True
-                    continue
-                if not theirs.decision.members and round_end - answered_at[mate] > SETTLE_POLL_S:
-                    # Its settling, answered long before this round ended (the
-                    # round waited on a silent teammate): it may have decided
-                    # on knowledge since, so it is asked again (found in the
-                    # simulator, seed 7862: an answer 15 s old ended a
-                    # settling that the teammate's decision would have changed).
-                    deciding = True
-                    continue
-                if not self.counts_me(theirs.decision):
-                    # Decided in a membership without this robot: not taken
-                    # (it would name their epoch, and its next decisions,
-                    # its own, would then not be void).
-                    failed_too += 1
-                    continue
-                if theirs.decision.error is None and theirs.decision.unavailable is None:
-                    known.append((mate, theirs))
-                    continue
-                failed_too += 1
+            judged = await self._judge(task, dict(zip(mates, timed)), round_end, outnumbered)
+            deciding, unanswered, known = judged.deciding, judged.unanswered, judged.known
             if known:
                 # In the newest membership: a teammate's decision in an older
                 # one is void if the newer left it out (the feeder voids it).
@@ -138,11 +112,51 @@ class Settler:
                 # the simulator).
                 self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
                 return theirs
-            if failed_too == len(mates):  # nobody had the knowledge: every robot alike
+            if judged.failed == len(mates):  # nobody had the knowledge: every robot alike
                 return alone
             await asyncio.sleep(SETTLE_POLL_S)
         return alone
 
+    async def _judge(self, task: Task, answers: Mapping[str, tuple[DecisionMessage | None | BaseException, float]],
+                     round_end: float, outnumbered: bool) -> _Round:
+        """What one round of asking, ended at ``round_end``, told: each
+        teammate's answer (or its failure) on ``task`` and when it came."""
+        judged = _Round()
+        for mate, (theirs, answered_at) in answers.items():
+            if isinstance(theirs, BaseException):
+                # A lost answer is asked again (found in the simulator:
+                # three asks lost at 20 % loss, and this robot decided
+                # alone); the failure counts like a probe's, so a dead
+                # teammate is soon known down, and cannot help.
+                if isinstance(theirs, TransportError):
+                    await self.team.request_failed(mate, theirs)
+                # Outnumbered, a silence is no answer: the silent ones may
+                # be the majority, cut off from this robot, and it waits
+                # for them; only a teammate whose process is gone cannot help.
+                judged.failed += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
+                judged.unanswered = judged.unanswered or self.team.is_up(mate)
+            elif theirs is None or theirs.decision.object != task.object:
+                # Still deciding: waited for past the deadline (found in
+                # the simulator: a robot gave up the moment before a
+                # teammate back from a partition decided on knowledge).
+                judged.deciding = True
+            elif not theirs.decision.members and round_end - answered_at > SETTLE_POLL_S:
+                # Its settling, answered long before this round ended (the
+                # round waited on a silent teammate): it may have decided
+                # on knowledge since, so it is asked again (found in the
+                # simulator, seed 7862: an answer 15 s old ended a
+                # settling that the teammate's decision would have changed).
+                judged.deciding = True
+            elif not self.counts_me(theirs.decision):
+                # Decided in a membership without this robot: not taken
+                # (it would name their epoch, and its next decisions,
+                # its own, would then not be void).
+                judged.failed += 1
+            elif theirs.decision.error is None and theirs.decision.unavailable is None:
+                judged.known.append((mate, theirs))
+            else:
+                judged.failed += 1
+        return judged
 
     async def _ask_timed(self, mate: str, seq: int) -> tuple[DecisionMessage | None | BaseException, float]:
         """``mate``'s answer (or its failure) on task ``seq``, and when it came."""
