@@ -10,17 +10,14 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
-from ..transport.base import ClientTransport, Endpoint, PeerGone, TransportError
+from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
+from .joining import decided_before
 from .local_health import LoopHealth
-from .observed_states import PLAN_PATH, STATE_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
+from .observed_states import PLAN_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
 from .robot_state import PlannedState, RobotState
 
 log = logging.getLogger(__name__)
-
-#: How soon a joining robot observes a silent teammate again.
-JOIN_RETRY_S = 0.5
-
 
 @dataclass(frozen=True)
 class Membership:
@@ -324,53 +321,14 @@ class TeamView:
         "cannot join" and decided nothing).  The same when no teammate showed
         it within ``timeout``: the teammates the feeder counts decided
         ``seq - 1`` before it posted ``seq``, so one still silent is out."""
-        request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
         if seq <= 1:
             # Nothing decided before: the membership is the cluster's first.
             self._joined(seq, Membership(0, ()))
             return
         co_joiners = {r for r in joining if r in self._peers}
-
-        async def decided_before(robot_id: str) -> Membership | bool:
-            """Observe ``robot_id``'s state until it shows its decision of
-            ``seq - 1``; False once it cannot (no process there, or a new one
-            that decided nothing), True if it is not known."""
-            while True:
-                try:
-                    async for response in self._transport.observe(self._endpoints[robot_id], request):
-                        state = RobotState.decode(response.payload) if response.status.is_success else None
-                        last = state.last if state is not None else None
-                        if state is not None and last is None:
-                            return False  # a process that never decided: restarted, not yet joined
-                        if last is not None and last.seq >= seq - 1:
-                            # None decides seq before this robot's plan for it is
-                            # out, so seq - 1 is as far as a teammate can be.
-                            return Membership(last.epoch, last.members) if last.seq == seq - 1 else True
-                except PeerGone as exc:
-                    log.debug("catching up from %s: %s", robot_id, exc)
-                    return False
-                except (TransportError, ValueError) as exc:
-                    log.debug("catching up from %s: %s", robot_id, exc)
-                await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: until the timeout
-
-        membership = None
-        # Every teammate at once (some may be down): the first that shows it.
-        watches = [asyncio.create_task(decided_before(r)) for r in sorted(self._peers - co_joiners)]
-        unknown = False
-        try:
-            async with asyncio.timeout(timeout):
-                for first in asyncio.as_completed(watches):
-                    found = await first
-                    if isinstance(found, Membership):
-                        membership = found
-                        break
-                    unknown = unknown or found
-        except TimeoutError:
-            unknown = True
-        finally:
-            for watch in watches:
-                watch.cancel()
-            await asyncio.gather(*watches, return_exceptions=True)
+        shown, unknown = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
+                                              seq, timeout)
+        membership = None if shown is None else Membership(*shown)
         if membership is None:
             log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "
                         "at task %d", seq - 1, f" within {timeout:g}s" if unknown else " (none survives)", seq)
