@@ -180,6 +180,8 @@ class Replicator:
         self._warned: set[tuple[str, str, int]] = set()
         #: (module, holder) -> the last context it told us
         self.known: dict[tuple[str, str], CausalContext] = {}
+        #: :attr:`known` as it was at the last anti-entropy round (what compaction goes by).
+        self._known_then: dict[tuple[str, str], CausalContext] = {}
         self._turn = 0
         self._task: asyncio.Task[None] | None = None
         #: The pushes in flight, in the order they started (a dict: a set's order
@@ -404,14 +406,20 @@ class Replicator:
             return None
         self.known[(message.module, holder.name)] = answer.context
         self._take(answer)
-        self._compact(message.module)
         return answer
 
-    def _compact(self, module: str) -> None:
-        holders = self.holders[module]
-        contexts = [self.known.get((module, h.name)) for h in holders]
-        if holders and all(c is not None for c in contexts):
-            self.live.replicas[module].compact(c for c in contexts if c is not None)
+    def _compact(self) -> None:
+        """Forget the deltas every holder had a round ago.  Not the contexts
+        just heard: a holder's message sent before its latest (a push
+        overtaken by the next, a question held up by retransmissions) asks
+        with an older context, and a delta forgotten meanwhile made the
+        answer a whole state (100 kB and more, several a minute, found on a
+        long shift)."""
+        for module, holders in self.holders.items():
+            contexts = [self._known_then.get((module, h.name)) for h in holders]
+            if holders and all(c is not None for c in contexts):
+                self.live.replicas[module].compact(c for c in contexts if c is not None)
+        self._known_then = dict(self.known)
 
     # -------------------------------------------------------- anti-entropy
 
@@ -427,6 +435,7 @@ class Replicator:
         while True:
             await asyncio.sleep(period * self._rng.uniform(2 / 3, 4 / 3))
             await self.sync_once()
+            self._compact()
 
     async def catch_up(self) -> None:
         """One exchange with every holder of every module: the modules at

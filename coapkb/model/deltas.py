@@ -91,9 +91,16 @@ class CausalContext:
                 yield dot
 
     def count_missing_from(self, other: CausalContext) -> int:
-        """How many dots :meth:`missing_from` gives, at most (not listed)."""
+        """How many dots :meth:`missing_from` gives, counted without listing
+        the ranges (a context may claim a huge count): each writer's range
+        past ``other``'s count, less the dots ``other`` has past its gaps in
+        that range, and this context's dots past a gap that ``other`` lacks.
+        An upper bound that counted ``other``'s dots past a gap as missing
+        sent a whole state where the journal held every missing delta (a
+        push overtaken by the next, its dot already compacted away)."""
         behind = sum(max(0, top - other.vv.get(writer, 0)) for writer, top in self.vv.items())
-        return behind + len(self.cloud)
+        behind -= sum(1 for dot in other.cloud if dot.seq <= self.vv.get(dot.writer, 0))
+        return behind + sum(1 for dot in self.cloud if dot not in other)
 
     def covers(self, other: CausalContext) -> bool:
         return next(other.missing_from(self), None) is None

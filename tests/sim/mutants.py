@@ -268,7 +268,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1, 2, 3)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",
-           lambda: _patch(Replica, "join", _context_ignored), WRITES, (3, 20, 25)),
+           lambda: _patch(Replica, "join", _context_ignored), WRITES, (26, 42, 91)),
     Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
            lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (22, 28, 60)),
     Mutant("latest-arrival-wins", "a single-valued property shows the value that arrived last, not the newest stamp",
