@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import inspect
 import math
 import sys
 from collections.abc import Callable, Iterator
@@ -80,6 +81,17 @@ class Mutant:
 
 
 def _patch(target: object, name: str, new: object) -> contextlib.AbstractContextManager[Any]:
+    """``target.name`` replaced by ``new``, which must take every argument
+    the original takes: one that does not raises TypeError where the code
+    calls it, and the run fails for that, not for the planted bug."""
+    original = getattr(target, name)
+    if callable(original) and callable(new):
+        arguments = [p for p in inspect.signature(original).parameters.values()
+                     if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        try:
+            inspect.signature(new).bind(*range(len(arguments)))
+        except TypeError as exc:
+            raise TypeError(f"the mutant of {name} does not take {[p.name for p in arguments]}: {exc}") from None
     return mock.patch.object(target, name, new)
 
 
@@ -167,11 +179,11 @@ def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
     push = Replicator._push
     count = [0]
 
-    async def dropping(self: Replicator, holder: Any, module: str, changes: Any) -> bool:
+    async def dropping(self: Replicator, holder: Any, module: str, changes: Any, *args: Any) -> bool:
         count[0] += 1
         if count[0] % 5 == 0 and isinstance(changes, list):
             return True  # said sent, never sent
-        return await push(self, holder, module, changes)
+        return await push(self, holder, module, changes, *args)
     return _patch(Replicator, "_push", dropping)
 
 
@@ -179,7 +191,7 @@ async def _no_catch_up(self: Replicator) -> None:
     """A robot that starts waits for its first anti-entropy round."""
 
 
-def _nothing_kept(self: Keeper, changes: Any) -> None:
+def _nothing_kept(self: Keeper, changes: Any, *args: Any) -> None:
     """The journal never written: a write answered before it is on disk."""
 
 

@@ -54,3 +54,12 @@ def test_there_are_a_dozen_planted_bugs_caught_and_the_survivors_are_named() -> 
     caught = {m.name for m in MUTANTS.values() if m.seeds}
     assert len(MUTANTS) >= 12 and len(caught) >= 12
     assert set(MUTANTS) - caught == set(SURVIVORS)
+
+
+@pytest.mark.parametrize("name", sorted(MUTANTS))
+def test_every_planted_bug_takes_the_arguments_of_what_it_replaces(name: str) -> None:
+    """A mutant that takes fewer arguments than the code passes raises
+    TypeError where it is called: the run would fail for that, not for the
+    bug (two did, after the code they replace took one argument more)."""
+    with MUTANTS[name].plant():
+        pass
