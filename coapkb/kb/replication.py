@@ -45,7 +45,7 @@ import asyncio
 import logging
 import math
 import random
-from collections.abc import Collection, Coroutine, Iterator, Mapping, Sequence
+from collections.abc import Collection, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +56,7 @@ from ..transport.router import Router
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
 from .live import LiveKB, Written
+from .sync_access import SyncAccess, writer_robot
 from .write_concern import DEFAULT_ACK, Ack, Reached
 
 __all__ = ["SYNC_PATH", "Holder", "Replicator", "ReplicationSettings", "writer_robot"]
@@ -65,30 +66,6 @@ SYNC_PATH = "/kb/sync"
 MAX_FOLLOW_UPS = 1000
 
 log = logging.getLogger(__name__)
-
-
-def writer_robot(writer: str) -> str:
-    """The robot a writer is an incarnation of: ``Robot1.<boot>`` is
-    ``Robot1`` (a name without a numeric incarnation is its own robot)."""
-    robot, dot, boot = writer.rpartition(".")
-    return robot if dot and robot and boot.isdigit() else writer
-
-
-def _writers(message: SyncMessage) -> Iterator[str]:
-    """Every writer a sync message names: its context's, its deltas' and
-    the dots they remove, or a whole state's."""
-    yield from message.context.vv
-    yield from (d.writer for d in message.context.cloud)
-    changes = message.changes
-    if isinstance(changes, WrittenState):
-        yield from changes.context.vv
-        yield from (d.writer for d in changes.context.cloud)
-        yield from (d.writer for dots in changes.entries.values() for d in dots)
-        yield from (d.writer for d in changes.tombstones)
-    elif changes:
-        for delta in changes:
-            yield delta.dot.writer
-            yield from (d.writer for d in delta.removed)
 
 
 @dataclass(frozen=True)
@@ -164,17 +141,15 @@ class Replicator:
         self.holders: dict[str, list[Holder]] = {
             module: [h for h in holders if module in h.modules] for module in live.names
         }
-        self.me = writer_robot(live.writer)
-        self.team = team
-        #: module -> the robots known to hold it
-        self._holding: dict[str, frozenset[str]] = {
-            module: frozenset(team.get(module, ())) if team is not None
-            else frozenset(live.holders.get(module, ())) | {h.name for h in self.holders[module]}
-            for module in live.names
-        }
-        #: The robots whose modules this robot knows (the others' are unknown).
-        self._known_robots = frozenset(
-            {self.me, *(h.name for h in holders), *(r for robots in live.holders.values() for r in robots)}
+        me = writer_robot(live.writer)
+        #: Who may replicate which module (:mod:`.sync_access`).
+        self.access = SyncAccess(
+            me,
+            {module: frozenset(team.get(module, ())) if team is not None
+             else frozenset(live.holders.get(module, ())) | {h.name for h in self.holders[module]}
+             for module in live.names},
+            frozenset({me, *(h.name for h in holders), *(r for robots in live.holders.values() for r in robots)}),
+            listed=team is not None,
         )
         #: (sender or holder, module, status) already logged at warning level.
         self._warned: set[tuple[str, str, int]] = set()
@@ -209,7 +184,7 @@ class Replicator:
         module = message.module
         if module not in self.live.replicas:
             return Response.error(Status.NOT_FOUND, f"this robot does not hold the {module} module")
-        refusal = self.refusal(message, request.peer)
+        refusal = self.access.refusal(message, request.peer)
         if refusal is not None:
             self.stats.forbidden += 1
             self._log_once(request.peer or "an unprotected sender", module, Status.FORBIDDEN,
@@ -224,7 +199,7 @@ class Replicator:
         if fresh:
             for holder in self.holders[module]:
                 self._spawn(self._push(holder, module, fresh, message.made))
-        if request.peer is not None and self.holds(request.peer, module):
+        if request.peer is not None and self.access.holds(request.peer, module):
             self.known[(module, request.peer)] = message.context
         if replica.refused > refused:
             # Not 2.04: a push's sender would count the write as held here.
@@ -240,34 +215,6 @@ class Replicator:
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
 
     # ------------------------------------------------------- who replicates
-
-    def holds(self, robot: str, module: str) -> bool | None:
-        """Whether ``robot`` holds ``module``: True, False, or None when this
-        robot does not know (a robot of another cluster its configuration
-        does not name, without ``team``)."""
-        if robot == self.me or robot in self._holding.get(module, ()):
-            return True
-        if self.team is not None or robot in self._known_robots:
-            return False
-        return None
-
-    def refusal(self, message: SyncMessage, sender: str | None) -> str | None:
-        """Why ``message`` from ``sender`` (the authenticated member; None:
-        unprotected) is not taken, in one line; None if it is."""
-        module = message.module
-        held = None if sender is None else self.holds(sender, module)
-        if held is False:
-            return f"{sender} does not hold the {module} module: only its holders replicate it"
-        if message.changes is None and held is not True:
-            return None  # a question: nothing is taken, nothing kept
-        if held is None and sender is not None:
-            return (f"{sender} is not a holder of the {module} module that this robot knows: "
-                    "only its holders replicate it")
-        for writer in set(_writers(message)):
-            robot = writer_robot(writer)
-            if self.holds(robot, module) is False:
-                return f"a change written by {writer}: {robot} does not hold the {module} module"
-        return None
 
     def _log_once(self, who: str, module: str, status: Status, text: str, *args: object) -> None:
         """A warning the first time, debug after: a misconfigured peer is
@@ -398,7 +345,7 @@ class Replicator:
         if answer.module != message.module:
             return None
         # The answer comes from the holder asked (the client's security checks who answers).
-        refusal = self.refusal(answer, holder.name)
+        refusal = self.access.refusal(answer, holder.name)
         if refusal is not None:
             self.stats.forbidden += 1
             self._log_once(holder.name, message.module, Status.FORBIDDEN, "not taking %s's answer on %s: %s",

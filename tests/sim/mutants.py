@@ -41,6 +41,7 @@ from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
 from coapkb.kb.replication import Replicator
+from coapkb.kb.sync_access import SyncAccess
 from coapkb.model.deltas import CausalContext, Delta, WrittenState
 from coapkb.world.truth import Taken, WorldTruth
 
@@ -195,7 +196,7 @@ def _nothing_kept(self: Keeper, changes: Any, *args: Any) -> None:
     """The journal never written: a write answered before it is on disk."""
 
 
-def _take_from_anyone(self: Replicator, message: Any, sender: str | None) -> str | None:
+def _take_from_anyone(self: SyncAccess, message: Any, sender: str | None) -> str | None:
     return None
 
 
@@ -276,7 +277,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
-           lambda: _patch(Replicator, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
+           lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1, 2, 3)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",
