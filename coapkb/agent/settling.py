@@ -92,6 +92,13 @@ class Settler:
             outnumbered = self.team.alone
             mates = [r for r in self.team.membership.members
                      if r != self.robot_id and (outnumbered or self.team.is_up(r))]
+            if not mates:
+                # Nobody up to ask: the members it has down are asked, as
+                # when outnumbered (found in the simulator, seed 15717: a
+                # robot that had left a dead teammate out found the other,
+                # back from a partition, down after the heal, and decided
+                # nothing on every later task without asking it once).
+                mates = [r for r in self.team.membership.members if r != self.robot_id]
             timed = await asyncio.gather(*(self._ask_timed(mate, task.seq) for mate in mates))
             round_end = clock.monotonic()
             heard = [mate for mate, (theirs, _) in zip(mates, timed)

@@ -111,6 +111,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage"), {
         11774: "a robot back from a 16 s freeze decided a task in the membership it had left; a teammate had "
                "excluded it meanwhile, and the third, lagging, took the frozen one's decision: two epochs",
+        15717: "a robot that had left a dead teammate out found the other, back from a partition, down after the "
+               "heal, and decided nothing on every later task without asking it once: nobody was up to ask",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
