@@ -90,15 +90,13 @@ class Settler:
             # in the simulator: after the heal it decided every task alone
             # while they assigned it tasks).  One that answers is counted on again.
             outnumbered = self.team.alone
-            mates = [r for r in self.team.membership.members
-                     if r != self.robot_id and (outnumbered or self.team.is_up(r))]
-            if not mates:
-                # Nobody up to ask: the members it has down are asked, as
-                # when outnumbered (found in the simulator, seed 15717: a
-                # robot that had left a dead teammate out found the other,
-                # back from a partition, down after the heal, and decided
-                # nothing on every later task without asking it once).
-                mates = [r for r in self.team.membership.members if r != self.robot_id]
+            # With nobody up to ask, the members it has down are asked, as
+            # when outnumbered (found in the simulator, seed 15717: a robot
+            # that had left a dead teammate out found the other, back from
+            # a partition, down after the heal, and decided nothing on
+            # every later task without asking it once).
+            others = self._others()
+            mates = [r for r in others if outnumbered or self.team.is_up(r)] or others
             timed = await asyncio.gather(*(self._ask_timed(mate, task.seq) for mate in mates))
             round_end = clock.monotonic()
             heard = [mate for mate, (theirs, _) in zip(mates, timed)
@@ -108,17 +106,8 @@ class Settler:
             judged = await self._judge(task, dict(zip(mates, timed)), round_end, outnumbered)
             deciding, unanswered, known = judged.deciding, judged.unanswered, judged.known
             if known:
-                # In the newest membership: a teammate's decision in an older
-                # one is void if the newer left it out (the feeder voids it).
-                mate, theirs = max(known, key=lambda item: item[1].decision.epoch)
-                log.warning("task %d (%s): its knowledge did not reach this robot; took %s's decision",
-                            task.seq, task.object, mate)
-                # And the membership it was taken in: this robot's own
-                # view may not have caught up (it computed nothing), and
-                # the next join counts its epoch from there (found in
-                # the simulator).
-                self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
-                return theirs
+                mate, theirs = _preferred(known)
+                return self._take(task, theirs, f"its knowledge did not reach this robot; took {mate}'s decision")
             if judged.failed == len(mates):  # nobody had the knowledge: every robot alike
                 return alone
             await asyncio.sleep(SETTLE_POLL_S)
@@ -190,7 +179,7 @@ class Settler:
         applied); none decided in a membership without this robot (its own
         decision is void then).  A robot in step asks nothing: no extra
         message per task."""
-        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
+        mates = [r for r in self._others() if self.team.is_up(r)]
         window = clock.monotonic() - received + self._query_timeout_s * 2
         if self.team.stalled_within(window) >= self.team.request_timeout_s:
             ahead = mates
@@ -211,8 +200,7 @@ class Settler:
         self.recent.pop(task.seq, None)
         if self._ask_decision is None:
             return None
-        mates = [r for r in self.team.membership.members if r != self.robot_id and self.team.is_up(r)]
-        return await self._taken_from(task, mates, "decided it already")
+        return await self._taken_from(task, [r for r in self._others() if self.team.is_up(r)], "decided it already")
 
     async def _taken_from(self, task: Task, mates: list[str], how: str) -> DecisionMessage | None:
         """The decision on ``task`` of one of ``mates``, taken whole as
@@ -229,19 +217,34 @@ class Settler:
                  if isinstance(theirs, DecisionMessage) and theirs.decision.object == task.object
                  and theirs.decision.error is None and self.counts_me(theirs.decision)
                  and (theirs.decision.unavailable is None or theirs.decision.members)]
-        # On knowledge first, then in the newest membership: a decision in an
-        # older one is void if the newer left its robot out (found in the
-        # simulator, seed 11774: a robot back from a freeze decided in the
-        # membership it had left, a teammate had excluded it meanwhile, and
-        # the third, lagging, took the frozen one's decision).
-        taken.sort(key=lambda item: (item[1].decision.unavailable is not None, -item[1].decision.epoch))
         if not taken:
             return None
-        mate, theirs = taken[0]
-        log.warning("task %d (%s): %s %s; took its decision", task.seq, task.object, mate, how)
+        mate, theirs = _preferred(taken)
+        return self._take(task, theirs, f"{mate} {how}; took its decision")
+
+    def _take(self, task: Task, theirs: DecisionMessage, said: str) -> DecisionMessage:
+        """Take a teammate's decision whole, and the membership it was taken
+        in: this robot's own view may not have caught up (it computed
+        nothing), and the next join counts its epoch from there (found in
+        the simulator)."""
+        log.warning("task %d (%s): %s", task.seq, task.object, said)
         self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
         return theirs
+
+    def _others(self) -> list[str]:
+        """The members of this robot's membership but itself."""
+        return [r for r in self.team.membership.members if r != self.robot_id]
 
     def counts_me(self, decision: Decision) -> bool:
         """Whether ``decision`` was taken in a membership with this robot in it."""
         return not decision.members or self.robot_id in decision.members
+
+
+def _preferred(decisions: list[tuple[str, DecisionMessage]]) -> tuple[str, DecisionMessage]:
+    """The teammate's decision to take of ``decisions``: one on knowledge
+    first, then the one in the newest membership, a decision in an older
+    one being void if the newer left its robot out (found in the simulator,
+    seed 11774: a robot back from a freeze decided in the membership it had
+    left, a teammate had excluded it meanwhile, and the third, lagging,
+    took the frozen one's decision); the first asked among equals."""
+    return min(decisions, key=lambda item: (item[1].decision.unavailable is not None, -item[1].decision.epoch))

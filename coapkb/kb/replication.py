@@ -355,13 +355,13 @@ class Replicator:
         self._take(answer)
         return answer
 
-    def _compact(self) -> None:
-        """Forget the deltas every holder had a round ago.  Not the contexts
-        just heard: a holder's message sent before its latest (a push
-        overtaken by the next, a question held up by retransmissions) asks
-        with an older context, and a delta forgotten meanwhile made the
-        answer a whole state (100 kB and more, several a minute, found on a
-        long shift)."""
+    def compact(self) -> None:
+        """Forget the deltas every holder had a round ago (each anti-entropy
+        round ends with this).  Not by the contexts just heard: a holder's
+        message sent before its latest (a push overtaken by the next, a
+        question held up by retransmissions) asks with an older context,
+        and a delta forgotten meanwhile made the answer a whole state
+        (100 kB and more, several a minute, found on a long shift)."""
         for module, holders in self.holders.items():
             contexts = [self._known_then.get((module, h.name)) for h in holders]
             if holders and all(c is not None for c in contexts):
@@ -382,7 +382,7 @@ class Replicator:
         while True:
             await asyncio.sleep(period * self._rng.uniform(2 / 3, 4 / 3))
             await self.sync_once()
-            self._compact()
+            self.compact()
 
     async def catch_up(self) -> None:
         """One exchange with every holder of every module: the modules at
