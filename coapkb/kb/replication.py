@@ -278,8 +278,9 @@ class Replicator:
         needs none), ``all`` when every holder pushed to did.  The pushes
         not waited for go on."""
         wanted = {module: frozenset(h.name for h in self.holders[module]) for module in written.deltas}
+        made = written.made
         pushes = {
-            self._spawn(self._push(holder, module, [delta], written.made)): (module, holder.name)
+            self._spawn(self._push(holder, module, [delta], made)): (module, holder.name)
             for module, delta in written.deltas.items()
             for holder in self.holders[module]
         }
