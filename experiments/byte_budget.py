@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING, Any
 
 import dpkt
 
+from coapkb.agent.fact_push import FACTS_PATH
 from coapkb.transport.coap.wire_trace import ENV, OSCORE_OPTION, CoapSplit, describe, split_coap
 from experiments import byte_budget_peers as peers  # the peers' protocols (QUIC, RTPS): packets alone, no traces
 
@@ -459,6 +460,8 @@ def request_kind(plain: Mapping[str, Any]) -> tuple[str, str]:
         return "query", path[len("/kb/q/"):]
     if path == "/kb/sparql":
         return "query", "sparql"
+    if path.startswith(FACTS_PATH) and plain.get("observe") == 0:
+        return "registration", FACTS_PATH
     if path in ("/robot/plan", "/robot/state", "/robot/outcome"):
         if plain.get("observe") == 0:
             return "registration", path
@@ -1018,7 +1021,8 @@ def minimum(run: Run) -> list[Need]:
 
     * the facts each robot lacks: every distinct named query it had answered
       remotely (2.05), once, with the answer's whole payload (block-wise
-      answers summed);
+      answers summed), and every ``/kb/facts`` notification with answers a
+      holder pushed to it (each carries the answers of one task);
     * every teammate's planned state after the previous task (the initial
       one for the first): tasks x robots x (robots - 1) states, each the
       median payload of the run's ``/robot/plan`` notifications;
@@ -1027,6 +1031,7 @@ def minimum(run: Run) -> list[Need]:
     answers: dict[tuple[str, str, str], dict[int, int]] = defaultdict(dict)
     posts: dict[tuple[str, str], int] = {}
     states: list[int] = []
+    pushed: list[int] = []
     for d in run.datagrams:
         plain = d.plain or {}
         if d.lost or d.coap is None:
@@ -1039,6 +1044,8 @@ def minimum(run: Run) -> list[Need]:
             posts.setdefault((d.dst, plain.get("query", "")), int(plain.get("payload", 0)))
         elif d.kind in ("notification", "registration answer") and d.detail == "/robot/plan":
             states.append(int(plain.get("payload", 0)))
+        elif d.kind == "notification" and d.detail == FACTS_PATH and d.copy == "first" and d.dst in run.robots:
+            pushed.append(int(plain.get("payload", 0)))
     needs: list[Need] = []
     by_query: dict[str, list[int]] = defaultdict(list)
     for (_robot, name, _query), blocks in answers.items():
@@ -1046,6 +1053,8 @@ def minimum(run: Run) -> list[Need]:
     for name in sorted(by_query, key=lambda q: _kind_order(f"answer {q}")):
         sizes = by_query[name]
         needs.append(Need(f"fact: {name}", len(sizes), statistics.fmean(sizes)))
+    if pushed:
+        needs.append(Need("facts pushed by their holder", len(pushed), statistics.fmean(pushed)))
     n = len(run.robots)
     if states:
         needs.append(Need("teammate's planned state", run.tasks * n * (n - 1), statistics.median(states)))
@@ -1089,7 +1098,7 @@ def minimum_table(settings: Mapping[str, Sequence[Run]]) -> str:
 BREAKDOWN = (
     "needed items, as sent",
     "requests for the facts",
-    "robots' plan registrations",
+    "robots' registrations: plans, pushed facts",
     "acknowledgements of plan notifications",
     "the feeder's view: /robot/outcome (before: /robot/state) registrations, notifications and their acknowledgements",
     "task answers (2.04)",
@@ -1112,11 +1121,12 @@ def breakdown_of(d: Datagram) -> str:
     kind, detail = d.kind, d.detail
     code = (d.plain or {}).get("code")
     if (kind == "answer" and code == "2.05") or kind == "task post" or (
-            kind in ("notification", "registration answer") and detail == "/robot/plan"):
+            kind in ("notification", "registration answer") and detail == "/robot/plan") or (
+            kind == "notification" and detail == FACTS_PATH):
         return BREAKDOWN[0]
     if kind == "query":
         return BREAKDOWN[1]
-    if kind == "registration" and detail == "/robot/plan":
+    if kind in ("registration", "registration answer") and detail in ("/robot/plan", FACTS_PATH):
         return BREAKDOWN[2]
     if kind == "empty ACK" and detail.endswith("/robot/plan"):
         return BREAKDOWN[3]

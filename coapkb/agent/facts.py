@@ -65,6 +65,7 @@ class FactGatherer:
     async def gather(self, task: Task) -> TaskFacts | str:
         """What the task's pick needs from the KBs, or why nobody picks it:
         no such object, already picked (by whom, at which task), missing."""
+        self.queries.begin(task.seq)
         params = {"name": task.object}
         if self.queries.wire == "seed":
             exists, where, features = await self._seed_queries(params)

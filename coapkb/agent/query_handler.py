@@ -16,14 +16,15 @@ from dataclasses import dataclass, field
 from .. import clock
 from ..config import RobotConfig, Teammate
 from ..errors import CoapkbError
-from ..kb.client import KBClient, QueryFailed
+from ..kb.client import KBClient, QueryFailed, named_request
 from ..kb.errors import KBError
 from ..kb.live import LiveKB
 from ..kb.named_queries import NAMED_QUERIES
 from ..kb.store import KnowledgeBase
 from ..model.results import QueryResult
-from ..transport.base import TransportError
+from ..transport.base import Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method
+from .fact_push import FactPusher, PushedFacts
 from .task_assigner import robot_sort_key
 
 #: How queries travel: "compact" = named query resources with CBOR answers
@@ -32,6 +33,10 @@ from .task_assigner import robot_sort_key
 QUERY_WIRES = ("compact", "seed")
 #: Remote-query latencies a robot keeps for its statistics and its hedging delay.
 LATENCIES_KEPT = 16_384
+#: How long a robot waits for a holder's pushed answer before it asks,
+#: before it has measured a round trip; and the least it ever waits.
+PUSH_WAIT_S = 0.5
+PUSH_WAIT_FLOOR_S = 0.02
 
 
 class QueryError(CoapkbError):
@@ -61,6 +66,8 @@ class QueryStats:
     failovers: int = 0
     #: Queries also sent to a second holder because the first was slow.
     hedged: int = 0
+    #: Remote answers the holder pushed before they were asked (in ``cached`` too).
+    pushed: int = 0
     #: Wall-clock latency of the latest remote queries, in seconds: at most
     #: ``LATENCIES_KEPT`` (a robot runs for days: its statistics must not grow with them).
     remote_latencies: list[float] = field(default_factory=list)
@@ -68,7 +75,7 @@ class QueryStats:
     def as_dict(self) -> dict[str, object]:
         return {
             "local": self.local, "remote": self.remote, "failed": self.failed, "cached": self.cached,
-            "failovers": self.failovers, "hedged": self.hedged,
+            "failovers": self.failovers, "hedged": self.hedged, "pushed": self.pushed,
         }
 
 
@@ -82,6 +89,7 @@ class QueryHandler:
         down: Callable[[str], str | None] = lambda robot_id: None,
         hedge_floor_s: float = 1.0,
         on_failure: Callable[[str, Exception], Awaitable[None]] | None = None,
+        pusher: FactPusher | None = None,
     ) -> None:
         if wire not in QUERY_WIRES:
             raise ValueError(f"query wire {wire!r} is not one of {', '.join(QUERY_WIRES)}")
@@ -98,6 +106,32 @@ class QueryHandler:
         self.hedge_floor_s = hedge_floor_s
         #: Holders whose last request failed at the transport: asked last.
         self._suspects: set[str] = set()
+        #: Publishes the answers this robot gives itself, for teammates that
+        #: lack the module (compact wire only: the seed's asked every time).
+        self.pusher = pusher if wire == "compact" else None
+        #: The answers teammates push to this robot (set by the robot once it observes them).
+        self.pushed: PushedFacts | None = None
+
+    def begin(self, task: int) -> None:
+        """This robot starts gathering the facts of ``task``."""
+        if self.pusher is not None:
+            self.pusher.begin(task)
+
+    def pushing_holders(self) -> dict[str, tuple[str, Endpoint]]:
+        """Module -> the holder (robot id, endpoint) this robot reads it from
+        while every holder is up, for each module it lacks: the one whose
+        pushed answers it takes."""
+        if self.config.central is not None or self.wire != "compact":
+            return {}
+        held = self.config.team[self.config.robot_id].kbs
+        chosen = {}
+        for module in sorted({kb for mate in self.config.team.values() for kb in mate.kbs} - set(held)):
+            holders = self.config.holders_of(module)
+            if self.config.kb_writable:  # the pinned order (_holders_for)
+                holders = sorted(holders, key=lambda m: robot_sort_key(m.robot_id))
+            if holders:
+                chosen[module] = (holders[0].robot_id, holders[0].endpoint)
+        return chosen
 
     def reads_from(self, module: str) -> str | None:
         """The holder the robots of the cluster now put a pinned question
@@ -165,18 +199,46 @@ class QueryHandler:
         query = NAMED_QUERIES[name]
         pinned = at is not None and self.config.kb_writable
         holders = self._holders_for(query.kb, pinned)
+        asked = {**params, "at": str(at)} if pinned else params
         if holders is None:
             self.stats.local += 1
             assert self.kb is not None
             try:
                 text = query.render(params)
                 if at is not None and pinned and isinstance(self.kb, LiveKB):
-                    return self.kb.query_at(at, text)
-                return self.kb.query(text)
+                    result = self.kb.query_at(at, text)
+                else:
+                    result = self.kb.query(text)
             except KBError as exc:
                 self.stats.failed += 1
                 raise QueryError(f"{name} on own {query.kb} KB: {exc}") from None
-        return await self._remote(name, {**params, "at": str(at)} if pinned else params, holders)
+            if self.pusher is not None:
+                await self.pusher.offer(query.kb, name, asked)
+            return result
+        await self._await_push(name, asked, holders[0].endpoint)
+        return await self._remote(name, asked, holders)
+
+    async def _await_push(self, name: str, params: Mapping[str, str], holder: Endpoint) -> None:
+        """Give ``holder`` about a round trip to push its answer before asking it."""
+        pushed = self.pushed
+        if pushed is None or not pushed.expects(holder) or self.client.fresh(holder, named_request(name, params)):
+            return
+        answer = await pushed.wait(holder, name, params, self.push_wait_s())
+        if answer is not None and self.client.prime(holder, named_request(name, params), answer.max_age,
+                                                    answer.result):
+            self.stats.pushed += 1
+
+    def push_wait_s(self) -> float:
+        """How long to wait for a pushed answer: two round trips (the median
+        of the recent queries', else the observations' registration): a
+        holder that needs another's fact first (the grip, for the robots
+        that can pick by it) pushes one round trip after this robot could
+        ask; never more than the hedging floor."""
+        recent = sorted(self.stats.remote_latencies[-64:])
+        round_trip = recent[len(recent) // 2] if recent else self.pushed.round_trip_s if self.pushed else None
+        if round_trip is None:
+            return PUSH_WAIT_S
+        return min(self.hedge_floor_s, max(PUSH_WAIT_FLOOR_S, 2 * round_trip))
 
     async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
         """Ask the first holder; on a transport failure (dead or unreachable

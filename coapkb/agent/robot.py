@@ -25,6 +25,7 @@ from ..transport.router import Router
 from ..world import Position, layout_from_row
 from ..world.service import WorldClient
 from .controller import DEFAULT_BOUNDS, Controller, RobotBounds
+from .fact_push import FactPusher, PushedFacts
 from .knowledge_writer import KnowledgeWriter
 from .lease import Lease
 from .local_health import LoopHealth
@@ -226,10 +227,14 @@ class Robot:
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact",
                              writer=f"{config.robot_id}.{boot}")
+        held = config.team[config.robot_id].kbs if served is not None else ()
         queries = QueryHandler(
             config, served, kb_client, wire=query_wire, down=lambda r: team.down.get(r),
-            on_failure=team.request_failed
+            on_failure=team.request_failed, pusher=FactPusher(router, tuple(held)) if held else None,
         )
+        pushing = queries.pushing_holders()
+        if pushing:
+            queries.pushed = PushedFacts(client, pushing)
 
         state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
         # Never progress alone: only what the feeder acts on, the changes of
@@ -302,6 +307,8 @@ class Robot:
         if knowledge is not None:
             knowledge.start()
         team.start()
+        if queries.pushed is not None:
+            queries.pushed.start()
         executor.start()
         controller.start()
         return robot
@@ -324,6 +331,8 @@ class Robot:
         for pacing in self.progress:
             pacing.cancel()
         await self.team.aclose()
+        if self.queries.pushed is not None:
+            await self.queries.pushed.aclose()
         if self.replicator is not None:
             await self.replicator.aclose()
         if self.health is not None:

@@ -139,7 +139,7 @@ class KBClient:
         request = named_request(name, params, accept=accept)
         if self._cache is None:
             return decode(await self.call(peer, request, timeout))
-        key = (peer, request.path, tuple(sorted(request.query.items())), accept)
+        key = _cache_key(peer, request)
         cached = self._cache.get(key)
         if cached is not None:
             self._cache.move_to_end(key)
@@ -158,10 +158,35 @@ class KBClient:
         self.cache_stats.misses += 1
         result = decode(response)
         if max_age > 0:
-            self._cache[key] = _Cached(now + max_age, response.etag, result)
-            if len(self._cache) > self.cache_entries:
-                self._cache.popitem(last=False)
+            self._keep(key, _Cached(now + max_age, response.etag, result))
         return result
+
+    def prime(self, peer: Endpoint, request: Request, max_age: int | None, payload: bytes) -> bool:
+        """Keep ``payload``, a compact CBOR answer ``peer`` pushed before it
+        was asked (coapkb.agent.fact_push), as if it had just answered
+        ``request`` with it: :meth:`named` then takes it from the cache.
+        False if there is no cache, it expires at once, or it does not decode."""
+        max_age = DEFAULT_MAX_AGE_S if max_age is None else max_age
+        if self._cache is None or max_age <= 0:
+            return False
+        try:
+            result = codec.decode_cbor(payload)
+        except codec.CodecError:
+            return False
+        self._keep(_cache_key(peer, request), _Cached(self._clock() + max_age, None, result))
+        return True
+
+    def fresh(self, peer: Endpoint, request: Request) -> bool:
+        """Would :meth:`named` answer ``request`` to ``peer`` from the cache now?"""
+        cached = None if self._cache is None else self._cache.get(_cache_key(peer, request))
+        return cached is not None and self._clock() < cached.expires
+
+    def _keep(self, key: tuple[object, ...], entry: _Cached) -> None:
+        assert self._cache is not None
+        self._cache[key] = entry
+        self._cache.move_to_end(key)
+        if len(self._cache) > self.cache_entries:
+            self._cache.popitem(last=False)
 
     async def update(
         self,
@@ -266,6 +291,10 @@ def named_request(name: str, params: Mapping[str, str] | None = None, *,
                   accept: ContentFormat = ContentFormat.CBOR) -> Request:
     """The named query ``/kb/q/<name>?params``."""
     return Request(Method.GET, f"/kb/q/{name}", dict(params or {}), accept=accept)
+
+
+def _cache_key(peer: Endpoint, request: Request) -> tuple[object, ...]:
+    return (peer, request.path, tuple(sorted(request.query.items())), request.accept)
 
 
 def decode(response: Response) -> QueryResult:

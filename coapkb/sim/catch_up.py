@@ -24,8 +24,8 @@ from ..kb.live import LiveKB
 from ..transport.messages import Request, Response
 from .loop import Process
 
-#: The paths a holder answers queries on.
-_READS = ("/kb/q/", "/kb/sparql")
+#: The paths a holder answers queries on, and pushes its answers on (notifications).
+_READS = ("/kb/q/", "/kb/sparql", "/kb/facts/")
 
 #: Whether a holder's KB shows a written value: (kb, module, value).
 Shows = Callable[[LiveKB, str, int], bool]

@@ -369,6 +369,8 @@ class _Observer:
             await self.changed.wait()
             self.changed.clear()
             response = await handle_safely(server.service, self.request, log)
+            for hook in network.answer_hooks:  # a notification answers the registration again
+                hook(server.process, self.request, response)
             seq += 1
             if not (response.confirm or seq % server.confirm_every == 0):
                 server.counters.messages_sent += 1

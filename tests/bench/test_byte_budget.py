@@ -178,7 +178,7 @@ def test_registration_answer_notifications_and_acks() -> None:
     assert bb._kind_label(sent[3]) == "notification /robot/plan"
     assert sent[2].detail == "registration answer /robot/plan" and sent[5].detail == "notification /robot/plan"
     assert [bb.breakdown_of(d) for d in sent[:4]] == [
-        "robots' plan registrations", "needed items, as sent", "acknowledgements of plan notifications",
+        "robots' registrations: plans, pushed facts", "needed items, as sent", "acknowledgements of plan notifications",
         "needed items, as sent"]
     assert bb.breakdown_of(sent[4]) == "copies: retransmissions, retries, hedged copies"
 

@@ -1,0 +1,227 @@
+"""Facts pushed by their holder before a teammate asks for them.
+
+Every robot of a cluster needs the same facts for a task (compute by all),
+and each one that lacks a KB module asked its holder for them: a request
+and an answer per robot and fact.  The holder needs them too, at the same
+moment, and runs the same named queries on its own KB; so it publishes each
+answer it gives itself for a task on ``/kb/facts/MODULE``, and the
+teammates that read that module from it observe that resource (RFC 7641,
+NON notifications like ``/robot/plan``).  The Query Handler waits for a
+pushed answer a bounded time (about two round trips) before it asks, and
+puts it in its answer cache (:meth:`KBClient.prime`) as if its request had
+just been answered: a lost notification costs a query, never a wrong answer.
+
+:class:`FactPusher` is the holder's side, :class:`PushedFacts` the
+teammate's.  The representation is ``robot-facts`` (docs/robot-state.cddl):
+the answers the holder has given for its latest task, so a notification
+that replaces another still carries the answers of both.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import OrderedDict
+from collections.abc import Mapping
+
+from .. import clock
+from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
+from ..transport.messages import ContentFormat, Method, Request, Response, Status
+from ..transport.router import Router
+from ..wire.codec import CodecError
+from ..wire.pushed import MAX_PUSHED, PushedAnswer, decode_pushed, encode_pushed, request_key
+
+log = logging.getLogger(__name__)
+
+FACTS_PATH = "/kb/facts"
+#: Answers remembered: pushed (holder), arrived or awaited (teammate).
+ANSWERS_KEPT = 256
+#: Waits in a row for one holder that run out before its observation is registered again.
+MISSES_BEFORE_REREGISTERING = 3
+#: An answer pushed before is pushed again this long before its Max-Age
+#: runs out: the teammates that took it then still hold it until then.
+REPUSH_MARGIN_S = 1.0
+
+
+def facts_path(module: str) -> str:
+    """Where a holder pushes its answers from ``module``."""
+    return f"{FACTS_PATH}/{module}"
+
+
+class FactPusher:
+    """A holder's answers for its latest task, one observable resource per module it holds."""
+
+    def __init__(self, router: Router, modules: tuple[str, ...]) -> None:
+        self._router = router
+        self._task = 0
+        self._answers: dict[str, OrderedDict[bytes, PushedAnswer]] = {module: OrderedDict() for module in modules}
+        #: Request key -> (the result pushed, until when teammates hold it).
+        self._held: OrderedDict[bytes, tuple[bytes, float]] = OrderedDict()
+        self._dirty: set[str] = set()
+        for module in modules:
+            router.add(ResourceInfo(facts_path(module), rt="coapkb.facts", ct=(60,), obs=True,
+                                    title=f"answers from the {module} KB for the latest task"), self._get)
+
+    def begin(self, task: int) -> None:
+        """The holder starts deciding ``task``: the answers of the one before are not pushed again."""
+        if task != self._task:
+            self._task = task
+            for answers in self._answers.values():
+                answers.clear()
+
+    async def offer(self, module: str, name: str, params: Mapping[str, str]) -> None:
+        """Publish the answer this robot's KB gives ``/kb/q/NAME?params`` now,
+        exactly as its resource answers a teammate that asks, unless the
+        teammates still hold the same answer from an earlier push."""
+        answers = self._answers.get(module)
+        if answers is None:
+            return
+        response = await self._router.handle(Request(Method.GET, f"/kb/q/{name}", dict(params),
+                                                     accept=ContentFormat.CBOR))
+        if response.status != Status.CONTENT or response.content_format != ContentFormat.CBOR:
+            return
+        key, now = request_key(name, params), clock.monotonic()
+        held = self._held.get(key)
+        if key in answers or (held is not None and held[0] == response.payload and now < held[1]):
+            return
+        max_age = 60 if response.max_age is None else response.max_age
+        self._held[key] = (response.payload, now + max_age - REPUSH_MARGIN_S)
+        self._held.move_to_end(key)
+        while len(self._held) > ANSWERS_KEPT:
+            self._held.popitem(last=False)
+        answers[key] = PushedAnswer(key, response.max_age, response.payload)
+        while len(answers) > MAX_PUSHED:
+            answers.popitem(last=False)
+        # One notification for the answers given in one turn of the loop
+        # (the layout, the docks and the energy figures come together).
+        if not self._dirty:
+            asyncio.get_running_loop().call_soon(self._notify)
+        self._dirty.add(module)
+
+    def _notify(self) -> None:
+        dirty, self._dirty = self._dirty, set()
+        for module in sorted(dirty):
+            self._router.notify(facts_path(module))
+
+    async def _get(self, request: Request) -> Response:
+        module = request.path.rsplit("/", 1)[1]
+        return Response(Status.CONTENT, encode_pushed(list(self._answers[module].values())), ContentFormat.CBOR)
+
+
+class _Awaited:
+    """One answer a holder pushed, or that a waiter expects of it."""
+
+    def __init__(self) -> None:
+        self.arrived = asyncio.Event()
+        self.answer: PushedAnswer | None = None
+
+
+class PushedFacts:
+    """A teammate's side: observes ``/kb/facts/MODULE`` at the holder it
+    reads each module from, and hands what arrives to whoever waits for it."""
+
+    def __init__(self, transport: ClientTransport, holders: Mapping[str, tuple[str, Endpoint]]) -> None:
+        """``holders``: module -> (the holder's robot id, its endpoint)."""
+        self._transport = transport
+        self._holders = dict(holders)
+        #: Holders whose observation is registered now: only those are waited for.
+        self._observing: set[Endpoint] = set()
+        self._answers: OrderedDict[tuple[Endpoint, bytes], _Awaited] = OrderedDict()
+        self._watchers: dict[str, asyncio.Task[None]] = {}
+        #: Waits in a row that ran out, per holder: a holder that restarted
+        #: has forgotten its observers, and says nothing (NON notifications).
+        self._misses: dict[Endpoint, int] = {}
+        #: Answers that arrived pushed, and waits that ran out first.
+        self.arrivals = 0
+        self.missed = 0
+        #: The quickest registration's round trip, seconds (None: none answered yet).
+        self.round_trip_s: float | None = None
+
+    def start(self) -> None:
+        for module in sorted(self._holders):
+            self._start_watch(module)
+
+    def _start_watch(self, module: str) -> None:
+        old = self._watchers.get(module)
+        if old is not None:
+            old.cancel()
+        robot_id, endpoint = self._holders[module]
+        self._observing.discard(endpoint)
+        self._watchers[module] = asyncio.create_task(self._watch(module, endpoint), name=f"facts-{robot_id}")
+
+    async def aclose(self) -> None:
+        for task in self._watchers.values():
+            task.cancel()
+        await asyncio.gather(*self._watchers.values(), return_exceptions=True)
+        self._watchers.clear()
+
+    def expects(self, endpoint: Endpoint) -> bool:
+        """Does ``endpoint`` push to this robot now?"""
+        return endpoint in self._observing
+
+    async def wait(self, endpoint: Endpoint, name: str, params: Mapping[str, str],
+                   within: float) -> PushedAnswer | None:
+        """``endpoint``'s pushed answer to ``name`` with ``params``, waited
+        for at most ``within`` seconds; None if it has not come by then."""
+        awaited = self._awaited((endpoint, request_key(name, params)))
+        if not awaited.arrived.is_set():
+            try:
+                await asyncio.wait_for(awaited.arrived.wait(), within)
+            except TimeoutError:
+                self._missed(endpoint)
+                return None
+        self._misses[endpoint] = 0
+        return awaited.answer
+
+    def _missed(self, endpoint: Endpoint) -> None:
+        self.missed += 1
+        self._misses[endpoint] = self._misses.get(endpoint, 0) + 1
+        if self._misses[endpoint] >= MISSES_BEFORE_REREGISTERING:
+            self._misses[endpoint] = 0
+            for module, (_, holder) in self._holders.items():
+                if holder == endpoint:
+                    self._start_watch(module)
+
+    def _awaited(self, key: tuple[Endpoint, bytes]) -> _Awaited:
+        awaited = self._answers.get(key)
+        if awaited is None:
+            awaited = self._answers[key] = _Awaited()
+            while len(self._answers) > ANSWERS_KEPT:
+                self._answers.popitem(last=False)
+        return awaited
+
+    async def _watch(self, module: str, endpoint: Endpoint) -> None:
+        request = Request(Method.GET, facts_path(module), accept=ContentFormat.CBOR)
+        backoff = 0.2
+        while True:
+            registered = clock.monotonic()
+            try:
+                async for response in self._transport.observe(endpoint, request):
+                    if endpoint not in self._observing:  # the registration's answer
+                        took = clock.monotonic() - registered
+                        self.round_trip_s = took if self.round_trip_s is None else min(self.round_trip_s, took)
+                    if not response.status.is_success:
+                        log.debug("%s answered %s on %s", endpoint, response.status.dotted, request.path)
+                        break
+                    self._observing.add(endpoint)
+                    backoff = 0.2
+                    self._take(endpoint, response.payload)
+            except TransportError as exc:
+                log.debug("observing %s of %s: %s", request.path, endpoint, exc)
+            self._observing.discard(endpoint)
+            # Not up yet, restarted, or the observation ended: register again shortly.
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, 5.0)
+
+    def _take(self, endpoint: Endpoint, payload: bytes) -> None:
+        try:
+            answers = decode_pushed(payload)
+        except CodecError as exc:
+            log.warning("bad pushed answers from %s: %s", endpoint, exc)
+            return
+        for answer in answers:
+            awaited = self._awaited((endpoint, answer.key))
+            if not awaited.arrived.is_set():
+                self.arrivals += 1
+                awaited.answer = answer
+                awaited.arrived.set()

@@ -1,0 +1,133 @@
+"""Facts pushed by their holder (coapkb.agent.fact_push), over CoAP on
+loopback with real sockets: a teammate that observes the holder takes the
+answer it would have asked for, and asks nothing; one that gets no push in
+time asks, and gets the same answer."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+import pytest_asyncio
+from agent_helpers import HOLDERS, config
+from support import free_udp_port
+
+from coapkb.agent.fact_push import FactPusher, PushedFacts, facts_path
+from coapkb.agent.query_handler import QueryHandler
+from coapkb.config import Teammate
+from coapkb.kb.client import KBClient
+from coapkb.kb.resources import KBResources
+from coapkb.kb.store import KnowledgeBase
+from coapkb.transport import open_client, serve
+from coapkb.transport.base import ClientTransport, Endpoint, ServerTransport
+from coapkb.transport.messages import ContentFormat, Method, Request, Status
+from coapkb.transport.router import Router
+from coapkb.wire.codec import decode_cbor
+from coapkb.wire.pushed import decode_pushed
+
+#: Generous: a loaded machine.
+PATIENCE_S = 10.0
+OBJECT = {"name": "Gucci_bag_14"}
+
+
+class Holder:
+    """Robot2, holding the Object KB, served over CoAP with its pusher."""
+
+    def __init__(self, kb: KnowledgeBase, endpoint: Endpoint) -> None:
+        self.router = Router()
+        KBResources(kb).mount(self.router)
+        self.pusher = FactPusher(self.router, ("Object",))
+        self.endpoint = endpoint
+        self.server: ServerTransport | None = None
+
+
+@pytest_asyncio.fixture
+async def holder(kbs: dict[str, KnowledgeBase]) -> AsyncIterator[Holder]:
+    robot2 = Holder(kbs["Object"], Endpoint("coap", "127.0.0.1", free_udp_port()))
+    robot2.server = await serve(robot2.router, robot2.endpoint)
+    yield robot2
+    await robot2.server.aclose()
+
+
+@pytest_asyncio.fixture
+async def client() -> AsyncIterator[ClientTransport]:
+    transport = await open_client("coap")
+    yield transport
+    await transport.aclose()
+
+
+def teammate(client: ClientTransport, holder: Holder) -> QueryHandler:
+    """Robot1 (Location), reading the Object KB from ``holder``."""
+    team: dict[str, Any] = {r: Teammate(r, holder.endpoint if r == "Robot2" else Endpoint("coap", "127.0.0.1", 9),
+                                        (kb,)) for r, kb in HOLDERS.items()}
+    cfg = dataclasses.replace(config("Robot1"), team=team, query_timeout_s=PATIENCE_S)
+    queries = QueryHandler(cfg, None, KBClient(client, cache=True))
+    queries.pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
+    return queries
+
+
+async def observing(queries: QueryHandler, endpoint: Endpoint) -> None:
+    assert queries.pushed is not None
+    async with asyncio.timeout(PATIENCE_S):
+        while not queries.pushed.expects(endpoint):
+            await asyncio.sleep(0.01)  # the registration's answer: nothing to await from outside
+
+
+async def test_a_pushed_answer_is_taken_and_nothing_is_asked(client: ClientTransport, holder: Holder) -> None:
+    queries = teammate(client, holder)
+    assert queries.pushed is not None
+    queries.pushed.start()
+    try:
+        await observing(queries, holder.endpoint)
+        assert holder.server is not None
+        received = holder.server.counters.messages_received
+        holder.pusher.begin(1)
+        await holder.pusher.offer("Object", "pick-facts", OBJECT)
+        result = await queries.run("pick-facts", OBJECT)
+        assert result.as_dicts()[0]["grip"] is not None  # type: ignore[union-attr]
+        assert (queries.stats.pushed, queries.stats.cached, queries.stats.remote) == (1, 1, 0)
+        # The notification's ACK at most (every 16th is confirmable); no request.
+        assert holder.server.counters.messages_received - received <= 1
+    finally:
+        await queries.pushed.aclose()
+
+
+async def test_without_a_push_in_time_the_teammate_asks(client: ClientTransport, holder: Holder) -> None:
+    queries = teammate(client, holder)
+    assert queries.pushed is not None
+    queries.pushed.start()
+    try:
+        await observing(queries, holder.endpoint)
+        asked = await queries.run("pick-facts", OBJECT)  # the holder never offers it
+        assert (queries.stats.pushed, queries.stats.remote, queries.pushed.missed) == (0, 1, 1)
+        holder.pusher.begin(1)
+        await holder.pusher.offer("Object", "pick-facts", OBJECT)
+        response = await client.request(holder.endpoint, Request(Method.GET, facts_path("Object"),
+                                                                 accept=ContentFormat.CBOR), timeout=PATIENCE_S)
+        assert response.status == Status.CONTENT
+        (pushed,) = decode_pushed(response.payload)
+        assert decode_cbor(pushed.result) == asked  # the same answer either way
+    finally:
+        await queries.pushed.aclose()
+
+
+async def test_an_answer_the_teammates_still_hold_is_not_pushed_again(holder: Holder) -> None:
+    notified: list[None] = []
+    holder.router.subscribe(facts_path("Object"), lambda: notified.append(None))
+    holder.pusher.begin(1)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)
+    await asyncio.sleep(0)  # the notification goes out at the end of the loop's turn
+    holder.pusher.begin(2)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)  # the same object again, within its Max-Age
+    await asyncio.sleep(0)
+    assert len(notified) == 1
+
+
+@pytest.mark.parametrize("module", ["Location", "Capability"])
+async def test_a_module_the_holder_lacks_has_no_resource(holder: Holder, client: ClientTransport,
+                                                         module: str) -> None:
+    response = await client.request(holder.endpoint, Request(Method.GET, facts_path(module)), timeout=PATIENCE_S)
+    assert response.status == Status.NOT_FOUND
