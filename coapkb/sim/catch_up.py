@@ -11,9 +11,10 @@ shows them all (or they were deleted since) is one sample.  The profile's
 median is judged by :func:`coapkb.sim.invariants.check_catch_up`.
 
 The reads a holder answers meanwhile are watched too (:meth:`CatchUps.answered`,
-a hook on the simulated network's answers): a query answered by a holder
-that still owes acknowledged values is a read its co-holders would have
-answered with them.  The same oracle judges them: there should be none.
+a hook on the simulated network's answers and notifications): a query
+answered, or an answer pushed on ``/kb/facts``, by a holder that still owes
+acknowledged values of the module it reads is a read its co-holders would
+have answered with them.  The same oracle judges them: there should be none.
 """
 
 from __future__ import annotations
@@ -21,11 +22,22 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 
 from ..kb.live import LiveKB
+from ..kb.named_queries import NAMED_QUERIES
 from ..transport.messages import Request, Response
 from .loop import Process
 
 #: The paths a holder answers queries on, and pushes its answers on (notifications).
 _READS = ("/kb/q/", "/kb/sparql", "/kb/facts/")
+
+def _modules_read(path: str) -> frozenset[str] | None:
+    """The KB modules a read on ``path`` answers from (None: any, SPARQL text)."""
+    if path.startswith("/kb/q/"):
+        query = NAMED_QUERIES.get(path.removeprefix("/kb/q/"))
+        return None if query is None else frozenset({query.kb})
+    if path.startswith("/kb/facts/"):
+        return frozenset({path.removeprefix("/kb/facts/")})
+    return None
+
 
 #: Whether a holder's KB shows a written value: (kb, module, value).
 Shows = Callable[[LiveKB, str, int], bool]
@@ -75,12 +87,15 @@ class CatchUps:
 
     def answered(self, server: Process, request: Request, response: Response) -> None:
         """A hook on the network's answers: a query ``server`` answered
-        while its process still owed values is a stale read."""
+        while its process still owed values of a module the query reads is
+        a stale read."""
         entry = self._pending.get(server.name)
         if entry is None or not response.status.is_success or not request.path.startswith(_READS):
             return
         since, owed = entry
-        lacking = ", ".join(f"{len(values)} of {module}" for module, values in sorted(owed.items()) if values)
+        read = _modules_read(request.path)
+        lacking = ", ".join(f"{len(values)} of {module}" for module, values in sorted(owed.items())
+                            if values and (read is None or module in read))
         if lacking:
             self.stale_reads.append(
                 f"{server.name} answered {request.method.name} {request.path} {self._clock() - since:.3f} s after "

@@ -105,6 +105,9 @@ class Counting:
         self.wire = inner.wire
         self.asked: dict[str, int] = {}
 
+    def begin(self, task: int) -> None:
+        self.inner.begin(task)
+
     async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> object:
         if "name" in params:
             self.asked[params["name"]] = self.asked.get(params["name"], 0) + 1

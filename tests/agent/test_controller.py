@@ -214,12 +214,18 @@ class NoQueries:
 
     wire = "compact"
 
+    def begin(self, task: int) -> None:
+        pass
+
     async def run(self, name: str, params: Mapping[str, str], *, at: int | None = None) -> object:
         raise AssertionError(f"unexpected query {name}")
 
 
 class Failing:
     wire = "compact"
+
+    def begin(self, task: int) -> None:
+        pass
 
     def __init__(self, error: Exception) -> None:
         self.error = error
