@@ -107,11 +107,14 @@ class RobotState:
     def encode(self) -> bytes:
         """Compact CBOR (docs/robot-state.cddl): positional arrays, no key
         strings; several teammates observe this on slow links."""
+        return self._encode(_plan_array(self.plan))
+
+    def _encode(self, plan: list[object] | None) -> bytes:
         return cbor2.dumps(
             [
                 self.robot_id,
-                _plan_array(self.plan),
-                _plan_array(self.prev),
+                plan,
+                _prev_item(self.plan, self.prev),
                 [self.live.aisle, self.live.rack, ACTIVITIES.index(self.live.activity), self.live.executing,
                  self.live.queued, self.live.done,
                  *self._live_tail()],
@@ -141,7 +144,11 @@ class RobotState:
             carries = last.assigned_to is None or last.assigned_to == self.robot_id
             last = replace(last, object="", coordination_s=0.0, members=last.members if last.epoch else (),
                            costs=last.costs if carries else {}, reasons=last.reasons if carries else {})
-        return replace(self, robot_id="", prev=None, last=last).encode()
+        # Of the plan only its task, of the live part not where the robot is
+        # nor what it picks: people read those on /robot/state (a recording
+        # feeder observes that instead).
+        live = replace(self.live, aisle=0.0, rack=0.0, executing=None)
+        return replace(self, robot_id="", prev=None, live=live, last=last)._encode([self.plan.seq])
 
     def _live_tail(self) -> list[object]:
         live = self.live
@@ -156,7 +163,7 @@ class RobotState:
     def encode_plan(self) -> bytes:
         """Only what teammates need to assign tasks: id, plan, previous plan."""
         return cbor2.dumps(
-            [self.robot_id, _plan_array(self.plan), _plan_array(self.prev), *self._boot()], canonical=True
+            [self.robot_id, _plan_array(self.plan), _prev_item(self.plan, self.prev), *self._boot()], canonical=True
         )
 
     @classmethod
@@ -170,7 +177,7 @@ class RobotState:
             raw = cbor2.loads(data)
             _check(type(raw) is list and 3 <= len(raw) <= 6, "a robot state is an array of 3 to 6 items", raw)
             robot_id, plan = _text(raw[0], "robot-id") or "", _plan(raw[1])
-            prev = _plan(raw[2]) if raw[2] is not None else None
+            prev = _prev(plan, raw[2])
             if len(raw) in (3, 4):  # the plan form, with or without the incarnation
                 boot = _uint(raw[3], "boot") if len(raw) == 4 else 0
                 return cls(robot_id, plan, LiveState(float(plan.aisle), float(plan.rack)), None, prev, boot)
@@ -198,6 +205,23 @@ def _plan_array(plan: PlannedState | None) -> list[object] | None:
     # Floats stay float64: every robot must compute on exactly the numbers
     # the owner computes with, or "compute by all" could disagree.
     return [plan.aisle, plan.rack, float(plan.battery_wh), float(plan.load_kg), float(plan.payload_kg), plan.seq]
+
+
+def _prev_item(plan: PlannedState, prev: PlannedState | None) -> object:
+    """The previous plan, or only its ``seq`` where it is the plan but for
+    that (the robot the task did not go to: two of three in a cluster,
+    some 30 bytes less in each of their notifications)."""
+    if prev is not None and replace(prev, seq=plan.seq) == plan:
+        return prev.seq
+    return _plan_array(prev)
+
+
+def _prev(plan: PlannedState, raw: object) -> PlannedState | None:
+    if raw is None:
+        return None
+    if type(raw) is int:
+        return replace(plan, seq=_uint(raw, "prev seq"))
+    return _plan(_list(raw, "prev"))
 
 
 def _invalid(what: str, value: object) -> ValueError:
@@ -247,7 +271,9 @@ def _missed(raw: object) -> tuple[tuple[int, str], ...]:
 
 
 def _plan(raw: list[Any]) -> PlannedState:
-    _check(type(raw) is list and len(raw) == 6, "planned-state is an array of 6 items", raw)
+    _check(type(raw) is list and len(raw) in (1, 6), "planned-state is an array of 6 items (1 in an outcome)", raw)
+    if len(raw) == 1:  # an outcome's: the task alone
+        return PlannedState(0, 0, 0.0, 0.0, 0.0, _uint(raw[0], "seq"))
     aisle, rack, battery, load, payload, seq = raw
     return PlannedState(_uint(aisle, "aisle"), _uint(rack, "rack"), _float(battery, "battery-wh"),
                         _float(load, "load-kg"), _float(payload, "payload-kg"), _uint(seq, "seq"))

@@ -67,6 +67,9 @@ def add_feed(sub: argparse._SubParsersAction[Parser]) -> None:
 
 
 async def _feed(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from ..agent.observed_states import STATE_PATH
     from ..feeder import FateCounts, Feeder, TaskRecord, read_tasks_file
     from ..feeder.tasks import Restock, task_count
     from ..feeder.team_folder import read_team_folder
@@ -91,7 +94,9 @@ async def _feed(args: argparse.Namespace) -> int:
 
     restocker = await _restocker(team) if any(isinstance(t, Restock) for t in tasks) else None
     try:
-        async with Feeder.open(team.roster, team.settings, security) as feeder:
+        # A recording shows where each robot is: its whole state, not only its outcome.
+        settings = team.settings if recorder is None else replace(team.settings, watch=STATE_PATH)
+        async with Feeder.open(team.roster, settings, security) as feeder:
             await feeder.check_ready(args.answer_timeout,
                                      {r: f"is it running? start it with: {team.start_command(r)}" for r in team.files})
             if recorder is not None:

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 from .. import clock
 from ..agent.local_health import LoopHealth
-from ..agent.observed_states import OUTCOME_PATH, ObservedStates, States, liveness_floor_s
+from ..agent.observed_states import OUTCOME_PATH, STATE_PATH, ObservedStates, States, liveness_floor_s
 from ..agent.robot_state import RobotState
 from ..host import Network, Sockets
 from ..transport import ClientSecurity, reliability_for
@@ -19,10 +19,6 @@ from ..transport.messages import ContentFormat, Method, Request, Response
 from .reach import Reach
 from .roster import Roster
 from .tasks import FeederError
-
-#: What the feeder reads of a robot: its outcome (RobotState.encode_outcome),
-#: asked once (the watcher observes it all along).
-OUTCOME_REQUEST = Request(Method.GET, OUTCOME_PATH, accept=ContentFormat.CBOR)
 
 
 @dataclass(frozen=True)
@@ -39,6 +35,19 @@ class FeederSettings:
     lease_s: float = 0.0
     #: The robots' link rate (kbit/s), when known: sets the liveness floor.
     link_kbps: float | None = None
+    #: What the feeder observes of each robot: its outcome, what the feeder
+    #: acts on (RobotState.encode_outcome); or, for a recording, its whole
+    #: state, which also says where it is and what it carries.
+    watch: str = OUTCOME_PATH
+
+    def __post_init__(self) -> None:
+        if self.watch not in (OUTCOME_PATH, STATE_PATH):
+            raise ValueError(f"the feeder observes {OUTCOME_PATH} or {STATE_PATH}, not {self.watch}")
+
+    @property
+    def watch_request(self) -> Request:
+        """What the feeder reads of a robot, asked once (the watcher observes it all along)."""
+        return Request(Method.GET, self.watch, accept=ContentFormat.CBOR)
 
 
 
@@ -57,7 +66,7 @@ class Channel:
     reach: Reach = field(init=False)
 
     def __post_init__(self) -> None:
-        self.reach = Reach(self.client, self.watcher, self.roster, OUTCOME_REQUEST)
+        self.reach = Reach(self.client, self.watcher, self.roster, self.settings.watch_request)
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -81,7 +90,7 @@ class Channel:
         health.start()
         try:
             watcher = ObservedStates(
-                client, roster.endpoints, OUTCOME_PATH, liveness=True,
+                client, roster.endpoints, settings.watch, liveness=True,
                 liveness_floor_s=liveness_floor_s(settings.link_kbps), health=health,
             )
             channel = cls(client, watcher, roster, settings)
@@ -112,7 +121,8 @@ class Channel:
     async def state(self, robot_id: str, timeout: float) -> RobotState | None:
         """``robot_id``'s state asked once; None if it does not answer with one."""
         try:
-            response = await self.client.request(self.endpoint(robot_id), OUTCOME_REQUEST, timeout=timeout)
+            response = await self.client.request(self.endpoint(robot_id), self.settings.watch_request,
+                                                 timeout=timeout)
             return RobotState.decode(response.payload) if response.status.is_success else None
         except (TransportError, ValueError):
             return None

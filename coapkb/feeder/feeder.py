@@ -22,7 +22,7 @@ from ..host import Network
 from ..transport import ClientSecurity
 from ..transport.base import TrafficCounters, TransportError
 from ..transport.messages import ContentFormat, Method, Request
-from .channel import OUTCOME_REQUEST, Channel, FeederSettings
+from .channel import Channel, FeederSettings
 from .membership import Membership, PendingTask
 from .orphans import idle
 from .record import TaskRecord, claim_of, mark_not_found, unclaim
@@ -104,7 +104,7 @@ class Feeder:
             """``robot_id``'s state, or why it cannot be fed."""
             endpoint = channel.endpoint(robot_id)
             try:
-                response = await channel.client.request(endpoint, OUTCOME_REQUEST, timeout=timeout)
+                response = await channel.client.request(endpoint, channel.settings.watch_request, timeout=timeout)
             except TransportError as exc:
                 hint = f"; {hints[robot_id]}" if hints and robot_id in hints else ""
                 return f"{robot_id} does not answer at {endpoint} ({exc}){hint}"

@@ -16,7 +16,7 @@ from ..agent.lease import LEASE_PATH
 from ..agent.robot_state import RobotState
 from ..transport.base import TransportError
 from ..transport.messages import Method, Request, Status
-from .channel import OUTCOME_REQUEST, Channel
+from .channel import Channel
 from .orphans import orphans, unexecuted
 from .record import TaskRecord
 from .tasks import FeederError, task_post
@@ -200,7 +200,8 @@ class Membership:
         known = watcher.states.get(robot_id)
         with contextlib.suppress(TransportError, ValueError, TimeoutError):
             async with asyncio.timeout(channel.settings.task_timeout_s * 4):
-                async for response in channel.client.observe(channel.endpoint(robot_id), OUTCOME_REQUEST):
+                watch = channel.settings.watch_request
+                async for response in channel.client.observe(channel.endpoint(robot_id), watch):
                     state = RobotState.decode(response.payload)
                     if known is not None and state.boot != known.boot:
                         return  # another process: a restart, which joins at a task boundary

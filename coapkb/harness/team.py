@@ -24,12 +24,12 @@ import sys
 import tempfile
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from ..agent.lease import lease_duration_s
-from ..agent.observed_states import liveness_floor_s
+from ..agent.observed_states import STATE_PATH, liveness_floor_s
 from ..agent.query_handler import QUERY_WIRES
 from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
@@ -709,8 +709,10 @@ class Team:
             return self._carry_all(feeder, started, events, due) if due else None
 
         restocker = await self._restocker() if any(isinstance(t, Restock) for t in tasks) else None
+        # Told of states (a recording): each robot's whole state, where it is included.
+        settings = self.feeder_settings() if on_state is None else replace(self.feeder_settings(), watch=STATE_PATH)
         async with contextlib.AsyncExitStack() as closing, \
-                Feeder.open(self.roster(), self.feeder_settings(), self.feeder_security()) as feeder:
+                Feeder.open(self.roster(), settings, self.feeder_security()) as feeder:
             if restocker is not None:
                 closing.push_async_callback(restocker.client.aclose)
                 feeder.restocker = restocker

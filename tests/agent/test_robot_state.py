@@ -89,7 +89,9 @@ def test_matches_the_cddl(validator: object) -> None:
 @given(states)
 def test_outcome_carries_what_the_feeder_acts_on(state: RobotState) -> None:
     seen = RobotState.decode(state.encode_outcome())
-    assert (seen.robot_id, seen.plan, seen.live, seen.boot, seen.prev) == ("", state.plan, state.live, state.boot, None)
+    acted_on = replace(state.live, aisle=0, rack=0, executing=None)  # where and what: for people (/robot/state)
+    assert (seen.robot_id, seen.plan.seq, seen.live, seen.boot, seen.prev) == ("", state.plan.seq, acted_on,
+                                                                              state.boot, None)
     if state.last is None:
         assert seen.last is None
         return
@@ -179,7 +181,8 @@ def test_values_of_the_wrong_type_are_a_value_error(data: bytes) -> None:
 @given(states)
 def test_the_outcome_keeps_what_the_feeder_records(state: RobotState) -> None:
     seen = RobotState.decode(state.encode_outcome())
-    assert seen.live == state.live and seen.live.missed == state.live.missed
+    assert (seen.live.done, seen.live.fenced, seen.live.fence_reason, seen.live.missed) == (
+        state.live.done, state.live.fenced, state.live.fence_reason, state.live.missed)
     if state.last is not None:
         assert seen.last is not None and seen.last.skip_reason == state.last.skip_reason
 
@@ -261,3 +264,16 @@ def test_a_decision_of_thirteen_items_is_a_value_error() -> None:
     decision = [3, "Gucci_bag_14", True, None, {}, None, 0.0, {}, 0, [], None, "why", "more"]
     with pytest.raises(ValueError, match="8 to 12 items"):
         RobotState.decode(cbor2.dumps(["Robot1", _PLAN, None, [3.0, 4.0, 0, None, 0, 1], decision]))
+
+
+def test_a_previous_plan_unchanged_but_for_its_task_travels_as_that_task(validator: object) -> None:
+    plan = PlannedState(3, 21, 412.25, 0.8, 60.6, 5)
+    unchanged = RobotState("Robot2", plan, LiveState(3.0, 21.0), prev=replace(plan, seq=4), boot=7)
+    moved = replace(unchanged, prev=PlannedState(9, 6, 414.37, 0.0, 60.6, 4))
+    for state in (unchanged, moved):
+        assert RobotState.decode(state.encode_plan()) == replace(state, live=LiveState(3.0, 21.0))
+        assert RobotState.decode(state.encode()) == state
+        for data, root in ((state.encode(), "robot-state"), (state.encode_plan(), "robot-plan")):
+            outcome = validator.validate(data, root_type=root)  # type: ignore[attr-defined]
+            assert outcome.valid, [str(d) for d in outcome.diagnostics]
+    assert len(moved.encode_plan()) - len(unchanged.encode_plan()) >= 20
