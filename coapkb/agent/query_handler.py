@@ -10,6 +10,7 @@ failed over to the next, and a slow one is hedged.
 from __future__ import annotations
 
 import asyncio
+import collections
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -33,6 +34,8 @@ from .task_assigner import robot_sort_key
 QUERY_WIRES = ("compact", "seed")
 #: Remote-query latencies a robot keeps for its statistics and its hedging delay.
 LATENCIES_KEPT = 16_384
+#: Round trips of the latest queries that set the hedging delay and the wait for a push.
+ROUND_TRIPS_KEPT = 64
 #: How long a robot waits for a holder's pushed answer before it asks,
 #: before it has measured a round trip; and the least it ever waits.
 PUSH_WAIT_S = 0.5
@@ -68,8 +71,10 @@ class QueryStats:
     hedged: int = 0
     #: Remote answers the holder pushed before they were asked (in ``cached`` too).
     pushed: int = 0
-    #: Wall-clock latency of the latest remote queries, in seconds: at most
-    #: ``LATENCIES_KEPT`` (a robot runs for days: its statistics must not grow with them).
+    #: Wall-clock time of the latest facts from teammates, in seconds, from
+    #: when this robot needed each to when it had it (asked, or pushed and
+    #: waited for): at most ``LATENCIES_KEPT`` (a robot runs for days: its
+    #: statistics must not grow with them).
     remote_latencies: list[float] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
@@ -106,6 +111,8 @@ class QueryHandler:
         self.hedge_floor_s = hedge_floor_s
         #: Holders whose last request failed at the transport: asked last.
         self._suspects: set[str] = set()
+        #: The latest queries' round trips (what hedging and the wait for a push go by).
+        self._round_trips: collections.deque[float] = collections.deque(maxlen=ROUND_TRIPS_KEPT)
         #: Publishes the answers this robot gives itself, for teammates that
         #: lack the module (compact wire only: the seed's asked every time).
         self.pusher = pusher if wire == "compact" else None
@@ -184,7 +191,7 @@ class QueryHandler:
     def hedge_after_s(self) -> float:
         """How long to wait for one holder before also asking the next replica:
         a multiple of the recent remote latencies, never under the floor."""
-        recent = sorted(self.stats.remote_latencies[-64:])
+        recent = sorted(self._round_trips)
         if not recent:
             return self.hedge_floor_s
         p90 = recent[min(len(recent) - 1, int(0.9 * len(recent)))]
@@ -215,17 +222,25 @@ class QueryHandler:
             if self.pusher is not None:
                 await self.pusher.offer(query.kb, name, asked)
             return result
-        await self._await_push(name, asked, holders[0].endpoint)
-        return await self._remote(name, asked, holders)
+        started, before = clock.monotonic(), (self.stats.remote, self.stats.pushed)
+        await self._await_push(name, asked, holders[0])
+        result = await self._remote(name, asked, holders)
+        if (self.stats.remote, self.stats.pushed) != before:  # it crossed the network: asked, or pushed
+            latencies = self.stats.remote_latencies
+            latencies.append(clock.monotonic() - started)
+            if len(latencies) > LATENCIES_KEPT:
+                del latencies[: len(latencies) - LATENCIES_KEPT]
+        return result
 
-    async def _await_push(self, name: str, params: Mapping[str, str], holder: Endpoint) -> None:
-        """Give ``holder`` about a round trip to push its answer before asking it."""
-        pushed = self.pushed
-        if pushed is None or not pushed.expects(holder) or self.client.fresh(holder, named_request(name, params)):
+    async def _await_push(self, name: str, params: Mapping[str, str], holder: Teammate) -> None:
+        """Give ``holder`` about two round trips to push its answer before
+        asking it; not a holder known down or whose last request failed."""
+        pushed, endpoint, request = self.pushed, holder.endpoint, named_request(name, params)
+        if (pushed is None or not pushed.expects(endpoint) or not self._alive(holder.robot_id)
+                or holder.robot_id in self._suspects or self.client.fresh(endpoint, request)):
             return
-        answer = await pushed.wait(holder, name, params, self.push_wait_s())
-        if answer is not None and self.client.prime(holder, named_request(name, params), answer.max_age,
-                                                    answer.result):
+        answer = await pushed.wait(endpoint, name, params, self.push_wait_s())
+        if answer is not None and self.client.prime(endpoint, request, answer.max_age, answer.result):
             self.stats.pushed += 1
 
     def push_wait_s(self) -> float:
@@ -234,7 +249,7 @@ class QueryHandler:
         holder that needs another's fact first (the grip, for the robots
         that can pick by it) pushes one round trip after this robot could
         ask; never more than the hedging floor."""
-        recent = sorted(self.stats.remote_latencies[-64:])
+        recent = sorted(self._round_trips)
         round_trip = recent[len(recent) // 2] if recent else self.pushed.round_trip_s if self.pushed else None
         if round_trip is None:
             return PUSH_WAIT_S
@@ -310,8 +325,5 @@ class QueryHandler:
                 timeout=self.config.query_timeout_s,
             )
         self.stats.remote += 1
-        latencies = self.stats.remote_latencies
-        latencies.append(clock.monotonic() - started)
-        if len(latencies) > LATENCIES_KEPT:
-            del latencies[: len(latencies) - LATENCIES_KEPT]
+        self._round_trips.append(clock.monotonic() - started)
         return result

@@ -119,6 +119,7 @@ class RobotStats:
                 cached=int(queries.get("cached", 0)),
                 failovers=int(queries.get("failovers", 0)),
                 hedged=int(queries.get("hedged", 0)),
+                pushed=int(queries.get("pushed", 0)),
                 remote_latencies=[float(x) for x in data.get("remote_latencies_s") or ()],
             ),
             executed=int(data.get("executed", 0)),

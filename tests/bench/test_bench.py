@@ -53,7 +53,8 @@ async def test_run_once_in_namespaces_gives_full_ok_rows() -> None:
         # Headers, ACKs and retransmissions make the wire heavier than the payloads.
         assert row.wire_bytes > row.app_bytes > 0
         assert row.wire_packets > 0 and row.completion_s >= row.coordination_s > 0
-        assert row.remote_queries > 0 and row.query_p99_ms >= row.query_p50_ms > 0
+        # Facts from teammates, asked or pushed: their latencies.
+        assert row.query_p99_ms >= row.query_p50_ms > 0
         assert row.feeder_wire_bytes > 0 and row.queue_drops == 0
     coap, zmq = rows
     assert coap.retransmission_profile == "robust" and zmq.retransmission_profile == "tcp"
@@ -120,8 +121,9 @@ async def test_run_once_over_delayed_bursty_links() -> None:
                                loss_model="burst", burst_len=2)
     assert row.ok is True, row.error
     assert (row.delay_ms, row.jitter_ms, row.loss_model, row.burst_len) == (50, 5, "burst", 2)
-    # A remote query is at least one round trip: 2 x (50 - 5) ms.
-    assert row.query_p50_ms >= 90
+    # A fact from a teammate is at least a one-way delay away (50 - 5 ms):
+    # pushed by its holder once the holder's own task came, or a round trip if asked.
+    assert row.query_p50_ms >= 45
     assert row.key() != replace(row, delay_ms=0).key()
 
 

@@ -50,7 +50,8 @@ def test_robot_stats_keep_their_wire_form() -> None:
     assert list(wire) == ["robot_id", "transport", "strategy", "query_wire", "retransmission",
                           "server_retransmission", "server", "client", "queries", "remote_latencies_s",
                           "executed", "idle"]
-    assert wire["queries"] == {"local": 1, "remote": 2, "failed": 0, "cached": 1, "failovers": 0, "hedged": 0}
+    assert wire["queries"] == {"local": 1, "remote": 2, "failed": 0, "cached": 1, "failovers": 0, "hedged": 0,
+                               "pushed": 0}
     assert RobotStats.from_dict(cbor2.loads(cbor2.dumps(wire))) == stats
     assert RobotStats.from_dict(json.loads(json.dumps(wire))) == stats
     assert stats.traffic.bytes_sent == 200 and stats.traffic.retransmissions == 1
