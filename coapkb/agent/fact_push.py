@@ -20,6 +20,7 @@ that replaces another still carries the answers of both.
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -36,6 +37,9 @@ log = logging.getLogger(__name__)
 FACTS_PATH = "/kb/facts"
 #: Answers remembered: pushed (holder), arrived or awaited (teammate).
 ANSWERS_KEPT = 256
+#: Arrival times kept per named query, and how many before they set the wait.
+LATENESS_KEPT = 32
+LATENESS_SAMPLES_MIN = 4
 #: Waits in a row for one holder that run out before its observation is registered again.
 MISSES_BEFORE_REREGISTERING = 3
 #: An answer pushed before is pushed again this long before its Max-Age
@@ -114,6 +118,9 @@ class _Awaited:
     def __init__(self) -> None:
         self.arrived = asyncio.Event()
         self.answer: PushedAnswer | None = None
+        #: The query's name and when a robot began to wait for it (None: nobody has yet).
+        self.name = ""
+        self.since: float | None = None
 
 
 class PushedFacts:
@@ -136,6 +143,8 @@ class PushedFacts:
         self.missed = 0
         #: The quickest registration's round trip, seconds (None: none answered yet).
         self.round_trip_s: float | None = None
+        #: Per named query, how late its latest awaited answers came (seconds after the wait began).
+        self._late: dict[str, collections.deque[float]] = {}
 
     def start(self) -> None:
         for module in sorted(self._holders):
@@ -164,6 +173,10 @@ class PushedFacts:
         """``endpoint``'s pushed answer to ``name`` with ``params``, waited
         for at most ``within`` seconds; None if it has not come by then."""
         awaited = self._awaited((endpoint, request_key(name, params)))
+        if awaited.since is None:
+            awaited.name, awaited.since = name, clock.monotonic()
+            if awaited.arrived.is_set():
+                self._lateness(name).append(0.0)
         if not awaited.arrived.is_set():
             try:
                 await asyncio.wait_for(awaited.arrived.wait(), within)
@@ -225,3 +238,18 @@ class PushedFacts:
                 self.arrivals += 1
                 awaited.answer = answer
                 awaited.arrived.set()
+                if awaited.since is not None:  # awaited: how late it came (if after the wait ran out, too)
+                    self._lateness(awaited.name).append(clock.monotonic() - awaited.since)
+
+    def _lateness(self, name: str) -> collections.deque[float]:
+        return self._late.setdefault(name, collections.deque(maxlen=LATENESS_KEPT))
+
+    def expected_within(self, name: str) -> float | None:
+        """How long ``name``'s pushed answers usually take to come once a robot
+        needs them: half as much again as the latest ones' 90th percentile
+        (None: none awaited yet).  Answers that need another holder's fact
+        first (the grip) come a round trip later than the rest."""
+        late = sorted(self._late.get(name, ()))
+        if len(late) < LATENESS_SAMPLES_MIN:
+            return None
+        return 1.5 * late[min(len(late) - 1, int(0.9 * len(late)))]

@@ -239,21 +239,25 @@ class QueryHandler:
         if (pushed is None or not pushed.expects(endpoint) or not self._alive(holder.robot_id)
                 or holder.robot_id in self._suspects or self.client.fresh(endpoint, request)):
             return
-        answer = await pushed.wait(endpoint, name, params, self.push_wait_s())
+        answer = await pushed.wait(endpoint, name, params, self.push_wait_s(name))
         if answer is not None and self.client.prime(endpoint, request, answer.max_age, answer.result):
             self.stats.pushed += 1
 
-    def push_wait_s(self) -> float:
-        """How long to wait for a pushed answer: two round trips (the median
-        of the recent queries', else the observations' registration): a
-        holder that needs another's fact first (the grip, for the robots
-        that can pick by it) pushes one round trip after this robot could
-        ask; never more than the hedging floor."""
+    def push_wait_s(self, name: str) -> float:
+        """How long to wait for a pushed answer to ``name`` before asking:
+        as long as its answers usually take to come (PushedFacts.expected_within:
+        a lost one then costs little more than the query it replaces), or,
+        before that is known, two round trips (the median of the recent
+        queries', else the observations' registration; a holder that needs
+        another's fact first, the grip, pushes a round trip later); never
+        more than two round trips nor the hedging floor."""
         recent = sorted(self._round_trips)
         round_trip = recent[len(recent) // 2] if recent else self.pushed.round_trip_s if self.pushed else None
-        if round_trip is None:
-            return PUSH_WAIT_S
-        return min(self.hedge_floor_s, max(PUSH_WAIT_FLOOR_S, 2 * round_trip))
+        ceiling = self.hedge_floor_s if round_trip is None else min(self.hedge_floor_s, 2 * round_trip)
+        usual = self.pushed.expected_within(name) if self.pushed else None
+        if usual is None:
+            return PUSH_WAIT_S if round_trip is None else max(PUSH_WAIT_FLOOR_S, ceiling)
+        return min(ceiling, max(PUSH_WAIT_FLOOR_S, usual))
 
     async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
         """Ask the first holder; on a transport failure (dead or unreachable
