@@ -131,3 +131,26 @@ async def test_a_module_the_holder_lacks_has_no_resource(holder: Holder, client:
                                                          module: str) -> None:
     response = await client.request(holder.endpoint, Request(Method.GET, facts_path(module)), timeout=PATIENCE_S)
     assert response.status == Status.NOT_FOUND
+
+
+async def test_the_wait_learns_how_late_pushes_come(client: ClientTransport, holder: Holder) -> None:
+    pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
+    pushed.start()
+    try:
+        async with asyncio.timeout(PATIENCE_S):
+            while not pushed.expects(holder.endpoint):
+                await asyncio.sleep(0.01)  # the registration's answer: nothing to await from outside
+        assert pushed.expected_within("pick-facts") is None  # nothing awaited yet
+        for task, name in enumerate(("Gucci_bag_14", "Canon_tv_538", "Barilla_pasta_1", "Muji_lamp_793"), 1):
+            async def offer_late(task: int = task, name: str = name) -> None:
+                await asyncio.sleep(0.05)  # the holder's own task comes 50 ms after this robot's
+                holder.pusher.begin(task)
+                await holder.pusher.offer("Object", "pick-facts", {"name": name})
+
+            late = asyncio.create_task(offer_late())
+            assert await pushed.wait(holder.endpoint, "pick-facts", {"name": name}, PATIENCE_S) is not None
+            await late
+        usual = pushed.expected_within("pick-facts")
+        assert usual is not None and 1.5 * 0.05 <= usual < PATIENCE_S
+    finally:
+        await pushed.aclose()
