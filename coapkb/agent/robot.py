@@ -4,7 +4,7 @@ requests to teammates beyond observing them, :mod:`.teammate_calls`."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -19,8 +19,8 @@ from ..kb.replication import Holder, Replicator
 from ..kb.resources import KBResources
 from ..kb.store import KnowledgeBase, named_rows
 from ..security import AccessPolicy, TeamIdentity, load_identity, mechanism_for, server_security
-from ..transport import ClientSecurity, reliability_for
-from ..transport.base import ClientTransport, ServerTransport, TransportError
+from ..transport import ClientSecurity, ServerSecurity, reliability_for
+from ..transport.base import ClientTransport, Endpoint, ServerTransport, TransportError
 from ..transport.router import Router
 from ..world import Position, layout_from_row
 from ..world.service import WorldClient
@@ -227,51 +227,11 @@ class Robot:
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact",
                              writer=f"{config.robot_id}.{boot}")
-        held = config.team[config.robot_id].kbs if served is not None else ()
-        queries = QueryHandler(
-            config, served, kb_client, wire=query_wire, down=lambda r: team.down.get(r),
-            on_failure=team.request_failed, pusher=FactPusher(router, tuple(held)) if held else None,
-        )
-        pushing = queries.pushing_holders()
-        if pushing:
-            queries.pushed = PushedFacts(client, pushing)
-
-        state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
-        # Never progress alone: only what the feeder acts on, the changes of
-        # one loop turn as one notification.
-        outcome_changed = ProgressPacing(lambda: router.notify(OUTCOME_PATH))
-
+        queries = _query_handler(config, served, kb_client, client, team, router, query_wire)
         final = FinalOutcome()
-
-        def publish_live(live: LiveState) -> None:
-            before = team.own.live
-            team.set_own(replace(team.own, live=live))
-            final.on_live(before, team.own)
-            if acted_on(before, live):
-                state_changed.now()
-                outcome_changed.now()
-            else:
-                state_changed.progress()
-
-        def publish_decision(state: RobotState) -> None:
-            router.notify(PLAN_PATH)
-            state_changed.now()
-            outcome_changed.now()
-
-        fence = None
-        if config.lease_s > 0:
-            lease = Lease(
-                config.robot_id, teammates, client, config.lease_s,
-                request_timeout_s=lambda: team.request_timeout_s, down=lambda: team.down,
-                on_failure=team.request_failed,
-            )
-            fence = lease.hold
-        knowledge = None
-        if config.kb_writable:
-            knowledge = KnowledgeWriter(
-                lambda module, update, write_id: write_knowledge(config, served, replicator, kb_client, module,
-                                                                 update, team.is_up, write_id),
-                config.robot_id, host.wall_ms, new_write_id=kb_client.new_write_id)
+        publish_live, publish_decision, pacings = _publishers(router, team, final)
+        fence = _fence(config, teammates, client, team)
+        knowledge = _knowledge_writer(config, served, replicator, kb_client, team, host) if config.kb_writable else None
         world = host.world if host.world is not None else (
             WorldClient(config.world) if config.world is not None else None)
         executor = TaskExecutor(config.execution, own.live, publish_live, lease=fence, robot_id=config.robot_id,
@@ -282,20 +242,16 @@ class Robot:
             calls.ask_claims, bounds,
         )
         robot = cls(config, kb, client, router, controller, team, executor, queries, final)
-        robot.progress = (state_changed, outcome_changed)
+        robot.progress = pacings
         robot.health = health
         robot.replicator = replicator
         robot.keeper = keeper
         robot.knowledge = knowledge
         robot.resources.mount(router)  # before serving: the transport publishes the resource list
         try:
-            server_side = None
-            if secured is not None:
-                # Decisions only from whom this robot's Controller waits for.
-                deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
-                server_side = server_security(config.transport, secured[0], AccessPolicy(deciders))
-            robot.server = await host.network.serve(router, config.bind, reliability=reliability, security=server_side,
-                                                    options=table)
+            robot.server = await host.network.serve(
+                router, config.bind, reliability=reliability, options=table,
+                security=None if secured is None else _server_side(config, secured[0], controller))
         except BaseException:
             await client.aclose()
             if keeper is not None:
@@ -362,6 +318,77 @@ class Robot:
             recharges=list(self.executor.recharges),
             loop_lateness=self.health.stats() if self.health is not None else None,
         )
+
+
+def _query_handler(config: RobotConfig, served: KnowledgeBase | LiveKB | None, kb_client: KBClient,
+                   client: ClientTransport, team: TeamView, router: Router, query_wire: str) -> QueryHandler:
+    """The Query Handler, pushing the answers it gives itself from the
+    modules this robot holds and taking those its holders push to it."""
+    held = config.team[config.robot_id].kbs if served is not None else ()
+    queries = QueryHandler(
+        config, served, kb_client, wire=query_wire, down=lambda r: team.down.get(r),
+        on_failure=team.request_failed, pusher=FactPusher(router, tuple(held)) if held else None,
+    )
+    pushing = queries.pushing_holders()
+    if pushing:
+        queries.pushed = PushedFacts(client, pushing)
+    return queries
+
+
+def _publishers(router: Router, team: TeamView, final: FinalOutcome) -> tuple[
+        Callable[[LiveState], None], Callable[[RobotState], None], tuple[ProgressPacing, ...]]:
+    """What the executor and the controller call when the robot's state
+    changes (its live part; a decision), and the pacing of the notifications
+    they send: ``/robot/state`` for people (progress at most once a second),
+    ``/robot/outcome`` for the feeder (never progress alone: only what it
+    acts on, the changes of one loop turn as one notification), and
+    ``/robot/plan`` for teammates at each decision."""
+    state_changed = ProgressPacing(lambda: router.notify(STATE_PATH))
+    outcome_changed = ProgressPacing(lambda: router.notify(OUTCOME_PATH))
+
+    def publish_live(live: LiveState) -> None:
+        before = team.own.live
+        team.set_own(replace(team.own, live=live))
+        final.on_live(before, team.own)
+        if acted_on(before, live):
+            state_changed.now()
+            outcome_changed.now()
+        else:
+            state_changed.progress()
+
+    def publish_decision(state: RobotState) -> None:
+        router.notify(PLAN_PATH)
+        state_changed.now()
+        outcome_changed.now()
+
+    return publish_live, publish_decision, (state_changed, outcome_changed)
+
+
+def _knowledge_writer(config: RobotConfig, served: KnowledgeBase | LiveKB | None, replicator: Replicator | None,
+                      kb_client: KBClient, team: TeamView, host: Host) -> KnowledgeWriter:
+    """What writes the executor's picks, positions and loads into the KB (a writable team)."""
+    return KnowledgeWriter(
+        lambda module, update, write_id: write_knowledge(config, served, replicator, kb_client, module, update,
+                                                         team.is_up, write_id),
+        config.robot_id, host.wall_ms, new_write_id=kb_client.new_write_id)
+
+
+def _fence(config: RobotConfig, teammates: dict[str, Endpoint], client: ClientTransport,
+           team: TeamView) -> Callable[[float], Awaitable[str | None]] | None:
+    """The lease a robot holds before each pick (None: no fence, ``lease_s`` 0)."""
+    if config.lease_s <= 0:
+        return None
+    lease = Lease(
+        config.robot_id, teammates, client, config.lease_s,
+        request_timeout_s=lambda: team.request_timeout_s, down=lambda: team.down, on_failure=team.request_failed,
+    )
+    return lease.hold
+
+
+def _server_side(config: RobotConfig, identity: TeamIdentity, controller: Controller) -> ServerSecurity:
+    """The server side of the robot's security: decisions only from whom its Controller waits for."""
+    deciders = (lambda: {controller.leader}) if config.strategy == "compute-and-communicate" else (lambda: ())
+    return server_security(config.transport, identity, AccessPolicy(deciders))
 
 
 def robot_security(config: RobotConfig) -> tuple[TeamIdentity, ClientSecurity] | None:
