@@ -59,59 +59,52 @@ async def client() -> AsyncIterator[ClientTransport]:
     await transport.aclose()
 
 
-def teammate(client: ClientTransport, holder: Holder) -> QueryHandler:
-    """Robot1 (Location), reading the Object KB from ``holder``."""
+@pytest_asyncio.fixture
+async def robot1(client: ClientTransport, holder: Holder) -> AsyncIterator[QueryHandler]:
+    """Robot1 (Location), reading the Object KB from ``holder`` and observing its pushes."""
     team: dict[str, Any] = {r: Teammate(r, holder.endpoint if r == "Robot2" else Endpoint("coap", "127.0.0.1", 9),
                                         (kb,)) for r, kb in HOLDERS.items()}
     cfg = dataclasses.replace(config("Robot1"), team=team, query_timeout_s=PATIENCE_S)
     queries = QueryHandler(cfg, None, KBClient(client, cache=True))
-    queries.pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
-    return queries
+    queries.pushed = pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
+    pushed.start()
+    try:
+        await observing(pushed, holder.endpoint)
+        yield queries
+    finally:
+        await pushed.aclose()
 
 
-async def observing(queries: QueryHandler, endpoint: Endpoint) -> None:
-    assert queries.pushed is not None
+async def observing(pushed: PushedFacts, endpoint: Endpoint) -> None:
     async with asyncio.timeout(PATIENCE_S):
-        while not queries.pushed.expects(endpoint):
+        while not pushed.expects(endpoint):
             await asyncio.sleep(0.01)  # the registration's answer: nothing to await from outside
 
 
-async def test_a_pushed_answer_is_taken_and_nothing_is_asked(client: ClientTransport, holder: Holder) -> None:
-    queries = teammate(client, holder)
-    assert queries.pushed is not None
-    queries.pushed.start()
-    try:
-        await observing(queries, holder.endpoint)
-        assert holder.server is not None
-        received = holder.server.counters.messages_received
-        holder.pusher.begin(1)
-        await holder.pusher.offer("Object", "pick-facts", OBJECT)
-        result = await queries.run("pick-facts", OBJECT)
-        assert result.as_dicts()[0]["grip"] is not None  # type: ignore[union-attr]
-        assert (queries.stats.pushed, queries.stats.cached, queries.stats.remote) == (1, 1, 0)
-        # The notification's ACK at most (every 16th is confirmable); no request.
-        assert holder.server.counters.messages_received - received <= 1
-    finally:
-        await queries.pushed.aclose()
+async def test_a_pushed_answer_is_taken_and_nothing_is_asked(robot1: QueryHandler, holder: Holder) -> None:
+    assert holder.server is not None
+    received = holder.server.counters.messages_received
+    holder.pusher.begin(1)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)
+    result = await robot1.run("pick-facts", OBJECT)
+    assert result.as_dicts()[0]["grip"] is not None  # type: ignore[union-attr]
+    assert (robot1.stats.pushed, robot1.stats.cached, robot1.stats.remote) == (1, 1, 0)
+    # The notification's ACK at most (every 16th is confirmable); no request.
+    assert holder.server.counters.messages_received - received <= 1
 
 
-async def test_without_a_push_in_time_the_teammate_asks(client: ClientTransport, holder: Holder) -> None:
-    queries = teammate(client, holder)
-    assert queries.pushed is not None
-    queries.pushed.start()
-    try:
-        await observing(queries, holder.endpoint)
-        asked = await queries.run("pick-facts", OBJECT)  # the holder never offers it
-        assert (queries.stats.pushed, queries.stats.remote, queries.pushed.missed) == (0, 1, 1)
-        holder.pusher.begin(1)
-        await holder.pusher.offer("Object", "pick-facts", OBJECT)
-        response = await client.request(holder.endpoint, Request(Method.GET, facts_path("Object"),
-                                                                 accept=ContentFormat.CBOR), timeout=PATIENCE_S)
-        assert response.status == Status.CONTENT
-        (pushed,) = decode_pushed(response.payload)
-        assert decode_cbor(pushed.result) == asked  # the same answer either way
-    finally:
-        await queries.pushed.aclose()
+async def test_without_a_push_in_time_the_teammate_asks(robot1: QueryHandler, holder: Holder,
+                                                         client: ClientTransport) -> None:
+    assert robot1.pushed is not None
+    asked = await robot1.run("pick-facts", OBJECT)  # the holder never offers it
+    assert (robot1.stats.pushed, robot1.stats.remote, robot1.pushed.missed) == (0, 1, 1)
+    holder.pusher.begin(1)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)
+    response = await client.request(holder.endpoint, Request(Method.GET, facts_path("Object"),
+                                                             accept=ContentFormat.CBOR), timeout=PATIENCE_S)
+    assert response.status == Status.CONTENT
+    (pushed,) = decode_pushed(response.payload)
+    assert decode_cbor(pushed.result) == asked  # the same answer either way
 
 
 async def test_an_answer_the_teammates_still_hold_is_not_pushed_again(holder: Holder) -> None:
@@ -133,24 +126,17 @@ async def test_a_module_the_holder_lacks_has_no_resource(holder: Holder, client:
     assert response.status == Status.NOT_FOUND
 
 
-async def test_the_wait_learns_how_late_pushes_come(client: ClientTransport, holder: Holder) -> None:
-    pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
-    pushed.start()
-    try:
-        async with asyncio.timeout(PATIENCE_S):
-            while not pushed.expects(holder.endpoint):
-                await asyncio.sleep(0.01)  # the registration's answer: nothing to await from outside
-        assert pushed.expected_within("pick-facts") is None  # nothing awaited yet
-        for task, name in enumerate(("Gucci_bag_14", "Canon_tv_538", "Barilla_pasta_1", "Muji_lamp_793"), 1):
-            async def offer_late(task: int = task, name: str = name) -> None:
-                await asyncio.sleep(0.05)  # the holder's own task comes 50 ms after this robot's
-                holder.pusher.begin(task)
-                await holder.pusher.offer("Object", "pick-facts", {"name": name})
+async def test_the_wait_learns_how_late_pushes_come(robot1: QueryHandler, holder: Holder) -> None:
+    pushed = robot1.pushed
+    assert pushed is not None and pushed.expected_within("pick-facts") is None  # nothing awaited yet
+    for task, name in enumerate(("Gucci_bag_14", "Canon_tv_538", "Barilla_pasta_1", "Muji_lamp_793"), 1):
+        async def offer_late(task: int = task, name: str = name) -> None:
+            await asyncio.sleep(0.05)  # the holder's own task comes 50 ms after this robot's
+            holder.pusher.begin(task)
+            await holder.pusher.offer("Object", "pick-facts", {"name": name})
 
-            late = asyncio.create_task(offer_late())
-            assert await pushed.wait(holder.endpoint, "pick-facts", {"name": name}, PATIENCE_S) is not None
-            await late
-        usual = pushed.expected_within("pick-facts")
-        assert usual is not None and 1.5 * 0.05 <= usual < PATIENCE_S
-    finally:
-        await pushed.aclose()
+        late = asyncio.create_task(offer_late())
+        assert await pushed.wait(holder.endpoint, "pick-facts", {"name": name}, PATIENCE_S) is not None
+        await late
+    usual = pushed.expected_within("pick-facts")
+    assert usual is not None and 1.5 * 0.05 <= usual < PATIENCE_S
