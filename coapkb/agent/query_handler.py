@@ -127,8 +127,9 @@ class QueryHandler:
     def pushing_holders(self) -> dict[str, tuple[str, Endpoint]]:
         """Module -> the holder (robot id, endpoint) this robot reads it from
         while every holder is up, for each module it lacks: the one whose
-        pushed answers it takes."""
-        if self.config.central is not None or self.wire != "compact":
+        pushed answers it takes.  None under "compute and communicate": only
+        the leader gathers facts, and its holders, which do not, push nothing."""
+        if self.config.central is not None or self.wire != "compact" or self.config.strategy != "compute-by-all":
             return {}
         held = self.config.team[self.config.robot_id].kbs
         chosen = {}
