@@ -32,7 +32,7 @@ from .task_assigner import robot_sort_key
 #: (a few bytes each way); "seed" = the whole SPARQL text in every request
 #: with SPARQL-JSON answers, as the seed paper's system did.
 QUERY_WIRES = ("compact", "seed")
-#: Remote-query latencies a robot keeps for its statistics and its hedging delay.
+#: Facts' times from teammates a robot keeps for its statistics.
 LATENCIES_KEPT = 16_384
 #: Round trips of the latest queries that set the hedging delay and the wait for a push.
 ROUND_TRIPS_KEPT = 64
@@ -128,7 +128,7 @@ class QueryHandler:
         """Module -> the holder (robot id, endpoint) this robot reads it from
         while every holder is up, for each module it lacks: the one whose
         pushed answers it takes.  None under "compute and communicate": only
-        the leader gathers facts, and its holders, which do not, push nothing."""
+        the leader gathers facts, and its holders, which gather none, push none."""
         if self.config.central is not None or self.wire != "compact" or self.config.strategy != "compute-by-all":
             return {}
         held = self.config.team[self.config.robot_id].kbs

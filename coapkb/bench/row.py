@@ -119,6 +119,9 @@ class BenchRow:
     kb_writable: bool = key_field(False)
     #: Tasks whose robot did not find the object at the shelf.  Empty in a CSV written before it.
     tasks_not_found: int | None = None
+    #: Facts a KB holder pushed to a robot before it asked (``remote_queries``
+    #: are those asked).  Empty in a CSV written before pushes.
+    pushed_answers: int | None = None
 
     def fates(self) -> FateCounts | None:
         """The tasks' fates, as ``coapkb team`` counts them; None for a row without them (an older CSV)."""

@@ -380,6 +380,7 @@ def _with_record(row: BenchRow, record: TeamRecord, tasks: int) -> tuple[BenchRo
         query_p50_ms=None if p50 is None else round(p50 * 1000, 2),
         query_p99_ms=None if p99 is None else round(p99 * 1000, 2),
         remote_queries=sum(s.queries.remote for s in stats),
+        pushed_answers=sum(s.queries.pushed for s in stats),
         local_queries=sum(s.queries.local for s in stats),
         failed_queries=sum(s.queries.failed for s in stats),
         app_bytes=record.feeder_traffic.bytes_sent + robots_traffic.bytes_sent,
