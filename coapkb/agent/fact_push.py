@@ -26,6 +26,7 @@ from collections import OrderedDict
 from collections.abc import Mapping
 
 from .. import clock
+from ..kb.client import DEFAULT_MAX_AGE_S
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
 from ..transport.router import Router
@@ -88,7 +89,7 @@ class FactPusher:
         held = self._held.get(key)
         if key in answers or (held is not None and held[0] == response.payload and now < held[1]):
             return
-        max_age = 60 if response.max_age is None else response.max_age
+        max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
         self._held[key] = (response.payload, now + max_age - REPUSH_MARGIN_S)
         self._held.move_to_end(key)
         while len(self._held) > ANSWERS_KEPT:
