@@ -59,6 +59,8 @@ MERGED_MAX_BYTES = 4096
 #: How long a robot's position, load and charge may wait for an update to
 #: ride with: a few tasks' worth on a slow link (docs/knowledge.md).
 LAZY_S = 10.0
+#: A wait shorter than this is due now (rounding must not make it last forever).
+DUE_WITHIN_S = 1e-6
 #: How long a robot that has become idle waits for its facts to go out
 #: before it says it is idle (the feeder waits for that).
 DRAIN_WAIT_S = 5.0
@@ -209,7 +211,7 @@ class KnowledgeWriter:
             return module, parts + (later.parts() if later is not None else [])
         now = asyncio.get_running_loop().time()
         for module, later in list(self._later.items()):
-            if self._flushing or now - later.since >= self._lazy_s:
+            if self._flushing or self._wait_left(later, now) == 0.0:
                 del self._later[module]
                 return module, later.parts()
         self._flushing = False
@@ -219,7 +221,15 @@ class KnowledgeWriter:
         if not self._later:
             return None
         now = asyncio.get_running_loop().time()
-        return max(0.0, min(later.since for later in self._later.values()) + self._lazy_s - now)
+        return min(self._wait_left(later, now) for later in self._later.values())
+
+    def _wait_left(self, later: _Later, now: float) -> float:
+        """How long ``later`` may still wait; 0.0 once due.  One rule for
+        both callers: when the first said 0 and the second, by rounding,
+        not yet due, the simulator's clock stood still while the loop spun
+        (seed 18055 of the storage and forgery profile)."""
+        left = later.since + self._lazy_s - now
+        return 0.0 if left <= DUE_WITHIN_S else left
 
     async def _run(self) -> None:
         while True:

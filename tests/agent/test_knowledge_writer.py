@@ -17,7 +17,7 @@ from agent_helpers import ONTOLOGIES, config, endpoint
 from coapkb.agent.controller import Controller
 from coapkb.agent.decisions import Task
 from coapkb.agent.job import Job
-from coapkb.agent.knowledge_writer import WRITE_TRIES, KnowledgeWriter
+from coapkb.agent.knowledge_writer import LAZY_S, WRITE_TRIES, KnowledgeWriter, _Later
 from coapkb.agent.query_handler import QueryHandler
 from coapkb.agent.robot import write_knowledge
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
@@ -432,3 +432,16 @@ async def test_a_write_keeps_its_id_on_every_holder_it_is_sent_to() -> None:
     assert seen == ["Robot1.5.1"] * 2
     assert len(holder.replicas["Location"].journal) == 1  # made once
     assert _place(holder, BAG) == [{"picked_by": "Robot1", "picked_task": "1"}]
+
+
+async def test_waiting_facts_are_due_by_one_rule_whatever_the_rounding() -> None:
+    """Seed 18055 of the simulator: the wait said due (0 s left) while the
+    choice said not yet (``now - since`` rounds just below the lazy time), and
+    the writer spun on a clock that stood still."""
+    writer = KnowledgeWriter(lambda module, updates, write_id: asyncio.sleep(0), "Robot1", lambda: 0)
+    since = 12.818234786193416  # since + 10.0 - since rounds to just under 10.0
+    now = since + LAZY_S
+    assert now - since < LAZY_S
+    later = _Later(since=since)
+    assert writer._wait_left(later, now) == 0.0
+    assert writer._wait_left(later, now - 1.0) == pytest.approx(1.0)

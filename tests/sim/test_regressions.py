@@ -113,6 +113,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "excluded it meanwhile, and the third, lagging, took the frozen one's decision: two epochs",
         15717: "a robot that had left a dead teammate out found the other, back from a partition, down after the "
                "heal, and decided nothing on every later task without asking it once: nobody was up to ask",
+        18055: "a robot's waiting facts were due by one rule and not yet by another, by rounding: its knowledge "
+               "writer spun while the simulated clock stood still, and the run never ended",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
