@@ -146,6 +146,11 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         20017: "a robot back from a freeze, still granted, was settled: the object it did not find, shown only in "
                "the state read then, was never recorded, and the task stayed assigned, never executed",
     }),
+    (("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"), {
+        1891: "the feeder, settling a robot it had found down but its teammates still granted, waited on one "
+              "observation whose server had dropped it while the feeder was cut off: 480 s, the run's settling "
+              "461 s after the last task was decided",
+    }),
     (("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,loss=0.2", "--writes", "10"), {
         112: "a robot whose read of the place failed asked its teammate for its decision three times, all "
              "three asks were lost, and it decided the task for nobody",
