@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -28,6 +29,8 @@ from ..transport.messages import ContentFormat, Method
 from .fact_push import FactPusher, PushedFacts
 from .task_assigner import robot_sort_key
 
+log = logging.getLogger(__name__)
+
 #: How queries travel: "compact" = named query resources with CBOR answers
 #: (a few bytes each way); "seed" = the whole SPARQL text in every request
 #: with SPARQL-JSON answers, as the seed paper's system did.
@@ -40,6 +43,8 @@ ROUND_TRIPS_KEPT = 64
 #: before it has measured a round trip; and the least it ever waits.
 PUSH_WAIT_S = 0.5
 PUSH_WAIT_FLOOR_S = 0.02
+#: A fact from teammates later than this is logged (INFO): the tail, told fact by fact.
+SLOW_FACT_S = 1.0
 
 
 class QueryError(CoapkbError):
@@ -225,12 +230,16 @@ class QueryHandler:
             return result
         started, before = clock.monotonic(), (self.stats.remote, self.stats.pushed)
         await self._await_push(name, asked, holders[0])
+        waited = clock.monotonic() - started
         result = await self._remote(name, asked, holders)
         if (self.stats.remote, self.stats.pushed) != before:  # it crossed the network: asked, or pushed
             latencies = self.stats.remote_latencies
-            latencies.append(clock.monotonic() - started)
+            latencies.append(took := clock.monotonic() - started)
             if len(latencies) > LATENCIES_KEPT:
                 del latencies[: len(latencies) - LATENCIES_KEPT]
+            if took > SLOW_FACT_S:
+                how = "pushed" if self.stats.pushed != before[1] else f"asked after {waited:.2f} s waiting for a push"
+                log.info("slow fact: %s for task %s from %s took %.2f s, %s", name, at, holders[0].robot_id, took, how)
         return result
 
     async def _await_push(self, name: str, params: Mapping[str, str], holder: Teammate) -> None:

@@ -82,10 +82,10 @@ def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
     tries then wait at most ``silence_rto``.  A rising round trip (a queue),
     or a silence past ``long_silence_s``, doubles them up to ``max_rto``."""
     settings = ReliabilitySettings(link_kbps=35.0)
-    path = PeerPath(settings, now=0.0)
+    path = PeerPath(settings)
     for _ in range(8):
         path.on_sample(0.1, 200)
-    path.last_send = 3.0  # sent, unanswered since t=0
+    path.on_send(0.0)  # sent at t=0, unanswered since
     timeouts = [path.try_timeout(n, 60, None, now=3.0) - path.extra_airtime(60 + 128) for n in range(6)]
     assert path.silent(3.0) and not path.congested()
     assert timeouts[0] == pytest.approx(path.rto())
@@ -98,18 +98,34 @@ def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
     assert path.try_timeout(6, 60, None, now=3.0) == pytest.approx(settings.max_rto + path.extra_airtime(188))
     # A path never answered (on a link of known rate) waits half a second
     # first, then a second a try while the silence is short...
-    fresh = PeerPath(settings, now=0.0)
-    fresh.last_send = 3.0
+    fresh = PeerPath(settings)
+    fresh.on_send(0.0)
     assert fresh.silent(3.0)
     waits = [fresh.try_timeout(n, 60, None, now=3.0) - fresh.extra_airtime(188) for n in range(6)]
     assert waits == pytest.approx([settings.initial_rto_known_link] + [settings.silence_rto] * 5)
     # ...and doubling to the ceiling once it lasts past long_silence_s (a
     # queue: a server a whole team keeps busy), with no hedge copies.
-    fresh.last_send = 10.0
     waits = [fresh.try_timeout(n, 60, None, now=10.0) - fresh.extra_airtime(188) for n in range(6)]
     assert waits == pytest.approx([0.5, 1.0, 2.0, 4.0, 8.0, 8.0])
     assert fresh.copies(1, now=10.0) == 1
-    assert PeerPath(ReliabilitySettings(), now=0.0).rto() == 1.0  # nothing known of the link: RFC 6298
+    assert PeerPath(ReliabilitySettings()).rto() == 1.0  # nothing known of the link: RFC 6298
+
+
+def test_a_peer_asked_seldom_is_not_silent_when_asked_again() -> None:
+    """Silence counts from the oldest unanswered send, not from the last
+    answer: a holder whose facts came pushed for a minute, then asked, gets
+    the path's usual timeouts and copies, not a long silence's backoff."""
+    settings = ReliabilitySettings(link_kbps=35.0)
+    path = PeerPath(settings)
+    for _ in range(8):
+        path.on_sample(0.2, 200)
+    path.on_send(0.0)
+    path.on_answer()
+    path.on_send(60.0)  # asked again a minute later; its first try went unanswered
+    assert not path.silent(60.5)
+    waits = [path.try_timeout(n, 60, None, now=60.5) for n in range(3)]
+    assert waits == pytest.approx([waits[0]] * 3) and path.stats.backoffs == 0
+    assert path.silent(62.5)  # unanswered for two seconds now: silent
 
 
 # --------------------------------------------------------------------------- a served robot

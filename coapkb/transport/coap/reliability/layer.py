@@ -26,7 +26,7 @@ import logging
 import math
 import time
 from collections import OrderedDict, deque
-from collections.abc import Awaitable, Callable, Hashable
+from collections.abc import Awaitable, Callable, Hashable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -68,6 +68,19 @@ def _error(attempt: Attempt[Any]) -> BaseException:
     error = attempt.task.exception() if attempt.task is not None else None
     assert error is not None
     return error
+
+
+#: An exchange answered later than this is logged (INFO) with its tries:
+#: the tail of a lossy link, told try by try.
+SLOW_EXCHANGE_S = 1.0
+
+
+def _log_slow(peer: Hashable, reply_key: Hashable, started: float, now: float, attempts: Sequence[Attempt[Any]],
+              winner: Attempt[Any], path: PeerPath) -> None:
+    tries = ", ".join(f"{a.try_number}@{a.sent_at - started:.2f}s/{a.timeout:.2f}s" for a in attempts)
+    log.info("slow exchange with %s (%s): answered after %.2f s by try %d; tries (number@sent/timeout): %s; "
+             "srtt %s, loss %.2f, congested %s", peer, reply_key, now - started, winner.try_number, tries,
+             None if path.rtt.srtt is None else round(path.rtt.srtt, 3), path.loss.rate, path.congested())
 
 
 @dataclass(frozen=True)
@@ -178,15 +191,18 @@ class PeerPath:
     """What the layer knows of one peer: its estimators, window and counters,
     and the policy decisions that follow from them."""
 
-    def __init__(self, settings: ReliabilitySettings, now: float) -> None:
+    def __init__(self, settings: ReliabilitySettings) -> None:
         self.settings = settings
         self.rtt = RttEstimator()
         self.loss = LossEstimator()
         self.stats = PathStats()
         self.inflight = 0
         self.waiters: deque[asyncio.Future[None]] = deque()
-        self.last_answer = now
-        self.last_send = now
+        #: When the oldest send that no answer has followed went out (None:
+        #: every send answered).  Silence is counted from it, not from the
+        #: last answer: a peer asked seldom (its facts are pushed) is not
+        #: silent because nothing was asked of it for a while.
+        self.unanswered_since: float | None = None
         #: EWMA of answer sizes per resource, to time an answer before it comes.
         self.reply_bytes: OrderedDict[Hashable, float] = OrderedDict()
         #: EWMA of the bytes of the exchanges the samples come from.
@@ -220,8 +236,16 @@ class PeerPath:
 
     def silent(self, now: float) -> bool:
         """No answer for several timeouts while we kept sending: down or cut off."""
-        quiet = now - self.last_answer
-        return quiet > max(1.0, self.settings.silence_timeouts * self.rto()) and self.last_send > self.last_answer
+        if self.unanswered_since is None:
+            return False
+        return now - self.unanswered_since > max(1.0, self.settings.silence_timeouts * self.rto())
+
+    def on_send(self, now: float) -> None:
+        if self.unanswered_since is None:
+            self.unanswered_since = now
+
+    def on_answer(self) -> None:
+        self.unanswered_since = None
 
     def window(self) -> int:
         s = self.settings
@@ -255,7 +279,8 @@ class PeerPath:
             base *= 2 ** min(try_number, 8)
             self.stats.backoffs += 1
         elif try_number and self.silent(now):
-            quiet = now - self.last_answer
+            assert self.unanswered_since is not None
+            quiet = now - self.unanswered_since
             cap = self.settings.silence_rto if quiet < self.settings.long_silence_s else self.settings.max_rto
             if base < cap:
                 base = min(base * 2 ** min(try_number, 8), cap)
@@ -369,7 +394,7 @@ class ReliabilityLayer:
     def path(self, peer: Hashable) -> PeerPath:
         path = self._paths.get(peer)
         if path is None:
-            path = self._paths[peer] = PeerPath(self.settings, self.clock())
+            path = self._paths[peer] = PeerPath(self.settings)
         return path
 
     def path_for_host(self, host: str) -> PeerPath:
@@ -403,7 +428,8 @@ class ReliabilityLayer:
         destination, so one error may belong to another peer."""
         path = self.path(peer)
         path.stats.requests += 1
-        deadline = self.clock() + timeout
+        started = self.clock()
+        deadline = started + timeout
         async with asyncio.timeout(timeout):
             await path.admit()
         attempts: list[Attempt[T]] = []
@@ -423,6 +449,8 @@ class ReliabilityLayer:
                         winner = answered[0]
                         answer = _answer(winner)
                         self._on_answer(path, winner, attempts, reply_key, reply_size(answer), request_bytes)
+                        if self.clock() - started > SLOW_EXCHANGE_S:
+                            _log_slow(peer, reply_key, started, self.clock(), attempts, winner, path)
                         return answer, winner
                     failed = [a for a in attempts if _failed(a) and id(a) not in counted]
                     if failed:
@@ -470,7 +498,7 @@ class ReliabilityLayer:
             attempt.task = asyncio.ensure_future(attempt.answer)
             attempts.append(attempt)
             path.stats.attempts += 1
-            path.last_send = attempt.sent_at
+            path.on_send(attempt.sent_at)
             if try_number and not copy:
                 path.stats.retries += 1
 
@@ -480,7 +508,7 @@ class ReliabilityLayer:
         now = self.clock()
         stats = path.stats
         stats.completed += 1
-        path.last_answer = now
+        path.on_answer()
         # The try's own token names it: this RTT is unambiguous.
         path.on_sample(now - winner.sent_at - winner.queued, winner_request_bytes + reply_bytes)
         stats.samples += 1

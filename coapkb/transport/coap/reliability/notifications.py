@@ -127,7 +127,7 @@ class NotificationPolicy:
     def on_retransmit(self, record: _Notification) -> None:
         record.retransmissions += 1
         record.path.stats.notification_retransmissions += 1
-        record.path.last_send = self.layer.clock()
+        record.path.on_send(self.layer.clock())
 
     def on_give_up(self, record: _Notification, reason: str) -> None:
         return None
@@ -135,7 +135,7 @@ class NotificationPolicy:
     def on_reply(self, record: _Notification, message: aiocoap.Message) -> None:
         path = record.path
         now = self.layer.clock()
-        path.last_answer = now
+        path.on_answer()
         if record.retransmissions == 0:  # Karn: a retransmitted CON says nothing certain
             path.loss.on_outcome(False)
             path.on_sample(now - record.sent_at - record.queued, record.nbytes + _ACK_BYTES)
