@@ -248,9 +248,13 @@ class PushedFacts:
     def expected_within(self, name: str) -> float | None:
         """How long ``name``'s pushed answers usually take to come once a robot
         needs them: half as much again as the latest ones' 90th percentile
-        (None: none awaited yet).  Answers that need another holder's fact
-        first (the grip) come a round trip later than the rest."""
+        (None: too few awaited yet).  Answers that need another holder's fact
+        first (the grip) come a round trip later than the rest, so each query
+        has its own; until it has a few, every query's together stand in (a
+        short shift asks most queries only a few times)."""
         late = sorted(self._late.get(name, ()))
         if len(late) < LATENESS_SAMPLES_MIN:
-            return None
+            late = sorted(t for times in self._late.values() for t in times)
+            if len(late) < LATENESS_SAMPLES_MIN:
+                return None
         return 1.5 * late[min(len(late) - 1, int(0.9 * len(late)))]

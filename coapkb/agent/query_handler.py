@@ -266,7 +266,7 @@ class QueryHandler:
         ceiling = self.hedge_floor_s if round_trip is None else min(self.hedge_floor_s, 2 * round_trip)
         usual = self.pushed.expected_within(name) if self.pushed else None
         if usual is None:
-            return PUSH_WAIT_S if round_trip is None else max(PUSH_WAIT_FLOOR_S, ceiling)
+            return min(PUSH_WAIT_S, max(PUSH_WAIT_FLOOR_S, ceiling))
         return min(ceiling, max(PUSH_WAIT_FLOOR_S, usual))
 
     async def _remote(self, name: str, params: Mapping[str, str], holders: list[Teammate]) -> QueryResult:
