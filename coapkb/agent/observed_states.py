@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 from collections.abc import Awaitable, Callable, Collection, Mapping, Sequence
 
 from .. import clock
@@ -21,6 +20,7 @@ from ..transport.base import ClientTransport, Endpoint, PeerGone, PeerTimeout, T
 from ..transport.messages import ContentFormat, Method, Request
 from ..transport.rtt import RttEstimator
 from .local_health import LoopHealth
+from .notification_repair import NotificationRepair
 from .robot_state import RobotState
 
 log = logging.getLogger(__name__)
@@ -43,17 +43,6 @@ FAILURES_TO_DOWN = 2
 #: timeouts (the helper's own request to it, and the answer).
 INDIRECT_PROBES = 2
 INDIRECT_PROBE_TIMEOUTS = 2
-#: The least time an awaited state may be late before it is asked for, and
-#: the time before any state's lateness was measured.  At 0.2 s before any
-#: sample, runs with 100 ms of one-way delay took 9.2-11.7 s where 0.5 s took
-#: 13.3-16.2 s.
-REPAIR_FLOOR_S = 0.2
-INITIAL_REPAIR_S = 0.2
-#: The most an awaited state may be late before it is asked for: one state
-#: held up by a query's retries (9 s at 20 % loss and 100 ms of delay) is
-#: a sample that lifted the estimate to seconds, and the next lost
-#: notifications waited that long (completions of 26-45 s against 13-20 s).
-REPAIR_CEILING_S = 1.0
 #: Turns of the event loop one exchange takes (send, receive, the handlers
 #: in between): how often a late loop's lateness adds up in one request.
 TURNS_PER_EXCHANGE = 8
@@ -161,13 +150,8 @@ class ObservedStates:
         #: The round of liveness GETs in progress (shared), and when the last ended.
         self._refreshing: asyncio.Future[None] | None = None
         self._refreshed_at = 0.0
-        #: GETs that repair a lost notification (:meth:`wait`), per robot, and how many were sent.
-        self._repairing: dict[str, asyncio.Task[None]] = {}
-        #: Robots whose latest state came in a notification (unasked).
-        self._notified: set[str] = set()
-        self.repairs = 0
-        #: How late awaited states came, unasked, after they became due (:attr:`repair_s`).
-        self.lateness = RttEstimator()
+        #: GETs that repair a lost notification (:meth:`wait`).
+        self.repair = NotificationRepair(lambda robot_id: self.probe(robot_id, reobserve=False))
 
     def start(self) -> None:
         for robot_id in self._endpoints:
@@ -182,7 +166,7 @@ class ObservedStates:
         )
 
     async def aclose(self) -> None:
-        tasks = [*self._watchers.values(), *self._repairing.values(),
+        tasks = [*self._watchers.values(), *self.repair.tasks,
                  *([self._refreshing] if self._refreshing is not None else [])]
         for task in tasks:
             task.cancel()
@@ -382,10 +366,7 @@ class ObservedStates:
         self._joining.pop(robot_id, None)
         async with self._changed:
             self.states[robot_id] = state
-            if notified:
-                self._notified.add(robot_id)
-            else:
-                self._notified.discard(robot_id)
+            self.repair.stored(robot_id, notified=notified)
             self._changed.notify_all()
         for listener in self.listeners:
             listener(robot_id, state)
@@ -505,17 +486,15 @@ class ObservedStates:
                    pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
         """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit).
 
-        ``pending(states)``: the robots whose awaited state has not come.
-        Notifications go unconfirmed (NotificationTypes), so a lost one is
-        repaired here: a robot still pending :attr:`repair_s` after the
+        ``pending(states)``: the robots whose awaited state has not come; a
+        lost notification of one is repaired here (:class:`NotificationRepair`):
+        a robot still pending :attr:`NotificationRepair.repair_s` after the
         awaited states became due is asked once with a GET, and again after
-        twice as long, and so on.  They are due once fewer than ``of`` are
-        pending (one of that many robots has come: they decide alike), and at
-        once without ``of`` (this process already has its own)."""
+        twice as long, and so on (:class:`~.notification_repair.RepairSchedule`:
+        ``of``)."""
         async with asyncio.timeout(timeout):
             refresh_at = clock.monotonic() + self.refresh_s
-            repair = (_Repair(pending(self.states), of, self.lateness.on_sample, self._notified.__contains__)
-                      if pending else None)
+            repair = self.repair.schedule(pending(self.states), of) if pending else None
             while True:
                 async with self._changed:
                     if predicate(self.states):
@@ -526,9 +505,9 @@ class ObservedStates:
                     now = clock.monotonic()
                     until = refresh_at
                     if repair is not None and pending is not None:
-                        for robot_id in repair.overdue(pending(self.states), now, self.repair_s):
+                        for robot_id in repair.overdue(pending(self.states), now, self.repair.repair_s):
                             if robot_id not in self.down:
-                                self._repair(robot_id)
+                                self.repair.repair(robot_id)
                         until = min(until, repair.next_at)
                     with contextlib.suppress(TimeoutError):
                         async with asyncio.timeout(max(0.0, until - now)):
@@ -538,77 +517,13 @@ class ObservedStates:
                     refresh_at = clock.monotonic() + self.refresh_s
 
     @property
+    def repairs(self) -> int:
+        return self.repair.repairs
+
+    @property
+    def lateness(self) -> RttEstimator:
+        return self.repair.lateness
+
+    @property
     def repair_s(self) -> float:
-        """How long an awaited state may be late before it is asked for: how
-        late the states that came unasked were (from when they became due),
-        smoothed as RFC 6298 smooths round trips, plus twice their variation
-        (RFC 6298 adds four: a timer that fires early here costs one GET,
-        one that fires late holds the whole cluster), at least
-        :data:`REPAIR_FLOOR_S` and at most :data:`REPAIR_CEILING_S`
-        (:data:`INITIAL_REPAIR_S` before any sample).  Their lateness,
-        not a round trip: it holds the spread of the robots' decisions,
-        which the links' delay only adds to; the round trips this process
-        measures start with a security handshake each."""
-        late = self.lateness
-        if late.srtt is None:
-            return INITIAL_REPAIR_S
-        return min(REPAIR_CEILING_S, max(REPAIR_FLOOR_S, late.srtt + 2 * late.rttvar))
-
-    def _repair(self, robot_id: str) -> None:
-        """GET ``robot_id``'s state once, unless a GET of it is under way;
-        the observation stays (a NON notification lost is no sign that it ended)."""
-        running = self._repairing.get(robot_id)
-        if running is None or running.done():
-            self.repairs += 1
-            self._repairing[robot_id] = asyncio.create_task(self.probe(robot_id, reobserve=False),
-                                                            name=f"repair-{robot_id}")
-
-
-class _Repair:
-    """When each robot a wait still awaits is next asked for its state; tells
-    ``on_lateness`` how late each state that came unasked was."""
-
-    def __init__(self, pending: Collection[str], of: int | None, on_lateness: Callable[[float], None],
-                 notified: Callable[[str], bool]) -> None:
-        self._waiting = set(pending)
-        self._of = of
-        self._due_at = clock.monotonic() if of is None or len(pending) < of else None
-        self._on_lateness = on_lateness
-        #: Whether a robot's state came in a notification, not a GET's answer.
-        self._notified = notified
-        self._asked: dict[str, tuple[float, float]] = {}  # robot -> (when next, the wait before that)
-        self.next_at = math.inf
-
-    def came(self, pending: Collection[str], now: float) -> None:
-        """Note the states that came since the last look (``pending``: the
-        robots still awaited): each that came unasked after it was due is a
-        sample of how late states come."""
-        if self._due_at is None and self._of is not None and len(pending) < self._of:
-            self._due_at = now  # the first awaited state came: the rest are due
-        elif self._due_at is not None:
-            for robot_id in self._waiting.difference(pending):
-                # A notification that came after its GET left is a sample all
-                # the same: it was sent unasked.  Taking none then (as Karn's
-                # algorithm skips ambiguous round trips) left the estimate at
-                # its first value whenever that fired before the states came:
-                # with 100 ms of delay every state was asked for, 10 % more bytes.
-                # A state the GET brought is no sample: its notification was lost.
-                if robot_id not in self._asked or self._notified(robot_id):
-                    self._on_lateness(now - self._due_at)
-        self._waiting.intersection_update(pending)
-
-    def overdue(self, pending: Collection[str], now: float, repair_s: float) -> list[str]:
-        """The robots of ``pending`` to ask now; sets :attr:`next_at`."""
-        self.came(pending, now)
-        self.next_at = math.inf
-        if self._due_at is None:
-            return []
-        ask = []
-        for robot_id in pending:
-            at, wait = self._asked.get(robot_id, (self._due_at + repair_s, repair_s))
-            if now >= at:
-                ask.append(robot_id)
-                at, wait = now + 2 * wait, 2 * wait
-            self._asked[robot_id] = (at, wait)
-            self.next_at = min(self.next_at, at)
-        return ask
+        return self.repair.repair_s
