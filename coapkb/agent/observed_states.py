@@ -2,11 +2,11 @@
 Observe (RFC 7641) on each robot's state resource, never polled.
 
 Liveness comes from the same exchanges: while a wait makes no progress, each
-robot is asked once with a plain GET (the refresh below); a robot that fails
-:data:`FAILURES_TO_DOWN` such requests in a row, each given a timeout that
-follows the measured round trip, is declared down.  A down robot is not
-watched or asked any more until it is readmitted (:meth:`ObservedStates.readmit`):
-a restarted process is a new member, admitted at a task boundary."""
+robot is asked once with a plain GET (the refresh below); what the answers
+and their absence say is the :class:`~.failure_detector.FailureDetector`'s
+to judge.  A down robot is not watched or asked any more until it is
+readmitted (:meth:`ObservedStates.readmit`): a restarted process is a new
+member, admitted at a task boundary."""
 
 from __future__ import annotations
 
@@ -16,12 +16,25 @@ import logging
 from collections.abc import Awaitable, Callable, Collection, Mapping, Sequence
 
 from .. import clock
-from ..transport.base import ClientTransport, Endpoint, PeerGone, PeerTimeout, TransportError
+from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from ..transport.rtt import RttEstimator
+from .failure_detector import (
+    FAILURES_TO_DOWN,
+    INDIRECT_PROBE_TIMEOUTS,
+    INDIRECT_PROBES,
+    FailureDetector,
+    liveness_floor_s,
+    liveness_timeout_s,
+)
 from .local_health import LoopHealth
 from .notification_repair import NotificationRepair
 from .robot_state import RobotState
+
+__all__ = [
+    "FAILURES_TO_DOWN", "INDIRECT_PROBES", "INDIRECT_PROBE_TIMEOUTS", "OUTCOME_PATH", "PLAN_PATH", "STATE_PATH",
+    "ObservedStates", "States", "indirect_probe", "liveness_floor_s", "liveness_timeout_s",
+]
 
 log = logging.getLogger(__name__)
 
@@ -35,40 +48,11 @@ OUTCOME_PATH = "/robot/outcome"
 
 States = dict[str, RobotState]
 
-#: Failed requests in a row after which a robot is declared down: one lost
-#: datagram or one busy moment must not remove a live teammate.
-FAILURES_TO_DOWN = 2
-#: Teammates asked to reach a robot this one finds silent before it is
-#: declared down (SWIM's indirect probe), and the probe's time, in request
-#: timeouts (the helper's own request to it, and the answer).
-INDIRECT_PROBES = 2
-INDIRECT_PROBE_TIMEOUTS = 2
-#: Turns of the event loop one exchange takes (send, receive, the handlers
-#: in between): how often a late loop's lateness adds up in one request.
-TURNS_PER_EXCHANGE = 8
-
-
-def liveness_floor_s(link_kbps: float | None) -> float:
-    """The shortest liveness timeout: 1 s on loopback or an unknown link; on a
-    known slow radio link (emulated in the benchmarks) 5 s, so two requests
-    lost in a row on a lossy link do not remove a live teammate."""
-    return 1.0 if link_kbps is None else 5.0
-
-
-def liveness_timeout_s(round_trip: RttEstimator, floor_s: float) -> float:
-    """How long one liveness request may take before it counts as failed:
-    four smoothed round trips with their variation, never under ``floor_s``
-    (a robot busy with a query answers late on a loaded machine; loopback
-    round trips are ~1 ms); twice the floor before any sample."""
-    if round_trip.srtt is None:
-        return 2 * floor_s
-    return max(floor_s, 4 * (round_trip.srtt + 4 * round_trip.rttvar))
-
-
 async def indirect_probe(transport: ClientTransport, helpers: Sequence[Endpoint], robot_id: str,
                          request_timeout_s: float) -> bool:
     """Whether one of the first :data:`INDIRECT_PROBES` ``helpers`` reaches
-    ``robot_id`` now (``GET /robot/plan?probe=ROBOT`` on each, at once)."""
+    ``robot_id`` now (``GET /robot/plan?probe=ROBOT`` on each, at once): how
+    callers answer :attr:`FailureDetector.confirm_silence`."""
     request = Request(Method.GET, PLAN_PATH, {"probe": robot_id}, accept=ContentFormat.CBOR)
 
     async def via(helper: Endpoint) -> bool:
@@ -110,43 +94,21 @@ class ObservedStates:
         health: LoopHealth | None = None,
     ) -> None:
         self._transport = transport
-        #: This process's own loop lateness (local health): stretches the
-        #: liveness timeouts, and failures while the loop ran late do not count.
-        self.health = health
         self._endpoints = dict(endpoints)
         self._request = Request(Method.GET, path, accept=ContentFormat.CBOR)
         self._refresh_s = refresh_s
         self._request_timeout_s = request_timeout_s
-        #: With liveness, stalled waits refresh (and so probe) after a few
-        #: round trips instead of ``refresh_s``, and failures declare robots down.
-        self.liveness = liveness
-        #: The liveness requests' round trip (RFC 6298).
-        self.round_trip = RttEstimator()
-        self._liveness_floor_s = liveness_floor_s
         self.states: States = {}
         self.refreshes = 0
-        #: Robots declared down: robot id -> why, and when (monotonic seconds).
-        self.down: dict[str, str] = {}
-        self.down_at: dict[str, float] = {}
-        #: Robots down whose process is known gone (nobody listens at its
-        #: address, or a new process answers there), not merely silent.
-        self.gone: set[str] = set()
-        self._failures: dict[str, int] = {}
-        #: Robot -> when an answer or a notification of it last arrived.
-        self._heard_at: dict[str, float] = {}
-        #: Readmitted robot -> until when its failed requests do not count.
-        self._joining: dict[str, float] = {}
         #: Robot never observed -> the process (``boot``) its decision as the
         #: leader came from: a first state of another process is a restart's.
         self._boot_unseen: dict[str, int] = {}
         self._changed = asyncio.Condition()
+        self.detector = FailureDetector(endpoints, self._changed, self._stop_watching, liveness=liveness,
+                                        liveness_floor_s=liveness_floor_s, health=health)
         #: Told of every state stored (a recording: coapkb.harness.recording).
         self.listeners: list[Callable[[str, RobotState], None]] = []
         self._watchers: dict[str, asyncio.Task[None]] = {}
-        #: Asks other members whether they reach a robot this process finds
-        #: silent (SWIM's indirect probe): True if one does.  None: no one to ask.
-        self.confirm_silence: Callable[[str], Awaitable[bool]] | None = None
-        self._confirming: dict[str, asyncio.Future[bool]] = {}
         #: The round of liveness GETs in progress (shared), and when the last ended.
         self._refreshing: asyncio.Future[None] | None = None
         self._refreshed_at = 0.0
@@ -165,6 +127,11 @@ class ObservedStates:
             self._watch(robot_id, self._endpoints[robot_id]), name=f"observe-{robot_id}"
         )
 
+    def _stop_watching(self, robot_id: str) -> None:
+        watcher = self._watchers.pop(robot_id, None)
+        if watcher is not None:
+            watcher.cancel()
+
     async def aclose(self) -> None:
         tasks = [*self._watchers.values(), *self.repair.tasks,
                  *([self._refreshing] if self._refreshing is not None else [])]
@@ -173,32 +140,54 @@ class ObservedStates:
         await asyncio.gather(*tasks, return_exceptions=True)
 
     @property
-    def liveness_timeout_s(self) -> float:
-        return self._on_time_timeout_s + self.health_margin_s
+    def liveness(self) -> bool:
+        return self.detector.liveness
 
     @property
-    def _on_time_timeout_s(self) -> float:
-        """The liveness timeout of a process whose loop runs on time."""
-        return liveness_timeout_s(self.round_trip, self._liveness_floor_s)
+    def health(self) -> LoopHealth | None:
+        return self.detector.health
+
+    @property
+    def round_trip(self) -> RttEstimator:
+        return self.detector.round_trip
+
+    @property
+    def down(self) -> dict[str, str]:
+        return self.detector.down
+
+    @property
+    def down_at(self) -> dict[str, float]:
+        return self.detector.down_at
+
+    @property
+    def gone(self) -> set[str]:
+        return self.detector.gone
+
+    @property
+    def confirm_silence(self) -> Callable[[str], Awaitable[bool]] | None:
+        return self.detector.confirm_silence
+
+    @confirm_silence.setter
+    def confirm_silence(self, ask: Callable[[str], Awaitable[bool]] | None) -> None:
+        self.detector.confirm_silence = ask
+
+    @property
+    def liveness_timeout_s(self) -> float:
+        return self.detector.liveness_timeout_s
 
     @property
     def health_margin_s(self) -> float:
-        """What this process's own lateness adds to a liveness timeout: an
-        exchange takes several turns of the loop, each as late as the loop
-        lately was (0 when it runs on time, or nothing measures it)."""
-        if self.health is None:
-            return 0.0
-        return TURNS_PER_EXCHANGE * self.health.late_within(2 * self._on_time_timeout_s)
+        return self.detector.health_margin_s
 
     @property
     def detection_s(self) -> float:
         """How long a stalled wait may take to find a silent robot down: a
-        refresh period, then :data:`FAILURES_TO_DOWN` requests' timeouts,
-        after the grace a readmitted robot still has (its failures do not
-        count before: a process that died before it was ever reached is
-        found down only then)."""
-        grace = max(self._joining.values(), default=0.0) - clock.monotonic()
-        return max(0.0, grace) + self.refresh_s + (FAILURES_TO_DOWN + INDIRECT_PROBE_TIMEOUTS) * self.request_timeout_s + 1.0
+        refresh period, then :data:`FAILURES_TO_DOWN` requests' timeouts and
+        an indirect probe's, after the grace a readmitted robot still has
+        (its failures do not count before: a process that died before it was
+        ever reached is found down only then)."""
+        return (self.detector.grace_s + self.refresh_s
+                + (FAILURES_TO_DOWN + INDIRECT_PROBE_TIMEOUTS) * self.request_timeout_s + 1.0)
 
     @property
     def refresh_s(self) -> float:
@@ -210,33 +199,17 @@ class ObservedStates:
 
     @property
     def alive(self) -> list[str]:
-        return [r for r in self._endpoints if r not in self.down]
+        return self.detector.alive
 
     async def declare_down(self, robot_id: str, reason: str) -> None:
-        """Stop counting on ``robot_id``: waits re-evaluate without it."""
-        if robot_id in self.down:
-            return
-        log.warning("%s is down: %s", robot_id, reason)
-        async with self._changed:
-            self.down[robot_id] = reason
-            self.down_at[robot_id] = clock.monotonic()
-            self._changed.notify_all()
-        watcher = self._watchers.pop(robot_id, None)
-        if watcher is not None:
-            watcher.cancel()
+        await self.detector.declare_down(robot_id, reason)
 
     def readmit(self, robot_id: str) -> None:
         """Count on ``robot_id`` again: a new process of it has joined.  What
         was observed of the old one is forgotten, so the new incarnation's
         state is taken as it comes, not as a restart."""
-        self.down.pop(robot_id, None)  # down_at stays: when the old process was found dead
-        self.gone.discard(robot_id)
-        self._failures.pop(robot_id, None)
+        self.detector.readmit(robot_id)
         self._boot_unseen.pop(robot_id, None)
-        # For a while, failed requests do not count: reaching the new process
-        # takes a new security handshake first (OSCORE: the first requests
-        # meet a context that is gone, and EDHOC runs again).
-        self._joining[robot_id] = clock.monotonic() + FAILURES_TO_DOWN * 2 * self.liveness_timeout_s
         self.states.pop(robot_id, None)
         self._start_watch(robot_id)
 
@@ -251,15 +224,8 @@ class ObservedStates:
         process (the suspicion was false: this process was the one cut off).
         What was observed of it stays, so a new process of it is still told
         apart by its ``boot`` and found down at once (:meth:`_update`)."""
-        if robot_id not in self.down:
-            return
-        log.warning("%s answers again as the same process: counted on again", robot_id)
-        async with self._changed:
-            del self.down[robot_id]
-            self.gone.discard(robot_id)
-            self._failures.pop(robot_id, None)
-            self._changed.notify_all()
-        self._start_watch(robot_id)
+        if await self.detector.revive(robot_id):
+            self._start_watch(robot_id)
 
     async def heard_from_all(self, timeout: float) -> list[str]:
         """Wait until every robot has been heard from once (its observation
@@ -272,65 +238,7 @@ class ObservedStates:
         return [r for r in self._endpoints if r in self.states]
 
     async def record_failure(self, robot_id: str, exc: Exception) -> None:
-        """A request to ``robot_id`` made elsewhere (a query) failed at the transport."""
-        if robot_id in self._endpoints and robot_id not in self.down:
-            await self._failed(robot_id, exc)
-
-    async def _failed(self, robot_id: str, exc: Exception) -> None:
-        if clock.monotonic() < self._joining.get(robot_id, 0.0) and not isinstance(exc, PeerGone):
-            # The grace of a readmitted robot covers reaching its new process
-            # (a security handshake), not its absence: nobody listening there
-            # counts (found in the simulator: a process that died before it joined).
-            return
-        if isinstance(exc, PeerTimeout) and self.health_margin_s * 2 >= self._on_time_timeout_s:
-            # This loop ran late: the request had no fair chance, and the
-            # silence may be its own (local health, as Lifeguard's).
-            log.info("a request to %s failed while this process ran late (%.2f s a turn): not counted",
-                     robot_id, self.health_margin_s / TURNS_PER_EXCHANGE)
-            return
-        self._failures[robot_id] = failures = self._failures.get(robot_id, 0) + 1
-        if self.liveness and failures >= FAILURES_TO_DOWN:
-            failed_at = clock.monotonic()
-            if not isinstance(exc, PeerGone) and await self._reached_by_others(robot_id):
-                # Silence (or an error of this process's own making) here, an
-                # answer there: this process's link, loop or state, not the
-                # robot (nobody listening, ICMP, needs no confirming).
-                log.warning("%s is silent to this robot, but a teammate reaches it: not declared down", robot_id)
-                self._failures[robot_id] = 0
-                return
-            if self._heard_at.get(robot_id, float("-inf")) >= failed_at:
-                # It answered this process itself while the probe ran (back
-                # from a freeze; the helper's answer was lost): the silence
-                # is over.  Found in the simulator: declared down a second
-                # after its notifications came again, a robot decided a
-                # task alone that its teammates took from it.
-                log.warning("%s was heard from again while its silence was confirmed: not declared down", robot_id)
-                self._failures[robot_id] = 0
-                return
-            self._gone_if(robot_id, isinstance(exc, PeerGone))
-            await self.declare_down(robot_id, f"{failures} requests failed in a row, the last: {exc}")
-
-    def _gone_if(self, robot_id: str, gone: bool) -> None:
-        """About to declare ``robot_id`` down: its process known gone, or
-        only silent (:attr:`gone`)."""
-        if robot_id not in self.down:
-            if gone:
-                self.gone.add(robot_id)
-            else:
-                self.gone.discard(robot_id)
-
-    async def _reached_by_others(self, robot_id: str) -> bool:
-        """One indirect probe at a time per robot: concurrent failures share it."""
-        if self.confirm_silence is None or robot_id in self.down:
-            return False
-        pending = self._confirming.get(robot_id)
-        if pending is None:
-            pending = self._confirming[robot_id] = asyncio.ensure_future(self.confirm_silence(robot_id))
-            pending.add_done_callback(lambda _: self._confirming.pop(robot_id, None))
-        try:
-            return await asyncio.shield(pending)
-        except Exception:  # noqa: BLE001 - a probe that failed confirms nothing
-            return False
+        await self.detector.record_failure(robot_id, exc)
 
     async def _update(self, robot_id: str, state: RobotState, *, notified: bool = False) -> None:
         """Keep ``robot_id``'s newer ``state``; ``notified``: it came in a
@@ -346,8 +254,8 @@ class ObservedStates:
         if self.liveness and old is not None and (state.boot != old.boot or state.plan.seq < old.plan.seq):
             # A new process that lost the old one's state (a restart): the
             # tasks it was given are gone.  Rejoining is not done, so it stays out.
-            self._gone_if(robot_id, True)
-            await self.declare_down(robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
+            await self.detector.restarted(
+                robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
             return
         seen = self._boot_unseen.pop(robot_id, 0) if old is None else 0
         if self.liveness and seen and state.boot and state.boot != seen:
@@ -356,14 +264,9 @@ class ObservedStates:
             # whose observation of its leader was lost took the restarted
             # leader's first state for the old one's, and waited for its
             # decision on a task the new process was never given.
-            self._gone_if(robot_id, True)
-            await self.declare_down(robot_id, "restarted (another process than the one that decided before)")
+            await self.detector.restarted(robot_id, "restarted (another process than the one that decided before)")
             return
-        # Heard from: the grace a readmitted process gets until it can be
-        # reached (readmit) is over.  Kept beyond, it hid the new process's
-        # own death, and its teammates waited out the plan of a dead robot
-        # (found in the simulator: killed again soon after a restart).
-        self._joining.pop(robot_id, None)
+        self.detector.reached(robot_id)
         async with self._changed:
             self.states[robot_id] = state
             self.repair.stored(robot_id, notified=notified)
@@ -402,17 +305,16 @@ class ObservedStates:
                 state = RobotState.decode(response.payload) if response.status.is_success else None
             except TransportError as exc:
                 log.debug("refreshing %s: %s", robot_id, exc)
-                await self._failed(robot_id, exc)
-                if robot_id in self.down:
+                await self.detector.failed(robot_id, exc)
+                if robot_id in self.detector.down:
                     return
                 continue
             except ValueError as exc:
                 log.debug("refreshing %s: %s", robot_id, exc)
                 return
-            self.round_trip.on_sample(clock.monotonic() - started)
-            self._failures[robot_id] = 0
-            self._heard_at[robot_id] = clock.monotonic()
-            self._joining.pop(robot_id, None)  # reached: see _update
+            self.detector.round_trip.on_sample(clock.monotonic() - started)
+            self.detector.heard_from(robot_id)
+            self.detector.reached(robot_id)
             if state is not None and state != self.states.get(robot_id):
                 await self._update(robot_id, state)
                 if reobserve:
@@ -455,7 +357,7 @@ class ObservedStates:
                     if first:
                         # The registration is a request and its answer: a
                         # round-trip sample before any probe is needed.
-                        self.round_trip.on_sample(clock.monotonic() - registered)
+                        self.detector.round_trip.on_sample(clock.monotonic() - registered)
                         first = False
                     if not response.status.is_success:
                         log.warning("%s answered %s on %s", robot_id, response.status.dotted, self._request.path)
@@ -466,8 +368,7 @@ class ObservedStates:
                         log.warning("bad state from %s: %s", robot_id, exc)
                         continue
                     backoff = 0.2
-                    self._failures[robot_id] = 0
-                    self._heard_at[robot_id] = clock.monotonic()
+                    self.detector.heard_from(robot_id)
                     await self._update(robot_id, state, notified=not first_answer)
             except TransportError as exc:
                 log.debug("observing %s: %s", robot_id, exc)
@@ -475,8 +376,8 @@ class ObservedStates:
                 # request (a dead process's port answers ICMP at once); one not
                 # up yet is only awaited.
                 if robot_id in self.states:
-                    await self._failed(robot_id, exc)
-                    if robot_id in self.down:
+                    await self.detector.failed(robot_id, exc)
+                    if robot_id in self.detector.down:
                         return
             # Not up yet, or the observation ended: register again shortly.
             await asyncio.sleep(backoff)
@@ -506,7 +407,7 @@ class ObservedStates:
                     until = refresh_at
                     if repair is not None and pending is not None:
                         for robot_id in repair.overdue(pending(self.states), now, self.repair.repair_s):
-                            if robot_id not in self.down:
+                            if robot_id not in self.detector.down:
                                 self.repair.repair(robot_id)
                         until = min(until, repair.next_at)
                     with contextlib.suppress(TimeoutError):
