@@ -13,7 +13,7 @@ peers for it.
 ``period_s`` and notes how much later it woke.  :meth:`LoopHealth.late_within`
 is the worst lateness seen in a recent window; the failure detector does not
 count a failed request against a peer while its own loop ran that late
-(see :class:`~coapkb.agent.observed_states.ObservedStates`).
+(see :class:`~coapkb.agent.failure_detector.FailureDetector`).
 """
 
 from __future__ import annotations

@@ -48,10 +48,10 @@ def test_a_timeout_while_the_own_loop_ran_late_is_not_counted_against_the_peer()
         health.note(asyncio.get_running_loop().time(), late_by)
         stretched = states.liveness_timeout_s > 2.0
         for _ in range(3):
-            await states._failed("Robot2", PeerTimeout("no answer within 1s"))
+            await states.detector.failed("Robot2", PeerTimeout("no answer within 1s"))
         timed_out_down = "Robot2" in states.down
-        await states._failed("Robot2", PeerUnreachable("port unreachable"))  # the network said so: counts
-        return states._failures.get("Robot2", 0), timed_out_down, stretched
+        await states.detector.failed("Robot2", PeerUnreachable("port unreachable"))  # the network said so: counts
+        return states.detector.failures_in_a_row("Robot2"), timed_out_down, stretched
 
     assert _run(lambda: failures(0.0), starve=None) == (4, True, False)
     count, down, stretched = _run(lambda: failures(1.0), starve=None)

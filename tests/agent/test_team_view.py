@@ -222,10 +222,10 @@ async def test_an_older_state_of_the_same_process_is_stale_not_a_restart() -> No
     down and its cluster split)."""
     network = MemoryNetwork()
     states = ObservedStates(network.client(), {"Robot2": endpoint("Robot2")}, PLAN_PATH, liveness=True)
-    await states._update("Robot2", robot("Robot2", 7, boot=5))
-    await states._update("Robot2", robot("Robot2", 6, boot=5))
+    await states.watcher.update("Robot2", robot("Robot2", 7, boot=5))
+    await states.watcher.update("Robot2", robot("Robot2", 6, boot=5))
     assert states.states["Robot2"].plan.seq == 7 and not states.down
-    await states._update("Robot2", robot("Robot2", 0, boot=9))
+    await states.watcher.update("Robot2", robot("Robot2", 0, boot=9))
     assert "restarted" in states.down["Robot2"]
 
 
@@ -240,8 +240,8 @@ async def test_a_first_state_of_another_process_than_the_leaders_is_a_restart() 
                             PLAN_PATH, liveness=True)
     states.saw_process("Robot2", 5)
     states.saw_process("Robot3", 7)
-    await states._update("Robot2", robot("Robot2", 0, boot=9))
-    await states._update("Robot3", robot("Robot3", 0, boot=7))
+    await states.watcher.update("Robot2", robot("Robot2", 0, boot=9))
+    await states.watcher.update("Robot3", robot("Robot3", 0, boot=7))
     assert "restarted" in states.down["Robot2"] and "Robot3" not in states.down
 
 
@@ -276,7 +276,7 @@ async def test_a_readmitted_robot_has_a_grace_until_heard_from_and_waits_outlast
     try:
         states.readmit("Robot2")
         assert states.detection_s > plain + 1.0
-        await states._update("Robot2", robot("Robot2", 1))
+        await states.watcher.update("Robot2", robot("Robot2", 1))
         assert abs(states.detection_s - plain) < 1e-6
     finally:
         await states.aclose()

@@ -29,7 +29,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coapkb.agent import controller as controller_module
-from coapkb.agent import observed_states as observed_states_module
+from coapkb.agent import notification_repair as notification_repair_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
@@ -266,7 +266,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
            lambda: _patch(TeamView, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
-           "the observation's refresh", lambda: _patch(observed_states_module._Repair, "overdue", _repair_never_fires),
+           "the observation's refresh",
+           lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),
            PROGRESS, PROFILE_SEEDS),
     Mutant("ties-to-the-first-asked", "a cost tie goes to the first robot in this robot's own order",
            lambda: _patch(controller_module, "assign", _tie_to_the_first_asked), (*MIXED, "--ties"), (2, 3, 4)),

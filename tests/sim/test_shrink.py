@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from coapkb.agent.observed_states import ObservedStates
+from coapkb.agent.failure_detector import FailureDetector
 from coapkb.cli import main
 from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, run_checked
 from coapkb.sim.case import CaseFileError, SimCase, mix_text
@@ -252,10 +252,10 @@ def test_the_command_refuses_mixed_up_options(capsys: pytest.CaptureFixture[str]
 @pytest.fixture
 def nobody_declared_down(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """The planted bug: a robot (or the feeder) never stops counting on a dead teammate."""
-    async def never(self: ObservedStates, robot_id: str, reason: str) -> None:
+    async def never(self: FailureDetector, robot_id: str, reason: str) -> None:
         return None
 
-    monkeypatch.setattr(ObservedStates, "declare_down", never)
+    monkeypatch.setattr(FailureDetector, "declare_down", never)
     yield
 
 
