@@ -63,6 +63,7 @@ class FactPusher:
         #: Request key -> (the result pushed, until when teammates hold it).
         self._held: OrderedDict[bytes, tuple[bytes, float]] = OrderedDict()
         self._dirty: set[str] = set()
+        self._notifying: asyncio.Handle | None = None
         for module in modules:
             router.add(ResourceInfo(facts_path(module), rt="coapkb.facts", ct=(60,), obs=True,
                                     title=f"answers from the {module} KB for the latest task"), self._get)
@@ -100,10 +101,17 @@ class FactPusher:
         # One notification for the answers given in one turn of the loop
         # (the layout, the docks and the energy figures come together).
         if not self._dirty:
-            asyncio.get_running_loop().call_soon(self._notify)
+            self._notifying = asyncio.get_running_loop().call_soon(self._notify)
         self._dirty.add(module)
 
+    def close(self) -> None:
+        """Drop a notification still due this turn: the server is closing."""
+        if self._notifying is not None:
+            self._notifying.cancel()
+        self._dirty.clear()
+
     def _notify(self) -> None:
+        self._notifying = None
         dirty, self._dirty = self._dirty, set()
         for module in sorted(dirty):
             self._router.notify(facts_path(module))
@@ -134,6 +142,7 @@ class PushedFacts:
         self._holders = dict(holders)
         #: Holders whose observation is registered now: only those are waited for.
         self._observing: set[Endpoint] = set()
+        self._registered: dict[Endpoint, asyncio.Event] = {}
         self._answers: OrderedDict[tuple[Endpoint, bytes], _Awaited] = OrderedDict()
         self._watchers: dict[str, asyncio.Task[None]] = {}
         #: Waits in a row that ran out, per holder: a holder that restarted
@@ -156,7 +165,7 @@ class PushedFacts:
         if old is not None:
             old.cancel()
         robot_id, endpoint = self._holders[module]
-        self._observing.discard(endpoint)
+        self._stopped_observing(endpoint)
         self._watchers[module] = asyncio.create_task(self._watch(module, endpoint), name=f"facts-{robot_id}")
 
     async def aclose(self) -> None:
@@ -168,6 +177,21 @@ class PushedFacts:
     def expects(self, endpoint: Endpoint) -> bool:
         """Does ``endpoint`` push to this robot now?"""
         return endpoint in self._observing
+
+    async def observing(self, endpoint: Endpoint) -> None:
+        """Until ``endpoint`` pushes to this robot (its observation registered)."""
+        await self._registration(endpoint).wait()
+
+    def _registration(self, endpoint: Endpoint) -> asyncio.Event:
+        return self._registered.setdefault(endpoint, asyncio.Event())
+
+    def _started_observing(self, endpoint: Endpoint) -> None:
+        self._observing.add(endpoint)
+        self._registration(endpoint).set()
+
+    def _stopped_observing(self, endpoint: Endpoint) -> None:
+        self._observing.discard(endpoint)
+        self._registration(endpoint).clear()
 
     async def wait(self, endpoint: Endpoint, name: str, params: Mapping[str, str],
                    within: float) -> PushedAnswer | None:
@@ -217,12 +241,12 @@ class PushedFacts:
                     if not response.status.is_success:
                         log.debug("%s answered %s on %s", endpoint, response.status.dotted, request.path)
                         break
-                    self._observing.add(endpoint)
+                    self._started_observing(endpoint)
                     backoff = 0.2
                     self._take(endpoint, response.payload)
             except TransportError as exc:
                 log.debug("observing %s of %s: %s", request.path, endpoint, exc)
-            self._observing.discard(endpoint)
+            self._stopped_observing(endpoint)
             # Not up yet, restarted, or the observation ended: register again shortly.
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 5.0)

@@ -289,6 +289,8 @@ class Robot:
         await self.team.aclose()
         if self.queries.pushed is not None:
             await self.queries.pushed.aclose()
+        if self.queries.pusher is not None:
+            self.queries.pusher.close()
         if self.replicator is not None:
             await self.replicator.aclose()
         if self.health is not None:

@@ -26,11 +26,12 @@ from coapkb.transport.base import ClientTransport, Endpoint, ServerTransport
 from coapkb.transport.messages import ContentFormat, Method, Request, Status
 from coapkb.transport.router import Router
 from coapkb.wire.codec import decode_cbor
-from coapkb.wire.pushed import decode_pushed
+from coapkb.wire.pushed import decode_pushed, request_key
 
 #: Generous: a loaded machine.
 PATIENCE_S = 10.0
 OBJECT = {"name": "Gucci_bag_14"}
+OTHER_OBJECT = {"name": "Lenovo_tv_125"}
 
 
 class Holder:
@@ -69,16 +70,11 @@ async def robot1(client: ClientTransport, holder: Holder) -> AsyncIterator[Query
     queries.pushed = pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint)})
     pushed.start()
     try:
-        await observing(pushed, holder.endpoint)
+        async with asyncio.timeout(PATIENCE_S):
+            await pushed.observing(holder.endpoint)
         yield queries
     finally:
         await pushed.aclose()
-
-
-async def observing(pushed: PushedFacts, endpoint: Endpoint) -> None:
-    async with asyncio.timeout(PATIENCE_S):
-        while not pushed.expects(endpoint):
-            await asyncio.sleep(0.01)  # the registration's answer: nothing to await from outside
 
 
 async def test_a_pushed_answer_is_taken_and_nothing_is_asked(robot1: QueryHandler, holder: Holder) -> None:
@@ -108,15 +104,31 @@ async def test_without_a_push_in_time_the_teammate_asks(robot1: QueryHandler, ho
 
 
 async def test_an_answer_the_teammates_still_hold_is_not_pushed_again(holder: Holder) -> None:
+    notified: asyncio.Queue[None] = asyncio.Queue()
+    holder.router.subscribe(facts_path("Object"), lambda: notified.put_nowait(None))
+    holder.pusher.begin(1)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)
+    async with asyncio.timeout(PATIENCE_S):
+        await notified.get()
+    holder.pusher.begin(2)
+    await holder.pusher.offer("Object", "pick-facts", OBJECT)  # the same object again, within its Max-Age
+    await holder.pusher.offer("Object", "pick-facts", OTHER_OBJECT)
+    async with asyncio.timeout(PATIENCE_S):
+        await notified.get()
+    # Task 2's notification carries the other object's answer alone.
+    response = await holder.router.handle(Request(Method.GET, facts_path("Object"), accept=ContentFormat.CBOR))
+    assert [a.key for a in decode_pushed(response.payload)] == [request_key("pick-facts", OTHER_OBJECT)]
+    assert notified.empty()
+
+
+async def test_a_closing_holder_sends_no_notification_still_due(holder: Holder) -> None:
     notified: list[None] = []
     holder.router.subscribe(facts_path("Object"), lambda: notified.append(None))
     holder.pusher.begin(1)
     await holder.pusher.offer("Object", "pick-facts", OBJECT)
-    await asyncio.sleep(0)  # the notification goes out at the end of the loop's turn
-    holder.pusher.begin(2)
-    await holder.pusher.offer("Object", "pick-facts", OBJECT)  # the same object again, within its Max-Age
-    await asyncio.sleep(0)
-    assert len(notified) == 1
+    holder.pusher.close()
+    await asyncio.sleep(0)  # the turn its notification was due in
+    assert notified == []
 
 
 @pytest.mark.parametrize("module", ["Location", "Capability"])
