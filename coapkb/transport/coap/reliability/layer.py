@@ -114,7 +114,7 @@ class ReliabilitySettings:
     #: (a few answers queued ahead at 35 kbit/s are normal; a standing queue is not).
     congestion_factor: float = 2.0
     congestion_slack: float = 0.3
-    #: Silence evidence: no answer from the path for this many timeouts (and at least 1 s).
+    #: Silence evidence: the oldest unanswered send this many timeouts old (and at least 1 s).
     silence_timeouts: float = 4.0
     #: The most a try waits on a silent (not congested) path...
     silence_rto: float = 1.0
