@@ -42,6 +42,7 @@ Messages: :mod:`coapkb.wire.sync`.  Model: :mod:`.replica`.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import random
@@ -49,6 +50,7 @@ from collections.abc import Collection, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .. import clock
 from ..model.deltas import CausalContext, Delta, MadeUnder, WrittenState
 from ..transport.base import ClientTransport, Endpoint, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
@@ -87,13 +89,18 @@ class ReplicationSettings:
     request_timeout_s: float = 10.0
     #: How long a write waits for a second holder before it is answered anyway.
     ack_timeout_s: float = 10.0
+    #: How long a read waits, after a start, for the catch-up with every
+    #: holder before it is answered anyway: a holder that answered at once
+    #: would answer without the writes it missed while it was down (the
+    #: catch-up takes one exchange, a round trip, unless holders are down).
+    read_after_catch_up_s: float = 3.0
     #: Bytes of changes one answer carries at most (four CoAP blocks: on a
     #: lossy link a short exchange that times out wastes little); the rest
     #: follows at once, in the next exchange.
     max_answer_bytes: int = 4096
 
     def __post_init__(self) -> None:
-        for name in ("sync_every_s", "request_timeout_s", "ack_timeout_s"):
+        for name in ("sync_every_s", "request_timeout_s", "ack_timeout_s", "read_after_catch_up_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -158,6 +165,9 @@ class Replicator:
         #: :attr:`known` as it was at the last anti-entropy round (what compaction goes by).
         self._known_then: dict[tuple[str, str], CausalContext] = {}
         self._turn = 0
+        #: Set once the catch-up at start has asked every holder (or there is none).
+        self._caught_up = asyncio.Event()
+        self._started_at: float | None = None
         self._task: asyncio.Task[None] | None = None
         #: The pushes in flight, in the order they started (a dict: a set's order
         #: follows id(), and aclose cancels them in this order).
@@ -372,13 +382,29 @@ class Replicator:
     # -------------------------------------------------------- anti-entropy
 
     def start(self) -> None:
+        self._started_at = clock.monotonic()
         if any(self.holders.values()):
             self._task = asyncio.ensure_future(self._rounds())
+        else:
+            self._caught_up.set()
+
+    async def caught_up(self) -> None:
+        """Until the catch-up at start has asked every holder, at most
+        :attr:`ReplicationSettings.read_after_catch_up_s` after it began."""
+        if self._caught_up.is_set() or self._started_at is None:
+            return
+        left = self._started_at + self.settings.read_after_catch_up_s - clock.monotonic()
+        if left > 0:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._caught_up.wait(), left)
 
     async def _rounds(self) -> None:
         # A robot that starts (again) has missed everything: it catches up
         # from every holder at once, not at its first round.
-        await self.catch_up()
+        try:
+            await self.catch_up()
+        finally:
+            self._caught_up.set()
         period = self.settings.sync_every_s
         while True:
             await asyncio.sleep(period * self._rng.uniform(2 / 3, 4 / 3))

@@ -193,6 +193,8 @@ class KBResources:
             )
         if not text.strip():
             return Response.error(Status.BAD_REQUEST, "empty query")
+        if self.replicator is not None:
+            await self.replicator.caught_up()
         return await self.answer(text, request.accept, request.etags)
 
     async def named_query(self, request: Request) -> Response:
@@ -207,6 +209,8 @@ class KBResources:
             task = _task_number(at)
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
+        if self.replicator is not None:
+            await self.replicator.caught_up()
         if task is not None and self.live is not None:
             return self._pinned(text, task, request.accept)
         return await self.answer(text, request.accept, request.etags, shape=name)
