@@ -44,7 +44,8 @@ from .robot_state import Decision, RobotState
 from .settling import AskDecision, Settler
 from .task_assigner import Assignment, TaskFacts, assign, robot_sort_key
 from .task_executor import TaskExecutor
-from .team_view import Membership, TeamView
+from .team_membership import Membership
+from .team_view import TeamView
 
 log = logging.getLogger(__name__)
 
@@ -245,7 +246,7 @@ class Controller:
         joining with it (admitted first, they were lost when it took the
         membership: two robots back at one task named different epochs,
         found in the simulator).  Joiners with no surviving teammate start a
-        fresh membership of the join list (:meth:`TeamView.join`) and admit
+        fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
         each other on it alike."""
         if self.robot_id in task.join:
             await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4, joining=task.join)
@@ -255,7 +256,7 @@ class Controller:
             self._publish(self.team.own)
         for robot_id in task.join:
             if robot_id != self.robot_id:
-                self.team.admit(robot_id)
+                self.team.membership.admit(robot_id)
 
     async def _take_claims(self, seq: int) -> None:
         """A restarted robot joining at task ``seq`` takes the cluster's
@@ -319,7 +320,7 @@ class Controller:
             self._decisions.pop(task.seq, None)
         if future.done():
             message = future.result()
-            self.team.adopt(Membership(message.decision.epoch, message.decision.members), task.seq)
+            self.team.membership.adopt(Membership(message.decision.epoch, message.decision.members), task.seq)
             if message.boot and message.decision.members:
                 # Its sender: the first of the membership it was computed in.
                 self.team.saw_process(min(message.decision.members, key=robot_sort_key), message.boot)

@@ -136,7 +136,7 @@ class RobotResources:
             return Response.error(Status.FORBIDDEN, f"{request.peer} is not of {self.config.robot_id}'s cluster")
         state = self.team.state_of(about)
         if state is None or state.plan_at(seq) is None:
-            await self.team.forgo(about, seq)
+            await self.team.membership.forgo(about, seq)
             return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
         return Response(Status.CHANGED, state.encode_plan(), ContentFormat.CBOR)
 
@@ -174,8 +174,8 @@ class RobotResources:
         if "check" in request.query:
             await self.team.probe(about)
         else:
-            self.team.asked_by(about)  # alive: if down here, perhaps this robot was the one cut off
-        why = self.team.grant(about)
+            self.team.revival.asked_by(about)  # alive: if down here, perhaps this robot was the one cut off
+        why = self.team.membership.grant(about)
         if why is not None:
             return Response.error(Status.FORBIDDEN, why)
         return Response(Status.CONTENT)

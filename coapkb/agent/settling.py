@@ -16,7 +16,8 @@ from .. import clock
 from ..transport.base import PeerGone, TransportError
 from .decisions import DecisionMessage, Task
 from .robot_state import Decision
-from .team_view import Membership, TeamView
+from .team_membership import Membership
+from .team_view import TeamView
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ class Settler:
             # be the one that was cut off, and they went on counting it (found
             # in the simulator: after the heal it decided every task alone
             # while they assigned it tasks).  One that answers is counted on again.
-            outnumbered = self.team.alone
+            outnumbered = self.team.membership.alone
             # With nobody up to ask, the members it has down are asked, as
             # when outnumbered (found in the simulator, seed 15717: a robot
             # that had left a dead teammate out found the other, back from
@@ -102,7 +103,7 @@ class Settler:
             heard = [mate for mate, (theirs, _) in zip(mates, timed)
                      if not isinstance(theirs, BaseException) and not self.team.is_up(mate)]
             if heard:
-                await asyncio.gather(*(self.team.heard_again(mate) for mate in heard))
+                await asyncio.gather(*(self.team.revival.heard_again(mate) for mate in heard))
             judged = await self._judge(task, dict(zip(mates, timed)), round_end, outnumbered)
             deciding, unanswered, known = judged.deciding, judged.unanswered, judged.known
             if known:
@@ -228,7 +229,7 @@ class Settler:
         nothing), and the next join counts its epoch from there (found in
         the simulator)."""
         log.warning("task %d (%s): %s", task.seq, task.object, said)
-        self.team.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
+        self.team.membership.adopt(Membership(theirs.decision.epoch, theirs.decision.members), task.seq)
         return theirs
 
     def _others(self) -> list[str]:

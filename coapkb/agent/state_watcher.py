@@ -210,7 +210,7 @@ class StateWatcher:
         """What robot ``robot_id`` has observed of robot ``about`` (``?of=``),
         if it holds ``about``'s plan right after task ``seq`` (``&at=``);
         None if it has not (it then never uses that plan: see
-        :meth:`TeamView.forgo`) or does not answer, twice."""
+        :meth:`.TeamMembership.forgo`) or does not answer, twice."""
         # A POST: the robot asked goes on without that plan too if it has none.
         request = Request(Method.POST, self._request.path, {"of": about, "at": str(seq)}, accept=ContentFormat.CBOR)
         for _ in range(FAILURES_TO_DOWN):

@@ -16,7 +16,8 @@ from coapkb.agent.observed_states import PLAN_PATH
 from coapkb.agent.query_handler import QueryError, QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.task_executor import TaskExecutor
-from coapkb.agent.team_view import Membership, TeamView
+from coapkb.agent.team_membership import Membership
+from coapkb.agent.team_view import TeamView
 from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase
@@ -249,22 +250,30 @@ async def test_failures_become_the_decisions_error_and_the_robot_goes_on(
     assert [(d.seq, d.error, d.assigned_to) for d in decisions] == [(1, expected, None), (2, expected, None)]
 
 
+class UpMembership:
+    """A membership of ``members`` that never changes, with a majority up."""
+
+    def __init__(self, members: tuple[str, ...]) -> None:
+        self.members = members
+        self.epoch = 0
+        self.alone = False
+
+    def adopt(self, membership: Membership, seq: int) -> None:
+        pass
+
+
 class UpTeam:
     """What :meth:`Controller._settle` reads of the team: everyone up, a
     majority; failures recorded and not counted."""
 
     def __init__(self, robot_id: str, members: tuple[str, ...]) -> None:
-        self.membership = Membership(0, members)
-        self.alone = False
+        self.membership = UpMembership(members)
         self.robot_id = robot_id
 
     def is_up(self, robot_id: str) -> bool:
         return True
 
     async def request_failed(self, robot_id: str, exc: Exception) -> None:
-        pass
-
-    def adopt(self, membership: Membership, seq: int) -> None:
         pass
 
 

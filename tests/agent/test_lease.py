@@ -102,9 +102,9 @@ async def test_a_teammate_grants_only_a_member_it_has_up() -> None:
     own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0), LiveState(1.0, 0.0))
     team = TeamView(own, {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)},
                     Scripted({}))
-    assert team.grant("Robot2") is None
-    assert "not in this robot's cluster" in (team.grant("Robot9") or "")
-    team.excluded["Robot3"] = 5
-    assert "left Robot3 out" in (team.grant("Robot3") or "")
+    assert team.membership.grant("Robot2") is None
+    assert "not in this robot's cluster" in (team.membership.grant("Robot9") or "")
+    team.membership.excluded["Robot3"] = 5
+    assert "left Robot3 out" in (team.membership.grant("Robot3") or "")
     await team._teammates.declare_down("Robot2", "2 requests failed in a row")
-    assert "Robot1 has Robot2 down" in (team.grant("Robot2") or "")
+    assert "Robot1 has Robot2 down" in (team.membership.grant("Robot2") or "")

@@ -178,7 +178,7 @@ async def test_a_dead_teammate_without_a_plan_is_excluded_in_a_new_epoch() -> No
         await dead.aclose()  # dies before deciding task 1
         plans = await team.planned_states(1, timeout=10)
         assert set(plans) == {"Robot1", "Robot3"}
-        assert team.excluded == {"Robot2": 2}
+        assert team.membership.excluded == {"Robot2": 2}
         assert (team.membership.epoch, team.membership.members) == (1, ("Robot1", "Robot3"))
         assert not team.is_up("Robot2")
     finally:
@@ -197,7 +197,7 @@ async def test_a_dead_teammates_last_plan_comes_from_a_survivor() -> None:
         await dead.aclose()
         plans = await team.planned_states(1, timeout=10)
         assert plans["Robot2"] == robot("Robot2", 1).plan
-        assert team.excluded == {} and team.membership.epoch == 0
+        assert team.membership.excluded == {} and team.membership.epoch == 0
     finally:
         await team.aclose()
 
@@ -358,9 +358,9 @@ async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_th
         try:
             async with asyncio.timeout(2):
                 await team.join(10, timeout=60, joining=("Robot1", "Robot2"))
-            assert team.excluded == {"Robot3": 9} and team.own.plan.seq == 9
+            assert team.membership.excluded == {"Robot3": 9} and team.own.plan.seq == 9
             assert (team.membership.epoch, team.membership.members) == (10, ("Robot1", "Robot2"))
-            team.admit("Robot2")  # as the controller does next, on every joiner alike: a member already
+            team.membership.admit("Robot2")  # as the controller does next, on every joiner alike: a member already
             assert team.membership.epoch == 10
         finally:
             await team.aclose()
@@ -410,14 +410,14 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
     try:
         await robot3.aclose()
         await serve_plan(network, robot("Robot3", 0, boot=9))  # restarted meanwhile
-        assert team.alone
-        assert not await team.heard_again("Robot3") and not team.is_up("Robot3")
-        assert await team.heard_again("Robot2")
-        assert team.is_up("Robot2") and not team.alone
-        assert "never grants" in (team.grant("Robot2") or "")
+        assert team.membership.alone
+        assert not await team.revival.heard_again("Robot3") and not team.is_up("Robot3")
+        assert await team.revival.heard_again("Robot2")
+        assert team.is_up("Robot2") and not team.membership.alone
+        assert "never grants" in (team.membership.grant("Robot2") or "")
         await team._teammates.wait(lambda s: s["Robot2"].plan.seq == 4, timeout=2)
-        team.admit("Robot2")  # a new process of it, joining: granted again
-        assert team.grant("Robot2") is None
+        team.membership.admit("Robot2")  # a new process of it, joining: granted again
+        assert team.membership.grant("Robot2") is None
     finally:
         await team.aclose()
 
@@ -436,12 +436,12 @@ async def test_an_outnumbered_robot_leaves_no_teammate_out_for_its_silence() -> 
     try:
         with pytest.raises(TransportError, match="leaves nobody out"):
             await team.planned_states(4, timeout=2)
-        assert team.excluded == {} and team.membership.epoch == 0
+        assert team.membership.excluded == {} and team.membership.epoch == 0
         team._teammates.down.pop("Robot2")
         team._teammates.gone.add("Robot2")
         await team._teammates.declare_down("Robot2", "port unreachable")
         plans = await team.planned_states(4, timeout=2)
-        assert set(plans) == {"Robot1", "Robot3"} and team.excluded == {"Robot2": 5}
+        assert set(plans) == {"Robot1", "Robot3"} and team.membership.excluded == {"Robot2": 5}
         assert team.membership.epoch == 1
     finally:
         await team.aclose()
@@ -457,11 +457,11 @@ async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
     network = MemoryNetwork()
     team = view(network, robot("Robot1", 4))
     try:
-        team.admit("Robot2")
+        team.membership.admit("Robot2")
         assert team.membership.epoch == 0
-        team.excluded["Robot3"] = 4
-        team.epoch = 1
-        team.admit("Robot3")
+        team.membership.excluded["Robot3"] = 4
+        team.membership.epoch = 1
+        team.membership.admit("Robot3")
         assert (team.membership.epoch, team.membership.members) == (2, ("Robot1", "Robot2", "Robot3"))
     finally:
         await team.aclose()
@@ -471,7 +471,7 @@ async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
     try:
         async with asyncio.timeout(2):
             await joiner.join(10, timeout=60, joining=("Robot1", "Robot2"))
-        joiner.admit("Robot2")
+        joiner.membership.admit("Robot2")
         assert (joiner.membership.epoch, joiner.membership.members) == (4, ("Robot1", "Robot2", "Robot3"))
     finally:
         await joiner.aclose()

@@ -35,7 +35,7 @@ from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
 from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
-from coapkb.agent.team_view import Membership, TeamView
+from coapkb.agent.team_membership import Membership, TeamMembership
 from coapkb.feeder.membership import Membership as FeederMembership
 from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
@@ -109,7 +109,7 @@ async def _verdict_ignored(self: TaskExecutor, job: Job, for_s: float) -> bool:
     return True
 
 
-def _grant_anyone(self: TeamView, robot_id: str) -> str | None:
+def _grant_anyone(self: TeamMembership, robot_id: str) -> str | None:
     return None
 
 
@@ -128,16 +128,16 @@ def _claims_forgotten(self: Controller, message: Any) -> None:
     self.claims.clear()
 
 
-_admit = TeamView.admit
+_admit = TeamMembership.admit
 
 
-def _admit_same_epoch(self: TeamView, robot_id: str) -> None:
+def _admit_same_epoch(self: TeamMembership, robot_id: str) -> None:
     before = self.epoch
     _admit(self, robot_id)
     self.epoch = before
 
 
-def _adopt_nothing(self: TeamView, membership: Membership, seq: int) -> None:
+def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> None:
     """A follower keeps its own membership, not the leader's it carries out."""
 
 
@@ -254,7 +254,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("fence-verdict-ignored", "the executor asks for its lease and picks whatever the answer",
            lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), FENCE, (13, 35)),
     Mutant("lease-granted-by-anyone", "a robot grants a lease to any teammate, down or not",
-           lambda: _patch(TeamView, "grant", _grant_anyone), FENCE, (44,)),
+           lambda: _patch(TeamMembership, "grant", _grant_anyone), FENCE, (44,)),
     Mutant("feeder-skips-the-fence", "the feeder sends a down robot's tasks round at once, without the lease wait",
            lambda: _patch(FeederMembership, "fence", _no_lease_wait), FENCE, (92, 304, 345)),
     Mutant("claims-forgotten", "a robot forgets the cluster's claims: an object given once is given again",
@@ -262,9 +262,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("shelf-unchecked", "the shelf lets an object be taken twice",
            lambda: _patch(WorldTruth, "take_now", _take_unchecked), NINE, (1, 3, 5)),
     Mutant("admit-keeps-the-epoch", "a robot admitting a restarted teammate keeps its membership epoch",
-           lambda: _patch(TeamView, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
+           lambda: _patch(TeamMembership, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
-           lambda: _patch(TeamView, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
+           lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),

@@ -1,0 +1,203 @@
+"""Who takes part in deciding each task on a robot's cluster: who is left
+out from which task, who is admitted again, and the epoch these changes
+count (docs/failover.md).  Kept by :class:`TeamMembership`, which a robot's
+:class:`~.team_view.TeamView` holds as its ``membership``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from ..transport.base import ClientTransport, Endpoint
+from .joining import decided_before
+from .observed_states import ObservedStates
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Membership:
+    """Who takes part in assigning a task.  ``epoch`` counts the membership
+    changes so far; every decision names it, so the record shows that the
+    survivors decided with the same team."""
+
+    epoch: int
+    members: tuple[str, ...]
+
+
+class TeamMembership:
+    """The membership one robot decides its cluster's tasks in.
+
+    A teammate declared down (failed liveness requests) is excluded from
+    task ``k`` on, where ``k`` is the first task it did not publish a plan
+    for (:meth:`leave_out`); every survivor that saw the same plans derives
+    the same ``k``.  A restarted robot is admitted again at the task the
+    feeder names in that task's post (the task stream orders joins for
+    everyone); the joiner copies the membership the others decided the
+    previous task in (:meth:`join`).  Each change, out or in, is one epoch.
+    Which teammates are down is ``teammates``'s to find."""
+
+    def __init__(self, robot_id: str, teammates: Mapping[str, Endpoint], transport: ClientTransport,
+                 observed: ObservedStates) -> None:
+        self.robot_id = robot_id
+        self._peers = set(teammates)
+        self._endpoints = dict(teammates)
+        self._transport = transport
+        self._teammates = observed
+        #: Teammate -> the first task it is excluded from.
+        self.excluded: dict[str, int] = {}
+        #: Membership changes so far (exclusions and admissions).
+        self.epoch = 0
+        #: Teammate -> the task after which this robot told another it had no
+        #: plan of it: a plan arriving later is not used, so both decide alike.
+        self._forgone: dict[str, int] = {}
+        #: Teammates this robot declared down and counts on again
+        #: (:class:`~.teammate_revival.TeammateRevival`): their processes are
+        #: never granted a lease again (the fence).
+        self.refused: set[str] = set()
+
+    @property
+    def members(self) -> tuple[str, ...]:
+        """The members now, this robot included, sorted."""
+        return self.current.members
+
+    @property
+    def current(self) -> Membership:
+        """The membership now, as a decision names it."""
+        members = (self._peers - set(self.excluded)) | {self.robot_id}
+        return Membership(self.epoch, tuple(sorted(members)))
+
+    def left_out(self, robot_id: str) -> bool:
+        """Whether this robot left teammate ``robot_id`` out: excluded, or
+        promised another robot not to use a plan of it (:meth:`forgo`)."""
+        return robot_id in self.excluded or robot_id in self._forgone
+
+    async def forgo(self, robot_id: str, seq: int) -> None:
+        """Another robot asked for ``robot_id``'s plan after task ``seq`` and
+        this one had none: it will not use one arriving late either (the
+        asker excludes ``robot_id``, and so must this robot)."""
+        if robot_id in self._peers and seq < self._forgone.get(robot_id, seq + 1):
+            self._forgone[robot_id] = seq
+            await self._teammates.poke()
+
+    def forgoes(self, robot_id: str, seq: int) -> bool:
+        """Whether this robot promised not to use ``robot_id``'s plan after task ``seq``."""
+        return self._forgone.get(robot_id, seq + 1) <= seq
+
+    def leave_out(self, robot_id: str, seq: int, why: str) -> None:
+        """Teammate ``robot_id`` is down without a plan after task ``seq``: it
+        is excluded from task ``seq + 1`` on, in a new epoch."""
+        log.warning("%s is down (%s): excluded from task %d on", robot_id, why, seq + 1)
+        self.excluded[robot_id] = seq + 1
+        self.epoch += 1
+
+    def grant(self, robot_id: str) -> str | None:
+        """None if this robot grants teammate ``robot_id`` a lease (it counts
+        it as up and a member), else why not.  Once refused, a process is
+        never granted again: the others may be re-assigning its tasks
+        (:mod:`coapkb.agent.lease`)."""
+        if robot_id not in self._peers:
+            return f"{robot_id} is not in this robot's cluster"
+        if robot_id in self._teammates.down:
+            return f"{self.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
+        if robot_id in self.excluded or robot_id in self._forgone:
+            return f"{self.robot_id} has left {robot_id} out of the membership"
+        if robot_id in self.refused:
+            return f"{self.robot_id} had {robot_id} down: it never grants that process again"
+        return None
+
+    @property
+    def alone(self) -> bool:
+        """Whether the members this robot counts as up, itself counted, are
+        no majority of the cluster, while it has left nobody out: then it
+        may be the one cut off, and decides nothing alone against teammates
+        that may still count it (:meth:`.TeammateRevival.heard_again`).  A
+        robot that left a teammate out has a membership of its own (another
+        epoch): counting on the others again would not make it decide as
+        they do (found in the simulator), and it stays as it is."""
+        return not self.excluded and self.outnumbered
+
+    @property
+    def outnumbered(self) -> bool:
+        """Whether the members this robot counts as up, itself counted, are
+        no majority of the cluster."""
+        up = sum(1 for r in self.members if r == self.robot_id or r not in self._teammates.down)
+        return up <= (len(self._peers) + 1) // 2
+
+    def admit(self, robot_id: str) -> None:
+        """Teammate ``robot_id`` (restarted) is a member again from the task
+        being decided now; its new process's plans are awaited like anyone's.
+        A new epoch if it had been left out; one restarted before the
+        membership left it out is a member still, in the same epoch.  Each
+        robot of the cluster reads that from the membership of the task
+        before, the joiners too (:meth:`_joined`), so a join list that named
+        a robot to some and not to others (the feeder names to the teammates
+        only the joiners its post reached) cannot set their epochs apart
+        (found in the simulator: a robot killed again before it took its
+        join, named to its co-joiner only, which then named an epoch one
+        ahead of its teammate's on every task)."""
+        if robot_id not in self._peers:
+            return
+        log.warning("%s joins the team again", robot_id)
+        if self.excluded.pop(robot_id, None) is not None:
+            self.epoch += 1
+        self._forgone.pop(robot_id, None)  # a promise about its old process
+        self.refused.discard(robot_id)  # and a refusal of it
+        self._teammates.readmit(robot_id)
+
+    def adopt(self, membership: Membership, seq: int) -> None:
+        """Take the membership the leader decided task ``seq`` in, if newer
+        than this robot's own ("compute and communicate": a follower does not
+        compute who is down, and must not name an older epoch than the
+        decision it carries out; found in the simulator)."""
+        if membership.epoch <= self.epoch or not membership.members:
+            return
+        members = set(membership.members)
+        for robot_id in self._peers - members:
+            self.excluded.setdefault(robot_id, seq)
+        for robot_id in members & set(self.excluded):
+            del self.excluded[robot_id]
+        self.epoch = membership.epoch
+
+    async def join(self, seq: int, timeout: float, joining: Sequence[str] = ()) -> None:
+        """This robot (restarted) joins at task ``seq``: it takes the
+        membership the teammates decided task ``seq - 1`` in (a new epoch, its
+        admission, if that membership had left it out); its view then shows
+        a plan right after ``seq - 1`` (:meth:`.TeamView.join`), which the
+        others wait for before deciding ``seq``.
+
+        ``joining``: every robot joining at ``seq`` (this one too).  When no
+        teammate can show that decision -- each is joining too, or no process
+        listens at its address, or it is a new process that has decided
+        nothing yet -- no process that decided ``seq - 1`` survives (every
+        robot restarted in turn, each before the previous one had joined), and
+        the joiners start a fresh membership from the join list: its members
+        are the joiners, its epoch the task's number, the same on each of them
+        (found in the simulator: three robots restarted in turn logged
+        "cannot join" and decided nothing).  The same when no teammate showed
+        it within ``timeout``: the teammates the feeder counts decided
+        ``seq - 1`` before it posted ``seq``, so one still silent is out."""
+        if seq <= 1:
+            # Nothing decided before: the membership is the cluster's first.
+            self._joined(seq, Membership(0, ()))
+            return
+        co_joiners = {r for r in joining if r in self._peers}
+        shown, unknown = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
+                                              seq, timeout)
+        membership = None if shown is None else Membership(*shown)
+        if membership is None:
+            log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "
+                        "at task %d", seq - 1, f" within {timeout:g}s" if unknown else " (none survives)", seq)
+            membership = Membership(seq, tuple(sorted(co_joiners | {self.robot_id})))
+        self._joined(seq, membership)
+
+    def _joined(self, seq: int, membership: Membership) -> None:
+        """Join at task ``seq`` on top of ``membership`` (see :meth:`join`)."""
+        if membership.members:
+            gone = self._peers - set(membership.members)
+            self.excluded = {r: seq - 1 for r in gone}
+        # Its admission is an epoch if that membership had left it out (see
+        # :meth:`admit`); before any decision, nobody had.
+        self.epoch = membership.epoch + (self.robot_id not in (membership.members or (self.robot_id,)))
+        log.warning("joined the team at task %d (epoch %d, members %s)", seq, self.epoch, ", ".join(self.members))

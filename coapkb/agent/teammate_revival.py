@@ -1,0 +1,92 @@
+"""A teammate this robot declared down, counted on again when it shows it is
+alive while this robot has no majority up: the suspicion was this robot's
+own, for it was the one cut off, and the others went on counting it
+(docs/failover.md)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Mapping
+
+from ..transport.base import ClientTransport, Endpoint, TransportError
+from ..transport.messages import ContentFormat, Method, Request
+from .observed_states import PLAN_PATH, ObservedStates
+from .robot_state import RobotState
+from .team_membership import TeamMembership
+
+log = logging.getLogger(__name__)
+
+
+class TeammateRevival:
+    """Counting on a teammate again after a false suspicion: the same
+    process (the ``boot`` last seen) is asked once for its state, and is
+    up again if it answers.  It is never granted a lease again
+    (:attr:`.TeamMembership.refused`)."""
+
+    def __init__(self, teammates: Mapping[str, Endpoint], transport: ClientTransport, observed: ObservedStates,
+                 membership: TeamMembership) -> None:
+        self._peers = set(teammates)
+        self._endpoints = dict(teammates)
+        self._transport = transport
+        self._teammates = observed
+        self._membership = membership
+        self._reviving: dict[str, asyncio.Future[bool]] = {}
+        self._background: set[asyncio.Task[bool]] = set()
+
+    async def aclose(self) -> None:
+        for task in self._background:
+            task.cancel()
+        await asyncio.gather(*self._background, return_exceptions=True)
+
+    async def heard_again(self, robot_id: str) -> bool:
+        """Teammate ``robot_id``, a member this robot has down, showed it is
+        alive (it answered, or asked for a lease) while this robot is
+        :attr:`~.TeamMembership.alone`: the suspicion was this robot's own
+        (it was the one cut off, and the others went on, counting it).
+        Asked once for its state, the same process (the ``boot`` last seen)
+        is counted on again: this robot waits for its plans, asks it,
+        decides with it.  It is never granted a lease again (refused): it
+        was refused once, and the feeder may have re-assigned its tasks on
+        that refusal.  Whether it is up now."""
+        if robot_id not in self._peers:
+            return False
+        if robot_id not in self._teammates.down:
+            return True
+        known = self._teammates.states.get(robot_id)
+        if self._membership.left_out(robot_id) or not self._membership.alone or known is None or not known.boot:
+            return False
+        pending = self._reviving.get(robot_id)
+        if pending is None:
+            pending = self._reviving[robot_id] = asyncio.ensure_future(self._revive(robot_id, known.boot))
+            pending.add_done_callback(lambda _: self._reviving.pop(robot_id, None))
+        try:
+            return await asyncio.shield(pending)
+        except Exception:  # noqa: BLE001 - a probe that failed revives nothing
+            return False
+
+    def asked_by(self, robot_id: str) -> None:
+        """Teammate ``robot_id`` asked this robot for something (a lease):
+        if this robot has it down and is alone, see whether it is back
+        (:meth:`heard_again`), without holding the answer up."""
+        if robot_id in self._peers and robot_id in self._teammates.down and self._membership.alone:
+            task = asyncio.create_task(self.heard_again(robot_id), name=f"revive {robot_id}")
+            self._background.add(task)
+            task.add_done_callback(self._background.discard)
+
+    async def _revive(self, robot_id: str, boot: int) -> bool:
+        try:
+            response = await self._transport.request(
+                self._endpoints[robot_id], Request(Method.GET, PLAN_PATH, accept=ContentFormat.CBOR),
+                timeout=self._teammates.request_timeout_s,
+            )
+            state = RobotState.decode(response.payload) if response.status.is_success else None
+        except (TransportError, ValueError) as exc:
+            log.debug("asking %s again: %s", robot_id, exc)
+            return False
+        if state is None or state.boot != boot:
+            return False  # another process: it joins at a task boundary
+        if robot_id in self._teammates.down and not self._membership.left_out(robot_id):
+            self._membership.refused.add(robot_id)
+            await self._teammates.revive(robot_id)
+        return robot_id not in self._teammates.down

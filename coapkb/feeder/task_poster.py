@@ -1,0 +1,135 @@
+"""One task fed to its cluster: posted to the robots joining at it first,
+then to the others up, and every robot's decision on it awaited and kept
+in the task's record (only the survivors' decisions count)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Mapping, Sequence
+
+from .. import clock
+from ..agent.observed_states import States
+from ..agent.robot_state import Decision
+from ..transport.messages import Request
+from .channel import Channel
+from .membership import Membership, PendingTask
+from .record import TaskRecord
+from .tasks import FeederError, task_post
+
+log = logging.getLogger(__name__)
+
+
+class TaskPoster:
+    """Posts each task to its cluster and records what the robots decided."""
+
+    def __init__(self, channel: Channel, membership: Membership) -> None:
+        self.channel = channel
+        self.membership = membership
+
+    async def feed_task(
+        self, index: int, cluster: list[str], seq: int, name: str, joining: Sequence[str] = (),
+        again: int | None = None, restocked: bool = False, records: Sequence[TaskRecord] = (),
+    ) -> TaskRecord:
+        """Post task ``seq`` (object ``name``) to cluster ``index`` and wait
+        for the decisions of its robots up; robots taken back meanwhile are
+        given it too (``records``: the cluster's tasks so far)."""
+        channel, watcher = self.channel, self.channel.watcher
+        fed = clock.monotonic()
+        request = task_post(seq, name, joining, again, restocked)
+        live = [r for r in cluster if r not in watcher.down]
+        if not live:
+            why = "; ".join(f"{r}: {watcher.down[r]}" for r in cluster)
+            others = len(watcher.down) - len(cluster)
+            raise FeederError(f"every robot of cluster {index + 1} is down ({why})"
+                              + (f"; {others} robots of other clusters too" if others else ""))
+        joined = await self._post_to_joiners(request, seq, name, joining)
+        if joined != list(joining):
+            request = task_post(seq, name, joined, again, restocked)
+        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live if r not in joining))
+
+        def decided(states: States, robot_id: str) -> bool:
+            last = states[robot_id].last if robot_id in states else None
+            return last is not None and last.seq >= seq
+
+        def undecided(states: States) -> list[str]:
+            return [r for r in cluster if r not in watcher.down and not decided(states, r)]
+
+        deciding = asyncio.ensure_future(channel.wait_for(
+            lambda s: not undecided(s),
+            channel.settings.task_timeout_s,
+            f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
+            pending=undecided, of=len(live),
+        ))
+        try:
+            if records:
+                await self.membership.take_back_while(cluster, records, PendingTask(seq, name, request), deciding)
+            states = await deciding
+        finally:
+            deciding.cancel()
+        record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
+                            joined=joined)
+        decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
+        if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
+            # Robots that differ may have decided and then died before the
+            # feeder noticed: ask each once, so the dead ones' decisions are void.
+            await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
+        self._record(record, cluster, decisions)
+        return record
+
+    async def _post_to_joiners(self, request: Request, seq: int, name: str, joining: Sequence[str]) -> list[str]:
+        """Post task ``seq`` to the robots joining at it, before their
+        teammates; the joiners it reached.  One it did not reach (found down:
+        the process that was to join died, and another may have started since)
+        is not named to its teammates: they would admit it at this task and
+        wait for a plan after the previous one, which no process of it
+        publishes, until their wait ran out and they decided nothing (found in
+        the simulator: a robot killed again soon after its restart, and
+        restarted once more just after the feeder posted its join).  It
+        joins at a later task, once the feeder is told of its restart."""
+        channel, watcher = self.channel, self.channel.watcher
+        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in joining))
+        missed = [r for r in joining if r in watcher.down]
+        if missed:
+            log.warning("%s did not take task %d, at which %s to join: %s not named to the teammates",
+                        ", ".join(missed), seq, "it was" if len(missed) == 1 else "they were",
+                        "it is" if len(missed) == 1 else "they are")
+        return [r for r in joining if r not in watcher.down]
+
+    def _record(self, record: TaskRecord, cluster: list[str], decisions: Mapping[str, Decision]) -> None:
+        """Keep in ``record`` the decisions that count, and why the others do
+        not.  The decision is the survivors': a robot that decided and then
+        went down executes nothing (its task, if any, goes round again), and
+        one left out of a newer membership by the others took no part in it."""
+        down = self.channel.watcher.down
+        newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
+        survivors = [r for r in decisions if r not in down]
+        for robot_id in cluster:
+            decision = decisions.get(robot_id)
+            if decision is None:
+                record.absent[robot_id] = down.get(robot_id, "no decision")
+                continue
+            if robot_id in down and survivors:
+                record.absent[robot_id] = f"{down[robot_id]} (its decision is void)"
+                continue
+            if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
+                record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
+                continue
+            record.decisions[robot_id] = decision.assigned_to
+            record.epochs[robot_id] = decision.epoch
+            if not record.members:
+                # A robot's outcome names the members only once they changed:
+                # at epoch 0 they are the cluster the feeder fed.
+                record.members = list(decision.members or (sorted(cluster) if decision.epoch == 0 else ()))
+            if decision.error:
+                record.errors[robot_id] = decision.error
+            if decision.unavailable and record.unavailable is None:
+                record.unavailable = decision.unavailable
+            if decision.skipped:
+                record.skipped = True
+                record.skip_reason = record.skip_reason or decision.skip_reason
+            if decision.costs and not record.costs:
+                record.costs = dict(decision.costs)
+                record.reasons = dict(decision.reasons)
+        assigned = {d for d in record.decisions.values() if d is not None}
+        record.assigned_to = assigned.pop() if len(assigned) == 1 else None
