@@ -387,27 +387,9 @@ def _suffix_columns(sample: Sequence[Sequence[object]], splits: dict[str, tuple[
     return pairs
 
 
-def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
-    """Pass 1: split the IRIs present and choose the prefix table.
-
-    Entries are ordered by use count, most used first (one-byte indexes),
-    ties shortest first (so longer prefixes can extend them), then in order
-    of first appearance: the output is deterministic.  IRIs whose prefix
-    has no entry share one ``""`` entry and travel whole.
-
-    In results of several rows, an IRI whose local name ends with another
-    string of its row (a plain literal or another IRI's local name, at least
-    3 characters) is also offered the longer prefix in front of that string:
-    the warehouse KB's ``Shape_Gucci_bag_14`` next to ``Gucci_bag_14``
-    becomes ``[p, "Gucci_bag_14"]`` with ``p`` = ``...#Shape_``, and the
-    local part a stringref, when that prefix pays off.
-
-    Datatype IRIs outside :data:`WELL_KNOWN_DATATYPES` need entries too but
-    are rare; scanning every literal for them is left to a second try
-    (``datatypes=True``) when the emitter meets one.
-    """
-    splits: dict[str, tuple[str, str]] = {}
-    suffix_splits: dict[str, tuple[str, str]] = {}
+def _count_iris(rows: Sequence[Sequence[object]], datatypes: bool, splits: dict[str, tuple[str, str]]) -> dict[str, int]:
+    """How often each IRI is used (also each custom datatype's, with
+    ``datatypes``), splitting every new IRI into ``splits``."""
     iri_uses: dict[str, int] = {}
     last = "\0"  # namespace of the previous new IRI ("\0" starts no IRI)
 
@@ -424,9 +406,6 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
         splits[iri] = split
         return split
 
-    # A row-specific prefix pays off only on repeats: look in results of
-    # several rows, for column pairs found in the first two.
-    pairs = _suffix_columns(rows[:2], splits) if len(rows) > 1 else []
     for row in rows:
         for term in row:
             kind = type(term)
@@ -454,6 +433,17 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
                     if iri not in splits:
                         split_of(iri)
                     iri_uses[iri] = iri_uses.get(iri, 0) + 1
+    return iri_uses
+
+
+def _row_suffix_splits(
+    rows: Sequence[Sequence[object]], pairs: list[tuple[int, int]], splits: dict[str, tuple[str, str]]
+) -> dict[str, tuple[str, str]]:
+    """The longer prefix each IRI of column j could have in front of the
+    string in column k of its row, for the column ``pairs``: the first
+    row and pair that offer one settle it."""
+    suffix_splits: dict[str, tuple[str, str]] = {}
+    for row in rows:
         for j, k in pairs:
             term = row[j]
             if type(term) is not URIRef and (term is None or type(term) is Literal or not isinstance(term, URIRef)):
@@ -469,12 +459,25 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
             local = splits[iri][1]
             if shared and 3 <= len(shared) < len(local) and local.endswith(shared):
                 suffix_splits[iri] = (iri[: -len(shared)], shared)
+    return suffix_splits
 
+
+def _paying_suffix_splits(
+    suffix_splits: dict[str, tuple[str, str]], iri_uses: dict[str, int]
+) -> dict[str, tuple[str, str]]:
+    """The suffix splits whose longer prefix pays off, counting all its IRIs' uses."""
     suffix_uses: dict[str, int] = {}
     for iri, (prefix, _) in suffix_splits.items():
         suffix_uses[prefix] = suffix_uses.get(prefix, 0) + iri_uses[iri]
     accepted = {prefix for prefix, count in suffix_uses.items() if _pays_off(prefix, count)}
-    suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in accepted}
+    return {iri: split for iri, split in suffix_splits.items() if split[0] in accepted}
+
+
+def _chosen_prefix_table(
+    iri_uses: dict[str, int], splits: dict[str, tuple[str, str]], suffix_splits: dict[str, tuple[str, str]]
+) -> list[str]:
+    """The prefixes that pay off, and ``""`` if any IRI is left without one,
+    most used first, ties shortest first, then in order of first appearance."""
     uses: dict[str, int] = {}
     for iri, count in iri_uses.items():
         prefix = (suffix_splits.get(iri) or splits[iri])[0]
@@ -486,17 +489,54 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
         uses[""] = unprefixed
     order = {prefix: i for i, prefix in enumerate(table)}
     table.sort(key=lambda prefix: (-uses[prefix], len(prefix), order[prefix]))
+    return table
+
+
+def _capped_prefix_table(
+    table: list[str], splits: dict[str, tuple[str, str]], suffix_splits: dict[str, tuple[str, str]]
+) -> tuple[list[str], dict[str, tuple[str, str]]]:
+    """The table's first entries that fit :data:`MAX_PREFIX_TABLE_CHARS`, the
+    suffix splits still covered, and ``""`` for the IRIs left without a prefix."""
+    kept: list[str] = []
+    total = 0
+    for prefix in table:
+        if total + len(prefix) <= MAX_PREFIX_TABLE_CHARS:
+            kept.append(prefix)
+            total += len(prefix)
+    suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in kept}
+    if "" not in kept and any(split[0] not in kept and iri not in suffix_splits for iri, split in splits.items()):
+        kept.append("")
+    return kept, suffix_splits
+
+
+def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
+    """Pass 1: split the IRIs present and choose the prefix table.
+
+    Entries are ordered by use count, most used first (one-byte indexes),
+    ties shortest first (so longer prefixes can extend them), then in order
+    of first appearance: the output is deterministic.  IRIs whose prefix
+    has no entry share one ``""`` entry and travel whole.
+
+    In results of several rows, an IRI whose local name ends with another
+    string of its row (a plain literal or another IRI's local name, at least
+    3 characters) is also offered the longer prefix in front of that string:
+    the warehouse KB's ``Shape_Gucci_bag_14`` next to ``Gucci_bag_14``
+    becomes ``[p, "Gucci_bag_14"]`` with ``p`` = ``...#Shape_``, and the
+    local part a stringref, when that prefix pays off.
+
+    Datatype IRIs outside :data:`WELL_KNOWN_DATATYPES` need entries too but
+    are rare; scanning every literal for them is left to a second try
+    (``datatypes=True``) when the emitter meets one.
+    """
+    splits: dict[str, tuple[str, str]] = {}
+    # A row-specific prefix pays off only on repeats: look in results of
+    # several rows, for column pairs found in the first two.
+    pairs = _suffix_columns(rows[:2], splits) if len(rows) > 1 else []
+    iri_uses = _count_iris(rows, datatypes, splits)
+    suffix_splits = _paying_suffix_splits(_row_suffix_splits(rows, pairs, splits), iri_uses)
+    table = _chosen_prefix_table(iri_uses, splits, suffix_splits)
     if sum(map(len, table)) > MAX_PREFIX_TABLE_CHARS:  # rare: keep what decoders accept
-        kept: list[str] = []
-        total = 0
-        for prefix in table:
-            if total + len(prefix) <= MAX_PREFIX_TABLE_CHARS:
-                kept.append(prefix)
-                total += len(prefix)
-        table = kept
-        suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in kept}
-        if "" not in kept and any(split[0] not in kept and iri not in suffix_splits for iri, split in splits.items()):
-            table.append("")
+        table, suffix_splits = _capped_prefix_table(table, splits, suffix_splits)
     return _Plan(splits, suffix_splits, table)
 
 
