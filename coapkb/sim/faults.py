@@ -165,6 +165,98 @@ class Schedule:
         return "; ".join([*(str(e) for e in self.events), *links]) or "no faults"
 
 
+class _DraftSchedule:
+    """A schedule being drawn: its events so far and who is out until when.
+
+    Every draw from ``rng`` is made in one fixed order, event after event:
+    a seed's schedule is part of what a run replays."""
+
+    def __init__(self, clusters: list[list[str]], horizon_s: float, swarm: bool, rng: random.Random) -> None:
+        self.clusters = clusters
+        self.horizon_s = horizon_s
+        self.swarm = swarm
+        self.rng = rng
+        self.events: list[FaultEvent] = []
+        #: Robot -> until when it is out (dead, frozen or cut off): None = for good.
+        self.out: dict[str, float | None] = {}
+        self.cluster_of = {r: i for i, c in enumerate(clusters) for r in c}
+        self.robots = [r for c in clusters for r in c]
+
+    def free(self, robot: str, at: float) -> bool:
+        """No robot of ``robot``'s cluster is out at ``at``."""
+        cluster = self.cluster_of[robot]
+        return all(until is not None and until < at for r, until in self.out.items() if self.cluster_of[r] == cluster)
+
+    def draw(self, kind: str) -> None:
+        """One event of ``kind`` (or none, when every robot it could hit is
+        needed by its cluster): when, for how long, and on whom."""
+        rng, horizon_s, robots = self.rng, self.horizon_s, self.robots
+        at = round(rng.uniform(0.05, horizon_s), 3)
+        longest = max(1.0, horizon_s * (3 if self.swarm and rng.random() < 0.5 else 0.5))
+        lasting = round(rng.uniform(0.5, longest), 3)
+        if kind == "starve":
+            target = rng.choice(["feeder", *robots])
+            self.events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.1, 1.5), 3),
+                                          until_s=round(at + lasting, 3)))
+            return
+        if kind == "forge":
+            # A teammate's credential used against a robot: a sync in the
+            # robot's own writer name (its next dot), from one that may not hold the module.
+            cluster = self.clusters[rng.randrange(len(self.clusters))]
+            victim, forger = rng.sample(cluster, 2)
+            self.events.append(FaultEvent(at, "forge", (victim,), other=(forger,)))
+            return
+        candidates = [r for r in robots if self.free(r, at) and self.free(r, at + lasting)]
+        if kind == "partition" and rng.random() < 0.2:
+            # The feeder cut off from everyone for a while.
+            self.events.append(FaultEvent(at, "cut", ("feeder",), other=tuple(robots)))
+            self.events.append(FaultEvent(round(at + lasting, 3), "heal", ("feeder",)))
+            return
+        if candidates:
+            self.take_out(kind, rng.choice(candidates), at, lasting, longest)
+
+    def take_out(self, kind: str, victim: str, at: float, lasting: float, longest: float) -> None:
+        """``victim`` killed, frozen or cut off at ``at``, or caught by a trap
+        there, for ``lasting`` s; or, for a crash, its whole cluster."""
+        rng = self.rng
+        if kind == "crash":
+            # A power cut: every holder of one of the victim's modules at
+            # once, all restarted later (outside the one-out-per-cluster
+            # model, so the whole cluster counts as out meanwhile).
+            for robot in self.clusters[self.cluster_of[victim]]:
+                self.out[robot] = at + lasting
+            self.events.append(FaultEvent(at, "crash", (victim,), amount=lasting))
+            return
+        if self.swarm and kind in ("freeze", "partition") and rng.random() < 0.4:
+            # A trap: armed for ``lasting``, it springs at the robot's next pick.
+            held = round(rng.uniform(0.5, longest), 3)
+            self.out[victim] = at + lasting + held
+            action = "freeze-picking" if kind == "freeze" else "cut-picking"
+            self.events.append(FaultEvent(at, action, (victim,), amount=held, until_s=round(at + lasting, 3)))
+            return
+        if kind == "kill":
+            restart = rng.random() < 0.5
+            self.out[victim] = at + lasting if restart else None
+            self.events.append(FaultEvent(at, "kill", (victim,)))
+            if restart:
+                self.events.append(FaultEvent(round(at + lasting, 3), "restart", (victim,)))
+        elif kind == "freeze":
+            self.out[victim] = at + lasting
+            self.events.append(FaultEvent(at, "freeze", (victim,)))
+            self.events.append(FaultEvent(round(at + lasting, 3), "resume", (victim,)))
+        else:
+            self.out[victim] = at + lasting
+            cluster = self.clusters[self.cluster_of[victim]]
+            if rng.random() < 0.5:
+                # One robot cut off from its cluster and the feeder.
+                others = tuple(r for r in ["feeder", *self.robots] if r != victim)
+            else:
+                # A cluster split: the robot alone on one side, its teammates with the feeder on the other.
+                others = tuple(r for r in cluster if r != victim)
+            self.events.append(FaultEvent(at, "cut", (victim,), other=others))
+            self.events.append(FaultEvent(round(at + lasting, 3), "heal", (victim,)))
+
+
 def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rng: random.Random) -> Schedule:
     """The faults of one run: up to three events drawn from ``mix``'s kinds
     over the first ``horizon_s`` simulated seconds, at most one robot of a
@@ -175,80 +267,8 @@ def draw_schedule(mix: FaultMix, clusters: list[list[str]], horizon_s: float, rn
     at the moment it starts a pick."""
     swarm = mix.swarm
     mix = mix.drawn(rng)
-    events: list[FaultEvent] = []
-    #: Robot -> until when it is out (dead, frozen or cut off): None = for good.
-    out: dict[str, float | None] = {}
-    cluster_of = {r: i for i, c in enumerate(clusters) for r in c}
-
-    def free(robot: str, at: float) -> bool:
-        """No robot of ``robot``'s cluster is out at ``at``."""
-        return all(
-            until is not None and until < at for r, until in out.items() if cluster_of[r] == cluster_of[robot]
-        )
-
-    robots = [r for c in clusters for r in c]
+    draft = _DraftSchedule(clusters, horizon_s, swarm, rng)
     for _ in range(rng.randint(1, SWARM_EVENTS if swarm else 3) if mix.events else 0):
-        kind = rng.choice(mix.events)
-        at = round(rng.uniform(0.05, horizon_s), 3)
-        longest = max(1.0, horizon_s * (3 if swarm and rng.random() < 0.5 else 0.5))
-        lasting = round(rng.uniform(0.5, longest), 3)
-        if kind == "starve":
-            target = rng.choice(["feeder", *robots])
-            events.append(FaultEvent(at, "starve", (target,), amount=round(rng.uniform(0.1, 1.5), 3),
-                                     until_s=round(at + lasting, 3)))
-            continue
-        if kind == "forge":
-            # A teammate's credential used against a robot: a sync in the
-            # robot's own writer name (its next dot), from one that may not hold the module.
-            cluster = clusters[rng.randrange(len(clusters))]
-            victim, forger = rng.sample(cluster, 2)
-            events.append(FaultEvent(at, "forge", (victim,), other=(forger,)))
-            continue
-        candidates = [r for r in robots if free(r, at) and free(r, at + lasting)]
-        if kind == "partition" and rng.random() < 0.2:
-            # The feeder cut off from everyone for a while.
-            events.append(FaultEvent(at, "cut", ("feeder",), other=tuple(robots)))
-            events.append(FaultEvent(round(at + lasting, 3), "heal", ("feeder",)))
-            continue
-        if not candidates:
-            continue
-        victim = rng.choice(candidates)
-        if kind == "crash":
-            # A power cut: every holder of one of the victim's modules at
-            # once, all restarted later (outside the one-out-per-cluster
-            # model, so the whole cluster counts as out meanwhile).
-            for robot in clusters[cluster_of[victim]]:
-                out[robot] = at + lasting
-            events.append(FaultEvent(at, "crash", (victim,), amount=lasting))
-            continue
-        if swarm and kind in ("freeze", "partition") and rng.random() < 0.4:
-            # A trap: armed for ``lasting``, it springs at the robot's next pick.
-            held = round(rng.uniform(0.5, longest), 3)
-            out[victim] = at + lasting + held
-            action = "freeze-picking" if kind == "freeze" else "cut-picking"
-            events.append(FaultEvent(at, action, (victim,), amount=held, until_s=round(at + lasting, 3)))
-            continue
-        if kind == "kill":
-            restart = rng.random() < 0.5
-            out[victim] = at + lasting if restart else None
-            events.append(FaultEvent(at, "kill", (victim,)))
-            if restart:
-                events.append(FaultEvent(round(at + lasting, 3), "restart", (victim,)))
-        elif kind == "freeze":
-            out[victim] = at + lasting
-            events.append(FaultEvent(at, "freeze", (victim,)))
-            events.append(FaultEvent(round(at + lasting, 3), "resume", (victim,)))
-        else:
-            out[victim] = at + lasting
-            cluster = clusters[cluster_of[victim]]
-            if rng.random() < 0.5:
-                # One robot cut off from its cluster and the feeder.
-                others = tuple(r for r in ["feeder", *robots] if r != victim)
-            else:
-                # A cluster split: the robot alone on one side, its teammates with the feeder on the other.
-                others = tuple(r for r in cluster if r != victim)
-            events.append(FaultEvent(at, "cut", (victim,), other=others))
-            events.append(FaultEvent(round(at + lasting, 3), "heal", (victim,)))
-    events.sort(key=lambda e: e.at_s)
+        draft.draw(rng.choice(mix.events))
+    events = sorted(draft.events, key=lambda e: e.at_s)
     return Schedule(mix.link(), tuple(events))
-

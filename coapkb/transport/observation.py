@@ -38,7 +38,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncGenerator, Awaitable, Callable, Coroutine, Hashable
+from collections.abc import AsyncGenerator, AsyncIterator, Awaitable, Callable, Coroutine, Hashable
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, TypeVar
 
@@ -379,6 +379,102 @@ def _try_later(response: Response) -> bool:
     return response.status == Status.SERVICE_UNAVAILABLE
 
 
+class _FreshObservation:
+    """What :func:`observe_fresh` knows between one answer and the next: the
+    last answer yielded, its Max-Age and when it came, why the next
+    registration is one again, and since when (and how patiently) a server
+    that does not answer is tried again."""
+
+    def __init__(self, peer: Endpoint, request: Request, on_notice: Callable[[Notice], None] | None) -> None:
+        self.peer = peer
+        self.request = request
+        self.tell = on_notice if on_notice is not None else (lambda notice: log.info("%s %s: %s", peer, request.path, notice))
+        self.loop = asyncio.get_running_loop()
+        self.last: Response | None = None  # the last answer yielded
+        self.max_age = DEFAULT_MAX_AGE_S
+        self.heard = 0.0  # when the last answer came
+        self.why = ""  # why the next registration is a re-registration
+        self.lost_since: float | None = None
+        self.retry = RETRY_MIN_S
+
+    async def lost(self, reason: str, wait_s: float = 0.0) -> None:
+        """Tell of the loss (once, until the server answers again), then wait to try again."""
+        if self.lost_since is None:
+            self.lost_since = self.loop.time()
+            self.tell(Notice("lost", f"lost {self.peer}: {reason}; retrying"))
+        await asyncio.sleep(max(self.retry, wait_s))  # a timed retry: nothing to wait on but the clock
+        self.retry = min(self.retry * 2, max(RETRY_MIN_S, min(float(self.max_age), RETRY_MAX_S)))
+
+    async def registration(self, stream: AsyncIterator[Response]) -> Response | None:
+        """The registration's answer (the first, or again); None once a failed
+        re-registration's retry has been waited out.  A first registration that
+        ends unanswered, or finds the peer unreachable, raises to the caller."""
+        first = self.last is None
+        try:
+            if first:
+                response = await anext(stream)
+            else:
+                async with asyncio.timeout(REREGISTER_TIMEOUT_S):
+                    response = await anext(stream)
+        except StopAsyncIteration:
+            if first:
+                raise TransportError(f"{self.peer} did not answer the observation of {self.request.path}") from None
+            await self.lost("it ended the observation without an answer")
+            return None
+        except TimeoutError:
+            await self.lost(f"no answer within {REREGISTER_TIMEOUT_S:g} s")
+            return None
+        except PeerUnreachable as exc:
+            if first:
+                raise
+            await self.lost(_why(exc, self.peer))
+            return None
+        self.heard = self.loop.time()
+        if not first:
+            if _try_later(response):
+                await self.lost(f"answered {response.status.dotted} {response.text()}", float(response.max_age or 0))
+                return None
+            if self.lost_since is not None:
+                self.why = f"{self.peer} answers again, after {self.heard - self.lost_since:.1f} s"
+            self.tell(Notice("re-registered", f"re-registered: {self.why}"))
+        self.lost_since, self.retry = None, RETRY_MIN_S
+        self.max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
+        return response
+
+    async def notification(self, stream: AsyncIterator[Response]) -> Response | None:
+        """The next notification, within Max-Age of the answer before; None
+        when the observation is to be registered again (``why`` says why)."""
+        try:
+            async with asyncio.timeout_at(self.heard + _silence_limit(self.max_age)):
+                response = await anext(stream)
+        except TimeoutError:
+            self.why = f"no notification within Max-Age {self.max_age} s"
+            return None
+        except StopAsyncIteration:
+            # Ended without an error: the server kept no observation
+            # (no slot left) or closed.  Ask again once the answer is stale.
+            await asyncio.sleep(max(self.heard + _silence_limit(self.max_age) - self.loop.time(), 0.0))
+            self.why = f"{self.peer} ended the observation"
+            return None
+        except PeerUnreachable as exc:
+            self.why = _why(exc, self.peer)
+            return None
+        self.heard = self.loop.time()
+        if _try_later(response):
+            self.why = f"{self.peer} answered {response.status.dotted} {response.text()}"
+            await asyncio.sleep(float(response.max_age or 0))  # the server said when to ask again
+            return None
+        self.max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
+        return response
+
+    def is_news(self, response: Response) -> bool:
+        """Whether ``response`` differs from the last answer yielded; if so it becomes that answer."""
+        if self.last is not None and _same_answer(response, self.last):
+            return False
+        self.last = response
+        return True
+
+
 async def observe_fresh(
     transport: ClientTransport,
     peer: Endpoint,
@@ -408,88 +504,18 @@ async def observe_fresh(
     transport).  An error answer (other than 5.03) is yielded and ends the
     iteration, as it ends the observation (RFC 7641).
     """
-    tell = on_notice if on_notice is not None else (lambda notice: log.info("%s %s: %s", peer, request.path, notice))
-    loop = asyncio.get_running_loop()
-    last: Response | None = None  # the last answer yielded
-    max_age = DEFAULT_MAX_AGE_S
-    why = ""  # why the next registration is a re-registration
-    lost_since: float | None = None
-    retry = RETRY_MIN_S
-
-    async def lost(reason: str, wait_s: float = 0.0) -> None:
-        nonlocal lost_since, retry
-        if lost_since is None:
-            lost_since = loop.time()
-            tell(Notice("lost", f"lost {peer}: {reason}; retrying"))
-        await asyncio.sleep(max(retry, wait_s))  # a timed retry: nothing to wait on but the clock
-        retry = min(retry * 2, max(RETRY_MIN_S, min(float(max_age), RETRY_MAX_S)))
-
+    fresh = _FreshObservation(peer, request, on_notice)
     while True:
         stream = transport.observe(peer, request)
         try:
-            # The registration (the first, or again).
-            try:
-                if last is None:
-                    response = await anext(stream)
-                else:
-                    async with asyncio.timeout(REREGISTER_TIMEOUT_S):
-                        response = await anext(stream)
-            except StopAsyncIteration:
-                if last is None:
-                    raise TransportError(f"{peer} did not answer the observation of {request.path}") from None
-                await lost("it ended the observation without an answer")
-                continue
-            except TimeoutError:
-                await lost(f"no answer within {REREGISTER_TIMEOUT_S:g} s")
-                continue
-            except PeerUnreachable as exc:
-                if last is None:
-                    raise
-                await lost(_why(exc, peer))
-                continue
-            heard = loop.time()
-            if last is not None:
-                if _try_later(response):
-                    await lost(f"answered {response.status.dotted} {response.text()}", float(response.max_age or 0))
-                    continue
-                if lost_since is not None:
-                    why = f"{peer} answers again, after {heard - lost_since:.1f} s"
-                tell(Notice("re-registered", f"re-registered: {why}"))
-            lost_since, retry = None, RETRY_MIN_S
-            if last is None or not _same_answer(response, last):
-                last = response
-                yield response
-            if not response.status.is_success:
-                return
-            max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
-            # The notifications, each within Max-Age of the one before.
-            while True:
-                try:
-                    async with asyncio.timeout_at(heard + _silence_limit(max_age)):
-                        response = await anext(stream)
-                except TimeoutError:
-                    why = f"no notification within Max-Age {max_age} s"
-                    break
-                except StopAsyncIteration:
-                    # Ended without an error: the server kept no observation
-                    # (no slot left) or closed.  Ask again once the answer is stale.
-                    await asyncio.sleep(max(heard + _silence_limit(max_age) - loop.time(), 0.0))
-                    why = f"{peer} ended the observation"
-                    break
-                except PeerUnreachable as exc:
-                    why = _why(exc, peer)
-                    break
-                heard = loop.time()
-                if _try_later(response):
-                    why = f"{peer} answered {response.status.dotted} {response.text()}"
-                    await asyncio.sleep(float(response.max_age or 0))  # the server said when to ask again
-                    break
-                max_age = DEFAULT_MAX_AGE_S if response.max_age is None else response.max_age
-                if not _same_answer(response, last):
-                    last = response
+            # The registration's answer, then each notification; None: register again.
+            response = await fresh.registration(stream)
+            while response is not None:
+                if fresh.is_news(response):
                     yield response
                 if not response.status.is_success:
                     return
+                response = await fresh.notification(stream)
         finally:
             # Deregisters where the transport can (an async generator, typed an AsyncIterator).
             close: Callable[[], Awaitable[None]] | None = getattr(stream, "aclose", None)

@@ -387,27 +387,9 @@ def _suffix_columns(sample: Sequence[Sequence[object]], splits: dict[str, tuple[
     return pairs
 
 
-def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
-    """Pass 1: split the IRIs present and choose the prefix table.
-
-    Entries are ordered by use count, most used first (one-byte indexes),
-    ties shortest first (so longer prefixes can extend them), then in order
-    of first appearance: the output is deterministic.  IRIs whose prefix
-    has no entry share one ``""`` entry and travel whole.
-
-    In results of several rows, an IRI whose local name ends with another
-    string of its row (a plain literal or another IRI's local name, at least
-    3 characters) is also offered the longer prefix in front of that string:
-    the warehouse KB's ``Shape_Gucci_bag_14`` next to ``Gucci_bag_14``
-    becomes ``[p, "Gucci_bag_14"]`` with ``p`` = ``...#Shape_``, and the
-    local part a stringref, when that prefix pays off.
-
-    Datatype IRIs outside :data:`WELL_KNOWN_DATATYPES` need entries too but
-    are rare; scanning every literal for them is left to a second try
-    (``datatypes=True``) when the emitter meets one.
-    """
-    splits: dict[str, tuple[str, str]] = {}
-    suffix_splits: dict[str, tuple[str, str]] = {}
+def _count_iris(rows: Sequence[Sequence[object]], datatypes: bool, splits: dict[str, tuple[str, str]]) -> dict[str, int]:
+    """How often each IRI is used (also each custom datatype's, with
+    ``datatypes``), splitting every new IRI into ``splits``."""
     iri_uses: dict[str, int] = {}
     last = "\0"  # namespace of the previous new IRI ("\0" starts no IRI)
 
@@ -424,9 +406,6 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
         splits[iri] = split
         return split
 
-    # A row-specific prefix pays off only on repeats: look in results of
-    # several rows, for column pairs found in the first two.
-    pairs = _suffix_columns(rows[:2], splits) if len(rows) > 1 else []
     for row in rows:
         for term in row:
             kind = type(term)
@@ -454,6 +433,17 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
                     if iri not in splits:
                         split_of(iri)
                     iri_uses[iri] = iri_uses.get(iri, 0) + 1
+    return iri_uses
+
+
+def _row_suffix_splits(
+    rows: Sequence[Sequence[object]], pairs: list[tuple[int, int]], splits: dict[str, tuple[str, str]]
+) -> dict[str, tuple[str, str]]:
+    """The longer prefix each IRI of column j could have in front of the
+    string in column k of its row, for the column ``pairs``: the first
+    row and pair that offer one settle it."""
+    suffix_splits: dict[str, tuple[str, str]] = {}
+    for row in rows:
         for j, k in pairs:
             term = row[j]
             if type(term) is not URIRef and (term is None or type(term) is Literal or not isinstance(term, URIRef)):
@@ -469,12 +459,25 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
             local = splits[iri][1]
             if shared and 3 <= len(shared) < len(local) and local.endswith(shared):
                 suffix_splits[iri] = (iri[: -len(shared)], shared)
+    return suffix_splits
 
+
+def _paying_suffix_splits(
+    suffix_splits: dict[str, tuple[str, str]], iri_uses: dict[str, int]
+) -> dict[str, tuple[str, str]]:
+    """The suffix splits whose longer prefix pays off, counting all its IRIs' uses."""
     suffix_uses: dict[str, int] = {}
     for iri, (prefix, _) in suffix_splits.items():
         suffix_uses[prefix] = suffix_uses.get(prefix, 0) + iri_uses[iri]
     accepted = {prefix for prefix, count in suffix_uses.items() if _pays_off(prefix, count)}
-    suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in accepted}
+    return {iri: split for iri, split in suffix_splits.items() if split[0] in accepted}
+
+
+def _chosen_prefix_table(
+    iri_uses: dict[str, int], splits: dict[str, tuple[str, str]], suffix_splits: dict[str, tuple[str, str]]
+) -> list[str]:
+    """The prefixes that pay off, and ``""`` if any IRI is left without one,
+    most used first, ties shortest first, then in order of first appearance."""
     uses: dict[str, int] = {}
     for iri, count in iri_uses.items():
         prefix = (suffix_splits.get(iri) or splits[iri])[0]
@@ -486,22 +489,215 @@ def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
         uses[""] = unprefixed
     order = {prefix: i for i, prefix in enumerate(table)}
     table.sort(key=lambda prefix: (-uses[prefix], len(prefix), order[prefix]))
+    return table
+
+
+def _capped_prefix_table(
+    table: list[str], splits: dict[str, tuple[str, str]], suffix_splits: dict[str, tuple[str, str]]
+) -> tuple[list[str], dict[str, tuple[str, str]]]:
+    """The table's first entries that fit :data:`MAX_PREFIX_TABLE_CHARS`, the
+    suffix splits still covered, and ``""`` for the IRIs left without a prefix."""
+    kept: list[str] = []
+    total = 0
+    for prefix in table:
+        if total + len(prefix) <= MAX_PREFIX_TABLE_CHARS:
+            kept.append(prefix)
+            total += len(prefix)
+    suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in kept}
+    if "" not in kept and any(split[0] not in kept and iri not in suffix_splits for iri, split in splits.items()):
+        kept.append("")
+    return kept, suffix_splits
+
+
+def _plan(rows: Sequence[Sequence[object]], datatypes: bool) -> _Plan:
+    """Pass 1: split the IRIs present and choose the prefix table.
+
+    Entries are ordered by use count, most used first (one-byte indexes),
+    ties shortest first (so longer prefixes can extend them), then in order
+    of first appearance: the output is deterministic.  IRIs whose prefix
+    has no entry share one ``""`` entry and travel whole.
+
+    In results of several rows, an IRI whose local name ends with another
+    string of its row (a plain literal or another IRI's local name, at least
+    3 characters) is also offered the longer prefix in front of that string:
+    the warehouse KB's ``Shape_Gucci_bag_14`` next to ``Gucci_bag_14``
+    becomes ``[p, "Gucci_bag_14"]`` with ``p`` = ``...#Shape_``, and the
+    local part a stringref, when that prefix pays off.
+
+    Datatype IRIs outside :data:`WELL_KNOWN_DATATYPES` need entries too but
+    are rare; scanning every literal for them is left to a second try
+    (``datatypes=True``) when the emitter meets one.
+    """
+    splits: dict[str, tuple[str, str]] = {}
+    # A row-specific prefix pays off only on repeats: look in results of
+    # several rows, for column pairs found in the first two.
+    pairs = _suffix_columns(rows[:2], splits) if len(rows) > 1 else []
+    iri_uses = _count_iris(rows, datatypes, splits)
+    suffix_splits = _paying_suffix_splits(_row_suffix_splits(rows, pairs, splits), iri_uses)
+    table = _chosen_prefix_table(iri_uses, splits, suffix_splits)
     if sum(map(len, table)) > MAX_PREFIX_TABLE_CHARS:  # rare: keep what decoders accept
-        kept: list[str] = []
-        total = 0
-        for prefix in table:
-            if total + len(prefix) <= MAX_PREFIX_TABLE_CHARS:
-                kept.append(prefix)
-                total += len(prefix)
-        table = kept
-        suffix_splits = {iri: split for iri, split in suffix_splits.items() if split[0] in kept}
-        if "" not in kept and any(split[0] not in kept and iri not in suffix_splits for iri, split in splits.items()):
-            table.append("")
+        table, suffix_splits = _capped_prefix_table(table, splits, suffix_splits)
     return _Plan(splits, suffix_splits, table)
 
 
 class _MissingPrefix(Exception):
     """Pass 2 met a custom datatype that pass 1 did not count."""
+
+
+class _Emitter:
+    """Pass 2's state: the bytes so far, the stringref table and what its refs saved.
+
+    With ``use_refs`` every text string goes through the stringref table
+    (numbered exactly as a stringref decoder numbers them) and a repeat is
+    sent as ``25(index)``.  Python call overhead (~0.1 us a call) dominates
+    the encode time, so the row loop tests term kinds inline and a literal's
+    every form is written by one call.
+    """
+
+    __slots__ = ("out", "write", "splits", "suffix_splits", "index", "empty", "use_refs", "refs", "saved", "next_min")
+
+    def __init__(self, plan: _Plan, use_refs: bool) -> None:
+        self.out = bytearray()
+        self.write = self.out.extend
+        self.splits, self.suffix_splits = plan.splits, plan.suffix_splits
+        self.index = {prefix: i for i, prefix in enumerate(plan.prefixes)}
+        # _plan adds "" when any IRI needs it.
+        self.empty = _int_bytes(self.index[""]) if "" in self.index else b""
+        self.use_refs = use_refs
+        self.refs: dict[str, int] = {}
+        self.saved = 0
+        self.next_min = 3 if use_refs else 1 << 62  # shortest string the next ref index may number
+
+    def text(self, s: str) -> None:
+        """A text string, or a stringref to an earlier copy of it."""
+        data = s.encode()
+        n = len(data)
+        if n >= 3 and self.use_refs:
+            refs = self.refs
+            ref_index = refs.get(s)
+            if ref_index is not None:
+                ref = b"\xd8\x19" + _int_bytes(ref_index)
+                self.write(ref)
+                self.saved += n + (1 if n < 24 else len(_head(0x60, n))) - len(ref)
+                return
+            if n >= self.next_min:
+                refs[s] = len(refs)
+                self.next_min = _stringref_min_length(len(refs))
+        self.write(_BYTE[0x60 | n] if n < 24 else _head(0x60, n))
+        self.write(data)
+
+    def iri(self, value: str, head: bytes) -> None:
+        """``head`` then the prefix index and local name (or "" entry, whole IRI)."""
+        prefix, local = self.suffix_splits.get(value) or self.splits[value]
+        i = self.index.get(prefix)
+        if i is None:
+            if not self.empty:
+                raise AssertionError(f"prefix table does not cover {value!r}")
+            self.write(head + self.empty)
+            self.text(value)
+        else:
+            self.write(head + (_BYTE[i] if i < 24 else _int_bytes(i)))
+            self.text(local)
+
+    def header(self, variables: Sequence[str] | None, entries: Sequence[str | tuple[int, str]]) -> None:
+        """The variable names (``null`` for a graph) and the prefix table."""
+        if variables is None:
+            self.write(_NULL)
+        else:
+            self.write(_head(0x80, len(variables)))
+            for name in variables:
+                self.text(name)
+        self.write(_head(0x80, len(entries)))
+        for entry in entries:
+            if isinstance(entry, str):
+                self.text(entry)
+            else:  # [base, suffix]: extends an earlier entry
+                self.write(b"\x82" + _int_bytes(entry[0]))
+                self.text(entry[1])
+
+    def rows(self, rows: Sequence[Sequence[Term | None]], width: int) -> None:
+        """The rows (or triples), each an array of ``width`` terms."""
+        write, text, iri, literal = self.write, self.text, self.iri, self.literal
+        write(_head(0x80, len(rows)))
+        row_head = _head(0x80, width)
+        for row in rows:
+            write(row_head)
+            for term in row:
+                # Exact type tests first: a failing isinstance on rdflib's
+                # ABC-registered terms costs ten times a passing one.
+                kind = type(term)
+                if kind is Literal:
+                    literal(term)  # type: ignore[arg-type]  # kind is type(term), taken once a term; mypy does not narrow through it
+                elif kind is URIRef:
+                    iri(str(term), b"\x82")
+                elif term is None:
+                    write(_NULL)
+                elif kind is BNode:
+                    write(b"\x81")
+                    text(str(term))
+                elif isinstance(term, Literal):
+                    literal(term)
+                elif isinstance(term, URIRef):
+                    iri(str(term), b"\x82")
+                elif isinstance(term, BNode):
+                    write(b"\x81")
+                    text(str(term))
+                else:
+                    raise CodecError(f"not an RDF term: {term!r}")
+
+    def literal(self, literal: Literal) -> None:
+        """A literal: plain text, ``[lexical, language]``, a native item,
+        ``[lexical, code]`` or ``[lexical, prefix index, local name]``."""
+        lexical = str(literal)
+        datatype = literal._datatype  # the slot behind .datatype: 50 ns less a literal
+        if datatype is None:
+            language = literal._language
+            if language is not None:
+                self.write(b"\x82")
+                self.text(lexical)
+                self.text(language)
+            else:
+                self.text(lexical)
+            return
+        datatype_iri = str(datatype)
+        native = _NATIVE_KIND.get(datatype_iri)
+        if native is not None:  # a native item when the decoder's rendering gives lexical back
+            if native == 2:
+                fraction = _native_decimal(lexical)
+                if fraction is not None:
+                    exponent, mantissa = fraction  # tag 4, array of 2, exponent, mantissa
+                    exponent_bytes = _BYTE[0x1F - exponent] if -24 <= exponent < 0 else _int_bytes(exponent)
+                    self.write(b"\xc4\x82" + exponent_bytes + _int_bytes(mantissa))
+                    return
+            elif native == 1:
+                if lexical == "true":
+                    self.write(_TRUE)
+                    return
+                if lexical == "false":
+                    self.write(_FALSE)
+                    return
+            elif native == 3:
+                integer = _native_integer(lexical)
+                if integer is not None:
+                    self.write(_int_bytes(integer))
+                    return
+            else:
+                double = _native_double(lexical)
+                if double is not None:
+                    self.write(_float_bytes(double))
+                    return
+        code = _DATATYPE_CODE.get(datatype_iri)
+        if code is not None:  # [lexical, code]
+            self.write(b"\x82")
+            self.text(lexical)
+            self.write(_int_bytes(code))
+            return
+        split = self.splits.get(datatype_iri)
+        if split is None or (split[0] not in self.index and "" not in self.index):
+            raise _MissingPrefix(datatype_iri)
+        self.write(b"\x83")  # [lexical, prefix index, local name]
+        self.text(lexical)
+        self.iri(datatype_iri, b"")
 
 
 def _emit(
@@ -511,149 +707,14 @@ def _emit(
     truncated: bool,
     use_refs: bool,
 ) -> tuple[bytearray, int]:
-    """Pass 2: the CBOR bytes (without tag 256), and the bytes refs saved.
-
-    With ``use_refs`` every text string goes through the stringref table
-    (numbered exactly as a stringref decoder numbers them) and a repeat is
-    sent as ``25(index)``.  Written as one loop with the literal case inlined
-    because Python call overhead (~0.1 us a call) dominated the encode time.
-    """
-    out = bytearray()
-    write = out.extend
-    splits, suffix_splits = plan.splits, plan.suffix_splits
-    index = {prefix: i for i, prefix in enumerate(plan.prefixes)}
-    empty = _int_bytes(index[""]) if "" in index else b""  # _plan adds "" when any IRI needs it
-    refs: dict[str, int] = {}
-    saved = 0
-    next_min = 3 if use_refs else 1 << 62  # shortest string the next ref index may number
-
-    def text(s: str) -> None:
-        nonlocal saved, next_min
-        data = s.encode()
-        n = len(data)
-        if n >= 3 and use_refs:
-            ref_index = refs.get(s)
-            if ref_index is not None:
-                ref = b"\xd8\x19" + _int_bytes(ref_index)
-                write(ref)
-                saved += n + (1 if n < 24 else len(_head(0x60, n))) - len(ref)
-                return
-            if n >= next_min:
-                refs[s] = len(refs)
-                next_min = _stringref_min_length(len(refs))
-        write(_BYTE[0x60 | n] if n < 24 else _head(0x60, n))
-        write(data)
-
-    def iri(value: str, head: bytes) -> None:
-        """``head`` then the prefix index and local name (or "" entry, whole IRI)."""
-        prefix, local = suffix_splits.get(value) or splits[value]
-        i = index.get(prefix)
-        if i is None:
-            if not empty:
-                raise AssertionError(f"prefix table does not cover {value!r}")
-            write(head + empty)
-            text(value)
-        else:
-            write(head + (_BYTE[i] if i < 24 else _int_bytes(i)))
-            text(local)
-
-    write(_head(0x80, 4 if truncated else 3))
-    if variables is None:
-        write(_NULL)
-    else:
-        write(_head(0x80, len(variables)))
-        for name in variables:
-            text(name)
-    write(_head(0x80, len(plan.entries)))
-    for entry in plan.entries:
-        if isinstance(entry, str):
-            text(entry)
-        else:  # [base, suffix]: extends an earlier entry
-            write(b"\x82" + _int_bytes(entry[0]))
-            text(entry[1])
-    write(_head(0x80, len(rows)))
-    row_head = _head(0x80, 3 if variables is None else len(variables))
-    for row in rows:
-        write(row_head)
-        for term in row:
-            kind = type(term)
-            if kind is Literal:
-                literal: Literal = term  # type: ignore[assignment]  # kind is type(term), taken once a term; mypy does not narrow through it
-            elif kind is URIRef:
-                iri(str(term), b"\x82")
-                continue
-            elif term is None:
-                write(_NULL)
-                continue
-            elif kind is BNode:
-                write(b"\x81")
-                text(str(term))
-                continue
-            elif isinstance(term, Literal):
-                literal = term
-            elif isinstance(term, URIRef):
-                iri(str(term), b"\x82")
-                continue
-            elif isinstance(term, BNode):
-                write(b"\x81")
-                text(str(term))
-                continue
-            else:
-                raise CodecError(f"not an RDF term: {term!r}")
-
-            lexical = str(literal)
-            datatype = literal._datatype  # the slot behind .datatype: 50 ns less a literal
-            if datatype is None:
-                language = literal._language
-                if language is not None:
-                    write(b"\x82")
-                    text(lexical)
-                    text(language)
-                else:
-                    text(lexical)
-                continue
-            datatype_iri = str(datatype)
-            native = _NATIVE_KIND.get(datatype_iri)
-            if native is not None:
-                if native == 2:
-                    fraction = _native_decimal(lexical)
-                    if fraction is not None:
-                        exponent, mantissa = fraction  # tag 4, array of 2, exponent, mantissa
-                        exponent_bytes = _BYTE[0x1F - exponent] if -24 <= exponent < 0 else _int_bytes(exponent)
-                        write(b"\xc4\x82" + exponent_bytes + _int_bytes(mantissa))
-                        continue
-                elif native == 1:
-                    if lexical == "true":
-                        write(_TRUE)
-                        continue
-                    if lexical == "false":
-                        write(_FALSE)
-                        continue
-                elif native == 3:
-                    integer = _native_integer(lexical)
-                    if integer is not None:
-                        write(_int_bytes(integer))
-                        continue
-                else:
-                    double = _native_double(lexical)
-                    if double is not None:
-                        write(_float_bytes(double))
-                        continue
-            code = _DATATYPE_CODE.get(datatype_iri)
-            if code is not None:  # [lexical, code]
-                write(b"\x82")
-                text(lexical)
-                write(_int_bytes(code))
-                continue
-            split = splits.get(datatype_iri)
-            if split is None or (split[0] not in index and "" not in index):
-                raise _MissingPrefix(datatype_iri)
-            write(b"\x83")  # [lexical, prefix index, local name]
-            text(lexical)
-            iri(datatype_iri, b"")
+    """Pass 2: the CBOR bytes (without tag 256), and the bytes refs saved."""
+    emitter = _Emitter(plan, use_refs)
+    emitter.write(_head(0x80, 4 if truncated else 3))
+    emitter.header(variables, plan.entries)
+    emitter.rows(rows, 3 if variables is None else len(variables))
     if truncated:
-        write(_TRUE)
-    return out, saved
+        emitter.write(_TRUE)
+    return emitter.out, emitter.saved
 
 
 def encode_cbor(result: QueryResult) -> bytes:

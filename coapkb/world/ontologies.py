@@ -143,149 +143,160 @@ def _rack_local(aisle: int, rack: int) -> str:
     return f"Rack_{aisle:02d}_{rack:02d}"
 
 
-def _location_ontology(wh: Warehouse) -> _Ontology:
+_LOCATION_COMMENT = (
+    "The warehouse map: aisles, racks, bins, where each product is stored, where each robot "
+    "starts (seed paper Sec. III-B) and where robots charge.  "
+    "Geometry: aisle a's centre line is at x=(a-1)*Aisle_spacing_m; "
+    "rack r's pick point at y=Cross_aisle_margin_m+(r-0.5)*Rack_length_m; the front cross-aisle is at "
+    "y=0 and the back one at y=Aisle_length_m; rack 0 and rack Racks_per_aisle+1 denote an aisle's "
+    "junctions with the front and back cross-aisles."
+)
+_LOCATION_CLASSES: tuple[tuple[str, str | None, str], ...] = (
+    ("Location", None, "A place in the warehouse."),
+    ("Warehouse", "Location", "The whole warehouse; carries the geometry constants."),
+    ("Aisle", "Location", "A corridor lined with racks."),
+    ("Rack", "Location", "A rack bay along an aisle."),
+    ("Bin", "Location", "A shelf level of a rack."),
+    ("StoredItem", None, "A product as stored inventory (same local name as in Object.owl)."),
+    ("Robot", None, "A robot of the team and its initial position."),
+    (
+        "ChargingDock",
+        "Location",
+        "Where a robot charges its battery: a cross-aisle junction (Rack_no 0 or Racks_per_aisle+1).",
+    ),
+)
+_LOCATION_OBJECT_PROPERTIES: tuple[tuple[str, str, str, str], ...] = (
+    ("Available_At", "StoredItem", "Location", "The warehouse an item is stored in."),
+    ("Stored_In", "StoredItem", "Bin", "The bin an item is stored in."),
+    ("Part_Of", "Location", "Location", "Containment: bin in rack, rack in aisle, aisle in warehouse."),
+)
+_LOCATION_DATATYPE_PROPERTIES: tuple[tuple[str, str, str, str], ...] = (
+    ("Location_name", "Location", "string", "Name of a location."),
+    ("Aisle_count", "Warehouse", "integer", "Number of aisles."),
+    ("Racks_per_aisle", "Warehouse", "integer", "Rack bays along each aisle."),
+    ("Bins_per_rack", "Warehouse", "integer", "Shelf levels per rack bay."),
+    ("Rack_length_m", "Warehouse", "decimal", "Length of one rack bay along the aisle, metres."),
+    ("Aisle_spacing_m", "Warehouse", "decimal", "Distance between neighbouring aisle centre lines, metres."),
+    (
+        "Cross_aisle_margin_m",
+        "Warehouse",
+        "decimal",
+        "Distance from a cross-aisle centre line to the nearest rack bay, metres.",
+    ),
+    ("Aisle_length_m", "Warehouse", "decimal", "Front to back cross-aisle centre lines, metres."),
+    ("Aisle_no", "Location", "integer", "Aisle number, 1-based."),
+    ("Rack_no", "Location", "integer", "Rack bay number along the aisle, 1-based from the front."),
+    ("Bin_no", "Bin", "integer", "Shelf level, 1-based from the floor."),
+    ("Position_x_m", "Rack", "decimal", "x of the rack's pick point, metres."),
+    ("Position_y_m", "Rack", "decimal", "y of the rack's pick point, metres."),
+    ("Inventory_aisle_no", "StoredItem", "integer", "Aisle the item is stored in."),
+    ("Inventory_rack_no", "StoredItem", "integer", "Rack bay the item is stored in."),
+    ("Inventory_bin_no", "StoredItem", "integer", "Bin (shelf level) the item is stored in."),
+    ("Robot_Id", "Robot", "string", "The robot's identifier, e.g. 'Robot1'."),
+    ("Robot_aisle_no", "Robot", "integer", "Aisle of the robot's initial position."),
+    ("Robot_rack_no", "Robot", "integer", "Rack of the robot's initial position (0/last+1: cross-aisles)."),
+)
+
+
+def _bin_local(aisle: int, rack: int, bin_no: int) -> str:
+    return f"Bin_{aisle:02d}_{rack:02d}_{bin_no}"
+
+
+def _warehouse_individual(wh: Warehouse) -> _Individual:
+    """The warehouse itself, with the geometry constants."""
     spec, layout = wh.spec, wh.layout
-    wname = spec.warehouse_name
-    individuals: list[_Individual] = [
+    return (
+        spec.warehouse_name,
+        ("Warehouse",),
         (
-            wname,
-            ("Warehouse",),
-            (
-                ("Location_name", _s(wname)),
-                ("Aisle_count", _i(layout.aisles)),
-                ("Racks_per_aisle", _i(layout.racks_per_aisle)),
-                ("Bins_per_rack", _i(spec.bins_per_rack)),
-                ("Rack_length_m", _d(layout.rack_length_m)),
-                ("Aisle_spacing_m", _d(layout.aisle_spacing_m)),
-                ("Cross_aisle_margin_m", _d(layout.cross_aisle_margin_m)),
-                ("Aisle_length_m", _d(round(layout.aisle_length_m, 6))),
-            ),
-        )
-    ]
+            ("Location_name", _s(spec.warehouse_name)),
+            ("Aisle_count", _i(layout.aisles)),
+            ("Racks_per_aisle", _i(layout.racks_per_aisle)),
+            ("Bins_per_rack", _i(spec.bins_per_rack)),
+            ("Rack_length_m", _d(layout.rack_length_m)),
+            ("Aisle_spacing_m", _d(layout.aisle_spacing_m)),
+            ("Cross_aisle_margin_m", _d(layout.cross_aisle_margin_m)),
+            ("Aisle_length_m", _d(round(layout.aisle_length_m, 6))),
+        ),
+    )
+
+
+def _map_individuals(wh: Warehouse) -> Iterator[_Individual]:
+    """Each aisle, then its racks, each followed by its bins."""
+    spec, layout = wh.spec, wh.layout
     for a in range(1, layout.aisles + 1):
         aisle = f"Aisle_{a:02d}"
-        individuals.append((aisle, ("Aisle",), (("Part_Of", _iri(wname)), ("Aisle_no", _i(a)))))
+        yield (aisle, ("Aisle",), (("Part_Of", _iri(spec.warehouse_name)), ("Aisle_no", _i(a))))
         for r in range(1, layout.racks_per_aisle + 1):
             rack = _rack_local(a, r)
             x, y = layout.xy(Position(a, r))
-            individuals.append(
+            yield (
+                rack,
+                ("Rack",),
                 (
-                    rack,
-                    ("Rack",),
-                    (
-                        ("Part_Of", _iri(aisle)),
-                        ("Aisle_no", _i(a)),
-                        ("Rack_no", _i(r)),
-                        ("Position_x_m", _d(round(x, 6))),
-                        ("Position_y_m", _d(round(y, 6))),
-                    ),
-                )
+                    ("Part_Of", _iri(aisle)),
+                    ("Aisle_no", _i(a)),
+                    ("Rack_no", _i(r)),
+                    ("Position_x_m", _d(round(x, 6))),
+                    ("Position_y_m", _d(round(y, 6))),
+                ),
             )
             for b in range(1, spec.bins_per_rack + 1):
-                individuals.append(
-                    (
-                        f"Bin_{a:02d}_{r:02d}_{b}",
-                        ("Bin",),
-                        (("Part_Of", _iri(rack)), ("Aisle_no", _i(a)), ("Rack_no", _i(r)), ("Bin_no", _i(b))),
-                    )
+                yield (
+                    _bin_local(a, r, b),
+                    ("Bin",),
+                    (("Part_Of", _iri(rack)), ("Aisle_no", _i(a)), ("Rack_no", _i(r)), ("Bin_no", _i(b))),
                 )
+
+
+def _placed_individuals(wh: Warehouse) -> Iterator[_Individual]:
+    """Where each product is stored, each robot starts and each dock stands."""
+    wname = wh.spec.warehouse_name
     for p in wh.products:
         a, r = p.position.aisle, p.position.rack
-        individuals.append(
+        yield (
+            p.name,
+            ("StoredItem",),
             (
-                p.name,
-                ("StoredItem",),
-                (
-                    ("Available_At", _iri(wname)),
-                    ("Stored_In", _iri(f"Bin_{a:02d}_{r:02d}_{p.bin_no}")),
-                    ("Inventory_aisle_no", _i(a)),
-                    ("Inventory_rack_no", _i(r)),
-                    ("Inventory_bin_no", _i(p.bin_no)),
-                ),
-            )
+                ("Available_At", _iri(wname)),
+                ("Stored_In", _iri(_bin_local(a, r, p.bin_no))),
+                ("Inventory_aisle_no", _i(a)),
+                ("Inventory_rack_no", _i(r)),
+                ("Inventory_bin_no", _i(p.bin_no)),
+            ),
         )
     for robot in wh.robots:
-        individuals.append(
+        yield (
+            robot.robot_id,
+            ("Robot",),
             (
-                robot.robot_id,
-                ("Robot",),
-                (
-                    ("Robot_Id", _s(robot.robot_id)),
-                    ("Robot_aisle_no", _i(robot.home.aisle)),
-                    ("Robot_rack_no", _i(robot.home.rack)),
-                ),
-            )
+                ("Robot_Id", _s(robot.robot_id)),
+                ("Robot_aisle_no", _i(robot.home.aisle)),
+                ("Robot_rack_no", _i(robot.home.rack)),
+            ),
         )
-    for number, dock in enumerate(spec.docks, 1):
-        individuals.append(
+    for number, dock in enumerate(wh.spec.docks, 1):
+        yield (
+            f"Dock_{number}",
+            ("ChargingDock",),
             (
-                f"Dock_{number}",
-                ("ChargingDock",),
-                (
-                    ("Location_name", _s(f"Dock_{number}")),
-                    ("Part_Of", _iri(wname)),
-                    ("Aisle_no", _i(dock.aisle)),
-                    ("Rack_no", _i(dock.rack)),
-                ),
-            )
+                ("Location_name", _s(f"Dock_{number}")),
+                ("Part_Of", _iri(wname)),
+                ("Aisle_no", _i(dock.aisle)),
+                ("Rack_no", _i(dock.rack)),
+            ),
         )
+
+
+def _location_ontology(wh: Warehouse) -> _Ontology:
     return _Ontology(
         name="Location",
-        comment=(
-            "The warehouse map: aisles, racks, bins, where each product is stored, where each robot "
-            "starts (seed paper Sec. III-B) and where robots charge.  "
-            "Geometry: aisle a's centre line is at x=(a-1)*Aisle_spacing_m; "
-            "rack r's pick point at y=Cross_aisle_margin_m+(r-0.5)*Rack_length_m; the front cross-aisle is at "
-            "y=0 and the back one at y=Aisle_length_m; rack 0 and rack Racks_per_aisle+1 denote an aisle's "
-            "junctions with the front and back cross-aisles."
-        ),
-        version_info=_version(spec),
-        classes=(
-            ("Location", None, "A place in the warehouse."),
-            ("Warehouse", "Location", "The whole warehouse; carries the geometry constants."),
-            ("Aisle", "Location", "A corridor lined with racks."),
-            ("Rack", "Location", "A rack bay along an aisle."),
-            ("Bin", "Location", "A shelf level of a rack."),
-            ("StoredItem", None, "A product as stored inventory (same local name as in Object.owl)."),
-            ("Robot", None, "A robot of the team and its initial position."),
-            (
-                "ChargingDock",
-                "Location",
-                "Where a robot charges its battery: a cross-aisle junction (Rack_no 0 or Racks_per_aisle+1).",
-            ),
-        ),
-        object_properties=(
-            ("Available_At", "StoredItem", "Location", "The warehouse an item is stored in."),
-            ("Stored_In", "StoredItem", "Bin", "The bin an item is stored in."),
-            ("Part_Of", "Location", "Location", "Containment: bin in rack, rack in aisle, aisle in warehouse."),
-        ),
-        datatype_properties=(
-            ("Location_name", "Location", "string", "Name of a location."),
-            ("Aisle_count", "Warehouse", "integer", "Number of aisles."),
-            ("Racks_per_aisle", "Warehouse", "integer", "Rack bays along each aisle."),
-            ("Bins_per_rack", "Warehouse", "integer", "Shelf levels per rack bay."),
-            ("Rack_length_m", "Warehouse", "decimal", "Length of one rack bay along the aisle, metres."),
-            ("Aisle_spacing_m", "Warehouse", "decimal", "Distance between neighbouring aisle centre lines, metres."),
-            (
-                "Cross_aisle_margin_m",
-                "Warehouse",
-                "decimal",
-                "Distance from a cross-aisle centre line to the nearest rack bay, metres.",
-            ),
-            ("Aisle_length_m", "Warehouse", "decimal", "Front to back cross-aisle centre lines, metres."),
-            ("Aisle_no", "Location", "integer", "Aisle number, 1-based."),
-            ("Rack_no", "Location", "integer", "Rack bay number along the aisle, 1-based from the front."),
-            ("Bin_no", "Bin", "integer", "Shelf level, 1-based from the floor."),
-            ("Position_x_m", "Rack", "decimal", "x of the rack's pick point, metres."),
-            ("Position_y_m", "Rack", "decimal", "y of the rack's pick point, metres."),
-            ("Inventory_aisle_no", "StoredItem", "integer", "Aisle the item is stored in."),
-            ("Inventory_rack_no", "StoredItem", "integer", "Rack bay the item is stored in."),
-            ("Inventory_bin_no", "StoredItem", "integer", "Bin (shelf level) the item is stored in."),
-            ("Robot_Id", "Robot", "string", "The robot's identifier, e.g. 'Robot1'."),
-            ("Robot_aisle_no", "Robot", "integer", "Aisle of the robot's initial position."),
-            ("Robot_rack_no", "Robot", "integer", "Rack of the robot's initial position (0/last+1: cross-aisles)."),
-        ),
-        individuals=tuple(individuals),
+        comment=_LOCATION_COMMENT,
+        version_info=_version(wh.spec),
+        classes=_LOCATION_CLASSES,
+        object_properties=_LOCATION_OBJECT_PROPERTIES,
+        datatype_properties=_LOCATION_DATATYPE_PROPERTIES,
+        individuals=(_warehouse_individual(wh), *_map_individuals(wh), *_placed_individuals(wh)),
     )
 
 
