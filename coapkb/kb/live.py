@@ -3,10 +3,12 @@ every holder made since, and the graph queries see.
 
 The files' graph stays as loaded: it is the base every holder shares, and
 tells a write which triples came from the files.  The first write copies
-it into the *view*, the graph queries run on from then on; every change
-(a local write or a teammate's delta) goes into the module's
+it into the *view* (:mod:`.view`), the graph queries run on from then on;
+every change (a local write or a teammate's delta) goes into the module's
 :class:`~coapkb.kb.replica.Replica` first and into the view as the effect
-the replica computes, so the view is always what the replicas say.
+the replica computes, so the view is always what the replicas say.  An
+update's text becomes the triples it changes in :mod:`.update_evaluator`,
+and :mod:`.pinned_answers` keeps each task's answers as first given.
 
 A triple belongs to the module whose namespace its subject is in
 (``vocabulary.ONTOLOGIES``; the ontology's own IRI too).  A robot holding a
@@ -18,31 +20,28 @@ from __future__ import annotations
 import hashlib
 import time
 import weakref
-from collections import OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import pyoxigraph as ox
-from rdflib.term import BNode, Literal, URIRef
+from rdflib.term import URIRef
 
 from ..model.deltas import Delta, MadeUnder, WrittenState
-from ..model.results import GraphResult, QueryResult, Term, Triple
+from ..model.results import QueryResult, Term, Triple
 from ..typed_fields import require_at_least
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
-from .errors import KBError, QueryEvaluationError
-from .limits import Deadline
+from .errors import KBError
 from .oxigraph_backend import OxigraphBackend, _from_ox, _to_ox
+from .pinned_answers import PINNED_ANSWERS, PinnedAnswers
 from .replica import Effect, Replica, ReplicaLimits
 from .store import KnowledgeBase
-from .update import Operation, UpdateUnsupported, parse_update
+from .update import UpdateUnsupported, parse_update
+from .update_evaluator import UpdateEvaluator, WriteTooLarge, check_term_kinds
+from .view import View, as_quad
 from .write_ids import Remembered, WriteId, WriteIds, WriteTag
 
-#: Answers kept as first given for a task (:meth:`LiveKB.query_at`): a few
-#: questions per task, and no robot asks about a task hundreds of tasks old.
-PINNED_ANSWERS = 1024
-
-__all__ = ["Keeping", "LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "Written"]
+__all__ = ["Keeping", "LiveKB", "NotHeld", "PreconditionFailed", "WriteLimits", "WriteTooLarge", "Written"]
 
 
 class NotHeld(KBError):
@@ -57,10 +56,6 @@ class NotHeld(KBError):
 
 class PreconditionFailed(KBError):
     """An If-Match that no longer matches the module's version (4.12)."""
-
-
-class WriteTooLarge(KBError):
-    """A write that would change more triples than a robot takes at once (4.13)."""
 
 
 @dataclass(frozen=True)
@@ -175,21 +170,13 @@ class LiveKB:
         self.backend = base.backend
         self.writer = writer
         self.limits = limits or WriteLimits()
-        #: The tasks' first answers kept at most (:meth:`query_at`).
-        self.pinned_answers = pinned_answers
         self._wall_ms = wall_ms
-        self._base_store: ox.Store = base.engine.store
         #: :func:`base_triples`, once a write or a join asks.
         self._base_triples: frozenset[Triple] | None = None
-        self._view: OxigraphBackend | None = None
-        #: Adds and removes the view took since it was last copied afresh,
-        #: and how many it may take before the next copy (its size is
-        #: counted only then: counting a pyoxigraph store walks it).
-        self._churn = 0
-        self._churn_allowed = self.limits.rebuild_after_changes
-        #: Times the view was copied afresh (:attr:`WriteLimits.rebuild_after_changes`).
-        self.rebuilds = 0
-        functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self._base_store)
+        #: The graph queries see: the files', then what the replicas say.
+        self.view = View(base, self.limits.rebuild_after_changes)
+        self._evaluator = UpdateEvaluator(self.view, self.limits.max_triples)
+        functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self.view.base_store)
         self.replicas: dict[str, Replica] = {
             name: Replica(writer, single_valued=functional, base_values=self._base_values, limits=self.limits.replica)
             for name in base.names
@@ -200,8 +187,8 @@ class LiveKB:
         self._etag: bytes | None = None
         #: Called with the modules a change touched (after the view has it).
         self.listeners: list[Callable[[frozenset[str]], None]] = []
-        #: (task, query) -> the answer first given for that task (:meth:`query_at`).
-        self._pinned: OrderedDict[tuple[int, str], QueryResult] = OrderedDict()
+        #: The answers first given for each task (:meth:`query_at`).
+        self.pinned = PinnedAnswers(pinned_answers)
         #: Told every change the replicas took, before anyone hears of it
         #: (a data folder: :mod:`.durable`); None: kept in memory only.
         self.keeper: Keeping | None = None
@@ -215,7 +202,12 @@ class LiveKB:
 
     @property
     def triple_count(self) -> int:
-        return len(self._view.store) if self._view is not None else self.base.triple_count
+        return self.view.triple_count
+
+    @property
+    def rebuilds(self) -> int:
+        """Times the view was copied afresh (:attr:`WriteLimits.rebuild_after_changes`)."""
+        return self.view.rebuilds
 
     @property
     def etag(self) -> bytes:
@@ -231,15 +223,13 @@ class LiveKB:
 
     @property
     def changed(self) -> bool:
-        return self._view is not None
+        return self.view.changed
 
     def module_version(self, module: str) -> bytes:
         return hashlib.blake2b(repr(self.replicas[module].context.summary()).encode(), digest_size=8).digest()
 
     def query(self, sparql: str, *, row_limit: int = 1000, time_budget_s: float | None = None) -> QueryResult:
-        if self._view is None:
-            return self.base.query(sparql, row_limit=row_limit, time_budget_s=time_budget_s)
-        return self.base.query_with(self._view, sparql, row_limit=row_limit, time_budget_s=time_budget_s)
+        return self.view.query(sparql, row_limit=row_limit, time_budget_s=time_budget_s)
 
     def query_at(self, task: int, sparql: str) -> QueryResult:
         """``query``'s answer as it was when first asked for ``task``.
@@ -248,24 +238,15 @@ class LiveKB:
         though a write may land between two robots' questions: the holder
         they all ask answers each question of one task alike
         (docs/knowledge.md, "The world in the KB").  The last
-        ``PINNED_ANSWERS`` questions are kept."""
-        key = (task, sparql)
-        kept = self._pinned.get(key)
-        if kept is not None:
-            self._pinned.move_to_end(key)
-            return kept
-        answer = self.query(sparql)
-        self._pinned[key] = answer
-        while len(self._pinned) > self.pinned_answers:
-            self._pinned.popitem(last=False)
-        return answer
+        ``pinned_answers`` questions are kept."""
+        return self.pinned.answer(task, sparql, self.query)
 
     def _base_values(self, s: Term, p: Term) -> list[Term]:
         from .oxigraph_backend import _from_ox
 
         # A subject and a predicate are never literals: the single-valued properties' keys.
         return [_from_ox(q.object)
-                for q in self._base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]  # s, p: never literals
+                for q in self.view.base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]  # s, p: never literals
 
     def _is_base(self, triple: Triple) -> bool:
         if self._base_triples is None:
@@ -294,26 +275,8 @@ class LiveKB:
         the write) once it is made.  A repeat is the caller's to catch."""
         parsed = parse_update(text)
         self._check_precondition(if_match)
-        removes: dict[Triple, None] = {}
-        adds: dict[Triple, None] = {}
-        # Operations run in order, each seeing the ones before: their
-        # changes go into the view for the next one to read, and are taken
-        # back before the write is made (the replicas decide the view).
-        undo: list[tuple[str, Triple]] = []
-        try:
-            for operation in parsed.operations:
-                gone, new = self._resolve(operation, parsed.prologue)
-                for triple in gone:
-                    adds.pop(triple, None)
-                    removes[triple] = None
-                for triple in new:
-                    removes.pop(triple, None)
-                    adds[triple] = None
-                if operation is not parsed.operations[-1]:
-                    undo += self._scratch(gone, new)
-        finally:
-            self._unscratch(undo)
-        return self._write(list(removes), list(adds), tag)
+        removes, adds = self._evaluator.changes(parsed)
+        return self._write(removes, adds, tag)
 
     def patch(self, deletes: Iterable[Triple], inserts: Iterable[Triple], *, if_match: tuple[bytes, ...] = (),
               tag: WriteTag | None = None) -> Written:
@@ -322,62 +285,16 @@ class LiveKB:
         self._check_precondition(if_match)
         deletes, inserts = list(deletes), list(inserts)
         for triple in deletes + inserts:
-            _check_term_kinds(triple)
+            check_term_kinds(triple)
         if len(deletes) > self.limits.max_triples or len(inserts) > self.limits.max_triples:
             raise WriteTooLarge(f"a write changes at most {self.limits.max_triples} triples each way")
-        view = self._store()
-        return self._write([t for t in deletes if _quad(t) in view], inserts, tag)
+        view = self.view.writable()
+        return self._write([t for t in deletes if as_quad(t) in view], inserts, tag)
 
     def _check_precondition(self, if_match: tuple[bytes, ...]) -> None:
         # An empty If-Match asks only that the resource exist: it does.
         if if_match and b"" not in if_match and self.etag not in if_match:
             raise PreconditionFailed(f"the knowledge base is at version {self.etag.hex()}, not {if_match[0].hex()}")
-
-    def _resolve(self, operation: Operation, prologue: str) -> tuple[list[Triple], list[Triple]]:
-        removes_q, adds_q = operation.queries(prologue)
-        removed = self._construct(removes_q, operation.reads_module)
-        if operation.kind == "DELETE DATA":
-            view = self._store()
-            removed = [t for t in removed if _quad(t) in view]
-        added = self._construct(adds_q, operation.reads_module)
-        for triple in added:
-            _check_term_kinds(triple)
-        return removed, added
-
-    def _construct(self, query: str | None, reads_module: bool) -> list[Triple]:
-        if query is None:
-            return []
-        limit = self.limits.max_triples
-        if reads_module:
-            result = self.query(query, row_limit=limit, time_budget_s=2.0)
-        else:
-            result = OxigraphBackend().query(query, limit, _no_deadline())
-        if not isinstance(result, GraphResult):  # pragma: no cover - a CONSTRUCT always gives a graph
-            raise QueryEvaluationError("a write's template did not give triples")
-        if result.truncated:
-            raise WriteTooLarge(f"the update changes more than {limit} triples; split it")
-        return list(result.triples)
-
-    def _scratch(self, removes: list[Triple], adds: list[Triple]) -> list[tuple[str, Triple]]:
-        store = self._store()
-        undo: list[tuple[str, Triple]] = []
-        for triple in removes:
-            if _quad(triple) in store:
-                store.remove(_quad(triple))
-                undo.append(("add", triple))
-        for triple in adds:
-            if _quad(triple) not in store:
-                store.add(_quad(triple))
-                undo.append(("remove", triple))
-        self._churn += len(undo)
-        return undo
-
-    def _unscratch(self, undo: list[tuple[str, Triple]]) -> None:
-        store = self._store() if undo else None
-        for action, triple in reversed(undo):
-            assert store is not None
-            (store.add if action == "add" else store.remove)(_quad(triple))
-        self._churn += len(undo)
 
     def _write(self, removes: list[Triple], adds: list[Triple], tag: WriteTag | None = None) -> Written:
         by_module: dict[str, tuple[list[Triple], list[Triple]]] = {}
@@ -458,32 +375,9 @@ class LiveKB:
         self._changed(frozenset({module}) if effect else frozenset())
         return bool(effect)
 
-    def _store(self) -> ox.Store:
-        if self._view is None:
-            # Copy on first write: until then the files' graph serves queries
-            # (and in the simulator stays shared by every robot loading it).
-            view = ox.Store()
-            view.extend(self._base_store)
-            self._view = OxigraphBackend(view)
-        return self._view.store
-
     def _show(self, effect: Effect) -> None:
-        if not effect:
-            return
-        store = self._store()
-        for triple in effect.removed:
-            store.remove(_quad(triple))
-        if effect.added:
-            # At once: a join at a restart may add 100,000.
-            store.extend(_quad(triple) for triple in effect.added)
-        self._churn += len(effect.removed) + len(effect.added)
-        if self._churn >= self._churn_allowed:
-            fresh = ox.Store()
-            fresh.extend(store.quads_for_pattern(None, None, None))
-            self._view = OxigraphBackend(fresh)
-            self._churn = 0
-            self._churn_allowed = max(self.limits.rebuild_after_changes, 4 * len(fresh))
-            self.rebuilds += 1
+        """The effect a replica computed, into the view."""
+        self.view.show(effect)
 
     def _changed(self, modules: frozenset[str]) -> None:
         self._etag = None
@@ -503,19 +397,3 @@ def declared_functional(store: ox.Store) -> frozenset[Term]:
     return frozenset(URIRef(q.subject.value) for q in store.quads_for_pattern(None, _RDF_TYPE, _OWL_FUNCTIONAL)
                      if isinstance(q.subject, ox.NamedNode))
 
-
-def _quad(triple: Triple) -> ox.Quad:
-    s, p, o = triple
-    return ox.Quad(_to_ox(s), _to_ox(p), _to_ox(o))  # type: ignore[arg-type]  # positions checked on the way in
-
-
-def _check_term_kinds(triple: Triple) -> None:
-    s, p, o = triple
-    if any(isinstance(t, BNode) for t in triple):
-        raise UpdateUnsupported("blank nodes cannot be written: they have no identity across robots; use an IRI")
-    if not isinstance(s, URIRef) or not isinstance(p, URIRef) or not isinstance(o, (URIRef, Literal)):
-        raise UpdateUnsupported("a triple is an IRI subject, an IRI predicate and an IRI or literal object")
-
-
-def _no_deadline() -> Deadline:
-    return Deadline(None)

@@ -89,7 +89,7 @@ class GrantLog:
 def store_quads(live: LiveKB) -> frozenset[ox.Quad]:
     """Every quad ``live``'s queries see now: read from the store that
     answers them, not from the replica's bookkeeping."""
-    return frozenset(live._view.store if live._view is not None else live._base_store)
+    return frozenset(live.view.store)
 
 
 def of_module(quads: Iterable[ox.Quad], live: LiveKB, module: str) -> list[ox.Quad]:

@@ -308,7 +308,7 @@ async def test_a_delta_refused_at_the_bound_is_answered_5_03_not_2_04() -> None:
 
 
 async def _settle(replicator: Replicator) -> None:
-    await asyncio.gather(*list(replicator._pushes), return_exceptions=True)
+    await asyncio.gather(*list(replicator.outgoing.pushes), return_exceptions=True)
 
 
 class Network(ClientTransport):

@@ -93,7 +93,7 @@ class Team:
 
     async def settle(self) -> None:
         for robot in self.robots.values():
-            await asyncio.gather(*list(robot._pushes), return_exceptions=True)
+            await asyncio.gather(*list(robot.outgoing.pushes), return_exceptions=True)
 
 
 def _kb(*modules: str) -> KnowledgeBase:

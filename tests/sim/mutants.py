@@ -37,11 +37,12 @@ from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_membership import Membership, TeamMembership
 from coapkb.feeder.membership import Membership as FeederMembership
+from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
-from coapkb.kb.replication import Replicator
 from coapkb.kb.sync_access import SyncAccess
+from coapkb.kb.sync_client import SyncClient
 from coapkb.model.deltas import CausalContext, Delta, WrittenState
 from coapkb.world.truth import Taken, WorldTruth
 
@@ -177,18 +178,18 @@ def _take_unchecked(self: WorldTruth, obj: str, robot: str, seq: int) -> str | N
 
 
 def _every_fifth_push_dropped() -> contextlib.AbstractContextManager[Any]:
-    push = Replicator._push
+    push = SyncClient.push
     count = [0]
 
-    async def dropping(self: Replicator, holder: Any, module: str, changes: Any, *args: Any) -> bool:
+    async def dropping(self: SyncClient, holder: Any, module: str, changes: Any, *args: Any) -> bool:
         count[0] += 1
         if count[0] % 5 == 0 and isinstance(changes, list):
             return True  # said sent, never sent
         return await push(self, holder, module, changes, *args)
-    return _patch(Replicator, "_push", dropping)
+    return _patch(SyncClient, "push", dropping)
 
 
-async def _no_catch_up(self: Replicator) -> None:
+async def _no_catch_up(self: AntiEntropy) -> None:
     """A robot that starts waits for its first anti-entropy round."""
 
 
@@ -274,7 +275,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("every-fifth-delta-dropped", "every fifth push of deltas is said sent and never sent",
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
     Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
-           lambda: _patch(Replicator, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
+           lambda: _patch(AntiEntropy, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
