@@ -451,9 +451,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("csv", type=Path, nargs="?", default=ROOT / "experiments" / "results" / "quick.csv")
     p.add_argument("--outdir", type=Path, help="default: figures/ next to the CSV")
     args = p.parse_args(argv)
-    rows = read_rows(args.csv)
+    try:
+        rows = read_rows(args.csv)
+    except (OSError, ValueError) as exc:  # not a file, not a benchmark CSV
+        print(f"figures: {exc}", file=sys.stderr)
+        return 1
     if not rows:
-        print(f"figures: no rows in {args.csv}", file=sys.stderr)
+        print(f"figures: no rows in {args.csv}" + ("" if args.csv.exists() else " (no such file)"), file=sys.stderr)
         return 1
     outdir = args.outdir or args.csv.parent / "figures"
     for name, result in draw_all(rows, outdir).items():

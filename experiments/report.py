@@ -765,9 +765,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--figures", type=Path, help="figure directory (default: figures/ next to the CSV)")
     p.add_argument("--profile", help="profile name for the title (default: the CSV's name)")
     args = p.parse_args(argv)
-    rows = read_rows(args.csv)
+    try:
+        rows = read_rows(args.csv)
+    except (OSError, ValueError) as exc:  # not a file, not a benchmark CSV
+        print(f"report: {exc}", file=sys.stderr)
+        return 1
     if not rows:
-        print(f"report: no rows in {args.csv}", file=sys.stderr)
+        print(f"report: no rows in {args.csv}" + ("" if args.csv.exists() else " (no such file)"), file=sys.stderr)
         return 1
     out = args.out or args.csv.parent / "report.md"
     figdir = args.figures or args.csv.parent / "figures"

@@ -296,6 +296,20 @@ async def test_team_mistakes() -> None:
         (["team", "--robots", "3", "--tasks", "1", "--credentials", "/nonexistent/nokeys/"],
          ["--credentials /nonexistent/nokeys/: no team.json in /nonexistent/nokeys;",
           "coapkb keys --team-dir /nonexistent/nokeys/"]),
+        # Before the run, not after it.
+        (["team", "--robots", "3", "--tasks", "1", "--record", "/nonexistent/dir/out.json"],
+         ["--record: no folder /nonexistent/dir"]),
+        # An unknown option of a subcommand points at that subcommand's usage.
+        (["team", "--robots", "3", "--tasks", "1", "--robts", "3"], ["--robts", "(see coapkb team --help)"]),
+    ])
+
+
+async def test_bench_output_mistakes_before_any_run(tmp_path: Path) -> None:
+    base = ["bench", "--robots", "3", "--tasks", "1", "--loss", "0", "--systems", "coap-distributed"]
+    await check_mistakes([
+        ([*base, "--bandwidth", "35", "--out", "/etc/passwd/x.csv"], ["/etc/passwd is not a folder"]),
+        ([*base, "--bandwidth", "35", "--out", str(tmp_path)], ["is a folder"]),
+        ([*base, "--bandwidth", "-5"], ["--bandwidth must be positive"]),
     ])
 
 

@@ -203,6 +203,10 @@ def _parse(kind: type, raw: Any) -> Any:
 
 #: The CSV schema, in column order.
 COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(BenchRow))
+#: The columns a row cannot do without (the rest have defaults: older CSVs lack them).
+REQUIRED_COLUMNS: tuple[str, ...] = tuple(
+    f.name for f in dataclasses.fields(BenchRow)
+    if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING)
 #: A run's identity (see :meth:`BenchRow.key`).
 KEY_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(BenchRow) if f.metadata.get(_KEY))
 
@@ -214,7 +218,11 @@ def read_rows(path: str | Path, *, latest_only: bool = True) -> list[BenchRow]:
     if not path.exists():
         return []
     with path.open(newline="", encoding="utf-8") as f:
-        rows = [BenchRow.from_dict(r) for r in csv.DictReader(f)]
+        reader = csv.DictReader(f)
+        missing = [c for c in REQUIRED_COLUMNS if c not in (reader.fieldnames or ())]
+        if missing:
+            raise ValueError(f"{path} is not a benchmark CSV: it has no column {', '.join(missing)}")
+        rows = [BenchRow.from_dict(r) for r in reader]
     if not latest_only:
         return rows
     return list({r.key(): r for r in rows}.values())

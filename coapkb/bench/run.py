@@ -640,6 +640,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print each row as one JSON line on stdout")
 
 
+def _check_out(out: Path) -> None:
+    """``--out``, before any run: a CSV file in a folder that is one (made if missing)."""
+    taken = next((p for p in out.parents if p.exists()), None)
+    if taken is not None and not taken.is_dir():
+        raise ValueError(f"--out {out}: {taken} is not a folder")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot make its folder: {exc.strerror}") from None
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder: give the CSV file's name")
+
+
 def parse_systems(text: str) -> list[str]:
     systems = [s.strip() for s in text.split(",") if s.strip()]
     unknown = [s for s in systems if s not in SYSTEMS]
@@ -655,6 +668,8 @@ async def main(args: argparse.Namespace) -> int:
         raise ValueError(f"--robots must be a multiple of {CLUSTER_SIZE}, got {args.robots}")
     if args.tasks < 1 or args.reps < 1:
         raise ValueError("--tasks and --reps must be at least 1")
+    if not args.bandwidth > 0:
+        raise ValueError(f"--bandwidth must be positive (kbit/s), got {args.bandwidth:g}")
     link = {"delay_ms": args.delay, "jitter_ms": args.jitter, "loss_model": args.loss_model,
             "burst_len": args.burst_len}
     # --fail names the option; a kill is what the team carries out.
@@ -662,6 +677,8 @@ async def main(args: argparse.Namespace) -> int:
     # The team's own checks (robots named, replication), before any run starts.
     TeamSpec(robots=args.robots, replication=args.replication, faults=tuple(faults))
     LinkSpec(rate_kbit=args.bandwidth, loss_pct=args.loss, **link)  # validates, raises ValueError
+    if args.out:
+        _check_out(Path(args.out))
     ok, why = available()
     if not ok:
         print(f"coapkb bench: no kernel link emulation here: {why}", file=sys.stderr)

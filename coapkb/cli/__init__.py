@@ -26,7 +26,7 @@ from .render import render
 __all__ = ["UserError", "build_parser", "main", "render"]
 
 
-def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> Parser:
     """The whole command line, or with ``only`` the one subcommand of that
     name (what :func:`main` runs: the others' options are not imported)."""
     parser = Parser(prog="coapkb", description="Semantic knowledge bases for robot teams over CoAP")
@@ -60,7 +60,10 @@ def _command(argv: Sequence[str]) -> str | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(only=_command(argv))
+    command = _command(argv)
+    parser = build_parser(only=command)
+    if command is not None:
+        parser.help_hint = f"coapkb {command} --help"
     args = parser.parse_args(argv)
     args.argv = argv
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]

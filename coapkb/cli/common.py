@@ -27,8 +27,12 @@ class Parser(argparse.ArgumentParser):
     """A usage mistake in one line, with where to read the usage (not the
     usage block: it hides the one line that matters)."""
 
+    #: Where the usage is read, if not ``PROG --help``: the top-level parser
+    #: reports a subcommand's unknown options, whose usage is the subcommand's.
+    help_hint: str | None = None
+
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {message} (see {self.help_hint or self.prog + ' --help'})\n")
 
 
 async def until_signalled() -> None:

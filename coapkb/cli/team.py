@@ -210,6 +210,8 @@ async def _team(args: argparse.Namespace) -> int:
         if this_task is not None:
             this_task.cancel()
 
+    if args.record and not Path(args.record).parent.is_dir():
+        raise UserError(f"--record: no folder {Path(args.record).parent}")
     recorder = _recorder(args, spec)
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal, sig)

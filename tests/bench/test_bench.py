@@ -472,6 +472,22 @@ def test_the_report_on_a_bench_csv_of_one_cell_says_why_it_has_no_matrix_time(
     assert "## Key ratios" in text and "## How long the paper matrix takes\n\nNot estimated: the runs" in text
 
 
+@pytest.mark.parametrize("tool", ["report", "figures"])
+def test_the_report_and_the_figures_say_in_one_line_what_is_wrong_with_their_csv(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], tool: str
+) -> None:
+    """Not a benchmark CSV, or no such file: one line each, exit 1, no traceback."""
+    import importlib
+    main = importlib.import_module(f"experiments.{tool}").main
+    other = tmp_path / "notes.csv"
+    other.write_text("when,what\ntoday,a list\n")
+    assert main([str(other)]) == 1
+    assert capsys.readouterr().err == f"{tool}: {other} is not a benchmark CSV: it has no column system, robots, " \
+        "tasks, bandwidth_kbps, loss_pct, rep, retransmission_profile\n"
+    assert main([str(tmp_path / "none.csv")]) == 1
+    assert capsys.readouterr().err == f"{tool}: no rows in {tmp_path / 'none.csv'} (no such file)\n"
+
+
 def test_a_central_servers_query_limit_grows_with_the_clusters_it_serves() -> None:
     """The central link carries every cluster's answers: the baseline is given
     the time that takes, so it fails only when something is wrong."""
