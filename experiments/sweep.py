@@ -444,6 +444,13 @@ def run_on_worker(run: Run, limit_s: float) -> dict[str, Any]:
     may run another version of the row class)."""
     import coapkb  # the worker's checkout, not the client's path
 
+    ok, _ = available()
+    if not ok:
+        # A worker that joined mid-sweep may be given a run before its gate
+        # (_link_emulation_gate) took its slots away: the run goes elsewhere.
+        from distributed import Reschedule
+
+        raise Reschedule()
     row = asyncio.run(_run_child(run, limit_s, cwd=Path(coapkb.__file__).resolve().parent.parent))
     return row.to_dict()
 

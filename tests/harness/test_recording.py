@@ -85,8 +85,9 @@ def test_a_team_run_recorded_as_mcap_has_every_channel_task_and_its_metadata(tmp
 
 
 def test_a_bad_recording_option_is_one_line(tmp_path: Path) -> None:
+    missing = tmp_path / "no" / "such"
     for args, needle in ((["--foxglove", "nope"], "--foxglove takes [HOST:]PORT"),
-                         (["--record", str(tmp_path / "no" / "such" / "run.mcap")], "cannot record")):
+                         (["--record", str(missing / "run.mcap")], f"--record: no folder {missing}")):
         result = _coapkb("team", "--robots", "3", "--tasks", "1", "--insecure", *args, timeout=60)
         assert result.returncode != 0 and "Traceback" not in result.stderr, result.stderr
         assert needle in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
