@@ -37,16 +37,9 @@ from typing import Any, Protocol
 
 from ..errors import CoapkbError
 from ..feeder.record import FateCounts
+from ..harness.placement import Placement
 from ..harness.record import TeamRecord
-from ..harness.team import (
-    DEFAULT_ONTOLOGIES,
-    Fault,
-    Placement,
-    Team,
-    TeamError,
-    TeamSpec,
-    draw_tasks,
-)
+from ..harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks
 from ..transport.base import Endpoint, TrafficCounters
 from ..transport.coap.reliability import ROBUST
 from ..transport.registry import find, transport_for
