@@ -37,16 +37,9 @@ from typing import Any, Protocol
 
 from ..errors import CoapkbError
 from ..feeder.record import FateCounts
+from ..harness.placement import Placement
 from ..harness.record import TeamRecord
-from ..harness.team import (
-    DEFAULT_ONTOLOGIES,
-    Fault,
-    Placement,
-    Team,
-    TeamError,
-    TeamSpec,
-    draw_tasks,
-)
+from ..harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks
 from ..transport.base import Endpoint, TrafficCounters
 from ..transport.coap.reliability import ROBUST
 from ..transport.registry import find, transport_for
@@ -497,37 +490,79 @@ async def run_once(
                   faults="+".join(f"{f.robot}@{f.at_s:g}" for f in faults))
     started = time.monotonic()
     try:
-        link = LinkSpec(rate_kbit=bandwidth_kbps, loss_pct=loss_pct, delay_ms=delay_ms, jitter_ms=jitter_ms,
-                        loss_model=loss_model, burst_len=burst_len)
-        clusters = robots // CLUSTER_SIZE
-        central = clusters if system in SYSTEMS and SYSTEMS[system].mode == "central" else 0
-        limits = timeouts or timeouts_for(bandwidth_kbps, loss_pct, math.ceil(tasks / clusters), central)
-        # Robots know their radio's rate, as a real radio reports it.
-        run_dir = None if trace_dir is None else trace_dir / _run_name(row)
-        spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
-                           link_kbps=bandwidth_kbps, replication=replication, faults=faults, security=security,
-                           log_dir=run_dir, kb_writable=kb_writable, misplaced=misplaced)
-        task_list = draw_tasks(tasks, ontologies, seed=seed) if task_list is None else list(task_list)
-        if len(task_list) != tasks:
-            raise ValueError(f"{len(task_list)} objects listed for {tasks} tasks")
+        plan = _plan_run(row, seed, burst_len, ontologies=ontologies, timeouts=timeouts, faults=faults, security=security,
+                         trace_dir=trace_dir, kb_writable=kb_writable, misplaced=misplaced, task_list=task_list)
     except (ValueError, TeamError) as exc:
         return replace(row, error=f"bad configuration: {exc}")
-    row = replace(row, query_timeout_s=limits.query_s, task_timeout_s=limits.task_s)
+    row = replace(row, query_timeout_s=plan.limits.query_s, task_timeout_s=plan.limits.task_s)
+    row = await _run_on_testbed(row, plan, observer, testbed_class)
+    return replace(row, wall_s=round(time.monotonic() - started, 2))
+
+
+@dataclass(frozen=True)
+class _RunPlan:
+    """What one run is, once its arguments are checked."""
+
+    spec: TeamSpec
+    task_list: list[str]
+    #: The robots' and the central's link (the feeder's is unshaped).
+    link: LinkSpec
+    limits: Timeouts
+
+
+def _plan_run(
+    row: BenchRow,
+    seed: int,
+    burst_len: float,
+    *,
+    ontologies: Path,
+    timeouts: Timeouts | None,
+    faults: Sequence[Fault],
+    security: bool,
+    trace_dir: Path | None,
+    kb_writable: bool,
+    misplaced: Sequence[str],
+    task_list: Sequence[str] | None,
+) -> _RunPlan:
+    """The team, task list, link and limits of ``row``'s run (``run_once``'s
+    arguments); a ValueError or a TeamError for a bad configuration."""
+    system, robots, tasks = row.system, row.robots, row.tasks
+    link = LinkSpec(rate_kbit=row.bandwidth_kbps, loss_pct=row.loss_pct, delay_ms=row.delay_ms,
+                    jitter_ms=row.jitter_ms, loss_model=row.loss_model, burst_len=burst_len)
+    clusters = robots // CLUSTER_SIZE
+    central = clusters if system in SYSTEMS and SYSTEMS[system].mode == "central" else 0
+    limits = timeouts or timeouts_for(row.bandwidth_kbps, row.loss_pct, math.ceil(tasks / clusters), central)
+    # Robots know their radio's rate, as a real radio reports it.
+    run_dir = None if trace_dir is None else trace_dir / _run_name(row)
+    spec = system_spec(system, robots, timeouts=limits, ontologies=ontologies,
+                       link_kbps=row.bandwidth_kbps, replication=row.replication, faults=faults, security=security,
+                       log_dir=run_dir, kb_writable=kb_writable, misplaced=misplaced)
+    drawn = draw_tasks(tasks, ontologies, seed=seed) if task_list is None else list(task_list)
+    if len(drawn) != tasks:
+        raise ValueError(f"{len(drawn)} objects listed for {tasks} tasks")
+    return _RunPlan(spec, drawn, link, limits)
+
+
+async def _run_on_testbed(row: BenchRow, plan: _RunPlan, observer: RunObserver | None,
+                          testbed_class: type[Testbed]) -> BenchRow:
+    """``row`` with what the run measured on a testbed of its own, or with
+    why it failed (never raises, so a sweep goes on)."""
+    spec = plan.spec
     hosts = [*spec.robot_ids, *([CENTRAL] if spec.mode == "central" else []), FEEDER]
-    links = {h: link for h in hosts}
+    links = {h: plan.link for h in hosts}
     links[FEEDER] = LinkSpec()  # the external task source: unshaped, lossless
     try:
-        async with asyncio.timeout(limits.run_s):
+        async with asyncio.timeout(plan.limits.run_s):
             async with testbed_class(hosts, links) as testbed:
-                row = await _measure(testbed, row, spec, task_list, hosts, observer)
+                row = await _measure(testbed, row, spec, plan.task_list, hosts, observer)
     except TimeoutError:
-        row = replace(row, error=f"run did not finish within {limits.run_s:g} s")
+        row = replace(row, error=f"run did not finish within {plan.limits.run_s:g} s")
     except (CoapkbError, OSError) as exc:  # the team's, the transport's or the emulator's own failure
         row = replace(row, error=f"{type(exc).__name__}: {exc}"[:500])
     except Exception as exc:
         log.error("%s failed unexpectedly", row.system, exc_info=True)  # a bug: its traceback helps
         row = replace(row, error=f"unexpected {type(exc).__name__}: {exc}"[:500])
-    return replace(row, wall_s=round(time.monotonic() - started, 2))
+    return row
 
 
 async def _measure(testbed: Testbed, row: BenchRow, spec: TeamSpec, task_list: list[str], hosts: list[str],

@@ -9,6 +9,7 @@ import json
 import logging
 import signal
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,8 +17,11 @@ from ..transport import SCHEMES
 from .common import Parser, UserError, until_signalled
 
 if TYPE_CHECKING:
+    from tqdm import tqdm
+
     from ..feeder import TaskRecord
     from ..feeder.tasks import Entry
+    from ..harness.record import TeamRecord
     from ..harness.recording import RunRecorder
     from ..harness.team import Team, TeamSpec
 
@@ -175,107 +179,145 @@ def _security_line(spec: TeamSpec) -> str:
 
 
 async def _team(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from ..feeder import FeederError
-    from ..feeder.tasks import task_count
-    from ..harness.record import summarise
-    from ..harness.team import Team
 
     spec, tasks = _spec_and_tasks(args)
     keep_serving = getattr(args, "keep_serving", False)  # coapkb demo has no live view
     if keep_serving and args.foxglove is None:
         raise UserError("--keep-serving goes with --foxglove [HOST:]PORT")
-    record = None
-    holding = False
-
-    def progress(bar: tqdm, record: TaskRecord) -> None:
-        bar.update()
-        if args.quiet:
-            return
-        bar.write(task_lines(record, getattr(args, "verbose_costs", False)), file=sys.stdout)
-        sys.stdout.flush()
-
-    # Ctrl-C and SIGTERM (kill, a CI timeout) stop the robots: cancel this
-    # task so that Team.launch's clean-up runs.  Ctrl-C reaches the robots
-    # too (one process group), so a failure the feeder sees meanwhile is the
-    # interrupt's doing, not the team's.
-    loop = asyncio.get_running_loop()
-    this_task = asyncio.current_task()
-    stopped_by: int | None = None
-
-    def on_signal(sig: int) -> None:
-        nonlocal stopped_by
-        stopped_by = sig
-        if this_task is not None:
-            this_task.cancel()
-
     if args.record and not Path(args.record).parent.is_dir():
         raise UserError(f"--record: no folder {Path(args.record).parent}")
     recorder = _recorder(args, spec)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal, sig)
+    interruption = _Interruption()
     logger = logging.getLogger("coapkb")
     if recorder is not None:
         logger.addHandler(recorder.log_handler)
         if recorder.server is not None:
             print(f"foxglove: live on ws://{args.foxglove_at[0]}:{recorder.server.port}", flush=True)
-
-    def record_task(bar: tqdm, task: TaskRecord) -> None:
-        progress(bar, task)
-        if recorder is not None:
-            recorder.task(task)
-
+    outcome = _TeamOutcome()
+    holding = False
     try:
-        async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
-            print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
-            print(_security_line(spec), flush=True)
-            if spec.discovery == "rd":
-                print("discovery: each robot found its cluster in the feeder's Resource Directory (RFC 9176)",
-                      flush=True)
-            # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
-            # per-task lines go to stdout above it, so a log or a pipe gets just those.
-            with tqdm(total=task_count(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
-                      disable=True if args.quiet else None) as bar:
-                record = await team.run(tasks, lambda r: record_task(bar, r),
-                                        on_state=None if recorder is None else recorder.robot_state,
-                                        on_stats=None if recorder is None else (STATS_EVERY_S, recorder.traffic))
-            if spec.kb_writable and spec.mode == "distributed":
-                moved = await _positions_line(team)
-            restocked = team.restocked
+        await _run_team(args, spec, tasks, recorder, outcome)
     except (FeederError, asyncio.CancelledError) as exc:  # TeamError is a FeederError
-        if stopped_by is None:
+        if interruption.signal is None:
             if isinstance(exc, asyncio.CancelledError):
                 raise
             print(f"coapkb: team run failed: {exc}", file=sys.stderr)
             return 1
-        print(f"coapkb: {'interrupted' if stopped_by == signal.SIGINT else 'terminated'}; robots stopped",
+        print(f"coapkb: {'interrupted' if interruption.signal == signal.SIGINT else 'terminated'}; robots stopped",
               file=sys.stderr)
-        return 128 + stopped_by
+        return 128 + interruption.signal
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        interruption.remove()
         if recorder is not None:
             logger.removeHandler(recorder.log_handler)
-            if record is not None:
-                recorder.finished(record)
-            holding = keep_serving and record is not None and stopped_by is None
+            if outcome.record is not None:
+                recorder.finished(outcome.record)
+            holding = keep_serving and outcome.record is not None and interruption.signal is None
             recorder.close(keep_serving=holding)
+    record = outcome.record
+    assert record is not None  # the run ended without an error
+    _print_outcome(args, spec, outcome, record, recorder)
+    if holding and recorder is not None:
+        await _serve_until_stopped(recorder, args.foxglove_at[0])
+    return 1 if record.disputed else 0
+
+
+class _Interruption:
+    """Ctrl-C and SIGTERM (kill, a CI timeout) while the team runs: the
+    signal kept and the running task cancelled, so that Team.launch's
+    clean-up stops the robots.  Ctrl-C reaches the robots too (one process
+    group), so a failure the feeder sees meanwhile is the interrupt's
+    doing, not the team's."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        #: The signal that stopped the run, or None.
+        self.signal: int | None = None
+        self._task = asyncio.current_task()
+        self._loop = asyncio.get_running_loop()
+        for sig in self.SIGNALS:
+            self._loop.add_signal_handler(sig, self._on_signal, sig)
+
+    def _on_signal(self, sig: int) -> None:
+        self.signal = sig
+        if self._task is not None:
+            self._task.cancel()
+
+    def remove(self) -> None:
+        for sig in self.SIGNALS:
+            self._loop.remove_signal_handler(sig)
+
+
+@dataclass
+class _TeamOutcome:
+    """What a team run gave, kept as it comes (the recording is told of
+    the record even when the team's stop is interrupted)."""
+
+    record: TeamRecord | None = None
+    #: Deliveries made back to the shelves.
+    restocked: int = 0
+    #: The robots' positions in the Location KB, start and now (a writable distributed team).
+    moved: str | None = None
+
+
+async def _run_team(args: argparse.Namespace, spec: TeamSpec, tasks: list[Entry], recorder: RunRecorder | None,
+                    outcome: _TeamOutcome) -> None:
+    """Start the team, feed it the tasks under a progress bar, and keep what
+    the run gives in ``outcome``; the team is stopped on the way out."""
+    from tqdm import tqdm
+
+    from ..feeder.tasks import task_count
+    from ..harness.team import Team
+
+    async with Team.launch(spec, notice=lambda line: print(line, flush=True)) as team:
+        print(f"team up: {', '.join(f'{r} {e}' for r, e in team.endpoints.items())}", flush=True)
+        print(_security_line(spec), flush=True)
+        if spec.discovery == "rd":
+            print("discovery: each robot found its cluster in the feeder's Resource Directory (RFC 9176)",
+                  flush=True)
+        # A live bar (tasks done, rate, time left) on a terminal's stderr only; the
+        # per-task lines go to stdout above it, so a log or a pipe gets just those.
+        with tqdm(total=task_count(tasks), unit="task", desc="tasks", file=sys.stderr, leave=False,
+                  disable=True if args.quiet else None) as bar:
+            outcome.record = await team.run(tasks, lambda r: _task_done(args, bar, recorder, r),
+                                            on_state=None if recorder is None else recorder.robot_state,
+                                            on_stats=None if recorder is None else (STATS_EVERY_S, recorder.traffic))
+        if spec.kb_writable and spec.mode == "distributed":
+            outcome.moved = await _positions_line(team)
+        outcome.restocked = team.restocked
+
+
+def _task_done(args: argparse.Namespace, bar: tqdm, recorder: RunRecorder | None, record: TaskRecord) -> None:
+    """One task decided: the bar moves on, its line is printed (not with
+    ``--quiet``) and the recording is told."""
+    bar.update()
+    if not args.quiet:
+        bar.write(task_lines(record, getattr(args, "verbose_costs", False)), file=sys.stdout)
+        sys.stdout.flush()
+    if recorder is not None:
+        recorder.task(record)
+
+
+def _print_outcome(args: argparse.Namespace, spec: TeamSpec, outcome: _TeamOutcome, record: TeamRecord,
+                   recorder: RunRecorder | None) -> None:
+    """The run's summary, its deliveries and the robots' positions, and
+    where its record went (written here when it is JSON)."""
+    from ..harness.record import summarise
+
     print()
     print(summarise(record))
-    if restocked:
+    if restocked := outcome.restocked:
         where = "in the KB and in the world" if spec.kb_writable and spec.mode == "distributed" else "in the world"
         print(f"restocked {restocked} object{'s' if restocked != 1 else ''} (delivered back to their shelves {where})")
     if spec.kb_writable and spec.mode == "distributed":
-        print(moved)
+        print(outcome.moved)
     if args.record and recorder is not None and recorder.path is not None:
         print(f"recording written to {args.record} ({recorder.messages} messages)")
     elif args.record:
         Path(args.record).write_text(json.dumps(record.to_dict(), indent=2) + "\n", encoding="utf-8")
         print(f"record written to {args.record}")
-    if holding and recorder is not None:
-        await _serve_until_stopped(recorder, args.foxglove_at[0])
-    return 1 if record.disputed else 0
 
 
 async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:

@@ -15,7 +15,8 @@ from support import ROOT
 
 from coapkb.feeder import FateCounts, TaskRecord
 from coapkb.harness.kbs import KnowledgeGap, generator_spec, kbs_for_team, known_robots
-from coapkb.harness.team import DEFAULT_ONTOLOGIES, Placement, PortReservation, TeamSpec, _ephemeral_range
+from coapkb.harness.placement import Placement, PortReservation, _ephemeral_range
+from coapkb.harness.team import DEFAULT_ONTOLOGIES, TeamSpec
 from coapkb.kb.store import KnowledgeBase, named_rows
 from coapkb.world.generator import WarehouseSpec
 
