@@ -185,10 +185,9 @@ def test_every_seed_that_found_a_bug_now_holds_every_invariant(profile: tuple[st
 #: failures, so the fix shows as a pass (strict) and moves the seed to FOUND.
 OPEN: list[tuple[tuple[str, ...], int, str]] = [
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage"), 20326,
-     "two robots restarted while task 7 is decided, one of them again at once: the feeder gives task 7 to "
-     "neither new process (a restart joins at the next task), while a starved teammate that joined at task 7 "
-     "admits the second one's new process from task 7 and waits for its plan after task 6, which it never "
-     "had; the feeder times out after 120 s (docs/simulation.md)"),
+     "a robot named a co-joiner of task 7 died after it took the post and started again: a starved teammate "
+     "that takes the post later admits it from task 7 and waits for its plan after task 6, which its new "
+     "process, never given the post, never shows; the feeder times out after 120 s (docs/simulation.md)"),
 ]
 
 
