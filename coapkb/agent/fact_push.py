@@ -140,8 +140,7 @@ class PushedFacts:
         """``holders``: module -> (the holder's robot id, its endpoint)."""
         self._transport = transport
         self._holders = dict(holders)
-        #: Holders whose observation is registered now: only those are waited for.
-        self._observing: set[Endpoint] = set()
+        #: Per holder, set while its observation is registered: only those are waited for.
         self._registered: dict[Endpoint, asyncio.Event] = {}
         self._answers: OrderedDict[tuple[Endpoint, bytes], _Awaited] = OrderedDict()
         self._watchers: dict[str, asyncio.Task[None]] = {}
@@ -165,7 +164,7 @@ class PushedFacts:
         if old is not None:
             old.cancel()
         robot_id, endpoint = self._holders[module]
-        self._stopped_observing(endpoint)
+        self._registration(endpoint).clear()
         self._watchers[module] = asyncio.create_task(self._watch(module, endpoint), name=f"facts-{robot_id}")
 
     async def aclose(self) -> None:
@@ -176,7 +175,8 @@ class PushedFacts:
 
     def expects(self, endpoint: Endpoint) -> bool:
         """Does ``endpoint`` push to this robot now?"""
-        return endpoint in self._observing
+        registered = self._registered.get(endpoint)
+        return registered is not None and registered.is_set()
 
     async def observing(self, endpoint: Endpoint) -> None:
         """Until ``endpoint`` pushes to this robot (its observation registered)."""
@@ -185,13 +185,6 @@ class PushedFacts:
     def _registration(self, endpoint: Endpoint) -> asyncio.Event:
         return self._registered.setdefault(endpoint, asyncio.Event())
 
-    def _started_observing(self, endpoint: Endpoint) -> None:
-        self._observing.add(endpoint)
-        self._registration(endpoint).set()
-
-    def _stopped_observing(self, endpoint: Endpoint) -> None:
-        self._observing.discard(endpoint)
-        self._registration(endpoint).clear()
 
     async def wait(self, endpoint: Endpoint, name: str, params: Mapping[str, str],
                    within: float) -> PushedAnswer | None:
@@ -235,18 +228,18 @@ class PushedFacts:
             registered = clock.monotonic()
             try:
                 async for response in self._transport.observe(endpoint, request):
-                    if endpoint not in self._observing:  # the registration's answer
+                    if not self.expects(endpoint):  # the registration's answer
                         took = clock.monotonic() - registered
                         self.round_trip_s = took if self.round_trip_s is None else min(self.round_trip_s, took)
                     if not response.status.is_success:
                         log.debug("%s answered %s on %s", endpoint, response.status.dotted, request.path)
                         break
-                    self._started_observing(endpoint)
+                    self._registration(endpoint).set()
                     backoff = 0.2
                     self._take(endpoint, response.payload)
             except TransportError as exc:
                 log.debug("observing %s of %s: %s", request.path, endpoint, exc)
-            self._stopped_observing(endpoint)
+            self._registration(endpoint).clear()
             # Not up yet, restarted, or the observation ended: register again shortly.
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 5.0)
