@@ -8,6 +8,7 @@ import asyncio
 import signal
 import sys
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, TypeVar
 
 from ..errors import CoapkbError
@@ -33,6 +34,13 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.help_hint or self.prog + ' --help'})\n")
+
+
+def require_folder_of(path: Path, option: str) -> None:
+    """``option``'s output file ``path`` goes into a folder that exists: said
+    before any work, not after it."""
+    if not path.parent.is_dir():
+        raise UserError(f"{option}: no folder {path.parent}")
 
 
 async def until_signalled() -> None:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .common import Parser, UserError, add_robot_client, ask_robot
+from .common import Parser, UserError, add_robot_client, ask_robot, require_folder_of
 from .query import split_robot_uri
 
 if TYPE_CHECKING:
@@ -45,8 +45,8 @@ async def _dump(args: argparse.Namespace) -> int:
     peer, path = split_robot_uri(args.uri)
     if path not in ("", "/", "/kb", "/kb/dump"):
         raise UserError(f"unexpected path {path!r}: give the robot's base URI")
-    if args.out is not None and not args.out.parent.is_dir():
-        raise UserError(f"--out: no folder {args.out.parent}")
+    if args.out is not None:
+        require_folder_of(args.out, "--out")
     request = Request(Method.GET, "/kb/dump", query={"module": args.module} if args.module else {},
                       accept=ContentFormat.TEXT)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
-from .common import Parser, UserError, until_signalled
+from .common import Parser, UserError, require_folder_of, until_signalled
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -185,8 +185,8 @@ async def _team(args: argparse.Namespace) -> int:
     keep_serving = getattr(args, "keep_serving", False)  # coapkb demo has no live view
     if keep_serving and args.foxglove is None:
         raise UserError("--keep-serving goes with --foxglove [HOST:]PORT")
-    if args.record and not Path(args.record).parent.is_dir():
-        raise UserError(f"--record: no folder {Path(args.record).parent}")
+    if args.record:
+        require_folder_of(Path(args.record), "--record")
     recorder = _recorder(args, spec)
     interruption = _Interruption()
     logger = logging.getLogger("coapkb")
