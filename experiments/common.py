@@ -1,5 +1,5 @@
 """What the experiments share: the seed's query mix, KB servers started in
-(and stopped from) a testbed's namespaces or on loopback, and writing a results CSV."""
+(and stopped from) a testbed's namespaces or on loopback, writing a results CSV and reading a benchmark's."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from coapkb.bench.row import BenchRow, read_rows
 from coapkb.transport.registry import REGISTERED, transport_for
 
 #: Each transport's usual port (every host of a testbed has its own namespace).
@@ -120,6 +121,20 @@ def write_csv(path: Path, fieldnames: Sequence[str], rows: Iterable[Mapping[str,
         writer.writeheader()
         writer.writerows(rows)
     print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
+
+
+def benchmark_rows(path: Path, prog: str) -> list[BenchRow] | None:
+    """The rows of a benchmark CSV, or None once ``prog`` has said in one
+    line why there are none (no such file, not a benchmark CSV, empty)."""
+    try:
+        rows = read_rows(path)
+    except (OSError, ValueError) as exc:  # not a file, not a benchmark CSV
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return None
+    if not rows:
+        print(f"{prog}: no rows in {path}" + ("" if path.exists() else " (no such file)"), file=sys.stderr)
+        return None
+    return rows
 
 
 def rss_mib(pid: int) -> float:

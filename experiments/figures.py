@@ -32,7 +32,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
+from coapkb.bench.run import SYSTEMS, BenchRow
+from experiments.common import benchmark_rows
 from experiments.stats import Estimate, median_ci
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -451,13 +452,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("csv", type=Path, nargs="?", default=ROOT / "experiments" / "results" / "quick.csv")
     p.add_argument("--outdir", type=Path, help="default: figures/ next to the CSV")
     args = p.parse_args(argv)
-    try:
-        rows = read_rows(args.csv)
-    except (OSError, ValueError) as exc:  # not a file, not a benchmark CSV
-        print(f"figures: {exc}", file=sys.stderr)
-        return 1
-    if not rows:
-        print(f"figures: no rows in {args.csv}" + ("" if args.csv.exists() else " (no such file)"), file=sys.stderr)
+    rows = benchmark_rows(args.csv, "figures")
+    if rows is None:
         return 1
     outdir = args.outdir or args.csv.parent / "figures"
     for name, result in draw_all(rows, outdir).items():

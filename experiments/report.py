@@ -28,8 +28,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from coapkb.bench.run import SYSTEMS, BenchRow, read_rows
+from coapkb.bench.run import SYSTEMS, BenchRow
 from experiments import matrix_time
+from experiments.common import benchmark_rows
 from experiments.stats import CONFIDENCE, SHORT, Estimate, median_ci, ratio_ci
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -765,13 +766,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--figures", type=Path, help="figure directory (default: figures/ next to the CSV)")
     p.add_argument("--profile", help="profile name for the title (default: the CSV's name)")
     args = p.parse_args(argv)
-    try:
-        rows = read_rows(args.csv)
-    except (OSError, ValueError) as exc:  # not a file, not a benchmark CSV
-        print(f"report: {exc}", file=sys.stderr)
-        return 1
-    if not rows:
-        print(f"report: no rows in {args.csv}" + ("" if args.csv.exists() else " (no such file)"), file=sys.stderr)
+    rows = benchmark_rows(args.csv, "report")
+    if rows is None:
         return 1
     out = args.out or args.csv.parent / "report.md"
     figdir = args.figures or args.csv.parent / "figures"
