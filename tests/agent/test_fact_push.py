@@ -127,7 +127,11 @@ async def test_a_closing_holder_sends_no_notification_still_due(holder: Holder) 
     holder.pusher.begin(1)
     await holder.pusher.offer("Object", "pick-facts", OBJECT)
     holder.pusher.close()
-    await asyncio.sleep(0)  # the turn its notification was due in
+    # Callbacks run in the order they were scheduled: once this one has
+    # run, so has the turn the notification was due in.
+    turn_over = asyncio.get_running_loop().create_future()
+    asyncio.get_running_loop().call_soon(turn_over.set_result, None)
+    await turn_over
     assert notified == []
 
 

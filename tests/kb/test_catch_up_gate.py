@@ -67,8 +67,9 @@ async def test_a_read_waits_for_the_catch_up_at_start() -> None:
     peer = HeldPeer()
     router, replicator = await _restarted_robot1(peer)
     reading = asyncio.create_task(_read(router))
-    await asyncio.sleep(1.0)
-    assert not reading.done()  # the co-holder has not answered the catch-up yet
+    with pytest.raises(TimeoutError):  # a second on: the co-holder has not answered the catch-up yet
+        async with asyncio.timeout(1.0):
+            await asyncio.shield(reading)
     peer.release.set()
     response = await reading
     assert response.status == Status.CONTENT
