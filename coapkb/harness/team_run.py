@@ -101,6 +101,10 @@ class TeamRun:
         # whose process is dead is asked only if it answers: its death may not be seen yet.
         async with faults.busy:
             dead = [r for r in watcher.alive if self.processes.dead(r)]
+            # A kill the run ended too soon to notice (its tasks went on
+            # without the robot, and the feeder asked it nothing): asked now,
+            # so the record says when the team found it down, not nothing.
+            await asyncio.gather(*(watcher.probe(r, reobserve=False) for r in dead))
             return await feeder.collect_stats([r for r in watcher.alive if r not in dead], [*resumed, *dead])
 
 
