@@ -256,7 +256,7 @@ class Controller:
             self._publish(self.team.own)
         for robot_id in task.join:
             if robot_id != self.robot_id:
-                self.team.membership.admit(robot_id)
+                self.team.membership.admit(robot_id, task.seq, task.boots.get(robot_id, 0))
 
     async def _take_claims(self, seq: int) -> None:
         """A restarted robot joining at task ``seq`` takes the cluster's

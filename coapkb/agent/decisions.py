@@ -5,7 +5,7 @@ communicate"), and the cluster's claims on objects (``/robot/claims``)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import cbor2
@@ -36,6 +36,10 @@ class Task:
     object: str
     #: Robots (restarted) that are members again from this task on.
     join: tuple[str, ...] = ()
+    #: The process of each joiner that took this post (its boot), where the
+    #: feeder names it: a teammate that finds another process of it there
+    #: takes it for restarted again, not for the joiner.
+    boots: Mapping[str, int] = field(default_factory=dict)
     #: The task this one does again: its robot went down before the pick.
     again: int | None = None
     #: The object was delivered back to its shelf since the cluster decided

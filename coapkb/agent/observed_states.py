@@ -97,12 +97,18 @@ class ObservedStates:
     def _stop_watching(self, robot_id: str) -> None:
         self.watcher.stop_watching(robot_id)
 
-    def readmit(self, robot_id: str) -> None:
+    def readmit(self, robot_id: str, boot: int = 0) -> None:
         """Count on ``robot_id`` again: a new process of it has joined.  What
         was observed of the old one is forgotten, so the new incarnation's
-        state is taken as it comes, not as a restart."""
+        state is taken as it comes, not as a restart; if ``boot`` names the
+        process that joined, another one found there is a restart."""
         self.detector.readmit(robot_id)
-        self.watcher.forget(robot_id)
+        self.watcher.forget(robot_id, boot)
+
+    async def expect_process(self, robot_id: str, boot: int) -> None:
+        """Process ``boot`` of ``robot_id`` is the one counted on (it took its
+        join): another one observed there is a restart after it."""
+        await self.watcher.expect_process(robot_id, boot)
 
     async def revive(self, robot_id: str) -> None:
         """Count on ``robot_id`` again: declared down, it answered as the same

@@ -186,13 +186,14 @@ class RobotResources:
         try:
             body = _decode_body(request)
             seq, name = body["seq"], body["object"]
-            join = body.get("join", [])
+            join = _joiners(body.get("join", []))
             again = body.get("again")
             restocked = body.get("restocked", False)
         except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
             return Response.error(
                 Status.BAD_REQUEST,
-                'expected {"seq": int, "object": name[, "join": [robot, ...]][, "again": int][, "restocked": true]} '
+                'expected {"seq": int, "object": name[, "join": [robot or [robot, boot], ...]][, "again": int]'
+                '[, "restocked": true]} '
                 'in CBOR or JSON',
             )
         if not isinstance(seq, int) or not isinstance(name, str) or not OBJECT_NAME.match(name):
@@ -201,12 +202,19 @@ class RobotResources:
             return Response.error(Status.BAD_REQUEST, "again must name an earlier task")
         if type(restocked) is not bool:
             return Response.error(Status.BAD_REQUEST, "restocked must be true or false")
-        if not isinstance(join, list) or not all(isinstance(r, str) and r in self.config.team for r in join):
+        if not all(r in self.config.team for r in join):
             return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
+        # A joiner says which process took the post: its teammates expect that one.
+        taken = (Response(Status.CHANGED, cbor2.dumps({"boot": self.team.own.boot}), ContentFormat.CBOR)
+                 if self.config.robot_id in join else Response(Status.CHANGED))
         if seq < self._next_seq and self.accepted.get(seq) == name:
             # A repeat of a post already taken (its answer was lost and the
             # feeder asked again as a new exchange): same answer, no new task.
-            return Response(Status.CHANGED)
+            # Repeated to robots joining together, it names each one's process.
+            for robot_id, boot in join.items():
+                if robot_id != self.config.robot_id:
+                    await self.team.membership.named(robot_id, seq, boot)
+            return taken
         if self.config.robot_id in join and not self.accepted and seq > 0:
             # Restarted: this robot joins the team at this task (its first).
             self._next_seq = seq
@@ -215,8 +223,8 @@ class RobotResources:
         self._next_seq += 1
         self.accepted[seq] = name
         self.accepted.pop(seq - self.controller.bounds.posts_remembered, None)
-        self.controller.submit(Task(seq, name, tuple(join), again, restocked))
-        return Response(Status.CHANGED)
+        self.controller.submit(Task(seq, name, tuple(join), join, again, restocked))
+        return taken
 
     async def _get_claims(self, request: Request) -> Response:
         """``/robot/claims``: the objects the cluster assigned lately, for a restarted teammate."""
@@ -268,6 +276,23 @@ def _task_number(request: Request) -> int | Response | None:
         return int(at)
     except ValueError:
         return Response.error(Status.BAD_REQUEST, "at must be a task number")
+
+
+def _joiners(join: Any) -> dict[str, int]:
+    """A post's ``join`` list: robot -> the boot of the process that took the
+    post (0 where not named: any process of it).  Raises TypeError if malformed."""
+    if not isinstance(join, list):
+        raise TypeError("join must be a list")
+    joiners = {}
+    for entry in join:
+        if isinstance(entry, str):
+            joiners[entry] = 0
+        elif (isinstance(entry, list) and len(entry) == 2 and isinstance(entry[0], str)
+              and type(entry[1]) is int and entry[1] >= 0):
+            joiners[entry[0]] = entry[1]
+        else:
+            raise TypeError("a joiner is a robot or [robot, boot]")
+    return joiners
 
 
 def _decode_body(request: Request) -> Any:

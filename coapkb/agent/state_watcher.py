@@ -85,12 +85,15 @@ class StateWatcher:
         if watcher is not None:
             watcher.cancel()
 
-    def forget(self, robot_id: str) -> None:
+    def forget(self, robot_id: str, boot: int = 0) -> None:
         """Forget what was observed of ``robot_id`` and observe it again: a
         new process of it joined, whose state is taken as it comes, not as a
-        restart."""
+        restart -- unless ``boot`` names the process that joined, and
+        another one answers."""
         self._boot_unseen.pop(robot_id, None)
         self.states.pop(robot_id, None)
+        if boot:
+            self._boot_unseen[robot_id] = boot
         self.watch(robot_id)
 
     async def aclose(self) -> None:
@@ -113,6 +116,16 @@ class StateWatcher:
         kept only while no state of it was observed."""
         if robot_id in self._endpoints and robot_id not in self.states:
             self._boot_unseen[robot_id] = boot
+
+    async def expect_process(self, robot_id: str, boot: int) -> None:
+        """Process ``boot`` of ``robot_id`` is the one counted on: if another
+        one's state is here already, that one is a restart (down until it
+        joins); if none is, the first state observed is judged by it."""
+        state = self.states.get(robot_id)
+        if state is None:
+            self._boot_unseen[robot_id] = boot
+        elif self._detector.liveness and state.boot and state.boot != boot:
+            await self._detector.restarted(robot_id, "restarted (another process than the one heard of before)")
 
     async def heard_from_all(self, timeout: float) -> list[str]:
         """Wait until every robot has been heard from once (its observation
@@ -147,8 +160,9 @@ class StateWatcher:
             # here: this one is a restart.  Found in the simulator: a follower
             # whose observation of its leader was lost took the restarted
             # leader's first state for the old one's, and waited for its
-            # decision on a task the new process was never given.
-            await self._detector.restarted(robot_id, "restarted (another process than the one that decided before)")
+            # decision on a task the new process was never given.  The same
+            # for a joiner whose process that took the join died since.
+            await self._detector.restarted(robot_id, "restarted (another process than the one heard of before)")
             return
         self._detector.reached(robot_id)
         async with self._changed:

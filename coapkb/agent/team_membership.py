@@ -56,6 +56,11 @@ class TeamMembership:
         #: (:class:`~.teammate_revival.TeammateRevival`): their processes are
         #: never granted a lease again (the fence).
         self.refused: set[str] = set()
+        #: Teammate -> the task it was last admitted at.
+        self._admitted_at: dict[str, int] = {}
+        #: (teammate, task) -> the process the feeder named for a join this
+        #: robot has not admitted yet (:meth:`named`).
+        self._named: dict[tuple[str, int], int] = {}
 
     @property
     def members(self) -> tuple[str, ...]:
@@ -125,7 +130,7 @@ class TeamMembership:
         up = sum(1 for r in self.members if r == self.robot_id or r not in self._teammates.down)
         return up <= (len(self._peers) + 1) // 2
 
-    def admit(self, robot_id: str) -> None:
+    def admit(self, robot_id: str, seq: int, boot: int = 0) -> None:
         """Teammate ``robot_id`` (restarted) is a member again from the task
         being decided now; its new process's plans are awaited like anyone's.
         A new epoch if it had been left out; one restarted before the
@@ -136,7 +141,14 @@ class TeamMembership:
         only the joiners its post reached) cannot set their epochs apart
         (found in the simulator: a robot killed again before it took its
         join, named to its co-joiner only, which then named an epoch one
-        ahead of its teammate's on every task)."""
+        ahead of its teammate's on every task).
+
+        ``boot``: the process that took the join at task ``seq`` (0: any,
+        unless the feeder named it since, :meth:`named`).  Another process
+        found there is a restart after it, down until it joins in turn
+        (found in the simulator: a starved robot admitted a co-joiner that
+        had died and started again since, and waited for a plan its new
+        process, never given the join, never showed)."""
         if robot_id not in self._peers:
             return
         log.warning("%s joins the team again", robot_id)
@@ -144,7 +156,23 @@ class TeamMembership:
             self.epoch += 1
         self._forgone.pop(robot_id, None)  # a promise about its old process
         self.refused.discard(robot_id)  # and a refusal of it
-        self._teammates.readmit(robot_id)
+        self._admitted_at[robot_id] = seq
+        boot = self._named.pop((robot_id, seq), 0) or boot
+        self._named = {(r, s): b for (r, s), b in self._named.items() if s > self._admitted_at.get(r, 0)}
+        self._teammates.readmit(robot_id, boot)
+
+    async def named(self, robot_id: str, seq: int, boot: int) -> None:
+        """The feeder names process ``boot`` of ``robot_id`` as the one that
+        took the join at task ``seq``, after the post (robots joining
+        together learn each other's process from the post repeated, since
+        the feeder knows them only from the joiners' answers)."""
+        if robot_id not in self._peers or not boot:
+            return
+        admitted = self._admitted_at.get(robot_id, 0)
+        if admitted == seq:
+            await self._teammates.expect_process(robot_id, boot)
+        elif admitted < seq:
+            self._named[(robot_id, seq)] = boot
 
     def adopt(self, membership: Membership, seq: int) -> None:
         """Take the membership the leader decided task ``seq`` in, if newer

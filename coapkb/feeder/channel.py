@@ -127,10 +127,11 @@ class Channel:
         except (TransportError, ValueError):
             return None
 
-    async def post_task(self, robot_id: str, request: Request, seq: int, name: str) -> None:
+    async def post_task(self, robot_id: str, request: Request, seq: int, name: str) -> Response | None:
         """POST a task to one robot; if it does not answer, ask the watcher
         whether it is down (then the task goes to the survivors only) or
-        post again (a robot recognises a repeated post)."""
+        post again (a robot recognises a repeated post).  The robot's answer,
+        None if it is down."""
         watcher = self.watcher
         deadline = clock.monotonic() + self.settings.task_timeout_s
         while True:
@@ -144,12 +145,12 @@ class Channel:
             except asyncio.CancelledError:
                 current = asyncio.current_task()
                 if exchange.cancelled() and (current is None or not current.cancelling()):
-                    return  # forgotten (forget_posts): the robot restarted, the post was its old process's
+                    return None  # forgotten (forget_posts): the robot restarted, the post was its old process's
                 raise
             except TransportError as exc:
                 await watcher.probe(robot_id)
                 if robot_id in watcher.down:
-                    return
+                    return None
                 if clock.monotonic() > deadline:
                     raise FeederError(f"{robot_id} refused task {seq} ({name}): {exc}") from None
                 continue
@@ -158,9 +159,9 @@ class Channel:
             if not response.status.is_success:
                 await watcher.probe(robot_id)  # a restarted robot refuses: it is down for the team
                 if robot_id in watcher.down:
-                    return
+                    return None
                 raise FeederError(f"{robot_id} refused task {seq} ({name}): {response}")
-            return
+            return response
 
     def forget_posts(self, robot_id: str) -> None:
         """Stop the task posts still in flight to ``robot_id``: it restarted,

@@ -8,10 +8,12 @@ import asyncio
 import logging
 from collections.abc import Mapping, Sequence
 
+import cbor2
+
 from .. import clock
 from ..agent.observed_states import States
 from ..agent.robot_state import Decision
-from ..transport.messages import Request
+from ..transport.messages import Request, Response
 from .channel import Channel
 from .membership import Membership, PendingTask
 from .record import TaskRecord
@@ -43,10 +45,15 @@ class TaskPoster:
             others = len(watcher.down) - len(cluster)
             raise FeederError(f"every robot of cluster {index + 1} is down ({why})"
                               + (f"; {others} robots of other clusters too" if others else ""))
-        joined = await self._post_to_joiners(request, seq, name, joining)
-        if joined != list(joining):
-            request = task_post(seq, name, joined, again, restocked)
-        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in live if r not in joining))
+        boots = await self._post_to_joiners(request, seq, name, joining)
+        joined = list(boots)
+        if joining:
+            request = task_post(seq, name, joined, again, restocked, boots)
+        # Robots joining together had the post before their processes were
+        # known: it goes to them again, naming each other's.
+        again_to = joined if len(joined) > 1 else []
+        await asyncio.gather(*(channel.post_task(r, request, seq, name)
+                               for r in [*(r for r in live if r not in joining), *again_to]))
 
         def decided(states: States, robot_id: str) -> bool:
             last = states[robot_id].last if robot_id in states else None
@@ -77,9 +84,12 @@ class TaskPoster:
         self._record(record, cluster, decisions)
         return record
 
-    async def _post_to_joiners(self, request: Request, seq: int, name: str, joining: Sequence[str]) -> list[str]:
+    async def _post_to_joiners(self, request: Request, seq: int, name: str,
+                               joining: Sequence[str]) -> dict[str, int]:
         """Post task ``seq`` to the robots joining at it, before their
-        teammates; the joiners it reached.  One it did not reach (found down:
+        teammates; the joiners it reached, each with the process that took
+        it (its boot, 0 if it did not say), which the teammates are told to
+        expect.  One it did not reach (found down:
         the process that was to join died, and another may have started since)
         is not named to its teammates: they would admit it at this task and
         wait for a plan after the previous one, which no process of it
@@ -88,13 +98,13 @@ class TaskPoster:
         restarted once more just after the feeder posted its join).  It
         joins at a later task, once the feeder is told of its restart."""
         channel, watcher = self.channel, self.channel.watcher
-        await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in joining))
+        answers = await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in joining))
         missed = [r for r in joining if r in watcher.down]
         if missed:
             log.warning("%s did not take task %d, at which %s to join: %s not named to the teammates",
                         ", ".join(missed), seq, "it was" if len(missed) == 1 else "they were",
                         "it is" if len(missed) == 1 else "they are")
-        return [r for r in joining if r not in watcher.down]
+        return {r: _boot_in(answer) for r, answer in zip(joining, answers, strict=True) if r not in watcher.down}
 
     def _record(self, record: TaskRecord, cluster: list[str], decisions: Mapping[str, Decision]) -> None:
         """Keep in ``record`` the decisions that count, and why the others do
@@ -133,3 +143,14 @@ class TaskPoster:
                 record.reasons = dict(decision.reasons)
         assigned = {d for d in record.decisions.values() if d is not None}
         record.assigned_to = assigned.pop() if len(assigned) == 1 else None
+
+
+def _boot_in(answer: Response | None) -> int:
+    """The process a joiner's answer to its post names (0: not said)."""
+    if answer is None or not answer.payload:
+        return 0
+    try:
+        boot = cbor2.loads(answer.payload).get("boot", 0)
+    except (cbor2.CBORDecodeError, AttributeError, ValueError):
+        return 0
+    return boot if type(boot) is int and boot > 0 else 0

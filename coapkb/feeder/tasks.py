@@ -22,7 +22,7 @@ OBJECT`` line puts the object back on its shelf before the next task is fed.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,13 +117,16 @@ def split_tasks(tasks: Sequence[Entry], clusters: int) -> list[list[Entry]]:
 
 
 def task_post(seq: int, name: str, joining: Sequence[str] = (), again: int | None = None,
-              restocked: bool = False) -> Request:
+              restocked: bool = False, boots: Mapping[str, int] | None = None) -> Request:
     """The POST of task ``seq``.  The task stream orders joins: every robot
-    admits the joiners at this task.  ``again``: the task this one does
+    admits the joiners at this task, each named with the process that took
+    it where ``boots`` says (a teammate takes another process for a restart).  ``again``: the task this one does
     again (its robot went down before the pick), so no robot takes the
     object for already picked; ``restocked``: the object was delivered
     back since, so no robot does either."""
-    body = cbor2.dumps({"seq": seq, "object": name, **({"join": list(joining)} if joining else {}),
+    boots = boots or {}
+    join = [[r, boots[r]] if boots.get(r) else r for r in joining]
+    body = cbor2.dumps({"seq": seq, "object": name, **({"join": join} if join else {}),
                         **({"again": again} if again is not None else {}),
                         **({"restocked": True} if restocked else {})})
     return Request(Method.POST, TASKS_PATH, payload=body, content_format=ContentFormat.CBOR)

@@ -115,6 +115,8 @@ async def test_comparing_notes_on_a_teammate_s_plan_is_a_post(ask: Asker) -> Non
         (json.dumps({"seq": "one", "object": "Gucci_bag_14"}).encode(), ContentFormat.JSON, "integer"),
         (cbor2.dumps({"seq": 1, "object": "no spaces please"}), None, "local name"),
         (cbor2.dumps({"seq": 1, "object": "Gucci_bag_14", "join": ["Robot9"]}), None, "join"),
+        (cbor2.dumps({"seq": 1, "object": "Gucci_bag_14", "join": [["Robot1"]]}), None, "[robot, boot]"),
+        (cbor2.dumps({"seq": 1, "object": "Gucci_bag_14", "join": [["Robot1", -3]]}), None, "[robot, boot]"),
     ],
 )
 async def test_a_bad_task_body_is_400_with_what_was_expected(
@@ -122,6 +124,26 @@ async def test_a_bad_task_body_is_400_with_what_was_expected(
 ) -> None:
     answer = await ask(Method.POST, "/tasks", payload, content_format=content_format)
     assert answer.status == Status.BAD_REQUEST and says in answer.text(), answer
+
+
+async def test_a_joiner_answers_its_post_with_its_process() -> None:
+    """A robot named to join at a task answers the post with its process
+    (its boot), again on a repeat: the feeder names that process to the
+    teammates, who take another one found there for a restart."""
+    robot = await Robot.start(solo_config(free_udp_port()))
+    client = await open_client("coap")
+    try:
+        ask = Asker(client, robot.config.bind)
+        post = cbor2.dumps({"seq": 4, "object": "Gucci_bag_14", "join": [["Robot1", 77]]})
+        for _ in range(2):
+            answer = await ask(Method.POST, "/tasks", post)
+            assert answer.status == Status.CHANGED
+            assert cbor2.loads(answer.payload) == {"boot": robot.team.own.boot}
+        other = await ask(Method.POST, "/tasks", cbor2.dumps({"seq": 5, "object": "Gucci_bag_1"}))
+        assert other.status == Status.CHANGED and other.payload == b""
+    finally:
+        await client.aclose()
+        await robot.aclose()
 
 
 async def test_a_bad_decision_is_400(ask: Asker) -> None:

@@ -282,6 +282,40 @@ async def test_a_readmitted_robot_has_a_grace_until_heard_from_and_waits_outlast
         await states.aclose()
 
 
+async def test_a_joiner_named_by_its_process_is_down_when_another_process_answers() -> None:
+    """A join names the process that took it (its boot): a teammate that
+    finds another process there -- the joiner died and started again before
+    this robot took the post -- counts it down, not waiting for a plan the
+    new process never had the post to show.  The process may be named with
+    the post, or later (robots joining together learn each other's from the
+    post repeated), before or after its state is observed (simulator seed
+    20326 of the 3-robot storage and forgery profile: a starved robot
+    waited 120 s for a co-joiner's plan)."""
+    network = MemoryNetwork()
+    states = ObservedStates(network.client(), {"Robot2": endpoint("Robot2")}, PLAN_PATH, liveness=True)
+    try:
+        states.readmit("Robot2", boot=5)
+        await states.watcher.update("Robot2", robot("Robot2", 0, boot=6))
+        assert "another process" in states.down["Robot2"]
+        states.readmit("Robot2", boot=6)
+        await states.watcher.update("Robot2", robot("Robot2", 0, boot=6))
+        assert "Robot2" not in states.down
+        states.readmit("Robot2")
+        await states.watcher.update("Robot2", robot("Robot2", 0, boot=7))
+        await states.expect_process("Robot2", 8)  # named after its state arrived
+        assert "another process" in states.down["Robot2"]
+    finally:
+        await states.aclose()
+    team = view(MemoryNetwork(), robot("Robot1", 6))
+    try:
+        await team.membership.named("Robot2", 7, 5)  # before this robot took the post: kept for the admission
+        team.membership.admit("Robot2", 7)
+        await team._teammates.watcher.update("Robot2", robot("Robot2", 0, boot=9))
+        assert not team.is_up("Robot2")
+    finally:
+        await team.aclose()
+
+
 class OneTeammateNotUpYet:
     """Robot2 answers its observation; Robot3's never comes (not started)."""
 
@@ -360,7 +394,7 @@ async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_th
                 await team.join(10, timeout=60, joining=("Robot1", "Robot2"))
             assert team.membership.excluded == {"Robot3": 9} and team.own.plan.seq == 9
             assert (team.membership.epoch, team.membership.members) == (10, ("Robot1", "Robot2"))
-            team.membership.admit("Robot2")  # as the controller does next, on every joiner alike: a member already
+            team.membership.admit("Robot2", 10)  # as the controller does next, on every joiner alike: a member already
             assert team.membership.epoch == 10
         finally:
             await team.aclose()
@@ -416,7 +450,7 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
         assert team.is_up("Robot2") and not team.membership.alone
         assert "never grants" in (team.membership.grant("Robot2") or "")
         await team._teammates.wait(lambda s: s["Robot2"].plan.seq == 4, timeout=2)
-        team.membership.admit("Robot2")  # a new process of it, joining: granted again
+        team.membership.admit("Robot2", 5)  # a new process of it, joining: granted again
         assert team.membership.grant("Robot2") is None
     finally:
         await team.aclose()
@@ -457,11 +491,11 @@ async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
     network = MemoryNetwork()
     team = view(network, robot("Robot1", 4))
     try:
-        team.membership.admit("Robot2")
+        team.membership.admit("Robot2", 5)
         assert team.membership.epoch == 0
         team.membership.excluded["Robot3"] = 4
         team.membership.epoch = 1
-        team.membership.admit("Robot3")
+        team.membership.admit("Robot3", 5)
         assert (team.membership.epoch, team.membership.members) == (2, ("Robot1", "Robot2", "Robot3"))
     finally:
         await team.aclose()
@@ -471,7 +505,7 @@ async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
     try:
         async with asyncio.timeout(2):
             await joiner.join(10, timeout=60, joining=("Robot1", "Robot2"))
-        joiner.membership.admit("Robot2")
+        joiner.membership.admit("Robot2", 10)
         assert (joiner.membership.epoch, joiner.membership.members) == (4, ("Robot1", "Robot2", "Robot3"))
     finally:
         await joiner.aclose()

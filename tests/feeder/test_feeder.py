@@ -43,6 +43,8 @@ def test_a_task_post_is_the_documented_body() -> None:
     assert cbor2.loads(post.payload) == {"seq": 3, "object": "Gucci_bag_14"}
     assert cbor2.loads(task_post(7, "Bosch_rug_837", ["Robot2"]).payload) == {
         "seq": 7, "object": "Bosch_rug_837", "join": ["Robot2"]}
+    named = task_post(7, "Bosch_rug_837", ["Robot2", "Robot3"], boots={"Robot2": 41, "Robot3": 0})
+    assert cbor2.loads(named.payload)["join"] == [["Robot2", 41], "Robot3"]  # the process that took it, if known
 
 
 def test_tasks_file_ignores_comments_and_blank_lines(tmp_path: Path) -> None:

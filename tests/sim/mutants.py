@@ -132,9 +132,9 @@ def _claims_forgotten(self: Controller, message: Any) -> None:
 _admit = TeamMembership.admit
 
 
-def _admit_same_epoch(self: TeamMembership, robot_id: str) -> None:
+def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int = 0) -> None:
     before = self.epoch
-    _admit(self, robot_id)
+    _admit(self, robot_id, seq, boot)
     self.epoch = before
 
 

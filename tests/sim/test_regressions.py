@@ -115,6 +115,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "heal, and decided nothing on every later task without asking it once: nobody was up to ask",
         18055: "a robot's waiting facts were due by one rule and not yet by another, by rounding: its knowledge "
                "writer spun while the simulated clock stood still, and the run never ended",
+        20326: "a co-joiner of task 7 died after it took the post and started again: a starved teammate that "
+               "took the post later admitted its new process, never given the post, and waited 120 s for its plan",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
@@ -179,25 +181,3 @@ def test_every_seed_that_found_a_bug_now_holds_every_invariant(profile: tuple[st
     assert re.search(rf"^sim: {runs}, 0 violations, ", result.stdout, re.M), result.stdout
     if profile in NONE_EXCUSED:
         assert "excused" not in result.stdout, result.stdout
-
-
-#: Seeds that still find a bug, each with its account: replayed as expected
-#: failures, so the fix shows as a pass (strict) and moves the seed to FOUND.
-OPEN: list[tuple[tuple[str, ...], int, str]] = [
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage"), 20326,
-     "a robot named a co-joiner of task 7 died after it took the post and started again: a starved teammate "
-     "that takes the post later admits it from task 7 and waits for its plan after task 6, which its new "
-     "process, never given the post, never shows; the feeder times out after 120 s (docs/simulation.md)"),
-]
-
-
-@pytest.mark.parametrize(("profile", "seed", "account"), OPEN, ids=[f"seed {seed}" for _, seed, _ in OPEN])
-def test_an_open_finding_still_fails_as_told(profile: tuple[str, ...], seed: int, account: str) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "coapkb", "sim", *profile, "--seed", str(seed), "--quiet"],
-        capture_output=True, text=True, cwd=ROOT, timeout=600, env={**os.environ, "PYTHONHASHSEED": "0"},
-    )
-    if re.search(r"^sim: 1 run, 0 violations, ", result.stdout, re.M):
-        pytest.fail(f"seed {seed} holds now: move it to FOUND ({account})")
-    assert "VIOLATION did not finish" in result.stdout, result.stdout + result.stderr
-    pytest.xfail(account)
