@@ -111,6 +111,17 @@ def test_silence_backs_off_to_a_second_and_a_queue_to_the_ceiling() -> None:
     assert PeerPath(ReliabilitySettings()).rto() == 1.0  # nothing known of the link: RFC 6298
 
 
+def test_a_try_with_a_long_answer_goes_out_as_one_copy() -> None:
+    """Hedge copies pay for a short answer, not a long one: both copies
+    reach the server more often than not and each is answered, so a block
+    of a catch-up crossed a lossy link twice."""
+    settings = ReliabilitySettings(link_kbps=35)
+    path = PeerPath(settings)
+    assert path.copies(1, now=0.0) == 2  # a new path's retry: two copies
+    assert path.copies(1, now=0.0, reply_bytes=1100) == 1
+    assert path.copies(1, now=0.0, reply_bytes=settings.hedge_reply_bytes_max) == 2
+
+
 def test_a_peer_asked_seldom_is_not_silent_when_asked_again() -> None:
     """Silence counts from the oldest unanswered send, not from the last
     answer: a holder whose facts came pushed for a minute, then asked, gets
