@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Term, Triple
 from ..typed_fields import require_at_least
+from .delta_journal import DeltaJournal
 from .errors import KBError
 
 __all__ = [
@@ -113,8 +114,7 @@ class Replica:
         self._by_dot: dict[Dot, Triple] = {}
         #: (subject, single-valued predicate) -> objects with entries
         self._values: dict[tuple[Term, Term], set[Term]] = {}
-        self.journal: OrderedDict[Dot, Delta] = OrderedDict()
-        self._journal_size = 0
+        self._deltas = DeltaJournal(self.limits.journal_max)
         self._seq = 0
         self._clock = BASE_STAMP
         #: Deltas not taken: they would have passed ``cloud_max``.
@@ -274,7 +274,7 @@ class Replica:
 
     def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a delta (idempotent, in any order); what it changed in view."""
-        if delta.dot in self.journal:
+        if delta.dot in self._deltas:
             return Effect()  # a duplicate
         received = delta.dot in self.context
         waiting = len(self.context.cloud) + len(self.tombstones)
@@ -302,7 +302,7 @@ class Replica:
                 self.context.add(dot)
                 self.tombstones.discard(dot)
         self.removed_base.update(delta.removed_base)
-        self._journal(delta)
+        self._deltas.add(delta)
         return self._effect(before, is_base)
 
     def _tag(self, triple: Triple, dot: Dot, stamp: Stamp) -> None:
@@ -328,40 +328,25 @@ class Replica:
 
     # ---------------------------------------------------------- the journal
 
-    def _journal(self, delta: Delta) -> None:
-        if delta.dot in self.journal:
-            return
-        self.journal[delta.dot] = delta
-        self._journal_size += delta.size
-        while self._journal_size > self.limits.journal_max and len(self.journal) > 1:
-            self._forget(next(iter(self.journal)))
+    @property
+    def journal(self) -> OrderedDict[Dot, Delta]:
+        """The deltas kept for catch-up, by first dot, oldest first."""
+        return self._deltas.deltas
 
-    def _forget(self, dot: Dot) -> None:
-        delta = self.journal.pop(dot)
-        self._journal_size -= delta.size
+    @property
+    def journal_size(self) -> int:
+        return self._deltas.size
 
     def compact(self, peers: Iterable[CausalContext]) -> int:
         """Forget the deltas every peer in ``peers`` has received; how many went."""
-        contexts = list(peers)
-        gone = [dot for dot in self.journal if all(dot in c for c in contexts)]
-        for dot in gone:
-            self._forget(dot)
-        return len(gone)
+        return self._deltas.compact(peers)
 
     def missing_for(self, peer: CausalContext) -> list[Delta] | WrittenState:
         """What ``peer`` lacks: the deltas from the journal, in the order
         they came, or the whole written state when the journal no longer
         holds one of them."""
-        journaled = sum(len(d.dots) for d in self.journal.values())
-        # Counted before they are listed: a context claiming a huge count
-        # must not make this enumerate it.
-        if self.context.count_missing_from(peer) > journaled:
-            return self.state()
-        missing = set(self.context.missing_from(peer))
-        wanted = [d for d in self.journal.values() if any(dot in missing for dot in d.dots)]
-        if sum(1 for d in wanted for dot in d.dots if dot in missing) < len(missing):
-            return self.state()
-        return wanted
+        deltas = self._deltas.missing_from(self.context, peer)
+        return self.state() if deltas is None else deltas
 
     # ---------------------------------------------------------- whole state
 
@@ -406,10 +391,6 @@ class Replica:
             and self.removed_base == other.removed_base
             and self.tombstones == other.tombstones
         )
-
-    @property
-    def journal_size(self) -> int:
-        return self._journal_size
 
     def gaps(self) -> int:
         """Dots waiting: past a gap, or removed before their write came."""
