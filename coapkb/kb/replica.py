@@ -36,11 +36,13 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..model.deltas import BASE_STAMP, CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Term, Triple
 from ..typed_fields import require_at_least
 from .delta_journal import DeltaJournal
+from .dot_ledger import DotLedger
 from .errors import KBError
+from .writer_clock import WriterClock
 
 __all__ = [
     "BASE_STAMP",
@@ -49,10 +51,6 @@ __all__ = [
     "ReplicaFull",
     "ReplicaLimits",
 ]
-
-
-#: The stamp of a value loaded from the files: older than any write.
-BASE_STAMP = Stamp(0, 0, "")
 
 
 @dataclass(frozen=True)
@@ -107,31 +105,30 @@ class Replica:
         self.single_valued = single_valued
         self._base_values = base_values
         self.limits = limits or ReplicaLimits()
-        self.context = CausalContext()
+        self.ledger = DotLedger(self.limits.cloud_max)
         self.entries: dict[Triple, dict[Dot, Stamp]] = {}
         self.removed_base: set[Triple] = set()
-        self.tombstones: set[Dot] = set()
         self._by_dot: dict[Dot, Triple] = {}
         #: (subject, single-valued predicate) -> objects with entries
         self._values: dict[tuple[Term, Term], set[Term]] = {}
         self._deltas = DeltaJournal(self.limits.journal_max)
-        self._seq = 0
-        self._clock = BASE_STAMP
+        self.clock = WriterClock(writer)
         #: Deltas not taken: they would have passed ``cloud_max``.
         self.refused = 0
 
-    # ------------------------------------------------------------ versions
+    @property
+    def context(self) -> CausalContext:
+        """The dots of every write received."""
+        return self.ledger.context
+
+    @property
+    def tombstones(self) -> set[Dot]:
+        """Dots removed before their write came."""
+        return self.ledger.tombstones
 
     def stamp(self, now_ms: int) -> Stamp:
         """The next hybrid-logical-clock stamp of a local write."""
-        last = self._clock
-        stamp = Stamp(now_ms, 0, self.writer) if now_ms > last.ms else Stamp(last.ms, last.counter + 1, self.writer)
-        self._clock = stamp
-        return stamp
-
-    def _observe(self, stamp: Stamp) -> None:
-        if (stamp.ms, stamp.counter) > (self._clock.ms, self._clock.counter):
-            self._clock = Stamp(stamp.ms, stamp.counter, self.writer)
+        return self.clock.stamp(now_ms)
 
     # ---------------------------------------------------------- visibility
 
@@ -247,44 +244,20 @@ class Replica:
                     removed_base[t] = None
         for triple in superseded:
             removed_dots.update(self.entries.get(triple, {}))
-        first = Dot(self.writer, self._next_seq(max(1, len(adds))))
+        first = Dot(self.writer, self.clock.first_seq(max(1, len(adds)), self.ledger))
         delta = Delta(first, self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base))
-        self._seq = delta.dots[-1].seq
+        self.clock.took(delta.dots[-1])
         return delta, self.apply(delta, is_base)
-
-    def _next_seq(self, count: int) -> int:
-        """The first of ``count`` sequence numbers for the next local write,
-        none of them a dot under this writer's name already seen: past the
-        context's version vector, and clear of its dots past a gap and of its
-        tombstones.  A dot under this name that it did not make (a forged or
-        replayed delta, or one from a life it forgot) would otherwise take a
-        real write's place: the write would be dropped as a duplicate (or
-        hidden by the tombstone) here and at every holder.  A far dot past a
-        gap is stepped over, not jumped to: the writes fill the gap below it,
-        so the others' contexts do not keep a gap that never closes."""
-        seq = max(self._seq, self.context.vv.get(self.writer, 0)) + 1
-        taken = {d.seq for d in self.context.cloud if d.writer == self.writer and d.seq >= seq}
-        taken.update(d.seq for d in self.tombstones if d.writer == self.writer and d.seq >= seq)
-        while taken:
-            clash = [s for s in range(seq, seq + count) if s in taken]
-            if not clash:
-                break
-            seq = clash[-1] + 1
-        return seq
 
     def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a delta (idempotent, in any order); what it changed in view."""
         if delta.dot in self._deltas:
             return Effect()  # a duplicate
         received = delta.dot in self.context
-        waiting = len(self.context.cloud) + len(self.tombstones)
-        growth = sum(1 for d in delta.removed if d not in self.context and d not in self.tombstones)
-        if not received and delta.dot.seq > self.context.vv.get(delta.dot.writer, 0) + 1:
-            growth += len(delta.dots)
-        if growth and waiting + growth > self.limits.cloud_max:
+        if not self.ledger.admits(delta):
             self.refused += 1
             return Effect()
-        self._observe(delta.stamp)
+        self.clock.observe(delta.stamp)
         touched: set[Triple] = set(delta.added) | set(delta.removed_base)
         touched |= {self._by_dot[d] for d in delta.removed if d in self._by_dot}
         before = self._snapshot(touched, is_base)
@@ -292,15 +265,13 @@ class Replica:
             triple = self._by_dot.pop(dot, None)
             if triple is not None:
                 self._drop(triple, dot)
-            elif dot not in self.context:
-                self.tombstones.add(dot)  # removed before its write came: it never shows
+            else:
+                self.ledger.bury(dot)  # removed before its write came: it never shows
         if not received:
             for triple, dot in delta.tagged():
-                if dot not in self.tombstones:
+                if not self.ledger.buried(dot):
                     self._tag(triple, dot, delta.stamp)
-            for dot in delta.dots:
-                self.context.add(dot)
-                self.tombstones.discard(dot)
+            self.ledger.receive(delta.dots)
         self.removed_base.update(delta.removed_base)
         self._deltas.add(delta)
         return self._effect(before, is_base)
@@ -375,12 +346,11 @@ class Replica:
             self._by_dot.pop(dot, None)
         for triple, theirs in other.entries.items():
             for dot, stamp in theirs.items():
-                self._observe(stamp)
-                if dot not in self.context and dot not in self.tombstones:
+                self.clock.observe(stamp)
+                if not self.ledger.knows(dot):
                     self._tag(triple, dot, stamp)
         self.removed_base |= other.removed_base
-        self.context.merge(other.context)
-        self.tombstones = {d for d in self.tombstones | set(other.tombstones) if d not in self.context}
+        self.ledger.merge(other.context, other.tombstones)
         return self._effect(before, is_base)
 
     def equal_to(self, other: Replica) -> bool:
@@ -394,5 +364,5 @@ class Replica:
 
     def gaps(self) -> int:
         """Dots waiting: past a gap, or removed before their write came."""
-        return len(self.context.cloud) + len(self.tombstones)
+        return self.ledger.waiting()
 
