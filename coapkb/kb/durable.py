@@ -178,9 +178,8 @@ def resume_writer(replica: Replica) -> None:
     """The replica's own writes go on above its writes on disk: every one
     of them was kept before the next was made, so they run without a gap
     from 1 to the context's count for its writer, and no dot is used twice."""
-    top = replica.context.vv.get(replica.writer, 0)
     # The replica's own count, restored from its own context.
-    replica._seq = max(replica._seq, top)
+    replica.clock.resume(replica.context.vv.get(replica.writer, 0))
 
 
 @contextlib.contextmanager

@@ -28,18 +28,33 @@ Catch-up sends the deltas a peer's context lacks from the journal, so what
 it costs grows with what the peer missed; when the journal no longer has
 them, the whole written state (what changed against the files, never the
 files themselves).
+
+:class:`Replica` joins the parts each of its own module keeps:
+
+* :mod:`.written_triples`: the triples and their dots, the files' triples removed;
+* :mod:`.dot_ledger`: the causal context and the tombstones, and their bound;
+* :mod:`.visibility`: what shows (single values shadowed) and a change's effect;
+* :mod:`.write_plan`: what a local write removes and adds;
+* :mod:`.writer_clock`: the dots and stamps of this writer's own writes;
+* :mod:`.delta_journal`: the deltas kept for catch-up.
 """
 
 from __future__ import annotations
 
-from collections import Counter, OrderedDict
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
+from ..model.deltas import BASE_STAMP, CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Term, Triple
 from ..typed_fields import require_at_least
+from .delta_journal import DeltaJournal
+from .dot_ledger import DotLedger
 from .errors import KBError
+from .visibility import Effect, Visibility
+from .write_plan import plan_write, unchanged_by
+from .writer_clock import WriterClock
+from .written_triples import WrittenTriples
 
 __all__ = [
     "BASE_STAMP",
@@ -48,21 +63,6 @@ __all__ = [
     "ReplicaFull",
     "ReplicaLimits",
 ]
-
-
-#: The stamp of a value loaded from the files: older than any write.
-BASE_STAMP = Stamp(0, 0, "")
-
-
-@dataclass(frozen=True)
-class Effect:
-    """What a delta changed in the visible graph: the store applies it."""
-
-    removed: frozenset[Triple] = frozenset()
-    added: frozenset[Triple] = frozenset()
-
-    def __bool__(self) -> bool:
-        return bool(self.removed or self.added)
 
 
 @dataclass(frozen=True)
@@ -104,264 +104,107 @@ class Replica:
     ) -> None:
         self.writer = writer
         self.single_valued = single_valued
-        self._base_values = base_values
         self.limits = limits or ReplicaLimits()
-        self.context = CausalContext()
-        self.entries: dict[Triple, dict[Dot, Stamp]] = {}
-        self.removed_base: set[Triple] = set()
-        self.tombstones: set[Dot] = set()
-        self._by_dot: dict[Dot, Triple] = {}
-        #: (subject, single-valued predicate) -> objects with entries
-        self._values: dict[tuple[Term, Term], set[Term]] = {}
-        self.journal: OrderedDict[Dot, Delta] = OrderedDict()
-        self._journal_size = 0
-        self._seq = 0
-        self._clock = BASE_STAMP
+        self.triples = WrittenTriples(single_valued)
+        self.ledger = DotLedger(self.limits.cloud_max)
+        self.visibility = Visibility(self.triples, single_valued, base_values)
+        self.clock = WriterClock(writer)
+        self._deltas = DeltaJournal(self.limits.journal_max)
         #: Deltas not taken: they would have passed ``cloud_max``.
         self.refused = 0
 
-    # ------------------------------------------------------------ versions
+    # The parts' records, under the names the rest of the package reads.
+
+    @property
+    def context(self) -> CausalContext:
+        """The dots of every write received."""
+        return self.ledger.context
+
+    @property
+    def tombstones(self) -> set[Dot]:
+        """Dots removed before their write came."""
+        return self.ledger.tombstones
+
+    @property
+    def entries(self) -> dict[Triple, dict[Dot, Stamp]]:
+        """Written triple -> its live dots and their stamps."""
+        return self.triples.entries
+
+    @property
+    def removed_base(self) -> set[Triple]:
+        """The files' triples a write removed."""
+        return self.triples.removed_base
+
+    @property
+    def journal(self) -> OrderedDict[Dot, Delta]:
+        """The deltas kept for catch-up, by first dot, oldest first."""
+        return self._deltas.deltas
+
+    @property
+    def journal_size(self) -> int:
+        return self._deltas.size
 
     def stamp(self, now_ms: int) -> Stamp:
         """The next hybrid-logical-clock stamp of a local write."""
-        last = self._clock
-        stamp = Stamp(now_ms, 0, self.writer) if now_ms > last.ms else Stamp(last.ms, last.counter + 1, self.writer)
-        self._clock = stamp
-        return stamp
-
-    def _observe(self, stamp: Stamp) -> None:
-        if (stamp.ms, stamp.counter) > (self._clock.ms, self._clock.counter):
-            self._clock = Stamp(stamp.ms, stamp.counter, self.writer)
-
-    # ---------------------------------------------------------- visibility
-
-    def shows_own(self, triple: Triple, is_base: bool) -> bool:
-        """``triple`` shows, and carries a dot of this writer's (a single
-        value shows alone): adding it again (a retried request) would change
-        nothing a reader can see."""
-        if not any(d.writer == self.writer for d in self.entries.get(triple, ())):
-            return False
-        s, p, o = triple
-        if p in self.single_valued:
-            return self._winners(s, p) == {o} and not self._values.get((s, p), set()) - {o}
-        return self._present(triple, is_base)
-
-    def unchanged_by(self, removes: Sequence[Triple], adds: Iterable[Triple], is_base: Callable[[Triple], bool]) -> bool:
-        """A write of nothing to remove and only adds that already show under
-        this writer's dots changes nothing: no delta, no new version (a
-        retried iPATCH keeps the ETag a later If-Match names)."""
-        adds = list(adds)
-        together = Counter((s, p) for s, p, _ in adds if p in self.single_valued)
-        return not removes and all(together[t[:2]] <= 1 and self.shows_own(t, is_base(t)) for t in adds)
-
-    def _present(self, triple: Triple, is_base: bool) -> bool:
-        """Live by the set's rules, before single values shadow any."""
-        return bool(self.entries.get(triple)) or (is_base and triple not in self.removed_base)
-
-    def _winners(self, s: Term, p: Term) -> frozenset[Term]:
-        """The visible objects of a single-valued property: the greatest stamp's."""
-        best: Stamp | None = None
-        chosen: set[Term] = set()
-        candidates = [(o, True) for o in self._base_values(s, p)] + [(o, False) for o in self._values.get((s, p), ())]
-        for o, from_base in candidates:
-            triple = (s, p, o)
-            dots = self.entries.get(triple)
-            if dots:
-                top = max(dots.values())
-            elif from_base and triple not in self.removed_base:
-                top = BASE_STAMP
-            else:
-                continue
-            if best is None or top > best:
-                best, chosen = top, {o}
-            elif top == best:
-                chosen.add(o)
-        return frozenset(chosen)
+        return self.clock.stamp(now_ms)
 
     def visible(self, triple: Triple, is_base: bool) -> bool:
-        s, p, o = triple
-        if p in self.single_valued:
-            return o in self._winners(s, p)
-        return self._present(triple, is_base)
+        return self.visibility.visible(triple, is_base)
 
-    def _snapshot(self, triples: Iterable[Triple], is_base: Callable[[Triple], bool]) -> dict[Triple, bool]:
-        seen: dict[Triple, bool] = {}
-        for triple in triples:
-            s, p, _ = triple
-            if p in self.single_valued:
-                winners = self._winners(s, p)
-                for o in set(self._base_values(s, p)) | self._values.get((s, p), set()):
-                    seen[(s, p, o)] = o in winners
-            seen[triple] = self.visible(triple, is_base(triple))
-        return seen
+    def shows_own(self, triple: Triple, is_base: bool) -> bool:
+        """``triple`` shows under a dot of this writer's (:meth:`Visibility.shows_own`)."""
+        return self.visibility.shows_own(self.writer, triple, is_base)
 
-    def _effect(self, before: dict[Triple, bool], is_base: Callable[[Triple], bool]) -> Effect:
-        after = self._snapshot(before, is_base)
-        return Effect(
-            removed=frozenset(t for t, v in before.items() if v and not after.get(t, False)),
-            added=frozenset(t for t, v in after.items() if v and not before.get(t, False)),
-        )
+    def unchanged_by(self, removes: Sequence[Triple], adds: Iterable[Triple], is_base: Callable[[Triple], bool]) -> bool:
+        """A write that would change nothing (:func:`.write_plan.unchanged_by`)."""
+        return unchanged_by(self.visibility, self.writer, removes, adds, is_base)
+
+    def gaps(self) -> int:
+        """Dots waiting: past a gap, or removed before their write came."""
+        return self.ledger.waiting()
 
     # --------------------------------------------------------------- writes
 
     def write(
         self, removes: Iterable[Triple], adds: Iterable[Triple], now_ms: int, is_base: Callable[[Triple], bool]
     ) -> tuple[Delta, Effect]:
-        """A local write: remove what is seen of ``removes``, add ``adds``
-        (an add that already shows under a dot of this writer's is left out:
-        see :meth:`unchanged_by`).
-
-        Adding a value of a single-valued property removes the other values
-        of it this replica sees (their dots, in the same delta): the older
-        values do not pile up, shadowed, write after write.  A concurrent
-        value this replica has not seen survives and loses on its stamp.
+        """A local write (:func:`.write_plan.plan_write`), joined here.
 
         Raises :class:`ReplicaFull` past the entries bound (nothing changes)."""
-        named = tuple(dict.fromkeys(adds))
-        added = set(named)
-        removes = tuple(t for t in dict.fromkeys(removes) if t not in added)
-        # Values of one single-valued property written together share a
-        # stamp, and show together: none of them is left out.
-        together = Counter((s, p) for s, p, _ in named if p in self.single_valued)
-        adds = tuple(t for t in named if together[t[:2]] > 1 or not self.shows_own(t, is_base(t)))
-        superseded = [(s, p, o) for s, p, _ in named if p in self.single_valued
-                      for o in self._values.get((s, p), ()) if (s, p, o) not in added]
-        fresh = sum(1 for t in adds if t not in self.entries)
+        plan = plan_write(self.visibility, self.writer, removes, adds, is_base)
+        fresh = sum(1 for t in plan.added if t not in self.entries)
         if len(self.entries) + fresh > self.limits.entries_max:
             raise ReplicaFull(
                 f"this module holds {len(self.entries)} written triples; at most {self.limits.entries_max}"
             )
-        removed_dots: set[Dot] = set()
-        removed_base: dict[Triple, None] = {}
-        for triple in removes:
-            s, p, _ = triple
-            # Removing a single value removes the values it shadows too:
-            # else an older one would show again.
-            gone = [triple]
-            if p in self.single_valued:
-                gone += [(s, p, o) for o in self._values.get((s, p), ())]
-                gone += [(s, p, o) for o in self._base_values(s, p)]
-            for t in gone:
-                removed_dots.update(self.entries.get(t, {}))
-                if is_base(t) and t not in self.removed_base:
-                    removed_base[t] = None
-        for triple in superseded:
-            removed_dots.update(self.entries.get(triple, {}))
-        first = Dot(self.writer, self._next_seq(max(1, len(adds))))
-        delta = Delta(first, self.stamp(now_ms), adds, tuple(sorted(removed_dots)), tuple(removed_base))
-        self._seq = delta.dots[-1].seq
+        first = Dot(self.writer, self.clock.first_seq(max(1, len(plan.added)), self.ledger))
+        delta = Delta(first, self.stamp(now_ms), plan.added, plan.removed, plan.removed_base)
+        self.clock.took(delta.dots[-1])
         return delta, self.apply(delta, is_base)
-
-    def _next_seq(self, count: int) -> int:
-        """The first of ``count`` sequence numbers for the next local write,
-        none of them a dot under this writer's name already seen: past the
-        context's version vector, and clear of its dots past a gap and of its
-        tombstones.  A dot under this name that it did not make (a forged or
-        replayed delta, or one from a life it forgot) would otherwise take a
-        real write's place: the write would be dropped as a duplicate (or
-        hidden by the tombstone) here and at every holder.  A far dot past a
-        gap is stepped over, not jumped to: the writes fill the gap below it,
-        so the others' contexts do not keep a gap that never closes."""
-        seq = max(self._seq, self.context.vv.get(self.writer, 0)) + 1
-        taken = {d.seq for d in self.context.cloud if d.writer == self.writer and d.seq >= seq}
-        taken.update(d.seq for d in self.tombstones if d.writer == self.writer and d.seq >= seq)
-        while taken:
-            clash = [s for s in range(seq, seq + count) if s in taken]
-            if not clash:
-                break
-            seq = clash[-1] + 1
-        return seq
 
     def apply(self, delta: Delta, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a delta (idempotent, in any order); what it changed in view."""
-        if delta.dot in self.journal:
+        if delta.dot in self._deltas:
             return Effect()  # a duplicate
         received = delta.dot in self.context
-        waiting = len(self.context.cloud) + len(self.tombstones)
-        growth = sum(1 for d in delta.removed if d not in self.context and d not in self.tombstones)
-        if not received and delta.dot.seq > self.context.vv.get(delta.dot.writer, 0) + 1:
-            growth += len(delta.dots)
-        if growth and waiting + growth > self.limits.cloud_max:
+        if not self.ledger.admits(delta):
             self.refused += 1
             return Effect()
-        self._observe(delta.stamp)
+        self.clock.observe(delta.stamp)
         touched: set[Triple] = set(delta.added) | set(delta.removed_base)
-        touched |= {self._by_dot[d] for d in delta.removed if d in self._by_dot}
-        before = self._snapshot(touched, is_base)
+        touched |= {t for d in delta.removed if (t := self.triples.triple_of(d)) is not None}
+        before = self.visibility.snapshot(touched, is_base)
         for dot in delta.removed:
-            triple = self._by_dot.pop(dot, None)
-            if triple is not None:
-                self._drop(triple, dot)
-            elif dot not in self.context:
-                self.tombstones.add(dot)  # removed before its write came: it never shows
+            if not self.triples.remove_dot(dot):
+                self.ledger.bury(dot)  # removed before its write came: it never shows
         if not received:
             for triple, dot in delta.tagged():
-                if dot not in self.tombstones:
-                    self._tag(triple, dot, delta.stamp)
-            for dot in delta.dots:
-                self.context.add(dot)
-                self.tombstones.discard(dot)
+                if not self.ledger.buried(dot):
+                    self.triples.tag(triple, dot, delta.stamp)
+            self.ledger.receive(delta.dots)
         self.removed_base.update(delta.removed_base)
-        self._journal(delta)
-        return self._effect(before, is_base)
-
-    def _tag(self, triple: Triple, dot: Dot, stamp: Stamp) -> None:
-        self.entries.setdefault(triple, {})[dot] = stamp
-        self._by_dot[dot] = triple
-        s, p, o = triple
-        if p in self.single_valued:
-            self._values.setdefault((s, p), set()).add(o)
-
-    def _drop(self, triple: Triple, dot: Dot) -> None:
-        dots = self.entries.get(triple)
-        if dots is None:
-            return
-        dots.pop(dot, None)
-        if not dots:
-            del self.entries[triple]
-            s, p, o = triple
-            values = self._values.get((s, p))
-            if values is not None:
-                values.discard(o)
-                if not values:
-                    del self._values[(s, p)]
-
-    # ---------------------------------------------------------- the journal
-
-    def _journal(self, delta: Delta) -> None:
-        if delta.dot in self.journal:
-            return
-        self.journal[delta.dot] = delta
-        self._journal_size += delta.size
-        while self._journal_size > self.limits.journal_max and len(self.journal) > 1:
-            self._forget(next(iter(self.journal)))
-
-    def _forget(self, dot: Dot) -> None:
-        delta = self.journal.pop(dot)
-        self._journal_size -= delta.size
-
-    def compact(self, peers: Iterable[CausalContext]) -> int:
-        """Forget the deltas every peer in ``peers`` has received; how many went."""
-        contexts = list(peers)
-        gone = [dot for dot in self.journal if all(dot in c for c in contexts)]
-        for dot in gone:
-            self._forget(dot)
-        return len(gone)
-
-    def missing_for(self, peer: CausalContext) -> list[Delta] | WrittenState:
-        """What ``peer`` lacks: the deltas from the journal, in the order
-        they came, or the whole written state when the journal no longer
-        holds one of them."""
-        journaled = sum(len(d.dots) for d in self.journal.values())
-        # Counted before they are listed: a context claiming a huge count
-        # must not make this enumerate it.
-        if self.context.count_missing_from(peer) > journaled:
-            return self.state()
-        missing = set(self.context.missing_from(peer))
-        wanted = [d for d in self.journal.values() if any(dot in missing for dot in d.dots)]
-        if sum(1 for d in wanted for dot in d.dots if dot in missing) < len(missing):
-            return self.state()
-        return wanted
+        self._deltas.add(delta)
+        return self.visibility.effect(before, is_base)
 
     # ---------------------------------------------------------- whole state
 
@@ -376,27 +219,18 @@ class Replica:
     def join(self, other: WrittenState, is_base: Callable[[Triple], bool]) -> Effect:
         """Join a whole state (a peer's, for catch-up)."""
         touched: set[Triple] = set(other.entries) | (set(other.removed_base) - self.removed_base)
-        removed: list[tuple[Triple, Dot]] = []
-        for triple, dots in self.entries.items():
-            theirs = other.entries.get(triple, {})
-            for dot in dots:
-                # They received it and it is gone there, or they know it removed.
-                if (dot in other.context and dot not in theirs) or dot in other.tombstones:
-                    removed.append((triple, dot))
-                    touched.add(triple)
-        before = self._snapshot(touched, is_base)
-        for triple, dot in removed:
-            self._drop(triple, dot)
-            self._by_dot.pop(dot, None)
+        removed = self.triples.removed_in(other)
+        touched.update(triple for triple, _ in removed)
+        before = self.visibility.snapshot(touched, is_base)
+        self.triples.remove(removed)
         for triple, theirs in other.entries.items():
             for dot, stamp in theirs.items():
-                self._observe(stamp)
-                if dot not in self.context and dot not in self.tombstones:
-                    self._tag(triple, dot, stamp)
-        self.removed_base |= other.removed_base
-        self.context.merge(other.context)
-        self.tombstones = {d for d in self.tombstones | set(other.tombstones) if d not in self.context}
-        return self._effect(before, is_base)
+                self.clock.observe(stamp)
+                if not self.ledger.knows(dot):
+                    self.triples.tag(triple, dot, stamp)
+        self.removed_base.update(other.removed_base)
+        self.ledger.merge(other.context, other.tombstones)
+        return self.visibility.effect(before, is_base)
 
     def equal_to(self, other: Replica) -> bool:
         """Same set, same context (for tests and the simulator's checker)."""
@@ -407,11 +241,15 @@ class Replica:
             and self.tombstones == other.tombstones
         )
 
-    @property
-    def journal_size(self) -> int:
-        return self._journal_size
+    # ---------------------------------------------------------- the journal
 
-    def gaps(self) -> int:
-        """Dots waiting: past a gap, or removed before their write came."""
-        return len(self.context.cloud) + len(self.tombstones)
+    def compact(self, peers: Iterable[CausalContext]) -> int:
+        """Forget the deltas every peer in ``peers`` has received; how many went."""
+        return self._deltas.compact(peers)
 
+    def missing_for(self, peer: CausalContext) -> list[Delta] | WrittenState:
+        """What ``peer`` lacks: the deltas from the journal, in the order
+        they came, or the whole written state when the journal no longer
+        holds one of them."""
+        deltas = self._deltas.missing_from(self.context, peer)
+        return self.state() if deltas is None else deltas

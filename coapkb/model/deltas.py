@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from .results import Triple
 
-__all__ = ["CausalContext", "Delta", "Dot", "MadeUnder", "Stamp", "WrittenState"]
+__all__ = ["BASE_STAMP", "CausalContext", "Delta", "Dot", "MadeUnder", "Stamp", "WrittenState"]
 
 
 @dataclass(frozen=True, order=True)
@@ -33,6 +33,10 @@ class Stamp:
     ms: int
     counter: int
     writer: str
+
+
+#: The stamp of a value loaded from the files: older than any write.
+BASE_STAMP = Stamp(0, 0, "")
 
 
 class CausalContext:

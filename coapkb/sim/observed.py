@@ -105,5 +105,5 @@ def written_view(live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:
     holders at the same version must give the same."""
     replica = live.replicas[module]
     touched = set(replica.entries) | replica.removed_base
-    seen = replica._snapshot(touched, live._is_base)
+    seen = replica.visibility.snapshot(touched, live._is_base)
     return frozenset(seen.items())

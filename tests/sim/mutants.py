@@ -43,6 +43,8 @@ from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
 from coapkb.kb.sync_access import SyncAccess
 from coapkb.kb.sync_client import SyncClient
+from coapkb.kb.visibility import Visibility
+from coapkb.kb.written_triples import WrittenTriples
 from coapkb.model.deltas import CausalContext, Delta, WrittenState
 from coapkb.world.truth import Taken, WorldTruth
 
@@ -227,25 +229,26 @@ def _no_tombstones(self: Replica, delta: Delta, is_base: Any) -> Any:
 
 def _latest_arrival_wins() -> contextlib.AbstractContextManager[Any]:
     """A single value chosen by what arrived last here, not by its stamp."""
-    tag = Replica._tag
+    tag = WrittenTriples.tag
+    #: Per replica's written triples: the order its triples arrived in.
     arrived: dict[int, dict[Any, int]] = {}
 
-    def tagging(self: Replica, triple: Any, dot: Any, stamp: Any) -> None:
+    def tagging(self: WrittenTriples, triple: Any, dot: Any, stamp: Any) -> None:
         order = arrived.setdefault(id(self), {})
         order[triple] = len(order)
         tag(self, triple, dot, stamp)
 
-    def winners(self: Replica, s: Any, p: Any) -> frozenset[Any]:
-        values = self._values.get((s, p), set())
-        order = arrived.get(id(self), {})
-        live = [o for o in values if self.entries.get((s, p, o))]
+    def winners(self: Visibility, s: Any, p: Any) -> frozenset[Any]:
+        values = self.triples.values(s, p)
+        order = arrived.get(id(self.triples), {})
+        live = [o for o in values if self.triples.entries.get((s, p, o))]
         if not live:
-            return frozenset(self._base_values(s, p))
+            return frozenset(self.base_values(s, p))
         return frozenset({max(live, key=lambda o: order.get((s, p, o), -1))})
 
     stack = contextlib.ExitStack()
-    stack.enter_context(_patch(Replica, "_tag", tagging))
-    stack.enter_context(_patch(Replica, "_winners", winners))
+    stack.enter_context(_patch(WrittenTriples, "tag", tagging))
+    stack.enter_context(_patch(Visibility, "winners", winners))
     return stack
 
 
