@@ -4,8 +4,9 @@ on-disk index, with results converted to rdflib terms."""
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable
 from pathlib import Path
+from typing import Any
 
 import pyoxigraph as ox
 import rdflib
@@ -176,27 +177,36 @@ class OxigraphBackend:
         # check.  The server's outer asyncio timeout answers the client then,
         # but the worker thread keeps computing until that next() returns.
         convert = self._convert
+        # Oxigraph's results may be dropped only on the thread that made them
+        # (a query runs on a worker thread): each generator over them is
+        # closed and the last reference dropped here, not left to a cycle
+        # through an exception's traceback that the collector frees on
+        # another thread ("PyQuerySolutions is unsendable").
+        readers: list[Generator[Any, None, None]] = []
         try:
             if isinstance(result, ox.QueryBoolean):
                 return AskResult(bool(result))
             if isinstance(result, ox.QuerySolutions):
                 variables = tuple(v.value for v in result.variables)
-                rows, truncated = take(
-                    (tuple(None if t is None else convert(t) for t in solution) for solution in result),
-                    row_limit,
-                    deadline,
-                )
+                readers.append(tuple(None if t is None else convert(t) for t in solution) for solution in result)
+                rows, truncated = take(readers[0], row_limit, deadline)
                 return SelectResult(variables, tuple(rows), truncated)
             # CONSTRUCT/DESCRIBE: a graph is a set, Oxigraph may repeat triples.
-            triples, truncated = take(_unique(_triples_from_ox(result, convert)), row_limit, deadline)
+            readers.append(_triples_from_ox(result, convert))
+            readers.append(_unique(readers[0]))
+            triples, truncated = take(readers[1], row_limit, deadline)
             return GraphResult(tuple(triples), truncated)
         except KBError:
             raise
         except Exception as exc:  # broad on purpose: evaluation errors are the query's, not the server's
             raise QueryEvaluationError(short_message(exc)) from exc
+        finally:
+            for reader in reversed(readers):
+                reader.close()
+            del result
 
 
-def _unique(triples: Iterable[Triple]) -> Iterator[Triple]:
+def _unique(triples: Iterable[Triple]) -> Generator[Triple, None, None]:
     seen: set[Triple] = set()
     for t in triples:
         if t not in seen:
@@ -204,7 +214,7 @@ def _unique(triples: Iterable[Triple]) -> Iterator[Triple]:
             yield t
 
 
-def _triples_from_ox(result: Iterable[ox.Triple], convert: Callable[[object], Term]) -> Iterator[Triple]:
+def _triples_from_ox(result: Iterable[ox.Triple], convert: Callable[[object], Term]) -> Generator[Triple, None, None]:
     for triple in result:
         yield convert(triple.subject), convert(triple.predicate), convert(triple.object)
 
