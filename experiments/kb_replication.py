@@ -3,7 +3,7 @@ write, the time until every holder has it, and catching up after missing
 writes.
 
     sudo .venv/bin/python -m experiments.kb_replication spread [--transports coap,zmq,zenoh,dds]
-    sudo .venv/bin/python -m experiments.kb_replication catch-up [--missed 10,100,1000]
+    sudo .venv/bin/python -m experiments.kb_replication catch-up [--missed 10,100,1000] [--loss 2,20]
     .venv/bin/python -m experiments.kb_replication soak [--writes 10000]
 
 Every holder is a process of its own (``node`` below: the Location module,
@@ -325,7 +325,7 @@ async def catch_up(args: argparse.Namespace) -> None:
     rows = []
     names = ["robot1", "robot2", "robot3"]
     for missed in (int(m) for m in args.missed.split(",")):
-        for loss in (2.0, 20.0):
+        for loss in (float(x) for x in args.loss.split(",")):
             link = LinkSpec(rate_kbit=args.kbps, loss_pct=loss)
             with Testbed(names + ["operator"], link) as tb:
                 holders = Holders(tb, "coap", names, topology(3), args.kbps, args.sync_every)
@@ -473,6 +473,7 @@ def main() -> int:
     p.add_argument("--sync-every", type=float, default=5.0)
     p = sub.add_parser("catch-up")
     p.add_argument("--missed", default="10,100,1000")
+    p.add_argument("--loss", default="2,20", help="loss rates (%%) of the links, comma-separated")
     p.add_argument("--kbps", type=float, default=35.0)
     p.add_argument("--sync-every", type=float, default=5.0)
     p = sub.add_parser("soak")
