@@ -14,7 +14,9 @@ The writer asks with the URI query ``ack`` of PATCH/iPATCH ``/kb``:
 The answer is text (content-format 0), one line:
 
 * 2.04: ``removed N, added M; ack LEVEL (H of K holders[, in memory])``,
-  LEVEL the strongest level reached (at least the one asked);
+  LEVEL the strongest level reached (at least the one asked); to a writer
+  that accepts CBOR (60), the array ``[N, M, LEVEL]`` instead
+  (:func:`encode_changed`);
 * 5.04: ``ack LEVEL (H of K holders[, in memory]), asked ASKED: written
   here, version HEX, ...``: fewer holders confirmed it than asked within
   the wait.  The write is not undone and spreads when they answer.
@@ -30,9 +32,11 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import cbor2
+
 __all__ = [
-    "ACK_PARAM", "DEFAULT_ACK", "Ack", "Answer", "Reached", "ack_of_query", "changed_line", "parse_ack", "parse_answer",
-    "short_line",
+    "ACK_PARAM", "DEFAULT_ACK", "Ack", "Answer", "Reached", "ack_of_query", "changed_line", "decode_changed",
+    "encode_changed", "parse_ack", "parse_answer", "short_line",
 ]
 
 #: The URI query parameter of a write naming its concern.
@@ -122,6 +126,22 @@ class Reached:
 def changed_line(removed: int, added: int, reached: Reached, *, durable: bool) -> str:
     """A 2.04's payload."""
     return f"removed {removed}, added {added}; {reached.describe(durable=durable)}"
+
+
+def encode_changed(removed: int, added: int, reached: Reached) -> bytes:
+    """A 2.04's payload in CBOR: ``[removed, added, level]``."""
+    return cbor2.dumps([removed, added, reached.level.value])
+
+
+def decode_changed(payload: bytes) -> tuple[int, int, Ack]:
+    """The inverse of :func:`encode_changed`; ValueError if it is not one."""
+    try:
+        removed, added, level = cbor2.loads(payload)
+    except (cbor2.CBORDecodeError, TypeError, ValueError) as exc:
+        raise ValueError(f"not a write answer: {exc}") from None
+    if type(removed) is not int or type(added) is not int or removed < 0 or added < 0 or not isinstance(level, str):
+        raise ValueError("not a write answer: expected [removed, added, level]")
+    return removed, added, parse_ack(level)
 
 
 def short_line(reached: Reached, asked: Ack, version: bytes, *, durable: bool, wait_s: float) -> str:

@@ -17,7 +17,7 @@ from .live import LiveKB, NotHeld, PreconditionFailed, WriteTooLarge, Written
 from .named_updates import decode_named_updates, is_named_updates, named_updates_sparql
 from .replica import ReplicaFull
 from .update import UpdateUnsupported, decode_patch, parse_update
-from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, short_line
+from .write_concern import DEFAULT_ACK, Ack, Reached, ack_of_query, changed_line, encode_changed, short_line
 from .write_ids import WID_PARAM, Remembered, WriteId, WriteTag, body_digest, parse_wid
 
 if TYPE_CHECKING:
@@ -50,7 +50,7 @@ class WriteResource:
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
         if tag is not None:
-            repeat = await self._repeat(tag, ack)
+            repeat = await self._repeat(tag, ack, request.accept)
             if repeat is not None:
                 return repeat
         size = len(request.payload)
@@ -100,10 +100,10 @@ class WriteResource:
         except KBError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
         if tag is None:
-            return await self._acknowledge(written, ack)
-        return await self._answer_once(tag, self._acknowledge(written, ack))
+            return await self._acknowledge(written, ack, request.accept)
+        return await self._answer_once(tag, self._acknowledge(written, ack, request.accept))
 
-    async def _repeat(self, tag: WriteTag, ack: Ack) -> Response | None:
+    async def _repeat(self, tag: WriteTag, ack: Ack, accept: int | None) -> Response | None:
         """The answer to a repeat of a write made under ``tag``'s id (the
         first answer, waited for if it is not given yet), an error if the
         id came with another update; None if the id is new."""
@@ -125,7 +125,7 @@ class WriteResource:
         assert made is not None
         if made.answer is not None:
             return made.answer
-        return self._from_memory(made, ack)
+        return self._from_memory(made, ack, accept)
 
     async def _answer_once(self, tag: WriteTag, answering: Awaitable[Response]) -> Response:
         """Answer a write made under ``tag`` with ``answering``, which every
@@ -150,7 +150,7 @@ class WriteResource:
         future.set_result(response)
         return response
 
-    def _from_memory(self, made: Remembered, ack: Ack) -> Response:
+    def _from_memory(self, made: Remembered, ack: Ack, accept: int | None) -> Response:
         """A repeat of a write whose answer this robot does not have: one it
         made before it restarted (its data folder kept the write and its id,
         not the answer, nor how far the write had reached: it spreads by
@@ -164,13 +164,12 @@ class WriteResource:
         else:
             reached = Reached(Ack.ALL if self.replicator is None else Ack.LOCAL, before_restart=True)
         if reached.level.covers(ack):
-            return Response(Status.CHANGED, changed_line(made.removed, made.added, reached, durable=True).encode(),
-                            ContentFormat.TEXT, etag=made.version)
+            return _changed(made.removed, made.added, reached, made.version, accept, durable=True)
         wait_s = 0.0 if self.replicator is None else self.replicator.settings.ack_timeout_s
         return Response.error(Status.GATEWAY_TIMEOUT, short_line(reached, ack, made.version, durable=True,
                                                                  wait_s=wait_s))
 
-    async def _acknowledge(self, written: Written, ack: Ack = DEFAULT_ACK) -> Response:
+    async def _acknowledge(self, written: Written, ack: Ack = DEFAULT_ACK, accept: int | None = None) -> Response:
         """2.04 once the write reached ``ack`` (:mod:`.write_concern`); 5.04
         if it did not within the replicator's ack wait.
 
@@ -189,8 +188,18 @@ class WriteResource:
             assert replicator is not None
             return Response.error(Status.GATEWAY_TIMEOUT, short_line(
                 reached, ack, written.version, durable=durable, wait_s=replicator.settings.ack_timeout_s))
-        summary = changed_line(written.removed, written.added, reached, durable=durable)
-        return Response(Status.CHANGED, summary.encode(), ContentFormat.TEXT, etag=written.version)
+        return _changed(written.removed, written.added, reached, written.version, accept, durable=durable)
+
+
+def _changed(removed: int, added: int, reached: Reached, version: bytes, accept: int | None, *,
+             durable: bool) -> Response:
+    """A 2.04: its line of text, or for a writer that accepts CBOR (a
+    robot's own writes) the ``write-answer`` array, a sixth of the text's
+    bytes on every write a robot sends (docs/knowledge.md, "Write concern")."""
+    if accept == ContentFormat.CBOR:
+        return Response(Status.CHANGED, encode_changed(removed, added, reached), ContentFormat.CBOR, etag=version)
+    return Response(Status.CHANGED, changed_line(removed, added, reached, durable=durable).encode(),
+                    ContentFormat.TEXT, etag=version)
 
 
 def _not_idempotent(text: str) -> bool:

@@ -460,7 +460,11 @@ async def test_a_server_keys_with_more_members_than_cbor_integer_identifiers(tmp
     try:
         first = await asyncio.gather(*(clients[n].request(peer, Request(Method.GET, "/tasks"), timeout=10) for n in names))
         assert all(r.status == Status.CONTENT for r in first)
-        assert security.responder_sessions() == (0, 60)
+        half_open, complete = security.responder_sessions()
+        # On a busy machine a client's message_1 may go again before its
+        # message_2 came: the copy is a half-open session of its own, never more.
+        retried = sum(c.counters.retransmissions for c in clients.values())
+        assert complete == 60 and half_open <= retried, (half_open, retried)
         sent = {n: clients[n].counters.messages_sent for n in names}
         for name in names:  # every session still there: one message each, no new handshake
             assert (await clients[name].request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT

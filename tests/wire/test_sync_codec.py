@@ -284,3 +284,11 @@ def test_named_updates_match_the_cddl(knowledge_cddl: object) -> None:
     for write in writes:
         outcome = knowledge_cddl.validate(encode_named_updates(write), root_type="named-updates")  # type: ignore[attr-defined]
         assert outcome.valid, [str(d) for d in outcome.diagnostics]
+
+
+def test_a_write_answer_matches_the_cddl(knowledge_cddl: object) -> None:
+    from coapkb.kb.write_concern import Ack, Reached, encode_changed
+
+    for level in Ack:
+        outcome = knowledge_cddl.validate(encode_changed(1, 2, Reached(level)), root_type="write-answer")  # type: ignore[attr-defined]
+        assert outcome.valid, [str(d) for d in outcome.diagnostics]

@@ -151,6 +151,8 @@ class ReliabilitySettings:
             raise ValueError("need 1 <= window_min <= window_max")
         if self.max_copies < 1 or self.max_tries < 1 or self.confirm_every < 1:
             raise ValueError("max_copies, max_tries and confirm_every must be at least 1")
+        if self.hedge_reply_bytes_max < 0:
+            raise ValueError("hedge_reply_bytes_max must not be negative")
 
     @property
     def link_bps(self) -> float | None:
