@@ -24,6 +24,7 @@ import pytest
 from support import ROOT
 
 from coapkb.agent.robot_state import PlannedState
+from coapkb.agent.settling import SETTLE_WAIT_TIMEOUTS
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign
 from coapkb.config import CostModel
 from coapkb.feeder import split_tasks
@@ -324,9 +325,12 @@ async def test_unreachable_kb_holder_makes_its_tasks_unavailable(transport: str,
                         # fails first is named, or, once failed queries have declared
                         # the holder down, that.
                         assert any(q in error for q in ("pick-facts", "pick-place", f"{victim}: down")), error
-                        # The query's timeout, and asking the teammates whether one had
-                        # the knowledge (the dead holder costs a request timeout there).
-                        assert decision["coordination_s"] <= 2 * timeout_s + 2, (r, decision)
+                        # The query's timeout, then asking the teammates whether one had
+                        # the knowledge, which waits up to SETTLE_WAIT_TIMEOUTS query
+                        # timeouts while a teammate is still deciding (on a loaded machine
+                        # both survivors' queries do not fail at the same moment).
+                        bound = timeout_s * (1 + SETTLE_WAIT_TIMEOUTS) + 2
+                        assert decision["coordination_s"] <= bound, (r, decision)
                 for r in survivors:
                     assert team.processes[r].returncode is None, f"{r} died"
             finally:
