@@ -45,9 +45,10 @@ STATS_SNAPSHOT_S = 5.0
 
 
 class FinalOutcome:
-    """Which ``/robot/outcome`` is final: the robot went idle with nothing
-    queued, and has decided nothing since.  Its notification goes confirmed
-    (``Response.confirm``): the feeder waits for it at the end of a run, and
+    """Which state is final: the robot went idle with nothing queued, and
+    has decided nothing since.  Its notification, on ``/robot/outcome`` and
+    on ``/robot/state``, goes confirmed (``Response.confirm``): the feeder
+    waits for it at the end of a run, and
     no later change would make up for its loss; the others go unconfirmed,
     each awaited by a feeder that asks again when one is late."""
 
@@ -106,13 +107,20 @@ class RobotResources:
     # ---------------------------------------------------------------- handlers
 
     async def _get_state(self, request: Request) -> Response:
+        own = self.team.own
         if request.accept == ContentFormat.JSON:
-            return _encode(self.team.own.to_dict(), request.accept)
-        return _cbor_state(self.team.own.encode(), request.accept)
+            return self._confirmed_if_final(_encode(own.to_dict(), request.accept), own)
+        return self._confirmed_if_final(_cbor_state(own.encode(), request.accept), own)
 
     async def _get_outcome(self, request: Request) -> Response:
         own = self.team.own
-        response = _cbor_state(own.encode_outcome(), request.accept)
+        return self._confirmed_if_final(_cbor_state(own.encode_outcome(), request.accept), own)
+
+    def _confirmed_if_final(self, response: Response, own: RobotState) -> Response:
+        """A final state goes confirmed on either resource: a feeder that
+        records the whole state observes ``/robot/state`` instead of
+        ``/robot/outcome``, and waits for it alike (a lost NON final state
+        cost it 4-5 s at 20 % loss, until its refresh)."""
         return replace(response, confirm=self.final_outcome(own)) if response.status.is_success else response
 
     async def _plan(self, request: Request) -> Response:

@@ -146,6 +146,34 @@ async def test_a_joiner_answers_its_post_with_its_process() -> None:
         await robot.aclose()
 
 
+async def test_a_final_state_goes_confirmed_on_either_resource() -> None:
+    """The state a robot ends in (idle, nothing queued, nothing decided
+    since) is notified confirmable on ``/robot/outcome`` and on
+    ``/robot/state``, which a feeder making a recording observes instead:
+    nothing later would make up for its loss."""
+    robot = await Robot.start(solo_config(free_udp_port()))
+    client = await open_client("coap")
+
+    async def confirmed() -> list[bool]:
+        return [(await robot.router.handle(Request(Method.GET, path, accept=accept))).confirm
+                for path in ("/robot/state", "/robot/outcome")
+                for accept in (ContentFormat.CBOR, ContentFormat.JSON) if (path, accept) != ("/robot/outcome",
+                                                                                              ContentFormat.JSON)]
+
+    try:
+        assert await confirmed() == [False, False, False]  # never went idle after a job
+        ask = Asker(client, robot.config.bind)
+        assert (await ask.post_task(1, "Gucci_bag_14")).status == Status.CHANGED
+        await ask.decisions(1)  # decided here: the job is queued as the decision is logged
+        async with asyncio.timeout(PATIENCE_S):
+            await robot.executor.wait_idle()
+        assert robot.team.own.live.done == 1
+        assert await confirmed() == [True, True, True]
+    finally:
+        await client.aclose()
+        await robot.aclose()
+
+
 async def test_a_bad_decision_is_400(ask: Asker) -> None:
     answer = await ask(Method.POST, "/decisions", cbor2.dumps({"seq": "x"}))
     assert answer.status == Status.BAD_REQUEST and "not a decision" in answer.text()
