@@ -92,7 +92,9 @@ class KnowledgeWriter:
     under the robot's name and a random token), the same for its every try.
 
     What others decide on (a pick, an object missing) goes at once, in
-    order; what only describes the robot (its position, load and charge)
+    order within its module; the modules' writes go side by side (a robot
+    turning idle waits for both, on a lossy link one after the other took
+    twice as long); what only describes the robot (its position, load and charge)
     and deliveries wait, up to ``lazy_s`` or until the robot is idle
     (:meth:`flush`), and ride with the next update of their module: a
     robot's position needs no request of its own after every job."""
@@ -122,7 +124,9 @@ class KnowledgeWriter:
         self._ready = asyncio.Event()
         self._drained = asyncio.Event()
         self._drained.set()
-        self._sending = False
+        #: Modules with a write being sent, and its sender: one at a time
+        #: per module (its facts stay in order), the modules side by side.
+        self._sending: dict[str, asyncio.Task[None]] = {}
         self._task: asyncio.Task[None] | None = None
         self.written = 0
         self.dropped = 0
@@ -179,49 +183,53 @@ class KnowledgeWriter:
         self._task = asyncio.create_task(self._run(), name="knowledge-writer")
 
     async def aclose(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        tasks = [t for t in (self._task, *self._sending.values()) if t is not None]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
 
     @property
     def pending(self) -> int:
         """Updates waiting or being sent (a module's waiting facts count as one)."""
-        return len(self._queue) + len(self._later) + self._sending
+        return len(self._queue) + len(self._later) + len(self._sending)
 
     def _next(self) -> tuple[str, list[NamedUpdate]] | None:
-        """What to send now, if anything: the oldest update to send at once,
-        with those after it for the same module and the module's waiting
-        facts joined on (one request instead of several); else a module's
-        waiting facts once due."""
-        if self._queue:
-            module, first = self._queue.popleft()
+        """What to send now, if anything, of a module with no write being
+        sent: the oldest update to send at once, with those after it for the
+        same module and the module's waiting facts joined on (one request
+        instead of several); else a module's waiting facts once due."""
+        for index, (module, first) in enumerate(self._queue):
+            if module in self._sending:
+                continue
+            del self._queue[index]
             # Bounded by what the holder renders, the SPARQL Update it makes.
             parts, size = [first], len(first.text())
-            while self._queue and self._queue[0][0] == module:
-                following = self._queue[0][1]
+            while index < len(self._queue) and self._queue[index][0] == module:
+                following = self._queue[index][1]
                 if size + len(following.text()) + 3 > self._merged_max_bytes:
                     break
-                self._queue.popleft()
+                del self._queue[index]
                 parts.append(following)
                 size += len(following.text()) + 3
             later = self._later.pop(module, None)
             return module, parts + (later.parts() if later is not None else [])
         now = asyncio.get_running_loop().time()
         for module, later in list(self._later.items()):
-            if self._flushing or self._wait_left(later, now) == 0.0:
+            if module not in self._sending and (self._flushing or self._wait_left(later, now) == 0.0):
                 del self._later[module]
                 return module, later.parts()
-        self._flushing = False
+        if not self._later:
+            self._flushing = False
         return None
 
     def _due_in(self) -> float | None:
-        if not self._later:
+        """How long until a module's waiting facts are due (None: none waits
+        but behind a write being sent, whose end wakes the writer)."""
+        waiting = [later for module, later in self._later.items() if module not in self._sending]
+        if not waiting:
             return None
         now = asyncio.get_running_loop().time()
-        return min(self._wait_left(later, now) for later in self._later.values())
+        return min(self._wait_left(later, now) for later in waiting)
 
     def _wait_left(self, later: _Later, now: float) -> float:
         """How long ``later`` may still wait; 0.0 once due.  One rule for
@@ -241,13 +249,17 @@ class KnowledgeWriter:
             self._ready.clear()
             while (chosen := self._next()) is not None:
                 module, updates = chosen
-                self._sending = True
-                try:
-                    await self._send(module, updates)
-                finally:
-                    self._sending = False
-            if not self._queue and not self._later:
+                self._sending[module] = asyncio.create_task(self._send_then_next(module, updates),
+                                                            name=f"knowledge-writer {module}")
+            if not self._queue and not self._later and not self._sending:
                 self._drained.set()
+
+    async def _send_then_next(self, module: str, updates: list[NamedUpdate]) -> None:
+        try:
+            await self._send(module, updates)
+        finally:
+            del self._sending[module]
+            self._ready.set()  # the module's next write, or drained
 
     async def _send(self, module: str, updates: list[NamedUpdate]) -> None:
         write_id = self._new_write_id()

@@ -191,9 +191,11 @@ class TaskExecutor:
             if self._jobs.empty() and self._knowledge is not None:
                 # Idle from now: what it wrote lazily goes out before it says so.
                 self._knowledge.flush()
+                flushed = asyncio.get_running_loop().time()
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(DRAIN_WAIT_S):
                         await self._knowledge.drained()
+                log.info("idle: its facts went out in %.3f s", asyncio.get_running_loop().time() - flushed)
             idle = self._jobs.empty()
             self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:

@@ -220,9 +220,9 @@ class Radio:
         if self.apply is not None:
             self.apply(update)
 
-    async def called(self) -> None:
-        """Until the writer has sent something."""
-        while not self.calls:
+    async def called(self, times: int = 1) -> None:
+        """Until the writer has sent ``times`` writes (tries included)."""
+        while len(self.calls) < times:
             self._changed.clear()
             await self._changed.wait()
 
@@ -315,6 +315,37 @@ async def test_an_update_joins_no_more_than_merged_max_bytes(make: Callable) -> 
     assert [module for module, _ in radio.calls] == ["Location"] * 3
     # Each pick apart; the robot's position rides with the first.
     assert [update.count("INSERT DATA") for _, update in radio.calls] == [2, 1, 1]
+
+
+async def test_a_slow_write_holds_back_its_module_only(make: Callable) -> None:
+    """Modules go side by side: the load goes out while a pick waits for its
+    holder, and the next pick waits behind the first (one module, in order)."""
+    release = asyncio.Event()
+    radio = Radio()
+
+    async def write(module: str, updates: list[NamedUpdate], write_id: str) -> None:
+        if module == "Location" and not release.is_set() and len(radio.calls) == 0:
+            await radio(module, updates, write_id)
+            await release.wait()  # the first pick's holder is slow to answer
+            return
+        await radio(module, updates, write_id)
+
+    writer = make(write)
+    writer.picked(_job(1, BAG))
+    await radio.called()
+    writer.picked(_job(2, TV))
+    writer.load(12.5, 380.25)
+    writer.flush()
+    async with asyncio.timeout(5):
+        await radio.called(2)
+    assert [module for module, _ in radio.calls] == ["Location", "Capability"]
+    # The first pick being sent; the second, and the position riding with it, behind it.
+    assert writer.pending == 3
+    release.set()
+    async with asyncio.timeout(5):
+        await writer.drained()
+    second = ("Location", _location(_joined(pick_update(TV, "Robot1", 2), _at((3, 7), 2000))))
+    assert radio.calls[2] == second and (writer.written, writer.pending) == (3, 0)
 
 
 async def test_a_failed_write_is_tried_again_before_the_next(make: Callable) -> None:
