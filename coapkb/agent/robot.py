@@ -227,7 +227,8 @@ class Robot:
         # read-only); the seed's wire reproduces the paper: no cache.
         kb_client = KBClient(client, timeout=config.query_timeout_s, cache=query_wire == "compact",
                              writer=f"{config.robot_id}.{boot}")
-        queries = _query_handler(config, served, kb_client, client, team, router, query_wire)
+        queries = _query_handler(config, served, kb_client, client, team, router, query_wire,
+                                 None if replicator is None else replicator.caught_up)
         final = FinalOutcome()
         publish_live, publish_decision, pacings = _publishers(router, team, final)
         fence = _fence(config, teammates, client, team)
@@ -323,13 +324,15 @@ class Robot:
 
 
 def _query_handler(config: RobotConfig, served: KnowledgeBase | LiveKB | None, kb_client: KBClient,
-                   client: ClientTransport, team: TeamView, router: Router, query_wire: str) -> QueryHandler:
+                   client: ClientTransport, team: TeamView, router: Router, query_wire: str,
+                   caught_up: Callable[[], Awaitable[None]] | None) -> QueryHandler:
     """The Query Handler, pushing the answers it gives itself from the
-    modules this robot holds and taking those its holders push to it."""
+    modules this robot holds (once ``caught_up``, if replicated) and taking
+    those its holders push to it."""
     held = config.team[config.robot_id].kbs if served is not None else ()
     queries = QueryHandler(
         config, served, kb_client, wire=query_wire, down=lambda r: team.down.get(r),
-        on_failure=team.request_failed, pusher=FactPusher(router, tuple(held)) if held else None,
+        on_failure=team.request_failed, pusher=FactPusher(router, tuple(held), caught_up) if held else None,
     )
     pushing = queries.pushing_holders()
     if pushing:

@@ -135,6 +135,22 @@ async def test_a_closing_holder_sends_no_notification_still_due(holder: Holder) 
     assert notified == []
 
 
+async def test_a_holder_catching_up_answers_a_registration_once_caught_up() -> None:
+    """The pushed answers are a read of the module: a restarted holder
+    answers them, as its queries, only once it has caught up."""
+    caught_up = asyncio.Event()
+    router = Router()
+    FactPusher(router, ("Object",), caught_up.wait)
+    asking = asyncio.ensure_future(router.handle(Request(Method.GET, facts_path("Object"))))
+    await asyncio.sleep(0)
+    await asyncio.sleep(0)
+    assert not asking.done()
+    caught_up.set()
+    async with asyncio.timeout(PATIENCE_S):
+        response = await asking
+    assert response.status == Status.CONTENT and not decode_pushed(response.payload)
+
+
 @pytest.mark.parametrize("module", ["Location", "Capability"])
 async def test_a_module_the_holder_lacks_has_no_resource(holder: Holder, client: ClientTransport,
                                                          module: str) -> None:

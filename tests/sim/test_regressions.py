@@ -153,6 +153,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "observation whose server had dropped it while the feeder was cut off: 480 s, the run's settling "
               "461 s after the last task was decided",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5"), {
+        59: "a restarted holder, its catch-up from one co-holder lost once, answered a teammate registering on "
+            "/kb/facts/Object before it had caught up: a read while it lacked four acknowledged values",
+    }),
     (("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,loss=0.2", "--writes", "10"), {
         112: "a robot whose read of the place failed asked its teammate for its decision three times, all "
              "three asks were lost, and it decided the task for nobody",
