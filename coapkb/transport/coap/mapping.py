@@ -12,15 +12,14 @@ from ..messages import Method, Request, Response, Status
 
 #: URI-Query parameter carrying a hash of the request body.  Our client adds
 #: it to a request with a body whose answer may come in blocks (a FETCH, or
-#: one asking for a representation by Accept), so that even a body-less
-#: follow-up block request names its query; a task post or a write is
-#: answered with a status and a line, and spares those 16 bytes.  The
-#: server never requires it (standard clients do not send it).
+#: a POST asking for a representation by Accept: SPARQL text, a sync), so
+#: that even a body-less follow-up block request names its query; a task
+#: post or a write (PATCH, iPATCH: answered with a status and a line, or
+#: its few bytes of CBOR) spares those 16 bytes.  The server never requires
+#: it (standard clients do not send it).
 BODY_HASH_PARAM = "qh"
 
 METHOD_CODES = {m: getattr(Code, m.value) for m in Method}
-#: Methods whose body names what is asked or changed.
-BODY_METHODS = (Method.FETCH, Method.POST, Method.PATCH, Method.IPATCH)
 
 
 def body_hash(payload: bytes) -> str:
@@ -77,8 +76,8 @@ def message_from_request(peer: Endpoint, request: Request, *, observe: bool = Fa
         payload=request.payload,
     )
     query = [f"{k}={v}" for k, v in request.query.items()]
-    if request.payload and request.method in BODY_METHODS and (
-            request.method == Method.FETCH or request.accept is not None):
+    if request.payload and (request.method == Method.FETCH or (
+            request.method == Method.POST and request.accept is not None)):
         query.append(f"{BODY_HASH_PARAM}={body_hash(request.payload)}")
     msg.opt.uri_query = tuple(query)
     if request.content_format is not None:

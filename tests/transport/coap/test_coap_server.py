@@ -460,6 +460,23 @@ async def test_body_hash_mismatch_is_400(transport: ClientTransport, peer: Endpo
     assert b"qh" in answer.payload
 
 
+@pytest.mark.parametrize(("method", "accept", "hashed"), [
+    (Method.FETCH, None, True),  # a query: its answer may come in blocks
+    (Method.POST, ContentFormat.CBOR, True),  # SPARQL text or a sync, answered by representation
+    (Method.POST, None, False),  # a task post: a status
+    (Method.PATCH, ContentFormat.CBOR, False),  # a write: its answer is a few bytes of CBOR
+    (Method.IPATCH, ContentFormat.CBOR, False),
+])
+async def test_the_body_hash_rides_only_where_the_answer_may_come_in_blocks(method: Method, accept: int | None,
+                                                                      hashed: bool) -> None:
+    from coapkb.transport.coap.mapping import BODY_HASH_PARAM, message_from_request
+
+    request = Request(method, "/kb", {"wid": "Robot1.7.1"}, payload=b"body", accept=accept)
+    query = message_from_request(Endpoint("coap", "127.0.0.1", 5683), request).opt.uri_query
+    assert any(q.startswith(f"{BODY_HASH_PARAM}=") for q in query) == hashed, query
+    assert "wid=Robot1.7.1" in query
+
+
 # --------------------------------------------------------------------------- block-wise
 
 
