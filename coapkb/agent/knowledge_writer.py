@@ -93,8 +93,8 @@ class KnowledgeWriter:
 
     What others decide on (a pick, an object missing) goes at once, in
     order within its module; the modules' writes go side by side (a robot
-    turning idle waits for both, on a lossy link one after the other took
-    twice as long); what only describes the robot (its position, load and charge)
+    turning idle waits for both: one after the other, it waited for their
+    sum); what only describes the robot (its position, load and charge)
     and deliveries wait, up to ``lazy_s`` or until the robot is idle
     (:meth:`flush`), and ride with the next update of their module: a
     robot's position needs no request of its own after every job."""
