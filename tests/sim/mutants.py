@@ -31,6 +31,7 @@ if __package__ in (None, ""):
 from coapkb.agent import controller as controller_module
 from coapkb.agent import notification_repair as notification_repair_module
 from coapkb.agent.controller import Controller
+from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
 from coapkb.agent.task_assigner import Assignment
@@ -195,6 +196,18 @@ async def _no_catch_up(self: AntiEntropy) -> None:
     """A robot that starts waits for its first anti-entropy round."""
 
 
+_PUSHED_ANSWERS = FactPusher._get
+
+
+async def _pushed_answers_ungated(self: FactPusher, request: Any) -> Any:
+    """A restarted holder answers a registration on its pushed answers at once, caught up or not."""
+    ready, self._ready = self._ready, None
+    try:
+        return await _PUSHED_ANSWERS(self, request)
+    finally:
+        self._ready = ready
+
+
 def _nothing_kept(self: Keeper, changes: Any, *args: Any) -> None:
     """The journal never written: a write answered before it is on disk."""
 
@@ -279,6 +292,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            _every_fifth_push_dropped, WRITES, (1, 2, 3)),
     Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
            lambda: _patch(AntiEntropy, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
+    Mutant("pushed-answers-before-catch-up", "a restarted holder answers a registration on its pushed answers "
+           "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP, (59,)),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
