@@ -138,12 +138,17 @@ async def test_a_closing_holder_sends_no_notification_still_due(holder: Holder) 
 async def test_a_holder_catching_up_answers_a_registration_once_caught_up() -> None:
     """The pushed answers are a read of the module: a restarted holder
     answers them, as its queries, only once it has caught up."""
-    caught_up = asyncio.Event()
+    waiting, caught_up = asyncio.Event(), asyncio.Event()
+
+    async def catching_up() -> None:
+        waiting.set()
+        await caught_up.wait()
+
     router = Router()
-    FactPusher(router, ("Object",), caught_up.wait)
+    FactPusher(router, ("Object",), catching_up)
     asking = asyncio.ensure_future(router.handle(Request(Method.GET, facts_path("Object"))))
-    await asyncio.sleep(0)
-    await asyncio.sleep(0)
+    async with asyncio.timeout(PATIENCE_S):
+        await waiting.wait()  # the answer waits on the catch-up
     assert not asking.done()
     caught_up.set()
     async with asyncio.timeout(PATIENCE_S):
