@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-import weakref
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -32,7 +31,8 @@ from ..model.results import QueryResult, Term, Triple
 from ..typed_fields import require_at_least
 from ..world.vocabulary import ONTOLOGIES, SINGLE_VALUED
 from .errors import KBError
-from .oxigraph_backend import OxigraphBackend, _from_ox, _to_ox
+from .files_graph import files_graph
+from .oxigraph_backend import OxigraphBackend
 from .pinned_answers import PINNED_ANSWERS, PinnedAnswers
 from .replica import Effect, Replica, ReplicaLimits
 from .store import KnowledgeBase
@@ -112,27 +112,6 @@ class Keeping(Protocol):
                  made: tuple[WriteId, Remembered] | None = None) -> None: ...
 
 
-#: The files' triples of each base, as rdflib terms (built at the first
-#: write or join, shared by the robots of a simulation that load one base).
-_BASE_TRIPLES: weakref.WeakKeyDictionary[KnowledgeBase, frozenset[Triple]] = weakref.WeakKeyDictionary()
-
-
-def base_triples(base: KnowledgeBase) -> frozenset[Triple]:
-    """The triples of ``base``'s files (its default graph), as its queries give them.
-
-    Whether a triple came from the files is asked for every triple a write
-    or a join touches, twice: a set answers it without turning each triple
-    into pyoxigraph's terms first (a restart joining 100,000 written
-    triples did that 200,000 times).  The files' graph never changes."""
-    triples = _BASE_TRIPLES.get(base)
-    if triples is None:
-        assert isinstance(base.engine, OxigraphBackend)
-        quads = base.engine.store.quads_for_pattern(None, None, None, ox.DefaultGraph())
-        triples = _BASE_TRIPLES[base] = frozenset(
-            (_from_ox(q.subject), _from_ox(q.predicate), _from_ox(q.object)) for q in quads)
-    return triples
-
-
 def wall_ms() -> int:
     """The machine's wall clock in milliseconds: a write's stamp (the
     hybrid logical clock keeps stamps growing if it steps back)."""
@@ -171,14 +150,14 @@ class LiveKB:
         self.writer = writer
         self.limits = limits or WriteLimits()
         self._wall_ms = wall_ms
-        #: :func:`base_triples`, once a write or a join asks.
-        self._base_triples: frozenset[Triple] | None = None
+        #: What the files say, as writes and joins ask (shared by robots loading ``base``).
+        self._files = files_graph(base)
         #: The graph queries see: the files', then what the replicas say.
         self.view = View(base, self.limits.rebuild_after_changes)
         self._evaluator = UpdateEvaluator(self.view, self.limits.max_triples)
         functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self.view.base_store)
         self.replicas: dict[str, Replica] = {
-            name: Replica(writer, single_valued=functional, base_values=self._base_values, limits=self.limits.replica)
+            name: Replica(writer, single_valued=functional, base_values=self._files.values, limits=self.limits.replica)
             for name in base.names
         }
         self._namespaces = module_namespaces(base.names)
@@ -241,17 +220,8 @@ class LiveKB:
         ``pinned_answers`` questions are kept."""
         return self.pinned.answer(task, sparql, self.query)
 
-    def _base_values(self, s: Term, p: Term) -> list[Term]:
-        from .oxigraph_backend import _from_ox
-
-        # A subject and a predicate are never literals: the single-valued properties' keys.
-        return [_from_ox(q.object)
-                for q in self.view.base_store.quads_for_pattern(_to_ox(s), _to_ox(p), None)]  # type: ignore[arg-type]  # s, p: never literals
-
     def _is_base(self, triple: Triple) -> bool:
-        if self._base_triples is None:
-            self._base_triples = base_triples(self.base)
-        return triple in self._base_triples
+        return self._files.has(triple)
 
     def module_of(self, triple: Triple) -> str:
         """The module a triple belongs to: its subject's namespace (module docstring)."""

@@ -89,13 +89,16 @@ class Visibility:
         """Whether each of ``triples`` shows, and each value competing with
         one of them for a single-valued property."""
         seen: dict[Triple, bool] = {}
+        done: set[tuple[Term, Term]] = set()  # single-valued keys already judged: all their values are in
         for triple in triples:
-            s, p, _ = triple
-            if p in self.single_valued:
+            s, p, o = triple
+            if p not in self.single_valued:
+                seen[triple] = self.triples.present(triple, is_base(triple))
+            elif (s, p) not in done:
+                done.add((s, p))
                 winners = self.winners(s, p)
-                for o in set(self.base_values(s, p)) | self.triples.values(s, p):
-                    seen[(s, p, o)] = o in winners
-            seen[triple] = self.visible(triple, is_base(triple))
+                for value in set(self.base_values(s, p)) | self.triples.values(s, p) | {o}:
+                    seen[(s, p, value)] = value in winners
         return seen
 
     def effect(self, before: dict[Triple, bool], is_base: Callable[[Triple], bool]) -> Effect:
