@@ -9,7 +9,7 @@ simulator watches three things from where the robots cannot lie:
   answered, with the robot's process and the simulated time;
 * the network (:class:`GrantLog`): every lease a robot granted a teammate,
   read off the answers its server sent;
-* the knowledge base (:func:`store_quads`, :func:`written_view`): the
+* the knowledge base (:class:`FilesQuads`, :func:`written_view`): the
   triples a holder's queries see, compared between holders.
 """
 
@@ -23,6 +23,8 @@ import pyoxigraph as ox
 
 from ..agent.lease import LEASE_PATH
 from ..kb.live import LiveKB
+from ..kb.oxigraph_backend import OxigraphBackend
+from ..kb.store import KnowledgeBase
 from ..model.results import Triple
 from ..transport.messages import Request, Response
 from ..world.truth import WorldTruth
@@ -92,10 +94,56 @@ def store_quads(live: LiveKB) -> frozenset[ox.Quad]:
     return frozenset(live.view.store)
 
 
-def of_module(quads: Iterable[ox.Quad], live: LiveKB, module: str) -> list[ox.Quad]:
+def of_module(quads: Iterable[ox.Quad], live: LiveKB, module: str) -> frozenset[ox.Quad]:
     """Those of ``quads`` whose subject is in ``module``'s namespaces."""
     prefixes = tuple(live._namespaces[module])
-    return [quad for quad in quads if getattr(quad.subject, "value", "").startswith(prefixes)]
+    return frozenset(quad for quad in quads if getattr(quad.subject, "value", "").startswith(prefixes))
+
+
+class FilesQuads:
+    """The quads of each KB's files, and what two holders' files differ by
+    in one module: what the end of every run takes away from its holders'
+    stores before comparing them.
+
+    Two holders' stores are compared by module; holding other modules, they
+    differ by thousands of the files' triples, which the files alone
+    explain.  The symmetric difference of the stores is that of what the
+    files and the changes since made of each, so it is computed from the
+    changes (small) and the files' difference (kept: a simulator process
+    loads each KB once, and the files never change)."""
+
+    def __init__(self) -> None:
+        self._quads: dict[int, tuple[KnowledgeBase, frozenset[ox.Quad]]] = {}
+        self._differences: dict[tuple[int, int, str], frozenset[ox.Quad]] = {}
+
+    def of(self, base: KnowledgeBase) -> frozenset[ox.Quad]:
+        """Every quad of ``base``'s files."""
+        kept = self._quads.get(id(base))
+        if kept is None or kept[0] is not base:
+            assert isinstance(base.engine, OxigraphBackend)
+            kept = self._quads[id(base)] = (base, frozenset(base.engine.store))
+        return kept[1]
+
+    def module_difference(self, a: LiveKB, b: LiveKB, module: str) -> frozenset[ox.Quad]:
+        """The quads of ``module`` that the files of ``a`` and ``b`` do not share."""
+        if a.base is b.base:
+            return frozenset()
+        key = (id(a.base), id(b.base), module)
+        kept = self._differences.get(key)
+        if kept is None:
+            kept = self._differences[key] = of_module(self.of(a.base) ^ self.of(b.base), a, module)
+        return kept
+
+    def changed(self, live: LiveKB) -> frozenset[ox.Quad]:
+        """What ``live``'s store holds and its files do not, and the reverse:
+        read from the store its queries run on."""
+        return store_quads(live) ^ self.of(live.base)
+
+    def differ(self, a: LiveKB, changed_a: frozenset[ox.Quad], b: LiveKB, changed_b: frozenset[ox.Quad],
+               module: str) -> frozenset[ox.Quad]:
+        """The quads of ``module`` one of the stores holds and the other not,
+        from each one's :meth:`changed`."""
+        return of_module(changed_a ^ changed_b, a, module) ^ self.module_difference(a, b, module)
 
 
 def written_view(live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:

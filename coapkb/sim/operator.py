@@ -27,7 +27,7 @@ from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
 from .loop import Process
 from .network import INITIAL_RTO_S, SimNetwork
-from .observed import of_module, store_quads, written_view
+from .observed import FilesQuads, written_view
 
 #: How long a restarted holder (no data folder) may take to catch up: its
 #: catch-up's first two tries, from RFC 6298's first timeout with no sample
@@ -86,8 +86,9 @@ class Holders:
     process, and its status), read as they change."""
 
     def __init__(self, configs: Mapping[str, RobotConfig], robots: Mapping[str, Robot],
-                 current: Mapping[str, Process], elapsed_s: Callable[[], float]) -> None:
+                 current: Mapping[str, Process], elapsed_s: Callable[[], float], files: FilesQuads) -> None:
         self.configs = configs
+        self.files = files
         self.robots = robots
         self.current = current
         self._elapsed_s = elapsed_s
@@ -141,10 +142,9 @@ class Holders:
         versions: dict[str, dict[str, str]] = {}
         values: dict[str, dict[str, frozenset[int]]] = {}
         differences: dict[str, list[str]] = {}
-        # Each store read once: two holders' stores differ only in their
-        # other modules' triples unless something is wrong, and only the
-        # difference is sorted by module (this runs at the end of every run).
-        quads: dict[str, frozenset[ox.Quad]] = {}
+        # Each store read once, and compared by what changed since its files
+        # (:class:`FilesQuads`): this runs at the end of every run.
+        changed: dict[str, frozenset[ox.Quad]] = {}
         for module, holders in sorted(self.running().items()):
             ns = ONTOLOGIES[module][1]
             select = f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
@@ -154,11 +154,14 @@ class Holders:
                 for r, live in sorted(holders.items())
             }
             for robot_id, live in holders.items():
-                if robot_id not in quads:
-                    quads[robot_id] = store_quads(live)
+                if robot_id not in changed:
+                    changed[robot_id] = self.files.changed(live)
             first_id, *rest = sorted(holders)
+            first = holders[first_id]
             for other_id in rest:
-                differ = sorted(str(q) for q in of_module(quads[first_id] ^ quads[other_id], holders[first_id], module))
+                other = holders[other_id]
+                differ = sorted(str(q) for q in self.files.differ(first, changed[first_id], other, changed[other_id],
+                                                                  module))
                 if differ:
                     differences.setdefault(module, []).append(
                         f"{first_id} and {other_id} differ by {len(differ)} triples, e.g. {'; '.join(differ[:2])}")

@@ -47,7 +47,7 @@ from .catch_up import CatchUps
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
-from .observed import Grant, GrantLog, Shelf, Take
+from .observed import FilesQuads, Grant, GrantLog, Shelf, Take
 from .operator import Holders, Operator, WriteOp, shows
 from .saboteur import Forgery, Saboteur
 
@@ -233,6 +233,8 @@ class KBCache:
         self._products: dict[Path, list[str]] = {}
         self._ontologies: dict[tuple[Path, int, bool], Path] = {}
         self._generated: tempfile.TemporaryDirectory[str] | None = None
+        #: The files' quads of the KBs loaded here, for the end of each run's comparison.
+        self.files = FilesQuads()
 
     def load(self, files: Sequence[Path], index_dir: Path | None = None) -> KnowledgeBase:
         key = tuple(files)
@@ -420,7 +422,7 @@ class SimulatedTeam:
         #: Set once every task is done: from then on the schedule only heals (no new faults after the run).
         self.ending = False
         #: The holders' KBs, and the operator's writes (``spec.writes``) into them.
-        self.holders = Holders(self.configs, self.robots, self.current, lambda: self.elapsed_s)
+        self.holders = Holders(self.configs, self.robots, self.current, lambda: self.elapsed_s, kbs.files)
         self.catch_ups = CatchUps(clock, shows)
         self.network.answer_hooks.append(self.catch_ups.answered)
         self.operator = Operator(self.holders, self.network, clock, self.note, self.catch_ups)

@@ -3,11 +3,15 @@ and says nothing of a good one."""
 
 from __future__ import annotations
 
+from support import ONTOLOGIES
+
 from coapkb.feeder.record import TaskRecord
 from coapkb.harness.record import TeamRecord
+from coapkb.kb.live import LiveKB, wall_ms
+from coapkb.kb.store import KnowledgeBase
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.invariants import check
-from coapkb.sim.observed import Grant, Take
+from coapkb.sim.observed import FilesQuads, Grant, Take, of_module, store_quads
 from coapkb.sim.operator import WriteOp
 from coapkb.sim.run import Pick, RunResult
 from coapkb.transport.base import TrafficCounters
@@ -156,3 +160,26 @@ def test_a_write_lost_with_the_last_memory_holding_it_is_excused_with_its_reason
                 values={"Object": {"Robot1": frozenset()}}, lost_copies={("Object", 1): why})
     assert not lost.violations
     assert lost.excused == [f"Robot1 lacks acknowledged write w1 (Object value 1, answered Robot1 2.04 at 1.200s): {why}"]
+
+
+def test_holders_of_other_modules_too_differ_only_where_their_writes_do() -> None:
+    """The end of a run compares holders by what changed since their files;
+    a holder of two modules and one of one differ in the compared module
+    exactly as their whole stores do."""
+    cap = "http://www.tcs.org/2018/Capability#"
+    files = FilesQuads()
+    two = LiveKB(KnowledgeBase.load([ONTOLOGIES / "Capability.owl", ONTOLOGIES / "Location.owl"]), "A.1",
+                 wall_ms=wall_ms)
+    one = LiveKB(KnowledgeBase.load([ONTOLOGIES / "Capability.owl"]), "B.1", wall_ms=wall_ms)
+
+    def differ() -> set[str]:
+        found = files.differ(two, files.changed(two), one, files.changed(one), "Capability")
+        assert found == of_module(store_quads(two) ^ store_quads(one), two, "Capability")
+        return {str(q) for q in found}
+
+    for live in (two, one):
+        live.update(f'PREFIX : <{cap}> INSERT DATA {{ :Robot1 :note "both" }}')
+    assert differ() == set()
+    one.update(f'PREFIX : <{cap}> INSERT DATA {{ :Robot2 :note "one" }}')
+    two.update(f'PREFIX : <{cap}> DELETE DATA {{ :Robot1 :Robot_Id "Robot1" }}')
+    assert differ() == {f'<{cap}Robot2> <{cap}note> "one"', f'<{cap}Robot1> <{cap}Robot_Id> "Robot1"'}
