@@ -79,6 +79,8 @@ _WRAPPED = {
     (MessageManager, "_send_initially"): ("message", "messageerror_monitor"),
 }
 _MARKER = "_coapkb_hooks"
+#: What aiocoap's ClientObservation.error raises once its observation was cancelled.
+_CANCELLED_OBSERVATION = "already cancelled ClientObservation"
 #: NON notifications whose Reset is still matched to their observation.
 NON_NOTIFICATIONS_KEPT = 256
 
@@ -164,6 +166,8 @@ def verify() -> None:
         raise UnsupportedAiocoapVersion("aiocoap's MessageManager keeps its empty-ACK timers elsewhere")
     if f'getChild("{BLOCKWISE_LOGGER}")' not in inspect.getsource(aiocoap.protocol.BlockwiseRequest.__init__):
         raise UnsupportedAiocoapVersion("aiocoap's block-wise requester logs elsewhere")
+    if _CANCELLED_OBSERVATION not in inspect.getsource(aiocoap.protocol.ClientObservation.error):
+        raise UnsupportedAiocoapVersion("aiocoap's cancelled observation raises another error")
 
 
 # --------------------------------------------------------------------- OSCORE and EDHOC
@@ -603,6 +607,13 @@ class ContextHooks:
             self._original(self.mm, "dispatch_error")(error, remote)
         except asyncio.InvalidStateError:
             log.debug("late error for an abandoned request to %s: %s", remote, error)
+        except RuntimeError as exc:
+            # aiocoap tells an observation whose request failed before its
+            # first answer, and raises if its caller had already cancelled it
+            # (a feeder stopping while a robot dies): nobody waits for it.
+            if _CANCELLED_OBSERVATION not in str(exc):
+                raise
+            log.debug("late error for a cancelled observation at %s: %s", remote, error)
 
     # ------------------------------------------------------------ CON timers
 

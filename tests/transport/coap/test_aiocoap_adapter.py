@@ -209,3 +209,30 @@ async def test_the_duplicate_memory_forgets_a_request_older_than_its_horizon(
         assert len(ContextHooks.of(ctx).mm._recent_messages) == 1
     finally:
         await ctx.shutdown()
+
+
+async def test_an_error_for_an_observation_cancelled_before_its_answer_is_not_logged(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """An observation its caller gave up before the first answer, whose
+    request then fails (the robot died: ICMP port unreachable): aiocoap
+    raises from the error dispatch and logged a traceback as an error
+    (``coapkb team`` stopped with Ctrl-C while its robots went down)."""
+    import logging
+
+    from aiocoap import GET, Message
+
+    from tests.support import free_udp_port
+
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"], loggername="coapkb.test.client")
+    try:
+        ContextHooks.of(ctx)
+        with caplog.at_level(logging.DEBUG):
+            request = ctx.request(Message(code=GET, observe=0, uri=f"coap://127.0.0.1:{free_udp_port()}/x"),
+                                  handle_blockwise=False)
+            request.observation.cancel()
+            with pytest.raises(aiocoap.error.NetworkError):
+                await asyncio.wait_for(request.response, 5)
+        assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+        assert any("cancelled observation" in r.getMessage() for r in caplog.records)
+    finally:
+        await ctx.shutdown()
