@@ -155,3 +155,23 @@ def written_view(live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:
     touched = set(replica.entries) | replica.removed_base
     seen = replica.visibility.snapshot(touched, live._is_base)
     return frozenset(seen.items())
+
+
+class WrittenViews:
+    """:func:`written_view` of each holder's module, taken again only once
+    its replica changed: its version, or the count of its written triples,
+    removed file triples or tombstones (a replica changes by a write, a
+    delta or a joined state; each adds a dot to its version).  Every change
+    at one holder is compared with every other holder at its version, so
+    most views asked for are of holders that did not change since."""
+
+    def __init__(self) -> None:
+        self._kept: dict[tuple[int, str], tuple[tuple[object, ...], frozenset[tuple[Triple, bool]]]] = {}
+
+    def of(self, live: LiveKB, module: str) -> frozenset[tuple[Triple, bool]]:
+        replica = live.replicas[module]
+        key = (live.module_version(module), len(replica.entries), len(replica.removed_base), len(replica.tombstones))
+        kept = self._kept.get((id(live), module))
+        if kept is None or kept[0] != key:
+            kept = self._kept[(id(live), module)] = (key, written_view(live, module))
+        return kept[1]

@@ -22,12 +22,13 @@ from ..config import RobotConfig
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
 from ..kb.results import expect_ask, expect_select
+from ..model.results import Triple
 from ..transport.base import TransportError
 from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
 from .loop import Process
 from .network import INITIAL_RTO_S, SimNetwork
-from .observed import FilesQuads, written_view
+from .observed import FilesQuads, WrittenViews
 
 #: How long a restarted holder (no data folder) may take to catch up: its
 #: catch-up's first two tries, from RFC 6298's first timeout with no sample
@@ -98,6 +99,7 @@ class Holders:
         self.lives: list[tuple[str, LiveKB]] = []
         #: Replicas found at one version showing different triples.
         self.split_versions: list[str] = []
+        self._views = WrittenViews()
 
     def of(self, module: str) -> list[str]:
         """The robots the team makes holders of ``module``."""
@@ -176,10 +178,11 @@ class Holders:
             if mine is None:
                 continue
             version = mine.module_version(module)
-            view = written_view(mine, module)
+            view: frozenset[tuple[Triple, bool]] | None = None  # taken once another holder is at this version
             for other_id, other in sorted(holders[module].items()):
                 if other_id != robot_id and other.module_version(module) == version:
-                    theirs = written_view(other, module)
+                    view = self._views.of(mine, module) if view is None else view
+                    theirs = self._views.of(other, module)
                     if theirs != view:
                         differ = sorted(str(t) for t in view ^ theirs)[:3]
                         self.split_versions.append(
