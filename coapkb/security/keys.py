@@ -188,7 +188,8 @@ def generate_team(team_dir: str | Path, members: Iterable[tuple[str, str]]) -> T
     except OSError as exc:
         raise SecurityError(f"cannot create team directory {team_dir}: {exc.strerror}") from None
     if (team_dir / TRUST_FILE).exists():
-        raise SecurityError(f"{team_dir} already holds a team ({TRUST_FILE}); use a new directory")
+        raise SecurityError(f"{team_dir} already holds a team ({TRUST_FILE}): its keys are kept; use them, "
+                            f"or remove the directory (every member then needs the new keys)")
     import zmq
 
     entries = []
