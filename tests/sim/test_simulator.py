@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from profiles import CI_PROFILES
 from support import ROOT, unmeasured
 
 from coapkb.sim import FaultMix, FaultSpecError, KBCache, SimSpec, run_checked
@@ -217,24 +218,12 @@ def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) 
 # --------------------------------------------------------------------------- the CI profile
 
 
-#: The CI profile: swarm testing (each seed draws its own faults, traps at
-#: picks, long outages) with the operator writing, on 3 robots and on 9.
-CI_PROFILES = [
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20"), "1-200"),
-    (("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"), "1-12"),
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20"), "1-50"),
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20", "--storage"), "1-40"),
-    # The progress oracle judges the runs together (a median under 1 s now).
-    (("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5"), "1-40"),
-    # The catch-up oracle judges the restarts together (a median of one exchange, 0.07 s, now).
-    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5"),
-     "1-60"),
-]
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # hundreds of seeds: this bounds a hang; a busy machine takes minutes
-@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts", "progress", "catch-up"])
+@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts", "progress", "catch-up",
+                                                                  "every fault", "repeats"])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation
     (what the schedules explain is listed apart)."""
