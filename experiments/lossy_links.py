@@ -46,7 +46,7 @@ from typing import Any
 
 import pandas as pd
 
-from coapkb.bench.stats import percentile
+from coapkb.harness.stats import percentile
 from experiments.common import PORTS, prepare_link_emulation, query_plan, start_kb_server, stop_processes
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -39,6 +39,7 @@ from ..errors import CoapkbError
 from ..feeder.record import FateCounts
 from ..harness.placement import Placement
 from ..harness.record import TeamRecord
+from ..harness.stats import percentile
 from ..harness.team import DEFAULT_ONTOLOGIES, Fault, Team, TeamError, TeamSpec, draw_tasks
 from ..transport.base import Endpoint, TrafficCounters
 from ..transport.coap.reliability import ROBUST
@@ -53,7 +54,6 @@ from .linkemu import (
     enter_netns,
 )
 from .row import COLUMNS, KEY_COLUMNS, BenchRow, append_rows, done_keys, format_row, read_rows
-from .stats import percentile
 
 __all__ = [
     "COLUMNS",

@@ -37,6 +37,7 @@ from foxglove import channels
 
 from ..errors import CoapkbError
 from ..world import DEPOT, Layout, Position
+from .stats import percentile
 
 if TYPE_CHECKING:
     from ..agent.robot_state import RobotState
@@ -215,12 +216,12 @@ class RunRecorder:
 
     def traffic(self, robot_stats: Mapping[str, RobotStats]) -> None:
         for robot_id, stats in sorted(robot_stats.items()):
-            latencies = sorted(stats.queries.remote_latencies)
+            latencies = stats.queries.remote_latencies
             self._log_message(self._traffic, {
                 "robot": robot_id, "bytes_sent": stats.traffic.bytes_sent,
                 "bytes_received": stats.traffic.bytes_received, "messages_sent": stats.traffic.messages_sent,
                 "retransmissions": stats.traffic.retransmissions,
-                "query_p50_ms": _percentile(latencies, 0.5), "query_p99_ms": _percentile(latencies, 0.99),
+                "query_p50_ms": _ms(percentile(latencies, 50)), "query_p99_ms": _ms(percentile(latencies, 99)),
                 "executed": stats.executed,
             })
 
@@ -312,7 +313,5 @@ def _stamp(m: Any, ns: int) -> Any:
     return m.Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
 
 
-def _percentile(sorted_values: Sequence[float], q: float) -> float | None:
-    if not sorted_values:
-        return None
-    return round(sorted_values[min(len(sorted_values) - 1, int(q * len(sorted_values)))] * 1000, 1)
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds * 1000, 1)

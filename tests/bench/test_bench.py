@@ -23,8 +23,8 @@ from support import ROOT, coapkb, require
 from coapkb.bench import run as bench
 from coapkb.bench.linkemu import LinkCounters, LinkSpec, Testbed, available, enter_netns
 from coapkb.bench.run import COLUMNS, SYSTEMS, BenchRow, append_rows, done_keys, read_rows
-from coapkb.bench.stats import percentile
 from coapkb.harness.record import TeamRecord
+from coapkb.harness.stats import percentile
 from coapkb.harness.team import Fault
 
 

@@ -1,4 +1,4 @@
-"""Statistics of benchmark and experiment results, on numpy."""
+"""Statistics of run, benchmark and experiment results, on numpy."""
 
 from __future__ import annotations
 
