@@ -368,6 +368,22 @@ class ConPolicy(Protocol):
     def max_retransmit(self, record: Any) -> int: ...
 
 
+def _dispatch_quietly(dispatch: Callable[[Exception, Any], None], error: Exception, remote: Any) -> None:
+    """aiocoap's dispatch of a transport error to the requests to ``remote``,
+    without what it raises for those nobody waits for any more."""
+    try:
+        dispatch(error, remote)
+    except asyncio.InvalidStateError:
+        log.debug("late error for an abandoned request to %s: %s", remote, error)
+    except RuntimeError as exc:
+        # aiocoap tells an observation whose request failed before its
+        # first answer, and raises if its caller had already cancelled it
+        # (a feeder stopping while a robot dies).
+        if _CANCELLED_OBSERVATION not in str(exc):
+            raise
+        log.debug("late error for a cancelled observation at %s: %s", remote, error)
+
+
 class ContextHooks:
     """All per-context patches of one aiocoap context, installed once.
 
@@ -603,17 +619,7 @@ class ContextHooks:
         if self.con_policy is not None:
             for key in [k for k in self._pending if k[0] == remote]:
                 self.con_policy.on_give_up(self._pending.pop(key), "error")
-        try:
-            self._original(self.mm, "dispatch_error")(error, remote)
-        except asyncio.InvalidStateError:
-            log.debug("late error for an abandoned request to %s: %s", remote, error)
-        except RuntimeError as exc:
-            # aiocoap tells an observation whose request failed before its
-            # first answer, and raises if its caller had already cancelled it
-            # (a feeder stopping while a robot dies): nobody waits for it.
-            if _CANCELLED_OBSERVATION not in str(exc):
-                raise
-            log.debug("late error for a cancelled observation at %s: %s", remote, error)
+        _dispatch_quietly(self._original(self.mm, "dispatch_error"), error, remote)
 
     # ------------------------------------------------------------ CON timers
 
