@@ -49,9 +49,8 @@ class FilesGraph:
         key = (s, p)
         kept = self._values.get(key)
         if kept is None:
-            # A subject and a predicate are never literals: the single-valued properties' keys.
-            kept = tuple(_from_ox(q.object)
-                         for q in self._store.quads_for_pattern(_to_ox(s), _to_ox(p), None))  # type: ignore[arg-type]
+            pattern = self._store.quads_for_pattern(_to_ox(s), _to_ox(p), None)  # type: ignore[arg-type]  # s, p: never literals
+            kept = tuple(_from_ox(q.object) for q in pattern)
             if len(self._values) >= self.MAX_KEPT_VALUES:
                 self._values.clear()
             self._values[key] = kept
