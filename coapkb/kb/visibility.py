@@ -89,16 +89,18 @@ class Visibility:
         """Whether each of ``triples`` shows, and each value competing with
         one of them for a single-valued property."""
         seen: dict[Triple, bool] = {}
-        done: set[tuple[Term, Term]] = set()  # single-valued keys already judged: all their values are in
+        judged: dict[tuple[Term, Term], frozenset[Term]] = {}  # each single-valued key's winners, once
         for triple in triples:
             s, p, o = triple
             if p not in self.single_valued:
                 seen[triple] = self.triples.present(triple, is_base(triple))
-            elif (s, p) not in done:
-                done.add((s, p))
-                winners = self.winners(s, p)
-                for value in set(self.base_values(s, p)) | self.triples.values(s, p) | {o}:
+                continue
+            winners = judged.get((s, p))
+            if winners is None:
+                winners = judged[(s, p)] = self.winners(s, p)
+                for value in set(self.base_values(s, p)) | self.triples.values(s, p):
                     seen[(s, p, value)] = value in winners
+            seen[triple] = o in winners
         return seen
 
     def effect(self, before: dict[Triple, bool], is_base: Callable[[Triple], bool]) -> Effect:
