@@ -113,22 +113,24 @@ class FilesQuads:
     loads each KB once, and the files never change)."""
 
     def __init__(self) -> None:
-        self._quads: dict[int, tuple[KnowledgeBase, frozenset[ox.Quad]]] = {}
-        self._differences: dict[tuple[int, int, str], frozenset[ox.Quad]] = {}
+        # Keyed by the loaded KBs themselves (compared as objects): one per
+        # set of files in a simulator process.
+        self._quads: dict[KnowledgeBase, frozenset[ox.Quad]] = {}
+        self._differences: dict[tuple[KnowledgeBase, KnowledgeBase, str], frozenset[ox.Quad]] = {}
 
     def of(self, base: KnowledgeBase) -> frozenset[ox.Quad]:
         """Every quad of ``base``'s files."""
-        kept = self._quads.get(id(base))
-        if kept is None or kept[0] is not base:
+        kept = self._quads.get(base)
+        if kept is None:
             assert isinstance(base.engine, OxigraphBackend)
-            kept = self._quads[id(base)] = (base, frozenset(base.engine.store))
-        return kept[1]
+            kept = self._quads[base] = frozenset(base.engine.store)
+        return kept
 
     def module_difference(self, a: LiveKB, b: LiveKB, module: str) -> frozenset[ox.Quad]:
         """The quads of ``module`` that the files of ``a`` and ``b`` do not share."""
         if a.base is b.base:
             return frozenset()
-        key = (id(a.base), id(b.base), module)
+        key = (a.base, b.base, module)
         kept = self._differences.get(key)
         if kept is None:
             kept = self._differences[key] = of_module(self.of(a.base) ^ self.of(b.base), a, module)

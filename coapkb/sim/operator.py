@@ -22,7 +22,6 @@ from ..config import RobotConfig
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
 from ..kb.results import expect_ask, expect_select
-from ..model.results import Triple
 from ..transport.base import TransportError
 from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
@@ -178,11 +177,9 @@ class Holders:
             if mine is None:
                 continue
             version = mine.module_version(module)
-            view: frozenset[tuple[Triple, bool]] | None = None  # taken once another holder is at this version
             for other_id, other in sorted(holders[module].items()):
                 if other_id != robot_id and other.module_version(module) == version:
-                    view = self._views.of(mine, module) if view is None else view
-                    theirs = self._views.of(other, module)
+                    view, theirs = self._views.of(mine, module), self._views.of(other, module)
                     if theirs != view:
                         differ = sorted(str(t) for t in view ^ theirs)[:3]
                         self.split_versions.append(
