@@ -4,22 +4,41 @@ fall in (``test_mutants.py``: those need no run without the bug of their own).""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+
+class CIProfile(NamedTuple):
+    """One of the CI profile's command lines, and the seeds it runs (``A-B``)."""
+
+    name: str
+    options: tuple[str, ...]
+    seeds: str
+
+    def span(self) -> range:
+        first, last = map(int, self.seeds.split("-"))
+        return range(first, last + 1)
+
+
 #: The CI profile: swarm testing (each seed draws its own faults, traps at
 #: picks, long outages) with the operator writing, on 3 robots and on 9.
 CI_PROFILES = [
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20"), "1-200"),
-    (("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"), "1-12"),
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20"), "1-50"),
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20", "--storage"), "1-40"),
+    CIProfile("3 robots", ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20"), "1-200"),
+    CIProfile("9 robots", ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm", "--writes", "20"),
+              "1-12"),
+    CIProfile("forged syncs", ("--robots", "3", "--tasks", "10", "--faults", "mixed,forge,swarm", "--writes", "20"),
+              "1-50"),
+    CIProfile("power cuts", ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "--writes", "20",
+                             "--storage"), "1-40"),
     # The progress oracle judges the runs together (a median under 1 s now).
-    (("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5"), "1-40"),
+    CIProfile("progress", ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5"),
+              "1-40"),
     # The catch-up oracle judges the restarts together (a median of one exchange, 0.07 s, now).
-    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5"),
-     "1-60"),
+    CIProfile("catch-up", ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20",
+                           "--catch-up-within", "0.5"), "1-60"),
     # Every fault at once, no swarm: the operator's writes against kills, restarts, cuts and loss.
-    (("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), "1-60"),
+    CIProfile("every fault", ("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), "1-60"),
     # Long task lists that draw objects again, across three clusters, with every fault.
-    (("--robots", "9", "--tasks", "60", "--faults", "mixed", "--writes", "3"), "1-6"),
+    CIProfile("repeats", ("--robots", "9", "--tasks", "60", "--faults", "mixed", "--writes", "3"), "1-6"),
 ]
 
 
@@ -29,12 +48,7 @@ def held_by_ci(profile: tuple[str, ...], seeds: tuple[int, ...]) -> bool:
     runs together (``--decide-within``, ``--catch-up-within``), they are
     all of its runs."""
     judged_together = any(option.endswith("-within") for option in profile)
-    for options, span in CI_PROFILES:
-        first, last = map(int, span.split("-"))
-        if options != profile:
-            continue
-        if judged_together and tuple(seeds) == tuple(range(first, last + 1)):
-            return True
-        if not judged_together and all(first <= seed <= last for seed in seeds):
-            return True
-    return False
+    return any(
+        seeds == tuple(ci.span()) if judged_together else all(seed in ci.span() for seed in seeds)
+        for ci in CI_PROFILES if ci.options == profile
+    )

@@ -218,12 +218,9 @@ def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) 
 # --------------------------------------------------------------------------- the CI profile
 
 
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # hundreds of seeds: this bounds a hang; a busy machine takes minutes
-@pytest.mark.parametrize(("profile", "seeds"), CI_PROFILES, ids=["3 robots", "9 robots", "forged syncs", "power cuts", "progress", "catch-up",
-                                                                  "every fault", "repeats"])
+@pytest.mark.parametrize(("profile", "seeds"), [pytest.param(ci.options, ci.seeds, id=ci.name) for ci in CI_PROFILES])
 def test_the_ci_profile_holds_every_invariant(profile: tuple[str, ...], seeds: str) -> None:
     """Seeded swarm runs with every kind of fault and writes: no violation
     (what the schedules explain is listed apart)."""
