@@ -430,25 +430,34 @@ class _OSCORETransport(TransportOSCORE):
             return False  # EDHOC, or a protected (outer) message on its way to the wire
         raise MissingContext(f"no OSCORE context for {message.get_request_uri()}")
 
-    async def _request(self, request: Any) -> None:
-        tracked = _CURRENT.get()  # set around the task's creation in request()
-        try:
-            await super()._request(request)
-        except asyncio.CancelledError:
-            if tracked is None or not tracked.ended:
-                raise
-            # Its wire request was ended because the requester gave up (a NON
-            # try the robust layer abandoned): nobody waits for an outcome,
-            # and an error added to the ended request would only be logged.
-
     def request(self, request: Any) -> None:
+        """aiocoap's own, with a done-callback that also takes cancellation:
+        Ctrl-C cancels every task, these among them, and aiocoap's (which
+        handles only ``Exception``) logged each as a traceback."""
         tracked = _WireRequests()
         token = _CURRENT.set(tracked)
-        try:
-            super().request(request)  # its task starts in a copy of this context: it sees ``tracked``
+        try:  # the task starts in a copy of this context: it sees ``tracked``
+            task = self.loop.create_task(self._request(request), name=f"OSCORE request {request!r}")
         finally:
             _CURRENT.reset(token)
+        self._tasks.add(task)
+        task.add_done_callback(lambda done: self._request_done(done, request, tracked))
         request.on_interest_end(tracked.end)
+
+    def _request_done(self, task: asyncio.Task[None], request: Any, tracked: _WireRequests) -> None:
+        self._tasks.discard(task)
+        if task.cancelled():
+            if tracked.ended:
+                # Its wire request was ended because the requester gave up (a
+                # NON try the robust layer abandoned): nobody waits for an outcome.
+                return
+            error: BaseException = aiocoap.error.LibraryShutdown()  # the loop is ending
+        elif (raised := task.exception()) is not None:
+            error = raised
+        else:
+            return
+        if request._event_callbacks is not False:  # still open: aiocoap logs an error added after its end
+            request.add_exception(error)
 
 
 def install_oscore(ctx: aiocoap.Context) -> None:

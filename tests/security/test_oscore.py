@@ -303,6 +303,45 @@ async def test_abandoned_tries_leave_no_task_or_token_behind(team_dir: Path) -> 
             silent.close()
 
 
+async def test_an_oscore_request_cancelled_at_the_loops_end_fails_without_a_traceback(team_dir: Path) -> None:
+    """Ctrl-C cancels every task, aiocoap's OSCORE request tasks among them;
+    their done-callback handles only ``Exception``, and the cancellation
+    was logged as a traceback at a team's interruption."""
+    from coapkb.security.coap import _OSCORETransport
+
+    robot = Robot1(team_dir)
+    peer = await robot.start()
+    client = await _client(load_identity(team_dir, "Robot2"))
+    loop = asyncio.get_running_loop()
+    unhandled: list[dict[str, object]] = []
+    loop.set_exception_handler(lambda _loop, context: unhandled.append(context))
+    silent = None
+    try:
+        assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
+        await robot.stop()
+        silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        silent.bind((peer.host, peer.port))
+        silent.setblocking(False)
+        asking = asyncio.create_task(client.request(peer, Request(Method.GET, "/tasks"), timeout=5))
+        async with asyncio.timeout(5):
+            await loop.sock_recv(silent, 2048)  # the request is on the wire: its OSCORE task waits
+        (oscore,) = [i for i in client._ctx.request_interfaces if isinstance(i, _OSCORETransport)]
+        in_flight = list(oscore._tasks)
+        assert in_flight
+        for task in in_flight:
+            task.cancel()
+        await asyncio.gather(*in_flight, return_exceptions=True)
+        await asyncio.sleep(0)  # the done-callbacks run
+        asking.cancel()
+        await asyncio.gather(asking, return_exceptions=True)
+        assert unhandled == []
+    finally:
+        loop.set_exception_handler(None)
+        await client.aclose()
+        if silent is not None:
+            silent.close()
+
+
 async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None:
     robot, peer = robot1
     client = await _client(load_identity(team_dir, "Robot3"))

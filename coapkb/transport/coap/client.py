@@ -327,6 +327,7 @@ class CoapClientTransport:
             # gave up on it (seen closing a feeder of 99 robots); the context is
             # closed anyway, and the error must not hide why the caller closed it.
             logging.getLogger("coapkb.coap.client").debug("closing the CoAP client: %s", exc)
+            await self._hooks.close_socket()  # aiocoap's shutdown stopped before it
         self._hooks.remove()
 
 

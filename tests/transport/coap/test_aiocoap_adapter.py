@@ -56,6 +56,22 @@ async def test_hooks_are_per_context_and_come_off_whole() -> None:
     assert "send_message" not in vars(mm_a) and vars(a)["log"] is original_log.logger
 
 
+async def test_an_icmp_error_read_after_a_broken_off_shutdown_reaches_nobody() -> None:
+    """aiocoap's context shutdown can stop between its token layer and its
+    socket (an observation's error); an ICMP error read then met a token
+    manager already gone and raised (a traceback at a team's Ctrl-C)."""
+    from aiocoap import GET, Message
+
+    ctx = await aiocoap.Context.create_client_context(transports=["udp6"])
+    hooks = ContextHooks.of(ctx)
+    remote = await hooks.interface.determine_remote(Message(code=GET, uri="coap://127.0.0.1:9/x"))
+    hooks.mm.token_manager.incoming_requests = None  # where the broken-off shutdown left it
+    hooks.remove()
+    hooks.mm.dispatch_error(ConnectionRefusedError(111, "Connection refused"), remote)  # no AttributeError
+    await hooks.close_socket()
+    assert hooks.mm._active_exchanges is None and hooks.interface.transport._protocol is None  # closed
+
+
 def test_the_pipe_logger_takes_aiocoaps_exception_keyword(caplog: pytest.LogCaptureFixture) -> None:
     import logging
 
