@@ -16,6 +16,7 @@ Two parts with different jobs:
 
 from __future__ import annotations
 
+import struct
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, overload
 
@@ -142,12 +143,14 @@ class RobotState:
         last = self.last
         if last is not None:
             carries = last.assigned_to is None or last.assigned_to == self.robot_id
-            last = replace(last, object="", coordination_s=0.0, members=last.members if last.epoch else (),
-                           costs=last.costs if carries else {}, reasons=last.reasons if carries else {})
+            last = replace(last, object="", coordination_s=0, members=last.members if last.epoch else (),
+                           costs=_single_precision(last.costs) if carries else {},
+                           reasons=last.reasons if carries else {})
         # Of the plan only its task, of the live part not where the robot is
         # nor what it picks: people read those on /robot/state (a recording
-        # feeder observes that instead).
-        live = replace(self.live, aisle=0.0, rack=0.0, executing=None)
+        # feeder observes that instead).  The zeros in their places are
+        # integers: one byte each, where 0.0 takes three.
+        live = replace(self.live, aisle=0, rack=0, executing=None)
         return replace(self, robot_id="", prev=None, live=live, last=last)._encode([self.plan.seq])
 
     def _live_tail(self) -> list[object]:
@@ -197,6 +200,24 @@ class RobotState:
 
 
 ACTIVITIES = ("idle", "travelling", "picking", "unloading", "charging")
+
+
+def _single_precision(costs: dict[str, float | None]) -> dict[str, float | None]:
+    """``costs`` rounded to the nearest float32: five bytes each in CBOR, not
+    nine.  The feeder only records and prints them (to 0.01 Wh); the robots
+    decide on their own float64 costs, never on these."""
+    return {robot: _single(cost) for robot, cost in costs.items()}
+
+
+def _single(cost: float | None) -> float | None:
+    if cost is None or not abs(cost) < _FLOAT32_MAX:  # none, infinite, NaN or too large: as it is
+        return cost
+    rounded: float = _FLOAT32.unpack(_FLOAT32.pack(cost))[0]
+    return rounded
+
+
+_FLOAT32 = struct.Struct("<f")
+_FLOAT32_MAX = 3.4e38
 
 
 def _plan_array(plan: PlannedState | None) -> list[object] | None:

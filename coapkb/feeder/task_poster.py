@@ -139,7 +139,8 @@ class TaskPoster:
                 record.skipped = True
                 record.skip_reason = record.skip_reason or decision.skip_reason
             if decision.costs and not record.costs:
-                record.costs = dict(decision.costs)
+                # Sent in single precision: its seven digits, not float32's binary tail.
+                record.costs = {r: None if c is None else float(f"{c:.7g}") for r, c in decision.costs.items()}
                 record.reasons = dict(decision.reasons)
         assigned = {d for d in record.decisions.values() if d is not None}
         record.assigned_to = assigned.pop() if len(assigned) == 1 else None
