@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import time
 from pathlib import Path
 
 import pytest
@@ -202,17 +201,23 @@ async def test_a_member_cannot_answer_or_notify_in_the_robots_name(robot1, team_
         _member(team_dir, who).configure(config)
         return zenoh.open(config)
 
+    def through_the_server(session: zenoh.Session) -> list[bytes]:
+        """A query answered by Robot1: its final reply comes after the server
+        took everything ``session`` sent before it (one link, in order)."""
+        replies = session.get("coapkb/robot/state", timeout=3, source_info=zenoh.SourceInfo(session.id, 0))
+        return [r.ok.payload.to_bytes() for r in replies if r.ok]
+
     def attack() -> tuple[list[bytes], list[bytes]]:
         victim, rogue = open_as("Robot2"), open_as("Robot3")
         try:
             forged = rogue.declare_queryable("coapkb/**", lambda q: q.reply(q.key_expr, b"forged"))
+            through_the_server(rogue)  # the forged queryable's declaration reached the server
             seen: list[bytes] = []
             sub = victim.declare_subscriber("coapkb-obs/victim/0", lambda s: seen.append(s.payload.to_bytes()))
-            time.sleep(0.3)  # declarations reach the server (nothing to wait on: the point is that nothing arrives)
-            replies = victim.get("coapkb/robot/state", timeout=3, source_info=zenoh.SourceInfo(victim.id, 0))
-            answers = [r.ok.payload.to_bytes() for r in replies if r.ok]
+            answers = through_the_server(victim)  # after the subscriber's declaration, on the same link
             rogue.put("coapkb-obs/victim/0", b"forged")
-            time.sleep(0.3)
+            through_the_server(rogue)  # the server took the put ...
+            through_the_server(victim)  # ... and sent the victim what it routes before this answer
             forged.undeclare()
             sub.undeclare()
             return answers, seen
