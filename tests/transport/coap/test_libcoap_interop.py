@@ -327,18 +327,24 @@ async def test_coap_client_writes_and_observes(coap_client: str, writable: Serve
     reached in the payload); an observing libcoap client
     (``-s``) of the query gets the new answer; aiocoap reads it too."""
     rq = query_file(tmp_path, RACK_OF_ROBOT2)
-    watcher = asyncio.ensure_future(
-        coap(coap_client, tmp_path, "-s", "4", "-m", "fetch", "-t", "0", "-A", "50", "-f", rq,
-             f"{writable.uri}/kb/sparql", out=False)
-    )
-    await asyncio.sleep(1.0)
-    run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", MOVE.format(rack=3),
-                     f"{writable.uri}/kb?ack=all", out=False)
+    # Unbuffered, so its first answer (the registration's) shows as it comes.
+    watcher = await asyncio.create_subprocess_exec(
+        "stdbuf", "-o0", coap_client, "-B", "30", "-s", "4", "-m", "fetch", "-t", "0", "-A", "50", "-f", rq,
+        f"{writable.uri}/kb/sparql", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    assert watcher.stdout is not None
+    try:
+        first = await asyncio.wait_for(watcher.stdout.readuntil(b"}]}}"), 30)  # registered: its answer came
+        run = await coap(coap_client, tmp_path, "-m", "patch", "-t", "0", "-e", MOVE.format(rack=3),
+                         f"{writable.uri}/kb?ack=all", out=False)
+        rest, error = await asyncio.wait_for(watcher.communicate(), 60)
+    finally:
+        if watcher.returncode is None:
+            watcher.kill()
+            await watcher.wait()
     # The level reached: all of its holders, itself alone (no data folder).
     assert run.stdout.decode().strip() == "removed 1, added 1; ack all (1 of 1 holder, in memory)", run.error
-    seen = await watcher
     # coap-client prints each notification's JSON right after the last one.
-    text, answers, at = seen.stdout.decode(), [], 0
+    text, answers, at = (first + rest).decode(), [], 0
     while (at := text.find("{", at)) >= 0:
         answer, at = json.JSONDecoder().raw_decode(text, at)
         answers.append(answer)
@@ -346,7 +352,7 @@ async def test_coap_client_writes_and_observes(coap_client: str, writable: Serve
     # An unchanged answer is notified again before its Max-Age runs out (an
     # observer's sign of life): the changes are what count.
     changes = [r for i, r in enumerate(racks) if i == 0 or r != racks[i - 1]]
-    assert changes == [16, 3], seen.stdout
+    assert changes == [16, 3], (text, error)
     payload = await aiocoap_payload(writable.uri, Request(Method.FETCH, "/kb/sparql", payload=RACK_OF_ROBOT2.encode(),
                                                           content_format=0, accept=50))
     assert json.loads(payload)["results"]["bindings"][0]["r"]["value"] == "3"
