@@ -4,11 +4,13 @@ replays, a server that lost its contexts, Block-wise and Observe."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import socket
 from collections.abc import AsyncIterator, Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -16,7 +18,7 @@ from coapkb.security import AccessPolicy, TeamIdentity, TeamTrust, generate_team
 from coapkb.security.coap import ClientSecurity, EdhocFailed, ServerSecurity
 from coapkb.security.keys import default_members
 from coapkb.transport import Endpoint, open_client, serve
-from coapkb.transport.base import PeerUnreachable, ResourceInfo
+from coapkb.transport.base import ClientTransport, PeerUnreachable, ResourceInfo
 from coapkb.transport.messages import Method, Request, Response, Status
 from coapkb.transport.router import Router
 
@@ -275,46 +277,16 @@ async def test_a_restarted_server_that_gave_our_key_id_away_is_rekeyed(team_dir:
         await robot.stop()
 
 
-async def test_abandoned_tries_leave_no_task_or_token_behind(team_dir: Path) -> None:
-    """Every NON try the robust layer gives up ends its OSCORE task and frees
-    its token (aiocoap kept both until the context shut down: a slow leak
-    for a robot that runs for days)."""
+@contextlib.asynccontextmanager
+async def _keyed_then_silent(team_dir: Path) -> AsyncIterator[tuple[ClientTransport, Endpoint, socket.socket, Any]]:
+    """Robot2's client, keyed with Robot1, whose port then reads and drops
+    everything: the client, Robot1's endpoint, that socket, and the
+    client's OSCORE request interface."""
     from coapkb.security.coap import _OSCORETransport
 
     robot = Robot1(team_dir)
     peer = await robot.start()
     client = await _client(load_identity(team_dir, "Robot2"))
-    silent = None
-    try:
-        assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
-        await robot.stop()
-        # The same port now reads and drops everything: every try goes unanswered.
-        silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        silent.bind((peer.host, peer.port))
-        with pytest.raises(PeerUnreachable):  # several NON tries, each its own OSCORE request
-            await client.request(peer, Request(Method.GET, "/tasks"), timeout=2)
-        (oscore,) = [i for i in client._ctx.request_interfaces if isinstance(i, _OSCORETransport)]
-        async with asyncio.timeout(2):  # they end at once; before, they never did
-            await asyncio.gather(*list(oscore._tasks), return_exceptions=True)
-        assert not oscore._tasks
-    finally:
-        await client.aclose()
-        if silent is not None:
-            silent.close()
-
-
-async def test_an_oscore_request_cancelled_at_the_loops_end_fails_without_a_traceback(team_dir: Path) -> None:
-    """Ctrl-C cancels every task, aiocoap's OSCORE request tasks among them;
-    their done-callback handles only ``Exception``, and the cancellation
-    was logged as a traceback at a team's interruption."""
-    from coapkb.security.coap import _OSCORETransport
-
-    robot = Robot1(team_dir)
-    peer = await robot.start()
-    client = await _client(load_identity(team_dir, "Robot2"))
-    loop = asyncio.get_running_loop()
-    unhandled: list[dict[str, object]] = []
-    loop.set_exception_handler(lambda _loop, context: unhandled.append(context))
     silent = None
     try:
         assert (await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
@@ -322,24 +294,49 @@ async def test_an_oscore_request_cancelled_at_the_loops_end_fails_without_a_trac
         silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         silent.bind((peer.host, peer.port))
         silent.setblocking(False)
-        asking = asyncio.create_task(client.request(peer, Request(Method.GET, "/tasks"), timeout=5))
-        async with asyncio.timeout(5):
-            await loop.sock_recv(silent, 2048)  # the request is on the wire: its OSCORE task waits
         (oscore,) = [i for i in client._ctx.request_interfaces if isinstance(i, _OSCORETransport)]
-        in_flight = list(oscore._tasks)
-        assert in_flight
-        for task in in_flight:
-            task.cancel()
-        await asyncio.gather(*in_flight, return_exceptions=True)
-        await asyncio.sleep(0)  # the done-callbacks run
-        asking.cancel()
-        await asyncio.gather(asking, return_exceptions=True)
-        assert unhandled == []
+        yield client, peer, silent, oscore
     finally:
-        loop.set_exception_handler(None)
         await client.aclose()
         if silent is not None:
             silent.close()
+
+
+async def test_abandoned_tries_leave_no_task_or_token_behind(team_dir: Path) -> None:
+    """Every NON try the robust layer gives up ends its OSCORE task and frees
+    its token (aiocoap kept both until the context shut down: a slow leak
+    for a robot that runs for days)."""
+    async with _keyed_then_silent(team_dir) as (client, peer, _silent, oscore):
+        with pytest.raises(PeerUnreachable):  # several NON tries, each its own OSCORE request
+            await client.request(peer, Request(Method.GET, "/tasks"), timeout=2)
+        async with asyncio.timeout(2):  # they end at once; before, they never did
+            await asyncio.gather(*list(oscore._tasks), return_exceptions=True)
+        assert not oscore._tasks
+
+
+async def test_an_oscore_request_cancelled_at_the_loops_end_fails_without_a_traceback(team_dir: Path) -> None:
+    """Ctrl-C cancels every task, aiocoap's OSCORE request tasks among them;
+    their done-callback handles only ``Exception``, and the cancellation
+    was logged as a traceback at a team's interruption."""
+    loop = asyncio.get_running_loop()
+    unhandled: list[dict[str, object]] = []
+    loop.set_exception_handler(lambda _loop, context: unhandled.append(context))
+    try:
+        async with _keyed_then_silent(team_dir) as (client, peer, silent, oscore):
+            asking = asyncio.create_task(client.request(peer, Request(Method.GET, "/tasks"), timeout=5))
+            async with asyncio.timeout(5):
+                await loop.sock_recv(silent, 2048)  # the request is on the wire: its OSCORE task waits
+            in_flight = list(oscore._tasks)
+            assert in_flight
+            for task in in_flight:
+                task.cancel()
+            await asyncio.gather(*in_flight, return_exceptions=True)
+            await asyncio.sleep(0)  # the done-callbacks run
+            asking.cancel()
+            await asyncio.gather(asking, return_exceptions=True)
+        assert unhandled == []
+    finally:
+        loop.set_exception_handler(None)
 
 
 async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None:
