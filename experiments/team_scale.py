@@ -2,11 +2,12 @@
 
 Usage::
 
-    .venv/bin/python -m experiments.team_scale [--sizes 9 99] [--tasks 200] [--reps 1]
+    .venv/bin/python -m experiments.team_scale [--sizes 9 99] [--tasks 200 | --tasks-per-cluster N] [--reps 1]
         [--out experiments/results/team_scale.csv]
 
 Each size runs the same task list (``--tasks`` objects drawn with seed
-``1 + rep``) on a CoAP team with OSCORE keyed by EDHOC and the team's access
+``1 + rep``; with ``--tasks-per-cluster N``, N per cluster of three,
+drawn alike) on a CoAP team with OSCORE keyed by EDHOC and the team's access
 policy, as ``coapkb team`` runs it by default; a team larger than the
 shipped KBs know runs on KBs generated for it beforehand (the generation is
 timed apart: it is not part of a team's start).  Every robot is a ``python -m
@@ -67,6 +68,9 @@ class ScaleRow:
     other_fates: int
     bytes_per_task: float
     messages_per_task: float
+    #: CON messages sent again (the robots' servers: notifications, as
+    #: answers ride on ACKs), per task.
+    retransmissions_per_task: float
     robot_bytes_median: float
     robot_bytes_max: float
     rss_idle_median_mib: float
@@ -101,6 +105,7 @@ async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> Sc
         assigned=fates.assigned, skipped=fates.skipped, other_fates=fates.tasks - fates.assigned - fates.skipped,
         bytes_per_task=round(traffic.bytes_sent / len(tasks)),
         messages_per_task=round(traffic.messages_sent / len(tasks), 1),
+        retransmissions_per_task=round(traffic.retransmissions / len(tasks), 2),
         robot_bytes_median=statistics.median(per_robot), robot_bytes_max=max(per_robot),
         rss_idle_median_mib=round(statistics.median(idle), 1), rss_idle_max_mib=round(max(idle), 1),
         rss_after_median_mib=round(statistics.median(after), 1), rss_after_max_mib=round(max(after), 1),
@@ -110,25 +115,30 @@ async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> Sc
 async def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.team_scale", description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[9, 99], help="team sizes, multiples of 3")
-    parser.add_argument("--tasks", type=int, default=200)
+    tasks = parser.add_mutually_exclusive_group()
+    tasks.add_argument("--tasks", type=int, default=200, help="tasks of every size's run")
+    tasks.add_argument("--tasks-per-cluster", type=int, metavar="N",
+                       help="N tasks per cluster of three instead: each size's run as busy per cluster")
     parser.add_argument("--reps", type=int, default=1)
     parser.add_argument("--out", type=Path, default=RESULTS / "team_scale.csv")
     args = parser.parse_args()
     rows: list[ScaleRow] = []
     with tempfile.TemporaryDirectory(prefix="coapkb-scale-") as tmp:
         for rep in range(args.reps):
-            tasks = draw_tasks(args.tasks, seed=1 + rep)
             for robots in args.sizes:
-                row = await one_team(robots, tasks, rep, Path(tmp))
+                count = args.tasks if args.tasks_per_cluster is None else args.tasks_per_cluster * robots // 3
+                row = await one_team(robots, draw_tasks(count, seed=1 + rep), rep, Path(tmp))
                 print(" ".join(f"{k}={v}" for k, v in asdict(row).items()), flush=True)
                 rows.append(row)
     write_csv(args.out, [f.name for f in fields(ScaleRow)], (asdict(r) for r in rows))
     print()
-    print("| robots | tasks | team up (s) | completion (s) | assigned+skipped | B/task | robot RSS idle/after, median (max) MiB |")
-    print("|---|---|---|---|---|---|---|")
+    print("| robots | tasks | team up (s) | completion (s) | assigned+skipped | B/task | retransmissions/task "
+          "| robot RSS idle/after, median (max) MiB |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r.robots} | {r.tasks} | {r.team_up_s:.1f} | {r.completion_s:.1f} | {r.assigned + r.skipped} "
-              f"| {r.bytes_per_task:,.0f} | {r.rss_idle_median_mib:.0f}/{r.rss_after_median_mib:.0f} "
+              f"| {r.bytes_per_task:,.0f} | {r.retransmissions_per_task:.2f} "
+              f"| {r.rss_idle_median_mib:.0f}/{r.rss_after_median_mib:.0f} "
               f"({r.rss_idle_max_mib:.0f}/{r.rss_after_max_mib:.0f}) |")
     base = {r.rep: r for r in rows if r.robots == min(args.sizes)}
     for r in rows:

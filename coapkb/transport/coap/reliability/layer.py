@@ -183,6 +183,8 @@ class PathStats:
     window_waits: int = 0
     notifications: int = 0
     notification_retransmissions: int = 0
+    #: Notifications whose duplicate ACK showed a retransmission was needless.
+    needless_notification_retransmissions: int = 0
     srtt: float | None = None
     rttvar: float | None = None
     min_rtt: float | None = None

@@ -18,17 +18,30 @@ samples it gets (ACKs of notifications sent once; Karn's rule, since a
 CON retransmission reuses its Message ID).  A client's Observe
 registration is confirmable for the same reason it keeps one Message ID:
 the server registers it once, however many times it is sent.
+
+The host's round trip is not always how late an observer acknowledges: a
+feeder observing 99 robots on a busy machine answers a notification later
+than the robots answer each other's queries, and every CON notification
+to it went out three or four times.  So each observer's own ACK delay is
+kept too (:class:`AckDelays`), from the clean samples and from the
+notifications a duplicate ACK proves were sent again needlessly (two
+copies reached the observer: the first ACK came that long after the first
+transmission, RFC 3708's reasoning for TCP), and a notification waits the
+longer of the two timeouts.
 """
 
 from __future__ import annotations
 
 import weakref
+from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Any
 
 import aiocoap
 from aiocoap.numbers.constants import TransportTuning
 
+from ...rtt import RttEstimator
 from .layer import PeerPath, ReliabilityLayer
 
 #: Size of the empty ACK that answers a notification.
@@ -90,39 +103,77 @@ def _host_of(remote: Any) -> str:
     return host[7:] if host.startswith("::ffff:") else host
 
 
+def _endpoint_of(remote: Any) -> Hashable:
+    """An observer's address and port (its client's socket)."""
+    sockaddr = getattr(remote, "sockaddr", None)
+    return (_host_of(remote), sockaddr[1]) if sockaddr else remote
+
+
+class AckDelays:
+    """How late each observer acknowledges a notification, per endpoint:
+    an RFC 6298 estimate of its own, for the ``kept`` endpoints heard from
+    most lately."""
+
+    def __init__(self, kept: int = 256) -> None:
+        self._kept = kept
+        self._delays: OrderedDict[Hashable, RttEstimator] = OrderedDict()
+
+    def of(self, endpoint: Hashable) -> RttEstimator:
+        delay = self._delays.get(endpoint)
+        if delay is None:
+            delay = self._delays[endpoint] = RttEstimator()
+            while len(self._delays) > self._kept:
+                self._delays.popitem(last=False)
+        self._delays.move_to_end(endpoint)
+        return delay
+
+
 @dataclass
 class _Notification:
     path: PeerPath
+    #: The observer's own ACK delay.
+    observer: RttEstimator
     sent_at: float
     nbytes: int
     #: Link time of what was queued ahead of the first transmission.
     queued: float = 0.0
     retransmissions: int = 0
+    #: A retransmitted one's first ACK, that long after its first
+    #: transmission: a sample of the observer's once a duplicate ACK
+    #: shows that an earlier copy had reached it.
+    first_ack_after: float | None = None
 
 
 class NotificationPolicy:
     """Retransmission timers of a server's CON messages from a shared layer."""
 
-    def __init__(self, layer: ReliabilityLayer) -> None:
+    def __init__(self, layer: ReliabilityLayer, ack_delays: AckDelays | None = None) -> None:
         self.layer = layer
+        self.ack_delays = AckDelays() if ack_delays is None else ack_delays
 
     def on_send(self, message: aiocoap.Message) -> _Notification:
         path = self.layer.path_for_host(_host_of(message.remote))
         path.stats.notifications += 1
         # Called just before the datagram is handed to the socket: what is
         # queued on the link now goes first.
-        return _Notification(path, self.layer.clock(), len(message.payload) + 16,
-                             queued=self.layer.uplink.wait(self.layer.clock()))
+        return _Notification(path, self.ack_delays.of(_endpoint_of(message.remote)), self.layer.clock(),
+                             len(message.payload) + 16, queued=self.layer.uplink.wait(self.layer.clock()))
 
     def timeout(self, record: _Notification, retransmission_counter: int) -> float:
-        """The path's timeout for the first few transmissions, then doubling:
-        a notification is never abandoned for want of patience (the server
-        would drop the observation, and the teammate would wait for a
-        refresh), but a peer that stays silent is not flooded either."""
+        """The path's timeout, or the observer's own if its ACKs come later,
+        for the first few transmissions, then doubling: a notification is
+        never abandoned for want of patience (the server would drop the
+        observation, and the teammate would wait for a refresh), but a peer
+        that stays silent is not flooded either."""
         path = record.path
         backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
         queued = record.queued if retransmission_counter == 0 else self.layer.uplink.wait(self.layer.clock())
-        return path.exchange_timeout(path.rto() * backoff, record.nbytes + _ACK_BYTES) + queued
+        base = path.rto()
+        if record.observer.samples:
+            s = path.settings
+            base = max(base, record.observer.rto(k=s.rto_k, granularity=s.granularity, floor=path.floor(),
+                                                 ceiling=s.max_rto, initial=base))
+        return path.exchange_timeout(base * backoff, record.nbytes + _ACK_BYTES) + queued
 
     def on_retransmit(self, record: _Notification) -> None:
         record.retransmissions += 1
@@ -136,12 +187,22 @@ class NotificationPolicy:
         path = record.path
         now = self.layer.clock()
         path.on_answer()
+        delay = now - record.sent_at - record.queued
         if record.retransmissions == 0:  # Karn: a retransmitted CON says nothing certain
             path.loss.on_outcome(False)
-            path.on_sample(now - record.sent_at - record.queued, record.nbytes + _ACK_BYTES)
+            path.on_sample(delay, record.nbytes + _ACK_BYTES)
+            record.observer.on_sample(delay)
+        else:
+            record.first_ack_after = delay
 
     def on_duplicate_reply(self, record: _Notification, message: aiocoap.Message) -> None:
-        return None
+        if record.first_ack_after is not None:
+            # Two copies reached the observer: one was sent again too soon,
+            # and its ACKs come at least this late (an upper estimate if the
+            # first copy was lost: the timer errs long, never short).
+            record.observer.on_sample(record.first_ack_after)
+            record.first_ack_after = None
+            record.path.stats.needless_notification_retransmissions += 1
 
     def max_retransmit(self, record: _Notification) -> int:
         return NotificationTuning.MAX_RETRANSMIT
