@@ -474,9 +474,10 @@ class ContextHooks:
         self._originals.clear()
         self.mm.__dict__.pop(_MARKER, None)
         self.con_policy = None
-        # One guard stays on: aiocoap's shutdown returns after a 3 s timeout
-        # with its socket still open (a busy machine), and an ICMP error read
-        # then reached a token manager already gone, a traceback at Ctrl-C.
+        # One guard stays on: aiocoap's shutdown can leave its socket open
+        # (broken off by an observation's error, or past its 3 s timeout on a
+        # busy machine), and an ICMP error read then reached a token manager
+        # already gone: a traceback at Ctrl-C.
         if "dispatch_error" not in vars(self.mm):
             self.mm.dispatch_error = functools.partial(_dispatch_quietly, self.mm, self.mm.dispatch_error)
 
