@@ -122,30 +122,36 @@ class Membership:
         new one joins instead, at a task boundary), it is given the tasks it
         missed, in order (``deciding``, the task being decided, last), and
         fed from now on like the others."""
+        for robot_id in cluster:
+            await self._take_back(robot_id, records, deciding)
+
+    async def _take_back(self, robot_id: str, records: Sequence[TaskRecord],
+                         deciding: PendingTask | None = None) -> int | None:
+        """:meth:`take_back` for one robot: the last task it was given again,
+        or None if it was not taken back."""
         watcher = self.channel.watcher
-        last = records[-1]
+        if (not records or robot_id not in watcher.down or robot_id not in records[-1].members
+                or robot_id in self._fenced_off or robot_id in self._restarted):
+            return None
         # A dead robot is asked at each task boundary until its teammates
         # leave it out (a task or two): a few round trips, not a liveness
         # timeout, since silence here only means "not back yet".
         srtt = watcher.round_trip.srtt
         timeout = watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
-        for robot_id in cluster:
-            if (robot_id not in watcher.down or robot_id not in last.members or robot_id in self._fenced_off
-                    or robot_id in self._restarted):
-                continue
-            state = await self.channel.state(robot_id, timeout)
-            if state is None or not self._same_process(robot_id, state):
-                continue
-            seen = state.last.seq if state.last is not None else 0
-            missed = [PendingTask(r.seq, r.object, task_post(r.seq, r.object, r.joined, r.reassigned_from))
-                      for r in records if r.seq > seen]
-            if deciding is not None and deciding.seq > seen:
-                missed.append(deciding)
-            log.warning("%s answers again and its teammates still count it: fed again from task %d",
-                        robot_id, seen + 1)
-            watcher.readmit(robot_id)
-            for task in missed:  # the robot takes tasks strictly in order
-                await self.channel.post_task(robot_id, task.post, task.seq, task.object)
+        state = await self.channel.state(robot_id, timeout)
+        if state is None or not self._same_process(robot_id, state):
+            return None
+        seen = state.last.seq if state.last is not None else 0
+        missed = [PendingTask(r.seq, r.object, task_post(r.seq, r.object, r.joined, r.reassigned_from))
+                  for r in records if r.seq > seen]
+        if deciding is not None and deciding.seq > seen:
+            missed.append(deciding)
+        log.warning("%s answers again and its teammates still count it: fed again from task %d",
+                    robot_id, seen + 1)
+        watcher.readmit(robot_id)
+        for task in missed:  # the robot takes tasks strictly in order
+            await self.channel.post_task(robot_id, task.post, task.seq, task.object)
+        return missed[-1].seq if missed else seen
 
     def _same_process(self, robot_id: str, state: RobotState) -> bool:
         """Whether ``state`` is the process of ``robot_id`` this feeder fed:
@@ -185,12 +191,20 @@ class Membership:
                 if await self.fence(cluster, robot_id):
                     self._fenced_off.add(robot_id)
                 else:
-                    await self.settle(robot_id)
+                    # Back, and still a member: the tasks posted to the others
+                    # only while it was down are its own too, and one of them
+                    # may be assigned to it.  Found in the simulator (seed
+                    # 21011 of the storage and forgery profile): the last task,
+                    # posted while Robot2 was frozen, went to Robot2, which
+                    # never had its post.
+                    given = await self._take_back(robot_id, records)
+                    await self.settle(robot_id, through=given)
 
-    async def settle(self, robot_id: str) -> None:
+    async def settle(self, robot_id: str, through: int | None = None) -> None:
         """Wait until ``robot_id`` (down for the feeder, but its teammates
-        still grant it: it came back) has executed what it holds, so its
-        statistics in the record are final.  Each state observed is kept: the
+        still grant it: it came back) has decided every task up to
+        ``through`` (one it was just given again) and executed what it
+        holds, so its statistics in the record are final.  Each state observed is kept: the
         watcher no longer watches a down robot, and what the robot did meanwhile
         (its ``done`` count, the tasks it dropped under its fence) decides which
         of its tasks go round again.  Found in the simulator: a robot cut off
@@ -204,7 +218,8 @@ class Membership:
             if known is not None and state.boot != known.boot:
                 return True  # another process: a restart, which joins at a task boundary
             watcher.states[robot_id] = state
-            return state.live.activity == "idle" and state.live.queued == 0
+            decided = through is None or state.plan.seq >= through
+            return decided and state.live.activity == "idle" and state.live.queued == 0
 
         loop = asyncio.get_running_loop()
         deadline = loop.time() + channel.settings.task_timeout_s * 4

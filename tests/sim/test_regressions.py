@@ -117,6 +117,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "writer spun while the simulated clock stood still, and the run never ended",
         20326: "a co-joiner of task 7 died after it took the post and started again: a starved teammate that "
                "took the post later admitted its new process, never given the post, and waited 120 s for its plan",
+        21011: "the last task, posted only to the survivors while Robot2 was frozen, went to Robot2, whose "
+               "teammates still granted it; the feeder took it back without the post, and it was never executed",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
