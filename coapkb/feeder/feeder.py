@@ -185,7 +185,8 @@ class Feeder:
             # still granted (settled) reports there what it did not find.
             not_found()
             found = {r.seq: r for r in [*reruns, *membership.orphans(records),
-                                        *membership.undecided(cluster, records)]}
+                                        *membership.undecided(cluster, records),
+                                        *membership.left_by_restarts(cluster, records)]}
             reruns = []
             queue = [(found[s].object, s) for s in sorted(found)]
         return records, decided_at

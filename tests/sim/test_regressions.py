@@ -119,6 +119,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "took the post later admitted its new process, never given the post, and waited 120 s for its plan",
         21011: "the last task, posted only to the survivors while Robot2 was frozen, went to Robot2, whose "
                "teammates still granted it; the feeder took it back without the post, and it was never executed",
+        27361: "Robot2 killed holding tasks 7 and 9 and back as a new process while the feeder was cut off; "
+               "past the last task there was no task to join at, so its old tasks never went round again",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
