@@ -8,8 +8,9 @@ import os
 import shutil
 import socket
 import sys
+import time
 import tokenize
-from collections.abc import AsyncIterator, Iterator, Mapping
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from decimal import Decimal
 from pathlib import Path
 from typing import NamedTuple, NoReturn
@@ -208,3 +209,24 @@ def recording_router(*paths: str) -> tuple[Router, list[tuple[str, str]]]:
     for path in paths:
         router.add(ResourceInfo(path, methods=("GET",)), handle)
     return router, calls
+
+
+async def until(condition: Callable[[], bool], what: str, timeout: float = 10.0) -> None:
+    """Poll ``condition`` (what a server holds: no event tells a test) under ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout:g}s: {what}")
+        await asyncio.sleep(0.01)
+
+
+def observation_count(server: object) -> int:
+    """The observations ``server`` holds.  The CoAP server does not say
+    (observations are aiocoap's, per resource, behind the OSCORE site
+    wrapper when secured): they are counted there."""
+    count = getattr(server, "observation_count", None)
+    if count is not None:
+        return int(count)
+    site = server._ctx.serversite  # type: ignore[attr-defined]  # the CoAP server's aiocoap context
+    site = getattr(site, "_inner_site", site)
+    return sum(len(getattr(r, "_observations", ())) for r in site._resources.values())

@@ -7,12 +7,13 @@ import asyncio
 import contextlib
 import logging
 import socket
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
+from support import observation_count, until
 
 from coapkb.security import AccessPolicy, TeamIdentity, TeamTrust, generate_team, load_identity
 from coapkb.security.coap import ClientSecurity, EdhocFailed, ServerSecurity
@@ -330,8 +331,8 @@ async def test_an_oscore_request_cancelled_at_the_loops_end_fails_without_a_trac
             assert in_flight
             for task in in_flight:
                 task.cancel()
+            # Each task's own done-callbacks run before gather's, registered later.
             await asyncio.gather(*in_flight, return_exceptions=True)
-            await asyncio.sleep(0)  # the done-callbacks run
             asking.cancel()
             await asyncio.gather(asking, return_exceptions=True)
         assert unhandled == []
@@ -361,30 +362,18 @@ async def test_blockwise_and_observe_over_oscore(robot1, team_dir: Path) -> None
         await client.aclose()
 
 
-def _observations(robot: Robot1) -> int:
-    """The observations the robot's server holds (aiocoap's, per resource,
-    behind the OSCORE site wrapper)."""
-    site = robot.server._ctx.serversite
-    site = getattr(site, "_inner_site", site)
-    return sum(len(getattr(r, "_observations", ())) for r in site._resources.values())
-
-
-async def _until(condition: Callable[[], bool], timeout: float = 5) -> None:
-    """Poll what the server holds (no event tells a test) under ``timeout``."""
-    async with asyncio.timeout(timeout):
-        while not condition():
-            await asyncio.sleep(0.01)
-
-
-async def _changes_until_forgotten(robot: Robot1, timeout: float = 5) -> None:
-    """Change the robot's /state until its server holds no observation: a
-    notification or two already on their way are taken, the next meets the
-    client's Reset (RFC 7641 section 3.6).  Times out if one is kept."""
-    async with asyncio.timeout(timeout):
-        while _observations(robot):
+async def _changes_until_forgotten(robot: Robot1, client: ClientTransport) -> None:
+    """Change the robot's /state, each time once the client has the last
+    notification, until its server holds no observation: a notification or
+    two already on their way are taken, the next meets the client's Reset
+    (RFC 7641 section 3.6).  Fails if one is kept."""
+    async with asyncio.timeout(10):  # a kept observation fails the test, never hangs it
+        while observation_count(robot.server):
+            heard = client.counters.messages_received
             robot.state += 1
             robot.router.notify("/state")
-            await asyncio.sleep(0.05)  # the pace of the changes, not a wait for an outcome
+            await until(lambda heard=heard: client.counters.messages_received > heard or not observation_count(robot.server),
+                        "the notification reaches the client", timeout=5)
 
 
 async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path) -> None:
@@ -397,8 +386,8 @@ async def test_an_abandoned_observation_ends_on_the_wire(robot1, team_dir: Path)
         stream = client.observe(peer, Request(Method.GET, "/state"))
         assert (await anext(stream)).payload == b"0"
         await stream.aclose()
-        assert _observations(robot) == 1
-        await _changes_until_forgotten(robot)
+        assert observation_count(robot.server) == 1
+        await _changes_until_forgotten(robot, client)
         sent = robot.server.counters.messages_sent
         for _ in range(8):
             robot.state += 1
@@ -426,13 +415,14 @@ async def test_registrations_abandoned_before_their_answer_end_too(robot1, team_
     client = await _client(load_identity(team_dir, "Robot3"))
     try:
         await client.request(peer, Request(Method.GET, "/tasks"), timeout=5)  # EDHOC first
+        sent = client.counters.messages_sent
         tries = [client._ctx.request(message_from_request(peer, Request(Method.GET, "/state"), observe=True),
                                      handle_blockwise=False) for _ in range(3)]
-        await asyncio.sleep(0)  # sent
+        await until(lambda: client.counters.messages_sent >= sent + 3, "the three registrations are sent")
         for pending in tries:
             _abandon(pending)
-        await _until(lambda: _observations(robot) == 3)  # the three registrations reached the robot
-        await _changes_until_forgotten(robot)
+        await until(lambda: observation_count(robot.server) == 3, "the three registrations reach the robot")
+        await _changes_until_forgotten(robot, client)
     finally:
         await client.aclose()
 

@@ -37,7 +37,7 @@ from typing import Any
 
 import pytest
 import pytest_asyncio
-from support import not_applicable
+from support import not_applicable, observation_count, until
 
 from coapkb.security import generate_team, load_identity
 from coapkb.security.keys import default_members
@@ -239,16 +239,6 @@ def observe(client: ClientTransport, peer: Endpoint, request: Request,
     return client.observe(peer, request)
 
 
-def observation_count(server: ServerTransport) -> int:
-    """The observations ``server`` holds.  The CoAP server does not say
-    (observations are aiocoap's, per resource): they are counted there."""
-    count = getattr(server, "observation_count", None)
-    if count is not None:
-        return int(count)
-    site = server._ctx.serversite  # type: ignore[attr-defined]
-    return sum(len(getattr(r, "_observations", ())) for r in site._resources.values())
-
-
 def distinct(items: list[Any]) -> list[Any]:
     """``items`` without repeats, in order: a transport may deliver a request
     twice (CoAP's retry is a new exchange: requests must be idempotent)."""
@@ -257,15 +247,6 @@ def distinct(items: list[Any]) -> list[Any]:
         if item not in out:
             out.append(item)
     return out
-
-
-async def until(condition: Callable[[], bool], what: str, timeout: float = ANSWER_S) -> None:
-    """Poll ``condition`` (what a server holds: no event tells a test) under ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout:g}s: {what}")
-        await asyncio.sleep(0.01)
 
 
 async def unreachable(client: ClientTransport, peer: Endpoint, request: Request, *,
