@@ -153,7 +153,7 @@ class LiveKB:
         #: What the files say, as writes and joins ask (shared by robots loading ``base``).
         self._files = files_graph(base)
         #: The graph queries see: the files', then what the replicas say.
-        self.view = View(base, self.limits.rebuild_after_changes)
+        self.view = View(base, self._files, self.limits.rebuild_after_changes)
         self._evaluator = UpdateEvaluator(self.view, self.limits.max_triples)
         functional = frozenset(URIRef(p) for p in single_valued) | declared_functional(self.view.base_store)
         self.replicas: dict[str, Replica] = {

@@ -13,6 +13,7 @@ from __future__ import annotations
 import pyoxigraph as ox
 
 from ..model.results import QueryResult, Triple
+from .files_graph import FilesGraph
 from .oxigraph_backend import OxigraphBackend, _to_ox
 from .replica import Effect
 from .store import KnowledgeBase
@@ -26,10 +27,11 @@ class View:
     copy takes, at least, before it is copied afresh
     (:attr:`~coapkb.kb.live.WriteLimits.rebuild_after_changes`)."""
 
-    def __init__(self, base: KnowledgeBase, rebuild_after_changes: int) -> None:
+    def __init__(self, base: KnowledgeBase, files: FilesGraph, rebuild_after_changes: int) -> None:
         assert isinstance(base.engine, OxigraphBackend)  # LiveKB takes no other
         self.base = base
         self.base_store: ox.Store = base.engine.store
+        self._files = files
         self._rebuild_after_changes = rebuild_after_changes
         self._copy: OxigraphBackend | None = None
         #: Adds and removes the copy took since it was last copied afresh,
@@ -65,7 +67,7 @@ class View:
             # Copy on first write: until then the files' graph serves queries
             # (and in the simulator stays shared by every robot loading it).
             view = ox.Store()
-            view.extend(self.base_store)
+            view.extend(self._files.quads())
             self._copy = OxigraphBackend(view)
         return self._copy.store
 
