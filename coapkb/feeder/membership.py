@@ -72,14 +72,10 @@ class Membership:
         """Before restarted robots join at task ``seq``: their previous
         processes' unexecuted tasks (returned, to go round again), then count
         on them afresh."""
+        found = self._left_behind(joining, records)
         watcher = self.channel.watcher
         for robot_id in joining:
             self._restarted.discard(robot_id)
-            # A restart the feeder was told of: the old process is gone even if
-            # no failed request told yet (killed: it cannot pick anything).
-            watcher.down.setdefault(robot_id, "restarted")
-        found = orphans(records, watcher, self._incarnation, joining, only=joining, done_before=self._done_before)
-        for robot_id in joining:
             self._incarnation[robot_id] = seq
             self._done_before.pop(robot_id, None)  # a new process: its count starts at 0
             self._fenced_off.discard(robot_id)
@@ -95,12 +91,18 @@ class Membership:
         killed holding tasks 7 and 9, back as a new process, and the feeder,
         cut off meanwhile, past its last task).  Its old process is gone
         (killed: it cannot pick anything), so no fence is needed."""
-        restarted = [r for r in cluster if r in self._restarted]
+        return self._left_behind([r for r in cluster if r in self._restarted], records)
+
+    def _left_behind(self, restarted: Sequence[str], records: list[TaskRecord]) -> list[TaskRecord]:
+        """The unexecuted tasks of ``restarted`` robots' processes before their restart."""
+        if not restarted:
+            return []
         watcher = self.channel.watcher
         for robot_id in restarted:
+            # A restart the feeder was told of: the old process is gone even if
+            # no failed request told yet (killed: it cannot pick anything).
             watcher.down.setdefault(robot_id, "restarted")
-        return orphans(records, watcher, self._incarnation, restarted, only=restarted,
-                       done_before=self._done_before) if restarted else []
+        return orphans(records, watcher, self._incarnation, restarted, only=restarted, done_before=self._done_before)
 
     def orphans(self, records: list[TaskRecord]) -> list[TaskRecord]:
         """The cluster's tasks to send round again now (see :func:`~coapkb.feeder.orphans.orphans`)."""
