@@ -151,6 +151,7 @@ class Feeder:
                     restocked.add(name.object)
                     continue
                 seq += 1
+                await membership.until_one_is_back(cluster, records)
                 joining = membership.joining(cluster)
                 if joining:
                     reruns += membership.prepare_join(records, joining, seq)

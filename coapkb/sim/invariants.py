@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
+from .faults import FaultEvent
 from .observed import Take
 from .operator import WriteOp
 from .run import Pick, RunResult
@@ -216,7 +217,7 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
     out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
     texts = [task.unavailable or "", *task.errors.values()]
     blamed = {w.strip(",:;()") for text in texts for w in text.split() if w.strip(",:;()").startswith("Robot")}
-    if any(e.action == "crash" and e.targets[0] in cluster for e in run.events):
+    if any(len(_struck(run, crash) & cluster) * 2 > len(cluster) for crash in run.events if crash.action == "crash"):
         # Outside the team's fault model on purpose (the storage's test): a
         # majority of the cluster lost power at once, nobody could decide.
         return "every holder of a module lost power at once: no majority was left to decide"
@@ -240,6 +241,14 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
         return (f"a false suspicion on lossy links: answers of {', '.join(sorted(suspected_alive))} lost "
                 "until a wait ran out, and a robot decided alone")
     return None
+
+
+def _struck(run: RunResult, crash: FaultEvent) -> set[str]:
+    """The robots a power cut killed: the kills it sprang at its own
+    instant: every holder of a module, in any cluster (found in the
+    simulator, seed 40 of nine robots with power cuts: a cut aimed at a
+    robot of cluster 1 took two robots of cluster 3)."""
+    return {t for e in run.events if e.action == "kill" and e.at_s == crash.at_s for t in e.targets}
 
 
 def _disagreement(task: TaskRecord) -> str:

@@ -464,9 +464,17 @@ class SimulatedTeam:
 
     def inject(self, event: FaultEvent) -> None:
         """Carry out ``event`` now (``event.at_s`` is what the record says)."""
-        self.note(f"fault {event}")
         action, target = event.action, event.targets[0]
         process = self.current[target]
+        if (action == "kill") == (process.status == "dead") and action in ("kill", "restart"):
+            # Two faults that overlap on one robot: a power cut killed it
+            # before its own kill came, or brought it back before its own
+            # restart.  Killing the dead would tear its journal twice (a
+            # record that is no prefix of any: a corrupt file), and a second
+            # process would find its data folder locked.
+            self.note(f"fault {event}: nothing to do, {target} is {'dead' if action == 'kill' else 'running'}")
+            return
+        self.note(f"fault {event}")
         if action == "kill":
             if not self.spec.storage:
                 self.operator.last_copies(target)
