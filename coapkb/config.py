@@ -46,6 +46,9 @@ class Teammate:
     endpoint: Endpoint
     #: Knowledge-base modules this teammate serves (e.g. ``("Object",)``).
     kbs: tuple[str, ...] = ()
+    #: A replica asked only when this robot's usual holders of a module do
+    #: not answer (``[replicas.NAME] standby = true``).
+    standby: bool = False
 
 
 @dataclass(frozen=True)
@@ -236,7 +239,7 @@ def config_to_dict(config: RobotConfig) -> dict[str, Any]:
     data["kb_writable"] = config.kb_writable
     if config.replicas:
         data["replicas"] = {m.robot_id: {"endpoint": str(m.endpoint), "kbs": list(m.kbs)}
-                            for m in config.replicas.values()}
+                            | ({"standby": True} if m.standby else {}) for m in config.replicas.values()}
     if config.world is not None:
         data["world"] = str(config.world.resolve())
     if config.data_dir is not None:
@@ -353,15 +356,16 @@ def _teammates(table: Mapping[str, Any], section: str, bind: Endpoint) -> dict[s
         where = f"{section}.{mate_id}"
         if not isinstance(mate, dict):
             raise ConfigError(f"{where}: expected a table")
-        _no_unknown(mate, {"endpoint", "kbs"}, where + ".")
+        _no_unknown(mate, {"endpoint", "kbs", "standby"} if section == "replicas" else {"endpoint", "kbs"}, where + ".")
         endpoint = _endpoint(_get(mate, "endpoint", str, where=where), where + ".endpoint")
         kbs = tuple(_get(mate, "kbs", list, [], where=where))
+        standby = _get(mate, "standby", bool, False, where=where)
         for kb in kbs:
             if kb not in KB_MODULES:
                 raise ConfigError(f"{where}.kbs: unknown KB module {kb!r} (choose from {', '.join(KB_MODULES)})")
         if endpoint.scheme != bind.scheme:
             raise ConfigError(f"{where}.endpoint: {endpoint.scheme} teammate, but this robot uses {bind.scheme}")
-        team[mate_id] = Teammate(mate_id, endpoint, kbs)
+        team[mate_id] = Teammate(mate_id, endpoint, kbs, standby)
     return team
 
 

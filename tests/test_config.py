@@ -21,6 +21,7 @@ from coapkb.config import (
     load_config,
     parse_config,
 )
+from coapkb.harness.team import TeamSpec, robot_configs
 from coapkb.transport.base import Endpoint
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -308,3 +309,20 @@ def test_transport_tunables_reach_the_layer_and_bad_ones_name_their_field() -> N
     ]:
         with pytest.raises(ConfigError, match=re.escape(message)):
             parse_config({**base, "transport": table})
+
+
+def test_a_nine_robot_teams_replicas_name_standbys_that_round_trip(tmp_path: Path) -> None:
+    """Each robot of a writable nine-robot team lists the robot at its place in
+    the next cluster, and as standbys the other holders of its modules in the
+    next and the previous cluster; the TOML keeps which is which."""
+    spec = TeamSpec(robots=9, kb_writable=True)
+    endpoints = {f"Robot{i}": Endpoint("coap", "127.0.0.1", 5700 + i) for i in range(1, 10)}
+    config = robot_configs(spec, endpoints)["Robot7"]
+    pushed = [m.robot_id for m in config.replicas.values() if not m.standby]
+    standbys = sorted(m.robot_id for m in config.replicas.values() if m.standby)
+    assert pushed == ["Robot1"]
+    assert standbys == ["Robot2", "Robot3", "Robot4", "Robot5", "Robot6"]
+    assert all(set(m.kbs) & set(config.team["Robot7"].kbs) for m in config.replicas.values())
+    path = tmp_path / "robot.toml"
+    path.write_text(dump_config(config), encoding="utf-8")
+    assert load_config(path) == config

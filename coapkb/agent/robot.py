@@ -122,11 +122,11 @@ def _serve_kb(config: RobotConfig, kb: KnowledgeBase | None, client: ClientTrans
 
 def module_holders(config: RobotConfig, modules: Iterable[str]) -> list[Holder]:
     """The other robots holding any of ``modules``: teammates, then the
-    holders in other clusters (``replicas``)."""
+    holders in other clusters (``replicas``, some of them standbys)."""
     held = set(modules)
     mates = [(m, False) for m in config.team.values() if m.robot_id != config.robot_id]
     mates += [(m, True) for m in config.replicas.values()]
-    return [Holder(m.robot_id, m.endpoint, tuple(k for k in m.kbs if k in held), remote)
+    return [Holder(m.robot_id, m.endpoint, tuple(k for k in m.kbs if k in held), remote, m.standby)
             for m, remote in mates if held & set(m.kbs)]
 
 

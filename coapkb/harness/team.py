@@ -194,15 +194,27 @@ def next_cluster_replicas(
 ) -> dict[str, Teammate]:
     """The holder of the same modules in the next cluster (a ring over the
     clusters): every write passes on to one robot more, whatever the
-    team's size, and reaches every cluster around the ring."""
+    team's size, and reaches every cluster around the ring.  As standbys,
+    the other robots of the next and the previous cluster that hold one of
+    its modules: asked only when its usual holders do not answer, they keep
+    it in step when the ring lost a robot in each of two clusters (its
+    teammate and its next-cluster holder, both killed, left a robot of nine
+    without a module's later writes; found in the simulator)."""
     if not spec.kb_writable or spec.mode != "distributed" or len(clusters) < 2:
         return {}
     place = list(clusters[index]).index(robot_id)
+    mine = set(cluster_modules(place, spec))
+    replicas: dict[str, Teammate] = {}
     following = clusters[(index + 1) % len(clusters)]
-    if place >= len(following):
-        return {}
-    mate = following[place]
-    return {mate: Teammate(mate, endpoints[mate], cluster_modules(place, spec))}
+    if place < len(following):
+        mate = following[place]
+        replicas[mate] = Teammate(mate, endpoints[mate], cluster_modules(place, spec))
+    for near in (following, clusters[(index - 1) % len(clusters)]):
+        for at, other in enumerate(near):
+            kbs = cluster_modules(at, spec)
+            if other not in replicas and mine & set(kbs):
+                replicas[other] = Teammate(other, endpoints[other], kbs, standby=True)
+    return replicas
 
 
 class Team:

@@ -33,9 +33,11 @@ class AntiEntropy:
     module -> the holders it syncs with; ``rng``: the rounds' jitter."""
 
     def __init__(self, live: LiveKB, holders: dict[str, list[Holder]], outgoing: SyncClient,
-                 settings: ReplicationSettings, stats: ReplicationStats, rng: random.Random) -> None:
+                 settings: ReplicationSettings, stats: ReplicationStats, rng: random.Random,
+                 standbys: dict[str, list[Holder]] | None = None) -> None:
         self.live = live
         self.holders = holders
+        self.standbys = standbys or {}
         self.outgoing = outgoing
         self.settings = settings
         self.stats = stats
@@ -86,21 +88,38 @@ class AntiEntropy:
         each sent it all)."""
 
         async def module(name: str, holders: list[Holder]) -> None:
-            for holder in holders:
-                await self._sync_with(holder, name)
+            answered = [await self._sync_with(holder, name) for holder in holders]
+            if not any(answered):
+                await self._sync_with_a_standby(name)
 
         await asyncio.gather(*(module(name, holders) for name, holders in self.holders.items()))
 
     async def sync_once(self) -> None:
-        """One anti-entropy exchange per module, with its next holder."""
+        """One anti-entropy exchange per module, with its next holder; if
+        it does not answer, with the others in turn, then the standbys,
+        until one does."""
         self.stats.rounds += 1
         self._turn += 1
         for module, holders in self.holders.items():
-            if not holders:
-                continue
-            await self._sync_with(holders[self._turn % len(holders)], module)
+            turn = self._turn % len(holders) if holders else 0
+            for holder in holders[turn:] + holders[:turn]:
+                if await self._sync_with(holder, module):
+                    break
+            else:
+                await self._sync_with_a_standby(module)
 
-    async def _sync_with(self, holder: Holder, module: str) -> None:
+    async def _sync_with_a_standby(self, module: str) -> None:
+        """One exchange with the first standby of ``module`` that answers.
+        Found in the simulator (seed 110 of nine robots with power cuts and
+        forged syncs): a robot whose only holders of a module were its
+        teammate and the next cluster's robot, both killed, never had that
+        module's later writes again."""
+        for holder in self.standbys.get(module, ()):
+            if await self._sync_with(holder, module):
+                return
+
+    async def _sync_with(self, holder: Holder, module: str) -> bool:
+        """One exchange with ``holder`` (and its follow-ups): whether it answered."""
         replica = self.live.replicas[module]
         answer = await self.outgoing.exchange(holder, SyncMessage(module, replica.context.copy()))
         # An answer holds at most max_answer_bytes of changes: ask again at
@@ -110,11 +129,12 @@ class AntiEntropy:
                 break
             answer = await self.outgoing.exchange(holder, SyncMessage(module, replica.context.copy()))
         if answer is None:
-            return
+            return False
         # Both ways: what the holder lacks of ours, pushed now.
         theirs = replica.missing_for(answer.context)
         if theirs:
             await self.outgoing.push(holder, module, self.outgoing.fit(theirs) if isinstance(theirs, list) else theirs)
+        return True
 
     def compact(self) -> None:
         """Forget the deltas every holder had a round ago (each round ends

@@ -84,14 +84,18 @@ class Replicator:
         self.client = client
         self.settings = settings or ReplicationSettings()
         self.holders: dict[str, list[Holder]] = {
-            module: [h for h in holders if module in h.modules] for module in live.names
+            module: [h for h in holders if module in h.modules and not h.standby] for module in live.names
+        }
+        #: Per module, the holders asked only when the usual ones do not answer.
+        self.standbys: dict[str, list[Holder]] = {
+            module: [h for h in holders if module in h.modules and h.standby] for module in live.names
         }
         me = writer_robot(live.writer)
         #: Who may replicate which module (:mod:`.sync_access`).
         self.access = SyncAccess(
             me,
             {module: frozenset(team.get(module, ())) if team is not None
-             else frozenset(live.holders.get(module, ())) | {h.name for h in self.holders[module]}
+             else frozenset(live.holders.get(module, ())) | {h.name for h in holders if module in h.modules}
              for module in live.names},
             frozenset({me, *(h.name for h in holders), *(r for robots in live.holders.values() for r in robots)}),
             listed=team is not None,
@@ -103,7 +107,7 @@ class Replicator:
         self.incoming = SyncHandler(live, self.holders, self.access, self.outgoing, self.settings, self.stats)
         # Seeded by the writer when not given: runs repeat, and robots' rounds still differ.
         self.anti_entropy = AntiEntropy(live, self.holders, self.outgoing, self.settings, self.stats,
-                                        rng or random.Random(live.writer))
+                                        rng or random.Random(live.writer), self.standbys)
 
     # -------------------------------------------------------------- serving
 
@@ -173,7 +177,8 @@ class Replicator:
         await self.anti_entropy.catch_up()
 
     async def sync_once(self) -> None:
-        """One anti-entropy exchange per module, with its next holder."""
+        """One anti-entropy exchange per module, with its next holder that
+        answers (:meth:`.AntiEntropy.sync_once`)."""
         await self.anti_entropy.sync_once()
 
     def compact(self) -> None:

@@ -22,6 +22,10 @@ class Holder:
     modules: tuple[str, ...]
     #: In another cluster: a write pushed to it is passed on there.
     remote: bool = False
+    #: Asked only when the module's usual holders do not answer (never
+    #: pushed to, not waited for by compaction): what keeps a robot in
+    #: step once the ring over the clusters lost its neighbours.
+    standby: bool = False
 
 
 @dataclass(frozen=True)

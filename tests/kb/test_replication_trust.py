@@ -26,7 +26,7 @@ from coapkb.kb.replication import Holder, ReplicationSettings, Replicator, write
 from coapkb.kb.store import KnowledgeBase
 from coapkb.model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
 from coapkb.model.results import Triple
-from coapkb.transport.base import ClientTransport, Endpoint, PeerUnreachable
+from coapkb.transport.base import ClientTransport, Endpoint, PeerGone, PeerUnreachable
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
 
@@ -285,7 +285,8 @@ async def test_an_answer_naming_a_non_holders_writer_is_not_taken() -> None:
     replicator = robot1(Recorder(answer))
     etag = replicator.live.etag
     await replicator.sync_once()
-    assert unchanged(replicator, etag) and replicator.stats.forbidden == 1
+    # A round asks the next holder when an answer is not taken: both forged here.
+    assert unchanged(replicator, etag) and replicator.stats.forbidden == 2
 
 
 async def test_a_delta_refused_at_the_bound_is_answered_5_03_not_2_04() -> None:
@@ -362,3 +363,37 @@ async def test_a_ring_of_three_clusters_converges_with_or_without_the_teams_list
         await asyncio.gather(*(_settle(r) for r in robots.values()))
     assert rounds == (0 if listed else 2)
     assert (robots[1].stats.forbidden > 0) is not listed  # A1's pushes, refused
+
+
+class GoneNetwork(Network):
+    """:class:`Network` where a robot not in ``robots`` is gone (port unreachable)."""
+
+    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
+        if peer.port not in self.robots:
+            raise PeerGone(f"{peer}: nobody listens there")
+        return await super().request(peer, request, timeout=timeout)
+
+
+async def test_a_robot_whose_usual_holders_are_gone_catches_up_from_a_standby() -> None:
+    """A1's teammate A2 and its next-cluster holder B1 are killed for good;
+    B2, a standby, has a write A1 lacks: the next round fetches it from B2,
+    and A1's own write, pushed to nobody alive, reaches B2 the same way.  A
+    write is never pushed to a standby."""
+    robots: dict[int, Replicator] = {}
+    holders = [Holder("A2", ep(1), ("Location",)), Holder("B1", ep(2), ("Location",), remote=True),
+               Holder("B2", ep(3), ("Location",), remote=True, standby=True)]
+    live = LiveKB(KnowledgeBase.load([ONTOLOGIES / "Location.owl"]), "A1.1", wall_ms=lambda: 1_000)
+    robots[0] = a1 = Replicator(live, GoneNetwork("A1", robots), holders, rng=random.Random(0))
+    live = LiveKB(KnowledgeBase.load([ONTOLOGIES / "Location.owl"]), "B2.1", wall_ms=lambda: 1_000)
+    robots[3] = b2 = Replicator(live, GoneNetwork("B2", robots), [
+        Holder("A1", ep(0), ("Location",), remote=True, standby=True)], rng=random.Random(3))
+    assert await b2.replicate(b2.live.update(f"PREFIX loc: <{LOC}> INSERT DATA {{ loc:X loc:note 'b2' }}")) == 0
+    assert await a1.replicate(a1.live.update(f"PREFIX loc: <{LOC}> INSERT DATA {{ loc:X loc:note 'a1' }}")) == 0
+    await _settle(a1)
+    assert a1.stats.push_failed == 2  # to A2 and B1, not to the standby
+    assert note("X", "a1") not in b2.live.replicas["Location"].entries
+    await a1.sync_once()
+    await _settle(a1)
+    assert a1.live.etag == b2.live.etag
+    assert note("X", "b2") in a1.live.replicas["Location"].entries
+    assert note("X", "a1") in b2.live.replicas["Location"].entries
