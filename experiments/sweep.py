@@ -201,8 +201,8 @@ SCALE_SIZES = (3, 9, 30, 60, 99)
 SCALE_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
 PROFILES: dict[str, Profile] = {
     # A representative subset, 6 repetitions of every cell (the fewest with
-    # a distribution-free 95 % interval for a median): 330 runs, about 45
-    # minutes on 2 cores two at a time (docs/benchmarks.md).
+    # a distribution-free 95 % interval for a median): 420 runs, a little
+    # over an hour on 2 cores two at a time (docs/benchmarks.md).
     "quick": Profile(
         "quick",
         QUICK_GRIDS,

@@ -50,7 +50,8 @@ def render(result: QueryResult, fmt: str) -> str:
     lines.append("  ".join("-" * w for w in widths))
     lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells]
     truncated = getattr(result, "truncated", False)
-    lines.append(f"({len(rows)} row{'s' if len(rows) != 1 else ''}{', truncated by the server' if truncated else ''})")
+    cut = ", truncated by the server; coapkb dump URI --module NAME reads a whole module" if truncated else ""
+    lines.append(f"({len(rows)} row{'s' if len(rows) != 1 else ''}{cut})")
     return "\n".join(lines) + "\n"
 
 
