@@ -161,6 +161,13 @@ class TeamMembership:
         self._named = {(r, s): b for (r, s), b in self._named.items() if s > self._admitted_at.get(r, 0)}
         self._teammates.readmit(robot_id, boot)
 
+    async def missed(self, robot_id: str, seq: int) -> None:
+        """The feeder says ``robot_id``, named a joiner at task ``seq``, did
+        not take that post: no process of it joined, and it is out (down,
+        its old process gone) until it joins at a later task."""
+        if robot_id in self._peers and self._admitted_at.get(robot_id, 0) == seq:
+            await self._teammates.restarted(robot_id, f"did not take its join at task {seq}")
+
     async def named(self, robot_id: str, seq: int, boot: int) -> None:
         """The feeder names process ``boot`` of ``robot_id`` as the one that
         took the join at task ``seq``, after the post (robots joining

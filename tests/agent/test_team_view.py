@@ -316,6 +316,25 @@ async def test_a_joiner_named_by_its_process_is_down_when_another_process_answer
         await team.aclose()
 
 
+async def test_a_co_joiner_the_feeder_says_missed_its_join_is_down() -> None:
+    """Robot1 took a join post naming Robot2 too; Robot2 did not take its
+    own (killed again, or cut off), and the feeder's repeat says so: Robot1
+    counts it out instead of waiting for a plan no process of it shows
+    (simulator seed 337 of nine robots with power cuts: 91 s).  A robot not
+    admitted at that task is not touched."""
+    team = view(MemoryNetwork(), robot("Robot1", 6))
+    try:
+        team.membership.admit("Robot2", 7)
+        await team.membership.missed("Robot3", 7)  # never admitted there: nothing to do
+        assert team.is_up("Robot2") and team.is_up("Robot3")
+        await team.membership.missed("Robot2", 8)  # admitted at 7, not 8: the repeat of another task
+        assert team.is_up("Robot2")
+        await team.membership.missed("Robot2", 7)
+        assert not team.is_up("Robot2") and "did not take its join at task 7" in team._teammates.down["Robot2"]
+    finally:
+        await team.aclose()
+
+
 class OneTeammateNotUpYet:
     """Robot2 answers its observation; Robot3's never comes (not started)."""
 

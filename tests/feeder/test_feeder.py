@@ -45,6 +45,9 @@ def test_a_task_post_is_the_documented_body() -> None:
         "seq": 7, "object": "Bosch_rug_837", "join": ["Robot2"]}
     named = task_post(7, "Bosch_rug_837", ["Robot2", "Robot3"], boots={"Robot2": 41, "Robot3": 0})
     assert cbor2.loads(named.payload)["join"] == [["Robot2", 41], "Robot3"]  # the process that took it, if known
+    repeated = task_post(7, "Bosch_rug_837", ["Robot2"], boots={"Robot2": 41}, missed=["Robot3"])
+    assert cbor2.loads(repeated.payload) == {"seq": 7, "object": "Bosch_rug_837", "join": [["Robot2", 41]],
+                                             "missed": ["Robot3"]}  # named to Robot2 before, did not take it
 
 
 def test_tasks_file_ignores_comments_and_blank_lines(tmp_path: Path) -> None:

@@ -173,6 +173,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         49: "the same as seed 5, the journal torn twice into a corrupt file that refused both starts",
         40: "the oracle: a power cut aimed at a robot of cluster 1 took two robots of cluster 3, whose split "
             "decision it did not excuse (the excuse looked only at the robot the cut was aimed at)",
+        337: "a joiner took a post naming a co-joiner that missed its own (killed again, then cut off): it "
+             "waited 91 s for that one's plan and the feeder gave the run up at 120 s",
         110: "a robot whose teammate and next-cluster holder of a module were both killed for good (and the "
              "robot that pushed to it too, one in each cluster) never had that module's later writes again",
     }),
