@@ -239,9 +239,5 @@ class ObservedStates:
     async def declare_down(self, robot_id: str, reason: str) -> None:
         await self.detector.declare_down(robot_id, reason)
 
-    async def restarted(self, robot_id: str, reason: str) -> None:
-        """``robot_id``'s process counted on is gone: down until readmitted."""
-        await self.detector.restarted(robot_id, reason)
-
     async def record_failure(self, robot_id: str, exc: Exception) -> None:
         await self.detector.record_failure(robot_id, exc)

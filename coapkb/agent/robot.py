@@ -33,7 +33,7 @@ from .observed_states import OUTCOME_PATH, PLAN_PATH, STATE_PATH
 from .progress import ProgressPacing, acted_on
 from .query_handler import QueryError, QueryHandler
 from .robot_resources import FinalOutcome, RobotResources
-from .robot_state import LiveState, PlannedState, RobotState
+from .robot_state import BOOT_LIMIT, LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_assigner import robot_sort_key
 from .task_executor import TaskExecutor
@@ -204,8 +204,8 @@ class Robot:
         reliability = reliability_for(config.transport, link_kbps=config.link_kbps, options=table)
         client = await host.network.open_client(config.transport, reliability=reliability, security=client_security,
                                                 options=table)
-        # Nonzero, so it is always sent: teammates tell a restart by it.
-        boot = host.rng.randrange(1, 2**32)
+        # Teammates tell a restart by it.
+        boot = host.rng.randrange(1, BOOT_LIMIT)
         try:
             served, keeper, replicator = _serve_kb(config, kb, client, host, boot, router)
         except BaseException:

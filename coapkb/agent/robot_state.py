@@ -22,6 +22,13 @@ from typing import Any, overload
 
 import cbor2
 
+#: A process's ``boot`` is drawn from 1 up to this, excluded: nonzero, so it
+#: is always sent; and this value names no process (:data:`NO_PROCESS`).
+BOOT_LIMIT = 2**32
+#: The process a joiner that took no post is named with: whatever process
+#: of it is found is another one, counted a restart.
+NO_PROCESS = BOOT_LIMIT
+
 
 @dataclass(frozen=True)
 class PlannedState:

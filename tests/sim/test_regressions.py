@@ -175,6 +175,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
             "decision it did not excuse (the excuse looked only at the robot the cut was aimed at)",
         337: "a joiner took a post naming a co-joiner that missed its own (killed again, then cut off): it "
              "waited 91 s for that one's plan and the feeder gave the run up at 120 s",
+        467: "the same as seed 337, the feeder's repeat saying the co-joiner missed its join come before the "
+             "joiner had admitted it: forgotten, the joiner waited for good",
         110: "a robot whose teammate and next-cluster holder of a module were both killed for good (and the "
              "robot that pushed to it too, one in each cluster) never had that module's later writes again",
     }),
