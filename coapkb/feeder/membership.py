@@ -68,7 +68,7 @@ class Membership:
         await self.channel.watcher.declare_down(robot_id, "restarted")
         self._rejoined.set()
 
-    async def until_one_is_back(self, cluster: Sequence[str], records: Sequence[TaskRecord]) -> None:
+    async def until_one_is_back(self, cluster: Sequence[str], records: Sequence[TaskRecord], deadline: float) -> None:
         """While every robot of ``cluster`` is down, and for at most a task
         timeout: until one restarts (it joins at the next task) or answers
         again as the process its teammates still count (taken back).  A
@@ -76,10 +76,9 @@ class Membership:
         frozen meanwhile, left a nine-robot cluster without anyone for 15 s,
         and the feeder gave the run up at its next task (found in the
         simulator, seed 2 of nine robots with power cuts and forged syncs).
-        Past the bound, the next task finds them all down, and the run
-        fails saying so."""
+        Past ``deadline`` (monotonic), the next task finds them all down,
+        and the run fails saying so."""
         watcher = self.channel.watcher
-        deadline = clock.monotonic() + self.channel.settings.task_timeout_s
 
         def nobody() -> bool:
             return all(r in watcher.down for r in cluster) and not self.joining(cluster)

@@ -177,6 +177,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "waited 91 s for that one's plan and the feeder gave the run up at 120 s",
         467: "the same as seed 337, the feeder's repeat saying the co-joiner missed its join come before the "
              "joiner had admitted it: forgotten, the joiner waited for good",
+        728: "the same as seed 2, the feeder starved: a restart told while it took robots back made the last "
+             "robot of the cluster down after its wait, and it gave the run up",
+        770: "the same as seed 728",
         110: "a robot whose teammate and next-cluster holder of a module were both killed for good (and the "
              "robot that pushed to it too, one in each cluster) never had that module's later writes again",
     }),
