@@ -13,7 +13,8 @@ peer), so it runs over every transport and under its security.
   cluster), so a write crosses the team cluster by cluster, each robot
   sending it at most once to each holder it knows.
 * **Anti-entropy.**  Every ``sync_every_s`` (with jitter) the robot sends
-  one holder its causal context, round robin; the holder answers with the
+  one holder its causal context, round robin (the next if that one does
+  not answer, a standby if none does); the holder answers with the
   deltas the context lacks (from its journal) or, when its journal no
   longer has them, its whole written state, and with its own context.  The
   exchange goes both ways: what the holder lacks of this robot's is pushed
