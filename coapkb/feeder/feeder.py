@@ -151,7 +151,8 @@ class Feeder:
                     restocked.add(name.object)
                     continue
                 seq += 1
-                joining = await self._ready_for(cluster, seq, records, reruns)
+                joining, left_behind = await membership.ready_for(cluster, seq, records)
+                reruns += left_behind
                 record = await self.poster.feed_task(index, cluster, seq, name, joining, reassigned_from,
                                                      name in restocked, records)
                 restocked.discard(name)
@@ -186,29 +187,6 @@ class Feeder:
             reruns = []
             queue = [(found[s].object, s) for s in sorted(found)]
         return records, decided_at
-
-    async def _ready_for(self, cluster: list[str], seq: int, records: list[TaskRecord],
-                         reruns: list[TaskRecord]) -> list[str]:
-        """Before task ``seq`` is posted: the robots joining at it (their old
-        processes' unexecuted tasks added to ``reruns``), the robots back
-        taken back, and, while every robot of the cluster is down, a wait
-        for one to come back, for at most a task timeout.  Again from the
-        wait if every robot is down after all: a restart told while robots
-        were taken back made the last one down (found in the simulator,
-        seed 728 of nine robots with power cuts, the feeder starved)."""
-        membership, watcher = self.membership, self.channel.watcher
-        deadline = clock.monotonic() + self.channel.settings.task_timeout_s
-        joining: list[str] = []
-        while True:
-            await membership.until_one_is_back(cluster, records, deadline)
-            now_joining = membership.joining(cluster)
-            if now_joining:
-                reruns += membership.prepare_join(records, now_joining, seq)
-                joining += now_joining
-            if records:
-                await membership.take_back(cluster, records)
-            if any(r not in watcher.down for r in cluster) or clock.monotonic() >= deadline:
-                return joining
 
     async def _until_executed(self, index: int, cluster: list[str]) -> None:
         """Until the cluster's survivors have executed everything: a robot

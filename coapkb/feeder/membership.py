@@ -68,32 +68,42 @@ class Membership:
         await self.channel.watcher.declare_down(robot_id, "restarted")
         self._rejoined.set()
 
-    async def until_one_is_back(self, cluster: Sequence[str], records: Sequence[TaskRecord], deadline: float) -> None:
-        """While every robot of ``cluster`` is down, and for at most a task
-        timeout: until one restarts (it joins at the next task) or answers
-        again as the process its teammates still count (taken back).  A
-        power cut of a module's holders, with the cluster's third robot
-        frozen meanwhile, left a nine-robot cluster without anyone for 15 s,
-        and the feeder gave the run up at its next task (found in the
-        simulator, seed 2 of nine robots with power cuts and forged syncs).
-        Past ``deadline`` (monotonic), the next task finds them all down,
-        and the run fails saying so."""
+    async def ready_for(self, cluster: Sequence[str], seq: int,
+                        records: list[TaskRecord]) -> tuple[list[str], list[TaskRecord]]:
+        """Before task ``seq`` is posted to ``cluster``: the robots joining
+        at it, and their old processes' unexecuted tasks (to go round
+        again); the robots back are taken back.  While every robot of the
+        cluster is down after that, for at most a task timeout, it waits
+        for one to restart (told at once) or to answer again as the process
+        its teammates still count (asked once every request timeout), and
+        does it all again.  Found in the simulator (nine robots with power
+        cuts and forged syncs): a power cut and a freeze left a cluster
+        without anyone for 15 s and the feeder gave the run up at its next
+        task (seed 2); a restart told while robots were taken back made the
+        last one down (seeds 728 and 770, the feeder starved).  Past the
+        bound, the task finds them all down, and the run fails saying so."""
         watcher = self.channel.watcher
-
-        def nobody() -> bool:
-            return all(r in watcher.down for r in cluster) and not self.joining(cluster)
-
-        if nobody():
-            log.warning("every robot of a cluster (%s) is down: waiting up to %gs for one to come back",
-                        ", ".join(cluster), self.channel.settings.task_timeout_s)
-        while nobody() and (remaining := deadline - clock.monotonic()) > 0:
+        timeout = self.channel.settings.task_timeout_s
+        deadline = clock.monotonic() + timeout
+        joining: list[str] = []
+        left_behind: list[TaskRecord] = []
+        waited = False
+        while True:
             self._rejoined.clear()
+            now_joining = self.joining(cluster)
+            if now_joining:
+                left_behind += self.prepare_join(records, now_joining, seq)
+                joining += now_joining
             await self.take_back(cluster, records)
-            if nobody():
-                # A restart is told at once; a robot back as the same process
-                # is found by asking again, once every request timeout.
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._rejoined.wait(), min(watcher.request_timeout_s, remaining))
+            remaining = deadline - clock.monotonic()
+            if any(r not in watcher.down for r in cluster) or remaining <= 0:
+                return joining, left_behind
+            if not waited:
+                log.warning("every robot of a cluster (%s) is down: waiting up to %gs for one to come back",
+                            ", ".join(cluster), timeout)
+                waited = True
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._rejoined.wait(), min(watcher.request_timeout_s, remaining))
 
     def joining(self, cluster: Sequence[str]) -> list[str]:
         return sorted(r for r in cluster if r in self._restarted)

@@ -5,8 +5,9 @@ At a start the robot asks every holder of every module at once (it missed
 everything while it was down); then every ``sync_every_s`` (with jitter)
 it sends one holder per module its causal context, round robin (the next
 if that one does not answer, a standby if none does), and gets back what
-it lacks; what the holder lacks of this robot's is pushed right after.  Each round ends with compaction: a delta every holder's context of
-a round ago holds leaves the journal.  Overview: :mod:`.replication`.
+it lacks; what the holder lacks of this robot's is pushed right after.
+Each round ends with compaction: a delta every holder's context of a
+round ago holds leaves the journal.  Overview: :mod:`.replication`.
 """
 
 from __future__ import annotations

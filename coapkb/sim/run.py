@@ -466,7 +466,7 @@ class SimulatedTeam:
         """Carry out ``event`` now (``event.at_s`` is what the record says)."""
         action, target = event.action, event.targets[0]
         process = self.current[target]
-        if (action == "kill") == (process.status == "dead") and action in ("kill", "restart"):
+        if (action == "kill" and process.status == "dead") or (action == "restart" and process.status != "dead"):
             # Two faults that overlap on one robot: a power cut killed it
             # before its own kill came, or brought it back before its own
             # restart.  Killing the dead would tear its journal twice (a
