@@ -249,7 +249,7 @@ class Controller:
         fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
         each other on it alike."""
         if self.robot_id in task.join:
-            await self.team.join(task.seq, timeout=self.config.query_timeout_s * 4, joining=task.join)
+            await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
             # Before its plan is out, nobody has decided this task: the
             # claims a teammate hands over are those of the tasks before it.
             await self._take_claims(task.seq)

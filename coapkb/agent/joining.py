@@ -23,50 +23,72 @@ Shown = tuple[int, tuple[str, ...]]
 
 
 async def decided_before(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],
-                         seq: int, timeout: float) -> tuple[Shown | None, bool]:
+                         seq: int, patience: float) -> tuple[Shown | None, bool]:
     """The membership the first of ``teammates`` to show its decision of
     task ``seq - 1`` decided it in, all of them observed at once (some may
-    be down), within ``timeout`` seconds; None if none showed it.  And
-    whether one of them may have decided it unseen: it was past the task,
-    or silent until the timeout (False: no process that decided it is
-    left, each being a new one that decided nothing, or none listening)."""
+    be down); None if none can show it.  And whether one of them may have
+    decided it unseen: it was already past the task (False: no process that
+    decided it is left, each being a new one that decided nothing, or none
+    listening).
+
+    A teammate that stays silent is waited for, however long: silence is
+    no sign that its process is gone (one cut off, or frozen, decided the
+    task and decides on in the membership the joiner must take; a joiner
+    that started a fresh one without it after a wait split the cluster in
+    two memberships: simulator seed 1114 of nine robots with power cuts).
+    Every fault the team is built for ends, and a process that is gone
+    answers "nobody here".  Each observation that gets no answer within
+    ``patience`` seconds is started again, so a teammate back from a
+    partition is reached at the first retransmission after it, not at the
+    end of a backoff grown through the partition; and the wait is logged
+    once after that long."""
     request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
 
     async def shown_by(robot_id: str) -> Shown | bool:
         """Observe ``robot_id``'s state until it shows its decision of
         ``seq - 1``; False once it cannot (no process there, or a new one
-        that decided nothing), True if it is not known."""
+        that decided nothing), True if it is past the task."""
         while True:
             try:
-                async for response in transport.observe(endpoints[robot_id], request):
-                    state = RobotState.decode(response.payload) if response.status.is_success else None
-                    last = state.last if state is not None else None
-                    if state is not None and last is None:
-                        return False  # a process that never decided: restarted, not yet joined
-                    if last is not None and last.seq >= seq - 1:
-                        # None decides seq before this robot's plan for it is
-                        # out, so seq - 1 is as far as a teammate can be.
-                        return (last.epoch, last.members) if last.seq == seq - 1 else True
+                async with asyncio.timeout(patience) as first_answer:
+                    async for response in transport.observe(endpoints[robot_id], request):
+                        first_answer.reschedule(None)  # observing: its state changes when it decides
+                        state = RobotState.decode(response.payload) if response.status.is_success else None
+                        last = state.last if state is not None else None
+                        if state is not None and last is None:
+                            return False  # a process that never decided: restarted, not yet joined
+                        if last is not None and last.seq >= seq - 1:
+                            # None decides seq before this robot's plan for it is
+                            # out, so seq - 1 is as far as a teammate can be.
+                            return (last.epoch, last.members) if last.seq == seq - 1 else True
             except PeerGone as exc:
                 log.debug("catching up from %s: %s", robot_id, exc)
                 return False
-            except (TransportError, ValueError) as exc:
-                log.debug("catching up from %s: %s", robot_id, exc)
-            await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: until the timeout
+            except (TransportError, ValueError, TimeoutError) as exc:
+                log.debug("catching up from %s: %s", robot_id, exc or "no answer")
+            await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: again
 
-    # Tasks made here, in the teammates' order (as_completed would start
-    # bare coroutines in an order that follows id()).
+    # Tasks made here and read in the teammates' order (a set of done tasks
+    # iterates in an order that follows id()).
     watches = [asyncio.create_task(shown_by(r)) for r in teammates]
     unknown = False
+    waited = False
     try:
-        async with asyncio.timeout(timeout):
-            for first in asyncio.as_completed(watches):
-                found = await first
-                if isinstance(found, tuple):
-                    return found, unknown
-                unknown = unknown or found
-    except TimeoutError:
-        unknown = True
+        pending = set(watches)
+        while pending:
+            done, pending = await asyncio.wait(pending, timeout=None if waited else patience,
+                                               return_when=asyncio.FIRST_COMPLETED)
+            if not done and not waited:
+                silent = [r for r, w in zip(teammates, watches, strict=True) if w in pending]
+                log.warning("no teammate showed its decision of task %d within %gs; waiting on for %s",
+                            seq - 1, patience, ", ".join(silent))
+                waited = True
+            for watch in watches:
+                if watch in done:
+                    found = watch.result()
+                    if isinstance(found, tuple):
+                        return found, unknown
+                    unknown = unknown or found
     finally:
         for watch in watches:
             watch.cancel()

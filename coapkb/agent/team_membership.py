@@ -197,12 +197,14 @@ class TeamMembership:
             del self.excluded[robot_id]
         self.epoch = membership.epoch
 
-    async def join(self, seq: int, timeout: float, joining: Sequence[str] = ()) -> None:
+    async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> None:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in (a new epoch, its
         admission, if that membership had left it out); its view then shows
         a plan right after ``seq - 1`` (:meth:`.TeamView.join`), which the
-        others wait for before deciding ``seq``.
+        others wait for before deciding ``seq``.  A silent teammate is waited
+        for (:func:`.joining.decided_before`, observed again after
+        ``patience`` seconds without an answer).
 
         ``joining``: every robot joining at ``seq`` (this one too).  When no
         teammate can show that decision -- each is joining too, or no process
@@ -212,20 +214,18 @@ class TeamMembership:
         the joiners start a fresh membership from the join list: its members
         are the joiners, its epoch the task's number, the same on each of them
         (found in the simulator: three robots restarted in turn logged
-        "cannot join" and decided nothing).  The same when no teammate showed
-        it within ``timeout``: the teammates the feeder counts decided
-        ``seq - 1`` before it posted ``seq``, so one still silent is out."""
+        "cannot join" and decided nothing)."""
         if seq <= 1:
             # Nothing decided before: the membership is the cluster's first.
             self._joined(seq, Membership(0, ()))
             return
         co_joiners = {r for r in joining if r in self._peers}
-        shown, unknown = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
-                                              seq, timeout)
+        shown, past = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
+                                           seq, patience)
         membership = None if shown is None else Membership(*shown)
         if membership is None:
             log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "
-                        "at task %d", seq - 1, f" within {timeout:g}s" if unknown else " (none survives)", seq)
+                        "at task %d", seq - 1, " (one is past it)" if past else " (none survives)", seq)
             membership = Membership(seq, tuple(sorted(co_joiners | {self.robot_id})))
         self._joined(seq, membership)
 

@@ -182,6 +182,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         770: "the same as seed 728",
         110: "a robot whose teammate and next-cluster holder of a module were both killed for good (and the "
              "robot that pushed to it too, one in each cluster) never had that module's later writes again",
+        1114: "a joiner cut off from the one survivor of its cluster (its observation's retransmissions lost "
+              "through the partition and after it) started a fresh membership without it after 20 s, while its "
+              "co-joiner had joined in the survivor's: two memberships, and its epoch went back when it took "
+              "the co-joiner's decision",
     }),
 ]
 
