@@ -207,7 +207,8 @@ class PushedFacts:
                 self._lateness(name).append(0.0)
         if not awaited.arrived.is_set():
             try:
-                await asyncio.wait_for(awaited.arrived.wait(), within)
+                async with asyncio.timeout(within):
+                    await awaited.arrived.wait()
             except TimeoutError:
                 self._missed(endpoint)
                 return None

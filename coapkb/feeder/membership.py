@@ -103,7 +103,8 @@ class Membership:
                             ", ".join(cluster), timeout)
                 waited = True
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._rejoined.wait(), min(watcher.request_timeout_s, remaining))
+                async with asyncio.timeout(min(watcher.request_timeout_s, remaining)):
+                    await self._rejoined.wait()
 
     def joining(self, cluster: Sequence[str]) -> list[str]:
         return sorted(r for r in cluster if r in self._restarted)

@@ -55,7 +55,8 @@ class TeamProcesses:
         self._stderr_tails[name] = tail
         asyncio.create_task(_drain(proc.stderr, tail, log_file), name=f"stderr-{name}")
         try:
-            line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode().strip()
+            async with asyncio.timeout(60):
+                line = (await proc.stdout.readline()).decode().strip()
         except TimeoutError:
             line = ""
         if not line.startswith(ready_prefix):
@@ -107,7 +108,8 @@ class TeamProcesses:
                     proc.send_signal(signal.SIGCONT)  # a stopped robot must run to take SIGTERM
         for name, proc in self.by_name.items():
             try:
-                await asyncio.wait_for(proc.wait(), 10)
+                async with asyncio.timeout(10):
+                    await proc.wait()
             except TimeoutError:
                 log.warning("%s did not stop on SIGTERM; killing it", name)
                 with contextlib.suppress(ProcessLookupError):

@@ -67,7 +67,8 @@ class AntiEntropy:
         left = self._started_at + self.settings.read_after_catch_up_s - clock.monotonic()
         if left > 0:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._caught_up.wait(), left)
+                async with asyncio.timeout(left):
+                    await self._caught_up.wait()
 
     async def _rounds(self) -> None:
         # A robot that starts (again) has missed everything: it catches up

@@ -263,7 +263,8 @@ class KBResources:
             if inline:
                 result = self._evaluate_inline(text, shape)
             else:
-                result = await asyncio.wait_for(self._evaluate(text, shape), limits.time_budget_s + 0.5)
+                async with asyncio.timeout(limits.time_budget_s + 0.5):
+                    result = await self._evaluate(text, shape)
         except QuerySyntaxError as exc:
             return Response.error(Status.BAD_REQUEST, f"malformed SPARQL: {exc}")
         except UpdateRefused as exc:

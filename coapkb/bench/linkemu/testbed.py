@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import atexit
+import contextlib
 import os
 import re
 import secrets
@@ -274,10 +275,9 @@ class Testbed:
         self.close()
         for p in live:
             if p.returncode is None:
-                try:
-                    await asyncio.wait_for(p.wait(), 2.0)
-                except TimeoutError:
-                    pass
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(2.0):
+                        await p.wait()
         self._aproc.clear()
 
     def _owned_namespaces(self) -> list[str]:

@@ -445,7 +445,8 @@ class _PeerLink:
         pause = self._options.rediscover_first_s
         while not self.matched.is_set() and self._discovery_waiters > 0:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.matched.wait(), pause)
+                async with asyncio.timeout(pause):
+                    await self.matched.wait()
                 return
             if self._discovery_waiters > 0:
                 self.participant.announce()
