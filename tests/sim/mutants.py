@@ -14,6 +14,7 @@ Run one by hand (the patch applied, then ``coapkb`` as usual)::
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import inspect
@@ -30,6 +31,7 @@ if __package__ in (None, ""):
 
 from coapkb.agent import controller as controller_module
 from coapkb.agent import notification_repair as notification_repair_module
+from coapkb.agent import team_membership as team_membership_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
@@ -66,6 +68,8 @@ NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
 #: mutant's list: the profile as a whole, its seeds 1-40).
 PROGRESS = ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5")
 PROFILE_SEEDS = tuple(range(1, 41))
+#: Nine robots with power cuts, forged syncs and data folders: no CI profile runs it.
+NINE_STORAGE = ("--robots", "9", "--tasks", "30", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage")
 #: Kills and restarts while the operator writes, and the catch-up oracle over
 #: the profile's runs (seed 0: the profile as a whole, its seeds 1-30: the
 #: bug planted, the median is 1.69 s over 9 restarts that owed values,
@@ -143,6 +147,22 @@ def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int =
 
 def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> None:
     """A follower keeps its own membership, not the leader's it carries out."""
+
+
+_decided_before = team_membership_module.decided_before
+
+
+async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: int,
+                           patience: float) -> tuple[Any, bool]:
+    """A joiner's wait for the decision before its join ends after four
+    query timeouts, and the teammates still silent are taken for gone: a
+    fresh membership of the joiners, while a co-joiner may have joined in
+    theirs."""
+    try:
+        async with asyncio.timeout(patience * 4):
+            return await _decided_before(transport, endpoints, teammates, seq, patience)
+    except TimeoutError:
+        return None, False
 
 
 _assign = controller_module.assign
@@ -282,6 +302,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamMembership, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
            lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
+    Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
+           "starts a membership without it",
+           lambda: _patch(team_membership_module, "decided_before", _silent_left_out), NINE_STORAGE),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),
