@@ -22,8 +22,9 @@ def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p.add_argument("--seed", type=int, metavar="S", help="run seed S alone (with --trace: write its trace)")
     p.add_argument("--faults", default="mixed", metavar="LIST",
                    help="fault kinds a run may draw: kill, freeze, partition, starve, loss[=P], burst[=P], dup[=P], "
-                        "jitter[=S]; mixed = all of them; none = no faults (default mixed); P is a probability "
-                        "(loss=0.2) or a percentage (loss=20%%)")
+                        "jitter[=S]; mixed = all of them; none = no faults (default mixed); by name only: forge, "
+                        "crash (a power cut), rejoin (a restarted robot cut off from its cluster), swarm; P is a "
+                        "probability (loss=0.2) or a percentage (loss=20%%)")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
     p.add_argument("--writes", type=int, default=0, metavar="N",
                    help="an operator writes N times to random robots' KBs during each run (replication checked)")

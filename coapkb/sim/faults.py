@@ -18,10 +18,11 @@ from ..errors import CoapkbError
 from .network import LinkModel
 
 #: Fault kinds that act on processes or links at a time.
-EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash")
+EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin")
 #: Kinds that shape every link for the whole run, with their default amount.
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
-#: Everything at once, with default amounts (a forger is asked for by name).
+#: Everything at once, with default amounts (a forger, a power cut and a
+#: rejoin cut off are asked for by name).
 MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
 #: Swarm testing: each seed draws which of the mix's kinds are on, how
 #: often, for how long, and its links' amounts (up to three times the default).
@@ -233,6 +234,19 @@ class _DraftSchedule:
             self.out[victim] = at + lasting + held
             action = "freeze-picking" if kind == "freeze" else "cut-picking"
             self.events.append(FaultEvent(at, action, (victim,), amount=held, until_s=round(at + lasting, 3)))
+            return
+        if kind == "rejoin":
+            # Killed and started again, and cut off from its cluster (not
+            # from the feeder, whose post names it to join) the moment it
+            # is back: it must take its teammates' membership once it hears
+            # them, never start one of its own.
+            # Back soon, while tasks are still posted: it joins at the next.
+            back, held = round(at + min(lasting, 2.0), 3), round(rng.uniform(0.5, longest), 3)
+            self.out[victim] = back + held
+            mates = tuple(r for r in self.clusters[self.cluster_of[victim]] if r != victim)
+            self.events += [FaultEvent(at, "kill", (victim,)), FaultEvent(back, "restart", (victim,)),
+                            FaultEvent(back, "cut", (victim,), other=mates),
+                            FaultEvent(round(back + held, 3), "heal", (victim,))]
             return
         if kind == "kill":
             restart = rng.random() < 0.5

@@ -68,8 +68,8 @@ NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
 #: mutant's list: the profile as a whole, its seeds 1-40).
 PROGRESS = ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5")
 PROFILE_SEEDS = tuple(range(1, 41))
-#: Nine robots with power cuts, forged syncs and data folders: no CI profile runs it.
-NINE_STORAGE = ("--robots", "9", "--tasks", "30", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage")
+#: A restarted robot cut off from its cluster the moment it is back, on lossy links.
+REJOIN = ("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm")
 #: Kills and restarts while the operator writes, and the catch-up oracle over
 #: the profile's runs (seed 0: the profile as a whole, its seeds 1-30: the
 #: bug planted, the median is 1.69 s over 9 restarts that owed values,
@@ -304,7 +304,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
-           lambda: _patch(team_membership_module, "decided_before", _silent_left_out), NINE_STORAGE),
+           lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),

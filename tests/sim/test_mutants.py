@@ -50,13 +50,7 @@ def test_every_planted_bug_is_caught_on_its_seed(name: str) -> None:
 
 
 #: Planted bugs no seed searched has caught yet, and why that may be.
-SURVIVORS: dict[str, str] = {
-    "silent-teammate-left-out": (
-        "a join cut off from every survivor for four query timeouts (20 s) is rare: seed 1114 of nine robots with "
-        "power cuts drew one, and a joiner now observes a silent teammate again after each query timeout, so it "
-        "reaches the survivor once the partition heals and the planted bug never fires there; no seed of 3 robots "
-        "(mixed,swarm; kill,partition; kill,partition,loss=0.1; 300 each) caught it"),
-}
+SURVIVORS: dict[str, str] = {}
 
 
 def test_there_are_a_dozen_planted_bugs_caught_and_the_survivors_are_named() -> None:
