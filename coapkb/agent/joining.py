@@ -23,20 +23,25 @@ Shown = tuple[int, tuple[str, ...]]
 
 
 async def decided_before(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],
-                         seq: int, patience: float) -> tuple[Shown | None, bool]:
+                         seq: int, patience: float, joiner: str) -> tuple[Shown | None, bool]:
     """The membership the first of ``teammates`` to show its decision of
     task ``seq - 1`` decided it in, all of them observed at once (some may
-    be down); None if none can show it.  And whether one of them may have
-    decided it unseen: it was already past the task (False: no process that
-    decided it is left, each being a new one that decided nothing, or none
-    listening).
+    be down); None if none can show it.  A decision of task ``seq`` itself
+    that counts ``joiner`` a member does as well: the teammate admitted it
+    there and decided the task without a plan of it (a repeat skipped on
+    its claim needs none), and waits for its plan for the next (found in
+    the simulator: a joiner that took such a teammate for one past its join
+    started a membership of its own, alone).  And whether one of them may
+    have decided it unseen: it was already past the task (False: no process
+    that decided it is left, each being a new one that decided nothing, or
+    none listening).
 
     A teammate that stays silent is waited for, however long: silence is
     no sign that its process is gone (one cut off, or frozen, decided the
     task and decides on in the membership the joiner must take; a joiner
     that started a fresh one without it after a wait split the cluster in
     two memberships: simulator seed 1114 of nine robots with power cuts).
-    Every fault the team is built for ends, and a process that is gone
+    Every fault the team is built for ends, and a process that died
     answers "nobody here".  Each observation that gets no answer within
     ``patience`` seconds is started again, so a teammate back from a
     partition is reached at the first retransmission after it, not at the
@@ -47,7 +52,8 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
     async def shown_by(robot_id: str) -> Shown | bool:
         """Observe ``robot_id``'s state until it shows its decision of
         ``seq - 1``; False once it cannot (no process there, or a new one
-        that decided nothing), True if it is past the task."""
+        that decided nothing), True if it is past the task without
+        ``joiner``."""
         while True:
             try:
                 async with asyncio.timeout(patience) as first_answer:
@@ -58,9 +64,10 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
                         if state is not None and last is None:
                             return False  # a process that never decided: restarted, not yet joined
                         if last is not None and last.seq >= seq - 1:
-                            # None decides seq before this robot's plan for it is
-                            # out, so seq - 1 is as far as a teammate can be.
-                            return (last.epoch, last.members) if last.seq == seq - 1 else True
+                            # Past seq - 1 only by a task that needs no plans
+                            # (with the joiner a member), or having left it out.
+                            taken = last.seq == seq - 1 or (last.seq == seq and joiner in last.members)
+                            return (last.epoch, last.members) if taken else True
             except PeerGone as exc:
                 log.debug("catching up from %s: %s", robot_id, exc)
                 return False

@@ -221,7 +221,7 @@ class TeamMembership:
             return
         co_joiners = {r for r in joining if r in self._peers}
         shown, past = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
-                                           seq, patience)
+                                           seq, patience, self.robot_id)
         membership = None if shown is None else Membership(*shown)
         if membership is None:
             log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "

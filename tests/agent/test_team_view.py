@@ -442,6 +442,24 @@ async def test_a_joiner_takes_the_membership_a_survivor_decided_the_task_before_
         await team.aclose()
 
 
+async def test_a_joiner_takes_the_membership_of_its_own_task_when_a_teammate_decided_it_counting_it() -> None:
+    """Robot3 admitted Robot1 at task 10 and decided that task without a
+    plan of it (a repeat, skipped on its claim): it shows task 10, not 9,
+    with Robot1 a member.  The joiner takes that membership, not one of its
+    own (found in the simulator with the rejoin fault, seeds 58 and 143: a
+    joiner alone in a membership gave an object again)."""
+    network = MemoryNetwork()
+    last = Decision(10, "Gucci_bag_14", skipped=True, epoch=4, members=("Robot1", "Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot3", 10), last=last))
+    team = view(network, robot("Robot1", 0, boot=3))
+    try:
+        async with asyncio.timeout(2):
+            await team.join(10, patience=60, joining=("Robot1", "Robot2"))
+        assert (team.membership.epoch, team.membership.members) == (4, ("Robot1", "Robot2", "Robot3"))
+    finally:
+        await team.aclose()
+
+
 async def test_a_joiner_waits_for_a_silent_teammate_and_observes_it_again_rather_than_leave_it_out() -> None:
     """Robot3 decided task 9 but is cut off from the joiner: its first
     observation is never answered.  The joiner does not start a membership

@@ -152,15 +152,15 @@ def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> No
 _decided_before = team_membership_module.decided_before
 
 
-async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: int,
-                           patience: float) -> tuple[Any, bool]:
+async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: int, patience: float,
+                           joiner: str) -> tuple[Any, bool]:
     """A joiner's wait for the decision before its join ends after four
     query timeouts, and the teammates still silent are taken for gone: a
     fresh membership of the joiners, while a co-joiner may have joined in
     theirs."""
     try:
         async with asyncio.timeout(patience * 4):
-            return await _decided_before(transport, endpoints, teammates, seq, patience)
+            return await _decided_before(transport, endpoints, teammates, seq, patience, joiner)
     except TimeoutError:
         return None, False
 

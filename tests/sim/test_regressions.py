@@ -187,6 +187,12 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "co-joiner had joined in the survivor's: two memberships, and its epoch went back when it took "
               "the co-joiner's decision",
     }),
+    (("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm"), {
+        58: "a joiner cut off at its restart found its teammates had decided its join task without a plan of it "
+            "(a repeat skipped on its claim), took them for past its join, and started a membership of its own, "
+            "alone, without the claims: it gave an object again",
+        143: "the same as seed 58",
+    }),
 ]
 
 
