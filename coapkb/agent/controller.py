@@ -264,9 +264,13 @@ class Controller:
         ``bounds.claims_handed``), so it skips a repeat as they do."""
         if self._ask_claims is None:
             return
-        for mate in sorted(self.team.membership.members, key=robot_sort_key):
-            if mate == self.robot_id or not self.team.is_up(mate):
-                continue
+        members = [r for r in sorted(self.team.membership.members, key=robot_sort_key)
+                   if r != self.robot_id and self.team.is_up(r)]
+        # Then the rest of the cluster: a joiner that started a membership
+        # of its own still skips what the cluster gave (found in the
+        # simulator: a joiner its teammates had left out, alone in its
+        # membership, gave an object again).
+        for mate in [*members, *(r for r in self.team.teammates if r not in members)]:
             try:
                 claims = await self._ask_claims(mate)
             except TransportError as exc:

@@ -17,6 +17,7 @@ from ..transport.messages import ContentFormat, Method, Request
 from .local_health import LoopHealth
 from .observed_states import PLAN_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
 from .robot_state import PlannedState, RobotState
+from .task_assigner import robot_sort_key
 from .team_membership import TeamMembership
 from .teammate_revival import TeammateRevival
 
@@ -107,6 +108,11 @@ class TeamView:
         """A query to teammate ``robot_id`` failed at the transport: a failure
         of a request like a liveness probe's (two in a row: down)."""
         await self._teammates.record_failure(robot_id, exc)
+
+    @property
+    def teammates(self) -> list[str]:
+        """This robot's cluster but itself, in the team's order."""
+        return sorted(self._peers, key=robot_sort_key)
 
     def in_cluster(self, robot_id: str) -> bool:
         """Whether ``robot_id`` is one of this robot's cluster (itself included)."""
