@@ -37,6 +37,8 @@ CI_PROFILES = [
                            "--catch-up-within", "0.5"), "1-60"),
     # Every fault at once, no swarm: the operator's writes against kills, restarts, cuts and loss.
     CIProfile("every fault", ("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), "1-60"),
+    # A restarted robot cut off from its cluster the moment it is back, on lossy links: its join.
+    CIProfile("rejoin", ("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm"), "1-40"),
     # Long task lists that draw objects again, across three clusters, with every fault.
     CIProfile("repeats", ("--robots", "9", "--tasks", "60", "--faults", "mixed", "--writes", "3"), "1-6"),
 ]
