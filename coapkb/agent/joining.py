@@ -78,7 +78,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
     # Tasks made here and read in the teammates' order (a set of done tasks
     # iterates in an order that follows id()).
     watches = [asyncio.create_task(shown_by(r)) for r in teammates]
-    unknown = False
+    past = False
     waited = False
     try:
         pending = set(watches)
@@ -94,10 +94,10 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
                 if watch in done:
                     found = watch.result()
                     if isinstance(found, tuple):
-                        return found, unknown
-                    unknown = unknown or found
+                        return found, past
+                    past = past or found
     finally:
         for watch in watches:
             watch.cancel()
         await asyncio.gather(*watches, return_exceptions=True)
-    return None, unknown
+    return None, past
