@@ -236,11 +236,11 @@ class _DraftSchedule:
             self.events.append(FaultEvent(at, action, (victim,), amount=held, until_s=round(at + lasting, 3)))
             return
         if kind == "rejoin":
-            # Killed and started again, and cut off from its cluster (not
-            # from the feeder, whose post names it to join) the moment it
-            # is back: it must take its teammates' membership once it hears
-            # them, never start one of its own.
-            # Back soon, while tasks are still posted: it joins at the next.
+            # Killed, started again soon (while tasks are still posted, so
+            # it joins at the next), and cut off from its cluster (not from
+            # the feeder, whose post names it to join) the moment it is
+            # back: it must take its teammates' membership once it hears
+            # them, or, left out meanwhile, be fenced as any robot left out.
             back, held = round(at + min(lasting, 2.0), 3), round(rng.uniform(0.5, longest), 3)
             self.out[victim] = back + held
             mates = tuple(r for r in self.clusters[self.cluster_of[victim]] if r != victim)
