@@ -114,7 +114,8 @@ class Controller:
         #: What a task's decision needs from the KB.
         self.facts = FactGatherer(config, queries)
         #: Taking a teammate's decision when this robot cannot decide alone.
-        self.settler = Settler(config.robot_id, team, config.query_timeout_s, ask_decision, self.recent)
+        self.settler = Settler(config.robot_id, team, config.query_timeout_s, ask_decision, self.recent,
+                               fenced=executor.fenced)
 
     @property
     def robot_id(self) -> str:

@@ -31,6 +31,8 @@ SETTLE_DECIDING_TIMEOUTS = 6
 #: Asks a teammate for its decision on a task (None: it has none yet;
 #: TransportError: it does not answer).
 AskDecision = Callable[[str, int], Awaitable[DecisionMessage | None]]
+#: Why no majority of the cluster grants this robot a lease now, or None.
+Fenced = Callable[[], Awaitable[str | None]]
 
 
 @dataclass
@@ -51,13 +53,14 @@ class Settler:
     """One robot's side of settling decisions with its teammates."""
 
     def __init__(self, robot_id: str, team: TeamView, query_timeout_s: float, ask_decision: AskDecision | None,
-                 recent: MutableMapping[int, DecisionMessage]) -> None:
+                 recent: MutableMapping[int, DecisionMessage], *, fenced: Fenced | None = None) -> None:
         self.robot_id = robot_id
         self.team = team
         self._query_timeout_s = query_timeout_s
         self._ask_decision = ask_decision
         #: The robot's decisions as teammates asking it get them (its Controller's).
         self.recent = recent
+        self._fenced = fenced
 
     async def settle(self, task: Task, alone: DecisionMessage) -> DecisionMessage:
         """The decision on ``task`` when this robot's own knowledge did not
@@ -182,11 +185,46 @@ class Settler:
         message per task."""
         mates = [r for r in self._others() if self.team.is_up(r)]
         window = clock.monotonic() - received + self._query_timeout_s * 2
-        if self.team.stalled_within(window) >= self.team.request_timeout_s:
-            ahead = mates
-        else:
+        stalled = self.team.stalled_within(window) >= self.team.request_timeout_s
+        if not stalled:
             ahead = [r for r in mates if (state := self.team.state_of(r)) is not None and state.plan.seq >= task.seq]
-        return await self._taken_from(task, ahead, "decided it before this robot began")
+            return await self._taken_from(task, ahead, "decided it before this robot began")
+        if (taken := await self._taken_from(task, mates, "decided it before this robot began")) is not None:
+            return taken
+        return await self._awaited_if_fenced(task, mates)
+
+    async def _awaited_if_fenced(self, task: Task, mates: list[str]) -> DecisionMessage | None:
+        """After a stall, with no teammate's decision on ``task`` yet: if no
+        majority grants this robot a lease any more, its teammates have it
+        down and decide without it, and would never take a decision of its
+        own; it waits for theirs (asking every :data:`SETTLE_POLL_S`, for
+        twice the longest settling), then decides alone.  Found in the
+        simulator, seed 43737: the holder of the Location KB frozen 4-24 s;
+        back, it found its teammates still settling the task it held,
+        decided it on its own knowledge, and they settled it unavailable.
+        None while it is still granted: teammates that count it take its
+        decision on knowledge as they settle."""
+        if self._fenced is None or not mates:
+            return None
+        try:
+            async with asyncio.timeout(self._query_timeout_s):
+                why = await self._fenced()
+        except TimeoutError:  # cut off: neither granted nor refused
+            return None
+        if why is None:
+            return None
+        log.warning("task %d (%s): this robot stood still and is fenced (%s): it waits for its teammates' decision",
+                    task.seq, task.object, why)
+        deadline = clock.monotonic() + self._query_timeout_s * SETTLE_DECIDING_TIMEOUTS * 2
+        while clock.monotonic() < deadline:
+            await asyncio.sleep(SETTLE_POLL_S)
+            answers = await self._answers(task, mates)
+            if (taken := self._chosen(task, mates, answers, "decided it while this robot was fenced")) is not None:
+                return taken
+            if any(isinstance(a, DecisionMessage) and not self.counts_me(a.decision) for a in answers):
+                return None  # left out: this robot's own decision is void, whatever it is
+        log.warning("task %d (%s): no teammate decided it meanwhile: decided alone", task.seq, task.object)
+        return None
 
     async def decided_by_teammates(self, task: Task) -> DecisionMessage | None:
         """A live teammate's decision on ``task`` already made, before this
@@ -208,10 +246,15 @@ class Settler:
         :meth:`settle` takes one: decided on knowledge first, else settled
         unavailable and applied; none decided in a membership without this
         robot."""
+        return self._chosen(task, mates, await self._answers(task, mates), how)
+
+    async def _answers(self, task: Task, mates: list[str]) -> list[DecisionMessage | None | BaseException]:
         if not mates or self._ask_decision is None:
-            return None
-        answers = await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates),
-                                       return_exceptions=True)
+            return []
+        return await asyncio.gather(*(self._ask_decision(mate, task.seq) for mate in mates), return_exceptions=True)
+
+    def _chosen(self, task: Task, mates: list[str], answers: list[DecisionMessage | None | BaseException],
+                how: str) -> DecisionMessage | None:
         # An unavailable one still being settled (not yet applied, so not
         # stamped with its members) may yet give way to a decision on knowledge.
         taken = [(mate, theirs) for mate, theirs in zip(mates, answers)

@@ -117,6 +117,11 @@ class TaskExecutor:
                      fence_reason=why)
         self._idle.set()
 
+    async def fenced(self) -> str | None:
+        """Why no majority of the cluster grants this robot a lease now, or
+        None if one does (or there is no fence)."""
+        return None if self._lease is None else await self._lease(0.0)
+
     async def _leased(self, job: Job, for_s: float) -> bool:
         """True while this robot holds its lease for ``for_s`` more seconds;
         else ``job`` and the queued ones are dropped (:meth:`_forfeit`)."""

@@ -15,6 +15,7 @@ from coapkb.agent.decisions import DecisionMessage, Task
 from coapkb.agent.observed_states import PLAN_PATH
 from coapkb.agent.query_handler import QueryError, QueryHandler
 from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
+from coapkb.agent.settling import Settler
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_membership import Membership
 from coapkb.agent.team_view import TeamView
@@ -301,7 +302,83 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
         return theirs
 
     controller = Controller(cfg, NoQueries(), UpTeam("Robot2", ("Robot1", "Robot2", "Robot3")),  # type: ignore[arg-type]
-                            None, lambda state: None, None, ask_decision=ask)  # type: ignore[arg-type]
+                            TaskExecutor(cfg.execution, LiveState(0.0, 0.0), lambda live: None), lambda state: None, None,
+                            ask_decision=ask)  # type: ignore[arg-type]
     async with asyncio.timeout(10):
         settled = await controller.settler.settle(Task(7, OBJECT), alone)
     assert settled is theirs and asked.count("Robot1") == 2
+
+
+class StalledTeam(UpTeam):
+    """A team seen by a robot whose loop just stood still for 20 s."""
+
+    request_timeout_s = 1.0
+
+    def stalled_within(self, window_s: float) -> float:
+        return 20.0
+
+    def state_of(self, robot_id: str) -> RobotState | None:
+        return None
+
+
+def _stalled_settler(ask: Callable[[str, int], Awaitable[DecisionMessage | None]],
+                     fenced: str | None) -> Settler:
+    async def lease() -> str | None:
+        return fenced
+
+    team = StalledTeam("Robot1", ("Robot1", "Robot2", "Robot3"))
+    return Settler("Robot1", team, 1.0, ask, {}, fenced=lease)  # type: ignore[arg-type]
+
+
+@pytest.mark.looptime  # the polls on the event loop's own clock
+async def test_a_fenced_robot_back_from_a_stall_waits_for_its_teammates_decision() -> None:
+    """Robot1, back from a freeze, finds Robot2 and Robot3 still deciding
+    the task and no majority granting it a lease: they have it down and
+    will not take its decision, so it takes theirs once they apply it
+    (simulator seed 43737: it decided on its own knowledge, they settled
+    the task unavailable)."""
+    settled = DecisionMessage(Decision(3, OBJECT, unavailable="no live robot holds the Location KB", epoch=0,
+                                       members=("Robot1", "Robot2", "Robot3")))
+    settling = DecisionMessage(Decision(3, OBJECT, unavailable="no live robot holds the Location KB"))
+    asked: list[str] = []
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        asked.append(mate)
+        if len(asked) < 6:
+            return None if mate == "Robot2" else settling  # deciding again; settling, not applied
+        return settled
+
+    settler = _stalled_settler(ask, fenced="no lease from a majority of the cluster")
+    taken = await settler.decided_before(Task(3, OBJECT), received=0.0)
+    assert taken is settled and len(asked) >= 6
+
+
+@pytest.mark.looptime
+async def test_a_robot_back_from_a_stall_still_granted_decides_on_its_own_knowledge() -> None:
+    """Teammates that still grant it count it: as they settle they take its
+    decision on knowledge, so it does not wait for theirs."""
+    asked: list[str] = []
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        asked.append(mate)
+        return None
+
+    assert await _stalled_settler(ask, fenced=None).decided_before(Task(3, OBJECT), received=0.0) is None
+    assert sorted(asked) == ["Robot2", "Robot3"]
+
+
+@pytest.mark.looptime
+async def test_a_fenced_robot_left_out_stops_waiting_at_once() -> None:
+    """Teammates that decided in a membership without it never give it a
+    decision to take; its own is void, so it stops waiting."""
+    without = DecisionMessage(Decision(4, OBJECT, assigned_to="Robot2", epoch=1, members=("Robot2", "Robot3")))
+    asked: list[str] = []
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        asked.append(mate)
+        return without
+
+    loop = asyncio.get_running_loop()
+    began = loop.time()
+    assert await _stalled_settler(ask, fenced="refused").decided_before(Task(4, OBJECT), received=0.0) is None
+    assert loop.time() - began < 1.0 and len(asked) == 4

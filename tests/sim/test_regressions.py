@@ -121,6 +121,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "teammates still granted it; the feeder took it back without the post, and it was never executed",
         27361: "Robot2 killed holding tasks 7 and 9 and back as a new process while the feeder was cut off; "
                "past the last task there was no task to join at, so its old tasks never went round again",
+        43737: "the holder of the Location KB, frozen 4-24 s and declared down by both teammates, found them "
+               "still settling the task it held, decided it on its own knowledge, and they settled it unavailable",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
