@@ -422,6 +422,8 @@ class ContextHooks:
         self._send_errors: list[OSError] | None = None
         #: When each request in aiocoap's duplicate memory came, oldest first.
         self._remembered_at: OrderedDict[tuple[Any, int], float] = OrderedDict()
+        #: The token each remembered message came with: a retransmission repeats it.
+        self._tokens: dict[tuple[Any, int], bytes] = {}
         #: Every datagram sent, written down (``COAPKB_WIRE_TRACE``), or None.
         self.trace = wire_trace.tracer(note_protection)
 
@@ -584,9 +586,19 @@ class ContextHooks:
         recent = self.mm._recent_messages
         key = (message.remote, message.mid)
         if key in recent:
-            return bool(self._original(self.mm, "_deduplicate_message")(message))
+            if self._tokens.get(key, message.token) == message.token:
+                return bool(self._original(self.mm, "_deduplicate_message")(message))
+            # Same endpoint and Message ID, another token: not a copy but a
+            # new exchange of a client that started again on the same port
+            # (a restarted robot; each run of coap-client -p) and cannot know
+            # its predecessor's IDs.  Answering it the old exchange's stored
+            # answer would hand it another request's answer.
+            del self._remembered_at[key]
+            recent.pop(key, None)
+            self._tokens.pop(key, None)
         self.forget_duplicates(room_for=1)
         self._remembered_at[key] = self.mm.loop.time()
+        self._tokens[key] = message.token
         recent[key] = None
         return False
 
@@ -605,6 +617,7 @@ class ContextHooks:
                 break
             del remembered[oldest]
             recent.pop(oldest, None)
+            self._tokens.pop(oldest, None)
         return before - int(recent.answer_bytes)
 
     # ------------------------------------------------------------ late events

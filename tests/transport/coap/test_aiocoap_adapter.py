@@ -168,12 +168,13 @@ async def _counting_server(bounds: StateBounds = StateBounds()) -> tuple[aiocoap
     return ctx, resource, port
 
 
-async def _ask(sock: socket.socket, port: int, mid: int) -> bytes:
-    """One CON GET /n with this Message ID from a plain socket; the answer's payload."""
+async def _ask(sock: socket.socket, port: int, mid: int, token: bytes | None = None) -> bytes:
+    """One CON GET /n with this Message ID (and token: by default the ID's
+    bytes) from a plain socket; the answer's payload."""
     from aiocoap import CON, GET, Message
 
     request = Message(code=GET, uri_path=("n",))
-    request.mtype, request.mid, request.token = CON, mid, mid.to_bytes(2, "big")
+    request.mtype, request.mid, request.token = CON, mid, mid.to_bytes(2, "big") if token is None else token
     loop = asyncio.get_running_loop()
     await loop.sock_sendto(sock, request.encode(), ("127.0.0.1", port))
     while True:
@@ -208,6 +209,23 @@ async def test_the_duplicate_memory_is_bounded_in_size_and_answers_a_recent_dupl
         assert resource.calls == 200
         # One evicted long ago is new again (every robot resource is idempotent or keyed by task).
         assert await _ask(client_socket, port, 1) == b"201"
+    finally:
+        await ctx.shutdown()
+
+
+async def test_a_message_id_reused_with_another_token_is_a_new_request(client_socket: socket.socket) -> None:
+    """A client started again on the same port (a restarted robot, each run
+    of ``coap-client -p``) cannot know the Message IDs its predecessor used:
+    the same ID with another token is a new exchange, answered afresh, not a
+    retransmission answered with the old exchange's answer (a libcoap interop
+    test once got a block of another answer)."""
+    ctx, resource, port = await _counting_server()
+    try:
+        assert await _ask(client_socket, port, 9, b"old") == b"1"
+        assert await _ask(client_socket, port, 9, b"old") == b"1"  # a retransmission: the same answer
+        assert await _ask(client_socket, port, 9, b"new") == b"2"  # a new client's request
+        assert await _ask(client_socket, port, 9, b"new") == b"2"  # ... whose retransmission is a duplicate
+        assert resource.calls == 2
     finally:
         await ctx.shutdown()
 
