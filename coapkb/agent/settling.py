@@ -198,7 +198,9 @@ class Settler:
         majority grants this robot a lease any more, its teammates have it
         down and decide without it, and would never take a decision of its
         own; it waits for theirs (asking every :data:`SETTLE_POLL_S`, for
-        twice the longest settling), then decides alone.  Found in the
+        twice the longest settling), then decides alone.  It stops waiting
+        once one decided in a membership without it (its own decision is
+        void then), or is past the task and no longer keeps its decision.  Found in the
         simulator, seed 43737: the holder of the Location KB frozen 4-24 s;
         back, it found its teammates still settling the task it held,
         decided it on its own knowledge, and they settled it unavailable.
@@ -223,6 +225,9 @@ class Settler:
                 return taken
             if any(isinstance(a, DecisionMessage) and not self.counts_me(a.decision) for a in answers):
                 return None  # left out: this robot's own decision is void, whatever it is
+            if any(a is None and (state := self.team.state_of(mate)) is not None and state.plan.seq >= task.seq
+                   for mate, a in zip(mates, answers)):
+                return None  # past the task, and its decision no longer kept: none will come
         log.warning("task %d (%s): no teammate decided it meanwhile: decided alone", task.seq, task.object)
         return None
 
