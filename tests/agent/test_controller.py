@@ -382,3 +382,25 @@ async def test_a_fenced_robot_left_out_stops_waiting_at_once() -> None:
     began = loop.time()
     assert await _stalled_settler(ask, fenced="refused").decided_before(Task(4, OBJECT), received=0.0) is None
     assert loop.time() - began < 1.0 and len(asked) == 4
+
+
+@pytest.mark.looptime
+async def test_a_fenced_robot_stops_waiting_for_a_teammate_past_the_task_without_its_decision() -> None:
+    """A teammate whose plan is past the task and answers that it has no
+    decision on it no longer keeps one: none will come."""
+    class PastTeam(StalledTeam):
+        def state_of(self, robot_id: str) -> RobotState | None:
+            return _state(robot_id, seq=80)
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        return None
+
+    async def lease() -> str | None:
+        return "refused"
+
+    settler = Settler("Robot1", PastTeam("Robot1", ("Robot1", "Robot2", "Robot3")), 1.0, ask, {},  # type: ignore[arg-type]
+                      fenced=lease)
+    loop = asyncio.get_running_loop()
+    began = loop.time()
+    assert await settler.decided_before(Task(4, OBJECT), received=0.0) is None
+    assert loop.time() - began < 1.0
