@@ -1,6 +1,6 @@
 """The seed paper's experiment matrix, system by system, into one CSV.
 
-    sudo .venv/bin/python -m experiments.sweep --profile quick --jobs 2  # 420 runs: a little over an hour on 2 cores
+    sudo .venv/bin/python -m experiments.sweep --profile quick --jobs 2  # 420 runs: about an hour on 2 cores (58 min measured)
     sudo .venv/bin/python -m experiments.sweep --profile paper --jobs 1  # the full matrix: days
     .venv/bin/python -m experiments.sweep --profile paper --engine dask://HOST:8786  # on a Dask cluster
 
@@ -201,8 +201,8 @@ SCALE_SIZES = (3, 9, 30, 60, 99)
 SCALE_SYSTEMS = ("coap-distributed", "coap-central", "zmq-distributed", "zmq-central")
 PROFILES: dict[str, Profile] = {
     # A representative subset, 6 repetitions of every cell (the fewest with
-    # a distribution-free 95 % interval for a median): 420 runs, a little
-    # over an hour on 2 cores two at a time (docs/benchmarks.md).
+    # a distribution-free 95 % interval for a median): 420 runs, about an
+    # hour on 2 cores two at a time (docs/benchmarks.md).
     "quick": Profile(
         "quick",
         QUICK_GRIDS,
