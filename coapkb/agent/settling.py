@@ -200,12 +200,12 @@ class Settler:
         own; it waits for theirs (asking every :data:`SETTLE_POLL_S`, for
         twice the longest settling), then decides alone.  It stops waiting
         once one decided in a membership without it (its own decision is
-        void then), or is past the task and no longer keeps its decision.  Found in the
-        simulator, seed 43737: the holder of the Location KB frozen 4-24 s;
-        back, it found its teammates still settling the task it held,
-        decided it on its own knowledge, and they settled it unavailable.
-        None while it is still granted: teammates that count it take its
-        decision on knowledge as they settle."""
+        void then), or is past the task and no longer keeps its decision.
+        Found in the simulator, seed 43737: the holder of the Location KB
+        frozen 4-24 s; back, it found its teammates still settling the task
+        it held, decided it on its own knowledge, and they settled it
+        unavailable.  None while it is still granted: teammates that count
+        it take its decision on knowledge as they settle."""
         if self._fenced is None or not mates:
             return None
         try:

@@ -593,7 +593,7 @@ class ContextHooks:
             # (a restarted robot; each run of coap-client -p) and cannot know
             # its predecessor's IDs.  Answering it the old exchange's stored
             # answer would hand it another request's answer.
-            del self._remembered_at[key]
+            self._remembered_at.pop(key, None)
             recent.pop(key, None)
             self._tokens.pop(key, None)
         self.forget_duplicates(room_for=1)
