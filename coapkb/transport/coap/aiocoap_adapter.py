@@ -420,10 +420,9 @@ class ContextHooks:
         self.on_datagram: Callable[[int], None] | None = None
         #: While a send is under way: the errors its sendmsg raised (else None).
         self._send_errors: list[OSError] | None = None
-        #: When each request in aiocoap's duplicate memory came, oldest first.
-        self._remembered_at: OrderedDict[tuple[Any, int], float] = OrderedDict()
-        #: The token each remembered message came with: a retransmission repeats it.
-        self._tokens: dict[tuple[Any, int], bytes] = {}
+        #: When each request in aiocoap's duplicate memory came, oldest first,
+        #: and the token it came with (a retransmission repeats it).
+        self._remembered_at: OrderedDict[tuple[Any, int], tuple[float, bytes]] = OrderedDict()
         #: Every datagram sent, written down (``COAPKB_WIRE_TRACE``), or None.
         self.trace = wire_trace.tracer(note_protection)
 
@@ -586,7 +585,7 @@ class ContextHooks:
         recent = self.mm._recent_messages
         key = (message.remote, message.mid)
         if key in recent:
-            if self._tokens.get(key, message.token) == message.token:
+            if self._remembered_at.get(key, (0.0, message.token))[1] == message.token:
                 return bool(self._original(self.mm, "_deduplicate_message")(message))
             # Same endpoint and Message ID, another token: not a copy but a
             # new exchange of a client that started again on the same port
@@ -595,10 +594,8 @@ class ContextHooks:
             # answer would hand it another request's answer.
             self._remembered_at.pop(key, None)
             recent.pop(key, None)
-            self._tokens.pop(key, None)
         self.forget_duplicates(room_for=1)
-        self._remembered_at[key] = self.mm.loop.time()
-        self._tokens[key] = message.token
+        self._remembered_at[key] = (self.mm.loop.time(), message.token)
         recent[key] = None
         return False
 
@@ -611,13 +608,12 @@ class ContextHooks:
         bounds = self.bounds
         horizon = self.mm.loop.time() - bounds.duplicate_horizon_s
         while remembered:
-            oldest, born = next(iter(remembered.items()))
+            oldest, (born, _) = next(iter(remembered.items()))
             if (len(remembered) + room_for <= bounds.duplicates and born > horizon
                     and recent.answer_bytes <= bounds.duplicate_answer_bytes):
                 break
             del remembered[oldest]
             recent.pop(oldest, None)
-            self._tokens.pop(oldest, None)
         return before - int(recent.answer_bytes)
 
     # ------------------------------------------------------------ late events
