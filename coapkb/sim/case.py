@@ -30,13 +30,11 @@ from typing import Any
 
 from ..errors import CoapkbError
 from ..harness.team import DEFAULT_ONTOLOGIES
-from .faults import LINK_KINDS, SWARM, FaultEvent, FaultMix, FaultSpecError
+from .faults import ACTIONS, LINK_KINDS, SWARM, FaultEvent, FaultMix, FaultSpecError
 from .run import KBCache, SimSpec, SimulatedTeam
 
 FORMAT = "coapkb-sim-case"
 VERSION = 1
-#: What a fault event may do (:meth:`coapkb.sim.run.SimulatedTeam.inject`).
-ACTIONS = ("kill", "restart", "freeze", "resume", "cut", "heal", "starve", "freeze-picking", "cut-picking")
 #: The spec's fields a case holds in its own keys (or cannot hold: a scenario is code).
 _OWN_KEYS = frozenset({"robots", "tasks", "strategy", "faults", "ontologies", "task_list", "schedule", "scenario",
                        "writes"})

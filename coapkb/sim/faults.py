@@ -27,6 +27,9 @@ MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
 #: Swarm testing: each seed draws which of the mix's kinds are on, how
 #: often, for how long, and its links' amounts (up to three times the default).
 SWARM = "swarm"
+#: What a fault event may do (:meth:`coapkb.sim.run.SimulatedTeam.inject`).
+ACTIONS = ("kill", "restart", "freeze", "resume", "cut", "heal", "starve", "freeze-picking", "cut-picking",
+           "crash", "forge")
 #: The most fault events a swarm schedule draws.
 SWARM_EVENTS = 10
 
@@ -123,9 +126,11 @@ class FaultEvent:
     """One scheduled fault: ``action`` on ``targets`` at ``at_s`` (simulated seconds)."""
 
     at_s: float
-    #: kill, restart, freeze, resume, cut, heal, starve; freeze-picking and
-    #: cut-picking: from ``at_s`` until ``until_s``, the moment the robot
-    #: starts a pick, freeze it (or cut it off from everyone) for ``amount`` s.
+    #: One of :data:`ACTIONS`.  freeze-picking and cut-picking: from ``at_s``
+    #: until ``until_s``, the moment the robot starts a pick, freeze it (or cut
+    #: it off from everyone) for ``amount`` s; crash: a power cut of every
+    #: holder of a module of ``targets``; forge: a sync of the module of
+    #: ``targets`` in its own writer name, sent to it with ``other``'s credential.
     action: str
     targets: tuple[str, ...]
     #: starve: the mean lateness of each loop turn, seconds; freeze-picking,

@@ -20,7 +20,7 @@ from coapkb.agent.failure_detector import FailureDetector
 from coapkb.cli import main
 from coapkb.sim import FaultMix, KBCache, SimSpec, SimulationError, run_checked
 from coapkb.sim.case import CaseFileError, SimCase, mix_text
-from coapkb.sim.faults import FaultEvent
+from coapkb.sim.faults import ACTIONS, FaultEvent
 from coapkb.sim.run import RunResult
 from coapkb.sim.shrink import ddmin, first_violation, replay, shrink, shrink_case, units
 
@@ -170,6 +170,19 @@ def test_a_case_file_holds_the_whole_run(tmp_path: Path) -> None:
     assert json.loads(path.read_text())["events"][2] == {
         "at_s": 0.8, "action": "cut", "targets": ["Robot5"], "amount": 0.0, "other": ["Robot4", "Robot6"],
         "until_s": 0.0}
+
+
+def test_a_case_file_takes_every_action_a_schedule_draws(tmp_path: Path, kbs: KBCache) -> None:
+    """Power cuts and forged syncs too: the shrunk case of simulator seed
+    50615 was written and then refused ("unknown action 'forge'")."""
+    spec = SimSpec(robots=3, tasks=4, faults=FaultMix.parse("crash,forge,swarm"), storage=True)
+    drawn = {e.action for seed in range(1, 6) for e in SimCase.drawn(spec, seed, kbs).events}
+    assert {"crash", "forge"} <= drawn <= set(ACTIONS)
+    path = tmp_path / "case.json"
+    case = SimCase(seed=7, robots=3, strategy="compute-by-all", faults="none", tasks=FRUIT,
+                   events=tuple(FaultEvent(1.0, action, ("Robot1",), other=("Robot2",)) for action in ACTIONS))
+    case.save(path)
+    assert SimCase.load(path) == case
 
 
 def test_a_case_is_what_the_seed_draws_with_a_swarm_mix_and_the_settings_that_differ(kbs: KBCache) -> None:
