@@ -228,7 +228,7 @@ class RobotResources:
                     await self.team.membership.named(robot_id, seq, boot)
             for robot_id in missed:
                 if robot_id != self.config.robot_id:
-                    await self.team.membership.missed(robot_id, seq)
+                    await self.team.membership.missed(robot_id, seq, decided=self.team.own.decided(seq))
             return taken
         if self.config.robot_id in join and not self.accepted and seq > 0:
             # Restarted: this robot joins the team at this task (its first).

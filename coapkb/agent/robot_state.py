@@ -101,6 +101,10 @@ class RobotState:
     def with_plan(self, plan: PlannedState, last: Decision) -> RobotState:
         return replace(self, plan=plan, last=last, prev=self.plan)
 
+    def decided(self, seq: int) -> bool:
+        """Whether this robot has decided task ``seq`` (or one after it)."""
+        return self.last is not None and self.last.seq >= seq
+
     def plan_at(self, seq: int) -> PlannedState | None:
         """The planned state right after task ``seq`` was decided, if still known."""
         for plan in (self.plan, self.prev):

@@ -62,6 +62,9 @@ class TeamMembership:
         #: (teammate, task) -> the process the feeder named for a join this
         #: robot has not admitted yet (:meth:`named`).
         self._named: dict[tuple[str, int], int] = {}
+        #: The last admission that let a teammate in again: (teammate, task,
+        #: the task it had been excluded from, the epoch it made).
+        self._last_admission: tuple[str, int, int, int] | None = None
 
     @property
     def members(self) -> tuple[str, ...]:
@@ -152,22 +155,42 @@ class TeamMembership:
         process, never given the join, never showed)."""
         if robot_id not in self._peers:
             return
+        boot = self._named.pop((robot_id, seq), 0) or boot
+        if boot == NO_PROCESS and robot_id in self.excluded:
+            # The feeder said it did not take this join, and named it to no
+            # teammate: they keep it out, in the same epoch, and so does this
+            # robot (admitted, it ran one epoch ahead of them on every task
+            # after: simulator seed 50615).
+            log.warning("%s did not take its join at task %d: it stays out", robot_id, seq)
+            return
         log.warning("%s joins the team again", robot_id)
-        if self.excluded.pop(robot_id, None) is not None:
+        excluded_from = self.excluded.pop(robot_id, None)
+        if excluded_from is not None:
             self.epoch += 1
+            self._last_admission = (robot_id, seq, excluded_from, self.epoch)
         self._forgone.pop(robot_id, None)  # a promise about its old process
         self.refused.discard(robot_id)  # and a refusal of it
         self._admitted_at[robot_id] = seq
-        boot = self._named.pop((robot_id, seq), 0) or boot
         self._named = {(r, s): b for (r, s), b in self._named.items() if s > self._admitted_at.get(r, 0)}
         self._teammates.readmit(robot_id, boot)
 
-    async def missed(self, robot_id: str, seq: int) -> None:
+    async def missed(self, robot_id: str, seq: int, decided: bool = False) -> None:
         """The feeder says ``robot_id``, named a joiner at task ``seq``, did
         not take that post: no process of it joined there, so whichever
         this robot finds is another one, down until it joins at a later
         task; told before the admission, it is kept for it (found in the
-        simulator, seed 467 of nine robots with power cuts)."""
+        simulator, seed 467 of nine robots with power cuts), and a robot
+        left out stays out (:meth:`admit`).  Told after an admission that
+        let it in again, with nothing changed since and task ``seq`` not
+        yet ``decided`` by this robot, the admission is undone: the
+        teammates, never told of the join, keep the membership as it was."""
+        if (not decided and self._last_admission is not None
+                and self._last_admission[:2] == (robot_id, seq) and self._last_admission[3] == self.epoch
+                and robot_id not in self.excluded):
+            log.warning("%s did not take its join at task %d: it is out again", robot_id, seq)
+            self.excluded[robot_id] = self._last_admission[2]
+            self.epoch -= 1
+            self._last_admission = None
         await self.named(robot_id, seq, NO_PROCESS)
 
     async def named(self, robot_id: str, seq: int, boot: int) -> None:
@@ -231,6 +254,7 @@ class TeamMembership:
 
     def _joined(self, seq: int, membership: Membership) -> None:
         """Join at task ``seq`` on top of ``membership`` (see :meth:`join`)."""
+        self._last_admission = None
         if membership.members:
             gone = self._peers - set(membership.members)
             self.excluded = {r: seq - 1 for r in gone}

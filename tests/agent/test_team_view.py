@@ -137,6 +137,7 @@ async def test_awaited_states_are_due_once_the_first_came() -> None:
 from agent_helpers import endpoint  # noqa: E402
 
 from coapkb.agent.observed_states import liveness_timeout_s  # noqa: E402
+from coapkb.agent.team_membership import Membership  # noqa: E402
 from coapkb.agent.team_view import TeamView  # noqa: E402
 from coapkb.transport.base import ResourceInfo  # noqa: E402
 from coapkb.transport.memory import MemoryNetwork  # noqa: E402
@@ -343,6 +344,34 @@ async def test_a_co_joiner_the_feeder_says_missed_its_join_is_down() -> None:
         assert team.is_up("Robot2")
     finally:
         await team.aclose()
+
+
+async def test_a_left_out_co_joiner_that_missed_its_join_stays_out_in_the_same_epoch() -> None:
+    """Robot2, left out, was named a joiner at task 7 beside Robot1 and did
+    not take its post; the feeder named it to no teammate, so they keep it
+    out in the same epoch, and Robot1 must too, whether the feeder's repeat
+    came before its admission or after it (simulator seed 50615: the joiner
+    admitted its co-joiner, then left it out again, and named an epoch two
+    ahead of its teammate's on every task after).  An admission that a
+    decision was made in stays: its epoch is on record."""
+    for told in ("before the admission", "after the admission", "after a decision"):
+        team = view(MemoryNetwork(), robot("Robot1", 6))
+        try:
+            team.membership.leave_out("Robot2", 5, "down")
+            kept = team.membership.current
+            if told == "before the admission":
+                await team.membership.missed("Robot2", 7)
+            team.membership.admit("Robot2", 7)
+            if told != "before the admission":
+                await team.membership.missed("Robot2", 7, decided=told == "after a decision")
+            if told == "after a decision":
+                assert team.membership.current == Membership(kept.epoch + 1, ("Robot1", "Robot2", "Robot3"))
+            else:
+                assert team.membership.current == kept, told
+                assert team.membership.excluded == {"Robot2": 6}, told
+        finally:
+            await team.aclose()
+
 
 
 class OneTeammateNotUpYet:

@@ -123,6 +123,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "past the last task there was no task to join at, so its old tasks never went round again",
         43737: "the holder of the Location KB, frozen 4-24 s and declared down by both teammates, found them "
                "still settling the task it held, decided it on its own knowledge, and they settled it unavailable",
+        50615: "a joiner admitted its co-joiner, which never took its post and was named to no teammate, then "
+               "left it out again: two epochs ahead of its teammate on every task, and back two on taking its decision",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
