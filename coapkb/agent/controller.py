@@ -224,6 +224,7 @@ class Controller:
             plan = message.after
             self.executor.submit(message.job)
         self.log.append(decision)
+        self.team.used_plans(decision)
         if decision.assigned_to is not None:
             self.claims[decision.object] = Claim(decision.assigned_to, decision.seq)
             self.claims.move_to_end(decision.object)

@@ -171,6 +171,9 @@ class ObservedStates:
     def saw_process(self, robot_id: str, boot: int) -> None:
         self.watcher.saw_process(robot_id, boot)
 
+    def saw_plan(self, robot_id: str, seq: int) -> None:
+        self.watcher.saw_plan(robot_id, seq)
+
     async def heard_from_all(self, timeout: float) -> list[str]:
         return await self.watcher.heard_from_all(timeout)
 
@@ -186,7 +189,7 @@ class ObservedStates:
     async def poke(self) -> None:
         await self.watcher.poke()
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | Callable[[], float] | None, *,
                    pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
         return await self.watcher.wait(predicate, timeout, pending=pending, of=of)
 

@@ -58,6 +58,10 @@ class StateWatcher:
         #: Robot never observed -> the process (``boot``) its decision as the
         #: leader came from: a first state of another process is a restart's.
         self._boot_unseen: dict[str, int] = {}
+        #: Robot never observed -> the latest task after which a plan of it
+        #: went into a decision here: a first state showing an earlier plan
+        #: is another process's.
+        self._plan_unseen: dict[str, int] = {}
         #: Told of every state stored (a recording: coapkb.harness.recording).
         self.listeners: list[Callable[[str, RobotState], None]] = []
         self._watchers: dict[str, asyncio.Task[None]] = {}
@@ -91,6 +95,7 @@ class StateWatcher:
         restart -- unless ``boot`` names the process that joined, and
         another one answers."""
         self._boot_unseen.pop(robot_id, None)
+        self._plan_unseen.pop(robot_id, None)
         self.states.pop(robot_id, None)
         if boot:
             self._boot_unseen[robot_id] = boot
@@ -116,6 +121,15 @@ class StateWatcher:
         kept only while no state of it was observed."""
         if robot_id in self._endpoints and robot_id not in self.states:
             self._boot_unseen[robot_id] = boot
+
+    def saw_plan(self, robot_id: str, seq: int) -> None:
+        """A plan of ``robot_id`` right after task ``seq`` went into a decision
+        this robot carries (its own, or a teammate's taken whole): a process
+        of it had decided that far.  Kept only while no state of it was
+        observed: plans only grow within a process, so a first state showing
+        an earlier one is a restart's."""
+        if robot_id in self._endpoints and robot_id not in self.states:
+            self._plan_unseen[robot_id] = max(seq, self._plan_unseen.get(robot_id, 0))
 
     async def expect_process(self, robot_id: str, boot: int) -> None:
         """Process ``boot`` of ``robot_id`` is the one counted on: if another
@@ -155,6 +169,16 @@ class StateWatcher:
                 robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
             return
         seen = self._boot_unseen.pop(robot_id, 0) if old is None else 0
+        planned = self._plan_unseen.pop(robot_id, 0) if old is None else 0
+        if self._detector.liveness and state.plan.seq < planned:
+            # Never observed before, and earlier than a plan of it already
+            # used here: a new process, which decided nothing of that.  Found
+            # in the simulator, seed 50486: a robot starved from the start
+            # took its teammates' decisions, first observed a teammate after
+            # its restart, and waited for its plan of the task before.
+            await self._detector.restarted(
+                robot_id, f"restarted (its plan after task {planned} was used here; it shows task {state.plan.seq})")
+            return
         if self._detector.liveness and seen and state.boot and state.boot != seen:
             # Never observed before, but another process of it sent a decision
             # here: this one is a restart.  Found in the simulator: a follower
@@ -281,9 +305,10 @@ class StateWatcher:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | Callable[[], float] | None, *,
                    pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
-        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit).
+        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit;
+        a function: asked again at each look, as what it depends on changes).
 
         ``pending(states)``: the robots whose awaited state has not come; a
         lost notification of one is repaired here (:class:`NotificationRepair`):
@@ -291,10 +316,16 @@ class StateWatcher:
         awaited states became due is asked once with a GET, and again after
         twice as long, and so on (:class:`~.notification_repair.RepairSchedule`:
         ``of``)."""
-        async with asyncio.timeout(timeout):
+        started = clock.monotonic()
+
+        def deadline() -> float | None:
+            return None if timeout is None else started + (timeout() if callable(timeout) else timeout)
+
+        async with asyncio.timeout_at(deadline()) as limit:
             refresh_at = clock.monotonic() + self.refresh_s
             repair = self.repair.schedule(pending(self.states), of) if pending else None
             while True:
+                limit.reschedule(deadline())
                 async with self._changed:
                     if predicate(self.states):
                         if repair is not None and pending is not None:

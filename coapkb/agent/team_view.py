@@ -16,7 +16,7 @@ from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .local_health import LoopHealth
 from .observed_states import PLAN_PATH, ObservedStates, States, indirect_probe, liveness_floor_s
-from .robot_state import PlannedState, RobotState
+from .robot_state import Decision, PlannedState, RobotState
 from .task_assigner import robot_sort_key
 from .team_membership import TeamMembership
 from .teammate_revival import TeammateRevival
@@ -122,6 +122,13 @@ class TeamView:
         """Process ``boot`` of teammate ``robot_id`` sent its decision here, as the leader."""
         self._teammates.saw_process(robot_id, boot)
 
+    def used_plans(self, decision: Decision) -> None:
+        """``decision`` is carried out here: the teammates it was computed on
+        (those it costs) had a plan right after the task before it."""
+        for robot_id in decision.costs:
+            if robot_id in self._peers:
+                self._teammates.saw_plan(robot_id, decision.seq - 1)
+
     def is_up(self, robot_id: str) -> bool:
         """False once ``robot_id`` is known to be down (for the Query Handler)."""
         return robot_id not in self._teammates.down
@@ -169,7 +176,12 @@ class TeamView:
         teammate's last plan that the others hold (found in the simulator).
         A teammate that is down without a plan for ``seq`` leaves the team from
         task ``seq + 1`` on (:meth:`.TeamMembership.leave_out`)."""
-        timeout = max(timeout, self._teammates.detection_s)
+        def limit() -> float:
+            # Asked again at each look: a wait begun while this robot's loop
+            # was late (a stretched detection time) ends as one begun on time
+            # once it runs on time again (simulator seed 50486: 137 s).
+            return max(timeout, self._teammates.detection_s)
+
         down = self._teammates.down
         membership = self.membership
         expected = self._peers - set(membership.excluded)
@@ -180,11 +192,11 @@ class TeamView:
 
         try:
             # Due at once: this robot has its own plan after task seq, and its teammates decide alike.
-            states = await self._teammates.wait(lambda s: not missing(s), timeout, pending=missing)
+            states = await self._teammates.wait(lambda s: not missing(s), limit, pending=missing)
         except TimeoutError:
             states = self._teammates.states
             late = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)
-            raise TransportError(f"no state for task {seq} from {', '.join(late)} within {timeout:g}s") from None
+            raise TransportError(f"no state for task {seq} from {', '.join(late)} within {limit():g}s") from None
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")

@@ -246,6 +246,43 @@ async def test_a_first_state_of_another_process_than_the_leaders_is_a_restart() 
     assert "restarted" in states.down["Robot2"] and "Robot3" not in states.down
 
 
+async def test_a_first_state_earlier_than_a_plan_used_here_is_a_restart() -> None:
+    """Robot1 carried out a decision of task 3 computed on Robot2's and
+    Robot3's plans after task 2 (taken from a teammate) before it ever
+    observed them: a first state of Robot2 at task 0 is a new process, which
+    never decided task 2; Robot3's at task 2 is the one used (simulator seed
+    50486: a robot starved from the start waited for a restarted teammate's
+    plan of a task its new process never had)."""
+    team = view(MemoryNetwork(), robot("Robot1", 3))
+    try:
+        team.used_plans(Decision(3, "Apple", assigned_to="Robot2",
+                                 costs={"Robot1": 2.0, "Robot2": 1.0, "Robot3": None}))
+        await team._teammates.watcher.update("Robot2", robot("Robot2", 0, boot=9))
+        await team._teammates.watcher.update("Robot3", robot("Robot3", 2, boot=7))
+        assert "restarted" in team.down["Robot2"] and team.is_up("Robot3")
+    finally:
+        await team.aclose()
+
+
+async def test_a_wait_ends_by_its_limit_as_it_is_now() -> None:
+    """A wait's limit may shrink while it waits (a detection time stretched
+    by this robot's own lateness, back to normal once its loop runs on
+    time): the wait ends by the limit as it is at each look, not as it was
+    when it began (simulator seed 50486: 137 s for a starved robot)."""
+    states = ObservedStates(MemoryNetwork().client(), {"Robot2": endpoint("Robot2")}, PLAN_PATH, liveness=True)
+    limit = 3600.0
+    try:
+        async with asyncio.timeout(10):
+            waiting = asyncio.ensure_future(states.wait(lambda _: False, lambda: limit))
+            await asyncio.sleep(0)
+            limit = 0.0
+            await states.poke()
+            with pytest.raises(TimeoutError):
+                await waiting
+    finally:
+        await states.aclose()
+
+
 async def test_the_wait_for_plans_outlasts_finding_a_silent_teammate_down() -> None:
     """Robot2 died before Robot1 ever heard from it; Robot3 holds its last
     plan.  However short the wait asked for, Robot1 waits until its failure

@@ -316,7 +316,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
            lambda: _patch(AntiEntropy, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
     Mutant("pushed-answers-before-catch-up", "a restarted holder answers a registration on its pushed answers "
-           "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP, (59,)),
+           "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP, (145, 282)),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",

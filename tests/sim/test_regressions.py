@@ -123,6 +123,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "past the last task there was no task to join at, so its old tasks never went round again",
         43737: "the holder of the Location KB, frozen 4-24 s and declared down by both teammates, found them "
                "still settling the task it held, decided it on its own knowledge, and they settled it unavailable",
+        50486: "a robot starved from the start took its teammates' decisions, first observed one after its "
+               "restart, and waited for the new process's plan of the task before, 137 s by a timeout set while starved",
         50615: "a joiner admitted its co-joiner, which never took its post and was named to no teammate, then "
                "left it out again: two epochs ahead of its teammate on every task, and back two on taking its decision",
     }),
