@@ -4,6 +4,7 @@ per seed, each judged against the invariants (docs/simulation.md)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -37,6 +38,8 @@ def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="worker processes (default: the cores)")
     p.add_argument("--trace", metavar="FILE", help="with --seed: write every message, fault and pick in order")
     p.add_argument("--quiet", action="store_true", help="only violating seeds and the summary line")
+    p.add_argument("-x", "--exitfirst", action="store_true",
+                   help="stop at the first seed that violates an invariant (the seeds after it are not run)")
     p.add_argument("--decide-within", type=float, default=None, metavar="S",
                    help="progress oracle: fail if the median task of all the runs took longer than S "
                         "simulated seconds to decide")
@@ -86,6 +89,9 @@ async def _sim(args: argparse.Namespace) -> int:
         raise UserError(f"--tasks must be at least 1, got {args.tasks}")
     if args.trace and args.seed is None:
         raise UserError("--trace writes one run's trace: give --seed S")
+    if args.exitfirst and (args.decide_within is not None or args.catch_up_within is not None):
+        raise UserError("--exitfirst leaves seeds out, and --decide-within and --catch-up-within judge every run "
+                        "together: give one or the other")
     if args.writes < 0:
         raise UserError("--writes must not be negative")
     for option, bound in (("--decide-within", args.decide_within), ("--catch-up-within", args.catch_up_within)):
@@ -111,9 +117,13 @@ async def _sim(args: argparse.Namespace) -> int:
             runs = [summary(run_checked(spec, args.seed, kbs))]
     else:
         runs = []
-        for run in run_many(spec, _seeds(args.seeds), args.jobs):
-            runs.append(run)
-            report_run(run, args.quiet)
+        # Closed on a break: the pool's workers and their scratch folder end here.
+        with contextlib.closing(run_many(spec, _seeds(args.seeds), args.jobs)) as results:
+            for run in results:
+                runs.append(run)
+                report_run(run, args.quiet)
+                if args.exitfirst and run.violations:
+                    break
     if args.seed is not None:
         report_run(runs[0], args.quiet)
     violating = sum(1 for r in runs if r.violations)

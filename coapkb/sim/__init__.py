@@ -14,7 +14,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable
 from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
@@ -55,7 +55,7 @@ def _work(job: tuple[SimSpec, int, str]) -> RunResult:
     return summary(run_checked(spec, seed, _worker_kbs))
 
 
-def run_many(spec: SimSpec, seeds: Iterable[int], jobs: int | None = None) -> Iterator[RunResult]:
+def run_many(spec: SimSpec, seeds: Iterable[int], jobs: int | None = None) -> Generator[RunResult, None, None]:
     """One checked run per seed, spread over ``jobs`` worker processes (the
     cores by default); results in seed order, each as soon as it and those
     before it are done."""

@@ -8,6 +8,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from mutants import MUTANTS, Mutant
@@ -22,12 +23,13 @@ VIOLATING = re.compile(r"^seed (\d+) .*VIOLATION", re.M)
 PROFILE_VIOLATES = re.compile(r"^sim: VIOLATION (progress|catch-up)", re.M)
 
 
-def _violating(prefix: list[str], mutant: Mutant) -> set[int]:
-    """The seeds of ``mutant``'s list that violate, run as ``prefix`` (the
-    mutant's script, or the command itself)."""
+def _violating(prefix: list[str], mutant: Mutant, seeds: tuple[int, ...], *, first: bool = False) -> set[int]:
+    """Those of ``seeds`` of ``mutant``'s profile that violate, run as
+    ``prefix`` (the mutant's script, or the command itself); ``first``: the
+    first one only (the seeds after it are not run)."""
     result = subprocess.run(
-        [sys.executable, *prefix, "sim", *mutant.profile, "--seeds", ",".join(map(str, mutant.seeds)),
-         "--quiet", "--jobs", "1"],
+        [sys.executable, *prefix, "sim", *mutant.profile, "--seeds", ",".join(map(str, seeds)),
+         "--quiet", "--jobs", "1", *(["--exitfirst"] if first else [])],
         # Not measured: a mutant's lines are not the package's, and the rest runs measured elsewhere.
         capture_output=True, text=True, cwd=ROOT, timeout=600, env=unmeasured({**os.environ, "PYTHONHASHSEED": "0"}),
     )
@@ -43,10 +45,30 @@ def test_every_planted_bug_is_caught_on_its_seed(name: str) -> None:
     mutant = MUTANTS[name]
     if not mutant.seeds:
         pytest.xfail(f"{name} survives: {SURVIVORS[name]}")
-    planted = _violating([str(HERE / "mutants.py"), name], mutant)
+    # Judged one by one, the first seed that catches it is enough (one clean run then, not several).
+    together = any(option.endswith("-within") for option in mutant.profile)
+    planted = _violating([str(HERE / "mutants.py"), name], mutant, mutant.seeds, first=not together)
     # Seeds a CI profile runs are held to every invariant there, without the bug.
-    clean = set() if held_by_ci(mutant.profile, mutant.seeds) else _violating(["-m", "coapkb"], mutant)
+    caught = mutant.seeds if together else tuple(sorted(planted))
+    clean = set() if not planted or held_by_ci(mutant.profile, caught) else _violating(["-m", "coapkb"], mutant, caught)
     assert planted - clean, f"{name}: caught on {sorted(planted)}, and without it {sorted(clean)} violate too"
+
+
+def test_exitfirst_stops_at_the_first_violating_seed_and_leaves_nothing_behind(tmp_path: Path) -> None:
+    """``coapkb sim -x``: a search for one failing seed ends at it, its worker
+    processes and their scratch folder with it."""
+    mutant = MUTANTS["lease-never-held"]
+    result = subprocess.run(
+        [sys.executable, str(HERE / "mutants.py"), mutant.name, "sim", *mutant.profile, "--seeds", "1-40",
+         "--quiet", "--jobs", "2", "--exitfirst"],
+        capture_output=True, text=True, cwd=ROOT, timeout=600,
+        env=unmeasured({**os.environ, "PYTHONHASHSEED": "0", "TMPDIR": str(tmp_path)}),
+    )
+    assert result.returncode == 1, result.stdout[-2000:] + result.stderr[-2000:]
+    violating = VIOLATING.findall(result.stdout)
+    ran = int(re.search(r"^sim: (\d+) runs?, 1 violation", result.stdout, re.M)[1])  # type: ignore[index]
+    assert len(violating) == 1 and ran == int(violating[0]) < 40, result.stdout[-2000:]
+    assert list(tmp_path.iterdir()) == []
 
 
 #: Planted bugs no seed searched has caught yet, and why that may be.

@@ -209,6 +209,7 @@ def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_pat
     (["--faults", "loss=20"], "loss=20: P is a probability from 0 to 1 (write loss=0.2 or loss=20% for 20 %)"),
     (["--decide-within", "0"], "--decide-within must be positive"),
     (["--catch-up-within", "1"], "give --writes N too"),
+    (["--exitfirst", "--decide-within", "1"], "--exitfirst leaves seeds out"),
 ])
 def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
     result = _coapkb("sim", *args, timeout=60)
