@@ -116,7 +116,18 @@ class TaskPoster:
         went down executes nothing (its task, if any, goes round again), and
         one left out of a newer membership by the others took no part in it."""
         down = self.channel.watcher.down
-        newest = max(decisions.values(), key=lambda d: d.epoch, default=None)
+
+        def standing(decision: Decision) -> tuple[bool, int]:
+            # A majority's membership first: a robot its teammates left out
+            # while it was cut off, back and joining alone, starts one of its
+            # own whose epoch is the task's number, ahead of theirs, and
+            # its decisions are fenced anyway.  Taken for the newest, it
+            # voided the majority's, and each task it dropped was sent round
+            # again after they had picked it (simulator, the rejoin fault).
+            members = decision.members or tuple(cluster)
+            return len(members) * 2 > len(cluster), decision.epoch
+
+        newest = max(decisions.values(), key=standing, default=None)
         survivors = [r for r in decisions if r not in down]
         for robot_id in cluster:
             decision = decisions.get(robot_id)
@@ -126,7 +137,8 @@ class TaskPoster:
             if robot_id in down and survivors:
                 record.absent[robot_id] = f"{down[robot_id]} (its decision is void)"
                 continue
-            if newest is not None and decision.epoch < newest.epoch and robot_id not in newest.members:
+            if newest is not None and decision is not newest and standing(decision) < standing(newest) \
+                    and robot_id not in (newest.members or cluster):
                 record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
                 continue
             record.decisions[robot_id] = decision.assigned_to

@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord
+from ..harness.record import TeamRecord
 from .faults import FaultEvent
 from .observed import Take
 from .operator import WriteOp
@@ -90,6 +91,15 @@ def check_executed_once(run: RunResult) -> Iterable[str]:
                   "and never executed"
         elif picks[-1].robot != task.assigned_to:
             yield f"cluster {task.cluster} task {task.seq} went to {task.assigned_to} but {_said(picks[-1])} picked it"
+    for pick in run.picks:
+        # The record names who took each task, as the shelf saw it: one that
+        # names another (a lone robot's void decision counted for the
+        # majority's) sends the task round again after it was picked.
+        taken = tasks.get((_cluster_of(record, pick.robot), pick.seq))
+        if taken is not None and taken.fate != "failed" and taken.assigned_to != pick.robot \
+                and _unreported(run, pick) is None:
+            yield f"cluster {taken.cluster} task {taken.seq} ({taken.object}): {_said(pick)} picked it, and the " \
+                  f"record gives it to {taken.assigned_to or 'nobody'} ({taken.fate})"
 
 
 def excused_picks(run: RunResult) -> list[str]:
@@ -118,6 +128,11 @@ def _root(tasks: dict[tuple[int, int], TaskRecord], task: TaskRecord) -> tuple[i
     while task.reassigned_from is not None:
         task = tasks[(task.cluster, task.reassigned_from)]
     return task.cluster, task.seq
+
+
+def _cluster_of(record: TeamRecord, robot: str) -> int:
+    """The number of ``robot``'s cluster (from 1)."""
+    return next(i for i, cluster in enumerate(record.clusters, 1) if robot in cluster)
 
 
 def _picks_by_task(run: RunResult) -> tuple[dict[tuple[int, int], TaskRecord], dict[tuple[int, int], list[Pick]], list[str]]:

@@ -9,12 +9,15 @@ import shutil
 import socket
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
+from typing import cast
 
 import cbor2
 import pytest
 import tomli_w
 from support import ROOT
 
+from coapkb.agent.robot_state import Decision
 from coapkb.config import ConfigError
 from coapkb.feeder import (
     Feeder,
@@ -26,6 +29,9 @@ from coapkb.feeder import (
     split_tasks,
     task_post,
 )
+from coapkb.feeder.channel import Channel
+from coapkb.feeder.membership import Membership
+from coapkb.feeder.task_poster import TaskPoster
 from coapkb.feeder.team_folder import read_team_folder
 from coapkb.harness.team import Team, TeamSpec
 from coapkb.transport.base import Endpoint
@@ -48,6 +54,23 @@ def test_a_task_post_is_the_documented_body() -> None:
     repeated = task_post(7, "Bosch_rug_837", ["Robot2"], boots={"Robot2": 41}, missed=["Robot3"])
     assert cbor2.loads(repeated.payload) == {"seq": 7, "object": "Bosch_rug_837", "join": [["Robot2", 41]],
                                              "missed": ["Robot3"]}  # named to Robot2 before, did not take it
+
+
+def test_a_lone_robots_membership_does_not_void_the_majoritys_decisions() -> None:
+    """Robot1, left out by its teammates while it was cut off, back and
+    joining alone, decides in a membership of its own whose epoch (the
+    task's number) is ahead of theirs: the cluster's decision is still the
+    majority's, and the lone robot's is void (simulator seeds 96 and 126 of
+    the rejoin profile: the feeder voided the majority's, and every task the
+    lone robot dropped under its fence went round again, picked already)."""
+    channel = cast(Channel, SimpleNamespace(watcher=SimpleNamespace(down={})))
+    poster = TaskPoster(channel, cast(Membership, None))
+    record = TaskRecord(object="Apple", cluster=1, seq=10)
+    lone = Decision(10, "Apple", assigned_to="Robot1", epoch=10, members=("Robot1",))
+    majority = Decision(10, "Apple", assigned_to="Robot2", epoch=4, members=("Robot2", "Robot3"))
+    poster._record(record, ["Robot1", "Robot2", "Robot3"], {"Robot1": lone, "Robot2": majority, "Robot3": majority})
+    assert record.decisions == {"Robot2": "Robot2", "Robot3": "Robot2"} and record.assigned_to == "Robot2"
+    assert record.absent == {"Robot1": "left out of membership epoch 4 (its decision is void)"}
 
 
 def test_tasks_file_ignores_comments_and_blank_lines(tmp_path: Path) -> None:

@@ -198,6 +198,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
             "(a repeat skipped on its claim), took them for past its join, and started a membership of its own, "
             "alone, without the claims: it gave an object again",
         143: "the same as seed 58",
+        96: "a joiner left out while cut off started a membership of its own, alone, at an epoch of the task's "
+            "number: the feeder took it for the newest and voided its teammates' decisions, and each task the lone "
+            "robot dropped under its fence went round again after they had picked it",
+        126: "the same as seed 96",
     }),
 ]
 
