@@ -325,7 +325,8 @@ class StateWatcher:
             refresh_at = clock.monotonic() + self.refresh_s
             repair = self.repair.schedule(pending(self.states), of) if pending else None
             while True:
-                limit.reschedule(deadline())
+                if (now_due := deadline()) != limit.when():
+                    limit.reschedule(now_due)
                 async with self._changed:
                     if predicate(self.states):
                         if repair is not None and pending is not None:

@@ -18,6 +18,17 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class _Admission:
+    """An admission that let ``robot_id`` in again at task ``seq``: the task
+    it had been excluded from, and the epoch the admission made."""
+
+    robot_id: str
+    seq: int
+    excluded_from: int
+    epoch: int
+
+
+@dataclass(frozen=True)
 class Membership:
     """Who takes part in assigning a task.  ``epoch`` counts the membership
     changes so far; every decision names it, so the record shows that the
@@ -62,9 +73,8 @@ class TeamMembership:
         #: (teammate, task) -> the process the feeder named for a join this
         #: robot has not admitted yet (:meth:`named`).
         self._named: dict[tuple[str, int], int] = {}
-        #: The last admission that let a teammate in again: (teammate, task,
-        #: the task it had been excluded from, the epoch it made).
-        self._last_admission: tuple[str, int, int, int] | None = None
+        #: The last admission that let a teammate in again (:meth:`missed` may undo it).
+        self._last_admission: _Admission | None = None
 
     @property
     def members(self) -> tuple[str, ...]:
@@ -167,7 +177,7 @@ class TeamMembership:
         excluded_from = self.excluded.pop(robot_id, None)
         if excluded_from is not None:
             self.epoch += 1
-            self._last_admission = (robot_id, seq, excluded_from, self.epoch)
+            self._last_admission = _Admission(robot_id, seq, excluded_from, self.epoch)
         self._forgone.pop(robot_id, None)  # a promise about its old process
         self.refused.discard(robot_id)  # and a refusal of it
         self._admitted_at[robot_id] = seq
@@ -184,11 +194,11 @@ class TeamMembership:
         let it in again, with nothing changed since and task ``seq`` not
         yet ``decided`` by this robot, the admission is undone: the
         teammates, never told of the join, keep the membership as it was."""
-        if (not decided and self._last_admission is not None
-                and self._last_admission[:2] == (robot_id, seq) and self._last_admission[3] == self.epoch
+        last = self._last_admission
+        if (not decided and last is not None and (last.robot_id, last.seq, last.epoch) == (robot_id, seq, self.epoch)
                 and robot_id not in self.excluded):
             log.warning("%s did not take its join at task %d: it is out again", robot_id, seq)
-            self.excluded[robot_id] = self._last_admission[2]
+            self.excluded[robot_id] = last.excluded_from
             self.epoch -= 1
             self._last_admission = None
         await self.named(robot_id, seq, NO_PROCESS)
