@@ -189,7 +189,7 @@ class ObservedStates:
     async def poke(self) -> None:
         await self.watcher.poke()
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float | Callable[[], float] | None, *,
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
                    pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
         return await self.watcher.wait(predicate, timeout, pending=pending, of=of)
 

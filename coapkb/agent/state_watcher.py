@@ -305,10 +305,9 @@ class StateWatcher:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 2.0)
 
-    async def wait(self, predicate: Callable[[States], bool], timeout: float | Callable[[], float] | None, *,
+    async def wait(self, predicate: Callable[[States], bool], timeout: float | None, *,
                    pending: Callable[[States], Collection[str]] | None = None, of: int | None = None) -> States:
-        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit;
-        a function: asked again at each look, as what it depends on changes).
+        """Wait until ``predicate(states)`` holds; TimeoutError after ``timeout`` s (None: no limit).
 
         ``pending(states)``: the robots whose awaited state has not come; a
         lost notification of one is repaired here (:class:`NotificationRepair`):
@@ -316,17 +315,10 @@ class StateWatcher:
         awaited states became due is asked once with a GET, and again after
         twice as long, and so on (:class:`~.notification_repair.RepairSchedule`:
         ``of``)."""
-        started = clock.monotonic()
-
-        def deadline() -> float | None:
-            return None if timeout is None else started + (timeout() if callable(timeout) else timeout)
-
-        async with asyncio.timeout_at(deadline()) as limit:
+        async with asyncio.timeout(timeout):
             refresh_at = clock.monotonic() + self.refresh_s
             repair = self.repair.schedule(pending(self.states), of) if pending else None
             while True:
-                if (now_due := deadline()) != limit.when():
-                    limit.reschedule(now_due)
                 async with self._changed:
                     if predicate(self.states):
                         if repair is not None and pending is not None:

@@ -176,12 +176,7 @@ class TeamView:
         teammate's last plan that the others hold (found in the simulator).
         A teammate that is down without a plan for ``seq`` leaves the team from
         task ``seq + 1`` on (:meth:`.TeamMembership.leave_out`)."""
-        def limit() -> float:
-            # Asked again at each look: a wait begun while this robot's loop
-            # was late (a stretched detection time) ends as one begun on time
-            # once it runs on time again (simulator seed 50486: 137 s).
-            return max(timeout, self._teammates.detection_s)
-
+        timeout = max(timeout, self._teammates.detection_s)
         down = self._teammates.down
         membership = self.membership
         expected = self._peers - set(membership.excluded)
@@ -192,11 +187,11 @@ class TeamView:
 
         try:
             # Due at once: this robot has its own plan after task seq, and its teammates decide alike.
-            states = await self._teammates.wait(lambda s: not missing(s), limit, pending=missing)
+            states = await self._teammates.wait(lambda s: not missing(s), timeout, pending=missing)
         except TimeoutError:
             states = self._teammates.states
             late = sorted(r for r in expected if r not in states or states[r].plan_at(seq) is None)
-            raise TransportError(f"no state for task {seq} from {', '.join(late)} within {limit():g}s") from None
+            raise TransportError(f"no state for task {seq} from {', '.join(late)} within {timeout:g}s") from None
         own = self._own.plan_at(seq)
         if own is None:
             raise TransportError(f"own state for task {seq} is gone")
