@@ -70,9 +70,11 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
 def check_executed_once(run: RunResult) -> Iterable[str]:
     """No task executed twice or lost: each task (with the re-runs it went
     through) is picked at most once, and a task whose final fate is
-    "assigned" is picked exactly once, by the robot it went to.  A second
+    "assigned" is picked exactly once, by the robot it went to; and the
+    record of every task picked names the robot that picked it.  A second
     pick is excused (:func:`excused_picks`) when the first picker died
-    before any report of its pick could reach the feeder."""
+    before any report of its pick could reach the feeder; a pick the
+    record does not name is not judged then either (nobody could know it)."""
     record = run.record
     if record is None:
         return
@@ -91,11 +93,12 @@ def check_executed_once(run: RunResult) -> Iterable[str]:
                   "and never executed"
         elif picks[-1].robot != task.assigned_to:
             yield f"cluster {task.cluster} task {task.seq} went to {task.assigned_to} but {_said(picks[-1])} picked it"
+    cluster_of = _cluster_of(record)
     for pick in run.picks:
         # The record names who took each task, as the shelf saw it: one that
         # names another (a lone robot's void decision counted for the
         # majority's) sends the task round again after it was picked.
-        taken = tasks.get((_cluster_of(record, pick.robot), pick.seq))
+        taken = tasks.get((cluster_of[pick.robot], pick.seq))
         if taken is not None and taken.fate != "failed" and taken.assigned_to != pick.robot \
                 and _unreported(run, pick) is None:
             yield f"cluster {taken.cluster} task {taken.seq} ({taken.object}): {_said(pick)} picked it, and the " \
@@ -130,16 +133,16 @@ def _root(tasks: dict[tuple[int, int], TaskRecord], task: TaskRecord) -> tuple[i
     return task.cluster, task.seq
 
 
-def _cluster_of(record: TeamRecord, robot: str) -> int:
-    """The number of ``robot``'s cluster (from 1)."""
-    return next(i for i, cluster in enumerate(record.clusters, 1) if robot in cluster)
+def _cluster_of(record: TeamRecord) -> dict[str, int]:
+    """Each robot's cluster, by number (from 1)."""
+    return {r: i for i, cluster in enumerate(record.clusters, 1) for r in cluster}
 
 
 def _picks_by_task(run: RunResult) -> tuple[dict[tuple[int, int], TaskRecord], dict[tuple[int, int], list[Pick]], list[str]]:
     """Every pick under the task it first was, and the picks of no task fed."""
     record = run.record
     assert record is not None
-    cluster_of = {r: i for i, c in enumerate(record.clusters, 1) for r in c}
+    cluster_of = _cluster_of(record)
     tasks = {(t.cluster, t.seq): t for t in record.tasks}
     picked: dict[tuple[int, int], list[Pick]] = defaultdict(list)
     strays = []
