@@ -63,6 +63,17 @@ def test_a_pick_its_dead_robot_never_reported_is_excused_not_hidden() -> None:
     assert any("executed 2 times" in v for v in reported.violations)  # the feeder knew: no excuse
 
 
+def test_a_pick_the_record_gives_to_another_robot_is_found() -> None:
+    """Robot2 picked task 10, which the record gives to Robot1 (whose void
+    decision the feeder counted), and the task went round again: the shelf
+    had one take, and only the record shows it (simulator, rejoin seed 96)."""
+    tasks = [_task(10, "A", "Robot1", orphaned="Robot1 dropped it unexecuted"),
+             _task(31, "A", "Robot2", reassigned_from=10, not_found="Robot2 did not find it: gone")]
+    run = _run(tasks, [_pick("Robot2", 10, "A", 1.0)])
+    assert any("Robot2 as task 10 at 1.000s picked it, and the record gives it to Robot1" in v
+               for v in run.violations), run.violations
+
+
 def test_an_assigned_task_nobody_executed_is_found() -> None:
     run = _run([_task(1, "A")], [])
     assert run.violations == ["cluster 1 task 1 (A) was assigned to Robot1 and never executed"]
