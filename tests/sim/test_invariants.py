@@ -74,6 +74,15 @@ def test_a_pick_the_record_gives_to_another_robot_is_found() -> None:
                for v in run.violations), run.violations
 
 
+def test_a_pick_at_the_edge_of_an_exclusion_is_excused_not_hidden() -> None:
+    """Robot1 picked task 10 under a lease from before, which Robot2 and
+    Robot3 (a majority) decided without it and gave to Robot3: the fence's
+    known gap, listed apart (simulator seed 356 of the mixed profile)."""
+    tasks = [_task(10, "A", "Robot3", members=["Robot2", "Robot3"], not_found="Robot3 did not find it: gone")]
+    run = _run(tasks, [_pick("Robot1", 10, "A", 1.0)])
+    assert run.violations == [] and len(run.excused) == 1 and "at the edge of an exclusion" in run.excused[0]
+
+
 def test_an_assigned_task_nobody_executed_is_found() -> None:
     run = _run([_task(1, "A")], [])
     assert run.violations == ["cluster 1 task 1 (A) was assigned to Robot1 and never executed"]
