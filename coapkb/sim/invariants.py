@@ -19,7 +19,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from ..feeder import split_tasks
-from ..feeder.record import TaskRecord
+from ..feeder.record import TaskRecord, claim_of
 from ..harness.record import TeamRecord
 from .faults import FaultEvent
 from .observed import Take
@@ -135,7 +135,8 @@ def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> 
     cluster_of = _cluster_of(record)
     for pick in run.picks:
         taken = tasks.get((cluster_of[pick.robot], pick.seq))
-        if taken is None or taken.fate == "failed" or taken.assigned_to == pick.robot or _unreported(run, pick):
+        if taken is None or taken.fate == "failed" or pick.robot in (taken.assigned_to, _skipped_as_picked_by(taken, pick)) \
+                or _unreported(run, pick):
             continue
         finding = (f"cluster {taken.cluster} task {taken.seq} ({taken.object}): {_said(pick)} picked it, and the "
                    f"record gives it to {taken.assigned_to or 'nobody'} ({taken.fate})")
@@ -154,6 +155,14 @@ def _root(tasks: dict[tuple[int, int], TaskRecord], task: TaskRecord) -> tuple[i
     while task.reassigned_from is not None:
         task = tasks[(task.cluster, task.reassigned_from)]
     return task.cluster, task.seq
+
+
+def _skipped_as_picked_by(task: TaskRecord, pick: Pick) -> str | None:
+    """The robot a skipped task names as having picked it at that very task
+    (its robots died before the feeder had their decisions, and a survivor
+    found the pick in the KB): the record's own way of crediting it."""
+    claim = claim_of(task)
+    return claim[0] if claim is not None and claim[1] == pick.seq else None
 
 
 def _cluster_of(record: TeamRecord) -> dict[str, int]:

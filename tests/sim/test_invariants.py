@@ -74,6 +74,16 @@ def test_a_pick_the_record_gives_to_another_robot_is_found() -> None:
                for v in run.violations), run.violations
 
 
+def test_a_pick_a_skip_credits_at_its_own_task_is_no_finding() -> None:
+    """Robot2 picked task 2 and died with Robot1 before the feeder had their
+    decisions; Robot3 found the pick in the KB and skipped the task, naming
+    Robot2: the record credits the pick (simulator seed 54366 of the
+    storage profile, a false finding of the first form of this oracle)."""
+    tasks = [_task(2, "A", None, skipped=True, skip_reason="picked by Robot2 at task 2", decisions={"Robot3": None})]
+    run = _run(tasks, [_pick("Robot2", 2, "A", 1.0)])
+    assert not any("record gives it" in v for v in run.violations + run.excused), run.violations
+
+
 def test_a_pick_at_the_edge_of_an_exclusion_is_excused_not_hidden() -> None:
     """Robot1 picked task 10 under a lease from before, which Robot2 and
     Robot3 (a majority) decided without it and gave to Robot3: the fence's
