@@ -60,8 +60,7 @@ class TaskPoster:
                                for r in [*(r for r in live if r not in joining), *again_to]))
 
         def decided(states: States, robot_id: str) -> bool:
-            last = states[robot_id].last if robot_id in states else None
-            return last is not None and last.seq >= seq
+            return robot_id in states and states[robot_id].decided(seq)
 
         def undecided(states: States) -> list[str]:
             return [r for r in cluster if r not in watcher.down and not decided(states, r)]
