@@ -44,13 +44,19 @@ CI_PROFILES = [
 ]
 
 
+def judged_together(profile: tuple[str, ...]) -> bool:
+    """Whether an oracle of ``profile`` judges its runs together
+    (``--decide-within``, ``--catch-up-within``), not each on its own."""
+    return any(option.endswith("-within") for option in profile)
+
+
 def held_by_ci(profile: tuple[str, ...], seeds: tuple[int, ...]) -> bool:
     """Whether a CI profile's test already holds ``seeds`` of ``profile`` to
     every invariant: each is one of its runs, and where an oracle judges the
     runs together (``--decide-within``, ``--catch-up-within``), they are
     all of its runs."""
-    judged_together = any(option.endswith("-within") for option in profile)
+    together = judged_together(profile)
     return any(
-        seeds == tuple(ci.span()) if judged_together else all(seed in ci.span() for seed in seeds)
+        seeds == tuple(ci.span()) if together else all(seed in ci.span() for seed in seeds)
         for ci in CI_PROFILES if ci.options == profile
     )

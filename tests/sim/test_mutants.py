@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from mutants import MUTANTS, Mutant
-from profiles import held_by_ci
+from profiles import held_by_ci, judged_together
 from support import ROOT, unmeasured
 
 HERE = ROOT / "tests" / "sim"
@@ -46,7 +46,7 @@ def test_every_planted_bug_is_caught_on_its_seed(name: str) -> None:
     if not mutant.seeds:
         pytest.xfail(f"{name} survives: {SURVIVORS[name]}")
     # Judged one by one, the first seed that catches it is enough (one clean run then, not several).
-    together = any(option.endswith("-within") for option in mutant.profile)
+    together = judged_together(mutant.profile)
     planted = _violating([str(HERE / "mutants.py"), name], mutant, mutant.seeds, first=not together)
     # Seeds a CI profile runs are held to every invariant there, without the bug.
     caught = mutant.seeds if together else tuple(sorted(planted))
