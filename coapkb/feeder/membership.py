@@ -222,7 +222,7 @@ class Membership:
         known = self.channel.watcher.states.get(robot_id)
         if known is not None:
             return state.boot == known.boot
-        return state.last is not None and state.last.seq >= max(1, self._incarnation.get(robot_id, 0))
+        return state.decided(max(1, self._incarnation.get(robot_id, 0)))
 
     async def take_back_while(self, cluster: Sequence[str], records: Sequence[TaskRecord],
                               deciding: PendingTask, decided: asyncio.Future[Any]) -> None:
