@@ -24,7 +24,7 @@ import pytest
 from support import ROOT
 
 from coapkb.agent.robot_state import PlannedState
-from coapkb.agent.settling import SETTLE_WAIT_TIMEOUTS
+from coapkb.agent.settling import SETTLE_DECIDING_TIMEOUTS
 from coapkb.agent.task_assigner import RobotEnergy, TaskFacts, assign
 from coapkb.config import CostModel
 from coapkb.feeder import split_tasks
@@ -326,10 +326,11 @@ async def test_unreachable_kb_holder_makes_its_tasks_unavailable(transport: str,
                         # the holder down, that.
                         assert any(q in error for q in ("pick-facts", "pick-place", f"{victim}: down")), error
                         # The query's timeout, then asking the teammates whether one had
-                        # the knowledge, which waits up to SETTLE_WAIT_TIMEOUTS query
-                        # timeouts while a teammate is still deciding (on a loaded machine
-                        # both survivors' queries do not fail at the same moment).
-                        bound = timeout_s * (1 + SETTLE_WAIT_TIMEOUTS) + 2
+                        # the knowledge: SETTLE_WAIT_TIMEOUTS query timeouts, stretched up to
+                        # SETTLE_DECIDING_TIMEOUTS while a teammate answers that it is still
+                        # deciding (on a loaded machine both survivors' queries do not fail
+                        # at the same moment: 12.3 s was seen against the shorter bound).
+                        bound = timeout_s * (1 + SETTLE_DECIDING_TIMEOUTS) + 2
                         assert decision["coordination_s"] <= bound, (r, decision)
                 for r in survivors:
                     assert team.processes[r].returncode is None, f"{r} died"
