@@ -17,7 +17,7 @@ from ..agent.robot_state import RobotState
 from ..transport.base import TransportError
 from ..transport.messages import Method, Request, Status
 from .channel import Channel
-from .orphans import orphans, unexecuted
+from .orphans import executed_next, orphans, unexecuted
 from .record import TaskRecord
 from .tasks import FeederError, task_post
 
@@ -149,6 +149,12 @@ class Membership:
         """The cluster's tasks to send round again now (see :func:`~coapkb.feeder.orphans.orphans`)."""
         return orphans(records, self.channel.watcher, self._incarnation, self._fenced_off,
                        done_before=self._done_before)
+
+    def executed_next(self, robot_id: str, records: Sequence[TaskRecord]) -> bool:
+        """Whether ``robot_id``'s current process, as last observed, had done
+        a job past every one ``records`` (the cluster's) give it: the job of
+        the task being recorded (see :func:`~coapkb.feeder.orphans.executed_next`)."""
+        return executed_next(records, self.channel.watcher, robot_id, self._incarnation, self._done_before)
 
     def undecided(self, cluster: Sequence[str], records: list[TaskRecord]) -> list[TaskRecord]:
         """Tasks no robot decided (each that took one went down first), to

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 
 from ..agent.observed_states import ObservedStates, States
 from .record import TaskRecord, claim_of
@@ -28,13 +28,35 @@ def unexecuted(
     (found in the simulator, seed 3619: uncounted, the robot's one done job
     covered its next task, which its dead process never did)."""
     taken = {r.reassigned_from for r in records if r.reassigned_from is not None}
+    mine, done = _jobs(records, watcher, robot_id, incarnation, done_before)
+    return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
+
+
+def executed_next(
+    records: Sequence[TaskRecord], watcher: ObservedStates, robot_id: str, incarnation: Mapping[str, int] | None = None,
+    done_before: Mapping[str, int] | None = None,
+) -> bool:
+    """Whether ``robot_id``'s last observed ``done`` count covers a job past
+    every one ``records`` give its current process: the job of a task it
+    took that is not among them yet (see :func:`unexecuted`)."""
+    mine, done = _jobs(records, watcher, robot_id, incarnation, done_before)
+    return done > len(mine)
+
+
+def _jobs(
+    records: Sequence[TaskRecord], watcher: ObservedStates, robot_id: str, incarnation: Mapping[str, int] | None,
+    done_before: Mapping[str, int] | None,
+) -> tuple[list[TaskRecord], int]:
+    """The jobs ``records`` give ``robot_id``'s current process, in the
+    order it executes them, and how many of them its last observed state
+    says are done."""
     state = watcher.states.get(robot_id)
     done = state.live.done - (done_before or {}).get(robot_id, 0) if state is not None else 0
     fenced = set(state.live.fenced) if state is not None else set()
     first = (incarnation or {}).get(robot_id, 0)
     mine = [r for r in records if (r.assigned_to == robot_id or claim_of(r) == (robot_id, r.seq))
             and r.seq >= first and r.seq not in fenced]
-    return [r for r in mine[done:] if r.seq not in taken and r.orphaned is None]
+    return mine, done
 
 
 def orphans(

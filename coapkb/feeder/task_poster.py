@@ -84,7 +84,7 @@ class TaskPoster:
             # Robots that differ may have decided and then died before the
             # feeder noticed: ask each once, so the dead ones' decisions are void.
             await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
-        self._record(record, cluster, decisions)
+        self._record(record, cluster, decisions, records)
         return record
 
     async def _post_to_joiners(self, request: Request, seq: int, name: str,
@@ -109,11 +109,14 @@ class TaskPoster:
                         "it is" if len(missed) == 1 else "they are")
         return {r: _boot_in(answer) for r, answer in zip(joining, answers, strict=True) if r not in watcher.down}
 
-    def _record(self, record: TaskRecord, cluster: list[str], decisions: Mapping[str, Decision]) -> None:
+    def _record(self, record: TaskRecord, cluster: list[str], decisions: Mapping[str, Decision],
+                records: Sequence[TaskRecord]) -> None:
         """Keep in ``record`` the decisions that count, and why the others do
         not.  The decision is the survivors': a robot that decided and then
-        went down executes nothing (its task, if any, goes round again), and
-        one left out of a newer membership by the others took no part in it."""
+        went down executes nothing (its task, if any, goes round again),
+        unless it was seen to have done the job first; and one left out of a
+        newer membership by the others took no part in it.  ``records``:
+        the cluster's tasks before this one."""
         down = self.channel.watcher.down
 
         def standing(decision: Decision) -> tuple[bool, int]:
@@ -127,13 +130,20 @@ class TaskPoster:
             return len(members) * 2 > len(cluster), decision.epoch
 
         newest = max(decisions.values(), key=standing, default=None)
-        survivors = [r for r in decisions if r not in down]
+        # A robot that took the task, did the job, and went down only then
+        # (its last observed state counts the job): its decision is what
+        # happened.  Voided, it left the record giving a picked object to
+        # nobody (simulator, power cuts: the survivor, its holders gone,
+        # settled the task unavailable).
+        did_it = {r for r in decisions if r in down and decisions[r].assigned_to == r
+                  and self.membership.executed_next(r, records)}
+        survivors = [r for r in decisions if r not in down or r in did_it]
         for robot_id in cluster:
             decision = decisions.get(robot_id)
             if decision is None:
                 record.absent[robot_id] = down.get(robot_id, "no decision")
                 continue
-            if robot_id in down and survivors:
+            if robot_id in down and robot_id not in did_it and survivors:
                 record.absent[robot_id] = f"{down[robot_id]} (its decision is void)"
                 continue
             if newest is not None and decision is not newest and standing(decision) < standing(newest) \

@@ -17,7 +17,7 @@ import pytest
 import tomli_w
 from support import ROOT
 
-from coapkb.agent.robot_state import Decision
+from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.config import ConfigError
 from coapkb.feeder import (
     Feeder,
@@ -68,9 +68,38 @@ def test_a_lone_robots_membership_does_not_void_the_majoritys_decisions() -> Non
     record = TaskRecord(object="Apple", cluster=1, seq=10)
     lone = Decision(10, "Apple", assigned_to="Robot1", epoch=10, members=("Robot1",))
     majority = Decision(10, "Apple", assigned_to="Robot2", epoch=4, members=("Robot2", "Robot3"))
-    poster._record(record, ["Robot1", "Robot2", "Robot3"], {"Robot1": lone, "Robot2": majority, "Robot3": majority})
+    poster._record(record, ["Robot1", "Robot2", "Robot3"], {"Robot1": lone, "Robot2": majority, "Robot3": majority},
+                   [])
     assert record.decisions == {"Robot2": "Robot2", "Robot3": "Robot2"} and record.assigned_to == "Robot2"
     assert record.absent == {"Robot1": "left out of membership epoch 4 (its decision is void)"}
+
+
+@pytest.mark.parametrize("done,credited", [(2, True), (1, False)])
+def test_a_job_done_before_a_power_cut_stays_in_the_record(done: int, credited: bool) -> None:
+    """Robot1 and Robot3 decide task 7 for Robot1, which picks it and then
+    dies with Robot3 in a power cut; Robot2, its holders gone, settles the
+    task unavailable.  Robot1's last observed state counts the job (its
+    second, after task 6): its decision is what happened, and the record
+    gives it the pick (simulator, storage profile seeds 54749, 54974 and
+    55904: voided, the record gave a picked object to nobody).  Seen with
+    one job done, it did not do task 7, and its decision stays void."""
+    state = RobotState("Robot1", PlannedState(1, 1, 100.0, 0.0, 0.0, seq=7), LiveState(1.0, 1.0, done=done))
+    watcher = SimpleNamespace(down={"Robot1": "power cut", "Robot3": "power cut"}, states={"Robot1": state})
+    channel = cast(Channel, SimpleNamespace(watcher=watcher))
+    poster = TaskPoster(channel, Membership(channel))
+    earlier = [TaskRecord(object="Muji_lamp", cluster=1, seq=6, assigned_to="Robot1")]
+    record = TaskRecord(object="Lavazza_rice_sack", cluster=1, seq=7)
+    decided = Decision(7, "Lavazza_rice_sack", assigned_to="Robot1")
+    settled = Decision(7, "Lavazza_rice_sack", unavailable="no live robot holds the Location KB")
+    poster._record(record, ["Robot1", "Robot2", "Robot3"], {"Robot1": decided, "Robot2": settled, "Robot3": decided},
+                   earlier)
+    assert "Robot3" in record.absent  # down, and did no job of it
+    if credited:
+        assert record.decisions == {"Robot1": "Robot1", "Robot2": None} and record.assigned_to == "Robot1"
+        assert record.fate == "failed"  # the survivor decided otherwise: a split, as it was
+    else:
+        assert record.decisions == {"Robot2": None} and record.assigned_to is None
+        assert record.fate == "unavailable"
 
 
 def test_tasks_file_ignores_comments_and_blank_lines(tmp_path: Path) -> None:

@@ -127,6 +127,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "restart, and waited for the new process's plan of the task before, 137 s by a timeout set while starved",
         50615: "a joiner admitted its co-joiner, which never took its post and was named to no teammate, then "
                "left it out again: two epochs ahead of its teammate on every task, and back two on taking its decision",
+        54749: "a robot picked its task and died in a power cut a moment later; its decision was void, the survivor "
+               "settled the task unavailable, and the record gave the pick to nobody",
+        55904: "the same as seed 54749, on lossy links",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
@@ -192,6 +195,7 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "through the partition and after it) started a fresh membership without it after 20 s, while its "
               "co-joiner had joined in the survivor's: two memberships, and its epoch went back when it took "
               "the co-joiner's decision",
+        3024: "the same as seed 54749 of three robots: a pick done before a power cut, given to nobody by the record",
     }),
     (("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm"), {
         58: "a joiner cut off at its restart found its teammates had decided its join task without a plan of it "
