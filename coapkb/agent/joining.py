@@ -7,25 +7,29 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 from ..transport.base import ClientTransport, Endpoint, PeerGone, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .observed_states import STATE_PATH
-from .robot_state import RobotState
+from .robot_state import Decision, RobotState
 
 log = logging.getLogger(__name__)
 
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 
-#: A membership as a decision names it: its epoch and its members.
-Shown = tuple[int, tuple[str, ...]]
+class Shown(NamedTuple):
+    """The decision a teammate showed the joiner, which takes its membership."""
+
+    teammate: str
+    decision: Decision
 
 
 async def decided_before(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],
                          seq: int, patience: float, joiner: str) -> tuple[Shown | None, bool]:
-    """The membership the first of ``teammates`` to show its decision of
-    task ``seq - 1`` decided it in, all of them observed at once (some may
+    """The decision of task ``seq - 1`` the first of ``teammates`` to show
+    one shows (with its membership), all of them observed at once (some may
     be down); None if none can show it.  A decision of task ``seq`` itself
     that counts ``joiner`` a member does as well: the teammate admitted it
     there and decided the task without a plan of it (a repeat skipped on
@@ -67,7 +71,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
                             # Past seq - 1 only by a task that needs no plans
                             # (with the joiner a member), or having left it out.
                             taken = last.seq == seq - 1 or (last.seq == seq and joiner in last.members)
-                            return (last.epoch, last.members) if taken else True
+                            return Shown(robot_id, last) if taken else True
             except PeerGone as exc:
                 log.debug("catching up from %s: %s", robot_id, exc)
                 return False

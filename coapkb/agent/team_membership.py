@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..transport.base import ClientTransport, Endpoint
-from .joining import decided_before
+from .joining import Shown, decided_before
 from .observed_states import ObservedStates
 from .robot_state import NO_PROCESS
 
@@ -255,12 +255,30 @@ class TeamMembership:
         co_joiners = {r for r in joining if r in self._peers}
         shown, past = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
                                            seq, patience, self.robot_id)
-        membership = None if shown is None else Membership(*shown)
+        membership = None if shown is None else Membership(shown.decision.epoch, shown.decision.members)
+        if shown is not None:
+            self._plans_shown(shown, co_joiners)
         if membership is None:
             log.warning("no teammate showed its decision of task %d%s: a fresh membership of the robots joining "
                         "at task %d", seq - 1, " (one is past it)" if past else " (none survives)", seq)
             membership = Membership(seq, tuple(sorted(co_joiners | {self.robot_id})))
         self._joined(seq, membership)
+
+    def _plans_shown(self, shown: Shown, co_joiners: set[str]) -> None:
+        """The plans the decision the join takes was computed on (those it
+        costs, right after the task before it), and the plan of the teammate
+        that showed it: a process of each had decided that far, so one first
+        observed later with an earlier plan is a restart's, as for a decision
+        carried out (:meth:`.TeamView.used_plans`).  Found in the simulator,
+        seed 420 of the rejoin profile: a joiner cut off until after a
+        teammate's restart took the new process for the member it joined
+        with, and waited for its plan for good.  Co-joiners are new
+        processes, known as such."""
+        decision = shown.decision
+        for robot_id in decision.costs:
+            if robot_id in self._peers and robot_id not in co_joiners:
+                self._teammates.saw_plan(robot_id, decision.seq - 1)
+        self._teammates.saw_plan(shown.teammate, decision.seq)
 
     def _joined(self, seq: int, membership: Membership) -> None:
         """Join at task ``seq`` on top of ``membership`` (see :meth:`join`)."""

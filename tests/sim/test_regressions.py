@@ -206,6 +206,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
             "number: the feeder took it for the newest and voided its teammates' decisions, and each task the lone "
             "robot dropped under its fence went round again after they had picked it",
         126: "the same as seed 96",
+        420: "a joiner cut off until after a teammate's restart never saw its old process: it took the new one "
+             "for the member it joined with, and waited for its plan for good",
+        999: "the same as seed 420",
     }),
 ]
 
