@@ -251,11 +251,13 @@ class Controller:
         fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
         each other on it alike."""
         if self.robot_id in task.join:
-            await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
+            joined = await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
             # Before its plan is out, nobody has decided this task: the
             # claims a teammate hands over are those of the tasks before it.
             await self._take_claims(task.seq)
             self._publish(self.team.own)
+            if not joined:
+                return  # left out, alone: its co-joiners may be in the cluster's membership
         for robot_id in task.join:
             if robot_id != self.robot_id:
                 self.team.membership.admit(robot_id, task.seq, task.boots.get(robot_id, 0))

@@ -160,13 +160,15 @@ class TeamView:
         await self._teammates.wait(lambda _: robot_id in self._teammates.down, None)
         return self._teammates.down[robot_id]
 
-    async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> None:
+    async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> bool:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in
         (:meth:`.TeamMembership.join`) and shows a plan right after
-        ``seq - 1``, which the others wait for before deciding ``seq``."""
-        await self.membership.join(seq, patience, joining)
+        ``seq - 1``, which the others wait for before deciding ``seq``.
+        False if it found itself left out instead."""
+        joined = await self.membership.join(seq, patience, joining)
         self._own = replace(self._own, plan=replace(self._own.plan, seq=seq - 1), prev=None)
+        return joined
 
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
         """Every member's planned state right after task ``seq``; waits for

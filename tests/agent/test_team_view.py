@@ -507,6 +507,48 @@ async def test_a_joiner_takes_the_membership_of_its_own_task_when_a_teammate_dec
         await team.aclose()
 
 
+async def test_a_joiner_a_survivor_went_on_without_is_left_out_alone() -> None:
+    """Robot3, the survivor, decided task 10 in a membership without
+    Robot1, cut off until then: Robot1 is left out.  Its membership is its
+    own, alone, and it says so (it admits no co-joiner): named with its
+    co-joiner Robot2, which had joined in Robot3's membership, it looked a
+    majority to the feeder, and the cluster split (simulator seeds 314, 870
+    and 902 of the rejoin profile)."""
+    network = MemoryNetwork()
+    last = Decision(10, "Gucci_bag_14", assigned_to="Robot3", epoch=6, members=("Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot3", 10), last=last))
+    team = view(network, robot("Robot1", 0, boot=3))
+    try:
+        async with asyncio.timeout(2):
+            joined = await team.join(10, patience=60, joining=("Robot1", "Robot2"))
+        assert not joined
+        assert team.membership.members == ("Robot1",) and set(team.membership.excluded) == {"Robot2", "Robot3"}
+    finally:
+        await team.aclose()
+
+
+async def test_a_teammate_the_joined_decision_costs_and_first_seen_earlier_is_a_restart() -> None:
+    """Robot1 joins at task 10 on Robot3's decision of task 9, computed on
+    Robot2's plan after task 8.  Robot1 was cut off and never observed
+    Robot2, which restarted meanwhile: its first state shows task 0, so it
+    is a new process, down until it joins, not the member waited for
+    (simulator seed 420 of the rejoin profile: the joiner waited for its
+    plan for good)."""
+    network = MemoryNetwork()
+    last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", costs={"Robot2": 3.0, "Robot3": 1.0}, epoch=4,
+                    members=("Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot3", 9), last=last))
+    team = view(network, robot("Robot1", 0, boot=3))
+    try:
+        async with asyncio.timeout(2):
+            assert await team.join(10, patience=60, joining=("Robot1",))
+        await serve_state(network, robot("Robot2", 0, boot=11))
+        async with asyncio.timeout(5):
+            assert "restarted" in await team.until_down("Robot2")
+    finally:
+        await team.aclose()
+
+
 async def test_a_joiner_waits_for_a_silent_teammate_and_observes_it_again_rather_than_leave_it_out() -> None:
     """Robot3 decided task 9 but is cut off from the joiner: its first
     observation is never answered.  The joiner does not start a membership

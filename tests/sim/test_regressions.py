@@ -209,6 +209,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         420: "a joiner cut off until after a teammate's restart never saw its old process: it took the new one "
              "for the member it joined with, and waited for its plan for good",
         999: "the same as seed 420",
+        314: "two robots restarted and cut off in turn: the second, left out by the survivor, started a membership "
+             "naming its co-joiner, which had joined the survivor's; a majority to the feeder, the cluster split",
+        902: "the same as seed 314",
     }),
 ]
 
