@@ -133,8 +133,14 @@ class Settler:
                 # Outnumbered, a silence is no answer: the silent ones may
                 # be the majority, cut off from this robot, and it waits
                 # for them; only a teammate whose process is gone cannot help.
-                judged.failed += not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
-                judged.unanswered = judged.unanswered or self.team.is_up(mate)
+                # Outnumbered by this very failure counts too (simulator seed
+                # 54708: the one silent teammate, cut off with the knowledge,
+                # was found down in the round, counted as failed, and the
+                # robot decided alone against its decision).
+                outnumbered = outnumbered or self.team.membership.alone
+                gone = not self.team.is_up(mate) and (not outnumbered or isinstance(theirs, PeerGone))
+                judged.failed += gone
+                judged.unanswered = judged.unanswered or not gone
             elif theirs is None or theirs.decision.object != task.object:
                 # Still deciding: waited for past the deadline (found in
                 # the simulator: a robot gave up the moment before a

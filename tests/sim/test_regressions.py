@@ -130,6 +130,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         54749: "a robot picked its task and died in a power cut a moment later; its decision was void, the survivor "
                "settled the task unavailable, and the record gave the pick to nobody",
         55904: "the same as seed 54749, on lossy links",
+        54708: "a robot without the knowledge found its one live teammate, cut off with the decision, down in the "
+               "round that asked it, counted it as failed although that left it outnumbered, and decided alone",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
