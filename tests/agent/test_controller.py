@@ -23,7 +23,7 @@ from coapkb.config import RobotConfig
 from coapkb.kb.client import KBClient
 from coapkb.kb.store import KnowledgeBase
 from coapkb.model.results import SelectResult
-from coapkb.transport.base import PeerTimeout, ResourceInfo, TransportError
+from coapkb.transport.base import PeerGone, PeerTimeout, ResourceInfo, TransportError
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Request, Response, Status
 from coapkb.transport.router import Router
@@ -307,6 +307,59 @@ async def test_a_teammate_up_whose_answer_did_not_come_is_asked_again_past_the_d
     async with asyncio.timeout(10):
         settled = await controller.settler.settle(Task(7, OBJECT), alone)
     assert settled is theirs and asked.count("Robot1") == 2
+
+
+class FailingTeam(UpTeam):
+    """A team whose teammates are declared down at their second failed request."""
+
+    def __init__(self, robot_id: str, members: tuple[str, ...], down: set[str]) -> None:
+        super().__init__(robot_id, members)
+        self.down = down
+        self.failures: dict[str, int] = {}
+        self.revival = self  # a teammate heard again is up again
+
+    async def heard_again(self, robot_id: str) -> bool:
+        self.down.discard(robot_id)
+        return True
+
+    def is_up(self, robot_id: str) -> bool:
+        return robot_id not in self.down
+
+    async def request_failed(self, robot_id: str, exc: Exception) -> None:
+        self.failures[robot_id] = self.failures.get(robot_id, 0) + 1
+        if self.failures[robot_id] >= 2:
+            self.down.add(robot_id)
+        up = [r for r in self.membership.members if r == self.robot_id or r not in self.down]
+        self.membership.alone = len(up) * 2 <= len(self.membership.members)
+
+
+@pytest.mark.looptime  # the silence and the waits on the event loop's own clock
+async def test_a_robot_outnumbered_by_the_failure_of_the_round_waits_for_the_silent_teammate() -> None:
+    """Robot2 did not get its knowledge (Robot1, the holder, is dead) and
+    settles the task; Robot3 decided on knowledge and was cut off.  Robot3
+    is found down in a round that asks it: Robot2 is then outnumbered, and
+    a silence is no answer, so it waits on and takes Robot3's decision
+    once it answers (simulator seed 54708 of the storage profile: it
+    counted Robot3 as failed and decided the task alone, for nobody)."""
+    theirs = DecisionMessage(Decision(1, OBJECT, assigned_to="Robot2", epoch=0,
+                                      members=("Robot1", "Robot2", "Robot3")))
+    alone = DecisionMessage(Decision(1, OBJECT, unavailable="no live robot holds the Location KB"))
+    team = FailingTeam("Robot2", ("Robot1", "Robot2", "Robot3"), down={"Robot1"})
+    loop = asyncio.get_running_loop()
+    healed_at = loop.time() + 4.5  # past the wait's first deadline (two query timeouts)
+
+    async def ask(mate: str, seq: int) -> DecisionMessage | None:
+        if mate == "Robot1":
+            raise PeerGone("coap://robot1:5683: port unreachable")
+        if loop.time() < healed_at:
+            await asyncio.sleep(1.0)
+            raise PeerTimeout("coap://robot3:5683: no answer")
+        return theirs
+
+    settler = Settler("Robot2", team, 1.0, ask, {})  # type: ignore[arg-type]
+    async with asyncio.timeout(10):
+        settled = await settler.settle(Task(1, OBJECT), alone)
+    assert team.failures["Robot3"] >= 2 and settled is theirs  # found down, then heard again
 
 
 class StalledTeam(UpTeam):
