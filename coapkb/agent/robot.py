@@ -336,7 +336,7 @@ def _query_handler(config: RobotConfig, served: KnowledgeBase | LiveKB | None, k
     )
     pushing = queries.pushing_holders()
     if pushing:
-        queries.pushed = PushedFacts(client, pushing)
+        queries.pushed = PushedFacts(client, pushing, on_gone=team.request_failed)
     return queries
 
 

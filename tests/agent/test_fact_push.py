@@ -177,3 +177,34 @@ async def test_the_wait_learns_how_late_pushes_come(robot1: QueryHandler, holder
         await late
     usual = pushed.expected_within("pick-facts")
     assert usual is not None and 1.5 * 0.05 <= usual < PATIENCE_S
+
+
+async def test_a_holder_gone_after_it_was_observed_counts_as_a_failure(kbs: dict[str, KnowledgeBase],
+                                                                        client: ClientTransport) -> None:
+    """Nobody listening where a holder was observed is a failure for the
+    failure detector, like a failed query (simulator seed 1567 of the
+    rejoin profile: a holder that died between two tasks was otherwise
+    found down only by a wait for its plan, after another teammate died);
+    nobody listening where none was ever observed is a teammate not up yet."""
+    gone: list[str] = []
+
+    async def on_gone(robot_id: str, exc: Exception) -> None:
+        gone.append(robot_id)
+
+    holder = Holder(kbs["Object"], Endpoint("coap", "127.0.0.1", free_udp_port()))
+    server = await serve(holder.router, holder.endpoint)
+    never_up = Endpoint("coap", "127.0.0.1", free_udp_port())
+    pushed = PushedFacts(client, {"Object": ("Robot2", holder.endpoint), "Location": ("Robot3", never_up)},
+                         on_gone=on_gone)
+    pushed.start()
+    try:
+        async with asyncio.timeout(PATIENCE_S):
+            await pushed.observing(holder.endpoint)
+            assert gone == []
+            await server.aclose()
+            pushed._start_watch("Object")  # registered again (after missed pushes): nobody there now
+            while "Robot2" not in gone:
+                await asyncio.sleep(0.05)
+        assert "Robot3" not in gone
+    finally:
+        await pushed.aclose()

@@ -214,6 +214,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         314: "two robots restarted and cut off in turn: the second, left out by the survivor, started a membership "
              "naming its co-joiner, which had joined the survivor's; a majority to the feeder, the cluster split",
         902: "the same as seed 314",
+        1567: "a robot that died between two tasks and restarted cut off was found down only by the wait for its "
+              "plan, a request timeout later; the other teammate died meanwhile, and the survivor, outnumbered, "
+              "decided nothing",
     }),
 ]
 
