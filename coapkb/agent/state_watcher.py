@@ -20,6 +20,7 @@ from .. import clock
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .failure_detector import FAILURES_TO_DOWN, FailureDetector
+from .first_sight import FirstSight
 from .notification_repair import NotificationRepair
 from .robot_state import RobotState
 
@@ -55,13 +56,8 @@ class StateWatcher:
         self._changed = changed
         self.states: States = {}
         self.refreshes = 0
-        #: Robot never observed -> the process (``boot``) its decision as the
-        #: leader came from: a first state of another process is a restart's.
-        self._boot_unseen: dict[str, int] = {}
-        #: Robot never observed -> the latest task after which a plan of it
-        #: went into a decision here: a first state showing an earlier plan
-        #: is another process's.
-        self._plan_unseen: dict[str, int] = {}
+        #: What was heard of robots never observed (their process, their plans).
+        self._unseen = FirstSight()
         #: Told of every state stored (a recording: coapkb.harness.recording).
         self.listeners: list[Callable[[str, RobotState], None]] = []
         self._watchers: dict[str, asyncio.Task[None]] = {}
@@ -94,11 +90,8 @@ class StateWatcher:
         new process of it joined, whose state is taken as it comes, not as a
         restart -- unless ``boot`` names the process that joined, and
         another one answers."""
-        self._boot_unseen.pop(robot_id, None)
-        self._plan_unseen.pop(robot_id, None)
+        self._unseen.forget(robot_id, boot)
         self.states.pop(robot_id, None)
-        if boot:
-            self._boot_unseen[robot_id] = boot
         self.watch(robot_id)
 
     async def aclose(self) -> None:
@@ -120,7 +113,7 @@ class StateWatcher:
         """Process ``boot`` of ``robot_id`` sent something here (a decision);
         kept only while no state of it was observed."""
         if robot_id in self._endpoints and robot_id not in self.states:
-            self._boot_unseen[robot_id] = boot
+            self._unseen.saw_process(robot_id, boot)
 
     def saw_plan(self, robot_id: str, seq: int) -> None:
         """A plan of ``robot_id`` right after task ``seq`` went into a decision
@@ -129,7 +122,7 @@ class StateWatcher:
         observed: plans only grow within a process, so a first state showing
         an earlier one is a restart's."""
         if robot_id in self._endpoints and robot_id not in self.states:
-            self._plan_unseen[robot_id] = max(seq, self._plan_unseen.get(robot_id, 0))
+            self._unseen.saw_plan(robot_id, seq)
 
     async def expect_process(self, robot_id: str, boot: int) -> None:
         """Process ``boot`` of ``robot_id`` is the one counted on: if another
@@ -137,7 +130,7 @@ class StateWatcher:
         joins); if none is, the first state observed is judged by it."""
         state = self.states.get(robot_id)
         if state is None:
-            self._boot_unseen[robot_id] = boot
+            self._unseen.saw_process(robot_id, boot)
         elif self._detector.liveness and state.boot and state.boot != boot:
             await self._detector.restarted(robot_id, "restarted (another process than the one heard of before)")
 
@@ -168,26 +161,11 @@ class StateWatcher:
             await self._detector.restarted(
                 robot_id, f"restarted (after task {old.plan.seq} it shows task {state.plan.seq})")
             return
-        seen = self._boot_unseen.pop(robot_id, 0) if old is None else 0
-        planned = self._plan_unseen.pop(robot_id, 0) if old is None else 0
-        if self._detector.liveness and state.plan.seq < planned:
-            # Never observed before, and earlier than a plan of it already
-            # used here: a new process, which decided nothing of that.  Found
-            # in the simulator, seed 50486: a robot starved from the start
-            # took its teammates' decisions, first observed a teammate after
-            # its restart, and waited for its plan of the task before.
-            await self._detector.restarted(
-                robot_id, f"restarted (its plan after task {planned} was used here; it shows task {state.plan.seq})")
-            return
-        if self._detector.liveness and seen and state.boot and state.boot != seen:
-            # Never observed before, but another process of it sent a decision
-            # here: this one is a restart.  Found in the simulator: a follower
-            # whose observation of its leader was lost took the restarted
-            # leader's first state for the old one's, and waited for its
-            # decision on a task the new process was never given.  The same
-            # for a joiner whose process that took the join died since.
-            await self._detector.restarted(robot_id, "restarted (another process than the one heard of before)")
-            return
+        if old is None:
+            why = self._unseen.restart(robot_id, state)
+            if self._detector.liveness and why is not None:
+                await self._detector.restarted(robot_id, why)
+                return
         self._detector.reached(robot_id)
         async with self._changed:
             self.states[robot_id] = state

@@ -5,7 +5,8 @@ waits for every robot's decision on the ``/robot/outcome`` it observes, and
 keeps the team whole while robots fail: a robot that stops answering is
 down and fed no more, a restarted one joins at a task boundary, one back
 before its teammates noticed is fed what it missed, and a down robot's
-unexecuted tasks go round again once it is fenced off (:mod:`.membership`).
+unexecuted tasks go round again once it is fenced off (:mod:`.membership`,
+:mod:`.fence`).
 
 Used by the harness (:mod:`coapkb.harness.team`), which also starts the
 robots, and by ``coapkb feed`` for robots started by hand
