@@ -408,8 +408,8 @@ class ContextHooks:
         self._instance_attributes: dict[int, set[str]] = {}
         #: (remote, mid) -> policy record, for CON exchanges aiocoap has active.
         self._pending: dict[tuple[Any, int], Any] = {}
-        #: finished exchanges that were retransmitted: (remote, mid) -> (record, expiry).
-        self._finished: OrderedDict[tuple[Any, int], tuple[Any, float]] = OrderedDict()
+        #: Finished exchanges, for the replies to their copies.
+        self._finished = _FinishedExchanges()
         #: (remote, Message ID) of the latest NON notifications -> what ends
         #: their observation: aiocoap matches a Reset only to a CON.
         self._non_notifications: OrderedDict[tuple[Any, int], Any] = OrderedDict()
@@ -678,32 +678,52 @@ class ContextHooks:
             record = self._pending.pop(key, None)
             if record is not None:
                 policy.on_reply(record, message)
-                self._remember_finished(key, record, now)
+                self._finished.remember(key, record, now)
             else:
-                self._purge_finished(now)
-                entry = self._finished.get(key)
-                if entry is not None:
-                    policy.on_duplicate_reply(entry[0], message)
+                finished = self._finished.get(key, now)
+                if finished is not None:
+                    policy.on_duplicate_reply(finished, message)
         ended = self._non_notifications.pop(key, None)
         if ended is not None and message.mtype == RST and key not in self.mm._active_exchanges:
             ended()  # a NON notification reset: its observer is gone (RFC 7641 §3.6)
             return
         self._original(self.mm, "_remove_exchange")(message)
 
-    def _remember_finished(self, key: tuple[Any, int], record: Any, now: float) -> None:
-        # A duplicate reply answers a copy sent before now, so it comes within
-        # about one RTT; a few seconds is ample, and 1024 entries bound memory.
-        self._purge_finished(now)
-        self._finished[key] = (record, now + 5.0)
-        while len(self._finished) > 1024:
-            self._finished.popitem(last=False)
 
-    def _purge_finished(self, now: float) -> None:
-        while self._finished:
-            _, (_, expiry) = next(iter(self._finished.items()))
+
+class _FinishedExchanges:
+    """CON exchanges that ended, by (remote, Message ID), each with its
+    policy record: a reply to a copy sent before the end still tells the
+    policy of it.  Such a reply comes within about one RTT; a few seconds
+    is ample, and 1024 entries bound memory."""
+
+    HORIZON_S = 5.0
+    ENTRIES = 1024
+
+    def __init__(self) -> None:
+        self._records: OrderedDict[tuple[Any, int], tuple[Any, float]] = OrderedDict()
+
+    def remember(self, key: tuple[Any, int], record: Any, now: float) -> None:
+        self._purge(now)
+        self._records[key] = (record, now + self.HORIZON_S)
+        while len(self._records) > self.ENTRIES:
+            self._records.popitem(last=False)
+
+    def clear(self) -> None:
+        self._records.clear()
+
+    def get(self, key: tuple[Any, int], now: float) -> Any | None:
+        """The record of the exchange ``key`` that ended lately, or None."""
+        self._purge(now)
+        entry = self._records.get(key)
+        return None if entry is None else entry[0]
+
+    def _purge(self, now: float) -> None:
+        while self._records:
+            _, (_, expiry) = next(iter(self._records.items()))
             if expiry > now:
                 break
-            self._finished.popitem(last=False)
+            self._records.popitem(last=False)
 
 
 _install_uncached_members()
