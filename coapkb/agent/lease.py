@@ -6,10 +6,12 @@ give its unexecuted tasks to survivors; when it comes back its Task
 Executor still holds those jobs.  :class:`Lease` keeps the two from
 overlapping: before each pick, and again when the pick is over, the robot
 needs grants from a majority of its cluster (itself counted) to a round of
-``GET /robot/lease?r=ME`` sent at ``t``, valid until ``t + lease_s`` on its
-own monotonic clock.  A teammate grants only a robot it counts as an up
-member; a robot no majority will grant drops its jobs unexecuted and says
-so in its live state (``fenced``).
+``GET /robot/lease?r=ME&t=TASK`` sent at ``t``, valid until ``t + lease_s``
+on its own monotonic clock and for jobs of tasks up to ``TASK``.  A
+teammate grants only a robot it counts as an up member, and only once it
+has decided ``TASK`` with that robot a member (5.03 until it has decided
+it); a robot no majority will grant drops its jobs unexecuted and says so
+in its live state (``fenced``).
 
 docs/failover.md ("The fence") specifies the holder, the granter, when the
 feeder may re-feed a down robot's tasks, and why a robot whose teammates
@@ -63,26 +65,32 @@ class Lease:
         #: Grants needed from teammates: with this robot, a majority of the cluster.
         self.needed = (len(self._teammates) + 1) // 2
         self._until = float("-inf")
-        self._request = Request(Method.GET, LEASE_PATH, {"r": robot_id})
+        #: The latest task the lease was granted for (0: none named).
+        self._task = 0
         self.renewals = 0
 
     @property
     def valid_until(self) -> float:
         return self._until
 
-    async def hold(self, for_s: float) -> str | None:
+    async def hold(self, for_s: float, task: int = 0) -> str | None:
         """None once the lease covers the next ``for_s`` seconds (renewed if
         needed; waits while no majority answers either way); else why this
-        robot is fenced."""
+        robot is fenced.  ``task``: the task whose job it is for; a lease
+        granted for an earlier one is asked again, of teammates that grant
+        it only once they decided that task with this robot a member (one
+        they had left out, still granted from before, picked the task they
+        gave another: simulator, section 4 of docs/simulation.md)."""
         for_s = min(for_s, self.duration_s / 2)
         backoff = 0.2
-        while clock.monotonic() + for_s >= self._until:
+        while clock.monotonic() + for_s >= self._until or task > self._task:
             if self.needed == 0:
                 return None  # a cluster of one: nobody else could take its tasks
             sent = clock.monotonic()
-            refused = await self._round()
+            refused = await self._round(task)
             if refused is None:
                 self._until = sent + self.duration_s
+                self._task = max(self._task, task)
                 self.renewals += 1
                 continue
             if refused:
@@ -93,14 +101,15 @@ class Lease:
             backoff = min(backoff * 2, 2.0)
         return None
 
-    async def _round(self) -> str | None:
-        """One renewal round: None if granted; a reason if a majority can no
-        longer grant; "" if undecided."""
+    async def _round(self, task: int) -> str | None:
+        """One renewal round (for ``task``, if not 0): None if granted; a
+        reason if a majority can no longer grant; "" if undecided."""
         down = self._down()
         verdicts: dict[str, str] = {r: f"down ({why})" for r, why in down.items() if r in self._teammates}
         asked = [r for r in self._teammates if r not in verdicts]
         timeout = self._request_timeout_s()
-        pending = {asyncio.ensure_future(self._ask(r, timeout)): r for r in asked}
+        request = Request(Method.GET, LEASE_PATH, {"r": self.robot_id, **({"t": str(task)} if task else {})})
+        pending = {asyncio.ensure_future(self._ask(r, request, timeout)): r for r in asked}
         granted = 0
         try:
             for next_done in asyncio.as_completed(pending):
@@ -121,9 +130,9 @@ class Lease:
                 f"{r}: {v}" for r, v in sorted(verdicts.items())) + ")"
         return ""
 
-    async def _ask(self, robot_id: str, timeout: float) -> tuple[str, str | None]:
+    async def _ask(self, robot_id: str, request: Request, timeout: float) -> tuple[str, str | None]:
         try:
-            response = await self._transport.request(self._teammates[robot_id], self._request, timeout=timeout)
+            response = await self._transport.request(self._teammates[robot_id], request, timeout=timeout)
         except TransportError as exc:
             if self._on_failure is not None:
                 await self._on_failure(robot_id, exc)  # counts towards failure detection

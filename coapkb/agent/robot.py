@@ -36,7 +36,7 @@ from .robot_resources import FinalOutcome, RobotResources
 from .robot_state import BOOT_LIMIT, LiveState, PlannedState, RobotState
 from .stats import RobotStats
 from .task_assigner import robot_sort_key
-from .task_executor import TaskExecutor
+from .task_executor import LeaseHold, TaskExecutor
 from .team_view import TeamView
 from .teammate_calls import TeammateCalls
 
@@ -379,7 +379,7 @@ def _knowledge_writer(config: RobotConfig, served: KnowledgeBase | LiveKB | None
 
 
 def _fence(config: RobotConfig, teammates: dict[str, Endpoint], client: ClientTransport,
-           team: TeamView) -> Callable[[float], Awaitable[str | None]] | None:
+           team: TeamView) -> LeaseHold | None:
     """The lease a robot holds before each pick (None: no fence, ``lease_s`` 0)."""
     if config.lease_s <= 0:
         return None

@@ -21,7 +21,7 @@ import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, Protocol
 
 from ..config import ExecutionModel
 from ..errors import CoapkbError
@@ -44,6 +44,13 @@ NOT_FOUND = "not found: %s (task %d): %s"
 MISSED_KEPT = 8
 
 
+class LeaseHold(Protocol):
+    """None once this robot holds its lease for ``for_s`` seconds, for a
+    job of ``task`` (0: none named), else why it is fenced (:meth:`.Lease.hold`)."""
+
+    def __call__(self, for_s: float, task: int = 0) -> Awaitable[str | None]: ...
+
+
 class TaskExecutor:
     def __init__(
         self,
@@ -51,7 +58,7 @@ class TaskExecutor:
         start: LiveState,
         publish: Callable[[LiveState], None],
         sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
-        lease: Callable[[float], Awaitable[str | None]] | None = None,
+        lease: LeaseHold | None = None,
         *,
         robot_id: str = "",
         world: World | None = None,
@@ -65,8 +72,9 @@ class TaskExecutor:
         self._knowledge = knowledge
         #: Jobs picked and still carried (delivered at the next unload).
         self._carried: list[Job] = []
-        #: ``lease(seconds)``: None once this robot holds its lease for that
-        #: long, else why it is fenced (coapkb.agent.lease); None = no fence.
+        #: ``lease(seconds, task)``: None once this robot holds its lease for
+        #: that long, for a job of ``task``, else why it is fenced
+        #: (coapkb.agent.lease); None = no fence.
         self._lease = lease
         #: Waits out simulated time (wall-clock seconds); a test passes a fast clock.
         self._sleep = sleep
@@ -127,7 +135,7 @@ class TaskExecutor:
         else ``job`` and the queued ones are dropped (:meth:`_forfeit`)."""
         if self._lease is None:
             return True
-        why = await self._lease(for_s)
+        why = await self._lease(for_s, job.seq)
         if why is not None:
             self._forfeit(job, why)
         return why is None

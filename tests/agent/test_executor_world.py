@@ -173,7 +173,7 @@ class Fence:
         self.grants = grants
         self.asked = 0
 
-    async def hold(self, seconds: float) -> str | None:
+    async def hold(self, seconds: float, task: int = 0) -> str | None:
         self.asked += 1
         return None if self.asked <= self.grants else "no lease from a majority of the cluster (Robot2: refused)"
 

@@ -7,12 +7,15 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator
+from types import SimpleNamespace
+from typing import Any, cast
 
 from coapkb.agent.lease import LEASE_PATH, Lease, lease_duration_s
-from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
+from coapkb.agent.robot_resources import RobotResources
+from coapkb.agent.robot_state import Decision, LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import TeamView
 from coapkb.transport.base import Endpoint, PeerUnreachable
-from coapkb.transport.messages import Request, Response, Status
+from coapkb.transport.messages import Method, Request, Response, Status
 
 MATES = {"Robot1": Endpoint("coap", "127.0.0.1", 1), "Robot3": Endpoint("coap", "127.0.0.1", 3)}
 
@@ -108,3 +111,41 @@ async def test_a_teammate_grants_only_a_member_it_has_up() -> None:
     assert "left Robot3 out" in (team.membership.grant("Robot3") or "")
     await team._teammates.declare_down("Robot2", "2 requests failed in a row")
     assert "Robot1 has Robot2 down" in (team.membership.grant("Robot2") or "")
+
+
+async def test_a_lease_for_a_later_task_is_asked_again_and_names_it() -> None:
+    """A lease granted for task 4 still runs, but a job of task 5 asks
+    again, naming the task: a teammate grants it only once it decided task
+    5 with this robot a member."""
+    client = Scripted({1: "grant", 3: "grant"})
+    lease = _lease(client)
+    assert await lease.hold(0.1, 4) is None
+    asked = len(client.asked)
+    assert await lease.hold(0.1, 4) is None and len(client.asked) == asked  # held for task 4
+    assert await lease.hold(0.1, 5) is None and len(client.asked) > asked
+    assert client.asked[-1][1].query == {"r": "Robot2", "t": "5"}
+
+
+async def test_a_teammate_grants_a_task_only_once_it_decided_it_with_the_robot_a_member() -> None:
+    """Robot1 left Robot2 out of task 6 on (Robot2 cut off, still granted
+    from before): Robot2's job of task 6, decided as a member, not knowing,
+    is refused; a task Robot1 has not decided yet is "not yet" (5.03, the
+    holder asks again); one decided with Robot2 a member is granted (the
+    simulator's "pick at the edge of an exclusion", section 4 of
+    docs/simulation.md)."""
+    own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0, seq=6), LiveState(1.0, 0.0),
+                     last=Decision(6, "Apple", assigned_to="Robot1", epoch=1, members=("Robot1", "Robot3")))
+    team = TeamView(own, {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)},
+                    Scripted({}))
+    log = [Decision(5, "Pear", assigned_to="Robot2"), own.last]
+    resources = RobotResources(cast(Any, SimpleNamespace(robot_id="Robot1")), team,
+                               cast(Any, SimpleNamespace(log=log)), cast(Any, None), cast(Any, None))
+
+    async def ask(query: dict[str, str]) -> Response:
+        return await resources._get_lease(Request(Method.GET, LEASE_PATH, query))
+
+    assert (await ask({"r": "Robot2", "t": "5"})).status == Status.CONTENT
+    refused = await ask({"r": "Robot2", "t": "6"})
+    assert refused.status == Status.FORBIDDEN and "decided task 6 without Robot2" in refused.text()
+    assert (await ask({"r": "Robot3", "t": "7"})).status == Status.SERVICE_UNAVAILABLE
+    assert (await ask({"r": "Robot3", "t": "seven"})).status == Status.BAD_REQUEST

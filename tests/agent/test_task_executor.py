@@ -88,7 +88,7 @@ class Fence:
         self.grants = grants
         self.asked: list[float] = []
 
-    async def hold(self, for_s: float) -> str | None:
+    async def hold(self, for_s: float, task: int = 0) -> str | None:
         self.asked.append(for_s)
         return None if len(self.asked) <= self.grants else "no lease from a majority of the cluster (Robot2: refused)"
 
