@@ -93,17 +93,14 @@ def check_executed_once(run: RunResult) -> Iterable[str]:
                   "and never executed"
         elif picks[-1].robot != task.assigned_to:
             yield f"cluster {task.cluster} task {task.seq} went to {task.assigned_to} but {_said(picks[-1])} picked it"
-    for finding, excuse in _misattributed(run, tasks):
-        if excuse is None:
-            yield finding
+    yield from _misattributed(run, tasks)
 
 
 def excused_picks(run: RunResult) -> list[str]:
     """Second picks the schedule explains: the first picker was killed before
     any report of its pick reached the feeder, so nobody could know it was
     done (the shared world of the next step lets the second robot find the
-    object gone instead).  And picks at the edge of an exclusion, a gap of
-    the fence that is known and not mended (:func:`_misattributed`)."""
+    object gone instead)."""
     if run.record is None:
         return []
     tasks, picked, _ = _picks_by_task(run)
@@ -113,23 +110,19 @@ def excused_picks(run: RunResult) -> list[str]:
         if why is not None:
             found.append(f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: "
                          + "; ".join(_said(p) for p in picks) + f": {why}")
-    found += [f"{finding}: {excuse}" for finding, excuse in _misattributed(run, tasks) if excuse is not None]
     return found
 
 
-def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> Iterator[tuple[str, str | None]]:
+def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> Iterator[str]:
     """Picks whose task the record gives to another robot or to nobody
-    (none if the picker died before any report of it), each with why it is
-    excused, or None.  The record must name who took each task: one that
-    names another (a lone robot's void decision counted over the
-    majority's) sends the task round again after it was picked.
-
-    Excused, and listed: a pick by a robot that the majority deciding the
-    task had left out.  Still granted a lease from before, it decided the
-    task as a member, not yet knowing, and picked it; the fence covers a
-    down robot's old tasks, not the new ones decided without it
-    (docs/failover.md, "Not done").  The shelf keeps the object from being
-    taken twice; the lease oracle still judges the grants it held."""
+    (none if the picker died before any report of it).  The record must name who took each
+    task: one that names another (a lone robot's void decision counted over
+    the majority's) sends the task round again after it was picked.  A pick
+    by a robot that the majority deciding the task had left out (still
+    granted a lease from before, it decided the task as a member, not yet
+    knowing) was excused while the fence covered old tasks only; a lease is
+    now granted per task, by teammates that decided it with the robot a
+    member (docs/failover.md, "The fence")."""
     record = run.record
     assert record is not None
     cluster_of = _cluster_of(record)
@@ -141,9 +134,9 @@ def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> 
         finding = (f"cluster {taken.cluster} task {taken.seq} ({taken.object}): {_said(pick)} picked it, and the "
                    f"record gives it to {taken.assigned_to or 'nobody'} ({taken.fate})")
         cluster = record.clusters[taken.cluster - 1]
-        left_out = (taken.members and pick.robot not in taken.members and len(taken.members) * 2 > len(cluster))
-        yield finding, ("a pick at the edge of an exclusion: the majority deciding the task had left the picker "
-                        "out, and a lease from before let it pick") if left_out else None
+        if taken.members and pick.robot not in taken.members and len(taken.members) * 2 > len(cluster):
+            finding += ": the majority deciding the task had left the picker out"
+        yield finding
 
 
 def _said(pick: Pick) -> str:

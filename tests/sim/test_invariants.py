@@ -84,13 +84,14 @@ def test_a_pick_a_skip_credits_at_its_own_task_is_no_finding() -> None:
     assert not any("record gives it" in v for v in run.violations + run.excused), run.violations
 
 
-def test_a_pick_at_the_edge_of_an_exclusion_is_excused_not_hidden() -> None:
+def test_a_pick_at_the_edge_of_an_exclusion_is_a_violation() -> None:
     """Robot1 picked task 10 under a lease from before, which Robot2 and
-    Robot3 (a majority) decided without it and gave to Robot3: the fence's
-    known gap, listed apart (simulator seed 356 of the mixed profile)."""
+    Robot3 (a majority) decided without it and gave to Robot3: excused
+    while the fence covered old tasks only (simulator seed 356 of the mixed
+    profile); a lease is now granted per task, so it is a violation."""
     tasks = [_task(10, "A", "Robot3", members=["Robot2", "Robot3"], not_found="Robot3 did not find it: gone")]
     run = _run(tasks, [_pick("Robot1", 10, "A", 1.0)])
-    assert run.violations == [] and len(run.excused) == 1 and "at the edge of an exclusion" in run.excused[0]
+    assert run.excused == [] and any("had left the picker out" in v for v in run.violations), run.violations
 
 
 def test_an_assigned_task_nobody_executed_is_found() -> None:

@@ -168,7 +168,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "observation whose server had dropped it while the feeder was cut off: 480 s, the run's settling "
               "461 s after the last task was decided",
     }),
-    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5"), {
+    # Judged alone, one restart is no median: the bound is the anti-entropy
+    # round's (a missing catch-up, not one exchange lost at 10 % loss), and
+    # the reads answered meanwhile are the point.
+    (("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "5"), {
         59: "a restarted holder, its catch-up from one co-holder lost once, answered a teammate registering on "
             "/kb/facts/Object before it had caught up: a read while it lacked four acknowledged values",
     }),
