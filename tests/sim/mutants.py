@@ -78,6 +78,11 @@ REJOIN = ("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm")
 #: exchange at 10 % loss (about 1 s more): too few to judge.
 CATCH_UP = ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5")
 CATCH_UP_SEEDS = tuple(range(1, 61))
+#: Judged together, a few seeds are a median of one or two restarts, past
+#: the bound when one exchange was lost; these 50 hold the stale reads a
+#: bug leaves (6 with the answers pushed before the catch-up) and a clean
+#: median of 0.07 s.
+STALE_READ_SEEDS = tuple(range(201, 251))
 
 
 @dataclass(frozen=True)
@@ -318,7 +323,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("no-catch-up-at-start", "a robot that starts (again) waits for its first anti-entropy round to catch up",
            lambda: _patch(AntiEntropy, "catch_up", _no_catch_up), CATCH_UP, CATCH_UP_SEEDS),
     Mutant("pushed-answers-before-catch-up", "a restarted holder answers a registration on its pushed answers "
-           "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP, (106, 145, 282)),
+           "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP,
+           STALE_READ_SEEDS),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
