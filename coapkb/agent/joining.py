@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 #: How soon a joining robot observes a silent teammate again.
 JOIN_RETRY_S = 0.5
 
+
 class Shown(NamedTuple):
     """The decision a teammate showed the joiner, which takes its membership."""
 
