@@ -130,7 +130,8 @@ async def _sim(args: argparse.Namespace) -> int:
     excused = sum(len(r.excused) for r in runs)
     if excused:
         print(f"sim: {counted(excused, 'finding')} excused by their schedules (a starved CPU, lost answers, a pick "
-              f"unreported when its robot died, a write's last copy in a killed robot's memory), "
+              f"unreported when its robot died, a write's last copy in a killed robot's memory, a pick after a "
+              f"power cut of the cluster's majority), "
               f"in {counted(sum(1 for r in runs if r.excused), 'run')}")
     from ..sim.invariants import check_catch_up, check_progress
 

@@ -130,6 +130,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         54749: "a robot picked its task and died in a power cut a moment later; its decision was void, the survivor "
                "settled the task unavailable, and the record gave the pick to nobody",
         55904: "the same as seed 54749, on lossy links",
+        63111: "a power cut took a robot as the run ended and started it again: the feeder's download of its "
+               "statistics found nobody there and gave the run up",
+        65327: "a robot picked its task and died with its granter in a power cut; the survivor decided the task "
+               "again without them: a pick the record gives to another, excused as the cut's, listed",
         54708: "a robot without the knowledge found its one live teammate, cut off with the decision, down in the "
                "round that asked it, counted it as failed although that left it outnumbered, and decided alone",
     }),
