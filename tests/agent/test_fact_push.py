@@ -187,9 +187,12 @@ async def test_a_holder_gone_after_it_was_observed_counts_as_a_failure(kbs: dict
     found down only by a wait for its plan, after another teammate died);
     nobody listening where none was ever observed is a teammate not up yet."""
     gone: list[str] = []
+    robot2_gone = asyncio.Event()
 
     async def on_gone(robot_id: str, exc: Exception) -> None:
         gone.append(robot_id)
+        if robot_id == "Robot2":
+            robot2_gone.set()
 
     holder = Holder(kbs["Object"], Endpoint("coap", "127.0.0.1", free_udp_port()))
     server = await serve(holder.router, holder.endpoint)
@@ -203,8 +206,7 @@ async def test_a_holder_gone_after_it_was_observed_counts_as_a_failure(kbs: dict
             assert gone == []
             await server.aclose()
             pushed._start_watch("Object")  # registered again (after missed pushes): nobody there now
-            while "Robot2" not in gone:
-                await asyncio.sleep(0.05)
+            await robot2_gone.wait()
         assert "Robot3" not in gone
     finally:
         await pushed.aclose()
