@@ -144,8 +144,7 @@ def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> 
         cluster = record.clusters[taken.cluster - 1]
         if taken.members and pick.robot not in taken.members and len(taken.members) * 2 > len(cluster):
             finding += ": the majority deciding the task had left the picker out"
-        struck = any(pick.robot in _struck(run, crash) and len(_struck(run, crash) & set(cluster)) * 2 > len(cluster)
-                     for crash in run.events if crash.action == "crash" and crash.at_s > pick.at_s)
+        struck = any(pick.robot in hit and at > pick.at_s for at, hit in _majority_cuts(run, set(cluster)))
         yield finding, "a power cut struck the picker with a majority of its cluster" if struck else None
 
 
@@ -270,7 +269,7 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
     out = {t for e in run.events if e.action in ("kill", "freeze", "cut") for t in e.targets}
     texts = [task.unavailable or "", *task.errors.values()]
     blamed = {w.strip(",:;()") for text in texts for w in text.split() if w.strip(",:;()").startswith("Robot")}
-    if any(len(_struck(run, crash) & cluster) * 2 > len(cluster) for crash in run.events if crash.action == "crash"):
+    if _majority_cuts(run, cluster):
         # Outside the team's fault model on purpose (the storage's test): a
         # majority of the cluster lost power at once, nobody could decide.
         return "every holder of a module lost power at once: no majority was left to decide"
@@ -294,6 +293,12 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
         return (f"a false suspicion on lossy links: answers of {', '.join(sorted(suspected_alive))} lost "
                 "until a wait ran out, and a robot decided alone")
     return None
+
+
+def _majority_cuts(run: RunResult, cluster: set[str]) -> list[tuple[float, set[str]]]:
+    """The power cuts that struck a majority of ``cluster``: when, and the robots each killed."""
+    cuts = [(crash.at_s, _struck(run, crash)) for crash in run.events if crash.action == "crash"]
+    return [(at, hit) for at, hit in cuts if len(hit & cluster) * 2 > len(cluster)]
 
 
 def _struck(run: RunResult, crash: FaultEvent) -> set[str]:
