@@ -451,6 +451,13 @@ async def serve_state(network: MemoryNetwork, own: RobotState):
     return await network.serve(router, endpoint(own.robot_id))
 
 
+async def joiner_beside(network: MemoryNetwork, last: Decision) -> TeamView:
+    """Robot1, a restarted process (not started), beside Robot3 showing its
+    decision ``last`` on the memory network."""
+    await serve_state(network, replace(robot("Robot3", last.seq), last=last))
+    return view(network, robot("Robot1", 0, boot=3))
+
+
 async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_the_join_list() -> None:
     """Every robot of a cluster restarted in turn, each before the one
     before had joined: no process that decided task 9 is left.  Robot1
@@ -479,8 +486,7 @@ async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_th
 async def test_a_joiner_takes_the_membership_a_survivor_decided_the_task_before_in() -> None:
     network = MemoryNetwork()
     last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot3", 9), last=last))
-    team = view(network, robot("Robot1", 0, boot=3))
+    team = await joiner_beside(network, last)
     try:
         async with asyncio.timeout(2):
             await team.join(10, patience=60, joining=("Robot1",))
@@ -497,8 +503,7 @@ async def test_a_joiner_takes_the_membership_of_its_own_task_when_a_teammate_dec
     joiner alone in a membership gave an object again)."""
     network = MemoryNetwork()
     last = Decision(10, "Gucci_bag_14", skipped=True, epoch=4, members=("Robot1", "Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot3", 10), last=last))
-    team = view(network, robot("Robot1", 0, boot=3))
+    team = await joiner_beside(network, last)
     try:
         async with asyncio.timeout(2):
             await team.join(10, patience=60, joining=("Robot1", "Robot2"))
@@ -516,8 +521,7 @@ async def test_a_joiner_a_survivor_went_on_without_is_left_out_alone() -> None:
     and 902 of the rejoin profile)."""
     network = MemoryNetwork()
     last = Decision(10, "Gucci_bag_14", assigned_to="Robot3", epoch=6, members=("Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot3", 10), last=last))
-    team = view(network, robot("Robot1", 0, boot=3))
+    team = await joiner_beside(network, last)
     try:
         async with asyncio.timeout(2):
             joined = await team.join(10, patience=60, joining=("Robot1", "Robot2"))
@@ -537,8 +541,7 @@ async def test_a_teammate_the_joined_decision_costs_and_first_seen_earlier_is_a_
     network = MemoryNetwork()
     last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", costs={"Robot2": 3.0, "Robot3": 1.0}, epoch=4,
                     members=("Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot3", 9), last=last))
-    team = view(network, robot("Robot1", 0, boot=3))
+    team = await joiner_beside(network, last)
     try:
         async with asyncio.timeout(2):
             assert await team.join(10, patience=60, joining=("Robot1",))
@@ -668,8 +671,7 @@ async def test_an_admission_is_a_new_epoch_only_for_a_robot_left_out() -> None:
     finally:
         await team.aclose()
     last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot1", "Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot3", 9), last=last))
-    joiner = view(network, robot("Robot1", 0, boot=3))
+    joiner = await joiner_beside(network, last)
     try:
         async with asyncio.timeout(2):
             await joiner.join(10, patience=60, joining=("Robot1", "Robot2"))
