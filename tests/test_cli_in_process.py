@@ -146,3 +146,21 @@ def test_bad_configurations(
     code, out, err = run(capsys, "agent", "--config", str(path))
     assert (code, out) == (2, "")
     assert_one_error_line(code, err, str(path), *fragments)
+
+
+async def test_a_signal_on_the_ready_line_stops_a_server_cleanly() -> None:
+    """A command prints its ready line inside ``stop_signals``: SIGINT or
+    SIGTERM sent the moment the line is read, before the command's next
+    statement, sets the stop event (it used to end the process with a
+    KeyboardInterrupt, status 130, on a busy machine)."""
+    import os
+    import signal
+
+    from coapkb.cli.common import stop_signals
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with stop_signals() as stopped:
+            os.kill(os.getpid(), sig)  # as a supervisor would, on the ready line
+            async with asyncio.timeout(5):
+                await stopped.wait()
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handed back on the way out

@@ -6,7 +6,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from .common import Parser, until_signalled
+from .common import Parser, stop_signals
 
 
 def add_agent(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -32,10 +32,11 @@ async def _agent(args: argparse.Namespace) -> int:
     # Ready once in touch with the team (or after a bound): the handshakes
     # with the teammates are then not in the first task's queries.
     heard, teammates = await robot.join_team()
-    print(f"robot {config.robot_id} ready on {robot.server.endpoint}, "
-          f"heard from {heard} of {teammates} teammates", flush=True)
     try:
-        await until_signalled()
+        with stop_signals() as stopped:
+            print(f"robot {config.robot_id} ready on {robot.server.endpoint}, "
+                  f"heard from {heard} of {teammates} teammates", flush=True)
+            await stopped.wait()
     finally:
         await robot.aclose()
     return 0

@@ -1,13 +1,14 @@
-"""What several ``coapkb`` subcommands share: the user-error type, a
-signal wait, endpoint parsing and the team credentials options."""
+"""What several ``coapkb`` subcommands share: the user-error type, the
+stop signals, endpoint parsing and the team credentials options."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import signal
 import sys
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, TypeVar
 
@@ -43,14 +44,20 @@ def require_folder_of(path: Path, option: str) -> None:
         raise UserError(f"{option}: no folder {path.parent}")
 
 
-async def until_signalled() -> None:
-    """Wait for SIGINT or SIGTERM, so a server shuts down cleanly either way."""
+@contextlib.contextmanager
+def stop_signals() -> Iterator[asyncio.Event]:
+    """An event SIGINT and SIGTERM set, from the moment this is entered, so a
+    server shuts down cleanly either way.  A command prints its ready line
+    inside it: a supervisor (or a test) that signals on that line, before
+    the handlers were in place, stopped the process with a KeyboardInterrupt
+    and status 130 (seen on a busy machine, the line read and acted on
+    before the next statement ran)."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     try:
-        await stop.wait()
+        yield stop
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)

@@ -7,7 +7,7 @@ import secrets
 from pathlib import Path
 
 from ..transport import SCHEMES
-from .common import Parser, UserError, add_credentials, parse_endpoint, server_security, until_signalled
+from .common import Parser, UserError, add_credentials, parse_endpoint, server_security, stop_signals
 
 
 def add_serve(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -65,10 +65,11 @@ async def _serve(args: argparse.Namespace) -> int:
         mode += f", kept in {keeper.path}"
     if args.credentials is not None:
         mode += f", OSCORE/EDHOC as {args.identity}, team access policy"
-    print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) on {server.endpoint}",
-          flush=True)
     try:
-        await until_signalled()
+        with stop_signals() as stopped:
+            print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) "
+                  f"on {server.endpoint}", flush=True)
+            await stopped.wait()
     finally:
         await server.aclose()
         if keeper is not None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
-from .common import Parser, UserError, require_folder_of, until_signalled
+from .common import Parser, UserError, require_folder_of, stop_signals
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -323,10 +323,11 @@ def _print_outcome(args: argparse.Namespace, spec: TeamSpec, outcome: _TeamOutco
 async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:
     """``--keep-serving``: the live server stays up with the whole run until Ctrl-C or SIGTERM."""
     assert recorder.server is not None
-    print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
-          flush=True)
     try:
-        await until_signalled()
+        with stop_signals() as stopped:
+            print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
+                  flush=True)
+            await stopped.wait()
     finally:
         recorder.close()
 
