@@ -609,12 +609,12 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
     partition profile), but never grants it a lease again (the fence).  A
     new process of a teammate is not taken for the old one: it joins."""
     network = MemoryNetwork()
-    await serve_plan(network, robot("Robot2", 4, boot=2))
-    robot3 = await serve_plan(network, robot("Robot3", 4, boot=3))
+    await serve_state(network, robot("Robot2", 4, boot=2))
+    robot3 = await serve_state(network, robot("Robot3", 4, boot=3))
     team = await cut_off(network, robot("Robot1", 4))
     try:
         await robot3.aclose()
-        await serve_plan(network, robot("Robot3", 0, boot=9))  # restarted meanwhile
+        await serve_state(network, robot("Robot3", 0, boot=9))  # restarted meanwhile
         assert team.membership.alone
         assert not await team.revival.heard_again("Robot3") and not team.is_up("Robot3")
         assert await team.revival.heard_again("Robot2")
@@ -623,6 +623,25 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
         await team._teammates.wait(lambda s: s["Robot2"].plan.seq == 4, timeout=2)
         team.membership.admit("Robot2", 5)  # a new process of it, joining: granted again
         assert team.membership.grant("Robot2") is None
+    finally:
+        await team.aclose()
+
+
+async def test_a_teammate_that_went_on_without_the_robot_cut_off_is_not_counted_on_again() -> None:
+    """Robot1, cut off, declared both teammates down; Robot2 answers as the
+    same process, but its last decision left Robot1 out (epoch 1, members
+    Robot2 and Robot3): it does not count Robot1, so Robot1 does not count
+    on it either.  Counted on again, Robot1 left Robot3 out with Robot2 in
+    an epoch 1 of its own, and the two epochs 1 disagreed (simulator, nine
+    robots with power cuts, seed 4496)."""
+    network = MemoryNetwork()
+    without = Decision(5, "Muji_rug_426", assigned_to="Robot3", epoch=1, members=("Robot2", "Robot3"))
+    await serve_state(network, replace(robot("Robot2", 5, boot=2), last=without))
+    await serve_state(network, robot("Robot3", 5, boot=3))
+    team = await cut_off(network, robot("Robot1", 4))
+    try:
+        assert not await team.revival.heard_again("Robot2")
+        assert not team.is_up("Robot2") and team.membership.alone
     finally:
         await team.aclose()
 

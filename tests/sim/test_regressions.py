@@ -205,6 +205,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "co-joiner had joined in the survivor's: two memberships, and its epoch went back when it took "
               "the co-joiner's decision",
         3024: "the same as seed 54749 of three robots: a pick done before a power cut, given to nobody by the record",
+        4496: "a robot cut off for 20 s found both teammates down once the partition healed and counted on one "
+              "again when it answered, though that one had gone on without it: the two left the third out in an "
+              "epoch 1 of their own, while the third decided in the majority's epoch 1",
     }),
     (("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm"), {
         58: "a joiner cut off at its restart found its teammates had decided its join task without a plan of it "
