@@ -74,6 +74,19 @@ class TeammateRevival:
             self._background.add(task)
             task.add_done_callback(self._background.discard)
 
+    def _went_on_without(self, state: RobotState) -> bool:
+        """Whether ``state``'s last decision left this robot out: then the
+        suspicion was not this robot's alone.  Counted on again, the teammate
+        was a member of this robot's membership but not this robot of its
+        own, and the two left the third out in two memberships of one epoch
+        (simulator, nine robots, seed 4496: a robot cut off for 20 s)."""
+        last = state.last
+        if last is None or not last.epoch or self._membership.robot_id in last.members:
+            return False
+        log.info("%s answers, but decided task %d without this robot (epoch %d): not counted on again",
+                 state.robot_id, last.seq, last.epoch)
+        return True
+
     async def _revive(self, robot_id: str, boot: int) -> bool:
         try:
             # The whole state: its last decision says whom it decides with.
@@ -87,15 +100,7 @@ class TeammateRevival:
             return False
         if state is None or state.boot != boot:
             return False  # another process: it joins at a task boundary
-        last = state.last
-        if last is not None and last.epoch and self._membership.robot_id not in last.members:
-            # It went on without this robot: the suspicion was not this
-            # robot's alone.  Counted on again, it was a member of this
-            # robot's membership but not this robot of its own, and the two
-            # left the third out in two memberships of one epoch (simulator,
-            # nine robots, seed 4496: a robot cut off for 20 s).
-            log.info("%s answers, but decided task %d without this robot (epoch %d): not counted on again",
-                     robot_id, last.seq, last.epoch)
+        if self._went_on_without(state):
             return False
         if robot_id in self._teammates.down and not self._membership.left_out(robot_id):
             self._membership.refused.add(robot_id)
