@@ -110,6 +110,11 @@ class ObservedStates:
         join): another one observed there is a restart after it."""
         await self.watcher.expect_process(robot_id, boot)
 
+    async def process_gone(self, robot_id: str, reason: str) -> None:
+        """The process of ``robot_id`` counted on is gone (the feeder found a
+        new one, which joins at a later task): down, and gone."""
+        await self.detector.restarted(robot_id, reason)
+
     async def revive(self, robot_id: str) -> None:
         """Count on ``robot_id`` again: declared down, it answered as the same
         process (the suspicion was false: this process was the one cut off).

@@ -222,13 +222,14 @@ class RobotResources:
             seq, name = body["seq"], body["object"]
             join = _joiners(body.get("join", []))
             missed = body.get("missed", [])
+            restarted = body.get("restarted", [])
             again = body.get("again")
             restocked = body.get("restocked", False)
         except (ValueError, KeyError, TypeError, AttributeError, cbor2.CBORDecodeError):
             return Response.error(
                 Status.BAD_REQUEST,
                 'expected {"seq": int, "object": name[, "join": [robot or [robot, boot], ...]][, "missed": [robot, ...]]'
-                '[, "again": int]'
+                '[, "restarted": [robot, ...]][, "again": int]'
                 '[, "restocked": true]} '
                 'in CBOR or JSON',
             )
@@ -242,6 +243,8 @@ class RobotResources:
             return Response.error(Status.BAD_REQUEST, "join must list robots of the team")
         if not isinstance(missed, list) or not all(isinstance(r, str) and r in self.config.team for r in missed):
             return Response.error(Status.BAD_REQUEST, "missed must list robots of the team")
+        if not isinstance(restarted, list) or not all(isinstance(r, str) and r in self.config.team for r in restarted):
+            return Response.error(Status.BAD_REQUEST, "restarted must list robots of the team")
         # A joiner says which process took the post: its teammates expect that one.
         taken = (Response(Status.CHANGED, cbor2.dumps({"boot": self.team.own.boot}), ContentFormat.CBOR)
                  if self.config.robot_id in join else Response(Status.CHANGED))
@@ -255,6 +258,9 @@ class RobotResources:
             for robot_id in missed:
                 if robot_id != self.config.robot_id:
                     await self.team.membership.missed(robot_id, seq, decided=self.team.own.decided(seq))
+            for robot_id in restarted:
+                if robot_id != self.config.robot_id:
+                    await self.team.membership.restarted(robot_id, seq)
             return taken
         if self.config.robot_id in join and not self.accepted and seq > 0:
             # Restarted: this robot joins the team at this task (its first).

@@ -203,6 +203,17 @@ class TeamMembership:
             self._last_admission = None
         await self.named(robot_id, seq, NO_PROCESS)
 
+    async def restarted(self, robot_id: str, seq: int) -> None:
+        """The feeder says member ``robot_id`` ran again as a new process
+        while task ``seq`` was posted, which did not take it: the process
+        this robot counts on is gone (down, and gone), and its last plan
+        comes from a teammate that has it, as a dead robot's does; the new
+        one joins at a later task.  A joiner that had never seen the old
+        process took the new one for the member and waited for its plan
+        for good (simulator, nine robots with power cuts, seed 5563)."""
+        if robot_id in self._peers and robot_id not in self.excluded and robot_id not in self._teammates.down:
+            await self._teammates.process_gone(robot_id, f"restarted: no process of it took task {seq}")
+
     async def named(self, robot_id: str, seq: int, boot: int) -> None:
         """The feeder names process ``boot`` of ``robot_id`` as the one that
         took the join at task ``seq``, after the post (robots joining

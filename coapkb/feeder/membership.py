@@ -106,6 +106,10 @@ class Membership:
                 async with asyncio.timeout(min(watcher.request_timeout_s, remaining)):
                     await self._rejoined.wait()
 
+    def restarting(self, robot_id: str) -> bool:
+        """Whether ``robot_id`` runs again as a new process that has not joined yet."""
+        return robot_id in self._restarted
+
     def joining(self, cluster: Sequence[str]) -> list[str]:
         return sorted(r for r in cluster if r in self._restarted)
 

@@ -56,8 +56,20 @@ class TaskPoster:
         # then missed it waited for that one's plan for good (found in the
         # simulator, seed 337 of nine robots with power cuts).
         again_to = joined if len(joined) > 1 or missed else []
-        await asyncio.gather(*(channel.post_task(r, request, seq, name)
-                               for r in [*(r for r in live if r not in joining), *again_to]))
+        targets = [*(r for r in live if r not in joining), *again_to]
+        answers = await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in targets))
+        # A member restarted while the task was posted: its new process did
+        # not take the task (it joins at a later one), and the process the
+        # others count on is gone.  The post goes again to those that took
+        # it, naming it restarted.  A joiner that had never seen the old process
+        # took the new one for the member and waited for its plan for good
+        # (simulator, nine robots with power cuts, seed 5563).
+        restarted = sorted({r for r, answer in zip(targets, answers, strict=True)
+                            if answer is None and r not in joining and self.membership.restarting(r)})
+        if restarted:
+            took = sorted({r for r, answer in zip(targets, answers, strict=True) if answer is not None} | set(joined))
+            repeat = task_post(seq, name, joined, again, restocked, boots, missed, restarted)
+            await asyncio.gather(*(channel.post_task(r, repeat, seq, name) for r in took))
 
         def decided(states: States, robot_id: str) -> bool:
             return robot_id in states and states[robot_id].decided(seq)

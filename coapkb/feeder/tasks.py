@@ -118,7 +118,7 @@ def split_tasks(tasks: Sequence[Entry], clusters: int) -> list[list[Entry]]:
 
 def task_post(seq: int, name: str, joining: Sequence[str] = (), again: int | None = None,
               restocked: bool = False, boots: Mapping[str, int] | None = None,
-              missed: Sequence[str] = ()) -> Request:
+              missed: Sequence[str] = (), restarted: Sequence[str] = ()) -> Request:
     """The POST of task ``seq``.  The task stream orders joins: every robot
     admits the joiners at this task, each named with the process that took
     it where ``boots`` says (a teammate takes another process for a restart).  ``again``: the task this one does
@@ -126,11 +126,14 @@ def task_post(seq: int, name: str, joining: Sequence[str] = (), again: int | Non
     object for already picked; ``restocked``: the object was delivered
     back since, so no robot does either; ``missed``: robots that were to
     join at this task and did not take it (a robot that took a post naming
-    them counts them out)."""
+    them counts them out); ``restarted``: members of the cluster that ran
+    again as a new process while the task was posted, which did not take it
+    (the process the others count on is gone; the new one joins later)."""
     boots = boots or {}
     join = [[r, boots[r]] if boots.get(r) else r for r in joining]
     body = cbor2.dumps({"seq": seq, "object": name, **({"join": join} if join else {}),
                         **({"missed": list(missed)} if missed else {}),
+                        **({"restarted": list(restarted)} if restarted else {}),
                         **({"again": again} if again is not None else {}),
                         **({"restocked": True} if restocked else {})})
     return Request(Method.POST, TASKS_PATH, payload=body, content_format=ContentFormat.CBOR)

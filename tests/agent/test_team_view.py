@@ -364,6 +364,28 @@ async def test_a_co_joiner_the_feeder_says_missed_its_join_is_down() -> None:
         await team.aclose()
 
 
+async def test_a_member_the_feeder_says_restarted_during_a_post_is_down_and_gone() -> None:
+    """The feeder found Robot2 running again as a new process while it
+    posted task 7, and the new process did not take it: the process
+    Robot1 counts on is gone, so Robot1 takes its last plan from a teammate
+    (as a dead robot's) instead of waiting for the new process to show one
+    (simulator seed 5563 of nine robots with power cuts: a joiner that had
+    never seen the old process waited for good).  A teammate already left
+    out stays as it is."""
+    team = view(MemoryNetwork(), robot("Robot1", 6))
+    try:
+        await team._teammates.watcher.update("Robot2", robot("Robot2", 6, boot=9))
+        assert team.is_up("Robot2")
+        await team.membership.restarted("Robot2", 7)
+        assert not team.is_up("Robot2") and "Robot2" in team._teammates.gone
+        assert "no process of it took task 7" in team._teammates.down["Robot2"]
+        team.membership.leave_out("Robot3", 5, "down")
+        await team.membership.restarted("Robot3", 7)
+        assert "Robot3" not in team._teammates.gone
+    finally:
+        await team.aclose()
+
+
 async def test_a_left_out_co_joiner_that_missed_its_join_stays_out_in_the_same_epoch() -> None:
     """Robot2, left out, was named a joiner at task 7 beside Robot1 and did
     not take its post; the feeder named it to no teammate, so they keep it

@@ -54,6 +54,9 @@ def test_a_task_post_is_the_documented_body() -> None:
     repeated = task_post(7, "Bosch_rug_837", ["Robot2"], boots={"Robot2": 41}, missed=["Robot3"])
     assert cbor2.loads(repeated.payload) == {"seq": 7, "object": "Bosch_rug_837", "join": [["Robot2", 41]],
                                              "missed": ["Robot3"]}  # named to Robot2 before, did not take it
+    # A member that ran again as a new process while the task was posted, and did not take it.
+    assert cbor2.loads(task_post(7, "Bosch_rug_837", restarted=["Robot3"]).payload) == {
+        "seq": 7, "object": "Bosch_rug_837", "restarted": ["Robot3"]}
 
 
 def test_a_lone_robots_membership_does_not_void_the_majoritys_decisions() -> None:

@@ -205,6 +205,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "co-joiner had joined in the survivor's: two memberships, and its epoch went back when it took "
               "the co-joiner's decision",
         3024: "the same as seed 54749 of three robots: a pick done before a power cut, given to nobody by the record",
+        5563: "two robots of a cluster restarted by a power cut, one cut off: the other's restart came while the "
+              "task was posted to the first as a joiner, so it was named to nobody; the joiner, which had never "
+              "seen its old process, took the new one for the member and waited for its plan for good",
         4496: "a robot cut off for 20 s found both teammates down once the partition healed and counted on one "
               "again when it answered, though that one had gone on without it: the two left the third out in an "
               "epoch 1 of their own, while the third decided in the majority's epoch 1",
