@@ -271,3 +271,30 @@ async def test_a_post_to_a_restarted_robot_is_forgotten_not_delivered_to_its_new
     channel.forget_posts("Robot1")
     await asyncio.wait_for(posting, 1)  # returns: the post is void, not an error
     assert posting.result() is None and not channel._posting.get("Robot1")
+
+
+@pytest.mark.looptime  # the retries' sleeps on the event loop's own clock
+async def test_a_robot_that_may_be_dead_is_asked_its_statistics_once() -> None:
+    """A robot the run's end may find dead (``maybe``) is asked once: asked
+    again for a task timeout, a robot killed just before the end held the
+    statistics of the others, and the restart scheduled for it waited
+    behind them past the test's bound (a secure team restarting a robot,
+    on a busy machine).  A robot counted alive is asked again, as before."""
+    from coapkb.feeder.robot_stats import collect_stats
+    from coapkb.transport.base import PeerGone
+
+    asked: list[str] = []
+
+    async def request(endpoint: str, request: object, *, timeout: float) -> object:
+        asked.append(endpoint)
+        raise PeerGone(f"nothing listens at {endpoint}")
+
+    channel = SimpleNamespace(client=SimpleNamespace(request=request), endpoint=lambda robot_id: robot_id,
+                              settings=SimpleNamespace(task_timeout_s=60.0, query_timeout_s=5.0))
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    assert await collect_stats(cast(Channel, channel), [], ["Robot3"]) == {}
+    assert asked == ["Robot3"] and loop.time() - started < 1.0
+    with pytest.raises(PeerGone):
+        await collect_stats(cast(Channel, channel), ["Robot2"])
+    assert asked.count("Robot2") > 1 and loop.time() - started >= 60.0
