@@ -6,7 +6,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from .common import Parser, stop_signals
+from .common import Parser, until_signalled
 
 
 def add_agent(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -33,10 +33,8 @@ async def _agent(args: argparse.Namespace) -> int:
     # with the teammates are then not in the first task's queries.
     heard, teammates = await robot.join_team()
     try:
-        with stop_signals() as stopped:
-            print(f"robot {config.robot_id} ready on {robot.server.endpoint}, "
-                  f"heard from {heard} of {teammates} teammates", flush=True)
-            await stopped.wait()
+        await until_signalled(f"robot {config.robot_id} ready on {robot.server.endpoint}, "
+                              f"heard from {heard} of {teammates} teammates")
     finally:
         await robot.aclose()
     return 0

@@ -63,6 +63,14 @@ def stop_signals() -> Iterator[asyncio.Event]:
             loop.remove_signal_handler(sig)
 
 
+async def until_signalled(ready: str) -> None:
+    """Print the command's ready line, then wait for SIGINT or SIGTERM, the
+    handlers in place before the line (:func:`stop_signals`)."""
+    with stop_signals() as stopped:
+        print(ready, flush=True)
+        await stopped.wait()
+
+
 def parse_endpoint(hostport: str, scheme: str) -> Endpoint:
     """``[SCHEME://]HOST[:PORT]``; without a port, the scheme's own (CoAP's
     5683, RFC 7252 section 6.1)."""

@@ -7,7 +7,7 @@ import secrets
 from pathlib import Path
 
 from ..transport import SCHEMES
-from .common import Parser, UserError, add_credentials, parse_endpoint, server_security, stop_signals
+from .common import Parser, UserError, add_credentials, parse_endpoint, server_security, until_signalled
 
 
 def add_serve(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -66,10 +66,8 @@ async def _serve(args: argparse.Namespace) -> int:
     if args.credentials is not None:
         mode += f", OSCORE/EDHOC as {args.identity}, team access policy"
     try:
-        with stop_signals() as stopped:
-            print(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) "
-                  f"on {server.endpoint}", flush=True)
-            await stopped.wait()
+        await until_signalled(f"serving {', '.join(kb.names)} ({kb.triple_count} triples, {kb.backend}, {mode}) "
+                              f"on {server.endpoint}")
     finally:
         await server.aclose()
         if keeper is not None:

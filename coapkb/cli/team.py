@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..transport import SCHEMES
-from .common import Parser, UserError, require_folder_of, stop_signals
+from .common import Parser, UserError, require_folder_of, until_signalled
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -324,10 +324,8 @@ async def _serve_until_stopped(recorder: RunRecorder, host: str) -> None:
     """``--keep-serving``: the live server stays up with the whole run until Ctrl-C or SIGTERM."""
     assert recorder.server is not None
     try:
-        with stop_signals() as stopped:
-            print(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} until Ctrl-C",
-                  flush=True)
-            await stopped.wait()
+        await until_signalled(f"foxglove: the run is over; still serving it on ws://{host}:{recorder.server.port} "
+                              "until Ctrl-C")
     finally:
         recorder.close()
 

@@ -57,17 +57,18 @@ class TaskPoster:
         # simulator, seed 337 of nine robots with power cuts).
         again_to = joined if len(joined) > 1 or missed else []
         targets = [*(r for r in live if r not in joining), *again_to]
-        answers = await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in targets))
+        answers = dict(zip(targets, await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in targets)),
+                           strict=True))
         # A member restarted while the task was posted: its new process did
         # not take the task (it joins at a later one), and the process the
         # others count on is gone.  The post goes again to those that took
         # it, naming it restarted.  A joiner that had never seen the old process
         # took the new one for the member and waited for its plan for good
         # (simulator, nine robots with power cuts, seed 5563).
-        restarted = sorted({r for r, answer in zip(targets, answers, strict=True)
-                            if answer is None and r not in joining and self.membership.restarting(r)})
+        restarted = sorted(r for r, answer in answers.items()
+                           if answer is None and r not in joining and self.membership.restarting(r))
         if restarted:
-            took = sorted({r for r, answer in zip(targets, answers, strict=True) if answer is not None} | set(joined))
+            took = sorted({r for r, answer in answers.items() if answer is not None} | set(joined))
             repeat = task_post(seq, name, joined, again, restocked, boots, missed, restarted)
             await asyncio.gather(*(channel.post_task(r, repeat, seq, name) for r in took))
 
