@@ -210,7 +210,8 @@ class Membership:
         state = await self.channel.state(robot_id, timeout)
         if state is None or not self._same_process(robot_id, state):
             return None
-        seen = state.last.seq if state.last is not None else 0
+        # A process that joined at task J decided nothing before it and takes nothing older.
+        seen = max(state.last.seq if state.last is not None else 0, self._incarnation.get(robot_id, 1) - 1)
         missed = [PendingTask(r.seq, r.object, task_post(r.seq, r.object, r.joined, r.reassigned_from))
                   for r in records if r.seq > seen]
         if deciding is not None and deciding.seq > seen:

@@ -115,6 +115,14 @@ class TaskPoster:
         joins at a later task, once the feeder is told of its restart."""
         channel, watcher = self.channel, self.channel.watcher
         answers = await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in joining))
+        for robot_id, answer in zip(joining, answers, strict=True):
+            if answer is not None and robot_id in watcher.down and not self.membership.restarting(robot_id):
+                # It took the join: the requests that failed meanwhile had
+                # reached its port before the new process listened.  Counted
+                # down, it was taken back later as a member and fed from its
+                # old process's task, which it refused, and the run stopped
+                # (found in the simulator, seed 6294 of nine robots).
+                watcher.readmit(robot_id, _boot_in(answer))
         missed = [r for r in joining if r in watcher.down]
         if missed:
             log.warning("%s did not take task %d, at which %s to join: %s not named to the teammates",

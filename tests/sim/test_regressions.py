@@ -211,6 +211,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         4496: "a robot cut off for 20 s found both teammates down once the partition healed and counted on one "
               "again when it answered, though that one had gone on without it: the two left the third out in an "
               "epoch 1 of their own, while the third decided in the majority's epoch 1",
+        6294: "a robot restarted by a power cut took its join, but requests sent before its new process listened "
+              "had counted it down; the feeder took it back as a member and fed it from its old process's task, "
+              "which it refused",
     }),
     (("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm"), {
         58: "a joiner cut off at its restart found its teammates had decided its join task without a plan of it "
