@@ -92,6 +92,11 @@ class TeamMembership:
         promised another robot not to use a plan of it (:meth:`forgo`)."""
         return robot_id in self.excluded or robot_id in self._forgone
 
+    def heeds(self, asker: str | None) -> bool:
+        """Whether a teammate's question binds this robot (:meth:`forgo`):
+        it asks as a member (an unnamed asker is taken for one)."""
+        return asker is None or not self.left_out(asker)
+
     async def forgo(self, robot_id: str, seq: int) -> None:
         """Another robot asked for ``robot_id``'s plan after task ``seq`` and
         this one had none: it will not use one arriving late either (the

@@ -228,7 +228,7 @@ class TeamView:
         a survivor that has it includes the dead robot, and so do the others."""
         excluded = self.membership.excluded
         survivors = sorted(r for r in self._peers if r not in self._teammates.down and r not in excluded)
-        heard = await asyncio.gather(*(self._teammates.hearsay(r, robot_id, seq) for r in survivors))
+        heard = await asyncio.gather(*(self._teammates.hearsay(r, robot_id, seq, self._own.robot_id) for r in survivors))
         for state in heard:
             plan = state.plan_at(seq) if state is not None else None
             if plan is not None:

@@ -66,6 +66,9 @@ FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,st
 LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
 NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
 #: Nine robots with power cuts, forged syncs and data folders: the long scans' profile.
+#: FORGE and STORAGE together: the long scans' profile of three robots.
+STORAGE_FORGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20",
+                 "--storage")
 NINE_STORAGE = ("--robots", "9", "--tasks", "30", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage")
 #: Lossy links and the progress oracle over the profile's runs (seed 0 in a
 #: mutant's list: the profile as a whole, its seeds 1-40).
@@ -159,6 +162,11 @@ def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> No
 def _went_on_with_it(self: TeammateRevival, state: Any) -> bool:
     """A teammate that answers as the same process is counted on again, whatever its last decision says."""
     return False
+
+
+def _heeds_anyone(self: TeamMembership, asker: str | None) -> bool:
+    """A question about a teammate's plan binds the robot asked, whoever asks."""
+    return True
 
 
 _decided_before = team_membership_module.decided_before
@@ -317,6 +325,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("revival-ignores-left-out", "a robot cut off counts again on a teammate that answers, though that "
            "one went on without it", lambda: _patch(TeammateRevival, "_went_on_without", _went_on_with_it),
            NINE_STORAGE, (4496,)),
+    Mutant("notes-from-the-left-out", "a robot goes on without a teammate's plan when any robot of its cluster "
+           "asks for it, one it left out too", lambda: _patch(TeamMembership, "heeds", _heeds_anyone),
+           STORAGE_FORGE, (90301,)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
            lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),

@@ -136,6 +136,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
                "again without them: a pick the record gives to another, excused as the cut's, listed",
         54708: "a robot without the knowledge found its one live teammate, cut off with the decision, down in the "
                "round that asked it, counted it as failed although that left it outnumbered, and decided alone",
+        90301: "a robot cut off for 17 s, left out, asked a member about a slow teammate; the member, with no "
+               "plan of it, left that teammate out alone on the word of a robot outside its membership, and the "
+               "majority split in two",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",

@@ -1,0 +1,53 @@
+"""Comparing notes on a teammate's plan (``POST /robot/plan?of=X&at=S``):
+the robot asked goes on without X's plan if it has none, but only when a
+member of its own membership asks."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any, cast
+
+from coapkb.agent.robot_resources import RobotResources
+from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
+from coapkb.agent.team_view import TeamView
+from coapkb.transport.base import Endpoint
+from coapkb.transport.messages import Method, Request, Response, Status
+
+
+def _robot1() -> tuple[TeamView, RobotResources]:
+    own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0, seq=6), LiveState(1.0, 0.0))
+    mates = {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)}
+    team = TeamView(own, mates, cast(Any, None))
+    resources = RobotResources(cast(Any, SimpleNamespace(robot_id="Robot1")), team,
+                               cast(Any, None), cast(Any, None), cast(Any, None))
+    return team, resources
+
+
+async def _ask(resources: RobotResources, query: dict[str, str], peer: str | None = None) -> Response:
+    return await resources._plan(Request(Method.POST, "/robot/plan", query, peer=peer))
+
+
+async def test_a_member_without_the_plan_binds_the_robot_asked_to_go_on_without_it() -> None:
+    team, resources = _robot1()
+    answer = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    assert answer.status == Status.NOT_FOUND and team.membership.forgoes("Robot3", 5)
+
+
+async def test_a_robot_left_out_asks_but_binds_nothing() -> None:
+    """Robot1 left Robot2 out: Robot2 decides in a membership of its own, and
+    a question of it must not make Robot1 leave Robot3 out alone (simulator,
+    three robots, seed 90301: the majority split in two)."""
+    team, resources = _robot1()
+    team.membership.leave_out("Robot2", 3, "cut off")
+    by_query = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    secured = await _ask(resources, {"of": "Robot3", "at": "5"}, peer="Robot2")
+    assert by_query.status == secured.status == Status.NOT_FOUND
+    assert not team.membership.forgoes("Robot3", 5)
+
+
+async def test_an_asker_outside_the_cluster_is_refused() -> None:
+    team, resources = _robot1()
+    for answer in (await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot9"}),
+                   await _ask(resources, {"of": "Robot3", "at": "5"}, peer="Robot9")):
+        assert answer.status == Status.FORBIDDEN and "Robot9" in answer.text()
+    assert not team.membership.forgoes("Robot3", 5)
