@@ -272,7 +272,7 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
     if _majority_cuts(run, cluster):
         # Outside the team's fault model on purpose (the storage's test): a
         # majority of the cluster lost power at once, nobody could decide.
-        return "every holder of a module lost power at once: no majority was left to decide"
+        return "a power cut left a majority of the cluster down: no majority was left to decide"
     suspected_alive = blamed - out
     cut_off = sorted(r for e in run.events if e.action == "cut" for r in e.targets if r in cluster)
     if not suspected_alive:
@@ -296,9 +296,24 @@ def _excuse(run: RunResult, task: TaskRecord) -> str | None:
 
 
 def _majority_cuts(run: RunResult, cluster: set[str]) -> list[tuple[float, set[str]]]:
-    """The power cuts that struck a majority of ``cluster``: when, and the robots each killed."""
+    """The power cuts that left a majority of ``cluster`` down: when, and the
+    robots each killed.  Robots killed before and not restarted yet count
+    toward the majority (found in the simulator, seed 6043 of nine robots: a
+    kill, then a cut that took a second robot of the three, the last plan of
+    the first with it)."""
     cuts = [(crash.at_s, _struck(run, crash)) for crash in run.events if crash.action == "crash"]
-    return [(at, hit) for at, hit in cuts if len(hit & cluster) * 2 > len(cluster)]
+    return [(at, hit) for at, hit in cuts if len((hit | _down_before(run, at)) & cluster) * 2 > len(cluster)]
+
+
+def _down_before(run: RunResult, at_s: float) -> set[str]:
+    """The robots killed before ``at_s`` and not restarted by then."""
+    down: set[str] = set()
+    for event in sorted((e for e in run.events if e.at_s < at_s), key=lambda e: e.at_s):
+        if event.action == "kill":
+            down.update(event.targets)
+        elif event.action == "restart":
+            down.difference_update(event.targets)
+    return down
 
 
 def _struck(run: RunResult, crash: FaultEvent) -> set[str]:

@@ -125,6 +125,20 @@ def test_a_false_suspicion_under_starvation_is_excused_with_its_reason() -> None
     assert run.violations == [] and "a false suspicion under CPU starvation (Robot3 starved)" in run.excused[0]
 
 
+def test_a_split_after_a_kill_and_a_power_cut_took_a_majority_is_excused() -> None:
+    """Robot3 killed, then a power cut took Robot1: two of three down, no
+    majority left to decide (simulator, nine robots, seed 6043); the cut
+    alone, or after Robot3 came back, leaves a majority, and the split stands."""
+    split = _task(1, "A", decisions={"Robot1": "Robot1", "Robot2": "Robot1"}, epochs={"Robot1": 0, "Robot2": 1})
+    cut = [FaultEvent(2.28, "crash", ("Robot7",), amount=2.0), FaultEvent(2.28, "kill", ("Robot1",))]
+    killed = [FaultEvent(2.0, "kill", ("Robot3",))]
+    back = [*killed, FaultEvent(2.1, "restart", ("Robot3",))]
+    excused = _run([split], [_pick("Robot1", 1, "A")], events=[*killed, *cut])
+    assert excused.violations == [] and "a power cut left a majority of the cluster down" in excused.excused[0]
+    for events in (cut, [*back, *cut]):
+        assert "task 1 of cluster 1 (A)" in " | ".join(_run([split], [_pick("Robot1", 1, "A")], events=events).violations)
+
+
 def test_a_hang_a_crash_and_unbounded_state_are_found() -> None:
     run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], error="SimulationError: hung at 3.000 s",
                crashes=["Robot2: Task exception was never retrieved KeyError: 'x'"],

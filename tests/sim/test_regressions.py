@@ -214,6 +214,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         4496: "a robot cut off for 20 s found both teammates down once the partition healed and counted on one "
               "again when it answered, though that one had gone on without it: the two left the third out in an "
               "epoch 1 of their own, while the third decided in the majority's epoch 1",
+        6043: "the oracle: a robot killed, then a power cut that took a second robot of its three, left no "
+              "majority; the survivor decided a task again without the last plan the cut took, and the split "
+              "was not excused (the excuse counted the cut's kills only)",
         6294: "a robot restarted by a power cut took its join, but requests sent before its new process listened "
               "had counted it down; the feeder took it back as a member and fed it from its old process's task, "
               "which it refused",
