@@ -210,9 +210,13 @@ class RobotResources:
         yet joined: it may decide nothing before the cluster's jobs are
         done) grants by the membership alone, as before: waiting for it
         held a robot's job, and the feeder's next task, for good (simulator
-        seeds 5 and 467 of nine robots with power cuts)."""
+        seeds 5 and 467 of nine robots with power cuts).  One that has taken
+        a task's post decides it: it says "not yet" like any other (seed 116
+        of nine robots with partitions: at the run's start, a robot that had
+        not decided task 1 yet granted a teammate cut off from it, then left
+        that teammate out of task 1, which the teammate picked)."""
         last = self.team.own.last
-        if last is not None and last.seq < seq:
+        if (last.seq if last is not None else 0) < seq and (last is not None or self.accepted):
             return Response.error(Status.SERVICE_UNAVAILABLE, f"{self.config.robot_id} has not decided task {seq} yet",
                                   max_age=1)
         decided = next((d for d in reversed(self.controller.log) if d.seq == seq), None)

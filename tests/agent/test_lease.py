@@ -149,3 +149,25 @@ async def test_a_teammate_grants_a_task_only_once_it_decided_it_with_the_robot_a
     assert refused.status == Status.FORBIDDEN and "decided task 6 without Robot2" in refused.text()
     assert (await ask({"r": "Robot3", "t": "7"})).status == Status.SERVICE_UNAVAILABLE
     assert (await ask({"r": "Robot3", "t": "seven"})).status == Status.BAD_REQUEST
+
+
+async def test_a_process_that_decided_nothing_yet_grants_only_before_it_takes_a_post() -> None:
+    """Before its first post (the run's start, or restarted and not joined
+    yet) a process grants by the membership alone: it may decide nothing
+    before the cluster's jobs are done.  Once it took task 1's post it
+    decides it, and says "not yet" until then (simulator, nine robots with
+    partitions, seed 116: it granted a teammate cut off from it, then left
+    that teammate out of task 1)."""
+    own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0), LiveState(1.0, 0.0))
+    team = TeamView(own, {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)},
+                    Scripted({}))
+    resources = RobotResources(cast(Any, SimpleNamespace(robot_id="Robot1")), team,
+                               cast(Any, SimpleNamespace(log=[])), cast(Any, None), cast(Any, None))
+
+    async def ask() -> Response:
+        return await resources._get_lease(Request(Method.GET, LEASE_PATH, {"r": "Robot2", "t": "1"}))
+
+    assert (await ask()).status == Status.CONTENT
+    resources.accepted[1] = "Apple"
+    not_yet = await ask()
+    assert not_yet.status == Status.SERVICE_UNAVAILABLE and "has not decided task 1 yet" in not_yet.text()

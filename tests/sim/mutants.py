@@ -39,7 +39,6 @@ from coapkb.agent.lease import Lease
 from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_membership import Membership, TeamMembership
-from coapkb.agent.teammate_revival import TeammateRevival
 from coapkb.feeder import membership as feeder_membership_module
 from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
@@ -65,11 +64,9 @@ STORAGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,swarm", "-
 FENCE = ("--robots", "3", "--tasks", "10", "--faults", "kill,freeze,partition,starve,swarm")
 LEADER = ("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate")
 NINE = ("--robots", "9", "--tasks", "30", "--faults", "freeze,partition,swarm")
-#: Nine robots with power cuts, forged syncs and data folders: the long scans' profile.
 #: FORGE and STORAGE together: the long scans' profile of three robots.
 STORAGE_FORGE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,crash,forge,swarm", "--writes", "20",
                  "--storage")
-NINE_STORAGE = ("--robots", "9", "--tasks", "30", "--faults", "mixed,crash,forge,swarm", "--writes", "20", "--storage")
 #: Lossy links and the progress oracle over the profile's runs (seed 0 in a
 #: mutant's list: the profile as a whole, its seeds 1-40).
 PROGRESS = ("--robots", "3", "--tasks", "10", "--faults", "loss=0.2", "--decide-within", "1.5")
@@ -157,11 +154,6 @@ def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int =
 
 def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> None:
     """A follower keeps its own membership, not the leader's it carries out."""
-
-
-def _went_on_with_it(self: TeammateRevival, state: Any) -> bool:
-    """A teammate that answers as the same process is counted on again, whatever its last decision says."""
-    return False
 
 
 def _heeds_anyone(self: TeamMembership, asker: str | None) -> bool:
@@ -322,9 +314,6 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamMembership, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
            lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
-    Mutant("revival-ignores-left-out", "a robot cut off counts again on a teammate that answers, though that "
-           "one went on without it", lambda: _patch(TeammateRevival, "_went_on_without", _went_on_with_it),
-           NINE_STORAGE, (4496,)),
     Mutant("notes-from-the-left-out", "a robot goes on without a teammate's plan when any robot of its cluster "
            "asks for it, one it left out too", lambda: _patch(TeamMembership, "heeds", _heeds_anyone),
            STORAGE_FORGE, (90301,)),
