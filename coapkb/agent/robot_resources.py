@@ -183,11 +183,17 @@ class RobotResources:
         (4.03, why)?  ``&t=TASK``: for a job of that task, granted only once
         this robot has decided it (5.03 until then) with X a member.
         ``&check``: probe X first, so a robot that stopped answering is
-        found down now (the feeder asks before re-assigning X's tasks).  The
+        found down now (the feeder asks before re-assigning X's tasks).
+        ``&counts``: no lease, only whether this robot counts X as up and a
+        member (2.05, else 4.03, why), which X asks before it counts on this
+        robot again (:class:`~.teammate_revival.TeammateRevival`).  The
         requester must be X or the feeder, when known."""
         about = request.query.get("r", "")
         if request.peer is not None and request.peer not in (about, "feeder"):
             return Response.error(Status.FORBIDDEN, f"{request.peer} may not ask about {about}'s lease")
+        if "counts" in request.query:
+            why = self.team.membership.counts(about)
+            return Response(Status.CONTENT) if why is None else Response.error(Status.FORBIDDEN, why)
         task = request.query.get("t")
         if task is not None and not (task.isdigit() and 0 < int(task) < 2**32):
             return Response.error(Status.BAD_REQUEST, f"t={task[:20]!r}: a task number was expected")

@@ -131,6 +131,22 @@ class TeamMembership:
             return f"{self.robot_id} had {robot_id} down: it never grants that process again"
         return None
 
+    def counts(self, robot_id: str) -> str | None:
+        """None if this robot counts teammate ``robot_id`` as up and a member,
+        else why not: :meth:`grant` without the refusal of a process once
+        down, which is about leases, not membership.  A teammate this robot
+        has down while it is :attr:`alone` is counted: that suspicion is
+        this robot's own, which hearing from it lifts
+        (:class:`~.teammate_revival.TeammateRevival`), so two robots cut off
+        from each other, each alone, still count each other again."""
+        if robot_id not in self._peers:
+            return f"{robot_id} is not in this robot's cluster"
+        if robot_id in self.excluded or robot_id in self._forgone:
+            return f"{self.robot_id} has left {robot_id} out of the membership"
+        if robot_id in self._teammates.down and not self.alone:
+            return f"{self.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
+        return None
+
     @property
     def alone(self) -> bool:
         """Whether the members this robot counts as up, itself counted, are

@@ -84,7 +84,8 @@ class GrantLog:
         self.grants: list[Grant] = []
 
     def answered(self, server: Process, request: Request, response: Response) -> None:
-        if request.path == LEASE_PATH and response.status.is_success and "check" not in request.query:
+        # Neither the feeder's check nor a robot's "do you count me" is a grant.
+        if request.path == LEASE_PATH and response.status.is_success and not {"check", "counts"} & set(request.query):
             self.grants.append(Grant(server.name, request.query.get("r", ""), round(self._clock(), 6)))
 
 

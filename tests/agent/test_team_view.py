@@ -454,12 +454,14 @@ async def test_a_starting_robot_waits_to_hear_from_its_teammates_a_bounded_time_
 
 # --------------------------------------------------------------------------- joins with no survivor
 
+from coapkb.agent.lease import LEASE_PATH  # noqa: E402
 from coapkb.agent.observed_states import STATE_PATH  # noqa: E402
 from coapkb.agent.robot_state import Decision  # noqa: E402
 
 
-async def serve_state(network: MemoryNetwork, own: RobotState):
-    """A teammate's /robot/state and /robot/plan on the memory network."""
+async def serve_state(network: MemoryNetwork, own: RobotState, *, counts_others: bool = True):
+    """A teammate's /robot/state and /robot/plan on the memory network, and
+    its answer to ``/robot/lease?r=X&counts`` (``counts_others``)."""
     router = Router()
 
     async def full(request: Request) -> Response:
@@ -468,8 +470,14 @@ async def serve_state(network: MemoryNetwork, own: RobotState):
     async def plan(request: Request) -> Response:
         return Response(Status.CONTENT, own.encode_plan(), ContentFormat.CBOR)
 
+    async def counts(request: Request) -> Response:
+        if counts_others:
+            return Response(Status.CONTENT)
+        return Response.error(Status.FORBIDDEN, f"{own.robot_id} has {request.query.get('r')} down")
+
     router.add(ResourceInfo(STATE_PATH, obs=True), full)
     router.add(ResourceInfo(PLAN_PATH, obs=True), plan)
+    router.add(ResourceInfo(LEASE_PATH), counts)
     return await network.serve(router, endpoint(own.robot_id))
 
 
@@ -666,6 +674,44 @@ async def test_a_teammate_that_went_on_without_the_robot_cut_off_is_not_counted_
         assert not team.is_up("Robot2") and team.membership.alone
     finally:
         await team.aclose()
+
+
+async def test_a_teammate_that_has_the_robot_cut_off_down_is_not_counted_on_again() -> None:
+    """Robot1, cut off, declared both teammates down; Robot2 answers as the
+    same process and its last decision still counts Robot1, but Robot2 has
+    Robot1 down (and Robot3 up): it leaves Robot1 out at its next task.
+    Counted on again, Robot1 left Robot3 out with Robot2 in an epoch 1 of
+    its own while Robot2 left Robot1 out in another (simulator, nine robots
+    with partitions, seed 2716)."""
+    network = MemoryNetwork()
+    await serve_state(network, robot("Robot2", 5, boot=2), counts_others=False)
+    await serve_state(network, robot("Robot3", 5, boot=3))
+    team = await cut_off(network, robot("Robot1", 4))
+    try:
+        assert not await team.revival.heard_again("Robot2")
+        assert not team.is_up("Robot2") and team.membership.alone
+    finally:
+        await team.aclose()
+
+
+def test_a_robot_alone_still_counts_the_teammates_it_has_down() -> None:
+    """Asked ``counts``, a robot answers whether it counts a teammate as up
+    and a member: not one it has down, unless it is alone (that suspicion
+    is its own: two robots cut off from each other, each alone, count each
+    other again), nor one it left out; a process refused a lease is counted."""
+    team = view(MemoryNetwork(), robot("Robot1", 4))
+    membership = team.membership
+    team._teammates.down["Robot2"] = "2 requests failed in a row"
+    assert "has Robot2 down" in (membership.counts("Robot2") or "")
+    team._teammates.down["Robot3"] = "2 requests failed in a row"
+    assert membership.alone and membership.counts("Robot2") is None
+    del team._teammates.down["Robot3"]
+    membership.leave_out("Robot3", 4, "cut off")
+    assert "left Robot3 out" in (membership.counts("Robot3") or "")
+    del team._teammates.down["Robot2"]
+    membership.refused.add("Robot2")
+    assert membership.counts("Robot2") is None and "never grants" in (membership.grant("Robot2") or "")
+    assert "not in this robot's cluster" in (membership.counts("Robot9") or "")
 
 
 async def test_an_outnumbered_robot_leaves_no_teammate_out_for_its_silence() -> None:

@@ -39,6 +39,7 @@ from coapkb.agent.lease import Lease
 from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_membership import Membership, TeamMembership
+from coapkb.agent.teammate_revival import TeammateRevival
 from coapkb.feeder import membership as feeder_membership_module
 from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
@@ -154,6 +155,11 @@ def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int =
 
 def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> None:
     """A follower keeps its own membership, not the leader's it carries out."""
+
+
+async def _counted_anyway(self: TeammateRevival, robot_id: str) -> bool:
+    """A teammate that answers is taken to count this robot, without asking."""
+    return True
 
 
 def _heeds_anyone(self: TeamMembership, asker: str | None) -> bool:
@@ -314,6 +320,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamMembership, "admit", _admit_same_epoch), MIXED, (26, 28, 42)),
     Mutant("adopt-nothing", "a follower keeps its own membership, not the one the leader decided in",
            lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
+    Mutant("revival-unasked", "a robot cut off counts again on a teammate that answers, though that one has "
+           "it down", lambda: _patch(TeammateRevival, "_counts_this_robot", _counted_anyway), NINE, (2716,)),
     Mutant("notes-from-the-left-out", "a robot goes on without a teammate's plan when any robot of its cluster "
            "asks for it, one it left out too", lambda: _patch(TeamMembership, "heeds", _heeds_anyone),
            STORAGE_FORGE, (90301,)),

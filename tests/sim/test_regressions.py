@@ -179,6 +179,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         116: "two robots whose observations failed at the start never had a third's first plan; it decided task 1 "
              "and, cut off, asked for its lease; one of them had taken the post but decided nothing yet and "
              "granted by the membership alone, then left it out of task 1, which it picked",
+        2716: "a robot cut off for 3.5 s, alone, counted again on a teammate that had it down; with the third "
+              "robot frozen, each left another out in an epoch 1 of its own",
     }),
     # Judged alone, one restart is no median: the bound is the anti-entropy
     # round's (a missing catch-up, not one exchange lost at 10 % loss), and
