@@ -139,6 +139,21 @@ def test_a_split_after_a_kill_and_a_power_cut_took_a_majority_is_excused() -> No
         assert "task 1 of cluster 1 (A)" in " | ".join(_run([split], [_pick("Robot1", 1, "A")], events=events).violations)
 
 
+def test_a_split_with_a_live_robot_left_out_is_a_false_suspicion_only_where_a_cut_explains_it() -> None:
+    """Robot2 back from a cut left a live Robot3 out alone: Robot3's decision
+    is void, no error names it, and Robot1 and Robot2 decide in different
+    epochs (simulator, nine robots with partitions, seed 4246).  Excused as
+    a false suspicion with the cut in the schedule, found without it."""
+    split = _task(4, "D", to="Robot2", decisions={"Robot1": "Robot2", "Robot2": "Robot2"},
+                  epochs={"Robot1": 0, "Robot2": 1}, members=["Robot1", "Robot2"],
+                  absent={"Robot3": "left out of membership epoch 1 (its decision is void)"})
+    picked = [_pick("Robot2", 4, "D")]
+    cut = [FaultEvent(0.1, "cut", ("Robot2",), other=("Robot1", "Robot3")), FaultEvent(3.5, "heal", ("Robot2",))]
+    excused = _run([split], picked, events=cut)
+    assert excused.violations == [] and "a false suspicion of a robot cut off" in excused.excused[0]
+    assert "task 4 of cluster 1 (D)" in " | ".join(_run([split], picked).violations)
+
+
 def test_a_hang_a_crash_and_unbounded_state_are_found() -> None:
     run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], error="SimulationError: hung at 3.000 s",
                crashes=["Robot2: Task exception was never retrieved KeyError: 'x'"],

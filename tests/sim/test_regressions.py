@@ -181,6 +181,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "granted by the membership alone, then left it out of task 1, which it picked",
         2716: "a robot cut off for 3.5 s, alone, counted again on a teammate that had it down; with the third "
               "robot frozen, each left another out in an epoch 1 of its own",
+        4246: "the oracle: a robot back from a cut counted a live teammate down on the requests that had failed "
+              "during it and left it out alone; the split, a false suspicion of a robot cut off, was not excused "
+              "as no error named the teammate",
     }),
     # Judged alone, one restart is no median: the bound is the anti-entropy
     # round's (a missing catch-up, not one exchange lost at 10 % loss), and
