@@ -385,7 +385,8 @@ def _fence(config: RobotConfig, teammates: dict[str, Endpoint], client: ClientTr
         return None
     lease = Lease(
         config.robot_id, teammates, client, config.lease_s,
-        request_timeout_s=lambda: team.request_timeout_s, down=lambda: team.down, on_failure=team.request_failed,
+        request_timeout_s=lambda: team.request_timeout_s, down=lambda: team.down,
+        left_out=lambda: team.membership.excluded, on_failure=team.request_failed,
     )
     return lease.hold
 

@@ -36,6 +36,8 @@ class Scripted:
             raise PeerUnreachable(f"no answer from {peer}")
         if answer == "refuse":
             return Response.error(Status.FORBIDDEN, "Robot1 has Robot2 down")
+        if answer == "not yet":
+            return Response.error(Status.SERVICE_UNAVAILABLE, "Robot3 has not decided that task yet")
         return Response(Status.CONTENT)
 
     def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
@@ -45,12 +47,13 @@ class Scripted:
         pass
 
 
-def _lease(client: Scripted, down: dict[str, str] | None = None, failures: list[str] | None = None) -> Lease:
+def _lease(client: Scripted, down: dict[str, str] | None = None, failures: list[str] | None = None,
+           left_out: dict[str, int] | None = None) -> Lease:
     async def failed(robot_id: str, exc: Exception) -> None:
         (failures if failures is not None else []).append(robot_id)
 
     return Lease("Robot2", MATES, client, 3.0, request_timeout_s=lambda: 1.0, down=lambda: down or {},
-                 on_failure=failed)
+                 left_out=lambda: left_out or {}, on_failure=failed)
 
 
 async def test_one_grant_of_two_teammates_is_a_majority_of_three() -> None:
@@ -171,3 +174,18 @@ async def test_a_process_that_decided_nothing_yet_grants_only_before_it_takes_a_
     resources.accepted[1] = "Apple"
     not_yet = await ask()
     assert not_yet.status == Status.SERVICE_UNAVAILABLE and "has not decided task 1 yet" in not_yet.text()
+
+
+async def test_a_teammate_left_out_before_the_task_is_no_granter() -> None:
+    """Robot2 has Robot1 down and left Robot3 out from task 12: for a job of
+    task 14 no majority can grant, and it is fenced at once.  Robot3, never
+    fed that task, said "not yet" for good, and the job waited with it
+    (simulator, nine robots with partitions, seed 9188).  For a job of a
+    task before it left Robot3 out, Robot3 is asked as before."""
+    client = Scripted({1: "silent", 3: "not yet"})
+    lease = _lease(client, down={"Robot1": "2 requests failed in a row"}, left_out={"Robot3": 12})
+    why = await asyncio.wait_for(lease.hold(0.1, 14), timeout=2)
+    assert why is not None and "left out of this robot's membership from task 12" in why and not client.asked
+    client.answers[3] = "grant"
+    lease = _lease(client, down={"Robot1": "2 requests failed in a row"}, left_out={"Robot3": 12})
+    assert await lease.hold(0.1, 11) is None and client.asked[-1][1].query == {"r": "Robot2", "t": "11"}

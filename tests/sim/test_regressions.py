@@ -181,6 +181,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "granted by the membership alone, then left it out of task 1, which it picked",
         2716: "a robot cut off for 3.5 s, alone, counted again on a teammate that had it down; with the third "
               "robot frozen, each left another out in an epoch 1 of its own",
+        9188: "a robot that left a revived teammate out, and had the third down, asked the left-out one for "
+              "its lease of a later task; never fed that task, it said 'not yet' for good and the cluster never "
+              "finished",
         4246: "the oracle: a robot back from a cut counted a live teammate down on the requests that had failed "
               "during it and left it out alone; the split, a false suspicion of a robot cut off, was not excused "
               "as no error named the teammate",
