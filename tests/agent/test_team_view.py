@@ -657,34 +657,22 @@ async def test_a_robot_outnumbered_counts_again_on_teammates_that_answer_and_nev
         await team.aclose()
 
 
-async def test_a_teammate_that_went_on_without_the_robot_cut_off_is_not_counted_on_again() -> None:
+@pytest.mark.parametrize("robot2", [
+    replace(robot("Robot2", 5, boot=2),
+            last=Decision(5, "Muji_rug_426", assigned_to="Robot3", epoch=1, members=("Robot2", "Robot3"))),
+    robot("Robot2", 5, boot=2),
+], ids=["went on without it", "has it down"])
+async def test_a_teammate_that_does_not_count_the_robot_cut_off_is_not_counted_on_again(robot2: RobotState) -> None:
     """Robot1, cut off, declared both teammates down; Robot2 answers as the
-    same process, but its last decision left Robot1 out (epoch 1, members
-    Robot2 and Robot3): it does not count Robot1, so Robot1 does not count
+    same process, but does not count Robot1: its last decision left Robot1
+    out (epoch 1, members Robot2 and Robot3), or it has Robot1 down with
+    Robot3 up and leaves it out at its next task.  So Robot1 does not count
     on it either.  Counted on again, Robot1 left Robot3 out with Robot2 in
-    an epoch 1 of its own, and the two epochs 1 disagreed (simulator, nine
-    robots with power cuts, seed 4496)."""
+    an epoch 1 of its own, and the two epochs 1 disagreed (simulator: nine
+    robots with power cuts, seed 4496; nine robots with partitions, seed
+    2716)."""
     network = MemoryNetwork()
-    without = Decision(5, "Muji_rug_426", assigned_to="Robot3", epoch=1, members=("Robot2", "Robot3"))
-    await serve_state(network, replace(robot("Robot2", 5, boot=2), last=without))
-    await serve_state(network, robot("Robot3", 5, boot=3))
-    team = await cut_off(network, robot("Robot1", 4))
-    try:
-        assert not await team.revival.heard_again("Robot2")
-        assert not team.is_up("Robot2") and team.membership.alone
-    finally:
-        await team.aclose()
-
-
-async def test_a_teammate_that_has_the_robot_cut_off_down_is_not_counted_on_again() -> None:
-    """Robot1, cut off, declared both teammates down; Robot2 answers as the
-    same process and its last decision still counts Robot1, but Robot2 has
-    Robot1 down (and Robot3 up): it leaves Robot1 out at its next task.
-    Counted on again, Robot1 left Robot3 out with Robot2 in an epoch 1 of
-    its own while Robot2 left Robot1 out in another (simulator, nine robots
-    with partitions, seed 2716)."""
-    network = MemoryNetwork()
-    await serve_state(network, robot("Robot2", 5, boot=2), counts_others=False)
+    await serve_state(network, robot2, counts_others=robot2.last is not None)
     await serve_state(network, robot("Robot3", 5, boot=3))
     team = await cut_off(network, robot("Robot1", 4))
     try:
