@@ -40,6 +40,13 @@ class FirstSight:
         was heard is forgotten."""
         seen = self._boot.pop(robot_id, 0)
         planned = self._plan.pop(robot_id, 0)
+        if seen and state.boot == seen:
+            # The process heard of, showing an older plan: a stale answer (a
+            # retransmitted request answered from the exchange cache), not a
+            # restart.  Found in the simulator, seed 2118 of the
+            # compute-and-communicate swarm profile: a follower cut off while
+            # picking took its leader for restarted, and left it out.
+            return None
         if state.plan.seq < planned:
             # Never observed before, and earlier than a plan of it already
             # used here: a new process, which decided nothing of that.  Found

@@ -149,6 +149,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "decided nothing",
         1162: "a cluster's three robots killed and restarted in turn, the last back only after the last task: "
               "it never joined, so the task nobody decided never went round again",
+        2118: "a follower cut off while picking first observed its leader in a stale answer (an older plan of "
+              "the process it had heard of) and took it for a restart: it left the leader out, in an epoch that "
+              "went back when it adopted the leader's next decision",
+        1045: "the same as seed 2118",
     }),
     (("--robots", "9", "--tasks", "100", "--faults", "freeze,partition"), {
         20005: "a robot cut off dropped a task under its fence; granted again once the partition healed, it was "
