@@ -120,16 +120,14 @@ class TeamMembership:
         """None if this robot grants teammate ``robot_id`` a lease (it counts
         it as up and a member), else why not.  Once refused, a process is
         never granted again: the others may be re-assigning its tasks
-        (:mod:`coapkb.agent.lease`)."""
-        if robot_id not in self._peers:
-            return f"{robot_id} is not in this robot's cluster"
-        if robot_id in self._teammates.down:
-            return f"{self.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
-        if robot_id in self.excluded or robot_id in self._forgone:
-            return f"{self.robot_id} has left {robot_id} out of the membership"
-        if robot_id in self.refused:
+        (:mod:`coapkb.agent.lease`).  A teammate this robot has down is
+        refused even while this robot is alone (:meth:`counts` counts it)."""
+        if robot_id in self._peers and robot_id in self._teammates.down:
+            return self._has_down(robot_id)
+        why = self.counts(robot_id)
+        if why is None and robot_id in self.refused:
             return f"{self.robot_id} had {robot_id} down: it never grants that process again"
-        return None
+        return why
 
     def counts(self, robot_id: str) -> str | None:
         """None if this robot counts teammate ``robot_id`` as up and a member,
@@ -144,8 +142,11 @@ class TeamMembership:
         if robot_id in self.excluded or robot_id in self._forgone:
             return f"{self.robot_id} has left {robot_id} out of the membership"
         if robot_id in self._teammates.down and not self.alone:
-            return f"{self.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
+            return self._has_down(robot_id)
         return None
+
+    def _has_down(self, robot_id: str) -> str:
+        return f"{self.robot_id} has {robot_id} down: {self._teammates.down[robot_id]}"
 
     @property
     def alone(self) -> bool:
