@@ -227,14 +227,16 @@ class TeamMembership:
 
     async def restarted(self, robot_id: str, seq: int) -> None:
         """The feeder says member ``robot_id`` ran again as a new process
-        while task ``seq`` was posted, which did not take it: the process
-        this robot counts on is gone (down, and gone), and its last plan
-        comes from a teammate that has it, as a dead robot's does; the new
-        one joins at a later task.  A joiner that had never seen the old
-        process took the new one for the member and waited for its plan
-        for good (simulator, nine robots with power cuts, seed 5563)."""
+        while task ``seq`` was posted or decided; the new one did not take
+        it: the process this robot counts on is gone (down, and gone), and
+        its last plan comes from a teammate that has it, as a dead robot's
+        does; the new one joins at a later task.  A joiner that had never
+        seen the old process took the new one for the member and waited for
+        its plan for good (simulator, nine robots with power cuts, seed
+        5563); a follower waited for its restarted leader's decision (seed
+        3005 of the compute-and-communicate swarm profile)."""
         if robot_id in self._peers and robot_id not in self.excluded and robot_id not in self._teammates.down:
-            await self._teammates.process_gone(robot_id, f"restarted: no process of it took task {seq}")
+            await self._teammates.process_gone(robot_id, f"restarted while task {seq} was decided")
 
     async def named(self, robot_id: str, seq: int, boot: int) -> None:
         """The feeder names process ``boot`` of ``robot_id`` as the one that

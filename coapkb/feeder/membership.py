@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,6 +51,8 @@ class Membership:
         self._done_before: dict[str, int] = {}
         #: Set at each restart: what a cluster with every robot down awaits.
         self._rejoined = asyncio.Event()
+        #: Notified at each restart: what a task being decided watches.
+        self._restarts = asyncio.Condition()
 
     def set_done_before(self, robot_id: str, done: int) -> None:
         """``robot_id`` had done ``done`` jobs, all of them an earlier feeder's."""
@@ -67,6 +69,15 @@ class Membership:
         self.channel.forget_posts(robot_id)
         await self.channel.watcher.declare_down(robot_id, "restarted")
         self._rejoined.set()
+        async with self._restarts:
+            self._restarts.notify_all()
+
+    async def until_restarting(self, robots: Collection[str]) -> list[str]:
+        """Wait until some of ``robots`` run again as new processes not
+        joined yet; those that do."""
+        async with self._restarts:
+            await self._restarts.wait_for(lambda: any(r in self._restarted for r in robots))
+        return sorted(r for r in robots if r in self._restarted)
 
     async def ready_for(self, cluster: Sequence[str], seq: int,
                         records: list[TaskRecord]) -> tuple[list[str], list[TaskRecord]]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cbor2
 
@@ -59,18 +59,10 @@ class TaskPoster:
         targets = [*(r for r in live if r not in joining), *again_to]
         answers = dict(zip(targets, await asyncio.gather(*(channel.post_task(r, request, seq, name) for r in targets)),
                            strict=True))
-        # A member restarted while the task was posted: its new process did
-        # not take the task (it joins at a later one), and the process the
-        # others count on is gone.  The post goes again to those that took
-        # it, naming it restarted.  A joiner that had never seen the old process
-        # took the new one for the member and waited for its plan for good
-        # (simulator, nine robots with power cuts, seed 5563).
-        restarted = sorted(r for r, answer in answers.items()
-                           if answer is None and r not in joining and self.membership.restarting(r))
-        if restarted:
-            took = sorted({r for r, answer in answers.items() if answer is not None} | set(joined))
-            repeat = task_post(seq, name, joined, again, restocked, boots, missed, restarted)
-            await asyncio.gather(*(channel.post_task(r, repeat, seq, name) for r in took))
+        took = {r for r, answer in answers.items() if answer is not None} | set(joined)
+
+        def naming(restarted: Sequence[str]) -> Request:
+            return task_post(seq, name, joined, again, restocked, boots, missed, restarted)
 
         def decided(states: States, robot_id: str) -> bool:
             return robot_id in states and states[robot_id].decided(seq)
@@ -84,21 +76,46 @@ class TaskPoster:
             f"decisions on task {seq} ({name}) from {', '.join(r for r in cluster if r not in watcher.down)}",
             pending=undecided, of=len(live),
         ))
+        told = asyncio.ensure_future(self._tell_restarts([r for r in cluster if r not in joining], took, seq, name,
+                                                         naming))
         try:
             if records:
                 await self.membership.take_back_while(cluster, records, PendingTask(seq, name, request), deciding)
             states = await deciding
         finally:
             deciding.cancel()
+            told.cancel()
         record = TaskRecord(object=name, cluster=index + 1, seq=seq, coordination_s=clock.monotonic() - fed,
                             joined=joined)
         decisions = {r: d for r in cluster if decided(states, r) and (d := states[r].last) is not None}
-        if len({(d.assigned_to, d.unavailable, d.error) for d in decisions.values()}) > 1:
-            # Robots that differ may have decided and then died before the
-            # feeder noticed: ask each once, so the dead ones' decisions are void.
+        if len({(d.assigned_to, d.unavailable, d.error, d.epoch) for d in decisions.values()}) > 1:
+            # Robots that differ, if only in the membership epoch, may have
+            # decided and then died before the feeder noticed: ask each once,
+            # so the dead ones' decisions are void (simulator, seed 5822 of the
+            # compute-and-communicate swarm profile: a follower that held the
+            # restarted leader's last plan decided in its epoch and died; the
+            # other, without that plan, decided alike in the next).
             await asyncio.gather(*(watcher.probe(r) for r in decisions if r not in watcher.down))
         self._record(record, cluster, decisions, records)
         return record
+
+    async def _tell_restarts(self, members: Sequence[str], took: set[str], seq: int, name: str,
+                             naming: Callable[[Sequence[str]], Request]) -> None:
+        """Until task ``seq`` is decided: each member that runs again as a
+        new process is named to those that took the post (the post again,
+        naming it restarted).  The new process did not take the task (it
+        joins at a later one), and the process the others count on is gone,
+        though they may not have found it down.  Found in the simulator: a
+        joiner that had never seen the old process took the new one for the
+        member and waited for its plan for good (nine robots with power
+        cuts, seed 5563); followers whose leader restarted after it took the
+        post waited for its decision until they gave the task up
+        (compute-and-communicate swarm profile, seed 3005)."""
+        named: set[str] = set()
+        while True:
+            named.update(await self.membership.until_restarting([r for r in members if r not in named]))
+            repeat = naming(sorted(named))
+            await asyncio.gather(*(self.channel.post_task(r, repeat, seq, name) for r in sorted(took - named)))
 
     async def _post_to_joiners(self, request: Request, seq: int, name: str,
                                joining: Sequence[str]) -> dict[str, int]:

@@ -153,6 +153,11 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "the process it had heard of) and took it for a restart: it left the leader out, in an epoch that "
               "went back when it adopted the leader's next decision",
         1045: "the same as seed 2118",
+        3005: "the leader took the post, was killed and restarted: its followers, which had never observed its "
+              "old process, waited for its decision until they gave the task up",
+        3229: "the same as seed 3005, the restarted leader then cut off from its followers",
+        5822: "the same as seed 3005; once the followers decided alone, one that held the leader's last plan "
+              "decided in its epoch and died, the other in the next: the feeder kept the dead one's decision",
     }),
     (("--robots", "9", "--tasks", "100", "--faults", "freeze,partition"), {
         20005: "a robot cut off dropped a task under its fence; granted again once the partition healed, it was "
