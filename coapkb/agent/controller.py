@@ -15,10 +15,13 @@ through ``/robot/plan``, and the winner's Task Executor gets the job.
 Strategies: "compute-by-all" (every robot queries and computes the same
 assignment, no further message) and "compute-and-communicate" (the first
 robot of the membership, the leader, computes and sends the decision to the
-others).  A follower whose leader is declared down while it waits decides
+others).  A follower whose leader is declared down while it waits takes
+the leader's decision from another follower that has it, or else decides
 that task itself, as under compute-by-all: the assignment is a function of
 the planned states after the previous task, which every survivor holds
-alike, so it matches the decision the leader may have sent some of them.
+alike, so it matches the decision the leader may have sent some of them
+(the membership may not: without the leader's plan, the leader is left
+out of it).
 The dead leader leaves the membership as under compute-by-all, and the next
 robot of it leads from then on.
 """
@@ -334,7 +337,7 @@ class Controller:
                 self.team.saw_process(min(message.decision.members, key=robot_sort_key), message.boot)
             return message
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
-        return await self._compute(task)
+        return await self.settler.leaders_decision(task, leader) or await self._compute(task)
 
     async def gather(self, task: Task) -> TaskFacts | str:
         """What the task's pick needs from the KBs, or why nobody picks it;

@@ -199,6 +199,16 @@ class Settler:
             return taken
         return await self._awaited_if_fenced(task, mates)
 
+    async def leaders_decision(self, task: Task, leader: str) -> DecisionMessage | None:
+        """The decision on ``task`` that ``leader``, found down, sent another
+        follower ("compute and communicate"), taken whole with its
+        membership.  Computed here instead, without the leader's plan, it
+        was taken in a membership without the leader, while the follower
+        that had the decision named one with it (simulator, seed 2026 of the
+        compute-and-communicate swarm profile: one task in two epochs)."""
+        mates = [r for r in self._others() if r != leader and self.team.is_up(r)]
+        return await self._taken_from(task, mates, f"had the decision {leader} sent")
+
     async def _awaited_if_fenced(self, task: Task, mates: list[str]) -> DecisionMessage | None:
         """After a stall, with no teammate's decision on ``task`` yet: if no
         majority grants this robot a lease any more, its teammates have it

@@ -153,6 +153,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "the process it had heard of) and took it for a restart: it left the leader out, in an epoch that "
               "went back when it adopted the leader's next decision",
         1045: "the same as seed 2118",
+        2026: "a follower whose leader was found down decided the task itself, leaving the leader out, while "
+              "the other follower had the leader's decision: one task in two epochs, and an epoch that went back",
         3005: "the leader took the post, was killed and restarted: its followers, which had never observed its "
               "old process, waited for its decision until they gave the task up",
         3229: "the same as seed 3005, the restarted leader then cut off from its followers",
