@@ -254,6 +254,12 @@ class Controller:
         fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
         each other on it alike."""
         if self.robot_id in task.join:
+            if self.team.own.last is not None:
+                # Not a new process: one its teammates had left out, fed
+                # again from this task.  The jobs it holds went round again
+                # (or will), and its suspicions are of a membership it leaves.
+                self.executor.void_held(f"joined its team again at task {task.seq}: its jobs went round again")
+                self.team.forget_suspicions()
             joined = await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
             # Before its plan is out, nobody has decided this task: the
             # claims a teammate hands over are those of the tasks before it.

@@ -160,6 +160,14 @@ class TeamView:
         await self._teammates.wait(lambda _: robot_id in self._teammates.down, None)
         return self._teammates.down[robot_id]
 
+    def forget_suspicions(self) -> None:
+        """Count on every teammate again, as a new process does: this robot,
+        left out, joins its teammates' membership again, and a teammate it
+        has down there would be left out of it alone (each is found down
+        again if it is)."""
+        for robot_id in list(self._teammates.down):
+            self._teammates.readmit(robot_id)
+
     async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> bool:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in

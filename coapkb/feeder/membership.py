@@ -17,7 +17,7 @@ from ..transport.base import TransportError
 from ..transport.messages import Request
 from .channel import Channel
 from .fence import fence
-from .orphans import executed_next, orphans, unexecuted
+from .orphans import executed_next, idle, orphans, unexecuted
 from .record import TaskRecord
 from .tasks import task_post
 
@@ -53,6 +53,9 @@ class Membership:
         self._rejoined = asyncio.Event()
         #: Notified at each restart: what a task being decided watches.
         self._restarts = asyncio.Condition()
+        #: Robots a newer membership of their cluster left out, and why: down
+        #: for the feeder until they join again with the same process.
+        self._left_out: dict[str, str] = {}
 
     def set_done_before(self, robot_id: str, done: int) -> None:
         """``robot_id`` had done ``done`` jobs, all of them an earlier feeder's."""
@@ -66,6 +69,7 @@ class Membership:
         the new one from it, and waited for its decision on the task being
         decided for good (found in the simulator)."""
         self._restarted.add(robot_id)
+        self._left_out.pop(robot_id, None)  # a new process joins as one
         self.channel.forget_posts(robot_id)
         await self.channel.watcher.declare_down(robot_id, "restarted")
         self._rejoined.set()
@@ -101,7 +105,7 @@ class Membership:
         waited = False
         while True:
             self._rejoined.clear()
-            now_joining = self.joining(cluster)
+            now_joining = sorted([*self.joining(cluster), *await self._back_from_left_out(cluster, records)])
             if now_joining:
                 left_behind += self.prepare_join(records, now_joining, seq)
                 joining += now_joining
@@ -116,6 +120,42 @@ class Membership:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(min(watcher.request_timeout_s, remaining)):
                     await self._rejoined.wait()
+
+    async def left_out(self, robot_id: str, why: str) -> None:
+        """``robot_id``'s teammates left it out of a newer membership (the
+        record voids its decision): it decides apart, in a membership of its
+        own, until it joins theirs again.  It is down for the feeder, fed
+        nothing, and its unexecuted tasks go round again once no majority
+        grants it a lease (:meth:`recover`); then, holding no task of its
+        own, it joins at the next task, as a restarted robot does, with the
+        same process (:meth:`ready_for`).  Found in the simulator (nine robots
+        with partitions, seeds 6028 and 16092): a robot cut off at the
+        start, left out, never learned it; deciding on in a membership of its
+        own, it split its cluster's decisions once another member was cut off."""
+        if robot_id in self._left_out or robot_id in self._restarted:
+            return
+        log.warning("%s was %s: it joins again once it holds no task", robot_id, why)
+        self._left_out[robot_id] = why
+        await self.channel.watcher.declare_down(robot_id, f"{why}: it joins again once it holds no task")
+
+    async def _back_from_left_out(self, cluster: Sequence[str], records: list[TaskRecord]) -> list[str]:
+        """The robots left out (:meth:`left_out`) ready to join again: asked
+        once, the same process, idle, and no task of its own left unexecuted."""
+        watcher = self.channel.watcher
+        ready = []
+        for robot_id in cluster:
+            if robot_id not in self._left_out:
+                continue
+            state = await self.channel.state(robot_id, watcher.request_timeout_s)
+            if state is None:
+                continue
+            if not self._same_process(robot_id, state):
+                continue  # restarted: it joins as a new process, told by whoever restarted it
+            watcher.states[robot_id] = state  # what it did meanwhile: done, dropped
+            if idle(watcher.states, robot_id) and not unexecuted(records, watcher, robot_id, self._incarnation,
+                                                                 self._done_before):
+                ready.append(robot_id)
+        return ready
 
     def restarting(self, robot_id: str) -> bool:
         """Whether ``robot_id`` runs again as a new process that has not joined yet."""
@@ -133,7 +173,11 @@ class Membership:
         for robot_id in joining:
             self._restarted.discard(robot_id)
             self._incarnation[robot_id] = seq
-            self._done_before.pop(robot_id, None)  # a new process: its count starts at 0
+            if self._left_out.pop(robot_id, None) is not None:
+                # The same process: its count goes on from the jobs done before.
+                self._done_before[robot_id] = watcher.states[robot_id].live.done
+            else:
+                self._done_before.pop(robot_id, None)  # a new process: its count starts at 0
             self._fenced_off.discard(robot_id)
             watcher.readmit(robot_id)
         return found

@@ -146,6 +146,25 @@ async def test_a_joiner_answers_its_post_with_its_process() -> None:
         await robot.aclose()
 
 
+async def test_a_robot_that_took_tasks_joins_again_where_the_feeder_names_it() -> None:
+    """A robot its teammates left out is fed nothing for a while, then named
+    to join at a later task: it takes that task (its next), where any
+    other task past its next is refused."""
+    robot = await Robot.start(solo_config(free_udp_port()))
+    client = await open_client("coap")
+    try:
+        ask = Asker(client, robot.config.bind)
+        assert (await ask.post_task(1, "Gucci_bag_14")).status == Status.CHANGED
+        assert (await ask.post_task(4, "Gucci_bag_1")).status == Status.CONFLICT  # not named to join
+        joined = await ask(Method.POST, "/tasks", cbor2.dumps({"seq": 4, "object": "Gucci_bag_1", "join": ["Robot1"]}))
+        assert joined.status == Status.CHANGED and cbor2.loads(joined.payload) == {"boot": robot.team.own.boot}
+        assert (await ask.post_task(5, "Gucci_bag_14")).status == Status.CHANGED
+        assert [d["seq"] for d in await ask.decisions(3)] == [1, 4, 5]
+    finally:
+        await client.aclose()
+        await robot.aclose()
+
+
 async def test_a_final_state_goes_confirmed_on_either_resource() -> None:
     """The state a robot ends in (idle, nothing queued, nothing decided
     since) is notified confirmable on ``/robot/outcome`` and on

@@ -364,7 +364,7 @@ async def test_a_co_joiner_the_feeder_says_missed_its_join_is_down() -> None:
         await team.aclose()
 
 
-async def test_a_member_the_feeder_says_restarted_during_a_post_is_down_and_gone() -> None:
+async def test_a_member_the_feeder_says_restarted_during_a_task_is_down_and_gone() -> None:
     """The feeder found Robot2 running again as a new process while it
     posted task 7, and the new process did not take it: the process
     Robot1 counts on is gone, so Robot1 takes its last plan from a teammate
@@ -378,7 +378,7 @@ async def test_a_member_the_feeder_says_restarted_during_a_post_is_down_and_gone
         assert team.is_up("Robot2")
         await team.membership.restarted("Robot2", 7)
         assert not team.is_up("Robot2") and "Robot2" in team._teammates.gone
-        assert "no process of it took task 7" in team._teammates.down["Robot2"]
+        assert "restarted while task 7 was decided" in team._teammates.down["Robot2"]
         team.membership.leave_out("Robot3", 5, "down")
         await team.membership.restarted("Robot3", 7)
         assert "Robot3" not in team._teammates.gone

@@ -198,6 +198,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         4246: "the oracle: a robot back from a cut counted a live teammate down on the requests that had failed "
               "during it and left it out alone; the split, a false suspicion of a robot cut off, was not excused "
               "as no error named the teammate",
+        6028: "a robot cut off at the start was left out and never learned it; deciding on in a membership of "
+              "its own, it left out another member once that one was cut off, in an epoch 1 of its own",
+        16092: "the same as seed 6028, the last member alone without a majority",
+        21652: "the same as seed 16092",
     }),
     # Judged alone, one restart is no median: the bound is the anti-entropy
     # round's (a missing catch-up, not one exchange lost at 10 % loss), and
