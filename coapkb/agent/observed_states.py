@@ -188,7 +188,7 @@ class ObservedStates:
     async def probe(self, robot_id: str, *, reobserve: bool = True) -> None:
         await self.watcher.probe(robot_id, reobserve=reobserve)
 
-    async def hearsay(self, robot_id: str, about: str, seq: int, asker: str = "") -> RobotState | None:
+    async def hearsay(self, robot_id: str, about: str, seq: int, asker: str) -> RobotState | None:
         return await self.watcher.hearsay(robot_id, about, seq, asker)
 
     async def poke(self) -> None:

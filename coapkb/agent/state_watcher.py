@@ -222,14 +222,14 @@ class StateWatcher:
                     self.watch(robot_id)
             return
 
-    async def hearsay(self, robot_id: str, about: str, seq: int, asker: str = "") -> RobotState | None:
+    async def hearsay(self, robot_id: str, about: str, seq: int, asker: str) -> RobotState | None:
         """What robot ``robot_id`` has observed of robot ``about`` (``?of=``),
         if it holds ``about``'s plan right after task ``seq`` (``&at=``);
         None if it has not (it then never uses that plan: see
         :meth:`.TeamMembership.forgo`) or does not answer, twice.
         ``asker``: the robot asking (``&by=``), whom the one asked may have left out."""
         # A POST: the robot asked goes on without that plan too if it has none.
-        query = {"of": about, "at": str(seq), **({"by": asker} if asker else {})}
+        query = {"of": about, "at": str(seq), "by": asker}
         request = Request(Method.POST, self._request.path, query, accept=ContentFormat.CBOR)
         for _ in range(FAILURES_TO_DOWN):
             try:
