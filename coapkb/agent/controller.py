@@ -256,9 +256,9 @@ class Controller:
         if self.robot_id in task.join:
             if self.team.own.last is not None:
                 # Not a new process: one its teammates had left out, fed
-                # again from this task.  The jobs it holds went round again
-                # (or will), and its suspicions are of a membership it leaves.
-                self.executor.void_held(f"joined its team again at task {task.seq}: its jobs went round again")
+                # again from this task (idle: the feeder waits until its
+                # jobs are done or went round again).  Its suspicions are of
+                # a membership it leaves.
                 self.team.forget_suspicions()
             joined = await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
             # Before its plan is out, nobody has decided this task: the

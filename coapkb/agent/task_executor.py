@@ -86,11 +86,6 @@ class TaskExecutor:
         self._task: asyncio.Task[None] | None = None
         #: The charges made so far, in order (for the robot's statistics).
         self.recharges: list[Recharge] = []
-        #: The job under way, if any.
-        self._current: Job | None = None
-        #: Jobs of tasks up to this one are not this robot's any more (:meth:`void_held`), and why.
-        self._void_through = 0
-        self._void_reason = ""
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name="task-executor")
@@ -126,27 +121,9 @@ class TaskExecutor:
         while not self._jobs.empty():
             dropped.append(self._jobs.get_nowait().seq)
         log.warning("fenced: dropping tasks %s unexecuted: %s", ", ".join(map(str, dropped)), why)
-        self._current = None
         self._update(activity="idle", executing=None, queued=0, fenced=self.live.fenced + tuple(dropped),
                      fence_reason=why)
         self._idle.set()
-
-    def void_held(self, why: str) -> None:
-        """The jobs this robot holds are not its own any more (it joins its
-        team again, and they go round again, or went already): the queued
-        ones are dropped now, the one under way at its next lease check,
-        even under a lease still running."""
-        dropped = []
-        while not self._jobs.empty():
-            dropped.append(self._jobs.get_nowait().seq)
-        if self._current is not None:
-            self._void_through = self._current.seq
-            self._void_reason = why
-        if dropped:
-            log.warning("dropping tasks %s unexecuted: %s", ", ".join(map(str, dropped)), why)
-            self._update(queued=0, fenced=self.live.fenced + tuple(dropped), fence_reason=why)
-            if self._current is None:
-                self._idle.set()
 
     async def fenced(self) -> str | None:
         """Why no majority of the cluster grants this robot a lease now, or
@@ -156,9 +133,6 @@ class TaskExecutor:
     async def _leased(self, job: Job, for_s: float) -> bool:
         """True while this robot holds its lease for ``for_s`` more seconds;
         else ``job`` and the queued ones are dropped (:meth:`_forfeit`)."""
-        if job.seq <= self._void_through:
-            self._forfeit(job, self._void_reason)
-            return False
         if self._lease is None:
             return True
         why = await self._lease(for_s, job.seq)
@@ -187,7 +161,7 @@ class TaskExecutor:
 
     async def _run(self) -> None:
         while True:
-            job = self._current = await self._jobs.get()
+            job = await self._jobs.get()
             self._update(activity="travelling", executing=job.object, queued=self._jobs.qsize())
             if job.charge is not None:
                 await self._charge(job, job.charge)
@@ -235,7 +209,6 @@ class TaskExecutor:
                     async with asyncio.timeout(DRAIN_WAIT_S):
                         await self._knowledge.drained()
                 log.info("idle: its facts went out in %.3f s", asyncio.get_running_loop().time() - flushed)
-            self._current = None
             idle = self._jobs.empty()
             self._update(activity="idle" if idle else "travelling", executing=None)
             if idle:

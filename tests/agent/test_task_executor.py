@@ -111,40 +111,6 @@ async def test_a_refused_lease_drops_the_job_and_the_queue_unpicked() -> None:
     assert executor.live.fenced == (4,) and "picking" not in [s.activity for s in published]
 
 
-async def test_jobs_held_when_the_robot_joins_again_are_dropped_even_under_a_lease() -> None:
-    """A robot its teammates left out joins them again: the jobs it holds
-    go round again, so it picks none of them, though its lease still runs
-    (granted for the old membership); a job given after that is its own."""
-    published: list[LiveState] = []
-    travelling, go_on = asyncio.Event(), asyncio.Event()
-
-    async def sleep(seconds: float) -> None:
-        travelling.set()
-        await go_on.wait()
-
-    async def lease(for_s: float, task: int = 0) -> str | None:
-        return None  # always granted: only the voiding stops these picks
-
-    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=sleep, lease=lease)
-    executor.submit(_job(1, 2.0))
-    executor.submit(_job(2, 4.0))
-    executor.start()
-    try:
-        await asyncio.wait_for(travelling.wait(), 1)  # job 1 under way, job 2 queued
-        executor.void_held("joined its team again at task 5")
-        assert executor.live.fenced == (2,) and executor.live.queued == 0
-        go_on.set()
-        await asyncio.wait_for(executor.wait_idle(), 1)
-        assert executor.live.fenced == (2, 1) and executor.live.done == 0
-        assert "picking" not in [s.activity for s in published]
-        executor.submit(_job(5, 2.0))
-        await asyncio.sleep(0)
-        await asyncio.wait_for(executor.wait_idle(), 1)
-        assert executor.live.done == 1 and executor.live.fenced == (2, 1)
-    finally:
-        await executor.aclose()
-
-
 async def test_a_charge_stop_drives_to_the_dock_charges_then_does_the_task() -> None:
     stop = ChargeStop(Position(3, 11), to_dock_m=20.0, arrive_wh=25.0, full_wh=400.0, charge_s=600.0)
     job = Job(1, "Thing_1", aisle=3, rack=7, to_object_m=10.0, to_depot_m=0.0, depot=(1, 0), charge=stop)
