@@ -36,11 +36,13 @@ from coapkb.agent.controller import Controller
 from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
+from coapkb.agent.settling import Settler
 from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
 from coapkb.agent.team_membership import Membership, TeamMembership
 from coapkb.agent.teammate_revival import TeammateRevival
 from coapkb.feeder import membership as feeder_membership_module
+from coapkb.feeder.task_poster import TaskPoster
 from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
 from coapkb.kb.live import LiveKB
@@ -162,9 +164,16 @@ async def _counted_anyway(self: TeammateRevival, robot_id: str) -> bool:
     return True
 
 
-def _heeds_anyone(self: TeamMembership, asker: str | None) -> bool:
-    """A question about a teammate's plan binds the robot asked, whoever asks."""
-    return True
+async def _never_taken_back(self: feeder_membership_module.Membership, robot_id: str, why: str) -> None:
+    """A robot every member left out is fed on as before, never made to join again."""
+
+
+async def _restarts_untold(self: TaskPoster, *args: Any) -> None:
+    """A member restarted while its task is decided is named to nobody."""
+
+
+async def _leaders_decision_unasked(self: Settler, task: Any, leader: str) -> None:
+    """A follower whose leader is found down decides alone, asking nobody for the leader's decision."""
 
 
 _decided_before = team_membership_module.decided_before
@@ -322,9 +331,14 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TeamMembership, "adopt", _adopt_nothing), LEADER, (253, 578, 1207)),
     Mutant("revival-unasked", "a robot cut off counts again on a teammate that answers, though that one has "
            "it down", lambda: _patch(TeammateRevival, "_counts_this_robot", _counted_anyway), NINE, (2716,)),
-    Mutant("notes-from-the-left-out", "a robot goes on without a teammate's plan when any robot of its cluster "
-           "asks for it, one it left out too", lambda: _patch(TeamMembership, "heeds", _heeds_anyone),
-           STORAGE_FORGE, (90301,)),
+    Mutant("left-out-never-taken-back", "a robot every member left out is fed on, deciding in a membership of "
+           "its own", lambda: _patch(feeder_membership_module.Membership, "left_out", _never_taken_back), NINE,
+           (6028, 16092)),
+    Mutant("restarts-untold", "a member restarted while its task is decided is named to nobody",
+           lambda: _patch(TaskPoster, "_tell_restarts", _restarts_untold), LEADER, (3005, 3229)),
+    Mutant("leaders-decision-unasked", "a follower whose leader is found down decides alone, though another "
+           "follower has the leader's decision",
+           lambda: _patch(Settler, "leaders_decision", _leaders_decision_unasked), LEADER, (2026,)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
            lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
