@@ -134,23 +134,25 @@ class Membership:
         own, it split its cluster's decisions once another member was cut off."""
         if robot_id in self._left_out or robot_id in self._restarted:
             return
-        log.warning("%s was %s: it joins again once it holds no task", robot_id, why)
+        log.warning("%s is %s: it joins again once it holds no task", robot_id, why)
         self._left_out[robot_id] = why
         await self.channel.watcher.declare_down(robot_id, f"{why}: it joins again once it holds no task")
 
     async def _back_from_left_out(self, cluster: Sequence[str], records: list[TaskRecord]) -> list[str]:
         """The robots left out (:meth:`left_out`) ready to join again: asked
-        once, the same process, idle, and no task of its own left unexecuted."""
+        once (all at once, for a few round trips: one frozen or cut off is
+        not back yet), the same process, idle, and no task of its own left
+        unexecuted."""
         watcher = self.channel.watcher
+        out = [r for r in cluster if r in self._left_out]
+        if not out:
+            return []
+        timeout = self._not_back_yet_s()
         ready = []
-        for robot_id in cluster:
-            if robot_id not in self._left_out:
-                continue
-            state = await self.channel.state(robot_id, watcher.request_timeout_s)
-            if state is None:
-                continue
-            if not self._same_process(robot_id, state):
-                continue  # restarted: it joins as a new process, told by whoever restarted it
+        for robot_id, state in zip(out, await asyncio.gather(*(self.channel.state(r, timeout) for r in out)),
+                                   strict=True):
+            if state is None or not self._same_process(robot_id, state):
+                continue  # silent, or restarted: a new process joins when whoever restarted it says so
             watcher.states[robot_id] = state  # what it did meanwhile: done, dropped
             if idle(watcher.states, robot_id) and not unexecuted(records, watcher, robot_id, self._incarnation,
                                                                  self._done_before):
@@ -260,9 +262,7 @@ class Membership:
         # A dead robot is asked at each task boundary until its teammates
         # leave it out (a task or two): a few round trips, not a liveness
         # timeout, since silence here only means "not back yet".
-        srtt = watcher.round_trip.srtt
-        timeout = watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
-        state = await self.channel.state(robot_id, timeout)
+        state = await self.channel.state(robot_id, self._not_back_yet_s())
         if state is None or not self._same_process(robot_id, state):
             return None
         # A process that joined at task J decided nothing before it and takes nothing older.
@@ -277,6 +277,14 @@ class Membership:
         for task in missed:  # the robot takes tasks strictly in order
             await self.channel.post_task(robot_id, task.post, task.seq, task.object)
         return missed[-1].seq if missed else seen
+
+    def _not_back_yet_s(self) -> float:
+        """How long a robot down is waited for when asked whether it is back:
+        a few round trips, not a liveness timeout, since silence here only
+        means "not back yet"."""
+        watcher = self.channel.watcher
+        srtt = watcher.round_trip.srtt
+        return watcher.request_timeout_s if srtt is None else min(watcher.request_timeout_s, max(0.25, 3 * srtt))
 
     def _same_process(self, robot_id: str, state: RobotState) -> bool:
         """Whether ``state`` is the process of ``robot_id`` this feeder fed:

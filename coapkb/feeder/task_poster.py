@@ -155,8 +155,8 @@ class TaskPoster:
         went down executes nothing (its task, if any, goes round again),
         unless it was seen to have done the job first; and one left out of a
         newer membership by the others took no part in it.  ``records``:
-        the cluster's tasks before this one.  Returns the robots left out,
-        and why."""
+        the cluster's tasks before this one.  Returns the robots the newest
+        membership left out, and why."""
         down = self.channel.watcher.down
 
         def standing(decision: Decision) -> tuple[bool, int]:
@@ -178,7 +178,6 @@ class TaskPoster:
         did_it = {r for r in decisions if r in down and decisions[r].assigned_to == r
                   and self.membership.executed_next(r, records)}
         survivors = [r for r in decisions if r not in down or r in did_it]
-        left_out: dict[str, str] = {}
         for robot_id in cluster:
             decision = decisions.get(robot_id)
             if decision is None:
@@ -190,7 +189,6 @@ class TaskPoster:
             if newest is not None and decision is not newest and standing(decision) < standing(newest) \
                     and robot_id not in (newest.members or cluster):
                 record.absent[robot_id] = f"left out of membership epoch {newest.epoch} (its decision is void)"
-                left_out[robot_id] = f"left out of membership epoch {newest.epoch} at task {record.seq}"
                 continue
             record.decisions[robot_id] = decision.assigned_to
             record.epochs[robot_id] = decision.epoch
@@ -211,15 +209,18 @@ class TaskPoster:
                 record.reasons = dict(decision.reasons)
         assigned = {d for d in record.decisions.values() if d is not None}
         record.assigned_to = assigned.pop() if len(assigned) == 1 else None
-        # Left out by every member of the newest membership, each seen to
-        # decide without it: one that still counted it (or was not heard
-        # from) would admit it in another epoch than the others when it
-        # joins again (simulator, seed 4246 of nine robots with partitions: a
-        # false suspicion by one member, the other cut off).
-        counted = [decisions[r] for r in record.decisions]
-        if newest is None or not all(m in record.decisions for m in newest.members):
+        # Out: the robots every member of the newest membership is seen to
+        # decide without, whether they decided apart (void) or nothing (down:
+        # frozen through it, simulator seed 27897).  One member that still
+        # counted a robot (or was not heard from) would admit it in another
+        # epoch than the others when it joins again (seed 4246 of nine
+        # robots with partitions: a false suspicion by one member, the
+        # other cut off).
+        if newest is None or not newest.members or not all(m in record.decisions for m in newest.members):
             return {}
-        return {r: why for r, why in left_out.items() if all(d.members and r not in d.members for d in counted)}
+        counted = [decisions[r] for r in record.decisions]
+        return {r: f"left out of membership epoch {newest.epoch} at task {record.seq}" for r in cluster
+                if r not in record.decisions and all(d.members and r not in d.members for d in counted)}
 
 
 def _boot_in(answer: Response | None) -> int:

@@ -77,22 +77,27 @@ def test_a_lone_robots_membership_does_not_void_the_majoritys_decisions() -> Non
     assert record.absent == {"Robot1": "left out of membership epoch 4 (its decision is void)"}
 
 
-@pytest.mark.parametrize("robot3_decided,rejoins", [(True, True), (False, False)])
-def test_a_robot_every_member_left_out_is_made_to_join_again(robot3_decided: bool, rejoins: bool) -> None:
+@pytest.mark.parametrize("robot1_decided,robot3_decided,rejoins", [
+    (True, True, True), (False, True, True), (True, False, False)])
+def test_a_robot_every_member_left_out_is_made_to_join_again(robot1_decided: bool, robot3_decided: bool,
+                                                            rejoins: bool) -> None:
     """Robot1, cut off at the start and left out, never learned it and went
     on deciding in its own membership (simulator seeds 6028 and 16092 of
-    nine robots with partitions).  Once every member of the newest
-    membership is seen deciding without it, the feeder names it to join
-    again; while one was not heard from, it does not (seed 4246: that one
-    still counted it, and admitted it in another epoch)."""
-    channel = cast(Channel, SimpleNamespace(watcher=SimpleNamespace(down={} if robot3_decided else {"Robot3": "cut"})))
+    nine robots with partitions), or was frozen through it and decided
+    nothing (seed 27897).  Once every member of the newest membership is
+    seen deciding without it, the feeder names it to join again; while one
+    was not heard from, it does not (seed 4246: that one still counted it,
+    and admitted it in another epoch)."""
+    down = {**({} if robot1_decided else {"Robot1": "frozen"}), **({} if robot3_decided else {"Robot3": "cut"})}
+    channel = cast(Channel, SimpleNamespace(watcher=SimpleNamespace(down=down)))
     poster = TaskPoster(channel, cast(Membership, None))
     record = TaskRecord(object="Apple", cluster=1, seq=2)
     apart = Decision(2, "Apple", assigned_to="Robot2", epoch=0, members=("Robot1", "Robot2", "Robot3"))
     majority = Decision(2, "Apple", assigned_to="Robot2", epoch=1, members=("Robot2", "Robot3"))
-    decisions = {"Robot1": apart, "Robot2": majority, **({"Robot3": majority} if robot3_decided else {})}
+    decisions = {**({"Robot1": apart} if robot1_decided else {}), "Robot2": majority,
+                 **({"Robot3": majority} if robot3_decided else {})}
     left_out = poster._record(record, ["Robot1", "Robot2", "Robot3"], decisions, [])
-    assert record.absent["Robot1"] == "left out of membership epoch 1 (its decision is void)"
+    assert "Robot1" in record.absent and "Robot1" not in record.decisions
     assert left_out == ({"Robot1": "left out of membership epoch 1 at task 2"} if rejoins else {})
 
 

@@ -202,6 +202,8 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "its own, it left out another member once that one was cut off, in an epoch 1 of its own",
         16092: "the same as seed 6028, the last member alone without a majority",
         21652: "the same as seed 16092",
+        27897: "a robot frozen through the task its teammates left it out of decided nothing there, so the "
+               "feeder never took it back; once another member froze, the last one had no majority",
     }),
     # Judged alone, one restart is no median: the bound is the anti-entropy
     # round's (a missing catch-up, not one exchange lost at 10 % loss), and
