@@ -114,6 +114,8 @@ class Controller:
         #: skipped alike before the pick is written (or even made).
         self.claims: OrderedDict[str, Claim] = OrderedDict()
         self._runner: asyncio.Task[None] | None = None
+        #: The task this robot joins its team again at (:meth:`rejoin_at`; 0: none).
+        self._rejoins_at = 0
         #: What a task's decision needs from the KB.
         self.facts = FactGatherer(config, queries)
         #: Taking a teammate's decision when this robot cannot decide alone.
@@ -149,6 +151,14 @@ class Controller:
         """A new task from the feeder; tasks are handled strictly in order."""
         self._tasks.put_nowait((task, clock.monotonic()))
 
+    def rejoin_at(self, seq: int) -> None:
+        """This robot, left out by its teammates and fed nothing since, joins
+        them again at task ``seq`` (its post taken): the tasks before it that
+        it has not decided yet are not decided here, and their jobs, or any
+        it holds, are not its own (the feeder sends them round again)."""
+        self._rejoins_at = max(self._rejoins_at, seq)
+        self.executor.void_before(seq, f"joined its team again at task {seq}: earlier tasks went round again")
+
     def receive_decision(self, message: DecisionMessage) -> None:
         """The leader's decision ("compute and communicate")."""
         future = self._decisions.setdefault(message.decision.seq, asyncio.get_running_loop().create_future())
@@ -162,6 +172,10 @@ class Controller:
     async def _run(self) -> None:
         while True:
             task, received = await self._tasks.get()
+            if task.seq < self._rejoins_at:
+                log.warning("task %d (%s): not decided: this robot joins its team again at task %d",
+                            task.seq, task.object, self._rejoins_at)
+                continue
             try:
                 await self._admit(task)
                 if task.again is not None or task.restocked:

@@ -279,10 +279,13 @@ class RobotResources:
                 if robot_id != self.config.robot_id:
                     await self.team.membership.restarted(robot_id, seq)
             return taken
-        if self.config.robot_id in join and seq > self._next_seq:
+        if self.config.robot_id in join and seq >= self._next_seq:
             # Restarted, or left out by its teammates and joining them again:
             # this robot joins the team at this task (the feeder fed it none
-            # of those between).
+            # of those between), and a process that took earlier tasks
+            # leaves those it has not done to go round again.
+            if self.accepted:
+                self.controller.rejoin_at(seq)
             self._next_seq = seq
         if seq != self._next_seq:
             return Response.error(Status.CONFLICT, f"expected task {self._next_seq}, got {seq}")

@@ -86,6 +86,9 @@ class TaskExecutor:
         self._task: asyncio.Task[None] | None = None
         #: The charges made so far, in order (for the robot's statistics).
         self.recharges: list[Recharge] = []
+        #: Jobs of tasks before this one are not this robot's (:meth:`void_before`), and why.
+        self._void_before = 0
+        self._void_reason = ""
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name="task-executor")
@@ -125,6 +128,32 @@ class TaskExecutor:
                      fence_reason=why)
         self._idle.set()
 
+    def void_before(self, seq: int, why: str) -> None:
+        """Jobs of tasks before ``seq`` are not this robot's any more: it
+        joins its team again at ``seq``, and those tasks went round again
+        (or will).  Queued ones are dropped now; one under way, or one
+        decided later (a task this robot was still deciding), at its lease
+        check, even if a lease is granted: the teammates count this robot
+        again, and decided those tasks with it a member (simulator, seed
+        30143 of nine robots with partitions: a robot frozen while it
+        decided, taken back, then decided its old task and picked it after
+        it had gone round again)."""
+        self._void_before = max(self._void_before, seq)
+        self._void_reason = why
+        kept: list[Job] = []
+        dropped: list[Job] = []
+        while not self._jobs.empty():
+            job = self._jobs.get_nowait()
+            (dropped if job.seq < seq else kept).append(job)
+        for job in kept:
+            self._jobs.put_nowait(job)
+        if dropped:
+            self._drop([job.seq for job in dropped], why)
+
+    def _drop(self, seqs: list[int], why: str) -> None:
+        log.warning("dropping tasks %s unexecuted: %s", ", ".join(map(str, seqs)), why)
+        self._update(queued=self._jobs.qsize(), fenced=self.live.fenced + tuple(seqs), fence_reason=why)
+
     async def fenced(self) -> str | None:
         """Why no majority of the cluster grants this robot a lease now, or
         None if one does (or there is no fence)."""
@@ -133,6 +162,12 @@ class TaskExecutor:
     async def _leased(self, job: Job, for_s: float) -> bool:
         """True while this robot holds its lease for ``for_s`` more seconds;
         else ``job`` and the queued ones are dropped (:meth:`_forfeit`)."""
+        if job.seq < self._void_before:
+            self._drop([job.seq], self._void_reason)
+            if self._jobs.empty():
+                self._update(activity="idle", executing=None)
+                self._idle.set()
+            return False
         if self._lease is None:
             return True
         why = await self._lease(for_s, job.seq)

@@ -111,6 +111,42 @@ async def test_a_refused_lease_drops_the_job_and_the_queue_unpicked() -> None:
     assert executor.live.fenced == (4,) and "picking" not in [s.activity for s in published]
 
 
+async def test_jobs_before_a_join_are_dropped_even_under_a_lease() -> None:
+    """A robot its teammates left out joins them again at task 5: the jobs
+    of earlier tasks went round again, so it picks none of them, though its
+    teammates grant the lease again (they decided those tasks with it a
+    member); a job of task 5 or later is its own."""
+    published: list[LiveState] = []
+    travelling, go_on = asyncio.Event(), asyncio.Event()
+
+    async def sleep(seconds: float) -> None:
+        travelling.set()
+        await go_on.wait()
+
+    async def lease(for_s: float, task: int = 0) -> str | None:
+        return None  # always granted: only the join stops these picks
+
+    executor = TaskExecutor(MODEL, LiveState(1.0, 0.0), published.append, sleep=sleep, lease=lease)
+    executor.submit(_job(1, 2.0))
+    executor.submit(_job(2, 4.0))
+    executor.start()
+    try:
+        await asyncio.wait_for(travelling.wait(), 1)  # job 1 under way, job 2 queued
+        executor.void_before(5, "joined its team again at task 5")
+        assert executor.live.fenced == (2,) and executor.live.queued == 0
+        executor.submit(_job(3, 2.0))  # decided late: a task before the join
+        executor.submit(_job(5, 2.0))
+        go_on.set()
+        async with asyncio.timeout(1):
+            while executor.live.done < 1:
+                await asyncio.sleep(0)
+        await asyncio.wait_for(executor.wait_idle(), 1)
+        assert executor.live.fenced == (2, 1, 3) and executor.live.done == 1
+        assert [s.executing for s in published if s.activity == "picking"][-1] == "Thing_5"
+    finally:
+        await executor.aclose()
+
+
 async def test_a_charge_stop_drives_to_the_dock_charges_then_does_the_task() -> None:
     stop = ChargeStop(Position(3, 11), to_dock_m=20.0, arrive_wh=25.0, full_wh=400.0, charge_s=600.0)
     job = Job(1, "Thing_1", aisle=3, rack=7, to_object_m=10.0, to_depot_m=0.0, depot=(1, 0), charge=stop)

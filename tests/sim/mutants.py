@@ -168,6 +168,10 @@ async def _never_taken_back(self: feeder_membership_module.Membership, robot_id:
     """A robot every member left out is fed on as before, never made to join again."""
 
 
+def _old_jobs_kept(self: TaskExecutor, seq: int, why: str) -> None:
+    """A robot that joins its team again keeps the jobs of the tasks before."""
+
+
 async def _restarts_untold(self: TaskPoster, *args: Any) -> None:
     """A member restarted while its task is decided is named to nobody."""
 
@@ -339,6 +343,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("leaders-decision-unasked", "a follower whose leader is found down decides alone, though another "
            "follower has the leader's decision",
            lambda: _patch(Settler, "leaders_decision", _leaders_decision_unasked), LEADER, (2026,)),
+    Mutant("old-jobs-kept-at-a-join", "a robot taken back keeps the jobs of the tasks before its join",
+           lambda: _patch(TaskExecutor, "void_before", _old_jobs_kept), NINE, (30143, 33136, 33489)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
            lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),

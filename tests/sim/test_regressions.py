@@ -204,6 +204,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         21652: "the same as seed 16092",
         27897: "a robot frozen through the task its teammates left it out of decided nothing there, so the "
                "feeder never took it back; once another member froze, the last one had no majority",
+        30143: "a robot frozen while it decided, left out and taken back, then decided its old task (its "
+               "teammates' decision gave it the job) and picked it after the task had gone round again",
+        33136: "the same as seed 30143, a robot cut off",
+        33489: "the same as seed 30143",
     }),
     # Judged alone, one restart is no median: the bound is the anti-entropy
     # round's (a missing catch-up, not one exchange lost at 10 % loss), and
