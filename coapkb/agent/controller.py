@@ -268,11 +268,10 @@ class Controller:
         fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
         each other on it alike."""
         if self.robot_id in task.join:
-            if self.team.own.last is not None:
+            if task.seq == self._rejoins_at:
                 # Not a new process: one its teammates had left out, fed
-                # again from this task (idle: the feeder waits until its
-                # jobs are done or went round again).  Its suspicions are of
-                # a membership it leaves.
+                # again from this task (:meth:`rejoin_at`).  Its suspicions
+                # are of a membership it leaves.
                 self.team.forget_suspicions()
             joined = await self.team.join(task.seq, patience=self.config.query_timeout_s, joining=task.join)
             # Before its plan is out, nobody has decided this task: the
