@@ -318,7 +318,7 @@ class Controller:
 
     async def _decide(self, task: Task, received: float) -> DecisionMessage:
         if not self.computes:
-            return await self._await_decision(task)
+            return await self._await_decision(task, received)
         if self.config.strategy == "compute-by-all":
             theirs = await self.settler.decided_before(task, received)
             if theirs is not None:
@@ -334,7 +334,7 @@ class Controller:
                 log.error("%s", exc)
         return message
 
-    async def _await_decision(self, task: Task) -> DecisionMessage:
+    async def _await_decision(self, task: Task, received: float) -> DecisionMessage:
         """The leader's decision on ``task``; if the leader is declared down
         first, this robot's own (see the module's docstring)."""
         leader = self.leader
@@ -356,7 +356,16 @@ class Controller:
                 self.team.saw_process(min(message.decision.members, key=robot_sort_key), message.boot)
             return message
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
-        return await self.settler.leaders_decision(task, leader) or await self._compute(task)
+        taken = await self.settler.leaders_decision(task, leader)
+        if taken is not None:
+            return taken
+        computed = await self._compute(task)
+        # A follower that decided it meanwhile, or while this one stood
+        # still, settled it: frozen while it computed, one took the dead
+        # leader's last plan that the other, asking it in vain, had done
+        # without (simulator, seed 14580 of the compute-and-communicate
+        # swarm profile: one task in two epochs).
+        return await self.settler.decided_before(task, received) or computed
 
     async def gather(self, task: Task) -> TaskFacts | str:
         """What the task's pick needs from the KBs, or why nobody picks it;

@@ -176,8 +176,16 @@ async def _restarts_untold(self: TaskPoster, *args: Any) -> None:
     """A member restarted while its task is decided is named to nobody."""
 
 
-async def _leaders_decision_unasked(self: Settler, task: Any, leader: str) -> None:
-    """A follower whose leader is found down decides alone, asking nobody for the leader's decision."""
+async def _leaders_decision_unasked(self: Settler, *args: Any) -> None:
+    """A follower whose leader is found down decides alone, asking nobody for the leader's decision or for
+    one settled meanwhile."""
+
+
+@contextlib.contextmanager
+def _follower_alone() -> Iterator[None]:
+    with _patch(Settler, "leaders_decision", _leaders_decision_unasked), \
+            _patch(Settler, "decided_before", _leaders_decision_unasked):
+        yield
 
 
 _decided_before = team_membership_module.decided_before
@@ -340,9 +348,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            (6028, 16092)),
     Mutant("restarts-untold", "a member restarted while its task is decided is named to nobody",
            lambda: _patch(TaskPoster, "_tell_restarts", _restarts_untold), LEADER, (3005, 3229)),
-    Mutant("leaders-decision-unasked", "a follower whose leader is found down decides alone, though another "
-           "follower has the leader's decision",
-           lambda: _patch(Settler, "leaders_decision", _leaders_decision_unasked), LEADER, (2026,)),
+    Mutant("leaders-decision-unasked", "a follower whose leader is found down decides alone and keeps its own "
+           "decision, though another follower has the leader's, or settled one meanwhile",
+           _follower_alone, LEADER, (2026, 14580)),
     Mutant("old-jobs-kept-at-a-join", "a robot taken back keeps the jobs of the tasks before its join",
            lambda: _patch(TaskExecutor, "void_before", _old_jobs_kept), NINE, (30143, 33136, 33489)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "

@@ -155,6 +155,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         1045: "the same as seed 2118",
         2026: "a follower whose leader was found down decided the task itself, leaving the leader out, while "
               "the other follower had the leader's decision: one task in two epochs, and an epoch that went back",
+        14580: "both followers decided alone once the restarted leader was named; one, frozen while it "
+               "computed, used the leader's last plan the other had done without, asking it in vain: one task "
+               "in two epochs",
         3005: "the leader took the post, was killed and restarted: its followers, which had never observed its "
               "old process, waited for its decision until they gave the task up",
         3229: "the same as seed 3005, the restarted leader then cut off from its followers",
