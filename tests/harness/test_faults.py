@@ -135,7 +135,10 @@ async def test_a_stopped_robot_comes_back_fenced(transport: str) -> None:
 
             record = await team.run(tasks, progress, settled)
     assert stopped.is_set() and resumed.is_set(), [t.fate for t in record.tasks]
-    assert set(record.down) == {VICTIM}
+    # Down; once back and holding no task, taken back with its own process
+    # at the next task, if one was left to join at.
+    assert set(record.down) <= {VICTIM}
+    assert VICTIM in record.down or any(VICTIM in t.joined for t in record.tasks), record.down
     check_fates(record, tasks, spec)
     # Every task picked exactly once: by the robot it finally went to; the
     # comeback robot dropped the jobs it held, unpicked (a task the others
