@@ -68,9 +68,15 @@ class ScaleRow:
     other_fates: int
     bytes_per_task: float
     messages_per_task: float
-    #: CON messages sent again (the robots' servers: notifications, as
-    #: answers ride on ACKs), per task.
+    #: Datagrams sent again, per task: the servers' CON messages
+    #: (notifications: answers ride on ACKs) and the clients' copies of a
+    #: request (retries and hedges, each a new NON exchange).
     retransmissions_per_task: float
+    #: Notifications the robots sent (first transmissions), per task.
+    notifications_per_task: float
+    #: Of them, CON notifications sent again: the robots' servers'
+    #: retransmissions over their notifications.
+    notification_retransmission_share: float
     robot_bytes_median: float
     robot_bytes_max: float
     rss_idle_median_mib: float
@@ -97,6 +103,7 @@ async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> Sc
         after = [rss_mib(p.pid) for p in team.processes.values()]
     per_robot = [s.traffic.bytes_sent for s in record.robot_stats.values()]
     traffic = sum((s.traffic for s in record.robot_stats.values()), TrafficCounters()) + record.feeder_traffic
+    servers = sum((s.server or TrafficCounters() for s in record.robot_stats.values()), TrafficCounters())
     fates = FateCounts.of(record.tasks)
     return ScaleRow(
         robots=robots, tasks=len(tasks), rep=rep,
@@ -106,6 +113,8 @@ async def one_team(robots: int, tasks: list[str], rep: int, workdir: Path) -> Sc
         bytes_per_task=round(traffic.bytes_sent / len(tasks)),
         messages_per_task=round(traffic.messages_sent / len(tasks), 1),
         retransmissions_per_task=round(traffic.retransmissions / len(tasks), 2),
+        notifications_per_task=round(servers.notifications_sent / len(tasks), 1),
+        notification_retransmission_share=round(servers.retransmissions / max(1, servers.notifications_sent), 4),
         robot_bytes_median=statistics.median(per_robot), robot_bytes_max=max(per_robot),
         rss_idle_median_mib=round(statistics.median(idle), 1), rss_idle_max_mib=round(max(idle), 1),
         rss_after_median_mib=round(statistics.median(after), 1), rss_after_max_mib=round(max(after), 1),
@@ -133,11 +142,12 @@ async def main() -> int:
     write_csv(args.out, [f.name for f in fields(ScaleRow)], (asdict(r) for r in rows))
     print()
     print("| robots | tasks | team up (s) | completion (s) | assigned+skipped | B/task | retransmissions/task "
-          "| robot RSS idle/after, median (max) MiB |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| notifications/task | of them sent again | robot RSS idle/after, median (max) MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r.robots} | {r.tasks} | {r.team_up_s:.1f} | {r.completion_s:.1f} | {r.assigned + r.skipped} "
               f"| {r.bytes_per_task:,.0f} | {r.retransmissions_per_task:.2f} "
+              f"| {r.notifications_per_task:.1f} | {r.notification_retransmission_share:.2%} "
               f"| {r.rss_idle_median_mib:.0f}/{r.rss_after_median_mib:.0f} "
               f"({r.rss_idle_max_mib:.0f}/{r.rss_after_max_mib:.0f}) |")
     base = {r.rep: r for r in rows if r.robots == min(args.sizes)}

@@ -143,6 +143,9 @@ class TrafficCounters:
     messages_sent: int = 0
     messages_received: int = 0
     retransmissions: int = 0
+    #: Observe notifications among the messages sent (first transmissions;
+    #: a CON one sent again counts under ``retransmissions``).
+    notifications_sent: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

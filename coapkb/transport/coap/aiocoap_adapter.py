@@ -536,14 +536,18 @@ class ContextHooks:
         counters.bytes_sent += size
         if self.on_datagram is not None:
             self.on_datagram(size)
+        repeat = False
         if message.mtype == CON:
             key = (message.remote.sockaddr, message.mid)
             if key in self._recent_con:
                 counters.retransmissions += 1
+                repeat = True
             else:
                 self._recent_con[key] = None
                 if len(self._recent_con) > 4096:
                     self._recent_con.popitem(last=False)
+        if not repeat and message.code.is_response() and message.opt.observe is not None:
+            counters.notifications_sent += 1
 
     def _error_received(self, exc: OSError) -> None:
         if self._send_errors is not None:  # raised by our sendmsg: _send decides

@@ -50,6 +50,9 @@ def test_needless_retransmissions_to_a_slow_observer_lengthen_its_timer_only() -
     layer = ReliabilityLayer(clock=clock)
     _teammate_path(layer)
     policy = NotificationPolicy(layer)
+    teammate = policy.on_send(_notification(5001))
+    clock.now += 0.02
+    policy.on_reply(teammate, aiocoap.Message())  # the teammate's port is heard from
     fast = policy.timeout(policy.on_send(_notification(5001)), 0)
     assert fast < 0.3  # the host's path: the teammates answer in 20 ms
     # The feeder's port acknowledges 0.9 s late: the notification went out
@@ -91,3 +94,21 @@ def test_the_ack_delays_kept_are_bounded() -> None:
     assert delays.of(("10.0.0.1", 1)) is first  # heard from lately: kept
     delays.of(("10.0.0.3", 1))  # the one heard from least lately goes
     assert list(delays._delays) == [("10.0.0.1", 1), ("10.0.0.3", 1)]
+
+
+def test_an_observer_not_heard_from_waits_a_first_timeout_and_doubles_at_once() -> None:
+    """The host's path is trained by 20 ms round trips to the teammates; the
+    feeder's port, never heard from, gets the timeout of a path with no
+    sample, doubled at each retransmission (no fast ones at 20 ms)."""
+    clock = Clock()
+    layer = ReliabilityLayer(clock=clock)
+    _teammate_path(layer)
+    policy = NotificationPolicy(layer)
+    record = policy.on_send(_notification(6000))
+    first = policy.timeout(record, 0)
+    assert first >= layer.path_for_host("127.0.0.1").initial_rto()
+    assert policy.timeout(record, 1) >= 2 * layer.path_for_host("127.0.0.1").initial_rto()
+    clock.now += 0.3
+    policy.on_reply(record, aiocoap.Message())
+    assert record.observer.samples == 1
+    assert policy.timeout(policy.on_send(_notification(6000)), 0) < first  # heard from: its own estimate

@@ -223,10 +223,15 @@ class PeerPath:
         s = self.settings
         return s.min_rto if s.link_bps else max(s.min_rto, s.min_rto_unknown_link)
 
+    def initial_rto(self) -> float:
+        """The timeout of a path with no sample yet."""
+        s = self.settings
+        return s.initial_rto_known_link if s.link_bps else s.initial_rto
+
     def rto(self) -> float:
         s = self.settings
         return self.rtt.rto(k=s.rto_k, granularity=s.granularity, floor=self.floor(), ceiling=s.max_rto,
-                            initial=s.initial_rto_known_link if s.link_bps else s.initial_rto)
+                            initial=self.initial_rto())
 
     def exchange_timeout(self, base: float, exchange_bytes: float) -> float:
         """``base`` (the RTO, maybe backed off) plus the airtime by which this

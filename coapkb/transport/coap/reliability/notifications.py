@@ -27,7 +27,10 @@ kept too (:class:`AckDelays`), from the clean samples and from the
 notifications a duplicate ACK proves were sent again needlessly (two
 copies reached the observer: the first ACK came that long after the first
 transmission, RFC 3708's reasoning for TCP), and a notification waits the
-longer of the two timeouts.
+longer of the two timeouts.  An observer not heard from yet has no such
+estimate, and its first ACK can come a second late: its notification waits
+at least the timeout of a path with no sample, and doubles from the first
+retransmission.
 """
 
 from __future__ import annotations
@@ -161,18 +164,27 @@ class NotificationPolicy:
 
     def timeout(self, record: _Notification, retransmission_counter: int) -> float:
         """The path's timeout, or the observer's own if its ACKs come later,
-        for the first few transmissions, then doubling: a notification is
+        for the first few transmissions, then doubling (an observer not heard
+        from yet: at least a path's first timeout, doubling at once): a notification is
         never abandoned for want of patience (the server would drop the
         observation, and the teammate would wait for a refresh), but a peer
         that stays silent is not flooded either."""
         path = record.path
-        backoff = 2 ** max(0, retransmission_counter - FAST_RETRANSMISSIONS)
         queued = record.queued if retransmission_counter == 0 else self.layer.uplink.wait(self.layer.clock())
         base = path.rto()
+        fast = FAST_RETRANSMISSIONS
         if record.observer.samples:
             s = path.settings
             base = max(base, record.observer.rto(k=s.rto_k, granularity=s.granularity, floor=path.floor(),
                                                  ceiling=s.max_rto, initial=base))
+        else:
+            # An observer not heard from yet is a path with no sample (RFC
+            # 6298 2.1, 5.5): the host's round trip is its teammates', and a
+            # busy feeder's first ACKs came 0.2-1.2 s late, after three
+            # retransmissions at that round trip.
+            base = max(base, path.initial_rto())
+            fast = 0
+        backoff = 2 ** max(0, retransmission_counter - fast)
         return path.exchange_timeout(base * backoff, record.nbytes + _ACK_BYTES) + queued
 
     def on_retransmit(self, record: _Notification) -> None:
