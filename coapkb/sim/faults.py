@@ -20,7 +20,10 @@ from .network import LinkModel
 #: Fault kinds that act on processes or links at a time.
 EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin")
 #: Kinds that shape every link for the whole run, with their default amount.
-LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02}
+LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02, "late": 0.02}
+#: The link kinds swarm testing drew before ``late`` existed, in their order:
+#: a seed without ``late`` draws its mix as it always did.
+_SWARM_KINDS = ("loss", "burst", "dup", "jitter")
 #: Everything at once, with default amounts (a forger, a power cut and a
 #: rejoin cut off are asked for by name).
 MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
@@ -47,6 +50,8 @@ class FaultMix:
     burst: float = 0.0
     dup: float = 0.0
     jitter: float = 0.0
+    #: Messages held back 0.5-3 s (:attr:`~coapkb.sim.network.LinkModel.late`).
+    late: float = 0.0
     #: Each seed draws its own mix from these kinds (:data:`SWARM`).
     swarm: bool = False
 
@@ -81,8 +86,8 @@ class FaultMix:
         """Every link's behaviour: a radio's (30 ms one way) once anything is lost, else a LAN's."""
         if self.lossy:
             return LinkModel(delay_s=0.03, jitter_s=max(self.jitter, 0.005), loss=self.loss,
-                             burst=self.burst, duplicate=self.dup)
-        return LinkModel(delay_s=0.001, jitter_s=max(self.jitter, 0.0005), duplicate=self.dup)
+                             burst=self.burst, duplicate=self.dup, late=self.late)
+        return LinkModel(delay_s=0.001, jitter_s=max(self.jitter, 0.0005), duplicate=self.dup, late=self.late)
 
     def describe(self) -> str:
         parts = list(self.events)
@@ -98,12 +103,13 @@ class FaultMix:
             return self
         kinds = tuple(k for k in self.events if rng.random() < 0.6) or (rng.choice(self.events),) if self.events else ()
         amounts = {k: round(rng.uniform(0, 3 * getattr(self, k)), 4) if rng.random() < 0.7 else 0.0
-                   for k in LINK_KINDS}
+                   for k in _SWARM_KINDS}
         if self.lossy and not (amounts["loss"] or amounts["burst"]):
             amounts["loss"] = round(rng.uniform(0, 3 * max(self.loss, self.burst)), 4)
         amounts["burst"] = min(amounts["burst"], 0.5)
+        amounts["late"] = round(rng.uniform(0, 3 * self.late), 4) if self.late and rng.random() < 0.7 else 0.0
         return FaultMix(kinds, loss=amounts["loss"], burst=amounts["burst"], dup=amounts["dup"],
-                        jitter=amounts["jitter"])
+                        jitter=amounts["jitter"], late=amounts["late"])
 
 
 def _amount(name: str, value: str) -> float:
@@ -168,6 +174,8 @@ class Schedule:
             links.append(f"bursts {model.burst:.0%}")
         if model.duplicate:
             links.append(f"dup {model.duplicate:.0%}")
+        if model.late:
+            links.append(f"late {model.late:.0%}")
         return "; ".join([*(str(e) for e in self.events), *links]) or "no faults"
 
 

@@ -7,9 +7,14 @@ overtake each other) or deliver it twice; a partition drops whatever
 crosses it, both ways.  On top, the transport behaves as CoAP's does for
 the code above it:
 
-* a request is confirmable: retried on an RFC 6298 timeout (doubling) until
-  its caller's deadline, and the server answers a retried or duplicated
-  request from its exchange cache instead of running it twice;
+* a request is retried on an RFC 6298 timeout (doubling) until its
+  caller's deadline, each try a new exchange, as the CoAP client's
+  reliability layer sends it (a fresh token and message ID): the server
+  runs every try that reaches it, and the answer to any try answers the
+  request.  A datagram delivered twice is one exchange, answered again
+  from the server's exchange cache (RFC 7252 4.5).  An Observe
+  registration is confirmable, one exchange however often it is sent, as
+  the CoAP client sends it;
 * a request to an endpoint whose process is dead fails at once (the
   kernel's ICMP port unreachable), unless a partition drops that too;
 * an observation (RFC 7641) registers with a request; each change is a
@@ -60,6 +65,11 @@ NOTIFY_TRIES = 5
 HEADER_BYTES = 12
 
 
+#: The least a message held back (:attr:`LinkModel.late`) is late by: longer
+#: than a try's timeout on these links, so its sender's retry overtakes it.
+LATE_MIN_S = 0.5
+
+
 @dataclass(frozen=True)
 class LinkModel:
     """How every directed link between two processes treats a message."""
@@ -77,14 +87,19 @@ class LinkModel:
     burst_loss: float = 0.8
     #: Probability that a message is delivered twice.
     duplicate: float = 0.0
+    #: Probability that a message is held back, and for how long at most: a
+    #: radio's link-layer retries or a queue in a relay deliver it seconds
+    #: late, after the sender's own retry of it and what the sender sent next.
+    late: float = 0.0
+    late_s: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("loss", "burst", "burst_loss", "duplicate"):
+        for name in ("loss", "burst", "burst_loss", "duplicate", "late"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be a probability, got {getattr(self, name)}")
         if self.burst >= 1 or self.burst_s <= 0:
             raise ValueError("burst must be below 1 and burst_s positive")
-        if self.delay_s < 0 or self.jitter_s < 0:
+        if self.delay_s < 0 or self.jitter_s < 0 or self.late_s < LATE_MIN_S:
             raise ValueError("delay and jitter must not be negative")
 
 
@@ -117,7 +132,10 @@ class Link:
         if loss > 0 and rng.random() < loss:
             return []
         count = 2 if model.duplicate > 0 and rng.random() < model.duplicate else 1
-        return [model.delay_s + (rng.random() * model.jitter_s if model.jitter_s else 0.0) for _ in range(count)]
+        # Drawn only where the model holds messages back: a seed's other draws stay as they were.
+        late = rng.uniform(LATE_MIN_S, model.late_s) if model.late > 0 and rng.random() < model.late else 0.0
+        return [late + model.delay_s + (rng.random() * model.jitter_s if model.jitter_s else 0.0)
+                for _ in range(count)]
 
 
 class SimNetwork:
@@ -270,19 +288,21 @@ class SimServer:
         self.counters = TrafficCounters()
         self.closed = False
         #: (client, exchange) -> its answer once known (None while it runs), oldest first.
-        self._exchanges: OrderedDict[tuple[int, int], tuple[float, Response | None]] = OrderedDict()
+        #: (client, request, try) -> when it came, and its answer once given.
+        self._exchanges: OrderedDict[tuple[int, int, int], tuple[float, Response | None]] = OrderedDict()
         self._observers: dict[tuple[int, int], _Observer] = {}
 
     @property
     def up(self) -> bool:
         return self.process.alive and not self.closed
 
-    def receive(self, client: SimClient, xid: int, request: Request, observe: _Observation | None) -> None:
-        """A copy of request ``xid`` from ``client`` arrived."""
+    def receive(self, client: SimClient, xid: int, request: Request, observe: _Observation | None,
+                attempt: int = 0) -> None:
+        """A copy of try ``attempt`` of request ``xid`` from ``client`` arrived."""
         counters = self.counters
         counters.messages_received += 1
         counters.bytes_received += len(request.payload) + HEADER_BYTES
-        key = (client.id, xid)
+        key = (client.id, xid, 0 if observe is not None else attempt)
         known = self._exchanges.get(key)
         if known is not None:
             if known[1] is not None:  # answered: the answer again, not a second run
@@ -294,7 +314,7 @@ class SimServer:
             self._exchanges.popitem(last=False)
         self.process.hold(self.process.loop.create_task(self._serve(key, client, xid, request, observe)))
 
-    async def _serve(self, key: tuple[int, int], client: SimClient, xid: int, request: Request,
+    async def _serve(self, key: tuple[int, int, int], client: SimClient, xid: int, request: Request,
                      observe: _Observation | None) -> None:
         if observe is not None and observe.key not in self._observers:
             observer = _Observer(self, client, observe, request)
@@ -548,7 +568,7 @@ class SimClient:
                 self.process.loop.call_at(network.scheduler.clock.now + 2 * network.model.delay_s,
                                           self._unreachable, xid, peer)
             return
-        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe))
+        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe, attempt))
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         """The current representation of ``request.path``, then one per change

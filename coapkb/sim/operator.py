@@ -37,6 +37,11 @@ CATCH_UP_WINDOW_S = 3 * INITIAL_RTO_S
 #: The subject of each module's write log: the operator's writes add and
 #: remove values of its multi-valued ``written`` property.
 WRITE_LOG = "WriteLog"
+#: With links that hold messages back: the share of adds removed again,
+#: and how long after the add's answer (time for its deltas to spread, so
+#: the remove has seen every copy and is judged as settled).
+UNDO_SHARE = 0.3
+UNDO_AFTER_S = 0.3
 MOVE_ROBOT = (
     "PREFIX loc: <http://www.tcs.org/2018/Location#> DELETE {{ loc:{robot} loc:Robot_aisle_no ?a }} "
     "INSERT {{ loc:{robot} loc:Robot_aisle_no {aisle} }} WHERE {{ loc:{robot} loc:Robot_aisle_no ?a }}"
@@ -204,20 +209,25 @@ class Operator:
         self.lost_copies: dict[tuple[str, int], str] = {}
 
     async def write(self, process: Process, rng: random.Random, writes: int, horizon_s: float,
-                    fed_at: float) -> None:
+                    fed_at: float, undo: bool = False) -> None:
         """``writes`` writes from ``process``, at random times over
         ``horizon_s`` from ``fed_at``, each to a random robot and a module
         it holds.  A write adds a value to the module's log (a multi-valued
         property), adds the same value at two holders at once, removes a
         value added before, adds a value at one holder while another
-        removes it, or moves a robot (a single value: the latest write wins)."""
+        removes it, or moves a robot (a single value: the latest write wins).
+        With ``undo`` (links that hold messages back), a third of the adds
+        are removed again at the same robot once acknowledged and spread
+        (:data:`UNDO_AFTER_S`): a try of the add held back until after the
+        remove must be answered as the repeat it is, not bring the value
+        back (the write's id, docs/knowledge.md "A write tried again")."""
         # A writer named by its process, not a random one: a seed runs alike.
         client = KBClient(await self._network.for_process(process).open_client("coap"), timeout=10.0,
                           writer=process.name)
         configs = self.holders.configs
         times = sorted(rng.uniform(0, horizon_s) for _ in range(writes))
         loop = asyncio.get_running_loop()
-        pending: list[asyncio.Task[None]] = []
+        pending: list[asyncio.Task[str]] = []
         inserted: dict[str, list[int]] = {}
         for i, at in enumerate(times):
             await asyncio.sleep(max(0.0, fed_at + at - loop.time()))
@@ -238,14 +248,26 @@ class Operator:
                 ops += [(robot, "insert", i), (rng.choice(others), "delete", i)]
             else:
                 ops.append((robot, "insert", i))
+            undone = undo and len(ops) == 1 and ops[0][1] == "insert" and rng.random() < UNDO_SHARE
             for to, kind, value in ops:
-                if kind == "insert":
+                if kind == "insert" and not undone:
                     inserted.setdefault(module, []).append(value)
                 elif kind == "delete":
                     self._catch_ups.deleting(module, value)
-                task = loop.create_task(self._send(client, to, module, f"w{i}", kind, value))
-                pending.append(task)
+                send = self._send_and_undo if undone else self._send
+                pending.append(loop.create_task(send(client, to, module, f"w{i}", kind, value)))
         await asyncio.gather(*pending)
+
+    async def _send_and_undo(self, client: KBClient, robot: str, module: str, label: str, kind: str,
+                             value: int) -> str:
+        """Add ``value`` at ``robot``; once acknowledged, and spread, remove
+        it there.  The last answer's status."""
+        status = await self._send(client, robot, module, label, kind, value)
+        if status != "2.04":
+            return status
+        await asyncio.sleep(UNDO_AFTER_S)
+        self._catch_ups.deleting(module, value)
+        return await self._send(client, robot, module, f"{label}-undo", "delete", value)
 
     def owed(self, robot_id: str) -> dict[str, set[int]]:
         """What ``robot_id``, restarting now, must catch up with: per module
@@ -306,7 +328,8 @@ class Operator:
         verb = "INSERT" if kind == "insert" else "DELETE"
         return f"{verb} DATA {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
 
-    async def _send(self, client: KBClient, robot: str, module: str, label: str, kind: str, value: int) -> None:
+    async def _send(self, client: KBClient, robot: str, module: str, label: str, kind: str, value: int) -> str:
+        """One write, noted with its answer's status (``lost``: no answer), which it returns."""
         sent = self._clock()
         settled = kind == "delete" and self._all_holders_settled(module, value)
         try:
@@ -320,3 +343,4 @@ class Operator:
         self._note(f"write {label} {kind} {value} to {robot} ({module}): {status}")
         self.write_log.append(WriteOp(label, robot, status, module, kind, value, round(sent, 6),
                                       round(self._clock(), 6), settled, copies))
+        return status

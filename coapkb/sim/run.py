@@ -554,7 +554,8 @@ class SimulatedTeam:
             if self.spec.writes:
                 operator = self._spawn("operator")
                 writer = self.scheduler.start(operator, self.operator.write(
-                    operator, random.Random(self._write_seed), self.spec.writes, self.spec.horizon_s, started))
+                    operator, random.Random(self._write_seed), self.spec.writes, self.spec.horizon_s, started,
+                    undo=self.schedule.link.late > 0))
             scenario = self.spec.scenario
 
             def progress(record: TaskRecord) -> None:
