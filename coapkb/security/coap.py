@@ -444,6 +444,18 @@ class _OSCORETransport(TransportOSCORE):
         task.add_done_callback(lambda done: self._request_done(done, request, tracked))
         request.on_interest_end(tracked.end)
 
+    async def shutdown(self) -> None:
+        """End the requests still running.  aiocoap leaves them to the
+        transports below, which end the wire requests but not an
+        observation's loop reading one: it stayed pending, and was reported
+        when collected ("Task was destroyed but it is pending") once a
+        process had run a second team."""
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await super().shutdown()
+
     def _request_done(self, task: asyncio.Task[None], request: Any, tracked: _WireRequests) -> None:
         self._tasks.discard(task)
         if task.cancelled():
