@@ -11,13 +11,14 @@ from coapkb.agent.robot_resources import RobotResources
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
 from coapkb.agent.team_view import TeamView
 from coapkb.transport.base import Endpoint
+from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import Method, Request, Response, Status
 
 
-def _robot1() -> tuple[TeamView, RobotResources]:
+def _robot1(transport: Any = None) -> tuple[TeamView, RobotResources]:
     own = RobotState("Robot1", PlannedState(1, 0, 400.0, 0.0, 40.0, seq=6), LiveState(1.0, 0.0))
     mates = {"Robot2": Endpoint("coap", "127.0.0.1", 2), "Robot3": Endpoint("coap", "127.0.0.1", 3)}
-    team = TeamView(own, mates, cast(Any, None))
+    team = TeamView(own, mates, transport)
     resources = RobotResources(cast(Any, SimpleNamespace(robot_id="Robot1")), team,
                                cast(Any, None), cast(Any, None), cast(Any, None))
     return team, resources
@@ -51,3 +52,23 @@ async def test_an_asker_outside_the_cluster_is_refused() -> None:
                    await _ask(resources, {"of": "Robot3", "at": "5"}, peer="Robot9")):
         assert answer.status == Status.FORBIDDEN and "Robot9" in answer.text()
     assert not team.membership.forgoes("Robot3", 5)
+
+
+async def test_a_question_from_before_a_teammates_join_binds_nothing() -> None:
+    """Robot3 restarted and joined at task 6, showing its plan after task 5;
+    a try of Robot2's question about its plan after task 4, held back on the
+    way, arrives now: about the process that left, it must not make Robot1
+    leave the new one out (simulator, three robots, late messages, seed
+    686: Robot1 alone left Robot3 out from task 7 on, one epoch ahead)."""
+    team, resources = _robot1(MemoryNetwork().client())  # the admission observes Robot3 again
+    try:
+        team.membership.leave_out("Robot3", 4, "restarted")
+        team.membership.admit("Robot3", 6)
+        late = await _ask(resources, {"of": "Robot3", "at": "4", "by": "Robot2"})
+        assert late.status == Status.NOT_FOUND
+        assert not team.membership.forgoes("Robot3", 6) and not team.membership.left_out("Robot3")
+        # A question about the new process's first plan binds as any other.
+        await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+        assert team.membership.forgoes("Robot3", 5)
+    finally:
+        await team.aclose()

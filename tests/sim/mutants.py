@@ -160,6 +160,14 @@ def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int =
     self.epoch = before
 
 
+async def _stale_question_binds(self: TeamMembership, robot_id: str, seq: int) -> None:
+    """A question about a teammate's plan binds whatever task it names, one
+    from before the teammate's last admission too."""
+    if robot_id in self._peers and seq < self._forgone.get(robot_id, seq + 1):
+        self._forgone[robot_id] = seq
+        await self._teammates.poke()
+
+
 def _adopt_nothing(self: TeamMembership, membership: Membership, seq: int) -> None:
     """A follower keeps its own membership, not the leader's it carries out."""
 
@@ -379,6 +387,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("pushed-answers-before-catch-up", "a restarted holder answers a registration on its pushed answers "
            "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP,
            CATCH_UP_SEEDS),
+    Mutant("stale-question-binds", "a question about a restarted teammate's plan before its join, answered "
+           "after it, makes the robot asked leave the new process out",
+           lambda: _patch(TeamMembership, "forgo", _stale_question_binds), LATE, (686, 1046, 1158)),
     Mutant("write-ids-forgotten", "a holder makes every try of a write again: it never looks up the write's id",
            lambda: _patch(WriteIds, "get", _id_forgotten), LATE, (4, 28, 32)),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",

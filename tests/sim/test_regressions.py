@@ -277,6 +277,13 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "plan, a request timeout later; the other teammate died meanwhile, and the survivor, outnumbered, "
               "decided nothing",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20"), {
+        686: "a teammate's question about a restarted robot's plan before its join, held back on the way, was "
+             "answered after the join: the robot asked promised to go on without the new process's plans and "
+             "left it out alone, one epoch ahead of the cluster",
+        1046: "the same as seed 686",
+        1158: "the same as seed 686",
+    }),
 ]
 
 
