@@ -149,7 +149,13 @@ class RobotResources:
         if asker is not None and not self.team.in_cluster(asker):
             return Response.error(Status.FORBIDDEN, f"{asker} is not of {self.config.robot_id}'s cluster")
         state = self.team.state_of(about)
-        if state is None or state.plan_at(seq) is None:
+        # Once it has promised to go on without that plan, it says so to every
+        # later try too, though the plan came since: each try of a question is
+        # a new exchange, and a try answered with the plan after an earlier
+        # one was answered without it had the asker count the teammate in and
+        # this robot leave it out (found in the simulator, seed 1308 of three
+        # robots with messages held back).
+        if state is None or state.plan_at(seq) is None or self.team.membership.forgoes(about, seq):
             if self.team.membership.heeds(asker):
                 await self.team.membership.forgo(about, seq)
             return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")

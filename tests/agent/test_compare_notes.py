@@ -72,3 +72,16 @@ async def test_a_question_from_before_a_teammates_join_binds_nothing() -> None:
         assert team.membership.forgoes("Robot3", 5)
     finally:
         await team.aclose()
+
+
+async def test_once_without_the_plan_every_later_try_is_answered_without_it() -> None:
+    """Robot2 asks twice (a try lost, or held back); the first try found
+    Robot1 without Robot3's plan after task 5, and the plan arrived before
+    the second: the second is answered 4.04 as well, else Robot2 would count
+    Robot3 in where Robot1 promised to leave it out (simulator, seed 1308)."""
+    team, resources = _robot1()
+    first = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    team._teammates.states["Robot3"] = RobotState("Robot3", PlannedState(3, 0, 400.0, 0.0, 40.0, seq=5),
+                                                  LiveState(1.0, 0.0))
+    second = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    assert first.status == second.status == Status.NOT_FOUND

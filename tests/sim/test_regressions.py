@@ -283,6 +283,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "left it out alone, one epoch ahead of the cluster",
         1046: "the same as seed 686",
         1158: "the same as seed 686",
+        1308: "two tries of one question about a frozen teammate's plan, the first answered without it and the "
+              "second with it (it came between): the asker counted the teammate in, the robot asked had promised "
+              "to leave it out, and did",
     }),
 ]
 
