@@ -20,7 +20,7 @@ from .network import LinkModel
 #: Fault kinds that act on processes or links at a time.
 EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin")
 #: Kinds that shape every link for the whole run, with their default amount.
-LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02, "late": 0.02}
+LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02, "late": 0.02, "hedge": 0.3}
 #: The link kinds swarm testing drew before ``late`` existed, in their order:
 #: a seed without ``late`` draws its mix as it always did.
 _SWARM_KINDS = ("loss", "burst", "dup", "jitter")
@@ -52,6 +52,8 @@ class FaultMix:
     jitter: float = 0.0
     #: Messages held back 0.5-3 s (:attr:`~coapkb.sim.network.LinkModel.late`).
     late: float = 0.0
+    #: Retries sent as two exchanges (:attr:`~coapkb.sim.network.LinkModel.hedge`).
+    hedge: float = 0.0
     #: Each seed draws its own mix from these kinds (:data:`SWARM`).
     swarm: bool = False
 
@@ -86,8 +88,9 @@ class FaultMix:
         """Every link's behaviour: a radio's (30 ms one way) once anything is lost, else a LAN's."""
         if self.lossy:
             return LinkModel(delay_s=0.03, jitter_s=max(self.jitter, 0.005), loss=self.loss,
-                             burst=self.burst, duplicate=self.dup, late=self.late)
-        return LinkModel(delay_s=0.001, jitter_s=max(self.jitter, 0.0005), duplicate=self.dup, late=self.late)
+                             burst=self.burst, duplicate=self.dup, late=self.late, hedge=self.hedge)
+        return LinkModel(delay_s=0.001, jitter_s=max(self.jitter, 0.0005), duplicate=self.dup, late=self.late,
+                         hedge=self.hedge)
 
     def describe(self) -> str:
         parts = list(self.events)
@@ -108,8 +111,9 @@ class FaultMix:
             amounts["loss"] = round(rng.uniform(0, 3 * max(self.loss, self.burst)), 4)
         amounts["burst"] = min(amounts["burst"], 0.5)
         amounts["late"] = round(rng.uniform(0, 3 * self.late), 4) if self.late and rng.random() < 0.7 else 0.0
+        hedge = round(min(1.0, rng.uniform(0, 3 * self.hedge)), 4) if self.hedge and rng.random() < 0.7 else 0.0
         return FaultMix(kinds, loss=amounts["loss"], burst=amounts["burst"], dup=amounts["dup"],
-                        jitter=amounts["jitter"], late=amounts["late"])
+                        jitter=amounts["jitter"], late=amounts["late"], hedge=hedge)
 
 
 def _amount(name: str, value: str) -> float:
@@ -176,6 +180,8 @@ class Schedule:
             links.append(f"dup {model.duplicate:.0%}")
         if model.late:
             links.append(f"late {model.late:.0%}")
+        if model.hedge:
+            links.append(f"hedged retries {model.hedge:.0%}")
         return "; ".join([*(str(e) for e in self.events), *links]) or "no faults"
 
 

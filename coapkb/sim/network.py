@@ -68,6 +68,8 @@ HEADER_BYTES = 12
 #: The least a message held back (:attr:`LinkModel.late`) is late by: longer
 #: than a try's timeout on these links, so its sender's retry overtakes it.
 LATE_MIN_S = 0.5
+#: The spacing of a hedged retry's two copies (the reliability layer's, on a fast link).
+HEDGE_GAP_S = 0.01
 
 
 @dataclass(frozen=True)
@@ -92,9 +94,13 @@ class LinkModel:
     #: late, after the sender's own retry of it and what the sender sent next.
     late: float = 0.0
     late_s: float = 3.0
+    #: Probability that a retry goes out as two exchanges, ``HEDGE_GAP_S``
+    #: apart: the client's hedged copy on a lossy or new path
+    #: (docs/reliability.md, "redundancy"), both run by the server.
+    hedge: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("loss", "burst", "burst_loss", "duplicate", "late"):
+        for name in ("loss", "burst", "burst_loss", "duplicate", "late", "hedge"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be a probability, got {getattr(self, name)}")
         if self.burst >= 1 or self.burst_s <= 0:
@@ -298,7 +304,8 @@ class SimServer:
 
     def receive(self, client: SimClient, xid: int, request: Request, observe: _Observation | None,
                 attempt: int = 0) -> None:
-        """A copy of try ``attempt`` of request ``xid`` from ``client`` arrived."""
+        """A copy of try ``attempt`` of request ``xid`` from ``client`` arrived
+        (a negative ``attempt``: the hedged copy of that try, an exchange of its own)."""
         counters = self.counters
         counters.messages_received += 1
         counters.bytes_received += len(request.payload) + HEADER_BYTES
@@ -535,6 +542,8 @@ class SimClient:
         try:
             for attempt in itertools.count():
                 self._send(peer, xid, request, observe, attempt)
+                if attempt and observe is None and self._hedged():
+                    loop.call_at(loop.time() + HEDGE_GAP_S, self._send_copy, peer, xid, request, answer, attempt)
                 wait = min(rto * 2 ** attempt, 8.0, deadline - loop.time())
                 if wait > 0:
                     await asyncio.wait([answer], timeout=wait)
@@ -552,14 +561,27 @@ class SimClient:
             elif not answer.cancelled():
                 answer.exception()  # an ICMP error in the same turn as a cancellation: seen, not leaked
 
-    def _send(self, peer: Endpoint, xid: int, request: Request, observe: _Observation | None, attempt: int) -> None:
+    def _hedged(self) -> bool:
+        """Whether this retry goes out twice (drawn only where the model hedges)."""
+        model = self.network.model
+        return model.hedge > 0 and self.network.rng.random() < model.hedge
+
+    def _send_copy(self, peer: Endpoint, xid: int, request: Request, answer: asyncio.Future[Response],
+                   attempt: int) -> None:
+        """A hedged retry's second copy, a new exchange of its own, unless answered meanwhile."""
+        if not answer.done() and not self.closed:
+            self._send(peer, xid, request, None, attempt, hedge=True)
+
+    def _send(self, peer: Endpoint, xid: int, request: Request, observe: _Observation | None, attempt: int,
+              hedge: bool = False) -> None:
         self.counters.messages_sent += 1
         self.counters.bytes_sent += len(request.payload) + HEADER_BYTES
         if attempt:
             self.counters.retransmissions += 1
         network = self.network
         server = network.server_at(peer)
-        what = f"req#{xid} {request.method} {request.path}" + (f" try {attempt + 1}" if attempt else "")
+        what = (f"req#{xid} {request.method} {request.path}" + (f" try {attempt + 1}" if attempt else "")
+                + (" hedge" if hedge else ""))
         if server is None or not server.up:
             # Nobody listens: the kernel there answers ICMP, which crosses the link like any message.
             target = server.process if server is not None else None
@@ -568,7 +590,7 @@ class SimClient:
                 self.process.loop.call_at(network.scheduler.clock.now + 2 * network.model.delay_s,
                                           self._unreachable, xid, peer)
             return
-        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe, attempt))
+        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe, -attempt if hedge else attempt))
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         """The current representation of ``request.path``, then one per change

@@ -277,6 +277,10 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "plan, a request timeout later; the other teammate died meanwhile, and the survivor, outnumbered, "
               "decided nothing",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,swarm", "--writes", "20"), {
+        261: "a delete tried again reached its holder restarted without a data folder, whose catch-up answer was "
+             "held back: it removed nothing there, and the value stayed on the other holders",
+    }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20"), {
         686: "a teammate's question about a restarted robot's plan before its join, held back on the way, was "
              "answered after the join: the robot asked promised to go on without the new process's plans and "
