@@ -241,7 +241,14 @@ class TeamMembership:
         seen the old process took the new one for the member and waited for
         its plan for good (simulator, nine robots with power cuts, seed
         5563); a follower waited for its restarted leader's decision (seed
-        3005 of the compute-and-communicate swarm profile)."""
+        3005 of the compute-and-communicate swarm profile).  Said of a task
+        before this robot last admitted ``robot_id``, it is about the process
+        that joined since, or an older one: a try of that post held back on
+        the way and taken after the join had the robot count the member it
+        had just admitted gone, and leave it out alone (seed 28 of three
+        robots with messages held back and hedged retries)."""
+        if seq < self._admitted_at.get(robot_id, 0):
+            return
         if robot_id in self._peers and robot_id not in self.excluded and robot_id not in self._teammates.down:
             await self._teammates.process_gone(robot_id, f"restarted while task {seq} was decided")
 

@@ -804,3 +804,21 @@ async def test_a_teammate_heard_from_while_its_silence_is_confirmed_is_not_decla
         assert "Robot2" in states.down and "Robot2" not in states.gone  # silent again, nothing heard: down
     finally:
         await states.aclose()
+
+
+async def test_a_restart_told_of_a_task_before_the_join_leaves_the_new_process_up() -> None:
+    """Robot2 restarted and joined at task 7; a try of task 6's post naming
+    it restarted, held back on the way, comes now: it is about the process
+    that left, not the one just admitted (simulator, three robots with
+    messages held back, seed 28: Robot3 alone left the new process out).
+    Told of the join's own task, it is a later restart, and counts."""
+    team = view(MemoryNetwork(), robot("Robot1", 6))
+    try:
+        team.membership.admit("Robot2", 7)
+        await team._teammates.watcher.update("Robot2", robot("Robot2", 6, boot=9))
+        await team.membership.restarted("Robot2", 6)
+        assert team.is_up("Robot2")
+        await team.membership.restarted("Robot2", 7)
+        assert not team.is_up("Robot2")
+    finally:
+        await team.aclose()
