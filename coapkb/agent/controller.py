@@ -164,6 +164,10 @@ class Controller:
         future = self._decisions.setdefault(message.decision.seq, asyncio.get_running_loop().create_future())
         if not future.done():
             future.set_result(message)
+        decision = message.decision
+        if message.boot and decision.members:  # its sender: the first of the membership it was computed in
+            leader = min(decision.members, key=robot_sort_key)
+            self.team.revival.led_by(leader, message.boot, Membership(decision.epoch, decision.members))
 
     def _with_membership(self, decision: Decision) -> Decision:
         membership = self.team.membership

@@ -14,7 +14,7 @@ from ..transport.messages import ContentFormat, Method, Request
 from .lease import LEASE_PATH
 from .observed_states import STATE_PATH, ObservedStates
 from .robot_state import RobotState
-from .team_membership import TeamMembership
+from .team_membership import Membership, TeamMembership
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,30 @@ class TeammateRevival:
             return await asyncio.shield(pending)
         except Exception:  # noqa: BLE001 - a probe that failed revives nothing
             return False
+
+    def led_by(self, leader: str, boot: int, membership: Membership) -> bool:
+        """Teammate ``leader``, which this robot has down, sent the decision
+        it computed as the leader of ``membership`` ("compute and
+        communicate"): if that is this robot's membership now (its epoch,
+        this robot and the leader members, nobody left out here), the
+        suspicion is stale however many teammates are up, and it is counted
+        on again as :meth:`heard_again` counts one (the same process, that
+        counts this robot), in the background.  Whether it asks the leader.  A follower that kept a leader down after the
+        leader's cut healed decided the next task alone, leaving out the
+        leader its joined teammate followed (simulator, six robots, seed
+        21881: no task came while the link was back and this robot alone)."""
+        mine = self._membership
+        if (leader not in self._peers or leader not in self._teammates.down or mine.left_out(leader)
+                or membership.epoch != mine.epoch or {leader, mine.robot_id} - set(membership.members)):
+            return False
+        known = self._teammates.states.get(leader)
+        if known is None or known.boot != boot or leader in self._reviving:
+            return False
+        task = self._reviving[leader] = asyncio.ensure_future(self._revive(leader, boot))
+        task.add_done_callback(lambda _: self._reviving.pop(leader, None))
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
+        return True
 
     def asked_by(self, robot_id: str) -> None:
         """Teammate ``robot_id`` asked this robot for something (a lease):

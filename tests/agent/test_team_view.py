@@ -822,3 +822,32 @@ async def test_a_restart_told_of_a_task_before_the_join_leaves_the_new_process_u
         assert not team.is_up("Robot2")
     finally:
         await team.aclose()
+
+
+async def test_a_leader_down_here_that_sends_its_decision_in_this_robots_membership_is_counted_on_again() -> None:
+    """Robot1 had Robot2 (its leader, compute and communicate) down from a
+    cut that healed while no task came; Robot3 is up, so Robot1 is not
+    alone and would not count Robot2 again on an answer.  Robot2's decision
+    in Robot1's own membership (its epoch, both members) shows the suspicion
+    stale: Robot2 is counted on again, never granted a lease (simulator,
+    six robots, seed 21881: the follower decided the next task alone,
+    leaving out the leader its teammate followed).  A decision of another
+    epoch, or of another process, changes nothing."""
+    network = MemoryNetwork()
+    await serve_state(network, robot("Robot2", 4, boot=2))
+    await serve_state(network, robot("Robot3", 4, boot=3))
+    team = view(network, robot("Robot1", 4))
+    team.start()
+    try:
+        await team._teammates.wait(lambda s: {"Robot2", "Robot3"} <= set(s), timeout=2)
+        await team._teammates.declare_down("Robot2", "2 requests failed in a row")
+        assert not team.membership.alone
+        members = ("Robot1", "Robot2", "Robot3")
+        assert not team.revival.led_by("Robot2", 2, Membership(team.membership.epoch + 1, members))
+        assert not team.revival.led_by("Robot2", 7, Membership(team.membership.epoch, members))
+        assert not team.revival.led_by("Robot2", 2, Membership(team.membership.epoch, ("Robot2", "Robot3")))
+        assert team.revival.led_by("Robot2", 2, Membership(team.membership.epoch, members))
+        await team._teammates.wait(lambda _: team.is_up("Robot2"), timeout=2)
+        assert "never grants" in (team.membership.grant("Robot2") or "")
+    finally:
+        await team.aclose()

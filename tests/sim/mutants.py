@@ -160,6 +160,10 @@ def _admit_same_epoch(self: TeamMembership, robot_id: str, seq: int, boot: int =
     self.epoch = before
 
 
+def _leader_kept_down(self: TeammateRevival, leader: str, boot: int, membership: Membership) -> bool:
+    return False
+
+
 async def _stale_question_binds(self: TeamMembership, robot_id: str, seq: int) -> None:
     """A question about a teammate's plan binds whatever task it names, one
     from before the teammate's last admission too."""
@@ -387,6 +391,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("pushed-answers-before-catch-up", "a restarted holder answers a registration on its pushed answers "
            "before it has caught up", lambda: _patch(FactPusher, "_get", _pushed_answers_ungated), CATCH_UP,
            CATCH_UP_SEEDS),
+    Mutant("leader-kept-down", "a follower that has its leader down keeps it down though the leader's decision "
+           "in the follower's own membership comes", lambda: _patch(TeammateRevival, "led_by", _leader_kept_down),
+           LEADER, (21881,)),
     Mutant("stale-question-binds", "a question about a restarted teammate's plan before its join, answered "
            "after it, makes the robot asked leave the new process out",
            lambda: _patch(TeamMembership, "forgo", _stale_question_binds), LATE, (686, 1046, 1158)),

@@ -144,6 +144,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
     }),
     (("--robots", "6", "--tasks", "12", "--faults", "mixed,swarm", "--strategy", "compute-and-communicate"), {
+        21881: "a follower kept its leader down after the leader's cut healed while no task came; its restarted "
+               "teammate joined and followed the leader, and the follower, no longer alone, decided the next task "
+               "without it, though the leader's decision in its own membership had come",
         1623: "a follower whose observation of its leader was lost took the restarted leader's first state for "
               "the old process's, and waited 20 s for its decision on a task the new process was never given: it "
               "decided nothing",
