@@ -25,9 +25,10 @@ the code above it:
   after ``NOTIFY_TRIES`` -- the client is not told, as in CoAP, and must
   notice by its own requests.
 
-What it does not model: the CoAP reliability layer's own timing (hedged
-copies, congestion windows, airtime), Block-wise transfer, message sizes on
-the wire, and security.  Those are tested over real sockets.
+What it does not model: the CoAP reliability layer's own timing (when it
+hedges a retry, which :attr:`LinkModel.hedge` draws at random instead;
+congestion windows, airtime), Block-wise transfer, message sizes on the
+wire, and security.  Those are tested over real sockets.
 """
 
 from __future__ import annotations
