@@ -73,10 +73,11 @@ class TeammateRevival:
         this robot and the leader members, nobody left out here), the
         suspicion is stale however many teammates are up, and it is counted
         on again as :meth:`heard_again` counts one (the same process, that
-        counts this robot), in the background.  Whether it asks the leader.  A follower that kept a leader down after the
-        leader's cut healed decided the next task alone, leaving out the
-        leader its joined teammate followed (simulator, six robots, seed
-        21881: no task came while the link was back and this robot alone)."""
+        counts this robot), in the background.  A follower that kept its
+        leader down after the leader's cut healed decided the next task
+        alone, leaving out the leader its joined teammate followed
+        (simulator, six robots, seed 21881: no task came while the link was
+        back and this robot alone).  Whether it asks the leader."""
         mine = self._membership
         if (leader not in self._peers or leader not in self._teammates.down or mine.left_out(leader)
                 or membership.epoch != mine.epoch or {leader, mine.robot_id} - set(membership.members)):

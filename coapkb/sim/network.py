@@ -591,7 +591,8 @@ class SimClient:
                 self.process.loop.call_at(network.scheduler.clock.now + 2 * network.model.delay_s,
                                           self._unreachable, xid, peer)
             return
-        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe, -attempt if hedge else attempt))
+        exchange = -attempt if hedge else attempt
+        network.carry(self.process, server.process, what, lambda: server.receive(self, xid, request, observe, exchange))
 
     async def observe(self, peer: Endpoint, request: Request) -> AsyncIterator[Response]:
         """The current representation of ``request.path``, then one per change

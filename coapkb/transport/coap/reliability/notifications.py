@@ -164,11 +164,11 @@ class NotificationPolicy:
 
     def timeout(self, record: _Notification, retransmission_counter: int) -> float:
         """The path's timeout, or the observer's own if its ACKs come later,
-        for the first few transmissions, then doubling (an observer not heard
-        from yet: at least a path's first timeout, doubling at once): a notification is
-        never abandoned for want of patience (the server would drop the
-        observation, and the teammate would wait for a refresh), but a peer
-        that stays silent is not flooded either."""
+        for the first few transmissions, then doubling (an observer not
+        heard from yet: at least a path's first timeout, doubling at once):
+        a notification is never abandoned for want of patience (the server
+        would drop the observation, and the teammate would wait for a
+        refresh), but a peer that stays silent is not flooded either."""
         path = record.path
         queued = record.queued if retransmission_counter == 0 else self.layer.uplink.wait(self.layer.clock())
         base = path.rto()
