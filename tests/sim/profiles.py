@@ -36,10 +36,11 @@ CI_PROFILES = [
     # two planted bugs are caught on these seeds too (tests/sim/mutants.py).
     CIProfile("catch-up", ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20",
                            "--catch-up-within", "0.5"), "261-320"),
-    # Messages held back 0.5-3 s, past their senders' retries: the operator removes a third of its adds
-    # once spread, and a late try of one must be answered as a repeat (its write id), not make it again.
-    CIProfile("late messages", ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20"),
-              "1-40"),
+    # Messages held back 0.5-3 s, past their senders' retries, and retries sent as two exchanges: the
+    # operator removes a third of its adds once spread, and a late try of one must be answered as a
+    # repeat (its write id), not make it again.
+    CIProfile("late messages", ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,swarm",
+                                "--writes", "20"), "1-40"),
     # Every fault at once, no swarm: the operator's writes against kills, restarts, cuts and loss.
     CIProfile("every fault", ("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), "1-60"),
     # A restarted robot cut off from its cluster the moment it is back, on lossy links: its join.
