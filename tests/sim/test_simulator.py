@@ -18,7 +18,10 @@ from support import ROOT, unmeasured
 from coapkb.sim import FaultMix, FaultSpecError, KBCache, SimSpec, run_checked
 from coapkb.sim.faults import draw_schedule
 from coapkb.sim.loop import Scheduler, SimulationError
-from coapkb.sim.network import Link, LinkModel
+from coapkb.sim.network import Link, LinkModel, ProcessNetwork, SimNetwork
+from coapkb.transport.base import Endpoint, ResourceInfo
+from coapkb.transport.messages import Method, Request, Response, Status
+from coapkb.transport.router import Router
 
 
 @pytest.fixture(scope="module")
@@ -87,6 +90,60 @@ def test_links_lose_duplicate_and_reorder_as_seeded() -> None:
     assert 0.07 < sum(losses) / len(losses) < 0.13
     runs = "".join("x" if lost else "." for lost in losses).split(".")
     assert max(len(r) for r in runs) > 20  # lost in bursts, not one by one
+
+
+def test_a_late_message_arrives_after_its_senders_retry() -> None:
+    """``late``: a message held back 0.5-3 s, longer than a try's timeout
+    on these links; a model that holds nothing back draws nothing for it."""
+    rng = __import__("random").Random(5)
+    link = Link(LinkModel(delay_s=0.001, jitter_s=0.0, late=0.2))
+    delays = [d for i in range(10_000) for d in link.copies(i * 0.01, rng)]
+    late = [d for d in delays if d > 0.1]
+    assert 0.17 < len(late) / len(delays) < 0.23 and min(late) >= 0.5 and max(late) <= 3.001
+    plain, again = __import__("random").Random(9), __import__("random").Random(9)
+    Link(LinkModel(loss=0.1)).copies(0.0, plain)
+    Link(LinkModel(loss=0.1, late=0.0)).copies(0.0, again)
+    assert plain.random() == again.random()
+
+
+@pytest.mark.parametrize("model", [LinkModel(delay_s=0.001, jitter_s=0.0, duplicate=1.0),
+                                   LinkModel(delay_s=0.001, jitter_s=0.0, hedge=1.0)], ids=["dup", "hedge"])
+def test_each_try_of_a_request_is_an_exchange_of_its_own(model: LinkModel) -> None:
+    """As the CoAP client sends them, each try of a request is a new
+    exchange, run by the server, and so is a hedged retry's second copy; a
+    datagram the link delivers twice is one exchange, run once."""
+    random = __import__("random")
+    scheduler = Scheduler(random.Random(1), lambda _: None)
+    server_process, client_process = scheduler.spawn("server"), scheduler.spawn("client")
+    network = SimNetwork(scheduler, random.Random(3), model)
+    runs: list[float] = []
+
+    async def slow(request: Request) -> Response:
+        runs.append(asyncio.get_running_loop().time())
+        # The first try's answer comes after the client's retry; the retry's
+        # after its hedged copy went out.
+        await asyncio.sleep(5.0 if len(runs) == 1 else 0.05)
+        return Response(Status.CHANGED)
+
+    router = Router()
+    router.add(ResourceInfo("/x", methods=("POST",)), slow)
+    endpoint = Endpoint("coap", "10.0.0.1", 5683)
+
+    async def serve() -> None:
+        await ProcessNetwork(network, server_process).serve(router, endpoint)
+
+    async def ask() -> Response:
+        client = await ProcessNetwork(network, client_process).open_client("coap")
+        return await client.request(endpoint, Request(Method.POST, "/x"), timeout=30.0)
+
+    served = scheduler.start(server_process, serve())
+    scheduler.run(served.done, limit_s=10)
+    asked = scheduler.start(client_process, ask())
+    scheduler.run(asked.done, limit_s=60)
+    assert asked.result().status == Status.CHANGED
+    # The first try, then the retry (and with hedging its copy): each run;
+    # the link's second copy of a datagram is not.
+    assert len(runs) == (2 if model.duplicate else 3)
 
 
 def test_fault_lists_are_read_or_refused() -> None:
