@@ -80,6 +80,13 @@ class RobotBounds:
 DEFAULT_BOUNDS = RobotBounds()
 
 
+def _sender(message: DecisionMessage) -> str | None:
+    """The leader that sent ``message``, if it says its process: the first
+    of the membership the decision was computed in."""
+    members = message.decision.members
+    return min(members, key=robot_sort_key) if message.boot and members else None
+
+
 class Controller:
     def __init__(
         self,
@@ -164,10 +171,10 @@ class Controller:
         future = self._decisions.setdefault(message.decision.seq, asyncio.get_running_loop().create_future())
         if not future.done():
             future.set_result(message)
-        decision = message.decision
-        if message.boot and decision.members:  # its sender: the first of the membership it was computed in
-            leader = min(decision.members, key=robot_sort_key)
-            self.team.revival.led_by(leader, message.boot, Membership(decision.epoch, decision.members))
+        sender = _sender(message)
+        if sender is not None:
+            decision = message.decision
+            self.team.revival.led_by(sender, message.boot, Membership(decision.epoch, decision.members))
 
     def _with_membership(self, decision: Decision) -> Decision:
         membership = self.team.membership
@@ -355,9 +362,9 @@ class Controller:
         if future.done():
             message = future.result()
             self.team.membership.adopt(Membership(message.decision.epoch, message.decision.members), task.seq)
-            if message.boot and message.decision.members:
-                # Its sender: the first of the membership it was computed in.
-                self.team.saw_process(min(message.decision.members, key=robot_sort_key), message.boot)
+            sender = _sender(message)
+            if sender is not None:
+                self.team.saw_process(sender, message.boot)
             return message
         log.warning("task %d: the leader %s is down (%s); deciding it here", task.seq, leader, leader_down.result())
         taken = await self.settler.leaders_decision(task, leader)

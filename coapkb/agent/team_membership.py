@@ -106,11 +106,18 @@ class TeamMembership:
         and answered after the admission had left the new process out of
         the tasks after it, alone (found in the simulator, seed 686 of three
         robots with messages held back)."""
-        if seq < self._admitted_at.get(robot_id, 0) - 1:
+        if self._before_admission(robot_id, seq + 1):
             return
         if robot_id in self._peers and seq < self._forgone.get(robot_id, seq + 1):
             self._forgone[robot_id] = seq
             await self._teammates.poke()
+
+    def _before_admission(self, robot_id: str, seq: int) -> bool:
+        """Whether task ``seq`` comes before ``robot_id`` was last admitted:
+        news of it (a plan for it, a restart during it) is about a process
+        that left, held back on the way (the plan for task ``seq`` is the one
+        right after ``seq - 1``)."""
+        return seq < self._admitted_at.get(robot_id, 0)
 
     def forgoes(self, robot_id: str, seq: int) -> bool:
         """Whether this robot promised not to use ``robot_id``'s plan after task ``seq``."""
@@ -247,7 +254,7 @@ class TeamMembership:
         the way and taken after the join had the robot count the member it
         had just admitted gone, and leave it out alone (seed 28 of three
         robots with messages held back and hedged retries)."""
-        if seq < self._admitted_at.get(robot_id, 0):
+        if self._before_admission(robot_id, seq):
             return
         if robot_id in self._peers and robot_id not in self.excluded and robot_id not in self._teammates.down:
             await self._teammates.process_gone(robot_id, f"restarted while task {seq} was decided")

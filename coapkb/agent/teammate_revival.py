@@ -57,10 +57,7 @@ class TeammateRevival:
         known = self._teammates.states.get(robot_id)
         if self._membership.left_out(robot_id) or not self._membership.alone or known is None or not known.boot:
             return False
-        pending = self._reviving.get(robot_id)
-        if pending is None:
-            pending = self._reviving[robot_id] = asyncio.ensure_future(self._revive(robot_id, known.boot))
-            pending.add_done_callback(lambda _: self._reviving.pop(robot_id, None))
+        pending = self._reviving.get(robot_id) or self._start(robot_id, known.boot)
         try:
             return await asyncio.shield(pending)
         except Exception:  # noqa: BLE001 - a probe that failed revives nothing
@@ -85,11 +82,16 @@ class TeammateRevival:
         known = self._teammates.states.get(leader)
         if known is None or known.boot != boot or leader in self._reviving:
             return False
-        task = self._reviving[leader] = asyncio.ensure_future(self._revive(leader, boot))
-        task.add_done_callback(lambda _: self._reviving.pop(leader, None))
+        task = self._start(leader, boot)
         self._background.add(task)
         task.add_done_callback(self._background.discard)
         return True
+
+    def _start(self, robot_id: str, boot: int) -> asyncio.Task[bool]:
+        """Ask ``robot_id`` (process ``boot``) once whether it is back; one such question at a time."""
+        pending = self._reviving[robot_id] = asyncio.create_task(self._revive(robot_id, boot))
+        pending.add_done_callback(lambda _: self._reviving.pop(robot_id, None))
+        return pending
 
     def asked_by(self, robot_id: str) -> None:
         """Teammate ``robot_id`` asked this robot for something (a lease):

@@ -21,9 +21,11 @@ from .network import LinkModel
 EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin")
 #: Kinds that shape every link for the whole run, with their default amount.
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02, "late": 0.02, "hedge": 0.3}
-#: The link kinds swarm testing drew before ``late`` existed, in their order:
-#: a seed without ``late`` draws its mix as it always did.
+#: The link kinds swarm testing draws for every seed, in their order...
 _SWARM_KINDS = ("loss", "burst", "dup", "jitter")
+#: ...and those it draws only where they are asked for, after them: a seed
+#: without them draws its mix as it did before they existed.
+_ASKED_KINDS = ("late", "hedge")
 #: Everything at once, with default amounts (a forger, a power cut and a
 #: rejoin cut off are asked for by name).
 MIXED = "kill,freeze,partition,starve,loss,burst,dup,jitter"
@@ -110,10 +112,11 @@ class FaultMix:
         if self.lossy and not (amounts["loss"] or amounts["burst"]):
             amounts["loss"] = round(rng.uniform(0, 3 * max(self.loss, self.burst)), 4)
         amounts["burst"] = min(amounts["burst"], 0.5)
-        amounts["late"] = round(rng.uniform(0, 3 * self.late), 4) if self.late and rng.random() < 0.7 else 0.0
-        hedge = round(min(1.0, rng.uniform(0, 3 * self.hedge)), 4) if self.hedge and rng.random() < 0.7 else 0.0
+        for kind in _ASKED_KINDS:  # probabilities: at most 1
+            asked = getattr(self, kind)
+            amounts[kind] = round(min(1.0, rng.uniform(0, 3 * asked)), 4) if asked and rng.random() < 0.7 else 0.0
         return FaultMix(kinds, loss=amounts["loss"], burst=amounts["burst"], dup=amounts["dup"],
-                        jitter=amounts["jitter"], late=amounts["late"], hedge=hedge)
+                        jitter=amounts["jitter"], late=amounts["late"], hedge=amounts["hedge"])
 
 
 def _amount(name: str, value: str) -> float:
