@@ -121,7 +121,8 @@ def test_each_try_of_a_request_is_an_exchange_of_its_own(model: LinkModel) -> No
     async def slow(request: Request) -> Response:
         runs.append(asyncio.get_running_loop().time())
         # The first try's answer comes after the client's retry; the retry's
-        # after its hedged copy went out.
+        # after its hedged copy went out.  A handler's latency on the
+        # simulator's virtual clock, which jumps to it: no wall-clock wait.
         await asyncio.sleep(5.0 if len(runs) == 1 else 0.05)
         return Response(Status.CHANGED)
 
