@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from typing import NamedTuple
 
 from ..transport.base import ClientTransport, Endpoint, PeerGone, TransportError
@@ -52,37 +53,24 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
     partition is reached at the first retransmission after it, not at the
     end of a backoff grown through the partition; and the wait is logged
     once after that long."""
-    request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
 
-    async def shown_by(robot_id: str) -> Shown | bool:
-        """Observe ``robot_id``'s state until it shows its decision of
-        ``seq - 1``; False once it cannot (no process there, or a new one
-        that decided nothing), True if it is past the task without
-        ``joiner``."""
-        while True:
-            try:
-                async with asyncio.timeout(patience) as first_answer:
-                    async for response in transport.observe(endpoints[robot_id], request):
-                        first_answer.reschedule(None)  # observing: its state changes when it decides
-                        state = RobotState.decode(response.payload) if response.status.is_success else None
-                        last = state.last if state is not None else None
-                        if state is not None and last is None:
-                            return False  # a process that never decided: restarted, not yet joined
-                        if last is not None and last.seq >= seq - 1:
-                            # Past seq - 1 only by a task that needs no plans
-                            # (with the joiner a member), or having left it out.
-                            taken = last.seq == seq - 1 or (last.seq == seq and joiner in last.members)
-                            return Shown(robot_id, last) if taken else True
-            except PeerGone as exc:
-                log.debug("catching up from %s: %s", robot_id, exc)
-                return False
-            except (TransportError, ValueError, TimeoutError) as exc:
-                log.debug("catching up from %s: %s", robot_id, exc or "no answer")
-            await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: again
+    def shows(robot_id: str, state: RobotState) -> Shown | bool | None:
+        """A decision to take; False if this process never decided (restarted,
+        not yet joined), True if it is past the task without ``joiner``; None
+        to observe on."""
+        last = state.last
+        if last is None:
+            return False
+        if last.seq < seq - 1:
+            return None
+        # Past seq - 1 only by a task that needs no plans (with the joiner a
+        # member), or having left it out.
+        return Shown(robot_id, last) if _takes(last, seq, joiner) else True
 
     # Tasks made here and read in the teammates' order (a set of done tasks
     # iterates in an order that follows id()).
-    watches = [asyncio.create_task(shown_by(r)) for r in teammates]
+    watches = [asyncio.create_task(_observed(transport, endpoints[r], patience, partial(shows, r)))
+               for r in teammates]
     past = False
     waited = False
     try:
@@ -98,7 +86,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
             for watch in watches:
                 if watch in done:
                     found = watch.result()
-                    if isinstance(found, tuple):
+                    if isinstance(found, Shown):
                         return found, past
                     past = past or found
     finally:
@@ -106,3 +94,73 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
             watch.cancel()
         await asyncio.gather(*watches, return_exceptions=True)
     return None, past
+
+
+async def joined_on(transport: ClientTransport, endpoints: Mapping[str, Endpoint], co_joiners: Sequence[str],
+                    seq: int, patience: float, joiner: str) -> Shown | None:
+    """The decision a co-joiner (a robot joining at ``seq`` too) joined on
+    (:attr:`.RobotState.joined`), or took since counting ``joiner`` in, for
+    a joiner that found no teammate left that decided ``seq - 1``: a
+    co-joiner that reached one before it died took its membership, and this
+    robot must take the same (found in the simulator, seed 103234 of three
+    robots with power cuts: a joiner starved of CPU read the survivor's
+    state only once the survivor was killed and started a fresh membership
+    while its co-joiner had joined the survivor's; the two decided on in two
+    epochs).  None if no co-joiner shows one within ``patience`` seconds: a
+    co-joiner that joined on none, or is still joining (it may find none
+    either), shows nothing to take.  Left is a narrower race: a co-joiner
+    that reads the survivor's state after this robot gave up on the
+    survivor and on it."""
+
+    def shows(robot_id: str, state: RobotState) -> Shown | bool | None:
+        for decision in (state.last, state.joined):
+            if decision is not None and decision.seq >= seq - 1:
+                return Shown(robot_id, decision) if _takes(decision, seq, joiner) else False
+        # Its plan is right after seq - 1 once it has joined (on nothing).
+        return False if state.plan.seq == seq - 1 else None
+
+    watches = [asyncio.create_task(_observed(transport, endpoints[r], patience, partial(shows, r)))
+               for r in co_joiners]
+    try:
+        async with asyncio.timeout(patience):
+            for watch in asyncio.as_completed(watches):
+                found = await watch
+                if isinstance(found, Shown):
+                    return found
+    except TimeoutError:
+        log.info("no co-joiner showed a decision of task %d to join on within %gs", seq - 1, patience)
+    finally:
+        for watch in watches:
+            watch.cancel()
+        await asyncio.gather(*watches, return_exceptions=True)
+    return None
+
+
+def _takes(decision: Decision, seq: int, joiner: str) -> bool:
+    """Whether a joiner at ``seq`` takes the membership of ``decision``
+    (one of ``seq - 1``, or of ``seq`` counting the joiner in: see
+    :func:`decided_before`)."""
+    return decision.seq == seq - 1 or (decision.seq == seq and joiner in decision.members)
+
+
+async def _observed(transport: ClientTransport, endpoint: Endpoint, patience: float,
+                       shows: Callable[[RobotState], Shown | bool | None]) -> Shown | bool:
+    """Observe a teammate's state until ``shows`` makes something of it;
+    False if no process is there.  An observation that gets no answer
+    within ``patience`` seconds is started again."""
+    request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
+    while True:
+        try:
+            async with asyncio.timeout(patience) as first_answer:
+                async for response in transport.observe(endpoint, request):
+                    first_answer.reschedule(None)  # observing: its state changes when it decides
+                    if response.status.is_success:
+                        found = shows(RobotState.decode(response.payload))
+                        if found is not None:
+                            return found
+        except PeerGone as exc:
+            log.debug("catching up from %s: %s", endpoint, exc)
+            return False
+        except (TransportError, ValueError, TimeoutError) as exc:
+            log.debug("catching up from %s: %s", endpoint, exc or "no answer")
+        await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: again

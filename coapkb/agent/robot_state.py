@@ -97,9 +97,14 @@ class RobotState:
     #: unnamed): a restarted robot has a new one, so teammates can tell it
     #: from the process they knew even before it decides anything.
     boot: int = 0
+    #: A restarted robot that joined on a teammate's decision of the task
+    #: before its join, until it decides one itself: a co-joiner that no
+    #: longer reaches that teammate joins on the same membership
+    #: (:func:`.joining.joined_on`).
+    joined: Decision | None = None
 
     def with_plan(self, plan: PlannedState, last: Decision) -> RobotState:
-        return replace(self, plan=plan, last=last, prev=self.plan)
+        return replace(self, plan=plan, last=last, prev=self.plan, joined=None)
 
     def decided(self, seq: int) -> bool:
         """Whether this robot has decided task ``seq`` (or one after it)."""
@@ -131,7 +136,8 @@ class RobotState:
                  self.live.queued, self.live.done,
                  *self._live_tail()],
                 None if self.last is None else _decision_array(self.last),
-                *self._boot(),
+                # The decision joined on needs the incarnation before it, 0 if unnamed.
+                *([self.boot, _decision_array(self.joined)] if self.joined is not None else self._boot()),
             ],
             canonical=True,  # smallest lossless float widths
         )
@@ -162,7 +168,7 @@ class RobotState:
         # feeder observes that instead).  The zeros in their places are
         # integers: one byte each, where 0.0 takes three.
         live = replace(self.live, aisle=0, rack=0, executing=None)
-        return replace(self, robot_id="", prev=None, live=live, last=last)._encode([self.plan.seq])
+        return replace(self, robot_id="", prev=None, live=live, last=last, joined=None)._encode([self.plan.seq])
 
     def _live_tail(self) -> list[object]:
         live = self.live
@@ -189,7 +195,7 @@ class RobotState:
         arithmetic, so a text where a number belongs must stop here."""
         try:
             raw = cbor2.loads(data)
-            _check(type(raw) is list and 3 <= len(raw) <= 6, "a robot state is an array of 3 to 6 items", raw)
+            _check(type(raw) is list and 3 <= len(raw) <= 7, "a robot state is an array of 3 to 7 items", raw)
             robot_id, plan = _text(raw[0], "robot-id") or "", _plan(raw[1])
             prev = _prev(plan, raw[2])
             if len(raw) in (3, 4):  # the plan form, with or without the incarnation
@@ -205,7 +211,9 @@ class RobotState:
                                    (_text(live[7], "fence-reason") or None) if len(live) > 7 else None,
                                    _missed(live[8]) if len(live) > 8 else ())
             boot = _uint(raw[5], "boot") if len(raw) > 5 else 0
-            return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot)
+            joined = _decision(raw[6]) if len(raw) > 6 else None
+            return cls(robot_id, plan, live_state, _decision(raw[4]) if raw[4] is not None else None, prev, boot,
+                       joined)
         except (cbor2.CBORDecodeError, IndexError, KeyError, TypeError, ValueError, RecursionError) as exc:
             raise ValueError(f"not a robot state: {exc}"[:300]) from None
 

@@ -10,9 +10,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..transport.base import ClientTransport, Endpoint
-from .joining import Shown, decided_before
+from .joining import Shown, decided_before, joined_on
 from .observed_states import ObservedStates
-from .robot_state import NO_PROCESS
+from .robot_state import NO_PROCESS, Decision
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,16 @@ class Membership:
 
     epoch: int
     members: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Joined:
+    """How a restarted robot joined: whether it admits its co-joiners (not
+    when its teammates had left it out), and the teammate's decision whose
+    membership it took, which its state shows until it decides a task."""
+
+    admits: bool
+    on: Decision | None
 
 
 class TeamMembership:
@@ -286,7 +296,7 @@ class TeamMembership:
             del self.excluded[robot_id]
         self.epoch = membership.epoch
 
-    async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> bool:
+    async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> Joined:
         """This robot (restarted) joins at task ``seq``: it takes the
         membership the teammates decided task ``seq - 1`` in (a new epoch, its
         admission, if that membership had left it out); its view then shows
@@ -303,16 +313,20 @@ class TeamMembership:
         the joiners start a fresh membership from the join list: its members
         are the joiners, its epoch the task's number, the same on each of them
         (found in the simulator: three robots restarted in turn logged
-        "cannot join" and decided nothing).  When one is past the task
-        without this robot, it was left out: a membership of its own, alone,
-        and False (it admits nobody)."""
+        "cannot join" and decided nothing) -- unless a co-joiner shows the
+        decision it joined on (:func:`.joining.joined_on`).  When one is past
+        the task without this robot, it was left out: a membership of its
+        own, alone, and it admits nobody."""
         if seq <= 1:
             # Nothing decided before: the membership is the cluster's first.
             self._joined(seq, Membership(0, ()))
-            return True
+            return Joined(True, None)
         co_joiners = {r for r in joining if r in self._peers}
         shown, past = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
                                            seq, patience, self.robot_id)
+        if shown is None and not past and co_joiners:
+            shown = await joined_on(self._transport, self._endpoints, sorted(co_joiners), seq, patience,
+                                    self.robot_id)
         membership = None if shown is None else Membership(shown.decision.epoch, shown.decision.members)
         if shown is not None:
             self._plans_shown(shown, co_joiners)
@@ -325,13 +339,13 @@ class TeamMembership:
             log.warning("no teammate showed its decision of task %d (one is past it): left out, a membership of "
                         "its own", seq - 1)
             self._joined(seq, Membership(seq, (self.robot_id,)))
-            return False
+            return Joined(False, None)
         if membership is None:
             log.warning("no teammate showed its decision of task %d (none survives): a fresh membership of the "
                         "robots joining at task %d", seq - 1, seq)
             membership = Membership(seq, tuple(sorted(co_joiners | {self.robot_id})))
         self._joined(seq, membership)
-        return True
+        return Joined(True, None if shown is None else shown.decision)
 
     def _plans_shown(self, shown: Shown, co_joiners: set[str]) -> None:
         """The plans the decision the join takes was computed on (those it

@@ -175,8 +175,8 @@ class TeamView:
         ``seq - 1``, which the others wait for before deciding ``seq``.
         False if it found itself left out instead."""
         joined = await self.membership.join(seq, patience, joining)
-        self._own = replace(self._own, plan=replace(self._own.plan, seq=seq - 1), prev=None)
-        return joined
+        self._own = replace(self._own, plan=replace(self._own.plan, seq=seq - 1), prev=None, joined=joined.on)
+        return joined.admits
 
     async def planned_states(self, seq: int, timeout: float) -> dict[str, PlannedState]:
         """Every member's planned state right after task ``seq``; waits for

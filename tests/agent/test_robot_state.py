@@ -157,6 +157,22 @@ def test_incarnation_travels_in_both_forms_and_is_optional(validator: object) ->
 
 
 
+
+def test_the_decision_a_restarted_robot_joined_on_travels_until_it_decides(validator: object) -> None:
+    """A joiner's state shows the teammate's decision it took its membership
+    from, after the incarnation (0 if unnamed); neither its plan nor its
+    outcome carries it, and its first decision of its own drops it."""
+    on = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot1", "Robot2", "Robot3"))
+    for boot in (0, 5):
+        state = RobotState("Robot1", PlannedState(3, 21, 412.25, 0.8, 60.6, 9), LiveState(3.0, 21.0), boot=boot,
+                           joined=on)
+        assert RobotState.decode(state.encode()) == state
+        assert validator.validate(state.encode(), root_type="robot-state").valid  # type: ignore[attr-defined]
+        assert RobotState.decode(state.encode_plan()).joined is None
+        assert RobotState.decode(state.encode_outcome()).joined is None
+        decided = state.with_plan(replace(state.plan, seq=10), Decision(10, "Box", assigned_to="Robot1"))
+        assert decided.joined is None
+
 _PLAN = [3, 4, 500.0, 1.5, 60.0, 2]
 _LIVE = [3.0, 4.0, 0, None, 0, 0]
 #: Found by fuzzing: states of the right shape with values of the wrong type

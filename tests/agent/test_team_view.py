@@ -513,6 +513,35 @@ async def test_joiners_with_no_surviving_teammate_start_a_fresh_membership_of_th
             await team.aclose()
 
 
+
+async def test_a_joiner_that_reaches_no_survivor_takes_the_membership_its_co_joiner_joined_on() -> None:
+    """Robot1 and Robot2 join at task 10; Robot3, the survivor that decided
+    task 9, died after Robot2 had read its decision and before Robot1 did.
+    Robot2's state shows the decision it joined on: Robot1 takes the same
+    membership, not a fresh one, and shows it in turn (simulator seed
+    103234 of three robots with power cuts: the joiner starved of CPU
+    started a fresh membership, its co-joiner had joined the survivor's,
+    and the two decided in two epochs).  A co-joiner that joined on
+    nothing, or is still joining when ``patience`` runs out, leaves the
+    fresh membership of the join list."""
+    on = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot2", "Robot3"))
+    cases = {"joined on Robot3's decision": (replace(robot("Robot2", 9, boot=5), joined=on), (5, ("Robot1", "Robot2",
+                                                                                                  "Robot3"))),
+             "joined on nothing": (robot("Robot2", 9, boot=5), (10, ("Robot1", "Robot2"))),
+             "still joining": (robot("Robot2", 0, boot=5), (10, ("Robot1", "Robot2")))}
+    for case, (robot2, expected) in cases.items():
+        network = MemoryNetwork()
+        await serve_state(network, robot2)
+        team = view(network, robot("Robot1", 0, boot=3))
+        try:
+            async with asyncio.timeout(2):
+                assert await team.join(10, patience=0.2, joining=("Robot1", "Robot2")), case
+            team.membership.admit("Robot2", 10)  # as the controller does next
+            assert (team.membership.epoch, team.membership.members) == expected, case
+            assert team.own.joined == (on if robot2.joined else None), case
+        finally:
+            await team.aclose()
+
 async def test_a_joiner_takes_the_membership_a_survivor_decided_the_task_before_in() -> None:
     network = MemoryNetwork()
     last = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot2", "Robot3"))

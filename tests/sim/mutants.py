@@ -221,6 +221,13 @@ async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: 
         return None, False
 
 
+async def _co_joiners_unasked(transport: Any, endpoints: Any, co_joiners: Any, seq: int, patience: float,
+                              joiner: str) -> None:
+    """A joiner that finds no survivor starts a fresh membership without
+    asking its co-joiners what they joined on."""
+    return None
+
+
 _assign = controller_module.assign
 
 
@@ -378,6 +385,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
            lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
+    Mutant("co-joiners-unasked", "a joiner that reaches no survivor starts a fresh membership, though a co-joiner "
+           "joined on the survivor's decision", lambda: _patch(team_membership_module, "joined_on", _co_joiners_unasked),
+           STORAGE_FORGE, (103234,)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),

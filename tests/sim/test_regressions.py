@@ -139,6 +139,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         90301: "a robot cut off for 17 s, left out, asked a member about a slow teammate; the member, with no "
                "plan of it, left that teammate out alone on the word of a robot outside its membership, and the "
                "majority split in two",
+        103234: "two robots back from a power cut joined at one task; the survivor that showed one of them its "
+                "decision died before the other, starved, read it: that one started a fresh membership, the other "
+                "was in the survivor's, and the two decided on in two epochs",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "60"), {
         40: "the same as seed 1076 of the 20-write profile, on lossy links: a robot cut off in a pick",
