@@ -2,13 +2,13 @@
 
 Each check reads the run's history (the feeder's record, the picks the
 robots logged, the state left at the end) and returns what it found
-broken, one line each, naming the task, robot and time.  A disagreement
-the schedule explains -- a robot that decided against its teammates while
+broken, one line each, naming the task, robot and time.  A finding the
+schedule explains -- a robot that decided against its teammates while
 its own loop was starved and it took a live teammate for dead -- is not a
-protocol bug of the kind these checks look for: it is reported apart, as
-excused, with the reason (the decisions-under-load work removes it).
+protocol bug of the kind these checks look for: the check returns it as
+:class:`Excused`, with the reason, and it is reported apart.
 
-To add an invariant: write ``def check_NAME(run: RunResult) -> Iterable[str]``
+To add an invariant: write ``def check_NAME(run: RunResult) -> Iterable[Finding]``
 here and list it in :data:`CHECKS`.
 """
 
@@ -17,6 +17,7 @@ from __future__ import annotations
 import statistics
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import NamedTuple
 
 from ..feeder import split_tasks
 from ..feeder.record import TaskRecord, claim_of
@@ -25,6 +26,20 @@ from .faults import FaultEvent
 from .observed import Take
 from .operator import WriteOp
 from .run import Pick, RunResult
+
+
+class Excused(NamedTuple):
+    """A finding the run's schedule explains, and why: reported apart, not a violation."""
+
+    finding: str
+    why: str
+
+    def __str__(self) -> str:
+        return f"{self.finding}: {self.why}"
+
+
+#: What a check finds: a violation (its line), or a finding excused.
+Finding = str | Excused
 
 
 def check_finished(run: RunResult) -> Iterable[str]:
@@ -67,23 +82,29 @@ def check_one_fate(run: RunResult) -> Iterable[str]:
             yield f"cluster {index}: fed {originals}, expected {share}"
 
 
-def check_executed_once(run: RunResult) -> Iterable[str]:
+def check_executed_once(run: RunResult) -> Iterable[Finding]:
     """No task executed twice or lost: each task (with the re-runs it went
     through) is picked at most once, and a task whose final fate is
     "assigned" is picked exactly once, by the robot it went to; and the
     record of every task picked names the robot that picked it.  A second
-    pick is excused (:func:`excused_picks`) when the first picker died
-    before any report of its pick could reach the feeder; a pick the
-    record does not name is not judged then either (nobody could know it)."""
+    pick is excused when the first picker was killed before any report of
+    its pick reached the feeder, so nobody could know it was done (the
+    shared world of the next step lets the second robot find the object
+    gone instead); a pick the record does not name is not judged then
+    either (nobody could know it), and one the record gives to another
+    robot after a power cut of the cluster's majority is excused
+    (:func:`_misattributed`)."""
     record = run.record
     if record is None:
         return
     tasks, picked, strays = _picks_by_task(run)
     yield from strays
     for key, picks in picked.items():
-        if len(picks) > 1 and _unreported(run, picks[0]) is None:
-            yield f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: " \
-                  + "; ".join(_said(p) for p in picks)
+        if len(picks) > 1:
+            finding = f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: " \
+                      + "; ".join(_said(p) for p in picks)
+            why = _unreported(run, picks[0])
+            yield finding if why is None else Excused(finding, why)
     for task in record.tasks:
         if task.fate != "assigned":
             continue
@@ -93,37 +114,16 @@ def check_executed_once(run: RunResult) -> Iterable[str]:
                   "and never executed"
         elif picks[-1].robot != task.assigned_to:
             yield f"cluster {task.cluster} task {task.seq} went to {task.assigned_to} but {_said(picks[-1])} picked it"
-    for finding, excuse in _misattributed(run, tasks):
-        if excuse is None:
-            yield finding
+    yield from _misattributed(run, tasks)
 
 
-def excused_picks(run: RunResult) -> list[str]:
-    """Second picks the schedule explains: the first picker was killed before
-    any report of its pick reached the feeder, so nobody could know it was
-    done (the shared world of the next step lets the second robot find the
-    object gone instead).  And a pick the record gives to another robot
-    after a power cut of the cluster's majority (:func:`_misattributed`)."""
-    if run.record is None:
-        return []
-    tasks, picked, _ = _picks_by_task(run)
-    found = []
-    for key, picks in picked.items():
-        why = _unreported(run, picks[0]) if len(picks) > 1 else None
-        if why is not None:
-            found.append(f"cluster {key[0]} task {key[1]} ({tasks[key].object}) executed {len(picks)} times: "
-                         + "; ".join(_said(p) for p in picks) + f": {why}")
-    found += [f"{finding}: {excuse}" for finding, excuse in _misattributed(run, tasks) if excuse is not None]
-    return found
-
-
-def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> Iterator[tuple[str, str | None]]:
+def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> Iterator[Finding]:
     """Picks whose task the record gives to another robot or to nobody
-    (none if the picker died before any report of it), each with why the
-    schedule excuses it, or None: only a power cut that struck a majority
-    of the cluster, the picker among them (the survivor, alone, decided
-    the task again without them, as for a split decision: storage seed
-    65327, the picker and its granter killed 0.6 s after the pick).  The record must name who took each
+    (none if the picker died before any report of it), excused only by a
+    power cut that struck a majority of the cluster, the picker among them
+    (the survivor, alone, decided the task again without them, as for a
+    split decision: storage seed 65327, the picker and its granter killed
+    0.6 s after the pick).  The record must name who took each
     task: one that names another (a lone robot's void decision counted over
     the majority's) sends the task round again after it was picked.  A pick
     by a robot that the majority deciding the task had left out (still
@@ -145,7 +145,7 @@ def _misattributed(run: RunResult, tasks: dict[tuple[int, int], TaskRecord]) -> 
         if taken.members and pick.robot not in taken.members and len(taken.members) * 2 > len(cluster):
             finding += ": the majority deciding the task had left the picker out"
         struck = any(pick.robot in hit and at > pick.at_s for at, hit in _majority_cuts(run, set(cluster)))
-        yield finding, "a power cut struck the picker with a majority of its cluster" if struck else None
+        yield Excused(finding, "a power cut struck the picker with a majority of its cluster") if struck else finding
 
 
 def _said(pick: Pick) -> str:
@@ -230,29 +230,18 @@ def check_bounded(run: RunResult) -> Iterable[str]:
             yield f"{name}: {value}, above its bound {bound}"
 
 
-def check_agreement(run: RunResult) -> Iterable[str]:
+def check_agreement(run: RunResult) -> Iterable[Finding]:
     """Compute-by-all decisions agree: every robot that decided a task
     decided alike, in the same epoch (disagreements the schedule explains
-    are returned by :func:`excused_disagreements` instead)."""
+    are excused, with why: :func:`_excuse`)."""
     record = run.record
     if record is None:
         return
     for task in record.tasks:
-        if task.fate == "failed" and _excuse(run, task) is None:
-            yield f"task {task.seq} of cluster {task.cluster} ({task.object}): {_disagreement(task)}"
-
-
-def excused_disagreements(run: RunResult) -> list[str]:
-    """Disagreements the schedule explains, each with why."""
-    record = run.record
-    if record is None:
-        return []
-    found = []
-    for task in record.tasks:
-        why = _excuse(run, task) if task.fate == "failed" else None
-        if why is not None:
-            found.append(f"task {task.seq} of cluster {task.cluster}: {_disagreement(task)}: {why}")
-    return found
+        if task.fate == "failed":
+            finding = f"task {task.seq} of cluster {task.cluster} ({task.object}): {_disagreement(task)}"
+            why = _excuse(run, task)
+            yield finding if why is None else Excused(finding, why)
 
 
 def _excuse(run: RunResult, task: TaskRecord) -> str | None:
@@ -379,13 +368,18 @@ def check_replicas(run: RunResult) -> Iterable[str]:
     yield from run.split_versions[:3]
 
 
-def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
+def check_acknowledged_writes(run: RunResult) -> Iterable[Finding]:
     """An acknowledged insert is on two holders when its answer arrives (the
     acknowledgement's promise), and is seen by every running holder at the end,
     unless a delete of the same value was sent after it; and a value removed
     by a delete that had seen every insert of it (every holder up, at one
     version, showing it, no insert of it on its way) never comes back,
-    unless inserted again later."""
+    unless inserted again later.  An acknowledged value lost with the
+    memory of the last process showing it, in a run whose robots keep no
+    data folder, is excused: the acknowledgement promised a second holder,
+    and both went (found in the simulator, seed 1162: a holder restarted
+    empty, and its only peer holding the value was killed 0.25 s later,
+    before the restarted one's first sync was answered)."""
     for op in run.writes:
         seen_by = run.values.get(op.module, {})
         if op.kind == "insert" and op.status == "2.04" and op.copies < min(2, run.holders.get(op.module, 2)):
@@ -407,18 +401,8 @@ def check_acknowledged_writes(run: RunResult) -> Iterable[str]:
                 yield (f"{op.module} value {op.value}, removed by {op.label} at {op.robot} (2.04 at "
                        f"{op.answered_s:.3f}s), is back on {', '.join(back)}")
     for lacking, op in _acknowledged_but_missing(run):
-        if (op.module, op.value) not in run.lost_copies:
-            yield lacking
-
-
-def excused_lost_writes(run: RunResult) -> list[str]:
-    """Acknowledged values lost with the memory of the last process showing
-    them, in a run whose robots keep no data folder: the acknowledgement
-    promised a second holder, and both went (found in the simulator, seed
-    1162: a holder restarted empty, and its only peer holding the value was
-    killed 0.25 s later, before the restarted one's first sync was answered)."""
-    return [f"{lacking}: {run.lost_copies[(op.module, op.value)]}" for lacking, op in _acknowledged_but_missing(run)
-            if (op.module, op.value) in run.lost_copies]
+        lost = run.lost_copies.get((op.module, op.value))
+        yield lacking if lost is None else Excused(lacking, lost)
 
 
 def _acknowledged_but_missing(run: RunResult) -> Iterator[tuple[str, WriteOp]]:
@@ -524,7 +508,7 @@ def check_liveness(run: RunResult) -> Iterable[str]:
 
 
 #: Every invariant, in the order their findings are printed.
-CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
+CHECKS: tuple[Callable[[RunResult], Iterable[Finding]], ...] = (
     check_finished, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
     check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
     check_acknowledged_writes, check_forgeries, check_liveness,
@@ -533,8 +517,9 @@ CHECKS: tuple[Callable[[RunResult], Iterable[str]], ...] = (
 
 def check(run: RunResult) -> RunResult:
     """Fill ``run``'s violations and excused findings; returns ``run``."""
-    run.violations = [finding for invariant in CHECKS for finding in invariant(run)]
-    run.excused = excused_disagreements(run) + excused_picks(run) + excused_lost_writes(run)
+    findings = [finding for invariant in CHECKS for finding in invariant(run)]
+    run.violations = [f for f in findings if not isinstance(f, Excused)]
+    run.excused = [str(f) for f in findings if isinstance(f, Excused)]
     return run
 
 

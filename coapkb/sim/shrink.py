@@ -63,7 +63,7 @@ class Violation:
 
 
 #: An invariant's check, as :data:`~coapkb.sim.invariants.CHECKS` lists them.
-Check = Callable[[RunResult], Iterable[str]]
+Check = Callable[[RunResult], Iterable[invariants.Finding]]
 #: What runs a case and judges it (:func:`replay`).
 Runner = Callable[[SimCase, KBCache], RunResult]
 
@@ -72,7 +72,8 @@ def first_violation(run: RunResult, checks: Sequence[Check] | None = None) -> Vi
     """The first check of ``checks`` (default :data:`~coapkb.sim.invariants.CHECKS`) that ``run`` fails, if any."""
     for invariant in invariants.CHECKS if checks is None else checks:
         for finding in invariant(run):
-            return Violation(invariant.__name__, finding)
+            if not isinstance(finding, invariants.Excused):
+                return Violation(invariant.__name__, finding)
     return None
 
 
