@@ -30,7 +30,7 @@ from .limits import QueryLimits
 from .live import LiveKB
 from .named_queries import NamedQuery, named_queries_for
 from .store import QueryableKB
-from .write_resource import WriteResource
+from .write_resource import WriteResource, caught_up
 
 if TYPE_CHECKING:
     from .replication import Replicator
@@ -193,8 +193,7 @@ class KBResources:
             )
         if not text.strip():
             return Response.error(Status.BAD_REQUEST, "empty query")
-        if self.replicator is not None:
-            await self.replicator.caught_up()
+        await caught_up(self.replicator)
         return await self.answer(text, request.accept, request.etags)
 
     async def named_query(self, request: Request) -> Response:
@@ -209,8 +208,7 @@ class KBResources:
             task = _task_number(at)
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        if self.replicator is not None:
-            await self.replicator.caught_up()
+        await caught_up(self.replicator)
         if task is not None and self.live is not None:
             return self._pinned(text, task, request.accept)
         return await self.answer(text, request.accept, request.etags, shape=name)

@@ -49,13 +49,12 @@ class WriteResource:
                 parse_wid(wid, request.peer), body_digest(request.method, request.content_format, request.payload))
         except ValueError as exc:
             return Response.error(Status.BAD_REQUEST, str(exc))
-        if self.replicator is not None:
-            # A holder that starts (again) takes writes once caught up, as it
-            # answers reads: a delete or a WHERE acts on what it holds, and a
-            # DELETE DATA sent to one whose catch-up was still on its way
-            # removed nothing there while the value stayed on the others
-            # (found in the simulator, seed 261 with messages held back).
-            await self.replicator.caught_up()
+        # A holder that starts (again) takes writes once caught up, as it
+        # answers reads: a delete or a WHERE acts on what it holds, and a
+        # DELETE DATA sent to one whose catch-up was still on its way
+        # removed nothing there while the value stayed on the others
+        # (found in the simulator, seed 261 with messages held back).
+        await caught_up(self.replicator)
         if tag is not None:
             repeat = await self._repeat(tag, ack, request.accept)
             if repeat is not None:
@@ -213,3 +212,10 @@ def _not_idempotent(text: str) -> bool:
     """Whether an update may change more when applied again: one that
     matches a pattern (DELETE WHERE only removes, so it may repeat)."""
     return any(op.kind == "MODIFY" for op in parse_update(text).operations)
+
+
+async def caught_up(replicator: Replicator | None) -> None:
+    """Until ``replicator``'s catch-up at start is over (:meth:`.Replicator.caught_up`);
+    at once for a KB nobody else holds (None)."""
+    if replicator is not None:
+        await replicator.caught_up()
