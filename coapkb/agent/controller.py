@@ -39,7 +39,8 @@ from ..config import RobotConfig
 from ..transport.base import TransportError
 from ..typed_fields import require_at_least
 from ..world import DEPOT, travel_distance
-from .decisions import Claim, DecisionMessage, Task
+from .cluster_claims import AskClaims, ClusterClaims
+from .decisions import DecisionMessage, Task
 from .facts import FactGatherer
 from .job import Job
 from .query_handler import ModuleUnavailable, QueryError, QueryHandler
@@ -97,7 +98,7 @@ class Controller:
         publish: Callable[[RobotState], None],
         send_decision: Callable[[DecisionMessage], Awaitable[None]],
         ask_decision: AskDecision | None = None,
-        ask_claims: Callable[[str], Awaitable[dict[str, Claim]]] | None = None,
+        ask_claims: AskClaims | None = None,
         bounds: RobotBounds = DEFAULT_BOUNDS,
     ) -> None:
         self.config = config
@@ -116,10 +117,8 @@ class Controller:
         self._decisions: dict[int, asyncio.Future[DecisionMessage]] = {}
         #: The last ``bounds.decisions_kept`` decisions, oldest first (``GET /tasks``).
         self.log: deque[Decision] = deque(maxlen=bounds.decisions_kept)
-        #: object -> the cluster's assignment of it, from the decisions
-        #: applied: the same on every robot of the cluster, so a repeat is
-        #: skipped alike before the pick is written (or even made).
-        self.claims: OrderedDict[str, Claim] = OrderedDict()
+        #: The same on every robot of the cluster, from the decisions applied.
+        self.claims = ClusterClaims(bounds.claims_kept, bounds.claims_handed)
         self._runner: asyncio.Task[None] | None = None
         #: The task this robot joins its team again at (:meth:`rejoin_at`; 0: none).
         self._rejoins_at = 0
@@ -253,11 +252,7 @@ class Controller:
             self.executor.submit(message.job)
         self.log.append(decision)
         self.team.used_plans(decision)
-        if decision.assigned_to is not None:
-            self.claims[decision.object] = Claim(decision.assigned_to, decision.seq)
-            self.claims.move_to_end(decision.object)
-            while len(self.claims) > self.bounds.claims_kept:
-                self.claims.popitem(last=False)
+        self.claims.record(decision)
         self.recent[decision.seq] = message
         while len(self.recent) > RECENT_KEPT:
             self.recent.popitem(last=False)
@@ -307,25 +302,8 @@ class Controller:
         # of its own still skips what the cluster gave (found in the
         # simulator: a joiner its teammates had left out, alone in its
         # membership, gave an object again).
-        for mate in [*members, *(r for r in self.team.teammates if r not in members)]:
-            try:
-                claims = await self._ask_claims(mate)
-            except TransportError as exc:
-                log.warning("task %d: no claims from %s: %s", seq, mate, exc)
-                continue
-            # A teammate that saw this robot's plan may have decided this
-            # task already: its claim of it is not one of the tasks before.
-            earlier = sorted(((o, c) for o, c in claims.items() if c.seq < seq), key=lambda item: item[1].seq)
-            self.claims = OrderedDict(earlier)
-            log.info("task %d: took %d claims from %s", seq, len(claims), mate)
-            return
-        log.warning("task %d: no teammate handed its claims over: a repeat of an earlier object may be decided "
-                    "differently here", seq)
-
-    def claims_handed(self) -> dict[str, Claim]:
-        """The claims a restarted teammate takes: the latest ``bounds.claims_handed``."""
-        latest = list(self.claims.items())[-self.bounds.claims_handed:]
-        return dict(latest)
+        await self.claims.take(seq, [*members, *(r for r in self.team.teammates if r not in members)],
+                               self._ask_claims)
 
     async def _decide(self, task: Task, received: float) -> DecisionMessage:
         if not self.computes:

@@ -303,7 +303,7 @@ class RobotResources:
 
     async def _get_claims(self, request: Request) -> Response:
         """``/robot/claims``: the objects the cluster assigned lately, for a restarted teammate."""
-        return Response(Status.CONTENT, encode_claims(self.controller.claims_handed()), ContentFormat.CBOR)
+        return Response(Status.CONTENT, encode_claims(self.controller.claims.handed()), ContentFormat.CBOR)
 
     async def _decisions(self, request: Request) -> Response:
         if request.method == Method.GET:

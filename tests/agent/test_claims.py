@@ -1,4 +1,4 @@
-"""The cluster's claims (Controller.claims): an object the cluster already
+"""The cluster's claims (Controller.claims, a ClusterClaims): an object the cluster already
 gave to a robot is skipped without a query, "picked by R at task S", alike
 on every robot; a task done again frees its object; a restarted robot takes
 the claims of the tasks before it from a teammate; and ``/robot/claims``'s
@@ -201,8 +201,8 @@ async def test_claims_are_bounded_and_a_teammate_is_handed_the_latest(
         h.controller.submit(Task(seq, obj))
     await h.published.wait(3)
     assert h.controller.claims == {TV: Claim("Robot1", 2), PASTA: Claim("Robot1", 3)}
-    assert h.controller.claims_handed() == {PASTA: Claim("Robot1", 3)}
-    assert decode_claims(encode_claims(h.controller.claims_handed())) == {PASTA: Claim("Robot1", 3)}
+    assert h.controller.claims.handed() == {PASTA: Claim("Robot1", 3)}
+    assert decode_claims(encode_claims(h.controller.claims.handed())) == {PASTA: Claim("Robot1", 3)}
 
 
 class Teammate:
