@@ -21,12 +21,14 @@ AskClaims = Callable[[str], Awaitable[dict[str, Claim]]]
 class ClusterClaims(OrderedDict[str, Claim]):
     """Object -> the cluster's assignment of it, from the decisions this
     robot applied, the latest last; at most ``kept`` (older picks are in
-    the KB by then, in a writable team)."""
+    the KB by then, in a writable team).  ``ask``: how a restarted robot
+    asks a teammate for them (None: it takes none)."""
 
-    def __init__(self, kept: int, handed: int) -> None:
+    def __init__(self, kept: int, handed: int, ask: AskClaims | None = None) -> None:
         super().__init__()
         self._kept = kept
         self._handed = handed
+        self._ask = ask
 
     def record(self, decision: Decision) -> None:
         """The cluster assigned ``decision``'s object (if to anyone)."""
@@ -41,12 +43,14 @@ class ClusterClaims(OrderedDict[str, Claim]):
         """The claims a restarted teammate takes: the latest ``handed``."""
         return dict(list(self.items())[-self._handed:])
 
-    async def take(self, seq: int, mates: Sequence[str], ask: AskClaims) -> None:
+    async def take(self, seq: int, mates: Sequence[str]) -> None:
         """A restarted robot joining at task ``seq`` takes the claims of
         the tasks before from the first of ``mates`` to hand them over."""
+        if self._ask is None:
+            return
         for mate in mates:
             try:
-                claims = await ask(mate)
+                claims = await self._ask(mate)
             except TransportError as exc:
                 log.warning("task %d: no claims from %s: %s", seq, mate, exc)
                 continue

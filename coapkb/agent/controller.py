@@ -108,8 +108,6 @@ class Controller:
         self.executor = executor
         self._publish = publish
         self._send_decision = send_decision
-        #: Asks a teammate for the cluster's claims (a restarted robot joining).
-        self._ask_claims = ask_claims
         #: This robot's last decisions as it applied them, by task: a teammate
         #: whose knowledge did not arrive takes one instead of deciding alone.
         self.recent: OrderedDict[int, DecisionMessage] = OrderedDict()
@@ -118,7 +116,7 @@ class Controller:
         #: The last ``bounds.decisions_kept`` decisions, oldest first (``GET /tasks``).
         self.log: deque[Decision] = deque(maxlen=bounds.decisions_kept)
         #: The same on every robot of the cluster, from the decisions applied.
-        self.claims = ClusterClaims(bounds.claims_kept, bounds.claims_handed)
+        self.claims = ClusterClaims(bounds.claims_kept, bounds.claims_handed, ask_claims)
         self._runner: asyncio.Task[None] | None = None
         #: The task this robot joins its team again at (:meth:`rejoin_at`; 0: none).
         self._rejoins_at = 0
@@ -294,16 +292,13 @@ class Controller:
         """A restarted robot joining at task ``seq`` takes the cluster's
         claims of the tasks before from a live teammate (the last
         ``bounds.claims_handed``), so it skips a repeat as they do."""
-        if self._ask_claims is None:
-            return
         members = [r for r in sorted(self.team.membership.members, key=robot_sort_key)
                    if r != self.robot_id and self.team.is_up(r)]
         # Then the rest of the cluster: a joiner that started a membership
         # of its own still skips what the cluster gave (found in the
         # simulator: a joiner its teammates had left out, alone in its
         # membership, gave an object again).
-        await self.claims.take(seq, [*members, *(r for r in self.team.teammates if r not in members)],
-                               self._ask_claims)
+        await self.claims.take(seq, [*members, *(r for r in self.team.teammates if r not in members)])
 
     async def _decide(self, task: Task, received: float) -> DecisionMessage:
         if not self.computes:
