@@ -88,9 +88,44 @@ NON_NOTIFICATIONS_KEPT = 256
 
 class _DuplicateMemory(dict[Any, aiocoap.Message | None]):
     """aiocoap's ``_recent_messages`` (request key -> its answer, or None
-    while it is being handled), counting the payload bytes of the answers."""
+    while it is being handled), counting the payload bytes of the answers,
+    and bounded in size and age by :meth:`forget_past`, with no timer per
+    request."""
 
     answer_bytes = 0
+
+    def __init__(self, entries: Mapping[Any, aiocoap.Message | None]) -> None:
+        super().__init__(entries)
+        #: When each request came, oldest first, and the token it came with
+        #: (a retransmission repeats it).
+        self.came: OrderedDict[Any, tuple[float, bytes]] = OrderedDict()
+
+    def copy_of(self, key: Any, token: bytes) -> bool:
+        """Whether a request ``key`` (endpoint, Message ID) with ``token`` is a
+        copy of one remembered: a new exchange repeats no token."""
+        return key in self and self.came.get(key, (0.0, token))[1] == token
+
+    def remember(self, key: Any, now: float, token: bytes) -> None:
+        self.came[key] = (now, token)
+        self[key] = None
+
+    def drop(self, key: Any) -> None:
+        self.came.pop(key, None)
+        self.pop(key, None)
+
+    def forget_past(self, bounds: StateBounds, now: float, room_for: int = 0) -> int:
+        """Drop the entries past ``bounds`` (``duplicates``,
+        ``duplicate_horizon_s``, ``duplicate_answer_bytes``), oldest first,
+        leaving room for ``room_for`` more; returns the bytes dropped."""
+        before = self.answer_bytes
+        horizon = now - bounds.duplicate_horizon_s
+        while self.came:
+            oldest, (born, _) = next(iter(self.came.items()))
+            if (len(self.came) + room_for <= bounds.duplicates and born > horizon
+                    and self.answer_bytes <= bounds.duplicate_answer_bytes):
+                break
+            self.drop(oldest)
+        return before - self.answer_bytes
 
     def __setitem__(self, key: Any, answer: aiocoap.Message | None) -> None:
         if key in self:
@@ -420,9 +455,6 @@ class ContextHooks:
         self.on_datagram: Callable[[int], None] | None = None
         #: While a send is under way: the errors its sendmsg raised (else None).
         self._send_errors: list[OSError] | None = None
-        #: When each request in aiocoap's duplicate memory came, oldest first,
-        #: and the token it came with (a retransmission repeats it).
-        self._remembered_at: OrderedDict[tuple[Any, int], tuple[float, bytes]] = OrderedDict()
         #: Every datagram sent, written down (``COAPKB_WIRE_TRACE``), or None.
         self.trace = wire_trace.tracer(note_protection)
 
@@ -584,41 +616,25 @@ class ContextHooks:
     # ------------------------------------------------------------ duplicates
 
     def _deduplicate_message(self, message: aiocoap.Message) -> bool:
-        """aiocoap's duplicate detection, with its memory bounded in size and
-        age (:attr:`bounds`: ``duplicates``, ``duplicate_horizon_s``) and no timer per request."""
-        recent = self.mm._recent_messages
+        """aiocoap's duplicate detection, with its memory bounded (:class:`_DuplicateMemory`)."""
+        recent: _DuplicateMemory = self.mm._recent_messages
         key = (message.remote, message.mid)
-        if key in recent:
-            if self._remembered_at.get(key, (0.0, message.token))[1] == message.token:
-                return bool(self._original(self.mm, "_deduplicate_message")(message))
-            # Same endpoint and Message ID, another token: not a copy but a
-            # new exchange of a client that started again on the same port
-            # (a restarted robot; each run of coap-client -p) and cannot know
-            # its predecessor's IDs.  Answering it the old exchange's stored
-            # answer would hand it another request's answer.
-            self._remembered_at.pop(key, None)
-            recent.pop(key, None)
-        self.forget_duplicates(room_for=1)
-        self._remembered_at[key] = (self.mm.loop.time(), message.token)
-        recent[key] = None
+        if recent.copy_of(key, message.token):
+            return bool(self._original(self.mm, "_deduplicate_message")(message))
+        # Same endpoint and Message ID, another token: not a copy but a new
+        # exchange of a client that started again on the same port (a
+        # restarted robot; each run of coap-client -p) and cannot know its
+        # predecessor's IDs.  Answering it the old exchange's stored answer
+        # would hand it another request's answer.
+        recent.drop(key)
+        recent.forget_past(self.bounds, self.mm.loop.time(), room_for=1)
+        recent.remember(key, self.mm.loop.time(), message.token)
         return False
 
-    def forget_duplicates(self, room_for: int = 0) -> int:
-        """Drop the duplicate memory's entries past its bounds (oldest first),
-        leaving room for ``room_for`` more; returns the bytes dropped."""
-        recent = self.mm._recent_messages
-        before: int = recent.answer_bytes
-        remembered = self._remembered_at
-        bounds = self.bounds
-        horizon = self.mm.loop.time() - bounds.duplicate_horizon_s
-        while remembered:
-            oldest, (born, _) = next(iter(remembered.items()))
-            if (len(remembered) + room_for <= bounds.duplicates and born > horizon
-                    and recent.answer_bytes <= bounds.duplicate_answer_bytes):
-                break
-            del remembered[oldest]
-            recent.pop(oldest, None)
-        return before - int(recent.answer_bytes)
+    def forget_duplicates(self) -> int:
+        """Drop the duplicate memory's entries past :attr:`bounds`; returns the bytes dropped."""
+        memory: _DuplicateMemory = self.mm._recent_messages
+        return memory.forget_past(self.bounds, self.mm.loop.time())
 
     # ------------------------------------------------------------ late events
 

@@ -144,7 +144,7 @@ async def test_the_duplicate_memory_keeps_at_most_its_answer_bytes() -> None:
             recent[(req.remote, req.mid)] = aiocoap.Message(code=aiocoap.CONTENT, payload=b"x" * 1024)
         hooks.forget_duplicates()
         assert recent.answer_bytes <= 4096 and len(recent) == 4096 // (1024 + MESSAGE_OVERHEAD)
-        assert len(hooks._remembered_at) == len(recent)
+        assert len(recent.came) == len(recent)
     finally:
         hooks.remove()
         await ctx.shutdown()
