@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from functools import partial
 from typing import NamedTuple
 
 from ..transport.base import ClientTransport, Endpoint, PeerGone, TransportError
 from ..transport.messages import ContentFormat, Method, Request
-from .observed_states import STATE_PATH
+from .observed_states import STATE_PATH, ObservedStates
 from .robot_state import Decision, RobotState
 
 log = logging.getLogger(__name__)
@@ -26,6 +26,36 @@ class Shown(NamedTuple):
 
     teammate: str
     decision: Decision
+
+
+async def shown_to_join(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],
+                        co_joiners: Sequence[str], seq: int, patience: float, joiner: str) -> tuple[Shown | None, bool]:
+    """The decision whose membership a robot joining at ``seq`` takes: one
+    of ``teammates`` shows it (:func:`decided_before`), or, if none that
+    decided ``seq - 1`` is left, a co-joiner that joined on one
+    (:func:`joined_on`); and whether a teammate is past the task without
+    the joiner (it was left out)."""
+    shown, past = await decided_before(transport, endpoints, teammates, seq, patience, joiner)
+    if shown is None and not past and co_joiners:
+        shown = await joined_on(transport, endpoints, co_joiners, seq, patience, joiner)
+    return shown, past
+
+
+def plans_shown(observed: ObservedStates, teammates: Collection[str], shown: Shown) -> None:
+    """The plans the decision a join takes was computed on (those it costs,
+    right after the task before it), and the plan of the teammate that
+    showed it: a process of each had decided that far, so one first
+    observed later with an earlier plan is a restart's, as for a decision
+    carried out (:meth:`.TeamView.used_plans`).  Found in the simulator,
+    seed 420 of the rejoin profile: a joiner cut off until after a
+    teammate's restart took the new process for the member it joined
+    with, and waited for its plan for good.  Only ``teammates`` not
+    joining: co-joiners are new processes, known as such."""
+    decision = shown.decision
+    for robot_id in decision.costs:
+        if robot_id in teammates:
+            observed.saw_plan(robot_id, decision.seq - 1)
+    observed.saw_plan(shown.teammate, decision.seq)
 
 
 async def decided_before(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],

@@ -10,7 +10,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..transport.base import ClientTransport, Endpoint
-from .joining import Shown, decided_before, joined_on
+from .joining import plans_shown, shown_to_join
 from .observed_states import ObservedStates
 from .robot_state import NO_PROCESS, Decision
 
@@ -298,39 +298,32 @@ class TeamMembership:
 
     async def join(self, seq: int, patience: float, joining: Sequence[str] = ()) -> Joined:
         """This robot (restarted) joins at task ``seq``: it takes the
-        membership the teammates decided task ``seq - 1`` in (a new epoch, its
-        admission, if that membership had left it out); its view then shows
-        a plan right after ``seq - 1`` (:meth:`.TeamView.join`), which the
-        others wait for before deciding ``seq``.  A silent teammate is waited
-        for (:func:`.joining.decided_before`, observed again after
-        ``patience`` seconds without an answer).
+        membership the teammates decided task ``seq - 1`` in
+        (:func:`.joining.shown_to_join`; a new epoch, its admission, if that
+        membership had left it out); its view then shows a plan right after
+        ``seq - 1`` (:meth:`.TeamView.join`), which the others wait for
+        before deciding ``seq``.
 
         ``joining``: every robot joining at ``seq`` (this one too).  When no
-        teammate can show that decision -- each is joining too, or no process
-        listens at its address, or it is a new process that has decided
-        nothing yet -- no process that decided ``seq - 1`` survives (every
-        robot restarted in turn, each before the previous one had joined), and
-        the joiners start a fresh membership from the join list: its members
-        are the joiners, its epoch the task's number, the same on each of them
-        (found in the simulator: three robots restarted in turn logged
-        "cannot join" and decided nothing) -- unless a co-joiner shows the
-        decision it joined on (:func:`.joining.joined_on`).  When one is past
-        the task without this robot, it was left out: a membership of its
-        own, alone, and it admits nobody."""
+        process that decided ``seq - 1`` survives (each teammate is joining
+        too, gone, or a new process that decided nothing: every robot
+        restarted in turn), the joiners start a fresh membership of the join
+        list, its epoch the task's number, the same on each (found in the
+        simulator: three robots restarted in turn logged "cannot join" and
+        decided nothing).  When one is past the task without this robot, it
+        was left out: a membership of its own, alone, and it admits nobody."""
         if seq <= 1:
             # Nothing decided before: the membership is the cluster's first.
             self._joined(seq, Membership(0, ()))
             return Joined(True, None)
         co_joiners = {r for r in joining if r in self._peers}
-        shown, past = await decided_before(self._transport, self._endpoints, sorted(self._peers - co_joiners),
-                                           seq, patience, self.robot_id)
-        if shown is None and not past and co_joiners:
-            shown = await joined_on(self._transport, self._endpoints, sorted(co_joiners), seq, patience,
-                                    self.robot_id)
-        membership = None if shown is None else Membership(shown.decision.epoch, shown.decision.members)
+        shown, past = await shown_to_join(self._transport, self._endpoints, sorted(self._peers - co_joiners),
+                                          sorted(co_joiners), seq, patience, self.robot_id)
         if shown is not None:
-            self._plans_shown(shown, co_joiners)
-        if membership is None and past:
+            plans_shown(self._teammates, self._peers - co_joiners, shown)
+            self._joined(seq, Membership(shown.decision.epoch, shown.decision.members))
+            return Joined(True, shown.decision)
+        if past:
             # Left out by teammates that went on without it: a membership of
             # its own, alone (and fenced).  Its co-joiners may have joined
             # theirs: named here too, the lone membership looked a majority
@@ -340,28 +333,10 @@ class TeamMembership:
                         "its own", seq - 1)
             self._joined(seq, Membership(seq, (self.robot_id,)))
             return Joined(False, None)
-        if membership is None:
-            log.warning("no teammate showed its decision of task %d (none survives): a fresh membership of the "
-                        "robots joining at task %d", seq - 1, seq)
-            membership = Membership(seq, tuple(sorted(co_joiners | {self.robot_id})))
-        self._joined(seq, membership)
-        return Joined(True, None if shown is None else shown.decision)
-
-    def _plans_shown(self, shown: Shown, co_joiners: set[str]) -> None:
-        """The plans the decision the join takes was computed on (those it
-        costs, right after the task before it), and the plan of the teammate
-        that showed it: a process of each had decided that far, so one first
-        observed later with an earlier plan is a restart's, as for a decision
-        carried out (:meth:`.TeamView.used_plans`).  Found in the simulator,
-        seed 420 of the rejoin profile: a joiner cut off until after a
-        teammate's restart took the new process for the member it joined
-        with, and waited for its plan for good.  Co-joiners are new
-        processes, known as such."""
-        decision = shown.decision
-        for robot_id in decision.costs:
-            if robot_id in self._peers and robot_id not in co_joiners:
-                self._teammates.saw_plan(robot_id, decision.seq - 1)
-        self._teammates.saw_plan(shown.teammate, decision.seq)
+        log.warning("no teammate showed its decision of task %d (none survives): a fresh membership of the robots "
+                    "joining at task %d", seq - 1, seq)
+        self._joined(seq, Membership(seq, tuple(sorted(co_joiners | {self.robot_id}))))
+        return Joined(True, None)
 
     def _joined(self, seq: int, membership: Membership) -> None:
         """Join at task ``seq`` on top of ``membership`` (see :meth:`join`)."""

@@ -30,8 +30,8 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from coapkb.agent import controller as controller_module
+from coapkb.agent import joining as joining_module
 from coapkb.agent import notification_repair as notification_repair_module
-from coapkb.agent import team_membership as team_membership_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
@@ -205,7 +205,7 @@ def _follower_alone() -> Iterator[None]:
         yield
 
 
-_decided_before = team_membership_module.decided_before
+_decided_before = joining_module.decided_before
 
 
 async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: int, patience: float,
@@ -384,9 +384,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TaskExecutor, "void_before", _old_jobs_kept), NINE, (30143, 33136, 33489)),
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
-           lambda: _patch(team_membership_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
+           lambda: _patch(joining_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
     Mutant("co-joiners-unasked", "a joiner that reaches no survivor starts a fresh membership, though a co-joiner "
-           "joined on the survivor's decision", lambda: _patch(team_membership_module, "joined_on", _co_joiners_unasked),
+           "joined on the survivor's decision", lambda: _patch(joining_module, "joined_on", _co_joiners_unasked),
            STORAGE_FORGE, (103234,)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
