@@ -268,9 +268,10 @@ class Controller:
         that joins takes that membership first, then admits the others
         joining with it (admitted first, they were lost when it took the
         membership: two robots back at one task named different epochs,
-        found in the simulator).  Joiners with no surviving teammate start a
-        fresh membership of the join list (:meth:`.TeamMembership.join`) and admit
-        each other on it alike."""
+        found in the simulator).  Joiners with no surviving teammate, none
+        of them joined on one's decision, start a fresh membership of the
+        join list (:meth:`.TeamMembership.join`) and admit each other on it
+        alike."""
         if self.robot_id in task.join:
             if task.seq == self._rejoins_at:
                 # Not a new process: one its teammates had left out, fed

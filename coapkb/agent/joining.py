@@ -37,7 +37,7 @@ async def shown_to_join(transport: ClientTransport, endpoints: Mapping[str, Endp
     the joiner (it was left out)."""
     shown, past = await decided_before(transport, endpoints, teammates, seq, patience, joiner)
     if shown is None and not past and co_joiners:
-        shown = await joined_on(transport, endpoints, co_joiners, seq, patience, joiner)
+        shown, past = await joined_on(transport, endpoints, co_joiners, seq, patience, joiner)
     return shown, past
 
 
@@ -55,7 +55,8 @@ def plans_shown(observed: ObservedStates, teammates: Collection[str], shown: Sho
     for robot_id in decision.costs:
         if robot_id in teammates:
             observed.saw_plan(robot_id, decision.seq - 1)
-    observed.saw_plan(shown.teammate, decision.seq)
+    if shown.teammate in teammates:
+        observed.saw_plan(shown.teammate, decision.seq)
 
 
 async def decided_before(transport: ClientTransport, endpoints: Mapping[str, Endpoint], teammates: Sequence[str],
@@ -99,7 +100,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
 
     # Tasks made here and read in the teammates' order (a set of done tasks
     # iterates in an order that follows id()).
-    watches = [asyncio.create_task(_observed(transport, endpoints[r], patience, partial(shows, r)))
+    watches = [asyncio.create_task(_observed(transport, r, endpoints[r], patience, partial(shows, r)))
                for r in teammates]
     past = False
     waited = False
@@ -127,7 +128,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
 
 
 async def joined_on(transport: ClientTransport, endpoints: Mapping[str, Endpoint], co_joiners: Sequence[str],
-                    seq: int, patience: float, joiner: str) -> Shown | None:
+                    seq: int, patience: float, joiner: str) -> tuple[Shown | None, bool]:
     """The decision a co-joiner (a robot joining at ``seq`` too) joined on
     (:attr:`.RobotState.joined`), or took since counting ``joiner`` in, for
     a joiner that found no teammate left that decided ``seq - 1``: a
@@ -138,32 +139,38 @@ async def joined_on(transport: ClientTransport, endpoints: Mapping[str, Endpoint
     while its co-joiner had joined the survivor's; the two decided on in two
     epochs).  None if no co-joiner shows one within ``patience`` seconds: a
     co-joiner that joined on none, or is still joining (it may find none
-    either), shows nothing to take.  Left is a narrower race: a co-joiner
-    that reads the survivor's state after this robot gave up on the
-    survivor and on it."""
+    either), shows nothing to take.  And, as :func:`decided_before` says,
+    whether one went past the task without ``joiner``: it was left out.
+    Left is a narrower race: a co-joiner that reads the survivor's state
+    after this robot gave up on the survivor and on it."""
 
     def shows(robot_id: str, state: RobotState) -> Shown | bool | None:
-        for decision in (state.last, state.joined):
-            if decision is not None and decision.seq >= seq - 1:
-                return Shown(robot_id, decision) if _takes(decision, seq, joiner) else False
-        # Its plan is right after seq - 1 once it has joined (on nothing).
-        return False if state.plan.seq == seq - 1 else None
+        # Its own decisions count from the join's task on: one of seq - 1 is
+        # a left-out robot's, fed again with the same process, alone.
+        last = state.last if state.last is not None and state.last.seq >= seq else None
+        decision = last or (state.joined if state.joined is not None and state.joined.seq >= seq - 1 else None)
+        if decision is not None:
+            return Shown(robot_id, decision) if _takes(decision, seq, joiner) else True
+        # Joined on nothing: its plan right after seq - 1, none before it (TeamView.join).
+        return False if state.plan.seq == seq - 1 and state.prev is None else None
 
-    watches = [asyncio.create_task(_observed(transport, endpoints[r], patience, partial(shows, r)))
+    watches = [asyncio.create_task(_observed(transport, r, endpoints[r], patience, partial(shows, r)))
                for r in co_joiners]
+    past = False
     try:
         async with asyncio.timeout(patience):
             for watch in asyncio.as_completed(watches):
                 found = await watch
                 if isinstance(found, Shown):
-                    return found
+                    return found, past
+                past = past or found
     except TimeoutError:
         log.info("no co-joiner showed a decision of task %d to join on within %gs", seq - 1, patience)
     finally:
         for watch in watches:
             watch.cancel()
         await asyncio.gather(*watches, return_exceptions=True)
-    return None
+    return None, past
 
 
 def _takes(decision: Decision, seq: int, joiner: str) -> bool:
@@ -173,9 +180,9 @@ def _takes(decision: Decision, seq: int, joiner: str) -> bool:
     return decision.seq == seq - 1 or (decision.seq == seq and joiner in decision.members)
 
 
-async def _observed(transport: ClientTransport, endpoint: Endpoint, patience: float,
-                       shows: Callable[[RobotState], Shown | bool | None]) -> Shown | bool:
-    """Observe a teammate's state until ``shows`` makes something of it;
+async def _observed(transport: ClientTransport, robot_id: str, endpoint: Endpoint, patience: float,
+                    shows: Callable[[RobotState], Shown | bool | None]) -> Shown | bool:
+    """Observe teammate ``robot_id``'s state until ``shows`` makes something of it;
     False if no process is there.  An observation that gets no answer
     within ``patience`` seconds is started again."""
     request = Request(Method.GET, STATE_PATH, accept=ContentFormat.CBOR)
@@ -189,8 +196,8 @@ async def _observed(transport: ClientTransport, endpoint: Endpoint, patience: fl
                         if found is not None:
                             return found
         except PeerGone as exc:
-            log.debug("catching up from %s: %s", endpoint, exc)
+            log.debug("catching up from %s: %s", robot_id, exc)
             return False
         except (TransportError, ValueError, TimeoutError) as exc:
-            log.debug("catching up from %s: %s", endpoint, exc or "no answer")
+            log.debug("catching up from %s: %s", robot_id, exc or "no answer")
         await asyncio.sleep(JOIN_RETRY_S)  # silent, or the observation ended: again

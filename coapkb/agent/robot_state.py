@@ -97,10 +97,10 @@ class RobotState:
     #: unnamed): a restarted robot has a new one, so teammates can tell it
     #: from the process they knew even before it decides anything.
     boot: int = 0
-    #: A restarted robot that joined on a teammate's decision of the task
-    #: before its join, until it decides one itself: a co-joiner that no
-    #: longer reaches that teammate joins on the same membership
-    #: (:func:`.joining.joined_on`).
+    #: The teammate's decision whose membership a restarted robot joined
+    #: on (of the task before its join, or of that task counting it in),
+    #: until it decides one itself: a co-joiner that no longer reaches that
+    #: teammate joins on the same membership (:func:`.joining.joined_on`).
     joined: Decision | None = None
 
     def with_plan(self, plan: PlannedState, last: Decision) -> RobotState:

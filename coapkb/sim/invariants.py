@@ -223,6 +223,15 @@ def check_epochs_grow(run: RunResult) -> Iterable[str]:
                 last[robot] = (task.seq, epoch)
 
 
+def check_no_exceptions(run: RunResult) -> Iterable[str]:
+    """No robot nor the feeder logged an exception with its traceback: the
+    code caught what it did not expect, to keep the robot alive (a task's
+    decision becomes "internal error"), and no fault excuses that (a join
+    that raised was found only this way: every robot agreed on the failed
+    task, and no other check saw it)."""
+    yield from run.exceptions
+
+
 def check_bounded(run: RunResult) -> Iterable[str]:
     """Bounded state stays bounded (readings taken at the end of the run)."""
     for name, (value, bound) in run.bounds.items():
@@ -509,7 +518,7 @@ def check_liveness(run: RunResult) -> Iterable[str]:
 
 #: Every invariant, in the order their findings are printed.
 CHECKS: tuple[Callable[[RunResult], Iterable[Finding]], ...] = (
-    check_finished, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
+    check_finished, check_no_exceptions, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
     check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
     check_acknowledged_writes, check_forgeries, check_liveness,
 )

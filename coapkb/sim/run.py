@@ -132,6 +132,8 @@ class RunResult:
     picks: list[Pick]
     #: Robots out at the end (killed and not restarted, or left frozen): none of their state is final.
     crashes: list[str]
+    #: Exceptions a robot or the feeder logged with their traceback (:class:`_History`).
+    exceptions: list[str] = field(default_factory=list)
     #: The tasks the feeder was given, in order.
     fed: list[str] = field(default_factory=list)
     #: Invariants broken (filled in by :mod:`.invariants`), and disagreements the schedule explains.
@@ -275,7 +277,9 @@ class KBCache:
 
 class _History(logging.Handler):
     """The robots' log lines, read as the run's history: picks (the
-    executor's :data:`PICKED` line) and, when tracing, every warning."""
+    executor's :data:`PICKED` line), the exceptions logged with their
+    traceback (a bug whatever the schedule: the code caught what it did not
+    expect, to keep the robot alive) and, when tracing, every warning."""
 
     def __init__(self, names: dict[SimLoop, Process], clock: Callable[[], float],
                  trace: Callable[[str], None] | None) -> None:
@@ -284,6 +288,7 @@ class _History(logging.Handler):
         self.clock = clock
         self.trace = trace
         self.picks: list[Pick] = []
+        self.exceptions: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -299,7 +304,12 @@ class _History(logging.Handler):
                                    round(self.clock(), 6)))
             if self.trace is not None:
                 self.trace(f"pick {name} task {seq} {obj}")
-        elif record.levelno >= logging.WARNING and self.trace is not None:
+            return
+        if record.levelno >= logging.ERROR and record.exc_info is not None and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            self.exceptions.append(f"{name} at {self.clock():.3f}s: {record.getMessage()}: "
+                                   f"{type(exc).__name__}: {exc}"[:300])
+        if record.levelno >= logging.WARNING and self.trace is not None:
             self.trace(f"log {name} {record.getMessage()}")
 
 
@@ -652,7 +662,7 @@ class SimulatedTeam:
                 gc.enable()
         return RunResult(
             seed=self.seed, schedule=str(self.schedule), record=record, error=error, picks=self.history.picks,
-            crashes=list(scheduler.crashes), bounds=bounds,
+            crashes=list(scheduler.crashes), exceptions=list(self.history.exceptions), bounds=bounds,
             events=sorted([*self.schedule.events, *self.saboteur.sprung], key=lambda e: e.at_s),
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,

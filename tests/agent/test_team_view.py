@@ -523,20 +523,26 @@ async def test_a_joiner_that_reaches_no_survivor_takes_the_membership_its_co_joi
     started a fresh membership, its co-joiner had joined the survivor's,
     and the two decided in two epochs).  A co-joiner that joined on
     nothing, or is still joining when ``patience`` runs out, leaves the
-    fresh membership of the join list."""
+    fresh membership of the join list; one past the task without Robot1
+    left it out."""
     on = Decision(9, "Gucci_bag_14", assigned_to="Robot3", epoch=4, members=("Robot2", "Robot3"))
     cases = {"joined on Robot3's decision": (replace(robot("Robot2", 9, boot=5), joined=on), (5, ("Robot1", "Robot2",
                                                                                                   "Robot3"))),
              "joined on nothing": (robot("Robot2", 9, boot=5), (10, ("Robot1", "Robot2"))),
-             "still joining": (robot("Robot2", 0, boot=5), (10, ("Robot1", "Robot2")))}
+             "still joining": (robot("Robot2", 0, boot=5), (10, ("Robot1", "Robot2"))),
+             # Gone on without Robot1: it was left out, a membership of its own, alone.
+             "past the task without it": (replace(robot("Robot2", 10, boot=5), last=replace(on, seq=10, epoch=5)),
+                                          (10, ("Robot1",)))}
     for case, (robot2, expected) in cases.items():
         network = MemoryNetwork()
         await serve_state(network, robot2)
         team = view(network, robot("Robot1", 0, boot=3))
         try:
             async with asyncio.timeout(2):
-                assert await team.join(10, patience=0.2, joining=("Robot1", "Robot2")), case
-            team.membership.admit("Robot2", 10)  # as the controller does next
+                admits = await team.join(10, patience=0.2, joining=("Robot1", "Robot2"))
+            assert admits == (robot2.last is None), case
+            if admits:
+                team.membership.admit("Robot2", 10)  # as the controller does next
             assert (team.membership.epoch, team.membership.members) == expected, case
             assert team.own.joined == (on if robot2.joined else None), case
         finally:

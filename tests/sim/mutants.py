@@ -222,9 +222,16 @@ async def _silent_left_out(transport: Any, endpoints: Any, teammates: Any, seq: 
 
 
 async def _co_joiners_unasked(transport: Any, endpoints: Any, co_joiners: Any, seq: int, patience: float,
-                              joiner: str) -> None:
+                              joiner: str) -> tuple[None, bool]:
     """A joiner that finds no survivor starts a fresh membership without
     asking its co-joiners what they joined on."""
+    return None, False
+
+
+async def _answer_of_another_shape(transport: Any, endpoints: Any, co_joiners: Any, seq: int, patience: float,
+                                   joiner: str) -> None:
+    """What a co-joiner joined on, in a shape its caller does not unpack:
+    the join raises, and the robot catches it to stay alive."""
     return None
 
 
@@ -388,6 +395,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("co-joiners-unasked", "a joiner that reaches no survivor starts a fresh membership, though a co-joiner "
            "joined on the survivor's decision", lambda: _patch(joining_module, "joined_on", _co_joiners_unasked),
            STORAGE_FORGE, (103234,)),
+    Mutant("join-raises", "a joiner that reaches no survivor raises (caught to keep the robot alive; its "
+           "teammates agree on the failed task)",
+           lambda: _patch(joining_module, "joined_on", _answer_of_another_shape), STORAGE_FORGE, (103234,)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),

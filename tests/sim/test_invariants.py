@@ -3,6 +3,8 @@ and says nothing of a good one."""
 
 from __future__ import annotations
 
+import logging
+
 from support import ONTOLOGIES
 
 from coapkb.feeder.record import TaskRecord
@@ -13,7 +15,7 @@ from coapkb.sim.faults import FaultEvent
 from coapkb.sim.invariants import check
 from coapkb.sim.observed import FilesQuads, Grant, Take, of_module
 from coapkb.sim.operator import WriteOp
-from coapkb.sim.run import Pick, RunResult
+from coapkb.sim.run import Pick, RunResult, _History
 from coapkb.transport.base import TrafficCounters
 
 CLUSTER = ["Robot1", "Robot2", "Robot3"]
@@ -244,3 +246,25 @@ def test_holders_of_other_modules_too_differ_only_where_their_writes_do() -> Non
     one.update(f'PREFIX : <{cap}> INSERT DATA {{ :Robot2 :note "one" }}')
     two.update(f'PREFIX : <{cap}> DELETE DATA {{ :Robot1 :Robot_Id "Robot1" }}')
     assert differ() == {f'<{cap}Robot2> <{cap}note> "one"', f'<{cap}Robot1> <{cap}Robot_Id> "Robot1"'}
+
+
+def test_an_exception_a_robot_caught_and_logged_is_a_violation() -> None:
+    """A robot that catches what it did not expect keeps running, and its
+    teammates may agree on the failed task: no other check sees it (a join
+    that raised was found only this way)."""
+    caught = "Robot3 at 6.809s: task 7 (A) failed: TypeError: cannot unpack non-iterable NoneType object"
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], exceptions=[caught])
+    assert run.violations == [caught]
+
+
+def test_the_history_keeps_the_exceptions_logged_with_their_traceback_only() -> None:
+    history = _History({}, lambda: 1.5, None)
+
+    def record(level: int, message: str, exc: BaseException | None) -> logging.LogRecord:
+        return logging.LogRecord("coapkb.agent.controller", level, __file__, 1, message, None,
+                                 (type(exc), exc, None) if exc is not None else None)
+
+    history.emit(record(logging.ERROR, "task 7 failed", ValueError("bad")))
+    history.emit(record(logging.ERROR, "task 8: no answer", None))  # a fault's error, said without a traceback
+    history.emit(record(logging.WARNING, "Robot2 is down", None))
+    assert history.exceptions == ["- at 1.500s: task 7 failed: ValueError: bad"]
