@@ -48,7 +48,8 @@ decisions = st.builds(
     st.none() | st.text(max_size=40),
     st.none() | st.text(min_size=1, max_size=40),
 )
-states = st.builds(RobotState, ids, plans, lives, st.none() | decisions, st.none() | plans)
+states = st.builds(RobotState, ids, plans, lives, st.none() | decisions, st.none() | plans, st.integers(0, 2**32 - 1),
+                   st.none() | decisions)
 
 
 @pytest.fixture(scope="module")
