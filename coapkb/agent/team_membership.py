@@ -306,12 +306,12 @@ class TeamMembership:
 
         ``joining``: every robot joining at ``seq`` (this one too).  When no
         process that decided ``seq - 1`` survives (each teammate is joining
-        too, gone, or a new process that decided nothing: every robot
-        restarted in turn) and no co-joiner joined on one, the joiners start
-        a fresh membership of the join list, its epoch the task's number, the
-        same on each (simulator: three robots restarted in turn logged
-        "cannot join" and decided nothing).  When one is past the task without this robot, it
-        was left out: a membership of its own, alone, and it admits nobody."""
+        too, gone, or a new process that decided nothing) and no co-joiner
+        joined on one, the joiners start a fresh membership of the join
+        list, its epoch the task's number, the same on each (in the
+        simulator, three robots restarted in turn decided nothing before).
+        One past the task without this robot left it out: a membership of
+        its own, alone, admitting nobody."""
         if seq <= 1:
             # Nothing decided before: the membership is the cluster's first.
             self._joined(seq, Membership(0, ()))
