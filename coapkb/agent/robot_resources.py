@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, replace
 from typing import Any
@@ -69,6 +70,11 @@ class FinalOutcome:
         return self._at is not None and self._at == self._key(state) and state.live.activity == "idle"
 
 
+#: Plans shown to a teammate's question that a later try gets again: a few
+#: tasks' worth for each teammate (a try is held back seconds, not tasks).
+PLANS_SHOWN_KEPT = 64
+
+
 class RobotResources:
     """The handlers of one robot's resources (see the module docstring)."""
 
@@ -80,6 +86,10 @@ class RobotResources:
         self.final_outcome = final_outcome
         self._stats = stats
         self._next_seq = 1
+        #: (teammate, task) -> the plan this robot showed when asked for it
+        #: after that task (:meth:`_compare_notes`), the latest
+        #: :data:`PLANS_SHOWN_KEPT`: every later try gets the same answer.
+        self._plans_shown: OrderedDict[tuple[str, int], bytes] = OrderedDict()
         #: Object of the last ``bounds.posts_remembered`` tasks taken, by sequence number
         #: (a repeated post is recognised: the feeder repeats only its latest).
         self.accepted: dict[int, str] = {}
@@ -149,17 +159,28 @@ class RobotResources:
         if asker is not None and not self.team.in_cluster(asker):
             return Response.error(Status.FORBIDDEN, f"{asker} is not of {self.config.robot_id}'s cluster")
         state = self.team.state_of(about)
-        # Once it has promised to go on without that plan, it says so to every
-        # later try too, though the plan came since: each try of a question is
-        # a new exchange, and a try answered with the plan after an earlier
-        # one was answered without it had the asker count the teammate in and
-        # this robot leave it out (found in the simulator, seed 1308 of three
-        # robots with messages held back).
+        # Each try of a question is a new exchange, and every try gets the
+        # first one's answer.  Once it has promised to go on without that
+        # plan, it says so to every later try, though the plan came since: a
+        # try answered with the plan after an earlier one was answered
+        # without it had the asker count the teammate in and this robot leave
+        # it out (found in the simulator, seed 1308 of three robots with
+        # messages held back).  Once it has shown the plan, it shows it
+        # again, though it holds only later ones since: a try held back past
+        # the next tasks was answered without it, and this robot left out the
+        # teammate that the asker, answered with the plan, counted in (seed
+        # 4608, likewise).
+        shown = self._plans_shown.get((about, seq))
+        if shown is not None and not self.team.membership.forgoes(about, seq):
+            return Response(Status.CHANGED, shown, ContentFormat.CBOR)
         if state is None or state.plan_at(seq) is None or self.team.membership.forgoes(about, seq):
             if self.team.membership.heeds(asker):
                 await self.team.membership.forgo(about, seq)
             return Response.error(Status.NOT_FOUND, f"no plan of {about} after task {seq}")
-        return Response(Status.CHANGED, state.encode_plan(), ContentFormat.CBOR)
+        shown = self._plans_shown[(about, seq)] = state.encode_plan()
+        while len(self._plans_shown) > PLANS_SHOWN_KEPT:
+            self._plans_shown.popitem(last=False)
+        return Response(Status.CHANGED, shown, ContentFormat.CBOR)
 
     async def _get_plan(self, request: Request) -> Response:
         probed = request.query.get("probe")

@@ -85,3 +85,24 @@ async def test_once_without_the_plan_every_later_try_is_answered_without_it() ->
                                                   LiveState(1.0, 0.0))
     second = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
     assert first.status == second.status == Status.NOT_FOUND
+
+
+async def test_once_shown_the_plan_every_later_try_is_shown_it_again() -> None:
+    """Robot2 asks for Robot3's plan after task 5 and is shown it; a try of
+    the same question, held back past the next tasks, arrives when Robot1
+    holds only Robot3's later plans.  It is shown the same plan, and binds
+    Robot1 to nothing: answered without it, Robot1 left Robot3 out, while
+    Robot2 counted it in (simulator, seed 4608 of three robots with
+    messages held back and hedged retries)."""
+    team, resources = _robot1()
+    team._teammates.states["Robot3"] = RobotState("Robot3", PlannedState(3, 0, 400.0, 0.0, 40.0, seq=5),
+                                                  LiveState(1.0, 0.0))
+    first = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    team._teammates.states["Robot3"] = RobotState("Robot3", PlannedState(4, 0, 390.0, 0.0, 40.0, seq=7),
+                                                  LiveState(1.0, 0.0))
+    late = await _ask(resources, {"of": "Robot3", "at": "5", "by": "Robot2"})
+    assert first.status == late.status == Status.CHANGED and late.payload == first.payload
+    assert not team.membership.forgoes("Robot3", 5)
+    # A question about a plan never shown binds as before.
+    assert (await _ask(resources, {"of": "Robot3", "at": "6", "by": "Robot2"})).status == Status.NOT_FOUND
+    assert team.membership.forgoes("Robot3", 6)

@@ -32,6 +32,7 @@ if __package__ in (None, ""):
 from coapkb.agent import controller as controller_module
 from coapkb.agent import joining as joining_module
 from coapkb.agent import notification_repair as notification_repair_module
+from coapkb.agent import robot_resources as robot_resources_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
@@ -81,6 +82,8 @@ REJOIN = ("--robots", "3", "--tasks", "30", "--faults", "rejoin,loss,swarm")
 #: what it sent next; the operator removes a third of its adds once they
 #: spread (a late try of the add must not bring the value back).
 LATE = ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20")
+#: The same with retries hedged (sent as two exchanges).
+LATE_HEDGED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,swarm", "--writes", "20")
 #: Kills and restarts while the operator writes, and the catch-up oracle over
 #: the profile's runs (seed 0: the profile as a whole), on the CI profile's
 #: seeds 261-320: with the catch-up at start gone, the median is 2.26 s
@@ -398,6 +401,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("join-raises", "a joiner that reaches no survivor raises (caught to keep the robot alive; its "
            "teammates agree on the failed task)",
            lambda: _patch(joining_module, "joined_on", _answer_of_another_shape), STORAGE_FORGE, (103234,)),
+    Mutant("plans-shown-forgotten", "a try of a teammate's question held back past the next tasks is answered "
+           "without the plan an earlier try was shown, and binds the robot asked",
+           lambda: _patch(robot_resources_module, "PLANS_SHOWN_KEPT", 0), LATE_HEDGED, (4608,)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),

@@ -288,6 +288,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "held back: it removed nothing there, and the value stayed on the other holders",
         28: "a try of a post naming a member restarted, held back and taken after that member's new process had "
             "joined: the robot counted the new process gone and left it out alone, an epoch ahead",
+        4608: "a try of a teammate's question about a frozen robot's plan, held back past the next tasks, was "
+              "answered without the plan an earlier try had been shown: the robot asked left the frozen one out, "
+              "the asker counted it in",
     }),
     (("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20"), {
         686: "a teammate's question about a restarted robot's plan before its join, held back on the way, was "
