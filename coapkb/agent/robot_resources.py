@@ -170,7 +170,7 @@ class RobotResources:
         # the next tasks was answered without it, and this robot left out the
         # teammate that the asker, answered with the plan, counted in (seed
         # 4608, likewise).
-        shown = self._plans_shown.get((about, seq))
+        shown = self._shown_before(about, seq)
         if shown is not None and not self.team.membership.forgoes(about, seq):
             return Response(Status.CHANGED, shown, ContentFormat.CBOR)
         if state is None or state.plan_at(seq) is None or self.team.membership.forgoes(about, seq):
@@ -181,6 +181,10 @@ class RobotResources:
         while len(self._plans_shown) > PLANS_SHOWN_KEPT:
             self._plans_shown.popitem(last=False)
         return Response(Status.CHANGED, shown, ContentFormat.CBOR)
+
+    def _shown_before(self, about: str, seq: int) -> bytes | None:
+        """The plan of ``about`` after task ``seq`` that a question was shown, if one was."""
+        return self._plans_shown.get((about, seq))
 
     async def _get_plan(self, request: Request) -> Response:
         probed = request.query.get("probe")

@@ -32,11 +32,11 @@ if __package__ in (None, ""):
 from coapkb.agent import controller as controller_module
 from coapkb.agent import joining as joining_module
 from coapkb.agent import notification_repair as notification_repair_module
-from coapkb.agent import robot_resources as robot_resources_module
 from coapkb.agent.controller import Controller
 from coapkb.agent.fact_push import FactPusher
 from coapkb.agent.job import Job
 from coapkb.agent.lease import Lease
+from coapkb.agent.robot_resources import RobotResources
 from coapkb.agent.settling import Settler
 from coapkb.agent.task_assigner import Assignment
 from coapkb.agent.task_executor import TaskExecutor
@@ -238,6 +238,11 @@ async def _answer_of_another_shape(transport: Any, endpoints: Any, co_joiners: A
     return None
 
 
+def _nothing_shown(self: RobotResources, about: str, seq: int) -> None:
+    """No try of a question is ever shown the plan an earlier one was."""
+    return None
+
+
 _assign = controller_module.assign
 
 
@@ -403,7 +408,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(joining_module, "joined_on", _answer_of_another_shape), STORAGE_FORGE, (103234,)),
     Mutant("plans-shown-forgotten", "a try of a teammate's question held back past the next tasks is answered "
            "without the plan an earlier try was shown, and binds the robot asked",
-           lambda: _patch(robot_resources_module, "PLANS_SHOWN_KEPT", 0), LATE_HEDGED, (4608,)),
+           lambda: _patch(RobotResources, "_shown_before", _nothing_shown), LATE_HEDGED, (4608,)),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),
