@@ -522,10 +522,12 @@ async def test_a_server_keys_with_more_members_than_cbor_integer_identifiers(tmp
         # message_2 came: the copy is a half-open session of its own, never more.
         retried = sum(c.counters.retransmissions for c in clients.values())
         assert complete == 60 and half_open <= retried, (half_open, retried)
-        sent = {n: clients[n].counters.messages_sent for n in names}
+        sent = {n: clients[n].counters.messages_sent - clients[n].counters.retransmissions for n in names}
         for name in names:  # every session still there: one message each, no new handshake
             assert (await clients[name].request(peer, Request(Method.GET, "/tasks"), timeout=5)).status == Status.CONTENT
-            assert clients[name].counters.messages_sent - sent[name] == 1
+            # A try sent again on a busy machine is the same message, not a handshake.
+            counters = clients[name].counters
+            assert counters.messages_sent - counters.retransmissions - sent[name] == 1
         assert oscore_layer.RESPONDER_IDENTIFIERS > 60
     finally:
         for client in clients.values():
