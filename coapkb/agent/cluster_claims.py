@@ -1,6 +1,6 @@
 """The cluster's claims: each object its cluster assigned, to whom and at
 which task, so a repeat of it is skipped alike on every robot before the
-pick is written, or even made (docs/failover.md, "Repeats")."""
+pick is written, or even made (docs/knowledge.md, section 9)."""
 
 from __future__ import annotations
 
