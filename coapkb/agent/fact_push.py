@@ -26,6 +26,7 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Mapping
 
 from .. import clock
+from ..cancelling import cancel_and_wait
 from ..kb.client import DEFAULT_MAX_AGE_S
 from ..transport.base import ClientTransport, Endpoint, PeerGone, ResourceInfo, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Response, Status
@@ -185,9 +186,7 @@ class PushedFacts:
         self._watchers[module] = asyncio.create_task(self._watch(module, endpoint), name=f"facts-{robot_id}")
 
     async def aclose(self) -> None:
-        for task in self._watchers.values():
-            task.cancel()
-        await asyncio.gather(*self._watchers.values(), return_exceptions=True)
+        await cancel_and_wait(self._watchers.values())
         self._watchers.clear()
 
     def expects(self, endpoint: Endpoint) -> bool:

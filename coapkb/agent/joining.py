@@ -10,6 +10,7 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from functools import partial
 from typing import NamedTuple
 
+from ..cancelling import cancel_and_wait
 from ..transport.base import ClientTransport, Endpoint, PeerGone, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .observed_states import STATE_PATH, ObservedStates
@@ -121,9 +122,7 @@ async def decided_before(transport: ClientTransport, endpoints: Mapping[str, End
                         return found, past
                     past = past or found
     finally:
-        for watch in watches:
-            watch.cancel()
-        await asyncio.gather(*watches, return_exceptions=True)
+        await cancel_and_wait(watches)
     return None, past
 
 
@@ -167,9 +166,7 @@ async def joined_on(transport: ClientTransport, endpoints: Mapping[str, Endpoint
     except TimeoutError:
         log.info("no co-joiner showed a decision of task %d to join on within %gs", seq - 1, patience)
     finally:
-        for watch in watches:
-            watch.cancel()
-        await asyncio.gather(*watches, return_exceptions=True)
+        await cancel_and_wait(watches)
     return None, past
 
 

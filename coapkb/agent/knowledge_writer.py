@@ -41,6 +41,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass, field
 
+from ..cancelling import cancel_and_wait
 from ..errors import CoapkbError
 from ..kb.named_updates import NamedUpdate
 from ..kb.write_ids import writer_name
@@ -183,10 +184,7 @@ class KnowledgeWriter:
         self._task = asyncio.create_task(self._run(), name="knowledge-writer")
 
     async def aclose(self) -> None:
-        tasks = [t for t in (self._task, *self._sending.values()) if t is not None]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait((self._task, *self._sending.values()))
 
     @property
     def pending(self) -> int:

@@ -25,6 +25,7 @@ import logging
 from collections.abc import Awaitable, Callable, Mapping
 
 from .. import clock
+from ..cancelling import cancel_and_wait
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import Method, Request, Status
 
@@ -152,9 +153,7 @@ class Lease:
                         if waiting:
                             ask_next()
         finally:
-            for future in pending:
-                future.cancel()
-            await asyncio.gather(*pending, return_exceptions=True)
+            await cancel_and_wait(pending)
         refusals = {r: v for r, v in verdicts.items() if not v.startswith("no answer")}
         if len(self._teammates) - len(refusals) < self.needed:
             return "no lease from a majority of the cluster (" + "; ".join(

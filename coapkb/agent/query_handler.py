@@ -16,6 +16,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 
 from .. import clock
+from ..cancelling import cancel_and_wait
 from ..config import RobotConfig, Teammate
 from ..errors import CoapkbError
 from ..kb.client import KBClient, QueryFailed, named_request
@@ -313,9 +314,7 @@ class QueryHandler:
                         self.stats.failovers += 1
                         ask_next()
         finally:
-            for task in pending:
-                task.cancel()
-            await asyncio.gather(*pending, return_exceptions=True)
+            await cancel_and_wait(pending)
         self.stats.failed += 1
         raise ModuleUnavailable(query.kb, errors)
 

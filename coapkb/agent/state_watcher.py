@@ -17,6 +17,7 @@ import logging
 from collections.abc import Callable, Collection, Mapping
 
 from .. import clock
+from ..cancelling import cancel_and_wait
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .failure_detector import FAILURES_TO_DOWN, FailureDetector
@@ -95,11 +96,7 @@ class StateWatcher:
         self.watch(robot_id)
 
     async def aclose(self) -> None:
-        tasks = [*self._watchers.values(), *self.repair.tasks,
-                 *([self._refreshing] if self._refreshing is not None else [])]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait((*self._watchers.values(), *self.repair.tasks, self._refreshing))
 
     @property
     def refresh_s(self) -> float:

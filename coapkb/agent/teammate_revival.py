@@ -9,6 +9,7 @@ import asyncio
 import logging
 from collections.abc import Mapping
 
+from ..cancelling import cancel_and_wait
 from ..transport.base import ClientTransport, Endpoint, TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from .lease import LEASE_PATH
@@ -36,9 +37,7 @@ class TeammateRevival:
         self._background: set[asyncio.Task[bool]] = set()
 
     async def aclose(self) -> None:
-        for task in self._background:
-            task.cancel()
-        await asyncio.gather(*self._background, return_exceptions=True)
+        await cancel_and_wait(self._background)
 
     async def heard_again(self, robot_id: str) -> bool:
         """Teammate ``robot_id``, a member this robot has down, showed it is

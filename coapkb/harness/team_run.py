@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 from ..agent.observed_states import STATE_PATH
 from ..agent.robot_state import RobotState
 from ..agent.stats import RobotStats
+from ..cancelling import cancel_and_wait
 from ..feeder import Feeder, FeederSettings, FeedOutcome, Roster, TaskRecord
 from ..feeder.restock import Restocker
 from ..feeder.tasks import Entry
@@ -82,10 +83,7 @@ class TeamRun:
                 stats = await self._statistics(feeder, faults)
                 traffic = feeder.traffic  # a copy: the client still counts while closing
             finally:
-                for helper in (injector, sampler):
-                    if helper is not None:
-                        helper.cancel()
-                await asyncio.gather(*(h for h in (injector, sampler) if h is not None), return_exceptions=True)
+                await cancel_and_wait((injector, sampler))
             down, down_at = dict(feeder.watcher.down), dict(feeder.watcher.down_at)
         faults.note_detection(down_at)
         return team_record(self.spec, outcome, stats, traffic, faults.events, down)

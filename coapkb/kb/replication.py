@@ -50,6 +50,7 @@ import asyncio
 import random
 from collections.abc import Collection, Mapping, Sequence
 
+from ..cancelling import cancel_and_wait
 from ..transport.base import ClientTransport
 from ..transport.messages import Request, Response
 from ..transport.router import Router
@@ -187,10 +188,7 @@ class Replicator:
         self.anti_entropy.compact()
 
     async def aclose(self) -> None:
-        tasks = [t for t in (self.anti_entropy.task, *self.outgoing.pushes) if t is not None]
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait((self.anti_entropy.task, *self.outgoing.pushes))
 
 
 def _reached(wanted: Mapping[str, frozenset[str]], confirmed: Mapping[str, set[str]],

@@ -43,6 +43,7 @@ from aiocoap.numbers.types import NON
 from aiocoap.oscore_sitewrapper import OscoreSiteWrapper
 from aiocoap.transports.oscore import OSCOREAddress, TransportOSCORE
 
+from ..cancelling import cancel_and_wait
 from ..transport.base import Endpoint, RateLimitFilter, TransportError
 from ..transport.coap.security import HandshakePost
 from .errors import SecurityError
@@ -450,10 +451,7 @@ class _OSCORETransport(TransportOSCORE):
         observation's loop reading one: it stayed pending, and was reported
         when collected ("Task was destroyed but it is pending") once a
         process had run a second team."""
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(list(self._tasks))
         await super().shutdown()
 
     def _request_done(self, task: asyncio.Task[None], request: Any, tracked: _WireRequests) -> None:

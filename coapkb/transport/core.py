@@ -22,6 +22,7 @@ from collections.abc import Callable, Coroutine, Hashable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Self
 
+from ..cancelling import cancel_and_wait
 from .base import Endpoint, RateLimitedLog, Service, TrafficCounters, TransportError, handle_safely
 from .envelope import encode_response
 from .messages import Method, Request, Response, Status
@@ -142,10 +143,7 @@ class ServerCore(_Endpoint):
         self._closed = True
         self._stop_receiving()
         self._observations.stop_all()
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(list(self._tasks))
         await self._close_transport()
 
     def _stop_receiving(self) -> None:
