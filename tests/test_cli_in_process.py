@@ -121,6 +121,8 @@ kbs = ["Location"]
         (["serve", "--kb", str(ONTOLOGIES / "Capability.owl"), "--time-budget", "0"], ["time_budget"]),
         (["agent", "--config", "/nonexistent/robot.toml"], ["/nonexistent/robot.toml"]),
         (["team", "--robots", "4", "--tasks", "1"], ["multiple of 3"]),
+        (["sim", "--seed", "1", "--observers", "2"], ["--observers", "--writes"]),
+        (["sim", "--seed", "1", "--writes", "5", "--observers", "-1"], ["--observers", "negative"]),
     ],
 )
 def test_user_mistakes(argv: list[str], fragments: list[str], capsys: pytest.CaptureFixture[str]) -> None:

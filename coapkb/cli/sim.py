@@ -32,6 +32,9 @@ def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p.add_argument("--storage", action="store_true",
                    help="every robot keeps its writes in a data folder: kills keep it (and may tear its journal's "
                         "tail), restarts restore from it; with crash in --faults, every holder of a module dies at once")
+    p.add_argument("--observers", type=int, default=0, metavar="N",
+                   help="with --writes: N clients observe the written knowledge of a holder each, as coapkb query "
+                        "--observe does; each must show what its robot's KB shows once the replicas agree")
     p.add_argument("--ties", action="store_true",
                    help="every robot of a cluster starts at the same place: cost ties, decided by the tie-break")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
@@ -97,10 +100,14 @@ async def _sim(args: argparse.Namespace) -> int:
     for option, bound in (("--decide-within", args.decide_within), ("--catch-up-within", args.catch_up_within)):
         if bound is not None and not bound > 0:
             raise UserError(f"{option} must be positive, got {bound:g}")
+    if args.observers < 0:
+        raise UserError("--observers must not be negative")
+    if args.observers and not args.writes:
+        raise UserError("--observers watch what the operator writes: give --writes N too")
     if args.catch_up_within is not None and not args.writes:
         raise UserError("--catch-up-within times what restarted holders catch up with: give --writes N too")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
-                   writes=args.writes, ties=args.ties, storage=args.storage,
+                   writes=args.writes, ties=args.ties, storage=args.storage, observers=args.observers,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
     started = time.monotonic()
     if args.shrink:

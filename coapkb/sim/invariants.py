@@ -24,6 +24,7 @@ from ..feeder.record import TaskRecord, claim_of
 from ..harness.record import TeamRecord
 from .faults import FaultEvent
 from .observed import Take
+from .observers import OBSERVER_SETTLE_S
 from .operator import WriteOp
 from .run import Pick, RunResult
 
@@ -516,11 +517,34 @@ def check_liveness(run: RunResult) -> Iterable[str]:
                f"(bound {run.settle_bound_s:.1f}s)")
 
 
+
+def check_observers(run: RunResult) -> Iterable[str]:
+    """Once the replicas agree, every observer of a robot that runs shows
+    what that robot's KB shows within :data:`~.observers.OBSERVER_SETTLE_S`
+    (an observation silently stale across a restart or a lost notification
+    never does), and no observation ends with an error answer."""
+    if run.converged_at is None:
+        return  # replicas that never agreed are the liveness check's finding
+    for view in run.observers:
+        name = f"{view.observer} of {view.robot}'s {view.module}"
+        if view.ended is not None:
+            yield f"the observation of {name} ended: {view.robot} {view.ended}"
+        elif view.current is not None and view.shown != view.current:
+            said = "nothing" if view.shown is None else _values(view.shown)
+            heard = f"; it noticed: {'; '.join(view.notices[-2:])}" if view.notices else "; it noticed nothing"
+            yield (f"{name} shows {said} while {view.robot}'s KB shows {_values(view.current)}, "
+                   f"{OBSERVER_SETTLE_S:g}s after the replicas agreed{heard}")
+
+
+def _values(values: frozenset[int]) -> str:
+    return "{" + ", ".join(str(v) for v in sorted(values)) + "}"
+
+
 #: Every invariant, in the order their findings are printed.
 CHECKS: tuple[Callable[[RunResult], Iterable[Finding]], ...] = (
     check_finished, check_no_exceptions, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
     check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
-    check_acknowledged_writes, check_forgeries, check_liveness,
+    check_acknowledged_writes, check_forgeries, check_liveness, check_observers,
 )
 
 

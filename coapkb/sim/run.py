@@ -48,6 +48,7 @@ from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
 from .observed import FilesQuads, Grant, GrantLog, Shelf, Take
+from .observers import OBSERVER_SETTLE_S, ObserverView, current_values, draw_observers
 from .operator import Holders, Operator, WriteOp, shows
 from .saboteur import Forgery, Saboteur
 
@@ -91,6 +92,9 @@ class SimSpec:
     #: fsynced before a write is answered): a kill keeps the folder, and may
     #: tear the journal's tail; a restart restores from it.
     storage: bool = False
+    #: Observers of the written knowledge (``coapkb query --observe``), each
+    #: of one module at one holder, judged at the end (:mod:`.observers`).
+    observers: int = 0
 
     def team(self) -> TeamSpec:
         return TeamSpec(
@@ -176,6 +180,8 @@ class RunResult:
     differences: dict[str, list[str]] = field(default_factory=dict)
     #: Moments two holders of a module were at one version with different triples.
     split_versions: list[str] = field(default_factory=list)
+    #: Each observer of the written knowledge at the end, and what its robot shows.
+    observers: list[ObserverView] = field(default_factory=list)
     #: Every take at a shelf and every lease granted, from outside the robots.
     takes: list[Take] = field(default_factory=list)
     grants: list[Grant] = field(default_factory=list)
@@ -439,6 +445,10 @@ class SimulatedTeam:
         self._write_seed = rng.random()
         # Drawn last: a seed's other draws stay what they were before disks.
         self.saboteur = Saboteur(self, random.Random(rng.random()))
+        # After it, and only with observers: a seed without them runs as before.
+        self.observers = draw_observers(
+            spec.observers, random.Random(rng.random()), {m: self.holders.of(m) for m in sorted(ONTOLOGIES)},
+            lambda robot: self.configs[robot].bind) if spec.observers else []
 
     def note(self, text: str) -> None:
         """A line of the trace, stamped with the simulated time; the data
@@ -566,6 +576,9 @@ class SimulatedTeam:
                 writer = self.scheduler.start(operator, self.operator.write(
                     operator, random.Random(self._write_seed), self.spec.writes, self.spec.horizon_s, started,
                     undo=self.schedule.link.late > 0))
+            for observer in self.observers:
+                watching = self._spawn(observer.name)
+                self.scheduler.start(watching, observer.run(watching, self.network))
             scenario = self.spec.scenario
 
             def progress(record: TaskRecord) -> None:
@@ -593,6 +606,11 @@ class SimulatedTeam:
                     while not self.holders.agree() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
                         await asyncio.sleep(0.5)
                     self.converged_at = round(self.elapsed_s, 6) if self.holders.agree() else None
+                if self.observers and self.converged_at is not None:
+                    # Each observer's last answer what its robot shows, in time.
+                    deadline = asyncio.get_running_loop().time() + OBSERVER_SETTLE_S
+                    while self._observers_behind() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
+                        await asyncio.sleep(0.5)
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]
                 maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
@@ -615,6 +633,11 @@ class SimulatedTeam:
         whichever is later) every task may take to settle: see
         docs/simulation.md, "Liveness"."""
         return settle_bound_s(self.team.lease_s, self.spec.query_timeout_s, liveness_floor_s(self.team.link_kbps))
+
+    def _observers_behind(self) -> bool:
+        """Some observer of a running robot shows other values than its KB."""
+        running = self.holders.running()
+        return any((now := current_values(o, running)) is not None and o.shown != now for o in self.observers)
 
     def _settled(self) -> bool:
         """Every running robot has executed what it holds and sent what it wrote of it."""
@@ -654,6 +677,8 @@ class SimulatedTeam:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
                 versions, values, differences = self.holders.outcome() if spec.writes else ({}, {}, {})
+                running = self.holders.running()
+                observed = [o.view(current_values(o, running)) for o in self.observers]
                 catch_up_s = self.catch_ups.finish()
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
                 self._release_disks()
@@ -670,7 +695,7 @@ class SimulatedTeam:
             writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.saboteur.forgeries),
             catch_up_s=catch_up_s, stale_reads=list(self.catch_ups.stale_reads), holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
-            split_versions=list(self.holders.split_versions), takes=list(self.shelf.takes), grants=list(self.grants.grants),
+            split_versions=list(self.holders.split_versions), observers=observed, takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
             settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
         )

@@ -54,6 +54,7 @@ from coapkb.kb.visibility import Visibility
 from coapkb.kb.write_ids import Remembered, WriteId, WriteIds
 from coapkb.kb.written_triples import WrittenTriples
 from coapkb.model.deltas import CausalContext, Delta, WrittenState
+from coapkb.transport import observation as observation_module
 from coapkb.world.truth import Taken, WorldTruth
 
 #: The profiles mutants are caught in: a CI profile's options.
@@ -94,6 +95,8 @@ LATE_HEDGED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,s
 #: 0.07 s or 0.58 s by which of their 10 restarts lost one.
 CATCH_UP = ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5")
 CATCH_UP_SEEDS = tuple(range(261, 321))
+#: Clients observing the written knowledge, their robots killed and restarted.
+OBSERVED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20", "--observers", "2")
 
 
 @dataclass(frozen=True)
@@ -368,6 +371,24 @@ def _latest_arrival_wins() -> contextlib.AbstractContextManager[Any]:
     return stack
 
 
+
+# ------------------------------------------------------------------ observers
+
+
+async def _silence_trusted(self: Any, stream: Any) -> Any:
+    """The next notification, however long it takes: a server that
+    restarted, or dropped the observation, is waited for for good."""
+    try:
+        response = await anext(stream)
+    except StopAsyncIteration:
+        await asyncio.Event().wait()  # the observation ended: nothing more comes, and nothing asks again
+        raise
+    except observation_module.PeerUnreachable:
+        return None
+    self.heard = self.loop.time()
+    return response
+
+
 MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("lease-never-held", "a robot's lease check always passes: it never asks its teammates",
            lambda: _patch(Lease, "hold", _always_held), MIXED, (1, 2, 3)),
@@ -440,6 +461,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(Replica, "join", _context_ignored), WRITES, (26, 42, 91)),
     Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
            lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (9, 11, 15)),
+    Mutant("observer-trusts-silence", "an observation waits for the next notification for good: it never "
+           "notices a robot that restarted, dropped it, or whose last notification was lost",
+           lambda: _patch(observation_module._FreshObservation, "notification", _silence_trusted), OBSERVED, (14, 42, 55)),
     Mutant("latest-arrival-wins", "a single-valued property shows the value that arrived last, not the newest stamp",
            _latest_arrival_wins, WRITES, (38, 58, 67)),
 )}

@@ -41,6 +41,10 @@ CI_PROFILES = [
     # repeat (its write id), not make it again.
     CIProfile("late messages", ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,swarm",
                                 "--writes", "20"), "1-40"),
+    # Clients observing the written knowledge as `coapkb query --observe` does, through restarts, cuts and
+    # lost notifications: each must show what its robot's KB shows once the replicas agree.
+    CIProfile("observers", ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20",
+                            "--observers", "2"), "1-60"),
     # Every fault at once, no swarm: the operator's writes against kills, restarts, cuts and loss.
     CIProfile("every fault", ("--robots", "3", "--tasks", "10", "--faults", "mixed", "--writes", "20"), "1-60"),
     # A restarted robot cut off from its cluster the moment it is back, on lossy links: its join.

@@ -14,6 +14,7 @@ from coapkb.kb.store import KnowledgeBase
 from coapkb.sim.faults import FaultEvent
 from coapkb.sim.invariants import check
 from coapkb.sim.observed import FilesQuads, Grant, Take, of_module
+from coapkb.sim.observers import ObserverView
 from coapkb.sim.operator import WriteOp
 from coapkb.sim.run import Pick, RunResult, _History
 from coapkb.transport.base import TrafficCounters
@@ -268,3 +269,29 @@ def test_the_history_keeps_the_exceptions_logged_with_their_traceback_only() -> 
     history.emit(record(logging.ERROR, "task 8: no answer", None))  # a fault's error, said without a traceback
     history.emit(record(logging.WARNING, "Robot2 is down", None))
     assert history.exceptions == ["- at 1.500s: task 7 failed: ValueError: bad"]
+
+
+def test_an_observer_behind_its_robot_once_the_replicas_agree_is_a_violation() -> None:
+    behind = ObserverView("observer1", "Robot2", "Object", frozenset({3}), frozenset({3, 13}),
+                          ("re-registered: no notification within Max-Age 2 s",))
+    caught_up = ObserverView("observer2", "Robot1", "Object", frozenset({3, 13}), frozenset({3, 13}))
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], observers=[behind, caught_up], converged_at=20.0)
+    assert len(run.violations) == 1
+    assert run.violations[0].startswith("observer1 of Robot2's Object shows {3} while Robot2's KB shows {3, 13}")
+
+
+def test_an_observer_of_a_robot_that_does_not_run_or_of_replicas_that_never_agreed_is_not_judged() -> None:
+    gone = ObserverView("observer1", "Robot2", "Object", frozenset({3}), None)
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], observers=[gone], converged_at=20.0)
+    assert run.violations == []
+    behind = ObserverView("observer1", "Robot2", "Object", frozenset({3}), frozenset({3, 13}))
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], observers=[behind], converged_at=None)
+    assert run.violations == []
+
+
+def test_an_observation_ended_by_an_error_answer_is_a_violation() -> None:
+    ended = ObserverView("observer1", "Robot2", "Object", frozenset({3}), frozenset({3}),
+                         ended="answered 5.00 internal error")
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], observers=[ended], converged_at=20.0)
+    assert run.violations == ["the observation of observer1 of Robot2's Object ended: Robot2 answered 5.00 "
+                              "internal error"]
