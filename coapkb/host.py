@@ -1,9 +1,9 @@
 """What a robot or the feeder takes from the machine it runs on.
 
 Beside the event loop's clock (:mod:`coapkb.clock`), a process of the team
-takes three things from outside: the network (a client transport and a
-server), randomness (a robot's incarnation number) and the knowledge base's
-files.  A :class:`Host` hands them over.  :func:`operating_system` is the
+takes these from outside: the network (a client transport and a
+server), randomness (a robot's incarnation number), the knowledge base's
+files, and the disk a data folder syncs to.  A :class:`Host` hands them over.  :func:`operating_system` is the
 real machine: sockets through the transport registry, the system's
 randomness, KB files parsed on worker threads.  The simulator
 (:mod:`coapkb.sim`) gives each simulated process a host of its own, with a
@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from .kb.journal import Disk
 from .transport import ClientSecurity, ClientTransport, Endpoint, Reliability, ServerTransport, Service
 from .transport import open_client as _open_client
 from .transport import serve as _serve
@@ -79,6 +80,9 @@ class Host:
     #: What a robot finds at the shelf (the simulator's one world); None:
     #: the robot's ``world`` socket if configured, else the KB's word.
     world: World | None = None
+    #: How a data folder's writes are made durable (fsync); the simulator's
+    #: notes what each sync covered, for its power cuts.
+    disk: Disk = field(default_factory=Disk)
 
 
 def operating_system() -> Host:

@@ -110,7 +110,7 @@ def _serve_kb(config: RobotConfig, kb: KnowledgeBase | None, client: ClientTrans
     if config.kb_writable:
         known = {m: [t.robot_id for t in config.holders_of(m)] for m in KB_MODULES}
         live, keeper = open_live(kb, config.robot_id, boot, config.data_dir, wall_ms=host.wall_ms,
-                                 holders=known, background=host.threads)
+                                 holders=known, background=host.threads, disk=host.disk)
         served = live
         replicator = Replicator(live, client, module_holders(config, live.names), rng=host.rng)
     KBResources(served, threads=host.threads, replicator=replicator,

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from .journal import Change, DataDirError, Journal, Recovered
+from .journal import Change, DataDirError, Disk, Journal, Recovered
 from .live import LiveKB
 from .replica import Replica
 from .store import KnowledgeBase
@@ -206,18 +206,20 @@ def open_live(
     data_dir: Path | None,
     *,
     background: bool = True,
+    disk: Disk | None = None,
     **live_options: Any,
 ) -> tuple[LiveKB, Keeper | None]:
     """The writable KB of robot ``robot_id`` started as ``boot``: in memory
     only (``data_dir`` None, a new writer ``robot_id.boot``), or kept in
     ``data_dir`` and restored from it; ``background``: compact in a thread
-    (False in the simulator, which runs no thread).  Raises :class:`DataDirError`."""
+    (False in the simulator, which runs no thread); ``disk``: how the folder
+    syncs (None: the operating system's).  Raises :class:`DataDirError`."""
     writer = f"{robot_id}.{boot}"
     if data_dir is None:
         return LiveKB(base, writer, **live_options), None
     started = time.perf_counter()
     with _collector_paused():
-        journal, recovered = Journal.open(data_dir, robot_id, writer)
+        journal, recovered = Journal.open(data_dir, robot_id, writer, disk)
         try:
             live = LiveKB(base, recovered.writer, **live_options)
             written = restore(live, recovered)

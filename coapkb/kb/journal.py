@@ -59,7 +59,7 @@ from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
 from .write_ids import Remembered, WriteId
 
-__all__ = ["Change", "DataDirError", "Journal", "Recovered", "encode_record", "read_records"]
+__all__ = ["Change", "DataDirError", "Disk", "Journal", "Recovered", "encode_record", "read_records"]
 
 log = logging.getLogger(__name__)
 
@@ -314,15 +314,26 @@ def _snapshot_states(records: list[bytes], name: str,
 # ---------------------------------------------------------------- the folder
 
 
-def _fsync_dir(path: Path) -> None:
+class Disk:
+    """How the folder makes what it wrote durable: the operating system's
+    fsync.  A seam: the simulator's disk notes what each sync covered, and
+    its power cut loses the rest, as a machine's page cache is lost."""
+
+    def sync(self, fd: int, *, data_only: bool = False) -> None:
+        """What was written to ``fd`` on the disk (``data_only``: its data,
+        not its metadata, as ``fdatasync``) when this returns."""
+        (os.fdatasync if data_only else os.fsync)(fd)
+
+
+def _fsync_dir(path: Path, disk: Disk) -> None:
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
-        os.fsync(fd)
+        disk.sync(fd)
     finally:
         os.close(fd)
 
 
-def _write_file(path: Path, chunks: Iterable[bytes]) -> int:
+def _write_file(path: Path, chunks: Iterable[bytes], disk: Disk) -> int:
     """``chunks`` into ``path`` through ``path.tmp``: whole or not at all."""
     tmp = path.with_name(path.name + ".tmp")
     size = 0
@@ -331,9 +342,9 @@ def _write_file(path: Path, chunks: Iterable[bytes]) -> int:
             out.write(chunk)
             size += len(chunk)
         out.flush()
-        os.fsync(out.fileno())
+        disk.sync(out.fileno())
     os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    _fsync_dir(path.parent, disk)
     return size
 
 
@@ -341,8 +352,9 @@ class Journal:
     """An open data folder: appends to the current journal, writes
     snapshots, and recovers what the folder held (:meth:`open`)."""
 
-    def __init__(self, path: Path, robot: str, writer: str, generation: int, lock: int) -> None:
+    def __init__(self, path: Path, robot: str, writer: str, generation: int, lock: int, disk: Disk) -> None:
         self.path = path
+        self.disk = disk
         self.robot = robot
         self.writer = writer
         #: The current journal's generation.
@@ -366,9 +378,12 @@ class Journal:
     # ------------------------------------------------------------ opening
 
     @classmethod
-    def open(cls, path: str | Path, robot: str, new_writer: str) -> tuple[Journal, Recovered]:
+    def open(cls, path: str | Path, robot: str, new_writer: str,
+             disk: Disk | None = None) -> tuple[Journal, Recovered]:
         """Lock the folder (made if missing) and read it; a new folder takes
-        ``new_writer``, an old one keeps the writer it names."""
+        ``new_writer``, an old one keeps the writer it names.  ``disk``: how
+        it syncs (None: the operating system's)."""
+        disk = Disk() if disk is None else disk
         path = Path(path)
         try:
             path.mkdir(parents=True, exist_ok=True)
@@ -381,8 +396,8 @@ class Journal:
             os.close(lock)
             raise DataDirError(f"data folder {path} is in use by another process") from None
         try:
-            recovered, generation = cls._recover(path, robot, new_writer)
-            journal = cls(path, robot, recovered.writer, generation, lock)
+            recovered, generation = cls._recover(path, robot, new_writer, disk)
+            journal = cls(path, robot, recovered.writer, generation, lock, disk)
         except BaseException:
             os.close(lock)
             raise
@@ -391,7 +406,7 @@ class Journal:
         return journal, recovered
 
     @classmethod
-    def _recover(cls, path: Path, robot: str, new_writer: str) -> tuple[Recovered, int]:
+    def _recover(cls, path: Path, robot: str, new_writer: str, disk: Disk) -> tuple[Recovered, int]:
         journals: dict[int, Path] = {}
         snapshots: dict[int, Path] = {}
         for entry in path.iterdir():
@@ -407,7 +422,7 @@ class Journal:
             ignore = path / ".gitignore"
             if not ignore.exists():
                 ignore.write_text("# coapkb's data folder: a robot's writes, never committed\n*\n", encoding="utf-8")
-            _write_file(path / "journal.0", [JOURNAL_MAGIC, encode_record(_meta(robot, new_writer, 0))])
+            _write_file(path / "journal.0", [JOURNAL_MAGIC, encode_record(_meta(robot, new_writer, 0))], disk)
             return Recovered(new_writer, fresh=True), 0
         base = max(snapshots, default=0)
         wanted = sorted(g for g in journals if g >= base)
@@ -459,7 +474,7 @@ class Journal:
                 with open(file, "r+b") as out:
                     out.truncate(scan.end)
                     out.flush()
-                    os.fsync(out.fileno())
+                    disk.sync(out.fileno())
                 recovered.cut += len(data) - scan.end
         # Compacted away before the last start: gone for good.
         for generation, stale in [*journals.items(), *snapshots.items()]:
@@ -486,7 +501,7 @@ class Journal:
             return 0
         self._file.write(records)
         self._file.flush()
-        os.fdatasync(self._file.fileno())
+        self.disk.sync(self._file.fileno(), data_only=True)
         self.journal_bytes += len(records)
         return len(records)
 
@@ -495,7 +510,8 @@ class Journal:
         on goes there); the new generation, which :meth:`write_snapshot`
         then takes with the state as it is now."""
         generation = self.generation + 1
-        _write_file(self._journal(generation), [JOURNAL_MAGIC, encode_record(_meta(self.robot, self.writer, generation))])
+        _write_file(self._journal(generation), [JOURNAL_MAGIC, encode_record(_meta(self.robot, self.writer, generation))],
+                    self.disk)
         self._file.close()
         self._file = open(self._journal(generation), "ab")  # open until close()
         self.generation = generation
@@ -511,7 +527,7 @@ class Journal:
             encode_record(p)
             for p in [_meta(self.robot, self.writer, generation), *snapshot_payloads(states, write_ids)]
         )
-        size = _write_file(self._snapshot(generation), [SNAPSHOT_MAGIC, *chunks])
+        size = _write_file(self._snapshot(generation), [SNAPSHOT_MAGIC, *chunks], self.disk)
         for old in range(generation - 1, -1, -1):
             gone = False
             for stale in (self._journal(old), self._snapshot(old)):
@@ -520,7 +536,7 @@ class Journal:
                     gone = True
             if not gone:
                 break
-        _fsync_dir(self.path)
+        _fsync_dir(self.path, self.disk)
         self.snapshot_bytes = size
         return size
 

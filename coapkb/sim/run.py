@@ -44,6 +44,7 @@ from ..transport.base import Endpoint, TransportError
 from ..world.truth import WorldTruth
 from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
+from .disk import SimDisk
 from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
@@ -428,6 +429,8 @@ class SimulatedTeam:
         self.grants = GrantLog(clock)
         self.network.answer_hooks.append(self.grants.answered)
         self.history = _History(self.processes, clock, self.note if trace else None)
+        #: The machine's disk the data folders sync to (:mod:`.disk`).
+        self.disk = SimDisk()
         self.decided_at: dict[tuple[int, int], float] = {}
         self.settled_at: float | None = None
         self.converged_at: float | None = None
@@ -470,7 +473,7 @@ class SimulatedTeam:
     async def _start_robot(self, robot_id: str, process: Process) -> Robot:
         clock = self.scheduler.clock
         host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
-                    threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf)
+                    threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf, disk=self.disk)
         robot = await Robot.start(self.configs[robot_id], host=host)
         self.robots[robot_id] = robot
         live = robot.replicator.live if robot.replicator is not None else None

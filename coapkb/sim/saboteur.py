@@ -28,6 +28,7 @@ from ..transport.base import TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from ..wire.sync import SyncMessage, encode_sync
 from ..world.vocabulary import ONTOLOGIES
+from .disk import SimDisk
 from .faults import FaultEvent
 from .loop import Process, Scheduler
 from .network import SimNetwork
@@ -49,6 +50,8 @@ class Run(Protocol):
     def scheduler(self) -> Scheduler: ...
     @property
     def network(self) -> SimNetwork: ...
+    @property
+    def disk(self) -> SimDisk: ...
     @property
     def team(self) -> TeamSpec: ...
     @property
@@ -87,6 +90,8 @@ class Saboteur:
         self.forgeries: list[Forgery] = []
         #: What the traps, power cuts and forgers run.
         self._running: list[asyncio.Task[None]] = []
+        #: Robots a power cut is killing: their disks lose what was not synced.
+        self._powered_off: set[str] = set()
 
     @property
     def done(self) -> bool:
@@ -114,6 +119,11 @@ class Saboteur:
         if keeper is None:
             return
         keeper.journal.close()
+        if robot_id in self._powered_off:
+            # The page cache gone with the power: what no sync covered is lost.
+            self._powered_off.discard(robot_id)
+            for name, size in self.run.disk.power_cut(keeper.journal.path):
+                self.run.note(f"disk {robot_id}: the power cut lost {size} unsynced bytes of {name}")
         if self._disk_rng.random() < 0.5:
             journals = sorted(keeper.journal.path.glob("journal.*"), key=lambda p: int(p.suffix[1:]))
             if journals:
@@ -132,6 +142,7 @@ class Saboteur:
             return
         holders = [r for r in self.run.holders.of(modules[0]) if self.run.current[r].status != "dead"]
         for holder in holders:
+            self._powered_off.add(holder)
             self.sprung.append(FaultEvent(round(self.run.elapsed_s, 3), "kill", (holder,)))
             self.run.inject(self.sprung[-1])
 

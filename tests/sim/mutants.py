@@ -46,6 +46,7 @@ from coapkb.feeder import membership as feeder_membership_module
 from coapkb.feeder.task_poster import TaskPoster
 from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
+from coapkb.kb.journal import Disk, Journal
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
 from coapkb.kb.sync_access import SyncAccess
@@ -313,6 +314,26 @@ def _nothing_kept(self: Keeper, changes: Any, *args: Any) -> None:
     """The journal never written: a write answered before it is on disk."""
 
 
+def _appended_unsynced() -> contextlib.AbstractContextManager[Any]:
+    """The journal's records written and flushed to the operating system,
+    never synced: a write answered while its record is in the page cache."""
+    append = Journal.append
+
+    def unsynced(self: Journal, changes: Any, made: Any = None) -> int:
+        disk = self.disk
+        self.disk = Disk.__new__(_NoSync)
+        try:
+            return append(self, changes, made)
+        finally:
+            self.disk = disk
+    return _patch(Journal, "append", unsynced)
+
+
+class _NoSync(Disk):
+    def sync(self, fd: int, *, data_only: bool = False) -> None:
+        pass
+
+
 def _id_forgotten(self: WriteIds, wid: WriteId) -> Remembered | None:
     """No write remembered: a repeat is made as a new write."""
     return None
@@ -453,6 +474,8 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(WriteIds, "get", _id_forgotten), LATE, (4, 28, 32)),
     Mutant("journal-not-written", "a robot answers a write without putting it in its data folder",
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
+    Mutant("journal-unsynced", "a robot answers a write once its journal record is written, before it is synced: "
+           "a power cut loses it", _appended_unsynced, STORAGE, (23, 30, 31)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
