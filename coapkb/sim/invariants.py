@@ -518,6 +518,13 @@ def check_liveness(run: RunResult) -> Iterable[str]:
 
 
 
+def check_restores(run: RunResult) -> Iterable[str]:
+    """A robot's data folder, read at its death (a kill or a power cut, the
+    torn tail included), restores the written state, the write ids and the
+    writer it held: every change is on disk before anyone hears of it."""
+    yield from run.restores
+
+
 def check_observers(run: RunResult) -> Iterable[str]:
     """Once the replicas agree, every observer of a robot that runs shows
     what that robot's KB shows within :data:`~.observers.OBSERVER_SETTLE_S`
@@ -544,7 +551,7 @@ def _values(values: frozenset[int]) -> str:
 CHECKS: tuple[Callable[[RunResult], Iterable[Finding]], ...] = (
     check_finished, check_no_exceptions, check_one_fate, check_executed_once, check_shelf, check_leases, check_not_after_rerun,
     check_agreement, check_epochs_grow, check_bounded, check_repeats_skipped, check_replicas,
-    check_acknowledged_writes, check_forgeries, check_liveness, check_observers,
+    check_acknowledged_writes, check_restores, check_forgeries, check_liveness, check_observers,
 )
 
 

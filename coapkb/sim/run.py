@@ -60,6 +60,9 @@ DEFAULT_LIMIT_S = 3600.0
 #: How long the holders may take, once the last write is answered and the
 #: faults healed, to agree (anti-entropy rounds every few seconds).
 REPLICATION_SETTLE_S = 60.0
+#: A data folder's journal is compacted into a snapshot past this many bytes
+#: (a robot's: 1 MiB, which no run reaches): a few dozen records.
+COMPACT_AFTER_BYTES = 2048
 
 
 @dataclass(frozen=True)
@@ -181,6 +184,8 @@ class RunResult:
     differences: dict[str, list[str]] = field(default_factory=dict)
     #: Moments two holders of a module were at one version with different triples.
     split_versions: list[str] = field(default_factory=list)
+    #: Where a dead robot's data folder would restore otherwise than the robot held.
+    restores: list[str] = field(default_factory=list)
     #: Each observer of the written knowledge at the end, and what its robot shows.
     observers: list[ObserverView] = field(default_factory=list)
     #: Every take at a shelf and every lease granted, from outside the robots.
@@ -475,6 +480,9 @@ class SimulatedTeam:
         host = Host(self.network.for_process(process), random.Random(self._boot_rng.random()), self.kbs.load,
                     threads=False, wall_ms=lambda: int(clock.now * 1000), world=self.shelf, disk=self.disk)
         robot = await Robot.start(self.configs[robot_id], host=host)
+        if robot.keeper is not None:
+            # Compacted within a run's few writes, so snapshots are written and restored from too.
+            robot.keeper.compact_after_bytes = COMPACT_AFTER_BYTES
         self.robots[robot_id] = robot
         live = robot.replicator.live if robot.replicator is not None else None
         self.holders.started(robot_id, live, clock.now)
@@ -698,7 +706,7 @@ class SimulatedTeam:
             writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.saboteur.forgeries),
             catch_up_s=catch_up_s, stale_reads=list(self.catch_ups.stale_reads), holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
-            split_versions=list(self.holders.split_versions), observers=observed, takes=list(self.shelf.takes), grants=list(self.grants.grants),
+            split_versions=list(self.holders.split_versions), observers=observed, restores=list(self.saboteur.restores), takes=list(self.shelf.takes), grants=list(self.grants.grants),
             lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
             settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
         )

@@ -28,7 +28,7 @@ from ..transport.base import TransportError
 from ..transport.messages import ContentFormat, Method, Request
 from ..wire.sync import SyncMessage, encode_sync
 from ..world.vocabulary import ONTOLOGIES
-from .disk import SimDisk
+from .disk import SimDisk, restore_differences
 from .faults import FaultEvent
 from .loop import Process, Scheduler
 from .network import SimNetwork
@@ -92,6 +92,8 @@ class Saboteur:
         self._running: list[asyncio.Task[None]] = []
         #: Robots a power cut is killing: their disks lose what was not synced.
         self._powered_off: set[str] = set()
+        #: How a dead robot's data folder would restore otherwise than it held (:func:`restore_differences`).
+        self.restores: list[str] = []
 
     @property
     def done(self) -> bool:
@@ -133,6 +135,9 @@ class Saboteur:
                 with open(journals[-1], "ab") as tail:
                     tail.write(torn)
                 self.run.note(f"disk {robot_id}: {len(torn)} bytes of a torn record after {journals[-1].name}")
+        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
+        if live is not None:
+            self.restores += restore_differences(robot_id, live, keeper.journal.path)
 
     def power_cut(self, robot_id: str, down_s: float) -> None:
         """Every holder of a module ``robot_id`` holds killed at once (a power

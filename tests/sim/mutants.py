@@ -44,6 +44,7 @@ from coapkb.agent.team_membership import Membership, TeamMembership
 from coapkb.agent.teammate_revival import TeammateRevival
 from coapkb.feeder import membership as feeder_membership_module
 from coapkb.feeder.task_poster import TaskPoster
+from coapkb.kb import journal as journal_module
 from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.durable import Keeper
 from coapkb.kb.journal import Disk, Journal
@@ -329,6 +330,47 @@ def _appended_unsynced() -> contextlib.AbstractContextManager[Any]:
     return _patch(Journal, "append", unsynced)
 
 
+def _torn_cut_too_far() -> contextlib.AbstractContextManager[Any]:
+    """A torn tail cut one record too early: the last whole record, synced
+    and answered, goes with it."""
+    read = journal_module.read_records
+
+    def reading(data: bytes, name: str, magic: bytes, *, torn_ok: bool = False) -> Any:
+        scan = read(data, name, magic, torn_ok=torn_ok)
+        if scan.torn is None or len(scan.records) < 2:
+            return scan
+        last = scan.records[-1]
+        return dataclasses.replace(scan, records=scan.records[:-1], end=scan.end - journal_module.HEAD.size - len(last))
+    return _patch(journal_module, "read_records", reading)
+
+
+def _last_part_left_out() -> contextlib.AbstractContextManager[Any]:
+    """A snapshot written without its last part of written triples: the
+    loop writes each part once it is full, and the part left when the
+    triples run out is never written (the shipped code writes it after
+    the loop)."""
+    jm = journal_module
+
+    def payloads(states: Any, write_ids: Any = ()) -> Any:
+        count = 0
+        for wid, remembered in write_ids:
+            yield jm._write_id_payload(wid, remembered)
+            count += 1
+        for module, state in states.items():
+            head = WrittenState(state.context, {}, state.removed_base, state.tombstones)
+            yield jm.HEAD_KIND + jm.encode_sync(jm.SyncMessage(module, CausalContext(), head))
+            count += 1
+            part: list[Any] = []
+            for run in jm._runs(state.entries):
+                part.append(run)
+                if sum(len(r.added) for r in part) >= jm.ENTRIES_PER_RECORD:
+                    yield jm.ENTRIES + jm.encode_sync(jm.SyncMessage(module, CausalContext(), part))
+                    count += 1
+                    part = []
+        yield jm.END + jm.cbor2.dumps(count)
+    return _patch(journal_module, "snapshot_payloads", payloads)
+
+
 class _NoSync(Disk):
     def sync(self, fd: int, *, data_only: bool = False) -> None:
         pass
@@ -476,6 +518,10 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(Keeper, "__call__", _nothing_kept), STORAGE, (2, 11, 14, 23)),
     Mutant("journal-unsynced", "a robot answers a write once its journal record is written, before it is synced: "
            "a power cut loses it", _appended_unsynced, STORAGE, (23, 30, 31)),
+    Mutant("torn-tail-cut-too-far", "a robot's restart cuts a torn tail one record too early, losing the last "
+           "whole one", _torn_cut_too_far, STORAGE, (7, 11, 13)),
+    Mutant("snapshot-without-its-last-part", "a snapshot leaves out its last, unfilled part of written triples",
+           _last_part_left_out, STORAGE, (2, 7, 10)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",

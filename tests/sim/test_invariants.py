@@ -295,3 +295,9 @@ def test_an_observation_ended_by_an_error_answer_is_a_violation() -> None:
     run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], observers=[ended], converged_at=20.0)
     assert run.violations == ["the observation of observer1 of Robot2's Object ended: Robot2 answered 5.00 "
                               "internal error"]
+
+
+def test_a_folder_that_restores_less_than_its_robot_held_is_a_violation() -> None:
+    lost = "Robot2's data folder restores 4 write ids; it held 5 (1 lost)"
+    run = _run([_task(1, "A")], [_pick("Robot1", 1, "A")], restores=[lost])
+    assert run.violations == [lost]
