@@ -29,6 +29,7 @@ from unittest import mock
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from coapkb import clock
 from coapkb.agent import controller as controller_module
 from coapkb.agent import joining as joining_module
 from coapkb.agent import notification_repair as notification_repair_module
@@ -138,6 +139,27 @@ async def _verdict_ignored(self: TaskExecutor, job: Job, for_s: float) -> bool:
     if self._lease is not None:
         await self._lease(for_s)
     return True
+
+
+async def _lease_from_its_answer(self: Lease, for_s: float, task: int = 0) -> str | None:
+    """``Lease.hold`` timing the lease from the grants' arrival, not from
+    when the round was sent: grants that waited for the robot (held back,
+    or while it was frozen) extend it past what the granters gave."""
+    for_s = min(for_s, self.duration_s / 2)
+    backoff = 0.2
+    while clock.monotonic() + for_s >= self._until or task > self._task:
+        if self.needed == 0:
+            return None
+        refused = await self._round(task)
+        if refused is None:
+            self._until = clock.monotonic() + self.duration_s
+            self._task = max(self._task, task)
+            continue
+        if refused:
+            return refused
+        await asyncio.sleep(backoff)
+        backoff = min(backoff * 2, 2.0)
+    return None
 
 
 def _grant_anyone(self: TeamMembership, robot_id: str) -> str | None:
@@ -457,6 +479,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(Lease, "hold", _always_held), MIXED, (1, 2, 3)),
     Mutant("fence-verdict-ignored", "the executor asks for its lease and picks whatever the answer",
            lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), FENCE, (13, 35)),
+    Mutant("lease-from-its-answer", "a robot times its lease from the grants' arrival, not from when it asked: "
+           "grants that waited for it (held back, or while it was frozen) let it pick past the lease", lambda: _patch(Lease, "hold", _lease_from_its_answer),
+           LATE_HEDGED, (79,)),
     Mutant("lease-granted-by-anyone", "a robot grants a lease to any teammate, down or not",
            lambda: _patch(TeamMembership, "grant", _grant_anyone), FENCE, (44,)),
     Mutant("feeder-skips-the-fence", "the feeder sends a down robot's tasks round at once, without the lease wait",
