@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import random
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 from ..kb.client import KBClient, QueryFailed, sparql_request
@@ -129,6 +129,26 @@ def draw_observers(count: int, rng: random.Random, holders: Mapping[str, list[st
         robot = rng.choice(holders[module])
         observers.append(Observer(f"observer{i + 1}", robot, module, endpoint(robot)))
     return observers
+
+
+async def observers_caught_up(observers: Sequence[Observer],
+                              running: Callable[[], Mapping[str, Mapping[str, LiveKB]]]) -> None:
+    """Wait until each observer of a running robot shows what that robot's
+    KB shows, :data:`OBSERVER_SETTLE_S` at most (``running``: module ->
+    running robot -> its KB, read as it changes)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + OBSERVER_SETTLE_S
+
+    def behind() -> bool:
+        now = running()
+        return any((values := current_values(o, now)) is not None and o.shown != values for o in observers)
+    while behind() and loop.time() < deadline:  # noqa: ASYNC110 - other processes' state, no event to await
+        await asyncio.sleep(0.5)
+
+
+def views(observers: Sequence[Observer], running: Mapping[str, Mapping[str, LiveKB]]) -> list[ObserverView]:
+    """Each observer at the end of a run, beside what its robot shows."""
+    return [o.view(current_values(o, running)) for o in observers]
 
 
 def current_values(observer: Observer, running: Mapping[str, Mapping[str, LiveKB]]) -> frozenset[int] | None:

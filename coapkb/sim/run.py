@@ -23,7 +23,7 @@ import sys
 import tempfile
 import time
 import weakref
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
@@ -49,7 +49,7 @@ from .faults import FaultEvent, FaultMix, Schedule, draw_schedule
 from .loop import Process, Scheduler, SimLoop, SimulationError
 from .network import SimNetwork
 from .observed import FilesQuads, Grant, GrantLog, Shelf, Take
-from .observers import OBSERVER_SETTLE_S, ObserverView, current_values, draw_observers
+from .observers import ObserverView, draw_observers, observers_caught_up, views
 from .operator import Holders, Operator, WriteOp, shows
 from .saboteur import Forgery, Saboteur
 
@@ -544,14 +544,6 @@ class SimulatedTeam:
         if not action.endswith("-picking"):
             self.recorded.append(RecordedFault(action, "+".join(event.targets), round(self.elapsed_s, 3)))
 
-    def _release_disks(self) -> None:
-        """Every data folder closed and removed (the run is over)."""
-        for robot in self.robots.values():
-            if robot.keeper is not None:
-                robot.keeper.journal.close()
-        if self._data is not None:
-            self._data.cleanup()
-
     @property
     def elapsed_s(self) -> float:
         """Simulated seconds since the first task was fed."""
@@ -618,10 +610,7 @@ class SimulatedTeam:
                         await asyncio.sleep(0.5)
                     self.converged_at = round(self.elapsed_s, 6) if self.holders.agree() else None
                 if self.observers and self.converged_at is not None:
-                    # Each observer's last answer what its robot shows, in time.
-                    deadline = asyncio.get_running_loop().time() + OBSERVER_SETTLE_S
-                    while self._observers_behind() and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - as above
-                        await asyncio.sleep(0.5)
+                    await observers_caught_up(self.observers, self.holders.running)
                 watcher = feeder.watcher
                 alive = [r for r in watcher.alive if self.current[r].status == "running"]
                 maybe = [r for r in team.robot_ids if r in self.resumed and r in watcher.down]
@@ -630,25 +619,12 @@ class SimulatedTeam:
                 schedule.cancel()
             return team_record(team, outcome, stats, feeder.traffic, self.recorded, dict(watcher.down))
 
-    def _healed_at(self) -> float:
-        """When the schedule's last fault ended (s after the first task was fed)."""
-        def ended(e: FaultEvent) -> float:
-            if e.action.endswith("-picking"):
-                return e.until_s + e.amount  # sprung at the latest as it expires
-            return e.until_s if e.action == "starve" else e.at_s
-        return max((ended(e) for e in self.schedule.events), default=0.0)
-
     @property
     def settle_bound_s(self) -> float:
         """How long after the last fault healed (or the last task was decided,
         whichever is later) every task may take to settle: see
         docs/simulation.md, "Liveness"."""
         return settle_bound_s(self.team.lease_s, self.spec.query_timeout_s, liveness_floor_s(self.team.link_kbps))
-
-    def _observers_behind(self) -> bool:
-        """Some observer of a running robot shows other values than its KB."""
-        running = self.holders.running()
-        return any((now := current_values(o, running)) is not None and o.shown != now for o in self.observers)
 
     def _settled(self) -> bool:
         """Every running robot has executed what it holds and sent what it wrote of it."""
@@ -688,11 +664,10 @@ class SimulatedTeam:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
                 bounds = _bounds(self.robots, scheduler)
                 versions, values, differences = self.holders.outcome() if spec.writes else ({}, {}, {})
-                running = self.holders.running()
-                observed = [o.view(current_values(o, running)) for o in self.observers]
+                observed = views(self.observers, self.holders.running())
                 catch_up_s = self.catch_ups.finish()
                 scheduler.shutdown()  # the end: what is still pending is abandoned, not a crash
-                self._release_disks()
+                _release_disks(self.robots, self._data)
         finally:
             if gc_was_enabled:
                 gc.enable()
@@ -707,9 +682,27 @@ class SimulatedTeam:
             catch_up_s=catch_up_s, stale_reads=list(self.catch_ups.stale_reads), holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.holders.split_versions), observers=observed, restores=list(self.saboteur.restores), takes=list(self.shelf.takes), grants=list(self.grants.grants),
-            lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=self._healed_at(),
+            lease_s=self.team.lease_s, decided_at=dict(self.decided_at), healed_at=healed_at(self.schedule.events),
             settled_at=self.settled_at, converged_at=self.converged_at, settle_bound_s=self.settle_bound_s,
         )
+
+
+def healed_at(events: Sequence[FaultEvent]) -> float:
+    """When the last fault of ``events`` ended (s after the first task was fed)."""
+    def ended(e: FaultEvent) -> float:
+        if e.action.endswith("-picking"):
+            return e.until_s + e.amount  # sprung at the latest as it expires
+        return e.until_s if e.action == "starve" else e.at_s
+    return max((ended(e) for e in events), default=0.0)
+
+
+def _release_disks(robots: Mapping[str, Robot], data: tempfile.TemporaryDirectory[str] | None) -> None:
+    """Every data folder closed and removed (the run is over)."""
+    for robot in robots.values():
+        if robot.keeper is not None:
+            robot.keeper.journal.close()
+    if data is not None:
+        data.cleanup()
 
 
 def _memory_folder() -> str | None:
