@@ -344,6 +344,13 @@ class TeamMembership:
         if membership.members:
             gone = self._peers - set(membership.members)
             self.excluded = {r: seq - 1 for r in gone}
+        # Its promises to go on without a member's plans were made while it
+        # was out: the membership it takes counted that member since (found
+        # in the simulator, seed 53530 of nine robots: a robot cut off, left
+        # out and fed again left out a teammate the others had taken back,
+        # on a promise of its first task, and decided in an epoch of its own).
+        members = set(membership.members) or self._peers
+        self._forgone = {r: s for r, s in self._forgone.items() if r not in members or s >= seq - 1}
         # Its admission is an epoch if that membership had left it out (see
         # :meth:`admit`); before any decision, nobody had.
         self.epoch = membership.epoch + (self.robot_id not in (membership.members or (self.robot_id,)))

@@ -9,6 +9,7 @@ from typing import Any, cast
 
 from coapkb.agent.robot_resources import RobotResources
 from coapkb.agent.robot_state import LiveState, PlannedState, RobotState
+from coapkb.agent.team_membership import Membership
 from coapkb.agent.team_view import TeamView
 from coapkb.transport.base import Endpoint
 from coapkb.transport.memory import MemoryNetwork
@@ -106,3 +107,16 @@ async def test_once_shown_the_plan_every_later_try_is_shown_it_again() -> None:
     # A question about a plan never shown binds as before.
     assert (await _ask(resources, {"of": "Robot3", "at": "6", "by": "Robot2"})).status == Status.NOT_FOUND
     assert team.membership.forgoes("Robot3", 6)
+
+
+async def test_a_robot_fed_again_drops_its_promises_about_the_members_it_joins() -> None:
+    """Robot1 promised at its first task to go on without Robot3's plans, was
+    cut off and left out; meanwhile Robot2 took Robot3 back.  Fed again at
+    task 13, Robot1 takes the membership of task 12, Robot3 a member: the
+    promise, made while it was out, must not leave Robot3 out again at its
+    first task (simulator, nine robots, seed 53530: an epoch of its own)."""
+    team, resources = _robot1()
+    await _ask(resources, {"of": "Robot3", "at": "0", "by": "Robot2"})
+    assert team.membership.forgoes("Robot3", 12)
+    team.membership._joined(13, Membership(3, ("Robot2", "Robot3")))
+    assert not team.membership.forgoes("Robot3", 12) and team.membership.counts("Robot3") is None

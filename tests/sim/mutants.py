@@ -162,6 +162,19 @@ async def _lease_from_its_answer(self: Lease, for_s: float, task: int = 0) -> st
     return None
 
 
+def _promises_kept_at_a_join() -> contextlib.AbstractContextManager[Any]:
+    """A robot fed again after it was left out keeps its promises to go on
+    without a teammate's plans, though the membership it takes counts that
+    teammate again."""
+    joined = TeamMembership._joined
+
+    def joining(self: TeamMembership, seq: int, membership: Membership) -> None:
+        promises = dict(self._forgone)
+        joined(self, seq, membership)
+        self._forgone = promises
+    return _patch(TeamMembership, "_joined", joining)
+
+
 def _grant_anyone(self: TeamMembership, robot_id: str) -> str | None:
     return None
 
@@ -509,6 +522,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("silent-teammate-left-out", "a joiner takes a teammate silent for four query timeouts for gone and "
            "starts a membership without it",
            lambda: _patch(joining_module, "decided_before", _silent_left_out), REJOIN, (21, 38)),
+    Mutant("promises-kept-at-a-join", "a robot left out and fed again keeps its promises to go on without a "
+           "teammate's plans, though the membership it joins took that teammate back", _promises_kept_at_a_join,
+           NINE, (53530,)),
     Mutant("co-joiners-unasked", "a joiner that reaches no survivor starts a fresh membership, though a co-joiner "
            "joined on the survivor's decision", lambda: _patch(joining_module, "joined_on", _co_joiners_unasked),
            STORAGE_FORGE, (103234,)),

@@ -210,6 +210,9 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
         6028: "a robot cut off at the start was left out and never learned it; deciding on in a membership of "
               "its own, it left out another member once that one was cut off, in an epoch 1 of its own",
         16092: "the same as seed 6028, the last member alone without a majority",
+        53530: "a robot that had promised, at its first task, to go on without a teammate's plans was cut off, "
+               "left out and fed again; its teammates had taken that one back meanwhile, and on the old promise "
+               "the robot left it out again at its first task after the join, in an epoch of its own",
         21652: "the same as seed 16092",
         27897: "a robot frozen through the task its teammates left it out of decided nothing there, so the "
                "feeder never took it back; once another member froze, the last one had no majority",
