@@ -1,14 +1,15 @@
 """What a robot or the feeder takes from the machine it runs on.
 
 Beside the event loop's clock (:mod:`coapkb.clock`), a process of the team
-takes these from outside: the network (a client transport and a
-server), randomness (a robot's incarnation number), the knowledge base's
-files, and the disk a data folder syncs to.  A :class:`Host` hands them over.  :func:`operating_system` is the
-real machine: sockets through the transport registry, the system's
-randomness, KB files parsed on worker threads.  The simulator
-(:mod:`coapkb.sim`) gives each simulated process a host of its own, with a
-faulty in-memory network, a seeded random generator and KBs loaded once, so
-the same protocol code runs in both.
+takes these from outside: the network (a client transport and a server),
+randomness (a robot's incarnation number), the knowledge base's files and
+the disk a data folder syncs to.  A :class:`Host` hands them over.
+:func:`operating_system` is the real machine: sockets through the transport
+registry, the system's randomness, KB files parsed on worker threads, the
+operating system's fsync.  The simulator (:mod:`coapkb.sim`) gives each
+simulated process a host of its own, with a faulty in-memory network, a
+seeded random generator, KBs loaded once and a disk whose power cuts lose
+what was not synced, so the same protocol code runs in both.
 """
 
 from __future__ import annotations

@@ -27,13 +27,11 @@ from dataclasses import dataclass
 from ..kb.client import KBClient, QueryFailed, sparql_request
 from ..kb.limits import QueryLimits
 from ..kb.live import LiveKB
-from ..kb.results import expect_select
-from ..model.results import QueryResult
 from ..transport.base import Endpoint, TransportError
 from ..transport.observation import FRESHNESS_MARGIN_S, REREGISTER_TIMEOUT_S, Notice
-from ..world.vocabulary import ONTOLOGIES
 from .loop import Process
 from .network import SimNetwork
+from .operator import log_query, log_values
 
 _LIMITS = QueryLimits()
 #: How long after the replicas agree an observer may still show an older
@@ -47,19 +45,6 @@ OBSERVER_SETTLE_S = (_LIMITS.live_max_age_s + FRESHNESS_MARGIN_S + REREGISTER_TI
                      + max(_LIMITS.retry_after_s, _LIMITS.live_max_age_s) + 1.0)
 #: A first registration that failed (the robot was down) is tried again after this long.
 FIRST_TRY_AGAIN_S = 1.0
-#: The subject and property of the operator's write log (:mod:`.operator`).
-_WRITE_LOG, _WRITTEN = "WriteLog", "written"
-
-
-def log_query(module: str) -> str:
-    """The SELECT of ``module``'s write log: what an observer watches."""
-    ns = ONTOLOGIES[module][1]
-    return f"SELECT ?v WHERE {{ <{ns}{_WRITE_LOG}> <{ns}{_WRITTEN}> ?v }}"
-
-
-def log_values(result: QueryResult, query: str) -> frozenset[int]:
-    """The write log's values in an answer to :func:`log_query`."""
-    return frozenset(int(str(row[0])) for row in expect_select(result, query).rows)
 
 
 @dataclass(frozen=True)
@@ -105,7 +90,7 @@ class Observer:
             try:
                 async for result in client.observe(self._endpoint, request, on_notice=notice):
                     self.shown = log_values(result, self._query)
-                return  # ended without an error: not reached, observe_fresh registers again
+                return  # not reached: the observation registers again rather than end without an error
             except QueryFailed as exc:
                 if exc.response.status.dotted != "5.03":
                     self.ended = f"answered {exc.response.status.dotted} {exc.response.text()}"

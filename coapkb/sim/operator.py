@@ -22,6 +22,7 @@ from ..config import RobotConfig
 from ..kb.client import KBClient, QueryFailed
 from ..kb.live import LiveKB
 from ..kb.results import expect_ask, expect_select
+from ..model.results import QueryResult
 from ..transport.base import TransportError
 from ..world.vocabulary import ONTOLOGIES
 from .catch_up import CatchUps
@@ -77,6 +78,17 @@ def shows(live: LiveKB, module: str, value: int) -> bool:
     ns = ONTOLOGIES[module][1]
     ask = f"ASK {{ <{ns}{WRITE_LOG}> <{ns}written> {value} }}"
     return expect_ask(live.query(ask), ask).value
+
+
+def log_query(module: str) -> str:
+    """The SELECT of ``module``'s write log: what the end of a run and an observer read."""
+    ns = ONTOLOGIES[module][1]
+    return f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
+
+
+def log_values(result: QueryResult, query: str) -> frozenset[int]:
+    """The write log's values in an answer to :func:`log_query`."""
+    return frozenset(int(str(row[0])) for row in expect_select(result, query).rows)
 
 
 #: Per module at the end of a run: each running holder's version, the log
@@ -152,11 +164,10 @@ class Holders:
         # (:class:`FilesQuads`): this runs at the end of every run.
         changed: dict[str, frozenset[ox.Quad]] = {}
         for module, holders in sorted(self.running().items()):
-            ns = ONTOLOGIES[module][1]
-            select = f"SELECT ?v WHERE {{ <{ns}{WRITE_LOG}> <{ns}written> ?v }}"
+            select = log_query(module)
             versions[module] = {r: live.module_version(module).hex() for r, live in sorted(holders.items())}
             values[module] = {
-                r: frozenset(int(str(row[0])) for row in expect_select(live.query(select), select).rows)
+                r: log_values(live.query(select), select)
                 for r, live in sorted(holders.items())
             }
             for robot_id, live in holders.items():
