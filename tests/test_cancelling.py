@@ -8,18 +8,25 @@ import asyncio
 from coapkb.cancelling import cancel_and_wait
 
 
+async def _wound_down(done: list[str], name: str) -> None:
+    """A cleanup step that runs as a task of its own: awaiting it takes the
+    loop at least one more turn."""
+    done.append(name)
+
+
 async def test_every_task_has_ended_and_ran_its_finally() -> None:
     cleaned: list[str] = []
+    started = {name: asyncio.Event() for name in ("a", "b")}
 
-    async def sleeper(name: str) -> None:
+    async def waiter(name: str) -> None:
+        started[name].set()
         try:
-            await asyncio.sleep(3600)
+            await asyncio.Event().wait()  # never set: only the cancel ends it
         finally:
-            await asyncio.sleep(0)  # a cleanup that itself awaits
-            cleaned.append(name)
+            await asyncio.create_task(_wound_down(cleaned, name))  # a cleanup that itself awaits
 
-    tasks = [asyncio.create_task(sleeper(n)) for n in ("a", "b")]
-    await asyncio.sleep(0)
+    tasks = [asyncio.create_task(waiter(n)) for n in started]
+    await asyncio.gather(*(event.wait() for event in started.values()))
     await cancel_and_wait(tasks)
     assert all(t.done() for t in tasks)
     assert sorted(cleaned) == ["a", "b"]
@@ -29,26 +36,29 @@ async def test_errors_finished_tasks_and_nones_are_swallowed() -> None:
     async def fails() -> None:
         raise ValueError("no one is left to handle it")
 
-    failed = asyncio.create_task(fails())
-    finished = asyncio.create_task(asyncio.sleep(0))
-    await asyncio.sleep(0.01)
+    async def finishes() -> None:
+        return None
+
+    failed, finished = asyncio.create_task(fails()), asyncio.create_task(finishes())
+    await asyncio.wait([failed, finished])
     await cancel_and_wait([failed, None, finished])
     assert isinstance(failed.exception(), ValueError)
     assert finished.result() is None
 
 
-async def test_a_task_that_refuses_to_end_at_once_is_waited_for() -> None:
-    ended = asyncio.Event()
+async def test_a_task_that_does_not_end_at_once_is_waited_for() -> None:
+    ended: list[str] = []
+    started = asyncio.Event()
 
-    async def stubborn() -> None:
+    async def winding_down() -> None:
+        started.set()
         try:
-            await asyncio.sleep(3600)
+            await asyncio.Event().wait()
         except asyncio.CancelledError:
-            await asyncio.sleep(0.01)  # still winding down after the cancel
-            ended.set()
+            await asyncio.create_task(_wound_down(ended, "stubborn"))  # still winding down after the cancel
             raise
 
-    task = asyncio.create_task(stubborn())
-    await asyncio.sleep(0)
+    task = asyncio.create_task(winding_down())
+    await started.wait()
     await cancel_and_wait([task])
-    assert ended.is_set() and task.cancelled()
+    assert ended == ["stubborn"] and task.cancelled()
