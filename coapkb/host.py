@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from .kb.journal import Disk
+from .kb.disk import Disk
 from .transport import ClientSecurity, ClientTransport, Endpoint, Reliability, ServerTransport, Service
 from .transport import open_client as _open_client
 from .transport import serve as _serve

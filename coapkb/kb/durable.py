@@ -36,7 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from .journal import Change, DataDirError, Disk, Journal, Recovered
+from .disk import Disk
+from .journal import Change, DataDirError, Journal, Recovered
 from .live import LiveKB
 from .replica import Replica
 from .store import KnowledgeBase

@@ -57,9 +57,10 @@ from ..model.deltas import CausalContext, Delta, Dot, Stamp, WrittenState
 from ..model.results import Triple
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
+from .disk import Disk
 from .write_ids import Remembered, WriteId
 
-__all__ = ["Change", "DataDirError", "Disk", "Journal", "Recovered", "encode_record", "read_records"]
+__all__ = ["Change", "DataDirError", "Journal", "Recovered", "encode_record", "read_records"]
 
 log = logging.getLogger(__name__)
 
@@ -312,17 +313,6 @@ def _snapshot_states(records: list[bytes], name: str,
 
 
 # ---------------------------------------------------------------- the folder
-
-
-class Disk:
-    """How the folder makes what it wrote durable: the operating system's
-    fsync.  A seam: the simulator's disk notes what each sync covered, and
-    its power cut loses the rest, as a machine's page cache is lost."""
-
-    def sync(self, fd: int, *, data_only: bool = False) -> None:
-        """What was written to ``fd`` on the disk (``data_only``: its data,
-        not its metadata, as ``fdatasync``) when this returns."""
-        (os.fdatasync if data_only else os.fsync)(fd)
 
 
 def _fsync_dir(path: Path, disk: Disk) -> None:

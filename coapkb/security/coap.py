@@ -451,7 +451,7 @@ class _OSCORETransport(TransportOSCORE):
         observation's loop reading one: it stayed pending, and was reported
         when collected ("Task was destroyed but it is pending") once a
         process had run a second team."""
-        await cancel_and_wait(list(self._tasks))
+        await cancel_and_wait(self._tasks)
         await super().shutdown()
 
     def _request_done(self, task: asyncio.Task[None], request: Any, tracked: _WireRequests) -> None:

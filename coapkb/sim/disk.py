@@ -4,7 +4,7 @@ that loses the rest.
 A robot process that is killed loses nothing it wrote: the operating
 system holds its writes in the page cache and writes them out later.  A
 power cut loses the page cache: a file keeps what its last sync covered.
-The data folder syncs through :class:`~coapkb.kb.journal.Disk`; this disk
+The data folder syncs through :class:`~coapkb.kb.disk.Disk`; this disk
 notes, per file (by inode: the journal writes a file under a temporary
 name, syncs it, then renames it), its size at its last sync, and a power
 cut truncates each file of a folder to it.  A directory's entries are
@@ -21,8 +21,9 @@ import stat
 import tempfile
 from pathlib import Path
 
+from ..kb.disk import Disk
 from ..kb.durable import open_live
-from ..kb.journal import DataDirError, Disk
+from ..kb.journal import DataDirError
 from ..kb.live import LiveKB
 
 

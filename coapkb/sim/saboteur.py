@@ -135,9 +135,7 @@ class Saboteur:
                 with open(journals[-1], "ab") as tail:
                     tail.write(torn)
                 self.run.note(f"disk {robot_id}: {len(torn)} bytes of a torn record after {journals[-1].name}")
-        live = robot.replicator.live if robot is not None and robot.replicator is not None else None
-        if live is not None:
-            self.restores += restore_differences(robot_id, live, keeper.journal.path)
+        self.restores += restore_differences(robot_id, keeper.live, keeper.journal.path)
 
     def power_cut(self, robot_id: str, down_s: float) -> None:
         """Every holder of a module ``robot_id`` holds killed at once (a power

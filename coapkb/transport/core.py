@@ -143,7 +143,7 @@ class ServerCore(_Endpoint):
         self._closed = True
         self._stop_receiving()
         self._observations.stop_all()
-        await cancel_and_wait(list(self._tasks))
+        await cancel_and_wait(self._tasks)
         await self._close_transport()
 
     def _stop_receiving(self) -> None:

@@ -47,8 +47,9 @@ from coapkb.feeder import membership as feeder_membership_module
 from coapkb.feeder.task_poster import TaskPoster
 from coapkb.kb import journal as journal_module
 from coapkb.kb.anti_entropy import AntiEntropy
+from coapkb.kb.disk import Disk
 from coapkb.kb.durable import Keeper
-from coapkb.kb.journal import Disk, Journal
+from coapkb.kb.journal import Journal
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
 from coapkb.kb.sync_access import SyncAccess
@@ -357,7 +358,7 @@ def _appended_unsynced() -> contextlib.AbstractContextManager[Any]:
 
     def unsynced(self: Journal, changes: Any, made: Any = None) -> int:
         disk = self.disk
-        self.disk = Disk.__new__(_NoSync)
+        self.disk = _NoSync()
         try:
             return append(self, changes, made)
         finally:
