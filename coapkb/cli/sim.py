@@ -24,7 +24,8 @@ def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p.add_argument("--faults", default="mixed", metavar="LIST",
                    help="fault kinds a run may draw: kill, freeze, partition, starve, loss[=P], burst[=P], dup[=P], "
                         "jitter[=S]; mixed = all of them; none = no faults (default mixed); by name only: forge, "
-                        "crash (a power cut), rejoin (a restarted robot cut off from its cluster), swarm; P is a "
+                        "crash (a power cut), rejoin (a restarted robot cut off from its cluster), bounce (killed and "
+                        "started again within half a second), swarm; P is a "
                         "probability (loss=0.2) or a percentage (loss=20%%)")
     p.add_argument("--strategy", choices=("compute-by-all", "compute-and-communicate"), default="compute-by-all")
     p.add_argument("--writes", type=int, default=0, metavar="N",
@@ -35,6 +36,9 @@ def add_sim(sub: argparse._SubParsersAction[Parser]) -> None:
     p.add_argument("--observers", type=int, default=0, metavar="N",
                    help="with --writes: N clients observe the written knowledge of a holder each, as coapkb query "
                         "--observe does; each must show what its robot's KB shows once the replicas agree")
+    p.add_argument("--waiting-max", type=int, default=0, metavar="N",
+                   help="with --writes: each replica takes at most N dots waiting past a gap (default 10,000, "
+                        "never reached in a run); a holder at the bound refuses a push (5.03) and takes it later")
     p.add_argument("--ties", action="store_true",
                    help="every robot of a cluster starts at the same place: cost ties, decided by the tie-break")
     p.add_argument("--ontologies", default=None, metavar="DIR", help="directory with the three .owl files")
@@ -104,10 +108,15 @@ async def _sim(args: argparse.Namespace) -> int:
         raise UserError("--observers must not be negative")
     if args.observers and not args.writes:
         raise UserError("--observers watch what the operator writes: give --writes N too")
+    if args.waiting_max < 0:
+        raise UserError("--waiting-max must not be negative")
+    if args.waiting_max and not args.writes:
+        raise UserError("--waiting-max bounds what the operator's writes leave waiting: give --writes N too")
     if args.catch_up_within is not None and not args.writes:
         raise UserError("--catch-up-within times what restarted holders catch up with: give --writes N too")
     spec = SimSpec(robots=args.robots, tasks=args.tasks, strategy=args.strategy, faults=FaultMix.parse(args.faults),
                    writes=args.writes, ties=args.ties, storage=args.storage, observers=args.observers,
+                   waiting_max=args.waiting_max,
                    ontologies=Path(args.ontologies) if args.ontologies else DEFAULT_ONTOLOGIES)
     started = time.monotonic()
     if args.shrink:

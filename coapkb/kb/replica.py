@@ -41,6 +41,7 @@ files themselves).
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -158,6 +159,12 @@ class Replica:
     def unchanged_by(self, removes: Sequence[Triple], adds: Iterable[Triple], is_base: Callable[[Triple], bool]) -> bool:
         """A write that would change nothing (:func:`.write_plan.unchanged_by`)."""
         return unchanged_by(self.visibility, self.writer, removes, adds, is_base)
+
+    def bound_waiting(self, waiting_max: int) -> None:
+        """Another bound on the waiting dots (:attr:`ReplicaLimits.cloud_max`),
+        from now on (the simulator's small bound)."""
+        self.limits = dataclasses.replace(self.limits, cloud_max=waiting_max)
+        self.ledger.waiting_max = waiting_max
 
     def gaps(self) -> int:
         """Dots waiting: past a gap, or removed before their write came."""

@@ -18,7 +18,7 @@ from ..errors import CoapkbError
 from .network import LinkModel
 
 #: Fault kinds that act on processes or links at a time.
-EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin")
+EVENT_KINDS = ("kill", "freeze", "partition", "starve", "forge", "crash", "rejoin", "bounce")
 #: Kinds that shape every link for the whole run, with their default amount.
 LINK_KINDS = {"loss": 0.05, "burst": 0.02, "dup": 0.02, "jitter": 0.02, "late": 0.02, "hedge": 0.3}
 #: The link kinds swarm testing draws for every seed, in their order...
@@ -269,6 +269,14 @@ class _DraftSchedule:
             self.events += [FaultEvent(at, "kill", (victim,)), FaultEvent(back, "restart", (victim,)),
                             FaultEvent(back, "cut", (victim,), other=mates),
                             FaultEvent(round(back + held, 3), "heal", (victim,))]
+            return
+        if kind == "bounce":
+            # Killed and started again at once, as a supervisor restarts a
+            # crashed process: what its last life sent may still be on its
+            # way (held back, or retried by nobody) when the next one starts.
+            back = round(at + rng.uniform(0.05, 0.5), 3)
+            self.out[victim] = back
+            self.events += [FaultEvent(at, "kill", (victim,)), FaultEvent(back, "restart", (victim,))]
             return
         if kind == "kill":
             restart = rng.random() < 0.5

@@ -99,6 +99,11 @@ class SimSpec:
     #: Observers of the written knowledge (``coapkb query --observe``), each
     #: of one module at one holder, judged at the end (:mod:`.observers`).
     observers: int = 0
+    #: Each replica's bound on dots waiting past a gap and tombstones
+    #: (:attr:`~coapkb.kb.replica.ReplicaLimits.cloud_max`; 0: the default,
+    #: 10,000, which a run's writes never reach).  Small, a holder refuses
+    #: deltas at the bound (5.03, never 2.04) and takes them again in order.
+    waiting_max: int = 0
 
     def team(self) -> TeamSpec:
         return TeamSpec(
@@ -485,6 +490,9 @@ class SimulatedTeam:
             robot.keeper.compact_after_bytes = COMPACT_AFTER_BYTES
         self.robots[robot_id] = robot
         live = robot.replicator.live if robot.replicator is not None else None
+        if live is not None and self.spec.waiting_max:
+            for replica in live.replicas.values():
+                replica.bound_waiting(self.spec.waiting_max)
         self.holders.started(robot_id, live, clock.now)
         if live is not None:
             live.listeners.append(lambda _: self.catch_ups.changed(robot_id, live))

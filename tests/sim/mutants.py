@@ -99,6 +99,9 @@ LATE_HEDGED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,s
 #: 0.07 s or 0.58 s by which of their 10 restarts lost one.
 CATCH_UP = ("--robots", "3", "--tasks", "10", "--faults", "kill,loss=0.1", "--writes", "20", "--catch-up-within", "0.5")
 CATCH_UP_SEEDS = tuple(range(261, 321))
+#: LATE with each replica taking one dot at most past a gap: holders refuse
+#: pushes at the bound (5.03) and take them again in order.
+BOUNDED = (*LATE, "--waiting-max", "1")
 #: Clients observing the written knowledge, their robots killed and restarted.
 OBSERVED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20", "--observers", "2")
 
@@ -417,6 +420,17 @@ def _id_forgotten(self: WriteIds, wid: WriteId) -> Remembered | None:
     return None
 
 
+def _refusal_untold(self: Replica, delta: Delta, is_base: Any) -> Any:
+    """A delta refused at the bound on waiting dots is not counted: its push is answered 2.04."""
+    refused = self.refused
+    effect = _original_apply(self, delta, is_base)
+    self.refused = refused
+    return effect
+
+
+_original_apply = Replica.apply
+
+
 def _take_from_anyone(self: SyncAccess, message: Any, sender: str | None) -> str | None:
     return None
 
@@ -566,6 +580,9 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            _last_part_left_out, STORAGE, (2, 7, 10)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
+    Mutant("refused-answered-2.04", "a holder that refuses a push at its bound on waiting dots answers it 2.04: "
+           "its writer counts the write as held there", lambda: _patch(Replica, "apply", _refusal_untold),
+           BOUNDED, (3, 23)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1, 2, 3)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",

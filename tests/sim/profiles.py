@@ -41,6 +41,14 @@ CI_PROFILES = [
     # repeat (its write id), not make it again.
     CIProfile("late messages", ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,hedge,swarm",
                                 "--writes", "20"), "1-40"),
+    # A replica takes one dot at most past a gap: pushes held back or lost are refused at the bound
+    # (5.03, never 2.04) and taken again, in order, at the next exchanges.
+    CIProfile("bounded waiting", ("--robots", "3", "--tasks", "10", "--faults", "mixed,late,swarm", "--writes", "20",
+                                  "--waiting-max", "1"), "1-60"),
+    # Robots killed and started again at once (a supervisor's restart), with data folders and power
+    # cuts: a life's last pushes may land after the next life started.
+    CIProfile("quick restarts", ("--robots", "3", "--tasks", "10", "--faults", "mixed,bounce,crash,swarm",
+                                 "--writes", "20", "--storage"), "1-40"),
     # Clients observing the written knowledge as `coapkb query --observe` does, through restarts, cuts and
     # lost notifications: each must show what its robot's KB shows once the replicas agree.
     CIProfile("observers", ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20",

@@ -180,6 +180,19 @@ def test_a_schedule_keeps_a_majority_of_every_cluster_up() -> None:
                 assert not overlapping, schedule
 
 
+def test_a_bounce_is_a_kill_and_a_restart_within_half_a_second() -> None:
+    clusters = [["Robot1", "Robot2", "Robot3"]]
+    rng = __import__("random").Random(5)
+    bounces = 0
+    for _ in range(200):
+        events = draw_schedule(FaultMix.parse("bounce"), clusters, 20.0, rng).events
+        for kill, restart in zip(events[::2], events[1::2], strict=True):
+            assert (kill.action, restart.action) == ("kill", "restart") and kill.targets == restart.targets
+            assert 0.05 <= restart.at_s - kill.at_s <= 0.5
+            bounces += 1
+    assert bounces > 200
+
+
 # --------------------------------------------------------------------------- replay
 
 
@@ -267,6 +280,8 @@ def test_runs_over_several_workers_leave_nothing_in_the_temporary_folder(tmp_pat
     (["--faults", "loss=20"], "loss=20: P is a probability from 0 to 1 (write loss=0.2 or loss=20% for 20 %)"),
     (["--decide-within", "0"], "--decide-within must be positive"),
     (["--catch-up-within", "1"], "give --writes N too"),
+    (["--waiting-max", "1"], "give --writes N too"),
+    (["--writes", "5", "--waiting-max", "-1"], "--waiting-max must not be negative"),
     (["--exitfirst", "--decide-within", "1"], "--exitfirst leaves seeds out"),
 ])
 def test_the_command_refuses_mistakes_in_one_line(args: list[str], needle: str) -> None:
