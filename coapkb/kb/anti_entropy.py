@@ -59,6 +59,11 @@ class AntiEntropy:
         else:
             self._caught_up.set()
 
+    @property
+    def catching_up(self) -> bool:
+        """The catch-up at start has begun and not ended."""
+        return self._started_at is not None and not self._caught_up.is_set()
+
     async def caught_up(self) -> None:
         """Until the catch-up at start has asked every holder, at most
         :attr:`ReplicationSettings.read_after_catch_up_s` after it began."""

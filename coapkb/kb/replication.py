@@ -169,6 +169,11 @@ class Replicator:
     def start(self) -> None:
         self.anti_entropy.start()
 
+    @property
+    def catching_up(self) -> bool:
+        """The catch-up at start has begun and not ended (:attr:`.AntiEntropy.catching_up`)."""
+        return self.anti_entropy.catching_up
+
     async def caught_up(self) -> None:
         """Until the catch-up at start has asked every holder, at most
         :attr:`ReplicationSettings.read_after_catch_up_s` after it began."""

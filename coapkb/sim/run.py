@@ -634,6 +634,14 @@ class SimulatedTeam:
         docs/simulation.md, "Liveness"."""
         return settle_bound_s(self.team.lease_s, self.spec.query_timeout_s, liveness_floor_s(self.team.link_kbps))
 
+    def _writers_bound(self) -> int:
+        """The most writers a replica's version vector may name: one per
+        robot with data folders (a restart writes on under its folder's
+        name), else one per process a robot ran (a life kept in memory
+        writes under a name of its own; docs/knowledge.md, "Not bounded:
+        the lives of a robot kept in memory")."""
+        return len(self.configs) if self.spec.storage else len(self.holders.lives)
+
     def _settled(self) -> bool:
         """Every running robot has executed what it holds and sent what it wrote of it."""
         return all(
@@ -670,7 +678,7 @@ class SimulatedTeam:
                     record = fed.result()
                 except (SimulationError, FeederError, TransportError, TimeoutError) as exc:
                     error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                bounds = _bounds(self.robots, scheduler)
+                bounds = _bounds(self.robots, scheduler, self._writers_bound())
                 versions, values, differences = self.holders.outcome() if spec.writes else ({}, {}, {})
                 observed = views(self.observers, self.holders.running())
                 catch_up_s = self.catch_ups.finish()
@@ -749,14 +757,19 @@ TASKS_PER_PEER = 12
 TASKS_BASE = 40
 
 
-def _bounds(robots: dict[str, Robot], scheduler: Scheduler) -> dict[str, tuple[int, int]]:
-    """State that must stay bounded whatever the schedule: (reading, bound)."""
+def _bounds(robots: dict[str, Robot], scheduler: Scheduler, writers: int) -> dict[str, tuple[int, int]]:
+    """State that must stay bounded whatever the schedule: (reading, bound);
+    ``writers``: the most writers a replica may know of."""
     peers = len(robots) + 1
     readings: dict[str, tuple[int, int]] = {}
     for robot_id, robot in robots.items():
         bounds = robot.controller.bounds
         readings[f"{robot_id} posts remembered"] = (len(robot.resources.accepted), bounds.posts_remembered)
         readings[f"{robot_id} decisions kept"] = (len(robot.controller.log), bounds.decisions_kept)
+        if robot.replicator is not None:
+            for module, replica in robot.replicator.live.replicas.items():
+                known = set(replica.context.vv) | {d.writer for d in replica.context.cloud}
+                readings[f"{robot_id} writers in the version vector of {module}"] = (len(known), writers)
     for process in scheduler.processes:
         if process.alive:
             pending = sum(1 for t in asyncio.all_tasks(process.loop) if not t.done())

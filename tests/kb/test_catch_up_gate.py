@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import random
+from collections.abc import Awaitable
 
 import pytest
 from support import ONTOLOGIES
@@ -108,4 +109,36 @@ async def test_a_write_waits_for_the_catch_up_at_start_too() -> None:
     peer.release.set()
     assert (await writing).status == Status.CHANGED
     assert asyncio.get_running_loop().time() == pytest.approx(1.0, abs=0.01)
+    await replicator.aclose()
+
+
+@pytest.mark.parametrize("update", [
+    "DELETE DATA { <http://www.tcs.org/2018/Location#WriteLog> <http://www.tcs.org/2018/Location#written> 1 }",
+    "DELETE WHERE { <http://www.tcs.org/2018/Location#WriteLog> <http://www.tcs.org/2018/Location#written> ?v }",
+])
+async def test_past_the_bound_a_write_that_removes_is_refused_until_the_catch_up_ends(update: str) -> None:
+    """A delete made without what the co-holders hold would miss it: past the
+    bound, and still not caught up, it is answered 5.03 with Max-Age, and
+    written once the catch-up ends (simulator seed 580 of
+    ``mixed,bounce,swarm``: a DELETE DATA tried again was answered 2.04,
+    having removed nothing, at a holder whose catch-up outlasted the bound).
+    An insert is taken at once past the bound: it adds whatever the others hold."""
+    peer = HeldPeer()
+    router, replicator = await _restarted_robot1(peer)
+    started = asyncio.get_running_loop().time()
+
+    def patch(text: str) -> Awaitable[Response]:
+        return router.handle(Request(Method.PATCH, "/kb", {"ack": "local"}, payload=text.encode(),
+                                     content_format=ContentFormat.TEXT))
+
+    refused = await patch(update)
+    assert refused.status == Status.SERVICE_UNAVAILABLE and refused.max_age == 3
+    assert b"has not heard the other holders yet" in refused.payload
+    assert asyncio.get_running_loop().time() - started == pytest.approx(3.0, abs=0.01)
+    ns = "http://www.tcs.org/2018/Location#"
+    inserted = await patch(f"INSERT DATA {{ <{ns}WriteLog> <{ns}written> 2 }}")
+    assert inserted.status == Status.CHANGED
+    peer.release.set()
+    await asyncio.sleep(refused.max_age)  # a client waits out the Max-Age, then tries again
+    assert (await patch(update)).status == Status.CHANGED
     await replicator.aclose()

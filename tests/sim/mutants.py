@@ -582,7 +582,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
     Mutant("refused-answered-2.04", "a holder that refuses a push at its bound on waiting dots answers it 2.04: "
            "its writer counts the write as held there", lambda: _patch(Replica, "apply", _refusal_untold),
-           BOUNDED, (3, 23)),
+           BOUNDED, (47, 131, 157)),
     Mutant("delta-contents-dropped", "one received delta in eight loses its added triples",
            lambda: _patch(LiveKB, "apply", _contents_dropped), WRITES, (1, 2, 3)),
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",

@@ -305,6 +305,11 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
               "second with it (it came between): the asker counted the teammate in, the robot asked had promised "
               "to leave it out, and did",
     }),
+    (("--robots", "3", "--tasks", "10", "--faults", "mixed,bounce,swarm", "--writes", "20"), {
+        580: "a DELETE DATA tried again reached a holder started again 0.09 s after its kill, whose catch-up "
+             "outlasted the 3 s a write waits for it (a co-holder starved, lossy links): it removed nothing there, "
+             "was answered 2.04, and the value stayed on the others",
+    }),
 ]
 
 
