@@ -78,20 +78,20 @@ class WriteResource:
                     return Response.error(
                         Status.BAD_REQUEST, "DELETE/INSERT ... WHERE is not idempotent: send it with PATCH, not iPATCH"
                     )
-                if (held := self._held_back(_removes(text))) is not None:
-                    return held
+                if self._catching_up() and _removes(text):
+                    return self._held_back()
                 written = live.update(text, if_match=request.if_match, tag=tag)
             elif request.content_format == ContentFormat.CBOR:
                 body = codec.load_cbor(request.payload)
                 if is_named_updates(body):
                     text = named_updates_sparql(decode_named_updates(body))
-                    if (held := self._held_back(_removes(text))) is not None:
-                        return held
+                    if self._catching_up() and _removes(text):
+                        return self._held_back()
                     written = live.update(text, if_match=request.if_match, tag=tag)
                 else:
                     deletes, inserts = decode_patch(request.payload)
-                    if (held := self._held_back(bool(deletes))) is not None:
-                        return held
+                    if self._catching_up() and deletes:
+                        return self._held_back()
                     written = live.patch(deletes, inserts, if_match=request.if_match, tag=tag)
             else:
                 return Response.error(
@@ -116,23 +116,26 @@ class WriteResource:
             return await self._acknowledge(written, ack, request.accept)
         return await self._answer_once(tag, self._acknowledge(written, ack, request.accept))
 
-    def _held_back(self, removes: bool) -> Response | None:
-        """5.03 for a write that removes or matches while this robot, started
-        again, has still not heard its co-holders past the wait for them: it
-        would act without what they hold.  A DELETE DATA tried again and
-        sent to a holder restarted without its data folder, whose catch-up
-        outlasted the wait (a co-holder starved, the link lossy), removed
-        nothing there and was answered 2.04, while the value stayed on the
-        others (simulator, seed 580 of ``mixed,bounce,swarm``).  An insert
-        is taken: it adds, whatever the others hold."""
-        replicator = self.replicator
-        if not removes or replicator is None or not replicator.catching_up:
-            return None
+    def _catching_up(self) -> bool:
+        """This robot, started again, has still not heard its co-holders
+        past the wait for them (asked before an update is parsed for what
+        it removes: most writes come when it is not)."""
+        return self.replicator is not None and self.replicator.catching_up
+
+    def _held_back(self) -> Response:
+        """5.03 for a write that removes or matches while :meth:`_catching_up`:
+        it would act without what the co-holders hold.  A DELETE DATA tried
+        again and sent to a holder restarted without its data folder, whose
+        catch-up outlasted the wait (a co-holder starved, the link lossy),
+        removed nothing there and was answered 2.04, while the value stayed
+        on the others (simulator, seed 580 of ``mixed,bounce,swarm``).  An
+        insert is taken: it adds, whatever the others hold."""
+        assert self.replicator is not None
         return Response.error(
             Status.SERVICE_UNAVAILABLE,
             "this robot started again and has not heard the other holders yet: a delete or a WHERE would act "
             "without what they hold; not written (try again, or another holder)",
-            max_age=max(1, math.ceil(replicator.settings.read_after_catch_up_s)),
+            max_age=max(1, math.ceil(self.replicator.settings.read_after_catch_up_s)),
         )
 
     async def _repeat(self, tag: WriteTag, ack: Ack, accept: int | None) -> Response | None:
