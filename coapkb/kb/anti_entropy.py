@@ -7,23 +7,30 @@ it sends one holder per module its causal context, round robin (the next
 if that one does not answer, a standby if none does), and gets back what
 it lacks; what the holder lacks of this robot's is pushed right after.
 Each round ends with compaction: a delta every holder's context of a
-round ago holds leaves the journal.  Overview: :mod:`.replication`.
+round ago holds leaves the journal.  A robot kept in memory whose
+catch-up heard every holder in full then raises its life's fence at each
+and reads it again, and writes on under its lives' one name
+(:mod:`.life_fence`).  Overview: :mod:`.replication`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import random
 
 from .. import clock
 from ..model.deltas import CausalContext
 from ..wire.sync import SyncMessage
+from .life_fence import lives_writer
 from .live import LiveKB
 from .replication_settings import Holder, ReplicationSettings, ReplicationStats
 from .sync_client import SyncClient
 
 __all__ = ["MAX_FOLLOW_UPS", "AntiEntropy"]
+
+log = logging.getLogger(__name__)
 
 #: Exchanges one catch-up may chain while the holder has more to send.
 MAX_FOLLOW_UPS = 1000
@@ -92,14 +99,56 @@ class AntiEntropy:
         """One exchange with every holder of every module: the modules at
         once, their holders one after another (the first sends what was
         missed, the next only what the first lacked: asked all at once,
-        each sent it all)."""
+        each sent it all).  Then, for a robot kept in memory that heard
+        them all in full, the name of its lives (:meth:`_take_lives_name`)."""
+        if await self._hear(self.holders, standby_if_none=True) and self._may_take_lives_name():
+            await self._take_lives_name()
 
-        async def module(name: str, holders: list[Holder]) -> None:
-            answered = [await self._sync_with(holder, name) for holder in holders]
-            if not any(answered):
+    async def _hear(self, holders: dict[str, list[Holder]], *, standby_if_none: bool = False) -> bool:
+        """One exchange with each of ``holders`` (module -> robots), the
+        modules at once: whether each answered with nothing this robot
+        lacks after; ``standby_if_none``: a module none answered for is
+        asked of a standby."""
+
+        async def module(name: str, holders: list[Holder]) -> bool:
+            replica = self.live.replicas[name]
+            heard = []
+            for holder in holders:
+                answer = await self._exchange(holder, name)
+                heard.append(answer is not None and replica.context.covers(answer.context))
+            if standby_if_none and not any(heard):
                 await self._sync_with_a_standby(name)
+            return all(heard)
 
-        await asyncio.gather(*(module(name, holders) for name, holders in self.holders.items()))
+        return all(await asyncio.gather(*(module(name, robots) for name, robots in holders.items())))
+
+    def _may_take_lives_name(self) -> bool:
+        """Kept in memory (a data folder's writer is for good) and not written yet."""
+        return self.live.keeper is None and not self.live.has_written
+
+    async def _take_lives_name(self) -> None:
+        """A new life above every one the holders know of this robot: its
+        fence raised at each holder, each read again in full after, and,
+        if all were, the name of the robot's lives taken.  Every dot of an
+        earlier life a holder will ever take is then here: the fence
+        refuses those still on their way."""
+        robot = self.outgoing.access.me
+        fence = self.outgoing.fence
+        life = fence.begin(robot)
+        # Every robot this one sends its dots to: its holders and standbys.
+        # A holder of another cluster takes them only from those.
+        sent_to = {module: holders + self.standbys.get(module, []) for module, holders in self.holders.items()}
+        heard = await self._hear(sent_to)
+        if not heard or self.live.has_written:
+            # Not heard: writes on under this life's own name, carrying no life.
+            # Written meanwhile: its dot stands under that name.
+            fence.own = None
+            log.info("%s: not every holder read again after life %d's fence: writing on as %s", robot,
+                     life.number, self.live.writer)
+            return
+        writer = lives_writer(robot)
+        self.live.continue_as(writer)
+        log.info("%s: life %d, every holder heard after its fence: writing as %s", robot, life.number, writer)
 
     async def sync_once(self) -> None:
         """One anti-entropy exchange per module, with its next holder; if
@@ -127,6 +176,10 @@ class AntiEntropy:
 
     async def _sync_with(self, holder: Holder, module: str) -> bool:
         """One exchange with ``holder`` (and its follow-ups): whether it answered."""
+        return await self._exchange(holder, module) is not None
+
+    async def _exchange(self, holder: Holder, module: str) -> SyncMessage | None:
+        """One exchange with ``holder`` (and its follow-ups): its last answer."""
         replica = self.live.replicas[module]
         answer = await self.outgoing.exchange(holder, SyncMessage(module, replica.context.copy()))
         # An answer holds at most max_answer_bytes of changes: ask again at
@@ -136,12 +189,12 @@ class AntiEntropy:
                 break
             answer = await self.outgoing.exchange(holder, SyncMessage(module, replica.context.copy()))
         if answer is None:
-            return False
+            return None
         # Both ways: what the holder lacks of ours, pushed now.
         theirs = replica.missing_for(answer.context)
         if theirs:
             await self.outgoing.push(holder, module, self.outgoing.fit(theirs) if isinstance(theirs, list) else theirs)
-        return True
+        return answer
 
     def compact(self) -> None:
         """Forget the deltas every holder had a round ago (each round ends

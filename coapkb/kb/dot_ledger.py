@@ -64,6 +64,13 @@ class DotLedger:
         self.context.merge(context)
         self.tombstones = {d for d in self.tombstones | set(tombstones) if d not in self.context}
 
+    def highest(self, writer: str) -> int:
+        """The highest sequence number of ``writer``'s known here: received,
+        past a gap, or removed before its write came (0: none)."""
+        return max((self.context.vv.get(writer, 0),
+                    *(d.seq for d in self.context.cloud if d.writer == writer),
+                    *(d.seq for d in self.tombstones if d.writer == writer)))
+
     def seqs_taken(self, writer: str, from_seq: int) -> set[int]:
         """The sequence numbers from ``from_seq`` on that are already dots
         of ``writer``'s here: past a gap, or tombstones."""

@@ -303,6 +303,25 @@ class LiveKB:
         self._changed(frozenset(deltas))
         return written
 
+    def continue_as(self, writer: str) -> None:
+        """Write from now on as ``writer`` in every module, the name of this
+        robot's lives (:meth:`Replica.continue_as`; when: :mod:`.life_fence`).
+
+        Raises :class:`ValueError` with a data folder (its writer is the
+        folder's) or once this robot's writer has a dot."""
+        if self.keeper is not None:
+            raise ValueError(f"{self.writer} writes as its data folder's writer")
+        if self.has_written:
+            raise ValueError(f"{self.writer} has written: it cannot write as {writer}")
+        for replica in self.replicas.values():
+            replica.continue_as(writer)
+        self.writer = writer
+
+    @property
+    def has_written(self) -> bool:
+        """A dot under this robot's writer is known in some module."""
+        return any(replica.has_written for replica in self.replicas.values())
+
     # -------------------------------------------------------------- joining
 
     def apply(self, module: str, deltas: Iterable[Delta], made: MadeUnder | None = None,

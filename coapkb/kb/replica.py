@@ -213,6 +213,24 @@ class Replica:
         self._deltas.add(delta)
         return self.visibility.effect(before, is_base)
 
+    # --------------------------------------------------------------- lives
+
+    @property
+    def has_written(self) -> bool:
+        """A dot under this replica's writer is known: it took one, or one came."""
+        return bool(self.clock.seq) or self.ledger.highest(self.writer) > 0
+
+    def continue_as(self, writer: str) -> None:
+        """Write from now on as ``writer``, the name of this robot's lives,
+        above every dot of it known here (:mod:`.life_fence` says when that
+        is safe).
+
+        Raises :class:`ValueError` once this replica's writer has a dot."""
+        if self.has_written:
+            raise ValueError(f"{self.writer} has written: it cannot write as {writer}")
+        self.writer = writer
+        self.clock.continue_as(writer)
+
     # ---------------------------------------------------------- whole state
 
     def state(self) -> WrittenState:

@@ -55,6 +55,7 @@ from ..transport.base import ClientTransport
 from ..transport.messages import Request, Response
 from ..transport.router import Router
 from .anti_entropy import AntiEntropy
+from .life_fence import LifeFence
 from .live import LiveKB, Written
 from .replication_settings import SYNC_PATH, Holder, ReplicationSettings, ReplicationStats
 from .sync_access import SyncAccess, writer_robot
@@ -103,10 +104,13 @@ class Replicator:
             listed=team is not None,
         )
         self.stats = ReplicationStats()
-        self.outgoing = SyncClient(live, client, self.access, self.settings, self.stats)
+        #: The lives of the robots kept in memory (:mod:`.life_fence`).
+        self.fence = LifeFence()
+        self.outgoing = SyncClient(live, client, self.access, self.settings, self.stats, self.fence)
         #: (module, holder) -> the last context it told us
         self.known = self.outgoing.known
-        self.incoming = SyncHandler(live, self.holders, self.access, self.outgoing, self.settings, self.stats)
+        self.incoming = SyncHandler(live, self.holders, self.access, self.outgoing, self.settings, self.stats,
+                                    lambda: self.anti_entropy.catching_up)
         # Seeded by the writer when not given: runs repeat, and robots' rounds still differ.
         self.anti_entropy = AntiEntropy(live, self.holders, self.outgoing, self.settings, self.stats,
                                         rng or random.Random(live.writer), self.standbys)

@@ -11,6 +11,7 @@ answer is checked by :mod:`.sync_access`.  Overview: :mod:`.replication`.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from collections.abc import Coroutine, Sequence
 from typing import Any
@@ -20,6 +21,7 @@ from ..transport.base import ClientTransport, TransportError
 from ..transport.messages import ContentFormat, Method, Request, Status
 from ..wire.codec import CodecError
 from ..wire.sync import SyncMessage, decode_sync, encode_sync
+from .life_fence import LifeFence
 from .live import LiveKB
 from .replication_settings import SYNC_PATH, Holder, ReplicationSettings, ReplicationStats
 from .sync_access import SyncAccess, writer_robot
@@ -34,10 +36,11 @@ class SyncClient:
     (see the module docstring); ``client``: the transport they go by."""
 
     def __init__(self, live: LiveKB, client: ClientTransport, access: SyncAccess, settings: ReplicationSettings,
-                 stats: ReplicationStats) -> None:
+                 stats: ReplicationStats, fence: LifeFence) -> None:
         self.live = live
         self.client = client
         self.access = access
+        self.fence = fence
         self.settings = settings
         self.stats = stats
         #: (module, holder) -> the last context it told us
@@ -79,6 +82,8 @@ class SyncClient:
     async def exchange(self, holder: Holder, message: SyncMessage) -> SyncMessage | None:
         """Send ``message`` to ``holder`` and take in its answer; None if
         there is none to take (unreachable, refused, malformed, not allowed)."""
+        if self.fence.own is not None:
+            message = dataclasses.replace(message, life=self.fence.own)
         request = Request(
             Method.POST, SYNC_PATH, payload=encode_sync(message), content_format=ContentFormat.CBOR,
             accept=ContentFormat.CBOR,
@@ -107,6 +112,7 @@ class SyncClient:
                           holder.name, message.module, refusal)
             return None
         self.known[(message.module, holder.name)] = answer.context
+        self.fence.learn(answer.lives)
         self.take(answer)
         return answer
 

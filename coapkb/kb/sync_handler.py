@@ -1,8 +1,8 @@
 """The incoming side of replication: ``/kb/sync``, where the other holders
 of this robot's modules push their changes and ask for what they lack.
 
-A message is taken only from a sender :mod:`.sync_access` allows (else
-4.03), its changes go into the KB, a forwarded push's new deltas are
+A message is taken only from a sender :mod:`.sync_access` allows and
+from no ended life of a robot (:mod:`.life_fence`; else 4.03), its changes go into the KB, a forwarded push's new deltas are
 passed on to the holders this robot knows, and the answer carries this
 robot's context and what the sender's lacks, up to the answer bound.
 Changes the replica does not take at its bound are answered 5.03 with
@@ -11,7 +11,9 @@ Max-Age, never 2.04.  Overview: :mod:`.replication`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 
 from ..model.deltas import CausalContext, Delta
 from ..transport.base import ResourceInfo
@@ -29,13 +31,17 @@ __all__ = ["SyncHandler"]
 
 class SyncHandler:
     """Answers the holders' sync messages (see the module docstring);
-    ``holders``: module -> the holders a new delta is passed on to."""
+    ``holders``: module -> the holders a new delta is passed on to;
+    ``catching_up``: whether the catch-up at start is still running."""
 
     def __init__(self, live: LiveKB, holders: dict[str, list[Holder]], access: SyncAccess,
-                 outgoing: SyncClient, settings: ReplicationSettings, stats: ReplicationStats) -> None:
+                 outgoing: SyncClient, settings: ReplicationSettings, stats: ReplicationStats,
+                 catching_up: Callable[[], bool]) -> None:
         self.live = live
         self.holders = holders
         self.access = access
+        self.fence = outgoing.fence
+        self.catching_up = catching_up
         self.outgoing = outgoing
         self.settings = settings
         self.stats = stats
@@ -64,6 +70,13 @@ class SyncHandler:
             self.outgoing.log_once(request.peer or "an unprotected sender", module, Status.FORBIDDEN,
                                    "refused a sync of %s from %s: %s", module, request.peer, refusal)
             return Response.error(Status.FORBIDDEN, refusal)
+        if message.life is not None:
+            not_taken = self._refuse_life(message, request.peer)
+            if not_taken is not None:
+                return not_taken
+            # Raised before the answer is made: the life that asks reads
+            # every dot of its robot's earlier lives this robot will take.
+            self.fence.raise_to(message.life)
         replica = self.live.replicas[module]
         refused = replica.refused
         new = self._new(message)
@@ -86,7 +99,29 @@ class SyncHandler:
                 max_age=max(1, math.ceil(self.settings.sync_every_s)),
             )
         answer = self._answer_for(module, message.context)
+        if message.changes is None:
+            answer = dataclasses.replace(answer, lives=dict(self.fence.lives))
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
+
+    def _refuse_life(self, message: SyncMessage, peer: str | None) -> Response | None:
+        """The answer to a sync from a robot's life that is not taken; None if it is."""
+        life = message.life
+        assert life is not None
+        refusal = self.fence.refusal(life)
+        if peer is not None and life.robot != peer:
+            refusal = f"{peer} sent a sync as a life of {life.robot}"
+        if refusal is not None:
+            self.stats.forbidden += 1
+            self.outgoing.log_once(life.robot, message.module, Status.FORBIDDEN,
+                                   "refused a sync of %s: %s", message.module, refusal)
+            return Response.error(Status.FORBIDDEN, refusal)
+        if message.changes is not None and self.catching_up():
+            # Started again, this robot may not know the fence yet: the
+            # catch-up's answers carry it, and the changes come again.
+            return Response.error(
+                Status.SERVICE_UNAVAILABLE, "this robot is catching up: it takes a robot's life's changes after",
+                max_age=max(1, math.ceil(self.settings.sync_every_s)))
+        return None
 
     def _new(self, message: SyncMessage) -> list[Delta]:
         """The deltas of a forwarded push that are new here: to pass on (once taken)."""

@@ -60,6 +60,14 @@ class WriterClock:
         """A local write took the dots up to ``last``."""
         self.seq = last.seq
 
+    def continue_as(self, writer: str) -> None:
+        """Write from now on as ``writer``, the name of this robot's lives
+        (:mod:`.life_fence`): its numbers go on above the dots of it seen;
+        the stamps stay ahead of every stamp seen."""
+        self.writer = writer
+        self.seq = 0
+        self._last = Stamp(self._last.ms, self._last.counter, writer)
+
     def resume(self, top: int) -> None:
         """The writer's dots up to ``top`` are already taken (read back from
         the data folder): the next write goes on above them."""

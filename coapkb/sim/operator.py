@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import random
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import pyoxigraph as ox
@@ -218,6 +218,8 @@ class Operator:
         self.write_log: list[WriteOp] = []
         #: (module, value) -> how an acknowledged value's last copy died (no data folder).
         self.lost_copies: dict[tuple[str, int], str] = {}
+        #: (module, value) -> how the last copy of a settled delete of it died (no data folder).
+        self.lost_removals: dict[tuple[str, int], str] = {}
 
     async def write(self, process: Process, rng: random.Random, writes: int, horizon_s: float,
                     fed_at: float, undo: bool = False) -> None:
@@ -297,8 +299,10 @@ class Operator:
         """Acknowledged values that die with ``dying``'s memory (no data
         folder): no other holder's process, running or frozen, shows them,
         and each such process started too recently to have caught up
-        (:data:`CATCH_UP_WINDOW_S`).  A holder up for longer that lacks the
-        value is the protocol's failure, not the schedule's."""
+        (:data:`CATCH_UP_WINDOW_S`); and settled deletes that die with it
+        (every other such process still shows the value).  A holder up for
+        longer that lacks the value is the protocol's failure, not the
+        schedule's."""
         robots, current, started_s = self.holders.robots, self.holders.current, self.holders.started_s
         robot = robots.get(dying)
         live = robot.replicator.live if robot is not None and robot.replicator is not None else None
@@ -309,16 +313,25 @@ class Operator:
                   if r_id != dying and r.replicator is not None and r.replicator.live is not None
                   and current[r_id].status != "dead"}
         for op in self.write_log:
-            if (op.kind != "insert" or op.status != "2.04" or (op.module, op.value) in self.lost_copies
-                    or op.module not in live.names or not shows(live, op.module, op.value)):
+            if op.status != "2.04" or op.module not in live.names:
                 continue
             holding = {r: kb for r, kb in others.items() if op.module in kb.names}
-            if any(shows(kb, op.module, op.value) for kb in holding.values()):
+            if not all(now - started_s[r] < CATCH_UP_WINDOW_S for r in holding):
                 continue
-            if all(now - started_s[r] < CATCH_UP_WINDOW_S for r in holding):
-                young = "".join(f"; {r} had started {now - started_s[r]:.3f}s before" for r in sorted(holding))
-                self.lost_copies[(op.module, op.value)] = (
-                    f"{dying} was killed at {now:.3f}s with the last copy in memory (no data folder){young}")
+            key = (op.module, op.value)
+            if op.kind == "insert" and key not in self.lost_copies and shows(live, *key):
+                if not any(shows(kb, *key) for kb in holding.values()):
+                    self.lost_copies[key] = self._lost(dying, now, holding)
+            # The same for a delete: the dying holder had it, and every other
+            # still shows the value (the add came to it first, the remove not yet).
+            elif (op.kind == "delete" and op.settled and key not in self.lost_removals and not shows(live, *key)
+                  and holding and all(shows(kb, *key) for kb in holding.values())):
+                self.lost_removals[key] = self._lost(dying, now, holding)
+
+    def _lost(self, dying: str, now: float, holding: Iterable[str]) -> str:
+        started_s = self.holders.started_s
+        young = "".join(f"; {r} had started {now - started_s[r]:.3f}s before" for r in sorted(holding))
+        return f"{dying} was killed at {now:.3f}s with the last copy in memory (no data folder){young}"
 
     def _all_holders_settled(self, module: str, value: int) -> bool:
         """Every holder of ``module`` runs, reachable, at one version, showing

@@ -171,6 +171,9 @@ class RunResult:
     #: (module, value) -> how an acknowledged value's last copy died, in a
     #: run without data folders: the loss the schedule excuses.
     lost_copies: dict[tuple[str, int], str] = field(default_factory=dict)
+    #: (module, value) -> how the last copy of a settled delete of it died,
+    #: in a run without data folders: the value back is excused.
+    lost_removals: dict[tuple[str, int], str] = field(default_factory=dict)
     #: The forged syncs sent, and how each was answered.
     forgeries: list[Forgery] = field(default_factory=list)
     #: How long each restarted holder took to show what its co-holders showed
@@ -694,7 +697,8 @@ class SimulatedTeam:
             lossy=spec.faults.lossy, sim_s=round(scheduler.clock.now, 6), cpu_s=time.process_time() - cpu,
             steps=scheduler.steps, messages=self.network.sent, lost=self.network.lost,
             fed_at=self.fed_at or 0.0, reports=self.network.reports, fed=list(self.tasks),
-            writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies), forgeries=list(self.saboteur.forgeries),
+            writes=list(self.operator.write_log), lost_copies=dict(self.operator.lost_copies),
+            lost_removals=dict(self.operator.lost_removals), forgeries=list(self.saboteur.forgeries),
             catch_up_s=catch_up_s, stale_reads=list(self.catch_ups.stale_reads), holders={m: len(self.holders.of(m)) for m in sorted(ONTOLOGIES)},
             versions=versions, values=values, differences=differences,
             split_versions=list(self.holders.split_versions), observers=observed, restores=list(self.saboteur.restores), takes=list(self.shelf.takes), grants=list(self.grants.grants),

@@ -3,7 +3,8 @@
 
 ::
 
-    sync     = [module: tstr, context, changes / null, ? (forward: bool, ? made-under)]
+    sync     = [module: tstr, context, changes / null,
+                ? (forward: bool, ? (made-under / null, ? (life / null, ? lives)))]
     context  = [* [writer: tstr, top: uint, ? [+ seq: uint]]]   ; vv, then dots past a gap
     changes  = deltas / state
     deltas   = [triples: graph-item, [* delta]]
@@ -16,6 +17,8 @@
     graph-item = #6.24(bstr .cbor graph)   ; a compact-results graph
     made-under = [writer: tstr, write: tstr, digest: bstr .size 8, removed: uint, added: uint,
                   ? peer: tstr / null]
+    life     = [robot: tstr, number: uint]
+    lives    = {* tstr => uint}
 
 The triples of all the deltas travel in one compact graph, so their
 prefixes and repeated names are sent once: each delta takes, in order, its
@@ -24,7 +27,10 @@ prefixes and repeated names are sent once: each delta takes, in order, its
 it knows (a push from another cluster).  ``made-under`` is the id of the
 client's write a push of one delta comes from; without ``peer``, its
 sender is the name before the writer's first dot (``Robot2`` of
-``Robot2.7f3a``).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
+``Robot2.7f3a``).  ``life`` is the sender's life, when it writes under the
+one name of its lives kept in memory, and ``lives`` (in an answer to a
+question) the highest life the answering robot knows of each robot
+(``docs/knowledge.md``, section 6).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
 each in the same order, key 4 the files' triples removed, key 5 the
 tombstones (dots removed before their write arrived).  Decoders raise
 :class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
@@ -32,8 +38,8 @@ tombstones (dots removed before their write arrived).  Decoders raise
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import cbor2
 
@@ -42,11 +48,20 @@ from ..model.results import Triple
 from . import codec
 from .codec import CodecError, decode_graph_item
 
-__all__ = ["SyncMessage", "decode_sync", "encode_sync"]
+__all__ = ["Life", "SyncMessage", "decode_sync", "encode_sync"]
 
 #: Bounds a decoder holds garbage to before building anything from it.
 MAX_WRITERS = 4096
 MAX_DELTAS = 100_000
+
+
+@dataclass(frozen=True, order=True)
+class Life:
+    """One life (process) of a robot kept in memory that writes under the
+    name of all its lives: ``number`` orders them."""
+
+    robot: str
+    number: int
 
 
 @dataclass(frozen=True)
@@ -59,6 +74,10 @@ class SyncMessage:
     forward: bool = False
     #: The id of the client's write the one delta pushed comes from.
     made: MadeUnder | None = None
+    #: The sender's life, when it writes under its lives' one name.
+    life: Life | None = None
+    #: In an answer to a question: the highest life of each robot the answerer knows.
+    lives: Mapping[str, int] = field(default_factory=dict)
 
 
 def _context(context: CausalContext) -> list[list[object]]:
@@ -109,11 +128,15 @@ def encode_sync(message: SyncMessage) -> bytes:
         changes = _state(message.changes)
     elif message.changes is not None:
         changes = _deltas(message.changes)
-    fields: list[object] = [message.module, _context(message.context), changes]
-    if message.forward or message.made is not None:
-        fields.append(message.forward)
-    if message.made is not None:
-        fields.append(_made(message.made))
+    fields: list[object] = [
+        message.module, _context(message.context), changes, message.forward,
+        None if message.made is None else _made(message.made),
+        None if message.life is None else [message.life.robot, message.life.number],
+        dict(sorted(message.lives.items())),
+    ]
+    # The optional tail is sent only as far as its last field that says something.
+    while len(fields) > 3 and fields[-1] in (None, False, {}):
+        fields.pop()
     return cbor2.dumps(fields)
 
 
@@ -245,11 +268,24 @@ def _decode_made(item: object) -> MadeUnder:
                      _uint(fields[4], "made-under added"))
 
 
+def _decode_life(item: object) -> Life:
+    fields = _list(item, "life", 2)
+    if len(fields) != 2:
+        raise CodecError("life: expected [robot, number]")
+    return Life(_text(fields[0], "life robot"), _uint(fields[1], "life number"))
+
+
+def _decode_lives(item: object) -> dict[str, int]:
+    if not isinstance(item, dict) or len(item) > MAX_WRITERS:
+        raise CodecError(f"lives: expected a map of at most {MAX_WRITERS} robots")
+    return {_text(robot, "lives robot"): _uint(number, "lives number") for robot, number in item.items()}
+
+
 def decode_sync(data: bytes) -> SyncMessage:
     item = codec.load_cbor(data)
-    fields = _list(item, "sync", 5)
+    fields = _list(item, "sync", 7)
     if len(fields) < 3 or (len(fields) > 3 and not isinstance(fields[3], bool)):
-        raise CodecError("sync: expected [module, context, changes, ?forward, ?made-under]")
+        raise CodecError("sync: expected [module, context, changes, ?forward, ?made-under, ?life, ?lives]")
     module = _text(fields[0], "module")
     context = _decode_context(fields[1])
     raw = fields[2]
@@ -260,5 +296,8 @@ def decode_sync(data: bytes) -> SyncMessage:
         changes = _decode_state(raw)
     else:
         changes = _decode_deltas(_list(raw, "changes", 2))
-    made = _decode_made(fields[4]) if len(fields) == 5 else None
-    return SyncMessage(module, context, changes, forward=len(fields) > 3 and fields[3] is True, made=made)
+    made = _decode_made(fields[4]) if len(fields) > 4 and fields[4] is not None else None
+    life = _decode_life(fields[5]) if len(fields) > 5 and fields[5] is not None else None
+    lives = _decode_lives(fields[6]) if len(fields) > 6 else {}
+    return SyncMessage(module, context, changes, forward=len(fields) > 3 and fields[3] is True, made=made,
+                       life=life, lives=lives)

@@ -8,10 +8,11 @@ import asyncio
 import random
 import re
 from collections.abc import AsyncIterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from memory_links import Links, at
 from support import ONTOLOGIES
 
 from coapkb.kb.client import KBClient, QueryFailed, WriteShort
@@ -32,7 +33,6 @@ from coapkb.kb.write_concern import (
     parse_answer,
     short_line,
 )
-from coapkb.transport.base import ClientTransport, Endpoint, PeerUnreachable
 from coapkb.transport.memory import MemoryNetwork
 from coapkb.transport.messages import ContentFormat, Method, Request, Response, Status
 from coapkb.transport.router import Router
@@ -46,32 +46,6 @@ WAIT_S = 0.3
 # holders' acknowledgement wait runs out when nothing else can happen, not
 # when a busy machine was slow to run a holder that does answer.
 pytestmark = pytest.mark.looptime
-
-
-class Links(ClientTransport):
-    """In memory: a push reaches the replicator at the endpoint's port, sent
-    by ``me``; a robot in ``down`` is unreachable at once, one in ``silent``
-    never answers."""
-
-    def __init__(self, me: str, robots: dict[str, Replicator], down: set[str], silent: set[str]) -> None:
-        self.me, self.robots, self.down, self.silent = me, robots, down, silent
-
-    async def request(self, peer: Endpoint, request: Request, *, timeout: float) -> Response:
-        if peer.host in self.down:
-            raise PeerUnreachable(f"{peer.host} is down")
-        if peer.host in self.silent:
-            await asyncio.Event().wait()  # never answers: the caller's own timeout ends the wait
-        return await self.robots[peer.host].handle_sync(replace(request, peer=self.me))
-
-    def observe(self, peer: Endpoint, request: Request):  # type: ignore[no-untyped-def]
-        raise NotImplementedError
-
-    async def aclose(self) -> None:
-        pass
-
-
-def at(name: str) -> Endpoint:
-    return Endpoint("coap", name, 5683)
 
 
 @dataclass

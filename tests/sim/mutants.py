@@ -50,15 +50,18 @@ from coapkb.kb.anti_entropy import AntiEntropy
 from coapkb.kb.disk import Disk
 from coapkb.kb.durable import Keeper
 from coapkb.kb.journal import Journal
+from coapkb.kb.life_fence import LifeFence, lives_writer
 from coapkb.kb.live import LiveKB
 from coapkb.kb.replica import Replica
 from coapkb.kb.sync_access import SyncAccess
 from coapkb.kb.sync_client import SyncClient
+from coapkb.kb.sync_handler import SyncHandler
 from coapkb.kb.visibility import Visibility
 from coapkb.kb.write_ids import Remembered, WriteId, WriteIds
 from coapkb.kb.written_triples import WrittenTriples
 from coapkb.model.deltas import CausalContext, Delta, WrittenState
 from coapkb.transport import observation as observation_module
+from coapkb.wire.sync import Life
 from coapkb.world.truth import Taken, WorldTruth
 
 #: The profiles mutants are caught in: a CI profile's options.
@@ -102,6 +105,9 @@ CATCH_UP_SEEDS = tuple(range(261, 321))
 #: LATE with each replica taking one dot at most past a gap: holders refuse
 #: pushes at the bound (5.03) and take them again in order.
 BOUNDED = (*LATE, "--waiting-max", "1")
+#: Robots kept in memory killed and started again within half a second,
+#: messages held back past a restart: each life writes under its robot's one name.
+LIVES = ("--robots", "3", "--tasks", "10", "--faults", "mixed,bounce,late,swarm", "--writes", "20")
 #: Clients observing the written knowledge, their robots killed and restarted.
 OBSERVED = ("--robots", "3", "--tasks", "10", "--faults", "mixed,swarm", "--writes", "20", "--observers", "2")
 
@@ -435,6 +441,25 @@ def _take_from_anyone(self: SyncAccess, message: Any, sender: str | None) -> str
     return None
 
 
+def _fence_open(self: LifeFence, life: Life) -> str | None:
+    """Every life's sync taken, an ended one's too."""
+    return None
+
+
+async def _lives_name_unfenced(self: AntiEntropy) -> None:
+    """The lives' name taken on the catch-up's reading alone, before the fence is raised."""
+    self.outgoing.fence.begin(self.outgoing.access.me)
+    self.live.continue_as(lives_writer(self.outgoing.access.me))
+
+
+def _life_taken_while_catching_up(self: SyncHandler, message: Any, peer: str | None) -> Any:
+    """A holder started again takes a life's changes before its catch-up told it the lives."""
+    return _original_refuse_life(self, dataclasses.replace(message, changes=None), peer)
+
+
+_original_refuse_life = SyncHandler._refuse_life
+
+
 _live_apply = LiveKB.apply
 
 
@@ -580,6 +605,14 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            _last_part_left_out, STORAGE, (2, 7, 10)),
     Mutant("sync-from-anyone", "a robot takes a sync of a module from any teammate, holder or not",
            lambda: _patch(SyncAccess, "refusal", _take_from_anyone), FORGE, (2, 5, 6)),
+    Mutant("life-fence-open", "a holder takes the sync of a robot's life that has ended: a push held back past its "
+           "sender's restart takes the next life's dot", lambda: _patch(LifeFence, "refusal", _fence_open),
+           LIVES, ()),
+    Mutant("lives-name-unfenced", "a robot kept in memory takes its lives' name on its catch-up's reading, without "
+           "raising the fence and reading every holder again", lambda: _patch(AntiEntropy, "_take_lives_name",
+                                                                           _lives_name_unfenced), LIVES, ()),
+    Mutant("life-taken-while-catching-up", "a holder started again takes a life's changes before its catch-up told "
+           "it the lives", lambda: _patch(SyncHandler, "_refuse_life", _life_taken_while_catching_up), LIVES, ()),
     Mutant("refused-answered-2.04", "a holder that refuses a push at its bound on waiting dots answers it 2.04: "
            "its writer counts the write as held there", lambda: _patch(Replica, "apply", _refusal_untold),
            BOUNDED, (47, 131, 157)),
