@@ -6,6 +6,7 @@ serves again.
     .venv/bin/python -m experiments.kb_durability latency [--writes 1000]
     .venv/bin/python -m experiments.kb_durability restart [--writes 100] [--rounds 3]
     .venv/bin/python -m experiments.kb_durability big [--triples 100000]
+    .venv/bin/python -m experiments.kb_durability lives [--restarts 50] [--writes 4]
 
 * **latency**: ``--writes`` one-triple INSERT DATA writes to a Location
   module in this process, each timed until it returns (for a write with a
@@ -25,6 +26,14 @@ serves again.
   1,000), as a snapshot and as a journal alone; ``coapkb serve --writable
   --data-dir`` started on it: the time from the start to the serving line
   and to an answer counting them, against the same start without a folder.
+
+* **lives**: the same team kept in memory (no data folders).  Robot3, a
+  holder of Location, is killed with SIGKILL and started again
+  ``--restarts`` times; each life takes ``--writes`` INSERT DATA writes,
+  each answered 2.04.  After each life: the writers Robot1's Location
+  context names and the bytes of an anti-entropy question carrying it
+  (what every round sends), and how many of the writes acknowledged so
+  far each holder shows at the end.
 
 Prints tables and writes ``experiments/results/kb_durability_*.csv``.
 """
@@ -228,6 +237,73 @@ async def restart(args: argparse.Namespace) -> None:
     write_csv(RESULTS / "kb_durability_restart.csv", list(rows[0]), rows)
 
 
+# ============================================================================ lives
+
+
+async def _context_of(client, endpoint, module: str):  # type: ignore[no-untyped-def]
+    """``endpoint``'s causal context of ``module``, from its answer to a
+    holder's question."""
+    from coapkb.model.deltas import CausalContext
+    from coapkb.transport.messages import ContentFormat, Method, Request, Status
+    from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
+
+    request = Request(Method.POST, "/kb/sync", payload=encode_sync(SyncMessage(module, CausalContext())),
+                      content_format=ContentFormat.CBOR, accept=ContentFormat.CBOR)
+    response = await client.request(endpoint, request, timeout=10)
+    if response.status != Status.CHANGED:
+        raise RuntimeError(f"{endpoint}: {response.status.dotted} {response.text()}")
+    return decode_sync(response.payload).context
+
+
+async def lives(args: argparse.Namespace) -> None:
+    from coapkb.config import dump_config
+    from coapkb.harness.team import TeamSpec, robot_configs
+    from coapkb.kb.client import KBClient
+    from coapkb.transport import open_client
+    from coapkb.transport.base import Endpoint
+    from coapkb.wire.sync import SyncMessage, encode_sync
+
+    scratch = _scratch()
+    spec = TeamSpec(robots=3, kb_writable=True)
+    endpoints = {r: Endpoint("coap", "127.0.0.1", free_port()) for r in spec.robot_ids}
+    configs = {}
+    for robot, config in robot_configs(spec, endpoints).items():
+        configs[robot] = scratch / f"{robot}.toml"
+        configs[robot].write_text(dump_config(config), encoding="utf-8")
+    robots = Robots(configs)
+    client = await open_client("coap")
+    kb = KBClient(client, timeout=20)
+    rows = []
+    acked: list[str] = []
+    try:
+        await asyncio.gather(*(robots.start(r) for r in spec.robot_ids))
+        for life in range(1, args.restarts + 2):
+            if life > 1:
+                await robots.kill(("Robot3",))
+                await robots.start("Robot3")
+            for i in range(args.writes):
+                label = f"L{life}W{i}"
+                await kb.update(endpoints["Robot3"], insert(label))  # raises unless 2.04
+                acked.append(label)
+            context = await _context_of(client, endpoints["Robot1"], "Location")
+            writers = sorted({*context.vv, *(d.writer for d in context.cloud)})
+            rows.append({"life": life, "acknowledged": len(acked), "writers": len(writers),
+                         "robot3_writers": sum(w.startswith("Robot3.") for w in writers),
+                         "question_bytes": len(encode_sync(SyncMessage("Location", context)))})
+            print(rows[-1], flush=True)
+        for robot in HOLDERS:
+            held = await _written(kb, endpoints[robot])
+            print(f"{robot} shows {len(set(acked) & held)} of {len(acked)} acknowledged writes", flush=True)
+            rows[-1][f"{robot.lower()}_present"] = len(set(acked) & held)
+    finally:
+        await client.aclose()
+        await robots.aclose()
+        shutil.rmtree(scratch, ignore_errors=True)
+    for row in rows[:-1]:
+        row.update({f"{r.lower()}_present": "" for r in HOLDERS})
+    write_csv(RESULTS / "kb_durability_lives.csv", list(rows[-1]), rows)
+
+
 # ============================================================================ big
 
 
@@ -324,6 +400,9 @@ def main() -> int:
     p = sub.add_parser("restart")
     p.add_argument("--writes", type=int, default=100)
     p.add_argument("--rounds", type=int, default=3)
+    p = sub.add_parser("lives")
+    p.add_argument("--restarts", type=int, default=50)
+    p.add_argument("--writes", type=int, default=4)
     p = sub.add_parser("big")
     p.add_argument("--triples", type=int, default=100_000)
     p.add_argument("--repeat", type=int, default=3)
@@ -331,7 +410,7 @@ def main() -> int:
     if args.what == "latency":
         latency(args)
     else:
-        asyncio.run({"restart": restart, "big": big}[args.what](args))
+        asyncio.run({"restart": restart, "lives": lives, "big": big}[args.what](args))
     return 0
 
 

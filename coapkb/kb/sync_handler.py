@@ -100,7 +100,11 @@ class SyncHandler:
             )
         answer = self._answer_for(module, message.context)
         if message.changes is None:
-            answer = dataclasses.replace(answer, lives=dict(self.fence.lives))
+            # The lives of the module's holders: the asker's own, and those
+            # whose ended lives it must refuse once started again.
+            answer = dataclasses.replace(answer, lives={
+                robot: number for robot, number in self.fence.lives.items()
+                if self.access.holds(robot, module) is not False})
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
 
     def _refuse_life(self, message: SyncMessage, peer: str | None) -> Response | None:

@@ -24,7 +24,7 @@ from coapkb.kb.update import encode_patch
 from coapkb.model.deltas import CausalContext, Delta, Dot, MadeUnder, Stamp, WrittenState
 from coapkb.model.results import Triple
 from coapkb.wire.codec import CodecError
-from coapkb.wire.sync import SyncMessage, decode_sync, encode_sync
+from coapkb.wire.sync import Life, SyncMessage, decode_sync, encode_sync
 
 LOC = "http://www.tcs.org/2018/Location#"
 XSD = "http://www.w3.org/2001/XMLSchema#"
@@ -93,6 +93,14 @@ def test_the_id_of_a_pushed_write_round_trips(made: MadeUnder) -> None:
     assert got.made == made and not got.forward
     if made.peer is not None:  # the sender left out: the id, its digest and two counts
         assert len(encode_sync(push)) - len(encode_sync(replace(push, made=None))) <= 30
+
+
+def test_a_life_and_the_lives_known_round_trip() -> None:
+    question = SyncMessage("Location", CONTEXT, life=Life("Robot1", 4))
+    answer = SyncMessage("Location", CONTEXT, lives={"Robot1": 4, "Robot3": 2})
+    assert round_trip(question) == question and round_trip(answer) == answer
+    # A life costs a push its robot's name and number, as the fence needs.
+    assert len(encode_sync(question)) - len(encode_sync(replace(question, life=None))) <= 13
 
 
 def test_a_written_state_round_trips() -> None:
@@ -231,6 +239,10 @@ def test_garbage_raises_only_codec_error(data: bytes) -> None:
         ["Location", [], [cbor2.loads(VALID[0])[2][0], [["A.1", 1, 1, 0, [], 0, 9]]]],  # more counted than sent
         ["Location", [], [cbor2.loads(VALID[0])[2][0], [["A.1", 1, 1, 0, [], 0, 0]]]],  # sent, not counted
         ["Location", [], {1: [], 2: cbor2.loads(VALID[1])[2][2], 3: [], 4: cbor2.loads(VALID[1])[2][4]}],
+        ["Location", [], None, False, None, ["Robot1"]],  # a life without its number
+        ["Location", [], None, False, None, ["Robot1", -2]],
+        ["Location", [], None, False, None, None, {"Robot1": "4"}],  # a life number as text
+        ["Location", [], None, False, None, None, [["Robot1", 4]]],  # lives not a map
     ],
 )
 def test_wrong_shapes_are_codec_errors(item: object) -> None:
@@ -262,6 +274,10 @@ def test_sync_messages_match_the_cddl(knowledge_cddl: object) -> None:
         SyncMessage("Location", a.context, [first], forward=True, made=MADE[1]),
         SyncMessage("Location", b.context, b.state()),
         SyncMessage("Location", CausalContext()),
+        SyncMessage("Location", a.context, [first], life=Life("A", 3)),
+        SyncMessage("Location", a.context, life=Life("A", 3)),
+        SyncMessage("Location", b.context, b.state(), lives={"A": 3, "B": 1}),
+        SyncMessage("Location", a.context, [first], forward=True, made=MADE[1], life=Life("A", 1), lives={"A": 1}),
     ]
     assert b.state().tombstones
     for message in messages:
