@@ -33,6 +33,10 @@ peer), so it runs over every transport and under its security.
   unprotected sender (``peer`` None) is not checked: there is nobody to
   check; writers known not to hold the module are still refused.
   (``docs/knowledge.md`` section 7, ``docs/security.md``.)
+* **Lives.**  A robot kept in memory writes under one name across its
+  lives once it has fenced the earlier ones out: every robot keeps the
+  highest life it knows of each and refuses (4.03) a sync from a lower
+  one (:mod:`.life_fence`).
 * **Refused at the bound.**  A delta the replica does not take (its dots past
   a gap would pass ``cloud_max``) is answered 5.03 with Max-Age, never 2.04:
   the sender must not count it as held here; it comes again at catch-up.

@@ -1,10 +1,12 @@
 """The incoming side of replication: ``/kb/sync``, where the other holders
 of this robot's modules push their changes and ask for what they lack.
 
-A message is taken only from a sender :mod:`.sync_access` allows and
-from no ended life of a robot (:mod:`.life_fence`; else 4.03), its changes go into the KB, a forwarded push's new deltas are
-passed on to the holders this robot knows, and the answer carries this
-robot's context and what the sender's lacks, up to the answer bound.
+A message is taken only from a sender :mod:`.sync_access` allows, and
+not from a robot's life that has ended (:mod:`.life_fence`; else 4.03);
+its changes go into the KB, a forwarded push's new deltas are passed on
+to the holders this robot knows, and the answer carries this robot's
+context and what the sender's lacks, up to the answer bound (and, to a
+question, the lives of the module's holders).
 Changes the replica does not take at its bound are answered 5.03 with
 Max-Age, never 2.04.  Overview: :mod:`.replication`.
 """
@@ -20,7 +22,7 @@ from ..transport.base import ResourceInfo
 from ..transport.messages import ContentFormat, Request, Response, Status
 from ..transport.router import Router
 from ..wire.codec import CodecError
-from ..wire.sync import SyncMessage, decode_sync, encode_sync
+from ..wire.sync import Life, SyncMessage, decode_sync, encode_sync
 from .live import LiveKB
 from .replication_settings import SYNC_PATH, Holder, ReplicationSettings, ReplicationStats
 from .sync_access import SyncAccess
@@ -71,7 +73,7 @@ class SyncHandler:
                                    "refused a sync of %s from %s: %s", module, request.peer, refusal)
             return Response.error(Status.FORBIDDEN, refusal)
         if message.life is not None:
-            not_taken = self._refuse_life(message, request.peer)
+            not_taken = self._refuse_life(message.life, message, request.peer)
             if not_taken is not None:
                 return not_taken
             # Raised before the answer is made: the life that asks reads
@@ -107,10 +109,8 @@ class SyncHandler:
                 if self.access.holds(robot, module) is not False})
         return Response(Status.CHANGED, encode_sync(answer), ContentFormat.CBOR)
 
-    def _refuse_life(self, message: SyncMessage, peer: str | None) -> Response | None:
-        """The answer to a sync from a robot's life that is not taken; None if it is."""
-        life = message.life
-        assert life is not None
+    def _refuse_life(self, life: Life, message: SyncMessage, peer: str | None) -> Response | None:
+        """The answer to ``message``, from ``life``, if it is not taken; None if it is."""
         refusal = self.fence.refusal(life)
         if peer is not None and life.robot != peer:
             refusal = f"{peer} sent a sync as a life of {life.robot}"

@@ -72,7 +72,11 @@ def test_exitfirst_stops_at_the_first_violating_seed_and_leaves_nothing_behind(t
 
 
 #: Planted bugs no seed searched has caught yet, and why that may be.
-SURVIVORS: dict[str, str] = {}
+SURVIVORS: dict[str, str] = {
+    "life-taken-while-catching-up": "it needs a robot and one of its co-holders restarted at once, and an "
+    "ended life's push held back until the holder's catch-up: no seed of 200 of its profile (nor of "
+    "mixed,bounce,late,swarm) had all three; tests/kb/test_life_fence.py holds it",
+}
 
 
 def test_there_are_a_dozen_planted_bugs_caught_and_the_survivors_are_named() -> None:

@@ -310,6 +310,12 @@ FOUND: list[tuple[tuple[str, ...], dict[int, str]]] = [
              "outlasted the 3 s a write waits for it (a co-holder starved, lossy links): it removed nothing there, "
              "was answered 2.04, and the value stayed on the others",
     }),
+    (("--robots", "3", "--tasks", "30", "--faults", "bounce,late=0.2,swarm", "--writes", "60"), {
+        46: "a robot kept in memory wrote under its lives' one name without a fence: its last life's push, held "
+            "back past its restart, took the next life's dot at one holder, and the holders split at one version",
+        79: "a holder restarted had the add from its peer's catch-up answer, not yet the delete, when that peer, "
+            "the last to hold the delete, was killed: the value back, excused as a lost last copy",
+    }),
 ]
 
 
