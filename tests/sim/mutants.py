@@ -539,7 +539,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(TaskExecutor, "_leased", _verdict_ignored), FENCE, (13, 35)),
     Mutant("lease-from-its-answer", "a robot times its lease from the grants' arrival, not from when it asked: "
            "grants that waited for it (held back, or while it was frozen) let it pick past the lease", lambda: _patch(Lease, "hold", _lease_from_its_answer),
-           LATE_HEDGED, (79,)),
+           LATE_HEDGED, (579,)),
     Mutant("lease-granted-by-anyone", "a robot grants a lease to any teammate, down or not",
            lambda: _patch(TeamMembership, "grant", _grant_anyone), FENCE, (44,)),
     Mutant("feeder-skips-the-fence", "the feeder sends a down robot's tasks round at once, without the lease wait",
@@ -578,7 +578,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
            lambda: _patch(joining_module, "joined_on", _answer_of_another_shape), STORAGE_FORGE, (103234,)),
     Mutant("plans-shown-forgotten", "a try of a teammate's question held back past the next tasks is answered "
            "without the plan an earlier try was shown, and binds the robot asked",
-           lambda: _patch(RobotResources, "_shown_before", _nothing_shown), LATE_HEDGED, (4608,)),
+           lambda: _patch(RobotResources, "_shown_before", _nothing_shown), LATE_HEDGED, ()),
     Mutant("repair-never-fires", "a wait never asks for a state that is late: a lost notification waits out "
            "the observation's refresh",
            lambda: _patch(notification_repair_module.RepairSchedule, "overdue", _repair_never_fires),
@@ -626,7 +626,7 @@ MUTANTS: dict[str, Mutant] = {m.name: m for m in (
     Mutant("causal-context-ignored", "a whole state is joined without its causal context and tombstones",
            lambda: _patch(Replica, "join", _context_ignored), WRITES, (26, 42, 91)),
     Mutant("no-tombstones", "a remove that arrives before its add leaves no tombstone",
-           lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (9, 11, 15)),
+           lambda: _patch(Replica, "apply", _no_tombstones), MANY_WRITES, (4, 8, 18)),
     Mutant("observer-trusts-silence", "an observation waits for the next notification for good: it never "
            "notices a robot that restarted, dropped it, or whose last notification was lost",
            lambda: _patch(observation_module._FreshObservation, "notification", _silence_trusted), OBSERVED, (14, 42, 55)),
