@@ -128,6 +128,25 @@ def latency(args: argparse.Namespace) -> None:
 # ============================================================================ restart
 
 
+def _team(scratch: Path, *, data_dirs: bool):  # type: ignore[no-untyped-def]
+    """A writable team of three robots on loopback, configured in
+    ``scratch`` (each with its data folder there if ``data_dirs``): their
+    endpoints, and the :class:`Robots` to start them."""
+    from coapkb.config import dump_config
+    from coapkb.harness.team import TeamSpec, robot_configs
+    from coapkb.transport.base import Endpoint
+
+    spec = TeamSpec(robots=3, kb_writable=True)
+    endpoints = {r: Endpoint("coap", "127.0.0.1", free_port()) for r in spec.robot_ids}
+    configs = {}
+    for robot, config in robot_configs(spec, endpoints).items():
+        if data_dirs:
+            config = dataclasses.replace(config, data_dir=scratch / "data" / robot)
+        configs[robot] = scratch / f"{robot}.toml"
+        configs[robot].write_text(dump_config(config), encoding="utf-8")
+    return endpoints, Robots(configs)
+
+
 class Robots:
     """Robot processes (``coapkb agent``) of one team, by name."""
 
@@ -192,27 +211,17 @@ async def _first_answer(kb, endpoint, started: float, expected: set[str]) -> tup
 
 
 async def restart(args: argparse.Namespace) -> None:
-    from coapkb.config import dump_config
-    from coapkb.harness.team import TeamSpec, robot_configs
     from coapkb.kb.client import KBClient
     from coapkb.transport import open_client
-    from coapkb.transport.base import Endpoint
 
     rows = []
     for round_no in range(1, args.rounds + 1):
         scratch = _scratch()
-        spec = TeamSpec(robots=3, kb_writable=True)
-        endpoints = {r: Endpoint("coap", "127.0.0.1", free_port()) for r in spec.robot_ids}
-        configs = {}
-        for robot, config in robot_configs(spec, endpoints).items():
-            configs[robot] = scratch / f"{robot}.toml"
-            configs[robot].write_text(dump_config(dataclasses.replace(config, data_dir=scratch / "data" / robot)),
-                                      encoding="utf-8")
-        robots = Robots(configs)
+        endpoints, robots = _team(scratch, data_dirs=True)
         client = await open_client("coap")
         kb = KBClient(client, timeout=20)
         try:
-            await asyncio.gather(*(robots.start(r) for r in spec.robot_ids))
+            await asyncio.gather(*(robots.start(r) for r in endpoints))
             rng = random.Random(round_no)
             labels = [f"R{round_no}W{i}" for i in range(args.writes)]
             acked = []
@@ -256,27 +265,18 @@ async def _context_of(client, endpoint, module: str):  # type: ignore[no-untyped
 
 
 async def lives(args: argparse.Namespace) -> None:
-    from coapkb.config import dump_config
-    from coapkb.harness.team import TeamSpec, robot_configs
     from coapkb.kb.client import KBClient
     from coapkb.transport import open_client
-    from coapkb.transport.base import Endpoint
     from coapkb.wire.sync import SyncMessage, encode_sync
 
     scratch = _scratch()
-    spec = TeamSpec(robots=3, kb_writable=True)
-    endpoints = {r: Endpoint("coap", "127.0.0.1", free_port()) for r in spec.robot_ids}
-    configs = {}
-    for robot, config in robot_configs(spec, endpoints).items():
-        configs[robot] = scratch / f"{robot}.toml"
-        configs[robot].write_text(dump_config(config), encoding="utf-8")
-    robots = Robots(configs)
+    endpoints, robots = _team(scratch, data_dirs=False)
     client = await open_client("coap")
     kb = KBClient(client, timeout=20)
     rows = []
     acked: list[str] = []
     try:
-        await asyncio.gather(*(robots.start(r) for r in spec.robot_ids))
+        await asyncio.gather(*(robots.start(r) for r in endpoints))
         for life in range(1, args.restarts + 2):
             if life > 1:
                 await robots.kill(("Robot3",))
