@@ -29,10 +29,11 @@ client's write a push of one delta comes from; without ``peer``, its
 sender is the name before the writer's first dot (``Robot2`` of
 ``Robot2.7f3a``).  ``life`` is the sender's life, when it writes under the
 one name of its lives kept in memory, and ``lives`` (in an answer to a
-question) the highest life the answering robot knows of each robot
-(``docs/knowledge.md``, section 6).  In a state, key 2 is the written triples, key 3 the dots (and stamps) of
-each in the same order, key 4 the files' triples removed, key 5 the
-tombstones (dots removed before their write arrived).  Decoders raise
+question) the highest life the answering robot knows of each holder of
+the module (``docs/knowledge.md``, section 6).  In a state, key 2 is the
+written triples, key 3 the dots (and stamps) of each in the same order,
+key 4 the files' triples removed, key 5 the tombstones (dots removed
+before their write arrived).  Decoders raise
 :class:`~coapkb.wire.codec.CodecError` and nothing else on malformed input.
 """
 
@@ -55,7 +56,7 @@ MAX_WRITERS = 4096
 MAX_DELTAS = 100_000
 
 
-@dataclass(frozen=True, order=True)
+@dataclass(frozen=True)
 class Life:
     """One life (process) of a robot kept in memory that writes under the
     name of all its lives: ``number`` orders them."""
