@@ -17,8 +17,9 @@ The fence gives that:
   one's whole context (one exchange each), so every dot of an earlier life
   that any holder will ever take is among those it read;
 * a holder's answer to a question carries the lives it knows, so one that
-  restarted learns them at its catch-up, and until its catch-up ends it
-  takes no changes from a robot's life (it may not know the fence yet).
+  restarted learns them at its catch-up, and until an answer told it a
+  module's lives (or its catch-up ended) it takes no changes of that
+  module from a robot's life (it may not know the fence yet).
 
 Pure: the transport and the exchanges are :mod:`.anti_entropy`'s.
 """
@@ -46,6 +47,8 @@ class LifeFence:
         self._highest: dict[str, int] = {}
         #: This robot's life, carried by every sync message it sends.
         self.own: Life | None = None
+        #: The modules whose holders' lives an answer told this process.
+        self.told: set[str] = set()
 
     @property
     def lives(self) -> Mapping[str, int]:
@@ -68,8 +71,9 @@ class LifeFence:
         if life.number > self.highest(life.robot):
             self._highest[life.robot] = life.number
 
-    def learn(self, lives: Mapping[str, int]) -> None:
-        """Lives another holder knows of (from its answer)."""
+    def learn(self, module: str, lives: Mapping[str, int]) -> None:
+        """The lives a holder of ``module`` knows of its holders (its answer)."""
+        self.told.add(module)
         for robot, number in lives.items():
             self.raise_to(Life(robot, number))
 

@@ -112,7 +112,7 @@ class SyncClient:
                           holder.name, message.module, refusal)
             return None
         self.known[(message.module, holder.name)] = answer.context
-        self.fence.learn(answer.lives)
+        self.fence.learn(message.module, answer.lives)
         self.take(answer)
         return answer
 

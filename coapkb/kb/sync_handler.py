@@ -119,9 +119,11 @@ class SyncHandler:
             self.outgoing.log_once(life.robot, message.module, Status.FORBIDDEN,
                                    "refused a sync of %s: %s", message.module, refusal)
             return Response.error(Status.FORBIDDEN, refusal)
-        if message.changes is not None and self.catching_up():
+        if message.changes is not None and message.module not in self.fence.told and self.catching_up():
             # Started again, this robot may not know the fence yet: the
-            # catch-up's answers carry it, and the changes come again.
+            # catch-up's answers carry it, and the changes come again.  Not
+            # once one answer told it: at a team's start every holder
+            # catches up at once, and a write refused by all of them failed.
             return Response.error(
                 Status.SERVICE_UNAVAILABLE, "this robot is catching up: it takes a robot's life's changes after",
                 max_age=max(1, math.ceil(self.settings.sync_every_s)))

@@ -5,6 +5,7 @@ linked in memory, on the event loop's own clock (looptime)."""
 
 from __future__ import annotations
 
+import asyncio
 import random
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -77,7 +78,7 @@ async def team() -> AsyncIterator[Team]:
 def test_a_life_is_refused_below_the_highest_known() -> None:
     fence = LifeFence()
     assert fence.begin("A") == Life("A", 1)
-    fence.learn({"A": 3, "B": 2})
+    fence.learn("Location", {"A": 3, "B": 2})
     assert fence.refusal(Life("A", 2)) == "A's life 2 has ended: its life 3 has started"
     assert fence.refusal(Life("A", 3)) is None and fence.refusal(Life("C", 1)) is None
     fence.raise_to(Life("B", 1))  # an earlier life's question, late: the fence never goes down
@@ -145,8 +146,8 @@ async def test_a_holder_started_again_learns_the_lives_before_it_takes_theirs(te
     await team.start("A").catch_up()  # A's life 2 fenced B and C
     await team.robots["B"].aclose()
     restarted_b = team.start("B")
-    team.silent.add("C")
-    restarted_b.start()  # its catch-up waits for C, who never answers
+    team.silent.update({"A", "C"})
+    restarted_b.start()  # its catch-up waits for A and C, who do not answer yet
     push = SyncMessage("Location", team.robots["A"].live.replicas["Location"].context.copy(),
                        list(team.robots["A"].live.update(_note("two")).deltas.values()), life=Life("A", 2))
     request = Request(Method.POST, "/kb/sync", payload=encode_sync(push), content_format=ContentFormat.CBOR,
@@ -154,9 +155,10 @@ async def test_a_holder_started_again_learns_the_lives_before_it_takes_theirs(te
     answer = await restarted_b.handle_sync(request)
     assert answer.status == Status.SERVICE_UNAVAILABLE  # it may not know the fence yet
     assert not team.shows("B", "two")
-    team.silent.discard("C")
+    team.silent.clear()
     await restarted_b.catch_up()
     assert restarted_b.fence.highest("A") == 2  # from A's and C's answers
+    assert restarted_b.fence.told == {"Location"}
     ended = SyncMessage("Location", push.context, push.changes, life=a_life_1)
     answer = await restarted_b.handle_sync(Request(Method.POST, "/kb/sync", payload=encode_sync(ended),
                                                    content_format=ContentFormat.CBOR, peer="A"))
@@ -169,3 +171,22 @@ async def test_a_robot_may_not_send_as_another_robots_life(team: Team) -> None:
                                                         content_format=ContentFormat.CBOR, peer="C"))
     assert answer.status == Status.FORBIDDEN and answer.text() == "C sent a sync as a life of A"
     assert team.robots["B"].fence.highest("A") == 1
+
+
+async def test_a_holder_still_catching_up_takes_a_lifes_changes_once_an_answer_told_it_the_lives(
+        team: Team) -> None:
+    """At a team's start every holder catches up at once: a write whose
+    pushes they all refused until their catch-ups ended failed (5.04)."""
+    await team.robots["B"].aclose()
+    restarted_b = team.start("B")
+    team.silent.add("C")
+    restarted_b.start()  # A answers its catch-up; C does not, so it goes on catching up
+    while "Location" not in restarted_b.fence.told:
+        await asyncio.sleep(0.01)
+    assert restarted_b.catching_up
+    writer = team.robots["A"]
+    push = SyncMessage("Location", writer.live.replicas["Location"].context.copy(),
+                       list(writer.live.update(_note("two")).deltas.values()), life=writer.fence.own)
+    answer = await restarted_b.handle_sync(Request(Method.POST, "/kb/sync", payload=encode_sync(push),
+                                                   content_format=ContentFormat.CBOR, peer="A"))
+    assert answer.status == Status.CHANGED and team.shows("B", "two")
