@@ -98,7 +98,7 @@ class SyncHandler:
                 Status.SERVICE_UNAVAILABLE,
                 f"{replica.refused - refused} of the changes not taken: this robot waits for "
                 f"{replica.gaps()} missing writes (at most {replica.limits.cloud_max}); it catches up first",
-                max_age=max(1, math.ceil(self.settings.sync_every_s)),
+                max_age=self._next_round_s(),
             )
         answer = self._answer_for(module, message.context)
         if message.changes is None:
@@ -126,8 +126,13 @@ class SyncHandler:
             # catches up at once, and a write refused by all of them failed.
             return Response.error(
                 Status.SERVICE_UNAVAILABLE, "this robot is catching up: it takes a robot's life's changes after",
-                max_age=max(1, math.ceil(self.settings.sync_every_s)))
+                max_age=self._next_round_s())
         return None
+
+    def _next_round_s(self) -> int:
+        """Max-Age of changes refused for now: the anti-entropy period, when
+        they come again by this robot's own exchanges."""
+        return max(1, math.ceil(self.settings.sync_every_s))
 
     def _new(self, message: SyncMessage) -> list[Delta]:
         """The deltas of a forwarded push that are new here: to pass on (once taken)."""

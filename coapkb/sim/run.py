@@ -640,9 +640,10 @@ class SimulatedTeam:
     def _writers_bound(self) -> int:
         """The most writers a replica's version vector may name: one per
         robot with data folders (a restart writes on under its folder's
-        name), else one per process a robot ran (a life kept in memory
-        writes under a name of its own; docs/knowledge.md, "Not bounded:
-        the lives of a robot kept in memory")."""
+        name), else one per process a robot ran (a life kept in memory that
+        could not fence its earlier lives writes under a name of its own;
+        docs/knowledge.md, "One name for the lives of a robot kept in
+        memory")."""
         return len(self.configs) if self.spec.storage else len(self.holders.lives)
 
     def _settled(self) -> bool:
